@@ -1,0 +1,30 @@
+"""Stage 1 host side: scene and centroid bounds (kernels/bounds.cl)."""
+from __future__ import annotations
+
+import pyopencl as cl
+
+from . import layout
+
+
+def partial_count(rt, triangle_count: int) -> int:
+    """Work-items of the first reduction level: enough to fill the device,
+    about one per 64 triangles at most, in whole work-groups."""
+    per_unit = 2048 if rt.device.type == "gpu" else 256
+    wanted = per_unit * rt.device.compute_units
+    group = rt.group_size
+    return max(group, min(wanted, -(-triangle_count // 64) * 64) // group * group)
+
+
+def scene_bounds(rt, vertices: cl.Buffer, faces: cl.Buffer, triangle_count: int,
+                 bounds: cl.Buffer, wait_for=None) -> list[cl.Event]:
+    """bounds[0] <- box of all triangles, bounds[1] <- box of their centroids."""
+    partials = partial_count(rt, triangle_count)
+    geometry = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, partials * layout.AABB.itemsize)
+    centroids = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, partials * layout.AABB.itemsize)
+    kernel = rt.kernel("bounds.cl", "reduce_triangle_bounds",
+                       STRIDED_SLICES=int(rt.device.type == "gpu"))
+    reduce = rt.run(kernel, partials,
+                    vertices, faces, triangle_count, geometry, centroids, wait_for=wait_for)
+    fold = rt.run(rt.kernel("bounds.cl", "fold_partial_bounds", STRIDED_SLICES=0), 1,
+                  geometry, centroids, partials, bounds, wait_for=[reduce], local_size=1)
+    return [reduce, fold]

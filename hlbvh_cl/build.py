@@ -1,0 +1,173 @@
+"""The build pipeline: bounds -> Morton codes -> radix sort -> Karras emission
+-> refit (+ SAH collapse) -> SAH top over clusters -> flat tree.
+
+Every stage runs on the device; this module only sequences them, sizes the
+buffers (failing before any allocation when the device is too small) and
+collects per-stage times from profiling events.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import pyopencl as cl
+
+from . import layout
+from .bounds import scene_bounds
+from .device import Runtime, event_ms
+from .emit import RadixTree, emit_internal_nodes
+from .flatten import box_area, flatten_nodes, gather_triangles
+from .morton import key_dtype, morton_codes
+from .refit import RadixTreeMetrics, refit_radix_tree
+from .sah_top import build_top
+from .sort import RadixSorter
+from .tree import DeviceTree
+
+BUILDERS = ("hlbvh", "lbvh")
+STAGES = ("bounds", "morton", "sort", "emit", "refit", "sah_top", "flatten")
+MAX_TRIANGLES = 2**31 - 2  # node indices are int32 (2n - 1 of them must fit)
+
+
+@dataclass
+class Geometry:
+    """The scene's meshes on the device, concatenated.  Kept between builds
+    so that refits and rebuilds need no upload but the moved vertices."""
+
+    vertices: cl.Buffer        # float32[V*3]
+    faces: cl.Buffer           # int32[M*3], indices into the concatenated vertices
+    mesh_first_face: cl.Buffer  # int32[G]
+    vertex_count: int
+    triangle_count: int
+    mesh_count: int
+
+    @classmethod
+    def upload(cls, rt: Runtime, vertices: np.ndarray, faces: np.ndarray,
+               mesh_first_face: np.ndarray) -> "Geometry":
+        flags = cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR
+        return cls(cl.Buffer(rt.context, flags, hostbuf=np.ascontiguousarray(vertices, np.float32)),
+                   cl.Buffer(rt.context, flags, hostbuf=np.ascontiguousarray(faces, np.int32)),
+                   cl.Buffer(rt.context, flags,
+                             hostbuf=np.ascontiguousarray(mesh_first_face, np.int32)),
+                   len(vertices), len(faces), len(mesh_first_face))
+
+
+def build_memory(vertex_count: int, triangle_count: int, morton_bits: int) -> dict[str, int]:
+    """Bytes of every device buffer a build holds at its peak."""
+    n = triangle_count
+    key = key_dtype(morton_bits).itemsize
+    return {
+        "vertices": vertex_count * 12, "faces": n * 12,
+        "morton keys (x2 for the sort)": 2 * n * key, "primitive ids (x2 for the sort)": 2 * n * 4,
+        "radix tree links": 5 * n * 4, "radix tree boxes": (2 * n - 1) * layout.AABB.itemsize,
+        "radix tree costs, heights, flags": (2 * n - 1) * 8 + 2 * n * 4,
+        "scans": 2 * (n + 1) * 4,
+        "flat nodes": max(1, n - 1) * layout.FLAT_NODE.itemsize, "flat parents": n * 4,
+        "triangles": n * layout.TRIANGLE.itemsize, "triangle refs": n * layout.TRIANGLE_REF.itemsize,
+    }
+
+
+def check_fits(rt: Runtime, vertex_count: int, triangle_count: int, morton_bits: int) -> None:
+    if triangle_count > MAX_TRIANGLES:
+        raise ValueError(f"the scene has {triangle_count} triangles; at most {MAX_TRIANGLES} fit "
+                         "int32 node indices")
+    rt.check_allocation(f"building a BVH over {triangle_count:,} triangles",
+                        build_memory(vertex_count, triangle_count, morton_bits))
+
+
+@dataclass
+class BuildResult:
+    tree: DeviceTree
+    stats: dict
+
+
+_sorters: dict[tuple, RadixSorter] = {}
+
+
+def _sorter(rt: Runtime, dtype) -> RadixSorter:
+    key = (id(rt), np.dtype(dtype).str)
+    if key not in _sorters:
+        _sorters[key] = RadixSorter(rt, key_dtype=dtype)
+    return _sorters[key]
+
+
+def build(rt: Runtime, geometry: Geometry, builder: str = "hlbvh",
+          morton_bits: int = 30) -> BuildResult:
+    """Build a DeviceTree over ``geometry`` on the device.  Builds on one
+    runtime are serialised: they share the sorter's scratch buffers."""
+    with rt.build_lock:
+        return _build(rt, geometry, builder, morton_bits)
+
+
+def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int) -> BuildResult:
+    if builder not in BUILDERS:
+        raise ValueError(f"builder must be one of {BUILDERS}, got {builder!r}")
+    dtype = key_dtype(morton_bits)
+    n = geometry.triangle_count
+    check_fits(rt, geometry.vertex_count, n, morton_bits)
+    hlbvh = builder == "hlbvh"
+    ctx = rt.context
+    started = time.perf_counter()
+    stage_events: dict[str, list] = {name: [] for name in STAGES}
+
+    def buf(nbytes):
+        return cl.Buffer(ctx, cl.mem_flags.READ_WRITE, max(4, nbytes))
+
+    bounds = buf(2 * layout.AABB.itemsize)
+    stage_events["bounds"] = scene_bounds(rt, geometry.vertices, geometry.faces, n, bounds)
+
+    keys, primitive_ids = buf(n * dtype.itemsize), buf(n * 4)
+    stage_events["morton"] = morton_codes(rt, geometry.vertices, geometry.faces, n, bounds, keys,
+                                          primitive_ids, morton_bits,
+                                          wait_for=stage_events["bounds"][-1:])
+
+    # The result may sit in the sorter's scratch, which the next build on this
+    # runtime reuses: nothing sorted outlives this build (refits use refs).
+    keys, primitive_ids, stage_events["sort"] = _sorter(rt, dtype).sort(
+        keys, primitive_ids, n, morton_bits, wait_for=stage_events["morton"][-1:])
+
+    tree = RadixTree.allocate(rt, n)
+    stage_events["emit"] = emit_internal_nodes(rt, keys, morton_bits, tree,
+                                               wait_for=stage_events["sort"][-1:])
+
+    metrics = RadixTreeMetrics.allocate(rt, n)
+    stage_events["refit"] = refit_radix_tree(rt, geometry.vertices, geometry.faces, primitive_ids,
+                                             tree, metrics, collapse_leaves=hlbvh,
+                                             wait_for=stage_events["emit"][-1:])
+
+    top = None
+    if hlbvh and n > 1:
+        top, stage_events["sah_top"] = build_top(rt, keys, morton_bits, tree, metrics,
+                                                 wait_for=stage_events["refit"][-1:])
+
+    last = (stage_events["sah_top"] or stage_events["refit"])[-1:]
+    nodes, parents, node_count, leaf_count, root_box, depth, cost, stage_events["flatten"] = \
+        flatten_nodes(
+        rt, keys, morton_bits, tree, metrics, top, use_clusters=hlbvh, wait_for=last)
+    triangles, refs = buf(n * layout.TRIANGLE.itemsize), buf(n * layout.TRIANGLE_REF.itemsize)
+    stage_events["flatten"] += gather_triangles(
+        rt, geometry.vertices, geometry.faces, primitive_ids, n, geometry.mesh_first_face,
+        geometry.mesh_count, triangles, refs, morton_bits, hlbvh,
+        wait_for=stage_events["flatten"][-1:])
+
+    scene_box = np.empty(2, layout.AABB)
+    cl.enqueue_copy(rt.queue, scene_box, bounds)
+    rt.queue.finish()
+    wall_ms = (time.perf_counter() - started) * 1e3
+
+    tree_out = DeviceTree(nodes=nodes, triangles=triangles, refs=refs, parents=parents,
+                          node_count=node_count, leaf_count=leaf_count, triangle_count=n,
+                          depth=depth, bounds_lo=scene_box[0]["lo"].copy(),
+                          bounds_hi=scene_box[0]["hi"].copy())
+    root_area = box_area(root_box)
+    times = {name: event_ms(events) for name, events in stage_events.items()}
+    times["total"] = sum(times.values())
+    times["wall"] = wall_ms
+    stats = {
+        "builder": builder, "morton_bits": morton_bits, "triangles": n, "nodes": node_count,
+        "leaves": leaf_count, "depth": depth,
+        "sah_cost": cost / root_area if root_area > 0 else float(leaf_count),
+        "clusters": top.cluster_count if top else 1, "times_ms": times,
+    }
+    return BuildResult(tree_out, stats)
+

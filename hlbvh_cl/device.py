@@ -1,0 +1,339 @@
+"""OpenCL devices: discovery, selection, and one runtime (context, queue,
+program cache) per device.
+
+Device ids are short and stable: ``<vendor>:<k>``, where k counts that
+vendor's devices in platform order (``pocl:0``, ``intel:0``, ``nvidia:1``).
+"""
+from __future__ import annotations
+
+import ctypes
+import os
+import sys
+import threading
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .paths import kernel_dir
+
+_INSTALL_HINT = ("install an OpenCL driver; the portable CPU one comes from PyPI: "
+                 "pip install pocl-binary-distribution  (or: pip install 'pyopencl[pocl]')")
+
+
+def _cache_root() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "hlbvh_cl"
+
+
+def _register_intel_cpu_runtime() -> None:
+    """Make Intel's CPU OpenCL runtime from PyPI (intel-opencl-rt) visible.
+
+    Its wheel ships an .icd file pointing at a build machine's path, so the ICD
+    loader never finds it.  We write a vendors folder holding a correct .icd
+    plus copies of the system's own .icd files (so GPUs stay visible) and point
+    OCL_ICD_VENDORS at it.  This must run before pyopencl lists platforms.  A
+    user's own OCL_ICD_VENDORS always wins.
+    """
+    if "OCL_ICD_VENDORS" in os.environ:
+        return
+    lib = Path(sys.prefix) / "lib" / "libintelocl.so"
+    if not lib.is_file():
+        return
+    folder = _cache_root() / "icd"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        entries = {"intel-cpu-hlbvh_cl.icd": f"{lib}\n"}
+        system = Path("/etc/OpenCL/vendors")
+        if system.is_dir():
+            for icd in system.glob("*.icd"):
+                entries[icd.name] = icd.read_text()
+        for name, text in entries.items():
+            path = folder / name
+            if not path.is_file() or path.read_text() != text:
+                path.write_text(text)
+        # libintelocl.so finds libimf & co. through its RUNPATH ($ORIGIN);
+        # loading it here is a cheap check that the runtime is complete.
+        ctypes.CDLL(str(lib.parent / "libimf.so"), mode=ctypes.RTLD_GLOBAL)
+    except OSError:
+        return
+    os.environ["OCL_ICD_VENDORS"] = str(folder)
+
+
+_register_intel_cpu_runtime()
+
+import numpy as np  # noqa: E402
+import pyopencl as cl  # noqa: E402  (after the ICD set-up above)
+
+_VENDORS = (
+    ("portable computing language", "pocl"), ("intel", "intel"), ("nvidia", "nvidia"),
+    ("advanced micro devices", "amd"), ("amd", "amd"), ("apple", "apple"), ("rusticl", "rusticl"),
+    ("clover", "clover"), ("arm", "arm"), ("qualcomm", "qualcomm"),
+)
+
+
+def _vendor_id(platform_name: str) -> str:
+    lowered = platform_name.lower()
+    for needle, vendor in _VENDORS:
+        if needle in lowered:
+            return vendor
+    return lowered.split()[0] if lowered.split() else "opencl"
+
+
+@dataclass(frozen=True)
+class Device:
+    """One OpenCL device as ``hlbvh_cl.devices()`` lists it."""
+
+    id: str
+    index: int
+    platform: str
+    name: str
+    type: str
+    driver_version: str
+    compute_units: int
+    global_mem_size: int
+    max_mem_alloc_size: int
+    cl_device: cl.Device = field(repr=False, compare=False)
+
+    def __str__(self) -> str:
+        return f"{self.id} ({self.type}) {self.name} [{self.platform}]"
+
+    @property
+    def problem(self) -> str | None:
+        """Why this device cannot run kernels, or None when it can.
+
+        Found by compiling a one-line kernel once per process: some drivers
+        list a device they cannot compile for (PyPI's PoCL 3.0, built on
+        LLVM 14, fails with "unknown target CPU 'generic'" on CPUs newer than
+        LLVM 14 knows)."""
+        if self.id not in _problems:
+            _problems[self.id] = _probe(self.cl_device)
+        return _problems[self.id]
+
+
+_problems: dict[str, str | None] = {}
+
+
+def _probe(cl_device) -> str | None:
+    try:
+        context = cl.Context([cl_device])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            cl.Program(context, "__kernel void probe(__global int *x) { x[0] = 1; }").build()
+    except cl.Error as error:
+        lines = [line.strip() for line in str(error).splitlines() if "error" in line.lower()]
+        return lines[-1] if lines else str(error).strip().splitlines()[0]
+    return None
+
+
+def _type_name(device_type: int) -> str:
+    if device_type & cl.device_type.GPU:
+        return "gpu"
+    if device_type & cl.device_type.CPU:
+        return "cpu"
+    if device_type & cl.device_type.ACCELERATOR:
+        return "accelerator"
+    return "other"
+
+
+_devices_cache: list[Device] | None = None
+
+
+def devices() -> list[Device]:
+    """Every OpenCL device present, in platform order."""
+    global _devices_cache
+    if _devices_cache is None:
+        try:
+            platforms = cl.get_platforms()
+        except cl.Error:
+            platforms = []
+        found: list[Device] = []
+        per_vendor: dict[str, int] = {}
+        for platform in platforms:
+            vendor = _vendor_id(platform.name)
+            try:
+                cl_devices = platform.get_devices()
+            except cl.Error:
+                continue
+            for d in cl_devices:
+                k = per_vendor.get(vendor, 0)
+                per_vendor[vendor] = k + 1
+                found.append(Device(
+                    id=f"{vendor}:{k}", index=len(found), platform=platform.name.strip(),
+                    name=d.name.strip(), type=_type_name(d.type), driver_version=d.driver_version,
+                    compute_units=d.max_compute_units, global_mem_size=d.global_mem_size,
+                    max_mem_alloc_size=d.max_mem_alloc_size, cl_device=d))
+        _devices_cache = found
+    return list(_devices_cache)
+
+
+def _match(spec, available: list[Device], source: str) -> Device:
+    if isinstance(spec, Device):
+        return spec
+    if isinstance(spec, bool) or not isinstance(spec, (int, str)):
+        raise TypeError(f"{source} must be a device id, an index or a name substring, "
+                        f"got {type(spec).__name__}")
+    listing = "; ".join(str(d) for d in available)
+    if isinstance(spec, int):
+        if not 0 <= spec < len(available):
+            raise ValueError(f"{source}={spec} is out of range: {len(available)} device(s): {listing}")
+        return available[spec]
+    text = spec.strip().lower()
+    if text.isdigit():
+        return _match(int(text), available, source)
+    for d in available:
+        if d.id == text:
+            return d
+    matches = [d for d in available
+               if text and (text in d.id or text in d.name.lower() or text in d.platform.lower())]
+    if not matches:
+        raise ValueError(f"{source}={spec!r} matches no OpenCL device; present: {listing}")
+    # A name may match several devices: take the first that can compile kernels.
+    return next((d for d in matches if d.problem is None), matches[0])
+
+
+def select_device(device=None) -> Device:
+    """Pick a device: the argument, then $HLBVH_CL_DEVICE, then a GPU, then a CPU."""
+    available = devices()
+    if not available:
+        raise RuntimeError(f"hlbvh_cl found no OpenCL platform on this machine: {_INSTALL_HINT}")
+    if device is not None:
+        return _match(device, available, "device")
+    env = os.environ.get("HLBVH_CL_DEVICE")
+    if env:
+        return _match(env, available, "HLBVH_CL_DEVICE")
+    for wanted in ("gpu", "cpu", "accelerator", "other"):
+        for d in available:
+            if d.type == wanted and d.problem is None:
+                return d
+    problems = "; ".join(f"{d.id}: {d.problem}" for d in available)
+    raise RuntimeError(f"no OpenCL device here can compile kernels ({problems}); {_INSTALL_HINT}. "
+                       "On Debian/Ubuntu, the distribution's PoCL (apt-get install "
+                       "pocl-opencl-icd) supports newer CPUs than PyPI's.")
+
+
+class KernelBuildError(RuntimeError):
+    """An OpenCL program failed to compile; the message carries the build log."""
+
+
+class DeviceMemoryError(MemoryError):
+    """A scene or batch needs more memory than the device allows."""
+
+
+class Runtime:
+    """Context, profiling queue and program cache of one device.
+
+    Programs are built once per (file, defines) and kept for the life of the
+    runtime; pyopencl's on-disk binary cache (and PoCL's own) keep them across
+    runs.
+    """
+
+    def __init__(self, device: Device):
+        self.device = device
+        self.context = cl.Context([device.cl_device])
+        self.queue = cl.CommandQueue(self.context,
+                                     properties=cl.command_queue_properties.PROFILING_ENABLE)
+        self._programs: dict[tuple, cl.Program] = {}
+        self._kernels: dict[tuple, cl.Kernel] = {}
+        self._lock = threading.Lock()
+        self.build_lock = threading.Lock()
+
+    def program(self, filename: str, **defines) -> cl.Program:
+        key = (filename, tuple(sorted(defines.items())))
+        with self._lock:
+            program = self._programs.get(key)
+            if program is None:
+                program = self._build(filename, defines)
+                self._programs[key] = program
+        return program
+
+    def kernel(self, filename: str, name: str, **defines) -> cl.Kernel:
+        """A kernel object, cached; callers set all its arguments before each enqueue."""
+        key = (filename, name, tuple(sorted(defines.items())))
+        kernel = self._kernels.get(key)
+        if kernel is None:
+            kernel = getattr(self.program(filename, **defines), name)
+            self._kernels[key] = kernel
+        return kernel
+
+    @property
+    def group_size(self) -> int:
+        """Default work-group size.  256 rather than 64: PoCL pays a fixed
+        cost per work-group, and 64 measured ~3x slower on a plain copy."""
+        return min(256, self.device.cl_device.max_work_group_size)
+
+    def run(self, kernel: cl.Kernel, work_items: int, *args, wait_for=None,
+            local_size: int | None = None) -> cl.Event:
+        """Enqueue ``kernel`` over ``work_items`` items (rounded up to whole
+        work-groups; every kernel checks its own bound).  Python ints and
+        floats become int32 and float32 arguments."""
+        local_size = local_size or self.group_size
+        kernel.set_args(*(_kernel_arg(a) for a in args))
+        groups = max(1, -(-work_items // local_size))
+        return cl.enqueue_nd_range_kernel(self.queue, kernel, (groups * local_size,),
+                                          (local_size,), wait_for=wait_for)
+
+    def _build(self, filename: str, defines: dict) -> cl.Program:
+        folder = kernel_dir()
+        source = (folder / filename).read_text()
+        options = ["-I", str(folder), "-cl-std=CL1.2"]
+        options += [f"-D{name}={_define_value(value)}" for name, value in sorted(defines.items())]
+        try:
+            return cl.Program(self.context, source).build(options=options)
+        except cl.RuntimeError as error:
+            raise KernelBuildError(f"{filename} failed to build for {self.device}:\n{error}") from None
+
+    def check_allocation(self, what: str, buffers: dict[str, int]) -> None:
+        """Raise DeviceMemoryError before allocating if ``buffers`` cannot fit."""
+        d = self.device
+        total = sum(buffers.values())
+        biggest_name, biggest = max(buffers.items(), key=lambda item: item[1])
+        if biggest > d.max_mem_alloc_size:
+            raise DeviceMemoryError(
+                f"{what}: buffer '{biggest_name}' needs {biggest / 2**20:.0f} MiB but {d.id} allows "
+                f"{d.max_mem_alloc_size / 2**20:.0f} MiB per allocation (CL_DEVICE_MAX_MEM_ALLOC_SIZE)")
+        if total > d.global_mem_size:
+            raise DeviceMemoryError(
+                f"{what} needs {total / 2**20:.0f} MiB of device memory but {d.id} has "
+                f"{d.global_mem_size / 2**20:.0f} MiB (CL_DEVICE_GLOBAL_MEM_SIZE)")
+
+
+def _kernel_arg(value):
+    if isinstance(value, bool):
+        return np.int32(value)
+    if isinstance(value, int):
+        return np.int32(value)
+    if isinstance(value, float):
+        return np.float32(value)
+    return value
+
+
+def _define_value(value) -> str:
+    if isinstance(value, bool):
+        return "1" if value else "0"
+    if isinstance(value, float):
+        return f"{value!r}f"
+    return str(value)
+
+
+_runtimes: dict[str, Runtime] = {}
+_runtimes_lock = threading.Lock()
+
+
+def runtime(device=None) -> Runtime:
+    """The shared runtime of a device (selected as in :func:`select_device`)."""
+    chosen = select_device(device)
+    with _runtimes_lock:
+        rt = _runtimes.get(chosen.id)
+        if rt is None:
+            rt = Runtime(chosen)
+            _runtimes[chosen.id] = rt
+    return rt
+
+
+def event_ms(events) -> float:
+    """Device time covered by profiled events, in milliseconds."""
+    events = [e for e in events if e is not None]
+    if not events:
+        return 0.0
+    return sum(e.profile.end - e.profile.start for e in events) * 1e-6
+

@@ -1,0 +1,48 @@
+"""numpy mirror of kernels/hlbvh.h: the one place Python restates its structs.
+
+The constants are parsed from the header itself, so they exist once.
+tests/test_layout.py compiles a probe kernel that reports sizeof/offsetof on
+the device and checks them against these dtypes.
+"""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from .paths import kernel_dir
+
+HEADER = kernel_dir() / "hlbvh.h"
+
+
+def _read_constants(header: Path) -> dict[str, float | int]:
+    constants: dict[str, float | int] = {}
+    for name, value in re.findall(r"^#define\s+([A-Z_][A-Z0-9_]*)\s+\(?(-?[0-9.]+)f?\)?\s*$",
+                                  header.read_text(), flags=re.M):
+        constants[name] = float(value) if "." in value else int(value)
+    return constants
+
+
+CONSTANTS = _read_constants(HEADER)
+CLUSTER_BITS: int = CONSTANTS["CLUSTER_BITS"]
+MAX_LEAF_SIZE: int = CONSTANTS["MAX_LEAF_SIZE"]
+EMPTY_CHILD: int = CONSTANTS["EMPTY_CHILD"]
+
+_f3 = (np.float32, 3)
+
+AABB = np.dtype([("lo", *_f3), ("hi", *_f3)])
+
+FLAT_NODE = np.dtype([
+    ("left_lo", *_f3), ("left_hi", *_f3),
+    ("right_lo", *_f3), ("right_hi", *_f3),
+    ("left", np.int32), ("right", np.int32),
+    ("left_count", np.uint32), ("right_count", np.uint32),
+])
+
+TRIANGLE = np.dtype([("v0", *_f3), ("v1", *_f3), ("v2", *_f3)])
+
+TRIANGLE_REF = np.dtype([("geom_id", np.int32), ("prim_id", np.int32)])
+
+#: name in hlbvh.h -> dtype, for the layout test
+STRUCTS = {"Aabb": AABB, "FlatNode": FLAT_NODE, "Triangle": TRIANGLE, "TriangleRef": TRIANGLE_REF}

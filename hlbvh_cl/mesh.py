@@ -1,0 +1,206 @@
+"""Triangle meshes: validated numpy arrays, and loading them from files.
+
+A Mesh owns two read-only, C-contiguous arrays: ``vertices`` (N, 3) float32
+and ``faces`` (M, 3) int32, the layout every kernel reads.  Everything is
+checked once here so that later stages can trust the arrays: bad input gives a
+ValueError/TypeError that names the array, the first offending row and what
+was expected.  Zero-area triangles are valid (ray queries never hit them).
+
+Files are read through trimesh only (PLY, OBJ, OFF, STL, GLB, each optionally
+gzip-compressed as ``name.ply.gz``); vertex and face order are kept.
+"""
+from __future__ import annotations
+
+import errno
+import gzip
+import io
+import os
+from pathlib import Path
+
+import numpy as np
+
+#: file extensions Mesh.load understands (each may also end in .gz)
+MESH_EXTENSIONS = ("ply", "obj", "off", "stl", "glb")
+
+_INT32_LIMIT = 2**31
+
+
+def _as_array(name: str, data) -> np.ndarray:
+    try:
+        return np.asarray(data)
+    except (ValueError, TypeError) as error:  # ragged nested lists
+        raise ValueError(f"{name}: cannot be read as an (N, 3) array: {error}") from None
+
+
+def _check_shape(name: str, array: np.ndarray, rows: str) -> None:
+    if array.size == 0:
+        raise ValueError(f"{name} is empty (shape {array.shape}): a mesh needs at least one "
+                         f"{'vertex' if name == 'vertices' else 'triangle'}")
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise ValueError(f"{name} has shape {array.shape}, expected ({rows}, 3)")
+
+
+def _first_row(mask: np.ndarray) -> int:
+    """Index of the first row of a (rows, 3) boolean mask with any True."""
+    return int(np.flatnonzero(mask.any(axis=1))[0])
+
+
+def _validate_vertices(vertices) -> np.ndarray:
+    array = _as_array("vertices", vertices)
+    if array.dtype.kind not in "fiu":
+        raise TypeError(f"vertices has dtype {array.dtype}, expected real numbers (float32 "
+                        f"preferred; any float or integer dtype is converted)")
+    _check_shape("vertices", array, "N")
+    if array.shape[0] >= _INT32_LIMIT:
+        raise ValueError(f"vertices has {array.shape[0]} rows; at most 2**31 - 1 fit int32 indices")
+    if array.dtype.kind == "f":
+        finite = np.isfinite(array)
+        if not finite.all():
+            row = _first_row(~finite)
+            raise ValueError(f"vertices[{row}] = {array[row].tolist()} is not finite (NaN or inf)")
+    with np.errstate(over="ignore"):
+        converted = np.array(array, dtype=np.float32, order="C", copy=True)
+    overflow = ~np.isfinite(converted)
+    if overflow.any():
+        row = _first_row(overflow)
+        raise ValueError(f"vertices[{row}] = {array[row].tolist()} overflows float32 "
+                         f"(|x| > {np.finfo(np.float32).max:.3g})")
+    converted.flags.writeable = False
+    return converted
+
+
+def _validate_faces(faces, vertex_count: int) -> np.ndarray:
+    array = _as_array("faces", faces)
+    if array.dtype.kind == "f":
+        raise TypeError(f"faces has dtype {array.dtype}: pass integers (e.g. faces.astype(np.int32))")
+    if array.dtype.kind not in "iu":
+        raise TypeError(f"faces has dtype {array.dtype}, expected integer vertex indices")
+    _check_shape("faces", array, "M")
+    if array.shape[0] >= _INT32_LIMIT:
+        raise ValueError(f"faces has {array.shape[0]} rows; at most 2**31 - 1 fit int32 ids")
+    if array.dtype.kind == "i":
+        negative = array < 0
+        if negative.any():
+            row = _first_row(negative)
+            raise ValueError(f"faces[{row}] = {array[row].tolist()}: index "
+                             f"{int(array[row][negative[row]][0])} is negative")
+    too_large = array >= min(vertex_count, _INT32_LIMIT)
+    if too_large.any():
+        row = _first_row(too_large)
+        value = int(array[row][too_large[row]][0])
+        if value >= _INT32_LIMIT:
+            raise ValueError(f"faces[{row}] = {array[row].tolist()}: index {value} does not fit "
+                             f"int32 (>= 2**31)")
+        raise ValueError(f"faces[{row}] = {array[row].tolist()}: index {value} is out of range "
+                         f"for {vertex_count} vertices (expected 0 <= index < {vertex_count})")
+    converted = np.array(array, dtype=np.int32, order="C", copy=True)
+    converted.flags.writeable = False
+    return converted
+
+
+class Mesh:
+    """An indexed triangle mesh.
+
+    vertices: (N, 3) array of any real float (or integer) dtype, stored as
+    float32; faces: (M, 3) integer vertex indices, stored as int32.  Lists
+    are accepted.  Both arrays are copied and stored read-only.
+    """
+
+    def __init__(self, vertices, faces, name: str | None = None):
+        self._vertices = _validate_vertices(vertices)
+        self._faces = _validate_faces(faces, len(self._vertices))
+        self.name = name
+        self._bounds: tuple[np.ndarray, np.ndarray] | None = None
+
+    @property
+    def vertices(self) -> np.ndarray:
+        """(N, 3) float32, C-contiguous, read-only."""
+        return self._vertices
+
+    @property
+    def faces(self) -> np.ndarray:
+        """(M, 3) int32, C-contiguous, read-only."""
+        return self._faces
+
+    @property
+    def vertex_count(self) -> int:
+        return int(self._vertices.shape[0])
+
+    @property
+    def triangle_count(self) -> int:
+        return int(self._faces.shape[0])
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi) float64 corners of the box around the vertices the faces use."""
+        if self._bounds is None:
+            used = np.zeros(self.vertex_count, dtype=bool)
+            used[self._faces.ravel()] = True
+            points = self._vertices[used]
+            self._bounds = (points.min(axis=0).astype(np.float64),
+                            points.max(axis=0).astype(np.float64))
+        lo, hi = self._bounds
+        return lo.copy(), hi.copy()
+
+    def __repr__(self) -> str:
+        label = f"{self.name!r}, " if self.name else ""
+        return f"Mesh({label}{self.triangle_count} triangles, {self.vertex_count} vertices)"
+
+    @classmethod
+    def load(cls, path) -> "Mesh":
+        """Read a PLY, OBJ, OFF, STL or GLB file (or any of them as ``.gz``).
+
+        Vertex and face order are kept where the format allows (trimesh may
+        still merge an STL's vertices).  A file with several meshes (a GLB
+        scene, an OBJ with several objects) becomes one mesh, with each part's
+        transform applied.
+        """
+        path = Path(os.fspath(path))
+        file_type, gzipped = _file_type(path)
+        if not path.is_file():
+            raise FileNotFoundError(errno.ENOENT, "mesh file not found", str(path))
+        vertices, faces = _read_with_trimesh(path, file_type, gzipped)
+        name = path.name[: -len(".gz")] if gzipped else path.name
+        try:
+            return cls(vertices, faces, name=name.rsplit(".", 1)[0])
+        except (ValueError, TypeError) as error:
+            raise ValueError(f"{path}: {error}") from None
+
+
+def _file_type(path: Path) -> tuple[str, bool]:
+    suffixes = [s.lower() for s in path.suffixes]
+    gzipped = bool(suffixes) and suffixes[-1] == ".gz"
+    if gzipped:
+        suffixes = suffixes[:-1]
+    extension = suffixes[-1][1:] if suffixes else ""
+    if extension not in MESH_EXTENSIONS:
+        known = ", ".join("." + e for e in MESH_EXTENSIONS)
+        raise ValueError(f"{path}: unknown mesh file extension {('.' + extension) if extension else '(none)'}"
+                         f"{'.gz' if gzipped else ''}; expected one of {known}, "
+                         f"optionally followed by .gz")
+    return extension, gzipped
+
+
+def _read_with_trimesh(path: Path, file_type: str, gzipped: bool) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh  # imported here: only file loading needs it
+
+    try:
+        if gzipped:
+            with gzip.open(path, "rb") as compressed:
+                source = io.BytesIO(compressed.read())
+        else:
+            source = io.BytesIO(path.read_bytes())
+    except (OSError, EOFError) as error:
+        raise ValueError(f"{path}: cannot read the file: {error}") from None
+    try:
+        scene = trimesh.load_scene(source, file_type=file_type, process=False)
+        # dump() applies each node's transform to its geometry.
+        parts = [g for g in scene.dump() if isinstance(g, trimesh.Trimesh) and len(g.faces)]
+    except Exception as error:  # trimesh raises many types for malformed files
+        reason = str(error) or type(error).__name__
+        raise ValueError(f"{path}: trimesh cannot read it as {file_type.upper()}: {reason}") from None
+    if not parts:
+        raise ValueError(f"{path}: the file holds no triangles")
+    offsets = np.cumsum([0] + [len(p.vertices) for p in parts[:-1]])
+    vertices = np.concatenate([np.asarray(p.vertices) for p in parts])
+    faces = np.concatenate([np.asarray(p.faces, dtype=np.int64) + o for p, o in zip(parts, offsets)])
+    return vertices, faces

@@ -1,0 +1,23 @@
+"""Stage 2 host side: Morton codes of triangle centroids (kernels/morton.cl)."""
+from __future__ import annotations
+
+import numpy as np
+import pyopencl as cl
+
+MORTON_BITS = (30, 63)
+
+
+def key_dtype(bits: int) -> np.dtype:
+    if bits not in MORTON_BITS:
+        raise ValueError(f"morton_bits must be 30 or 63, got {bits!r}")
+    return np.dtype(np.uint32 if bits == 30 else np.uint64)
+
+
+def morton_codes(rt, vertices: cl.Buffer, faces: cl.Buffer, triangle_count: int,
+                 bounds: cl.Buffer, keys: cl.Buffer, primitive_ids: cl.Buffer, bits: int,
+                 wait_for=None) -> list[cl.Event]:
+    """keys[i] <- Morton code of triangle i's centroid; primitive_ids[i] <- i."""
+    key_dtype(bits)
+    kernel = rt.kernel("morton.cl", "morton_codes", MORTON_BITS=bits)
+    return [rt.run(kernel, triangle_count, vertices, faces, triangle_count, bounds, keys,
+                   primitive_ids, wait_for=wait_for)]

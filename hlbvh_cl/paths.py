@@ -1,0 +1,13 @@
+"""Where the OpenCL sources live: inside the wheel, or beside the package in a checkout."""
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def kernel_dir() -> Path:
+    here = Path(__file__).resolve().parent
+    for candidate in (here / "kernels", here.parent / "kernels"):
+        if (candidate / "hlbvh.h").is_file():
+            return candidate
+    raise FileNotFoundError(f"hlbvh_cl: the OpenCL kernels are missing (looked in {here / 'kernels'} "
+                            f"and {here.parent / 'kernels'}); reinstall the package")

@@ -1,0 +1,63 @@
+"""Stage 6 host side: the HLBVH's SAH top over Morton clusters (kernels/sah_top.cl)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pyopencl as cl
+
+from . import layout
+from .emit import RadixTree
+from .refit import RadixTreeMetrics
+from .scan import exclusive_scan
+
+
+@dataclass
+class TopTree:
+    """SAH nodes above the clusters: top_count = clusters - 1 nodes, root 0."""
+
+    cluster_count: int
+    top_count: int
+    top_left: cl.Buffer      # int32: >= 0 a top node, < 0 the cluster ~ref
+    top_right: cl.Buffer
+    top_boxes: cl.Buffer     # Aabb
+    cluster_roots: cl.Buffer  # int32: radix-tree node of each cluster
+    depth: int
+    sah_cost: float          # of the whole tree, not normalised
+
+
+def build_top(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: RadixTreeMetrics,
+              wait_for=None) -> tuple[TopTree | None, list[cl.Event]]:
+    """Find the clusters and, when there are two or more, build the SAH top.
+    Returns None when one cluster holds everything (the radix tree is kept)."""
+    n = tree.n
+    ctx, q = rt.context, rt.queue
+    scan = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, (n + 1) * 4)
+    events = [rt.run(rt.kernel("sah_top.cl", "mark_cluster_starts", MORTON_BITS=bits), n,
+                     keys, n, scan, wait_for=wait_for)]
+    events += exclusive_scan(rt, scan, n, wait_for=events[-1:])
+    cluster_count = np.empty(1, np.uint32)
+    cl.enqueue_copy(q, cluster_count, scan, src_offset=n * 4, wait_for=events[-1:])
+    clusters = int(cluster_count[0])
+    if clusters < 2:
+        return None, events
+
+    def buf(count, itemsize=4):
+        return cl.Buffer(ctx, cl.mem_flags.READ_WRITE, max(1, count) * itemsize)
+    first, roots, order = buf(clusters), buf(clusters), buf(clusters)
+    begin, end, left, right, cost, height = (buf(clusters) for _ in range(6))
+    boxes = buf(clusters, layout.AABB.itemsize)
+    info, root_cost = buf(1), buf(1)
+    events.append(rt.run(rt.kernel("sah_top.cl", "gather_cluster_starts", MORTON_BITS=bits), n,
+                         scan, n, first, wait_for=events[-1:]))
+    events.append(rt.run(rt.kernel("sah_top.cl", "build_top_sah", MORTON_BITS=bits), 1,
+                         scan, n, first, tree.range_first, tree.range_last, metrics.boxes,
+                         metrics.sah_cost, metrics.height, roots, order, begin, end, left, right,
+                         boxes, cost, height, info, root_cost, wait_for=events[-1:],
+                         local_size=1))
+    depth = np.empty(1, np.int32)
+    total = np.empty(1, np.float32)
+    cl.enqueue_copy(q, depth, info, wait_for=events[-1:])
+    cl.enqueue_copy(q, total, root_cost, wait_for=events[-1:])
+    return TopTree(clusters, clusters - 1, left, right, boxes, roots, int(depth[0]),
+                   float(total[0])), events

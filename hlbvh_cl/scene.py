@@ -1,0 +1,137 @@
+"""Scene: meshes on one device, one BVH over all of them, and the few verbs
+users call (construct, update_vertices/rebuild, intersect/occluded)."""
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+
+import numpy as np
+import pyopencl as cl
+
+from . import layout
+from .build import BUILDERS, Geometry, build, check_fits
+from .device import event_ms, runtime
+from .mesh import Mesh, _validate_vertices
+from .morton import key_dtype
+from .refit import refit_flat_tree
+
+
+def _as_meshes(meshes) -> list[Mesh]:
+    if isinstance(meshes, Mesh):
+        return [meshes]
+    if not isinstance(meshes, Sequence) or isinstance(meshes, (str, bytes)):
+        raise TypeError(f"meshes must be a Mesh or a sequence of Mesh, got {type(meshes).__name__}")
+    out = list(meshes)
+    if not out:
+        raise ValueError("meshes is empty: a Scene needs at least one Mesh")
+    for i, mesh in enumerate(out):
+        if not isinstance(mesh, Mesh):
+            raise TypeError(f"meshes[{i}] must be a hlbvh_cl.Mesh, got {type(mesh).__name__}")
+    return out
+
+
+class Scene:
+    """One BVH over a list of meshes on an OpenCL device.
+
+    ``geom_id`` of a triangle is the index of its mesh in ``meshes``;
+    ``prim_id`` its face index within that mesh.
+    """
+
+    def __init__(self, meshes, device=None, builder: str = "hlbvh", morton_bits: int = 30):
+        self.meshes = _as_meshes(meshes)
+        if builder not in BUILDERS:
+            raise ValueError(f"builder must be one of {BUILDERS}, got {builder!r}")
+        key_dtype(morton_bits)
+        self.builder = builder
+        self.morton_bits = morton_bits
+        self.runtime = runtime(device)
+        vertex_counts = [m.vertex_count for m in self.meshes]
+        face_counts = [m.triangle_count for m in self.meshes]
+        # fail on size before anything is uploaded
+        check_fits(self.runtime, sum(vertex_counts), sum(face_counts), morton_bits)
+        self._vertex_offsets = np.concatenate([[0], np.cumsum(vertex_counts)]).astype(np.int64)
+        first_face = np.concatenate([[0], np.cumsum(face_counts)[:-1]]).astype(np.int32)
+        faces = np.concatenate([m.faces + np.int32(off) for m, off in
+                                zip(self.meshes, self._vertex_offsets[:-1])])
+        vertices = np.concatenate([m.vertices for m in self.meshes])
+        self._geometry = Geometry.upload(self.runtime, vertices, faces, first_face)
+        self._query = None
+        self.rebuild()
+
+    @property
+    def device(self):
+        return self.runtime.device
+
+    @property
+    def tree(self):
+        return self._build.tree
+
+    @property
+    def stats(self) -> dict:
+        """triangles, nodes, leaves, depth, sah_cost, times_ms (per stage, and
+        total) of the last build; after update_vertices, sah_cost is
+        recomputed from the refit boxes and update_ms holds the refit's times."""
+        if self._sah_stale:
+            self._build.stats["sah_cost"] = self.tree.sah_cost(self.runtime.queue)
+            self._sah_stale = False
+        return self._build.stats
+
+    def rebuild(self) -> None:
+        """Build the tree from scratch over the current vertex positions."""
+        self._build = build(self.runtime, self._geometry, self.builder, self.morton_bits)
+        self._sah_stale = False
+
+    def update_vertices(self, geom_id: int, vertices) -> None:
+        """Replace mesh ``geom_id``'s vertex positions (same count) and refit
+        the tree's boxes on the device; the topology is kept."""
+        if isinstance(geom_id, bool) or not isinstance(geom_id, (int, np.integer)):
+            raise TypeError(f"geom_id must be an int, got {type(geom_id).__name__}")
+        if not 0 <= geom_id < len(self.meshes):
+            raise ValueError(f"geom_id {geom_id} is out of range: the scene has "
+                             f"{len(self.meshes)} mesh(es)")
+        old = self.meshes[geom_id]
+        positions = _validate_vertices(vertices)
+        if len(positions) != old.vertex_count:
+            raise ValueError(f"vertices has {len(positions)} rows but mesh {geom_id} has "
+                             f"{old.vertex_count} vertices; update_vertices keeps the topology")
+        moved = Mesh(positions, old.faces, name=old.name)
+        rt = self.runtime
+        started = time.perf_counter()
+        upload = cl.enqueue_copy(rt.queue, self._geometry.vertices, moved.vertices,
+                                 dst_offset=int(self._vertex_offsets[geom_id]) * 12,
+                                 is_blocking=False)
+        events = refit_flat_tree(rt, self.tree, self._geometry.vertices, self._geometry.faces,
+                                 self._geometry.mesh_first_face, wait_for=[upload])
+        self.meshes[geom_id] = moved
+        root = _read_root(rt.queue, self.tree.nodes, events)
+        lo = np.minimum(root["left_lo"], root["right_lo"])
+        hi = np.maximum(root["left_hi"], root["right_hi"])
+        self.tree.bounds_lo, self.tree.bounds_hi = lo, hi
+        self._sah_stale = True
+        self._build.stats["update_ms"] = {"upload": event_ms([upload]), "refit": event_ms(events),
+                                   "wall": (time.perf_counter() - started) * 1e3}
+
+    def intersect(self, origins, directions, tmin=0.0, tmax=np.inf):
+        """Closest hit of each ray: a Hits with t, prim_id, geom_id, u, v, normal."""
+        return self._ray_query().intersect(self.tree, origins, directions, tmin, tmax)
+
+    def occluded(self, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
+        """Whether each ray hits anything in [tmin, tmax] (any-hit, stops early)."""
+        return self._ray_query().occluded(self.tree, origins, directions, tmin, tmax)
+
+    def _ray_query(self):
+        if self._query is None:
+            from .query import RayQuery
+            self._query = RayQuery(self.runtime)
+        return self._query
+
+    def __repr__(self) -> str:
+        s = self.stats
+        return (f"Scene({len(self.meshes)} mesh(es), {s['triangles']:,} triangles, "
+                f"builder={self.builder!r}, device={self.device.id!r})")
+
+
+def _read_root(queue, nodes, wait_for):
+    out = np.empty(1, layout.FLAT_NODE)
+    cl.enqueue_copy(queue, out, nodes, wait_for=wait_for)
+    return out[0]

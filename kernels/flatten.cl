@@ -1,0 +1,179 @@
+/* Stage 7: the flat tree that traversal reads.
+ *
+ * Interior nodes that survive (not inside a collapsed leaf, and, for the
+ * HLBVH, not above the clusters) are compacted by a scan and written after
+ * the top_count SAH top nodes, each holding both children's boxes.  A leaf
+ * slot points at a run of triangles in sorted (Morton) order; gather_triangles
+ * lays the triangles out in that order.
+ */
+#include "hlbvh.h"
+
+#if MORTON_BITS == 30
+typedef uint morton_t;
+#elif MORTON_BITS == 63
+typedef ulong morton_t;
+#else
+#error "MORTON_BITS must be 30 or 63"
+#endif
+#define CLUSTER_SHIFT (MORTON_BITS - CLUSTER_BITS)
+
+inline int spans_clusters(__global const morton_t *keys, int first, int last)
+{
+    return USE_CLUSTERS && (keys[first] >> CLUSTER_SHIFT) != (keys[last] >> CLUSTER_SHIFT);
+}
+
+/* live[i] = 1 if radix-tree node i is an interior node of the flat tree. */
+__kernel void mark_live_nodes(__global const morton_t *keys, int n, __global const int *parent,
+                              __global const int *range_first, __global const int *range_last,
+                              __global const int *collapsed, __global uint *live)
+{
+    int i = get_global_id(0);
+    if (i >= n - 1)
+        return;
+    int is_live = !collapsed[i] && !spans_clusters(keys, range_first[i], range_last[i]);
+    /* A collapsed ancestor holds at most MAX_LEAF_SIZE triangles, so only
+     * the few ancestors that small need a look. */
+    for (int p = parent[i]; is_live && p >= 0; p = parent[p]) {
+        if (range_last[p] - range_first[p] + 1 > MAX_LEAF_SIZE ||
+            spans_clusters(keys, range_first[p], range_last[p]))
+            break;
+        if (collapsed[p])
+            is_live = 0;
+    }
+    live[i] = is_live;
+}
+
+/* Where radix-tree node `node` lands in a parent's child slot. */
+inline void child_slot(int node, int n, int top_count, __global const uint *live_scan,
+                       __global const int *range_first, __global const int *range_last,
+                       __global const int *collapsed, int *index, uint *count)
+{
+    if (node >= n - 1) {
+        *index = node - (n - 1);
+        *count = 1;
+    } else if (collapsed[node]) {
+        *index = range_first[node];
+        *count = (uint)(range_last[node] - range_first[node] + 1);
+    } else {
+        *index = top_count + (int)live_scan[node];
+        *count = 0;
+    }
+}
+
+inline void write_node(__global FlatNode *out, Aabb left_box, Aabb right_box, int left,
+                       uint left_count, int right, uint right_count)
+{
+    FlatNode node;
+    for (int k = 0; k < 3; ++k) {
+        node.left_lo[k] = left_box.lo[k];
+        node.left_hi[k] = left_box.hi[k];
+        node.right_lo[k] = right_box.lo[k];
+        node.right_hi[k] = right_box.hi[k];
+    }
+    node.left = left;
+    node.right = right;
+    node.left_count = left_count;
+    node.right_count = right_count;
+    *out = node;
+}
+
+__kernel void write_flat_nodes(int n, int top_count, __global const uint *live_scan,
+                               __global const int *left_child, __global const int *right_child,
+                               __global const int *range_first, __global const int *range_last,
+                               __global const int *collapsed, __global const Aabb *boxes,
+                               __global FlatNode *nodes, __global int *parents)
+{
+    int i = get_global_id(0);
+    if (i >= n - 1 || live_scan[i] == live_scan[i + 1])
+        return;
+    int self = top_count + (int)live_scan[i];
+    int left, right;
+    uint left_count, right_count;
+    child_slot(left_child[i], n, top_count, live_scan, range_first, range_last, collapsed, &left,
+               &left_count);
+    child_slot(right_child[i], n, top_count, live_scan, range_first, range_last, collapsed, &right,
+               &right_count);
+    write_node(nodes + self, boxes[left_child[i]], boxes[right_child[i]], left, left_count, right,
+               right_count);
+    if (left_count == 0)
+        parents[left] = self;
+    if (right_count == 0)
+        parents[right] = self;
+    if (i == 0)
+        parents[self] = -1; /* the radix tree's root is the flat root */
+}
+
+__kernel void write_top_nodes(int n, int top_count, __global const uint *live_scan,
+                              __global const int *top_left, __global const int *top_right,
+                              __global const Aabb *top_boxes, __global const int *cluster_roots,
+                              __global const int *range_first, __global const int *range_last,
+                              __global const int *collapsed, __global const Aabb *boxes,
+                              __global FlatNode *nodes, __global int *parents)
+{
+    int t = get_global_id(0);
+    if (t >= top_count)
+        return;
+    int refs[2] = {top_left[t], top_right[t]};
+    int index[2];
+    uint count[2];
+    Aabb box[2];
+    for (int side = 0; side < 2; ++side) {
+        if (refs[side] >= 0) {
+            index[side] = refs[side];
+            count[side] = 0;
+            box[side] = top_boxes[refs[side]];
+        } else {
+            int root = cluster_roots[~refs[side]];
+            child_slot(root, n, top_count, live_scan, range_first, range_last, collapsed,
+                       &index[side], &count[side]);
+            box[side] = boxes[root];
+        }
+        if (count[side] == 0)
+            parents[index[side]] = t;
+    }
+    write_node(nodes + t, box[0], box[1], index[0], count[0], index[1], count[1]);
+    if (t == 0)
+        parents[0] = -1;
+}
+
+/* A tree whose root is itself a leaf (one triangle, or a few that the SAH
+ * keeps together): one node whose left slot holds all n triangles. */
+__kernel void write_leaf_root(int n, __global const Aabb *boxes, __global FlatNode *nodes,
+                              __global int *parents)
+{
+    if (get_global_id(0) != 0)
+        return;
+    write_node(nodes, boxes[0], aabb_empty(), 0, (uint)n, EMPTY_CHILD, 0);
+    parents[0] = -1;
+}
+
+/* Triangles in sorted order, with the mesh and face each came from. */
+__kernel void gather_triangles(__global const float *vertices, __global const int *faces,
+                               __global const uint *primitive_ids, int n,
+                               __global const int *mesh_first_face, int mesh_count,
+                               __global Triangle *triangles, __global TriangleRef *refs)
+{
+    int j = get_global_id(0);
+    if (j >= n)
+        return;
+    int face = (int)primitive_ids[j];
+    float3 a, b, c;
+    load_triangle(vertices, faces, face, &a, &b, &c);
+    Triangle t;
+    vstore3(a, 0, t.v0);
+    vstore3(b, 0, t.v1);
+    vstore3(c, 0, t.v2);
+    triangles[j] = t;
+
+    /* The last mesh whose first face is <= face. */
+    int lo = 0, hi = mesh_count - 1;
+    while (lo < hi) {
+        int mid = (lo + hi + 1) >> 1;
+        if (mesh_first_face[mid] <= face)
+            lo = mid;
+        else
+            hi = mid - 1;
+    }
+    TriangleRef ref = {lo, face - mesh_first_face[lo]};
+    refs[j] = ref;
+}

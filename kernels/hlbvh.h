@@ -1,0 +1,125 @@
+/* Structs and constants shared by every kernel of hlbvh_cl.
+ *
+ * Mirrored once in Python by hlbvh_cl/layout.py (numpy dtypes); the constants
+ * below are read from this file by that module, never restated.  Keep every
+ * struct made of 4-byte scalars so that the OpenCL and numpy layouts agree
+ * without padding rules (tests/test_layout.py checks sizeof/offsetof on the
+ * device).
+ */
+#ifndef HLBVH_H
+#define HLBVH_H
+
+/* HLBVH clusters are the runs of primitives that share the top CLUSTER_BITS
+ * bits of their Morton code (pbrt-v3's HLBVHBuild uses 12). */
+#define CLUSTER_BITS 12
+
+/* A subtree of at most MAX_LEAF_SIZE triangles may collapse into one leaf
+ * when the SAH says a leaf is cheaper (HLBVH builder only). */
+#define MAX_LEAF_SIZE 8
+
+/* SAH cost model: traversal cost 1, intersection cost 1, normalised by the
+ * surface area of the root (stats["sah_cost"]). */
+#define SAH_TRAVERSAL_COST 1.0f
+#define SAH_INTERSECT_COST 1.0f
+
+/* Bins per axis of the binned SAH that builds the top of the HLBVH over the
+ * clusters (Wald 2007, "On fast construction of SAH-based BVHs"). */
+#define TOP_SAH_BINS 32
+
+/* A child slot with count 0 is an interior node (index = node), with count
+ * > 0 a leaf (index = first triangle), and EMPTY_CHILD marks the missing
+ * second child of a one-triangle scene. */
+#define EMPTY_CHILD (-1)
+
+typedef struct {
+    float lo[3];
+    float hi[3];
+} Aabb;
+
+/* One node of the flat tree that traversal reads: both children's boxes
+ * live in the parent so one fetch tests both (Aila & Laine 2009). 64 bytes. */
+typedef struct {
+    float left_lo[3];
+    float left_hi[3];
+    float right_lo[3];
+    float right_hi[3];
+    int left;
+    int right;
+    uint left_count;
+    uint right_count;
+} FlatNode;
+
+/* A triangle's vertices in tree order, as the ray-triangle test reads them. */
+typedef struct {
+    float v0[3];
+    float v1[3];
+    float v2[3];
+} Triangle;
+
+/* Which mesh and which of its faces a tree-ordered triangle came from. */
+typedef struct {
+    int geom_id;
+    int prim_id;
+} TriangleRef;
+
+/* Helpers several stages share. */
+inline float3 load_vertex(__global const float *vertices, int index)
+{
+    return vload3(index, vertices);
+}
+
+inline Aabb aabb_empty(void)
+{
+    Aabb box = {{INFINITY, INFINITY, INFINITY}, {-INFINITY, -INFINITY, -INFINITY}};
+    return box;
+}
+
+inline Aabb aabb_of_points(float3 a, float3 b, float3 c)
+{
+    float3 lo = fmin(a, fmin(b, c));
+    float3 hi = fmax(a, fmax(b, c));
+    Aabb box = {{lo.x, lo.y, lo.z}, {hi.x, hi.y, hi.z}};
+    return box;
+}
+
+inline Aabb aabb_union(Aabb a, Aabb b)
+{
+    Aabb box;
+    for (int k = 0; k < 3; ++k) {
+        box.lo[k] = fmin(a.lo[k], b.lo[k]);
+        box.hi[k] = fmax(a.hi[k], b.hi[k]);
+    }
+    return box;
+}
+
+inline Aabb aabb_grow(Aabb a, float3 p)
+{
+    Aabb box = {{fmin(a.lo[0], p.x), fmin(a.lo[1], p.y), fmin(a.lo[2], p.z)},
+                {fmax(a.hi[0], p.x), fmax(a.hi[1], p.y), fmax(a.hi[2], p.z)}};
+    return box;
+}
+
+/* Surface area; 0 for an empty (inverted) box. */
+inline float aabb_area(Aabb a)
+{
+    float dx = a.hi[0] - a.lo[0], dy = a.hi[1] - a.lo[1], dz = a.hi[2] - a.lo[2];
+    if (!(dx >= 0.0f && dy >= 0.0f && dz >= 0.0f))
+        return 0.0f;
+    return 2.0f * (dx * dy + dy * dz + dz * dx);
+}
+
+inline float3 aabb_center(Aabb a)
+{
+    return (float3)(0.5f * (a.lo[0] + a.hi[0]), 0.5f * (a.lo[1] + a.hi[1]), 0.5f * (a.lo[2] + a.hi[2]));
+}
+
+/* The triangle `face` of an indexed mesh. */
+inline void load_triangle(__global const float *vertices, __global const int *faces, int face,
+                          float3 *a, float3 *b, float3 *c)
+{
+    *a = load_vertex(vertices, faces[3 * face + 0]);
+    *b = load_vertex(vertices, faces[3 * face + 1]);
+    *c = load_vertex(vertices, faces[3 * face + 2]);
+}
+
+#endif /* HLBVH_H */

@@ -1,0 +1,29 @@
+/* Reports sizeof/offsetof of the structs in hlbvh.h as the device compiles
+ * them, so tests/test_layout.py can hold hlbvh_cl/layout.py to the header. */
+#include "hlbvh.h"
+
+#define REPORT(i, value) out[i] = (int)(value)
+/* OpenCL C has no offsetof: measure from a real (never dereferenced) pointer. */
+#define offsetof(T, field) \
+    ((int)((__global char *)&((__global T *)out)->field - (__global char *)out))
+
+__kernel void struct_layout(__global int *out)
+{
+    if (get_global_id(0) != 0)
+        return;
+    REPORT(0, sizeof(Aabb));
+    REPORT(1, offsetof(Aabb, hi));
+    REPORT(2, sizeof(FlatNode));
+    REPORT(3, offsetof(FlatNode, left_hi));
+    REPORT(4, offsetof(FlatNode, right_lo));
+    REPORT(5, offsetof(FlatNode, right_hi));
+    REPORT(6, offsetof(FlatNode, left));
+    REPORT(7, offsetof(FlatNode, right));
+    REPORT(8, offsetof(FlatNode, left_count));
+    REPORT(9, offsetof(FlatNode, right_count));
+    REPORT(10, sizeof(Triangle));
+    REPORT(11, offsetof(Triangle, v1));
+    REPORT(12, offsetof(Triangle, v2));
+    REPORT(13, sizeof(TriangleRef));
+    REPORT(14, offsetof(TriangleRef, prim_id));
+}

@@ -1,0 +1,169 @@
+/* Stage 5: bottom-up refit with atomic visit counters (Karras 2012, sec. 4;
+ * Apetrei 2014).  One work-item starts at each leaf and walks up; at every
+ * node the first arrival stops and the second, which sees both children
+ * finished, computes the node and goes on.  One pass, no level sync.
+ *
+ * refit_radix_tree runs during a build.  Besides the boxes it evaluates the
+ * SAH bottom-up (cost = C_t * A(node) + cost(left) + cost(right), or
+ * C_i * N * A(node) as a leaf) so that, with COLLAPSE_LEAVES, subtrees of at
+ * most MAX_LEAF_SIZE triangles become leaves exactly where the SAH says a leaf
+ * is cheaper.  refit_flat_tree refits the flat tree after vertices move.
+ */
+#include "hlbvh.h"
+
+/* Loads that must see another work-item's writes made before its atomic. */
+inline Aabb load_box_volatile(__global const Aabb *boxes, int index)
+{
+    volatile __global const float *p = (volatile __global const float *)(boxes + index);
+    Aabb box = {{p[0], p[1], p[2]}, {p[3], p[4], p[5]}};
+    return box;
+}
+
+inline float load_float_volatile(__global const float *values, int index)
+{
+    return ((volatile __global const float *)values)[index];
+}
+
+inline int load_int_volatile(__global const int *values, int index)
+{
+    return ((volatile __global const int *)values)[index];
+}
+
+__kernel void refit_radix_tree(__global const float *vertices, __global const int *faces,
+                               __global const uint *primitive_ids, int n,
+                               __global const int *left_child, __global const int *right_child,
+                               __global const int *parent, __global const int *range_first,
+                               __global const int *range_last, __global volatile int *visits,
+                               __global Aabb *boxes, __global float *sah_cost,
+                               __global int *height, __global int *collapsed)
+{
+    int j = get_global_id(0);
+    if (j >= n)
+        return;
+    int node = (n - 1) + j;
+    float3 a, b, c;
+    load_triangle(vertices, faces, (int)primitive_ids[j], &a, &b, &c);
+    Aabb box = aabb_of_points(a, b, c);
+    boxes[node] = box;
+    sah_cost[node] = SAH_INTERSECT_COST * aabb_area(box);
+    height[node] = 0;
+
+    node = parent[node];
+    while (node >= 0) {
+        mem_fence(CLK_GLOBAL_MEM_FENCE);
+        if (atomic_inc(&visits[node]) == 0)
+            return; /* the sibling subtree is not done; its walker goes on */
+        mem_fence(CLK_GLOBAL_MEM_FENCE);
+
+        int left = left_child[node], right = right_child[node];
+        box = aabb_union(load_box_volatile(boxes, left), load_box_volatile(boxes, right));
+        float area = aabb_area(box);
+        int count = range_last[node] - range_first[node] + 1;
+        float as_interior = SAH_TRAVERSAL_COST * area + load_float_volatile(sah_cost, left) +
+                            load_float_volatile(sah_cost, right);
+        float as_leaf = SAH_INTERSECT_COST * (float)count * area;
+        int make_leaf = COLLAPSE_LEAVES && count <= MAX_LEAF_SIZE && as_leaf <= as_interior;
+
+        boxes[node] = box;
+        sah_cost[node] = make_leaf ? as_leaf : as_interior;
+        height[node] = make_leaf ? 0 : 1 + max(load_int_volatile(height, left),
+                                               load_int_volatile(height, right));
+        collapsed[node] = make_leaf;
+        node = parent[node];
+    }
+}
+
+/* The box of the triangles [first, first + count) of a leaf. */
+inline Aabb leaf_box(__global const Triangle *triangles, int first, uint count)
+{
+    Aabb box = aabb_empty();
+    for (uint k = 0; k < count; ++k) {
+        Triangle t = triangles[first + (int)k];
+        box = aabb_union(box, aabb_of_points(vload3(0, t.v0), vload3(0, t.v1), vload3(0, t.v2)));
+    }
+    return box;
+}
+
+inline int is_interior_slot(int index, uint count)
+{
+    return count == 0 && index != EMPTY_CHILD;
+}
+
+inline void store_slot(__global FlatNode *node, int right_slot, Aabb box)
+{
+    __global float *lo = right_slot ? node->right_lo : node->left_lo;
+    __global float *hi = right_slot ? node->right_hi : node->left_hi;
+    for (int k = 0; k < 3; ++k) {
+        lo[k] = box.lo[k];
+        hi[k] = box.hi[k];
+    }
+}
+
+inline Aabb load_slot_volatile(__global const FlatNode *node, int right_slot)
+{
+    volatile __global const float *lo = right_slot ? node->right_lo : node->left_lo;
+    volatile __global const float *hi = right_slot ? node->right_hi : node->left_hi;
+    Aabb box = {{lo[0], lo[1], lo[2]}, {hi[0], hi[1], hi[2]}};
+    return box;
+}
+
+/* Refit of the flat tree: a walk starts at every node whose children are all
+ * leaves; a node with k interior children waits for k arrivals. */
+__kernel void refit_flat_tree(__global FlatNode *nodes, __global const int *parents,
+                              __global const Triangle *triangles, __global volatile int *visits,
+                              int node_count)
+{
+    int i = get_global_id(0);
+    if (i >= node_count)
+        return;
+    if (is_interior_slot(nodes[i].left, nodes[i].left_count) ||
+        is_interior_slot(nodes[i].right, nodes[i].right_count))
+        return;
+
+    while (1) {
+        __global FlatNode *node = nodes + i;
+        int left = node->left, right = node->right;
+        uint left_count = node->left_count, right_count = node->right_count;
+        Aabb left_box = left_count > 0 ? leaf_box(triangles, left, left_count)
+                                       : load_slot_volatile(node, 0);
+        Aabb right_box = right_count > 0 ? leaf_box(triangles, right, right_count)
+                                         : load_slot_volatile(node, 1);
+        if (left_count > 0)
+            store_slot(node, 0, left_box);
+        if (right_count > 0)
+            store_slot(node, 1, right_box);
+
+        int p = parents[i];
+        if (p < 0)
+            return;
+        __global FlatNode *up = nodes + p;
+        store_slot(up, up->left_count == 0 && up->left == i ? 0 : 1,
+                   aabb_union(left_box, right_box));
+        int waits_for = is_interior_slot(up->left, up->left_count) +
+                        is_interior_slot(up->right, up->right_count);
+        mem_fence(CLK_GLOBAL_MEM_FENCE);
+        if (atomic_inc(&visits[p]) + 1 < waits_for)
+            return;
+        mem_fence(CLK_GLOBAL_MEM_FENCE);
+        i = p;
+    }
+}
+
+/* After vertices move: re-read each tree-ordered triangle through its ref. */
+__kernel void regather_triangles(__global const float *vertices, __global const int *faces,
+                                 __global const int *mesh_first_face,
+                                 __global const TriangleRef *refs, int n,
+                                 __global Triangle *triangles)
+{
+    int j = get_global_id(0);
+    if (j >= n)
+        return;
+    TriangleRef ref = refs[j];
+    float3 a, b, c;
+    load_triangle(vertices, faces, mesh_first_face[ref.geom_id] + ref.prim_id, &a, &b, &c);
+    Triangle t;
+    vstore3(a, 0, t.v0);
+    vstore3(b, 0, t.v1);
+    vstore3(c, 0, t.v2);
+    triangles[j] = t;
+}

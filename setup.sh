@@ -1,0 +1,21 @@
+#!/usr/bin/env bash
+# Set-up on a fresh machine: the package (editable) with its test and bench
+# extras, Intel's CPU OpenCL runtime, and an OpenCL CPU driver that can
+# compile kernels here.  Safe to run again.
+set -euo pipefail
+cd "$(dirname "$0")"
+PY=${PYTHON:-python3}
+"$PY" -m pip install --quiet --disable-pip-version-check -e ".[test,bench,intel]"
+
+# PyPI's PoCL 3.0 is built on LLVM 14, which cannot compile for CPUs newer
+# than it knows ("unknown target CPU 'generic'"); Debian's PoCL 3.1 can.
+if ! "$PY" -m hlbvh_cl devices --require pocl; then
+    if command -v apt-get >/dev/null; then
+        SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+        echo "setup.sh: installing Debian's PoCL (pocl-opencl-icd)" >&2
+        $SUDO apt-get update -qq
+        DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq pocl-opencl-icd >/dev/null
+    fi
+    "$PY" -m hlbvh_cl devices --require pocl || {
+        echo "setup.sh: no PoCL device here can compile kernels; see README.md" >&2; exit 1; }
+fi

@@ -1,0 +1,253 @@
+"""The build pipeline on PoCL: tree invariants on every build, Morton codes
+against numpy, refit against fresh builds, and the Scene's errors."""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pyopencl as cl
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import hlbvh_cl
+from hlbvh_cl import DeviceMemoryError, Mesh, Scene
+from hlbvh_cl.bounds import scene_bounds
+from hlbvh_cl.build import Geometry, build
+from hlbvh_cl.device import Runtime, runtime
+from hlbvh_cl.morton import morton_codes
+
+from invariants import check_tree
+
+MESH_DIR = Path(__file__).resolve().parent.parent / "scenes" / "meshes"
+REAL_MESHES = ["bunny", "armadillo", "lucy", "bunny_small", "knight", "teapot", "dragon_small"]
+BUILDS = [("hlbvh", 30), ("hlbvh", 63), ("lbvh", 30), ("lbvh", 63)]
+
+
+@pytest.fixture(scope="module")
+def meshes():
+    return {name: Mesh.load(MESH_DIR / f"{name}.ply") for name in REAL_MESHES}
+
+
+@pytest.mark.parametrize("builder,bits", BUILDS)
+@pytest.mark.parametrize("name", REAL_MESHES)
+def test_real_mesh_tree_invariants(meshes, name, builder, bits):
+    scene = Scene([meshes[name]], builder=builder, morton_bits=bits)
+    check_tree(scene)
+
+
+@pytest.mark.parametrize("builder,bits", BUILDS)
+def test_several_meshes_in_one_tree(meshes, builder, bits):
+    parts = [meshes[k] for k in ("knight", "teapot", "bunny_small", "dragon_small")]
+    scene = Scene(parts, builder=builder, morton_bits=bits)
+    derived = check_tree(scene)
+    counts = np.bincount(derived["refs"]["geom_id"], minlength=len(parts))
+    assert counts.tolist() == [m.triangle_count for m in parts]
+
+
+def _soup(rng, n, scale_lo=-3.0, scale_hi=6.0):
+    """Random triangles whose sizes and positions span 10**scale_lo..10**scale_hi."""
+    centers = rng.normal(size=(n, 3)) * 10.0 ** rng.uniform(scale_lo, scale_hi, size=(n, 1))
+    edges = rng.normal(size=(n, 3, 3)) * 10.0 ** rng.uniform(scale_lo, scale_hi, size=(n, 1, 1))
+    vertices = (centers[:, None, :] + edges).reshape(-1, 3)
+    return Mesh(vertices, np.arange(3 * n).reshape(n, 3))
+
+
+SPECIAL_INPUTS = {
+    "one triangle": lambda rng: Mesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]]),
+    "two triangles": lambda rng: Mesh([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]],
+                                      [[0, 1, 2], [2, 1, 3]]),
+    # boxes symmetric about the origin: every triangle's centroid is 0
+    "identical centroids": lambda rng: _symmetric_triangles(rng, 300),
+    "soup 1e-3..1e6": lambda rng: _soup(rng, 5000),
+    "degenerate triangles": lambda rng: Mesh(np.repeat(rng.normal(size=(50, 3)), 3, axis=0),
+                                             np.arange(150).reshape(50, 3)),
+}
+
+
+def _symmetric_triangles(rng, n):
+    half = rng.uniform(0.1, 2.0, size=(n, 3))
+    inside = half * rng.uniform(-1, 1, size=(n, 3))
+    vertices = np.stack([-half, half, inside], axis=1).reshape(-1, 3)
+    return Mesh(vertices, np.arange(3 * n).reshape(n, 3))
+
+
+@pytest.mark.parametrize("builder,bits", BUILDS)
+@pytest.mark.parametrize("kind", list(SPECIAL_INPUTS))
+def test_special_inputs(kind, builder, bits):
+    mesh = SPECIAL_INPUTS[kind](np.random.default_rng(7))
+    scene = Scene([mesh], builder=builder, morton_bits=bits)
+    check_tree(scene)
+
+
+def test_identical_centroids_really_are():
+    mesh = SPECIAL_INPUTS["identical centroids"](np.random.default_rng(7))
+    tri = mesh.vertices[mesh.faces]
+    centers = 0.5 * (tri.min(axis=1) + tri.max(axis=1))
+    assert np.ptp(centers, axis=0).max() == 0.0
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(n=st.integers(1, 300), seed=st.integers(0, 2**31 - 1),
+       builder=st.sampled_from(["hlbvh", "lbvh"]), bits=st.sampled_from([30, 63]),
+       spread=st.sampled_from([0.0, 1e-3, 1.0, 1e4]))
+def test_property_any_soup_builds_a_valid_tree(n, seed, builder, bits, spread):
+    rng = np.random.default_rng(seed)
+    # spread 0 puts every vertex on a few lattice points: many equal Morton codes
+    base = rng.integers(0, 3, size=(3 * n, 3)).astype(np.float64)
+    vertices = base + spread * rng.normal(size=(3 * n, 3))
+    mesh = Mesh(vertices, rng.permutation(3 * n).reshape(n, 3))
+    check_tree(Scene([mesh], builder=builder, morton_bits=bits))
+
+
+def _numpy_morton(mesh: Mesh, bits: int) -> np.ndarray:
+    """Reference: centroid of each triangle's box, quantised over the
+    centroid bounds, bits interleaved x (high) y z (low)."""
+    tri = mesh.vertices[mesh.faces]
+    centroid = 0.5 * (tri.min(axis=1) + tri.max(axis=1))  # float32, as on the device
+    lo, hi = centroid.min(axis=0), centroid.max(axis=0)
+    per_axis = bits // 3
+    cells = np.float32(2**per_axis)
+    extent = hi - lo
+    scale = np.where(extent > 0, cells / np.where(extent > 0, extent, 1), 0).astype(np.float32)
+    q = np.clip((centroid - lo) * scale, 0, cells - 1).astype(np.uint64)
+    code = np.zeros(len(q), np.uint64)
+    for bit in range(per_axis):
+        for axis in range(3):
+            code |= ((q[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + 2 - axis)
+    return code
+
+
+@pytest.mark.parametrize("bits", [30, 63])
+@pytest.mark.parametrize("name", ["bunny", "lucy", "knight"])
+def test_morton_codes_match_numpy(meshes, name, bits):
+    mesh = meshes[name]
+    rt = runtime()
+    geometry = Geometry.upload(rt, mesh.vertices, mesh.faces, np.zeros(1, np.int32))
+    n = mesh.triangle_count
+    bounds = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 48)
+    keys = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, n * (4 if bits == 30 else 8))
+    ids = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, n * 4)
+    scene_bounds(rt, geometry.vertices, geometry.faces, n, bounds)
+    morton_codes(rt, geometry.vertices, geometry.faces, n, bounds, keys, ids, bits)
+    got = np.empty(n, np.uint32 if bits == 30 else np.uint64)
+    got_ids = np.empty(n, np.uint32)
+    cl.enqueue_copy(rt.queue, got, keys)
+    cl.enqueue_copy(rt.queue, got_ids, ids)
+    expected = _numpy_morton(mesh, bits)
+    # float rounding of (x - lo) * scale may move a centroid one cell; allow
+    # that in at most a handful of codes, and require the rest to be equal
+    assert (got.astype(np.uint64) == expected).mean() > 0.999
+    assert np.array_equal(got_ids, np.arange(n))
+    assert got.max() < 2**bits
+
+
+@pytest.mark.parametrize("builder", ["hlbvh", "lbvh"])
+def test_refit_matches_fresh_build(meshes, builder):
+    rng = np.random.default_rng(3)
+    parts = [meshes["knight"], meshes["bunny_small"]]
+    scene = Scene(parts, builder=builder)
+    nodes_before = scene.tree.read_nodes(scene.runtime.queue)
+    moved = parts[1].vertices * 1.5 + rng.normal(scale=0.01, size=parts[1].vertices.shape)
+    moved += [0.3, -2.0, 0.1]
+    scene.update_vertices(1, moved)
+    derived = check_tree(scene)  # every box is again exactly its triangles' box
+    nodes_after = derived["nodes"]
+    for field in ("left", "right", "left_count", "right_count"):
+        assert np.array_equal(nodes_before[field], nodes_after[field]), "refit changed topology"
+    fresh = Scene([parts[0], Mesh(moved, parts[1].faces)], builder=builder)
+    fresh_derived = check_tree(fresh)
+    assert np.array_equal(derived["root_lo"], fresh_derived["root_lo"])
+    assert np.array_equal(derived["root_hi"], fresh_derived["root_hi"])
+    np.testing.assert_array_equal(scene.tree.bounds_lo, derived["root_lo"])
+    # rebuild gives a tree over the moved vertices too
+    scene.rebuild()
+    check_tree(scene)
+
+
+def test_stats_and_stage_times(meshes):
+    scene = Scene([meshes["bunny"]])
+    stats = scene.stats
+    for key in ("triangles", "nodes", "leaves", "depth", "sah_cost", "times_ms"):
+        assert key in stats
+    for stage in ("bounds", "morton", "sort", "emit", "refit", "sah_top", "total"):
+        assert np.isfinite(stats["times_ms"][stage]) and stats["times_ms"][stage] >= 0
+    assert stats["times_ms"]["total"] > 0
+
+
+@pytest.mark.parametrize("name", ["bunny", "armadillo", "lucy"])
+def test_hlbvh_sah_is_lower_than_lbvh(meshes, name):
+    """Quality, not speed: the SAH top and the collapse must pay off."""
+    h = Scene([meshes[name]], builder="hlbvh").stats["sah_cost"]
+    l = Scene([meshes[name]], builder="lbvh").stats["sah_cost"]
+    assert h < l
+
+
+# ---- errors -----------------------------------------------------------------
+
+def test_scene_rejects_bad_arguments(meshes):
+    with pytest.raises(ValueError, match="meshes is empty"):
+        Scene([])
+    with pytest.raises(TypeError, match=r"meshes\[1\]"):
+        Scene([meshes["knight"], "teapot.ply"])
+    with pytest.raises(TypeError, match="meshes must be"):
+        Scene("knight.ply")
+    with pytest.raises(ValueError, match="builder"):
+        Scene([meshes["knight"]], builder="sah")
+    with pytest.raises(ValueError, match="morton_bits"):
+        Scene([meshes["knight"]], morton_bits=32)
+    with pytest.raises(ValueError, match="matches no OpenCL device"):
+        Scene([meshes["knight"]], device="no-such-device")
+
+
+def test_update_vertices_rejects_bad_input(meshes):
+    knight = meshes["knight"]
+    scene = Scene([knight])
+    with pytest.raises(ValueError, match="geom_id 1 is out of range"):
+        scene.update_vertices(1, knight.vertices)
+    with pytest.raises(TypeError, match="geom_id"):
+        scene.update_vertices("0", knight.vertices)
+    with pytest.raises(ValueError, match="rows but mesh 0 has"):
+        scene.update_vertices(0, knight.vertices[:-1])
+    bad = knight.vertices.copy()
+    bad[17, 1] = np.nan
+    with pytest.raises(ValueError, match="17"):
+        scene.update_vertices(0, bad)
+    with pytest.raises(ValueError, match="shape"):
+        scene.update_vertices(0, knight.vertices[:, :2])
+    check_tree(scene)  # nothing was touched
+
+
+def test_too_large_for_the_device_fails_before_allocating(meshes, monkeypatch):
+    rt = runtime()
+    small = dataclasses.replace(rt.device, max_mem_alloc_size=1 << 20, global_mem_size=1 << 22)
+    tiny_rt = Runtime(small)
+    mesh = meshes["bunny"]
+    geometry = Geometry.upload(tiny_rt, mesh.vertices, mesh.faces, np.zeros(1, np.int32))
+    allocations = []
+    real_buffer = cl.Buffer
+
+    def counting_buffer(*args, **kwargs):
+        allocations.append(args)
+        return real_buffer(*args, **kwargs)
+
+    monkeypatch.setattr(cl, "Buffer", counting_buffer)
+    with pytest.raises(DeviceMemoryError, match="MiB"):
+        build(tiny_rt, geometry)
+    assert allocations == []
+
+
+def test_scene_too_large_is_refused_before_upload(monkeypatch, meshes):
+    from hlbvh_cl import scene as scene_module
+    uploads = []
+    monkeypatch.setattr(scene_module.Geometry, "upload", lambda *a: uploads.append(a))
+    rt = runtime()
+    monkeypatch.setattr(rt, "device", dataclasses.replace(rt.device, global_mem_size=1 << 20))
+    with pytest.raises(DeviceMemoryError, match="building a BVH over 69,451 triangles"):
+        Scene([meshes["bunny"]])
+    assert uploads == []
+
+
+def test_public_api_is_small():
+    assert set(hlbvh_cl.__all__) >= {"Scene", "Mesh", "devices"}

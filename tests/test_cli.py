@@ -1,0 +1,34 @@
+"""Smoke tests of the hlbvh-cl command."""
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from hlbvh_cl.cli import main
+
+SCENES = Path(__file__).resolve().parent.parent / "scenes"
+
+
+def test_devices_lists_pocl(capsys):
+    assert main(["devices", "--require", "pocl"]) == 0
+    assert "pocl:0" in capsys.readouterr().out
+
+
+def test_info_prints_stats(capsys):
+    assert main(["info", str(SCENES / "bunny_small.toml"), "--repeat", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "triangles" in out and "SAH cost" in out and "bounds" in out
+
+
+def test_user_mistakes_give_one_line_and_exit_2(tmp_path, capsys):
+    assert main(["info", str(tmp_path / "missing.toml")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("hlbvh-cl: error:") and "missing.toml" in err and "\n" not in err
+    assert main(["info", str(SCENES / "bunny_small.toml"), "--device", "nope"]) == 2
+
+
+def test_console_script_runs():
+    done = subprocess.run([sys.executable, "-m", "hlbvh_cl", "devices"], capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0 and "pocl" in done.stdout
