@@ -45,16 +45,21 @@ def build_top(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: RadixTre
     def buf(count, itemsize=4):
         return cl.Buffer(ctx, cl.mem_flags.READ_WRITE, max(1, count) * itemsize)
     first, roots, order = buf(clusters), buf(clusters), buf(clusters)
+    size, cluster_cost, cluster_height = buf(clusters), buf(clusters), buf(clusters)
+    cluster_box = buf(clusters, layout.AABB.itemsize)
     begin, end, left, right, cost, height = (buf(clusters) for _ in range(6))
     boxes = buf(clusters, layout.AABB.itemsize)
     info, root_cost = buf(1), buf(1)
     events.append(rt.run(rt.kernel("sah_top.cl", "gather_cluster_starts", MORTON_BITS=bits), n,
                          scan, n, first, wait_for=events[-1:]))
-    events.append(rt.run(rt.kernel("sah_top.cl", "build_top_sah", MORTON_BITS=bits), 1,
+    events.append(rt.run(rt.kernel("sah_top.cl", "gather_clusters", MORTON_BITS=bits), clusters,
                          scan, n, first, tree.range_first, tree.range_last, metrics.boxes,
-                         metrics.sah_cost, metrics.height, roots, order, begin, end, left, right,
-                         boxes, cost, height, info, root_cost, wait_for=events[-1:],
-                         local_size=1))
+                         metrics.sah_cost, metrics.height, roots, cluster_box, size, cluster_cost,
+                         cluster_height, wait_for=events[-1:]))
+    events.append(rt.run(rt.kernel("sah_top.cl", "build_top_sah", MORTON_BITS=bits), 1,
+                         clusters, cluster_box, size, cluster_cost, cluster_height, order, begin,
+                         end, left, right, boxes, cost, height, info, root_cost,
+                         wait_for=events[-1:], local_size=1))
     depth = np.empty(1, np.int32)
     total = np.empty(1, np.float32)
     cl.enqueue_copy(q, depth, info, wait_for=events[-1:])

@@ -2,17 +2,17 @@
  *
  * A pass sorts by the digit (key >> shift) & digit_mask, RADIX_BITS bits wide
  * at most.  Per pass (Satish, Harris & Garland 2009, "Designing Efficient
- * Sorting Algorithms for Manycore GPUs", sec. 4):
+ * Sorting Algorithms for Manycore GPUs", the digit-major histogram layout):
  *   1. radix_histogram: every work-group counts the digits of its tile;
- *   2. the host scans the digit-major histogram matrix [digit][group]
- *      (hlbvh_cl/scan.py), so entry (d, g) becomes the number of keys with a
+ *   2. an exclusive scan (kernels/scan.cl) of the digit-major histogram matrix
+ *      [digit][group] makes entry (d, g) the number of keys with a
  *      smaller digit plus those with digit d in earlier groups: the first
  *      output slot of digit d for group g;
  *   3. radix_scatter recounts, adds the per-work-item offsets and moves every
  *      pair to its slot.
  * Each work-group owns a contiguous tile and each work-item a contiguous
  * sub-tile of `per_item` pairs, counted into its own column of
- * counts[RADIX][GROUP_SIZE] and scattered serially in input order, so the
+ * counts[RADIX][SORT_GROUP_SIZE] and scattered serially in input order, so the
  * sort is stable by construction and needs no atomics.  The barriers sit
  * outside every loop (PoCL's CPU device has hung on barriers inside loops in
  * local-memory code).
