@@ -17,7 +17,7 @@ from . import layout
 from .bounds import scene_bounds
 from .device import Runtime, event_ms
 from .emit import RadixTree, emit_internal_nodes
-from .flatten import box_area, flatten_nodes, gather_triangles
+from .flatten import box_area, flatten_nodes
 from .morton import key_dtype, morton_codes
 from .refit import RadixTreeMetrics, refit_radix_tree
 from .sah_top import build_top
@@ -131,9 +131,11 @@ def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int) -> B
                                                wait_for=stage_events["sort"][-1:])
 
     metrics = RadixTreeMetrics.allocate(rt, n)
-    stage_events["refit"] = refit_radix_tree(rt, geometry.vertices, geometry.faces, primitive_ids,
-                                             tree, metrics, collapse_leaves=hlbvh,
-                                             wait_for=stage_events["emit"][-1:])
+    triangles, refs = buf(n * layout.TRIANGLE.itemsize), buf(n * layout.TRIANGLE_REF.itemsize)
+    stage_events["refit"] = refit_radix_tree(
+        rt, geometry.vertices, geometry.faces, primitive_ids, geometry.mesh_first_face,
+        geometry.mesh_count, tree, metrics, triangles, refs, collapse_leaves=hlbvh,
+        wait_for=stage_events["emit"][-1:])
 
     top = None
     if hlbvh and n > 1:
@@ -144,11 +146,6 @@ def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int) -> B
     nodes, parents, node_count, leaf_count, root_box, depth, cost, stage_events["flatten"] = \
         flatten_nodes(
         rt, keys, morton_bits, tree, metrics, top, use_clusters=hlbvh, wait_for=last)
-    triangles, refs = buf(n * layout.TRIANGLE.itemsize), buf(n * layout.TRIANGLE_REF.itemsize)
-    stage_events["flatten"] += gather_triangles(
-        rt, geometry.vertices, geometry.faces, primitive_ids, n, geometry.mesh_first_face,
-        geometry.mesh_count, triangles, refs, morton_bits, hlbvh,
-        wait_for=stage_events["flatten"][-1:])
 
     scene_box = np.empty(2, layout.AABB)
     cl.enqueue_copy(rt.queue, scene_box, bounds)

@@ -53,12 +53,13 @@ def flatten_nodes(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: Radi
                          wait_for=events[-1:]))
     if top:
         events.append(rt.run(rt.kernel("flatten.cl", "write_top_nodes", **defines), top_count, n,
-                             top_count, live, top.top_left, top.top_right, top.top_boxes,
+                             top_count, top.root, live, top.top_left, top.top_right, top.top_boxes,
                              top.cluster_roots, tree.range_first, tree.range_last,
                              metrics.collapsed, metrics.boxes, nodes, parents,
                              wait_for=events[-1:]))
         root_box = np.empty(1, layout.AABB)
-        cl.enqueue_copy(q, root_box, top.top_boxes, wait_for=events[-1:])
+        cl.enqueue_copy(q, root_box, top.top_boxes, src_offset=top.root * layout.AABB.itemsize,
+                        wait_for=events[-1:])
         return nodes, parents, node_count, node_count + 1, root_box[0], top.depth, top.sah_cost, events
 
     root_box = np.empty(1, layout.AABB)
@@ -66,18 +67,6 @@ def flatten_nodes(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: Radi
     depth = int(_read_scalar(q, metrics.height, np.int32))
     cost = float(_read_scalar(q, metrics.sah_cost, np.float32))
     return nodes, parents, node_count, node_count + 1, root_box[0], depth, cost, events
-
-
-def gather_triangles(rt, vertices: cl.Buffer, faces: cl.Buffer, primitive_ids: cl.Buffer, n: int,
-                     mesh_first_face: cl.Buffer, mesh_count: int, triangles: cl.Buffer,
-                     refs: cl.Buffer, bits: int, use_clusters: bool,
-                     wait_for=None) -> list[cl.Event]:
-    """Lay the triangles out in leaf order, with their (mesh, face) refs."""
-    kernel = rt.kernel("flatten.cl", "gather_triangles", MORTON_BITS=bits,
-                       USE_CLUSTERS=int(use_clusters))
-    return [rt.run(kernel, n,
-                   vertices, faces, primitive_ids, n, mesh_first_face, mesh_count, triangles,
-                   refs, wait_for=wait_for)]
 
 
 def _area(box) -> float:

@@ -41,14 +41,18 @@ def _zeroed_ints(rt, count: int, wait_for=None) -> tuple[cl.Buffer, cl.Event]:
 
 
 def refit_radix_tree(rt, vertices: cl.Buffer, faces: cl.Buffer, primitive_ids: cl.Buffer,
-                     tree: RadixTree, metrics: RadixTreeMetrics, collapse_leaves: bool,
-                     wait_for=None) -> list[cl.Event]:
+                     mesh_first_face: cl.Buffer, mesh_count: int, tree: RadixTree,
+                     metrics: RadixTreeMetrics, triangles: cl.Buffer, refs: cl.Buffer,
+                     collapse_leaves: bool, wait_for=None) -> list[cl.Event]:
+    """Boxes, SAH costs and collapse flags of every radix-tree node; on the
+    way, the triangles and their refs in leaf order."""
     n = tree.n
     visits, cleared = _zeroed_ints(rt, n - 1, wait_for)
     if n == 1:  # no internal node; the walk ends at once
         cl.enqueue_fill_buffer(rt.queue, metrics.collapsed, np.int32(0), 0, 4)
     kernel = rt.kernel("refit.cl", "refit_radix_tree", COLLAPSE_LEAVES=int(collapse_leaves))
-    walk = rt.run(kernel, n, vertices, faces, primitive_ids, n, tree.left_child,
+    walk = rt.run(kernel, n, vertices, faces, primitive_ids, n, mesh_first_face, mesh_count,
+                  triangles, refs, tree.left_child,
                   tree.right_child, tree.parent, tree.range_first, tree.range_last, visits,
                   metrics.boxes, metrics.sah_cost, metrics.height, metrics.collapsed,
                   wait_for=[cleared])

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import functools
+
 import numpy as np
 import pyopencl as cl
 
@@ -11,6 +13,8 @@ from .emit import RadixTree
 from .refit import RadixTreeMetrics
 from .scan import exclusive_scan
 
+TOP_TASK_BYTES = 16  # struct TopTask in sah_top.cl: four ints
+
 
 @dataclass
 class TopTree:
@@ -18,6 +22,7 @@ class TopTree:
 
     cluster_count: int
     top_count: int
+    root: int                # the top node splitting at m is node m - 1: the root is anywhere
     top_left: cl.Buffer      # int32: >= 0 a top node, < 0 the cluster ~ref
     top_right: cl.Buffer
     top_boxes: cl.Buffer     # Aabb
@@ -47,22 +52,38 @@ def build_top(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: RadixTre
     first, roots, order = buf(clusters), buf(clusters), buf(clusters)
     size, cluster_cost, cluster_height = buf(clusters), buf(clusters), buf(clusters)
     cluster_box = buf(clusters, layout.AABB.itemsize)
-    begin, end, left, right, cost, height = (buf(clusters) for _ in range(6))
+    tasks, next_tasks, stack = (buf(clusters, TOP_TASK_BYTES) for _ in range(3))
+    left, right, parent, cost, height = (buf(clusters) for _ in range(5))
     boxes = buf(clusters, layout.AABB.itemsize)
-    info, root_cost = buf(1), buf(1)
-    events.append(rt.run(rt.kernel("sah_top.cl", "gather_cluster_starts", MORTON_BITS=bits), n,
-                         scan, n, first, wait_for=events[-1:]))
-    events.append(rt.run(rt.kernel("sah_top.cl", "gather_clusters", MORTON_BITS=bits), clusters,
-                         scan, n, first, tree.range_first, tree.range_last, metrics.boxes,
-                         metrics.sah_cost, metrics.height, roots, cluster_box, size, cluster_cost,
-                         cluster_height, wait_for=events[-1:]))
-    events.append(rt.run(rt.kernel("sah_top.cl", "build_top_sah", MORTON_BITS=bits), 1,
-                         clusters, cluster_box, size, cluster_cost, cluster_height, order, begin,
-                         end, left, right, boxes, cost, height, info, root_cost,
-                         wait_for=events[-1:], local_size=1))
-    depth = np.empty(1, np.int32)
+    info, root_cost, next_count = buf(2), buf(1), buf(1)
+    kernel = functools.partial(rt.kernel, "sah_top.cl", MORTON_BITS=bits)
+    events.append(rt.run(kernel("gather_cluster_starts"), n, scan, n, first, wait_for=events[-1:]))
+    events.append(rt.run(kernel("gather_clusters"), clusters, scan, n, first, tree.range_first,
+                         tree.range_last, metrics.boxes, metrics.sah_cost, metrics.height, roots,
+                         cluster_box, size, cluster_cost, cluster_height, wait_for=events[-1:]))
+    events.append(rt.run(kernel("init_top_build"), clusters, clusters, order, tasks,
+                         wait_for=events[-1:]))
+    # One launch per level until every task has finished its subtree (at most
+    # TOP_SERIAL_DEPTH + 1 levels: deeper tasks build their subtrees serially).
+    task_count = np.ones(1, np.int32)
+    while task_count[0]:
+        events.append(cl.enqueue_fill_buffer(q, next_count, np.int32(0), 0, 4,
+                                             wait_for=events[-1:]))
+        events.append(rt.run(kernel("split_top_level"), int(task_count[0]), tasks,
+                             int(task_count[0]), next_tasks, next_count, stack, order,
+                             cluster_box, size, left, right, parent, info, wait_for=events[-1:],
+                             local_size=1))
+        cl.enqueue_copy(q, task_count, next_count, wait_for=events[-1:])
+        tasks, next_tasks = next_tasks, tasks
+    visits = buf(clusters)
+    events.append(cl.enqueue_fill_buffer(q, visits, np.int32(0), 0, clusters * 4,
+                                         wait_for=events[-1:]))
+    events.append(rt.run(kernel("fold_top_nodes"), clusters - 1, clusters - 1, left, right,
+                         parent, cluster_box, cluster_cost, cluster_height, visits, boxes, cost,
+                         height, info, root_cost, wait_for=events[-1:]))
+    depth_and_root = np.empty(2, np.int32)
     total = np.empty(1, np.float32)
-    cl.enqueue_copy(q, depth, info, wait_for=events[-1:])
+    cl.enqueue_copy(q, depth_and_root, info, wait_for=events[-1:])
     cl.enqueue_copy(q, total, root_cost, wait_for=events[-1:])
-    return TopTree(clusters, clusters - 1, left, right, boxes, roots, int(depth[0]),
-                   float(total[0])), events
+    return TopTree(clusters, clusters - 1, int(depth_and_root[1]), left, right, boxes, roots,
+                   int(depth_and_root[0]), float(total[0])), events

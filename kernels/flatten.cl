@@ -3,8 +3,8 @@
  * Interior nodes that survive (not inside a collapsed leaf, and, for the
  * HLBVH, not above the clusters) are compacted by a scan and written after
  * the top_count SAH top nodes, each holding both children's boxes.  A leaf
- * slot points at a run of triangles in sorted (Morton) order; gather_triangles
- * lays the triangles out in that order.
+ * slot points at a run of triangles in sorted (Morton) order, the order in
+ * which refit.cl laid them out.
  */
 #include "hlbvh.h"
 
@@ -103,7 +103,13 @@ __kernel void write_flat_nodes(int n, int top_count, __global const uint *live_s
         parents[self] = -1; /* the radix tree's root is the flat root */
 }
 
-__kernel void write_top_nodes(int n, int top_count, __global const uint *live_scan,
+/* Top node t goes to flat slot t, but the root must be slot 0: swap the two. */
+inline int top_slot(int t, int top_root)
+{
+    return t == top_root ? 0 : (t == 0 ? top_root : t);
+}
+
+__kernel void write_top_nodes(int n, int top_count, int top_root, __global const uint *live_scan,
                               __global const int *top_left, __global const int *top_right,
                               __global const Aabb *top_boxes, __global const int *cluster_roots,
                               __global const int *range_first, __global const int *range_last,
@@ -119,7 +125,7 @@ __kernel void write_top_nodes(int n, int top_count, __global const uint *live_sc
     Aabb box[2];
     for (int side = 0; side < 2; ++side) {
         if (refs[side] >= 0) {
-            index[side] = refs[side];
+            index[side] = top_slot(refs[side], top_root);
             count[side] = 0;
             box[side] = top_boxes[refs[side]];
         } else {
@@ -129,10 +135,11 @@ __kernel void write_top_nodes(int n, int top_count, __global const uint *live_sc
             box[side] = boxes[root];
         }
         if (count[side] == 0)
-            parents[index[side]] = t;
+            parents[index[side]] = top_slot(t, top_root);
     }
-    write_node(nodes + t, box[0], box[1], index[0], count[0], index[1], count[1]);
-    if (t == 0)
+    write_node(nodes + top_slot(t, top_root), box[0], box[1], index[0], count[0], index[1],
+               count[1]);
+    if (t == top_root)
         parents[0] = -1;
 }
 
@@ -145,35 +152,4 @@ __kernel void write_leaf_root(int n, __global const Aabb *boxes, __global FlatNo
         return;
     write_node(nodes, boxes[0], aabb_empty(), 0, (uint)n, EMPTY_CHILD, 0);
     parents[0] = -1;
-}
-
-/* Triangles in sorted order, with the mesh and face each came from. */
-__kernel void gather_triangles(__global const float *vertices, __global const int *faces,
-                               __global const uint *primitive_ids, int n,
-                               __global const int *mesh_first_face, int mesh_count,
-                               __global Triangle *triangles, __global TriangleRef *refs)
-{
-    int j = get_global_id(0);
-    if (j >= n)
-        return;
-    int face = (int)primitive_ids[j];
-    float3 a, b, c;
-    load_triangle(vertices, faces, face, &a, &b, &c);
-    Triangle t;
-    vstore3(a, 0, t.v0);
-    vstore3(b, 0, t.v1);
-    vstore3(c, 0, t.v2);
-    triangles[j] = t;
-
-    /* The last mesh whose first face is <= face. */
-    int lo = 0, hi = mesh_count - 1;
-    while (lo < hi) {
-        int mid = (lo + hi + 1) >> 1;
-        if (mesh_first_face[mid] <= face)
-            lo = mid;
-        else
-            hi = mid - 1;
-    }
-    TriangleRef ref = {lo, face - mesh_first_face[lo]};
-    refs[j] = ref;
 }

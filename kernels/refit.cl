@@ -29,8 +29,36 @@ inline int load_int_volatile(__global const int *values, int index)
     return ((volatile __global const int *)values)[index];
 }
 
+/* The mesh a concatenated face belongs to: the last whose first face is <= face. */
+inline TriangleRef triangle_ref(__global const int *mesh_first_face, int mesh_count, int face)
+{
+    int lo = 0, hi = mesh_count - 1;
+    while (lo < hi) {
+        int mid = (lo + hi + 1) >> 1;
+        if (mesh_first_face[mid] <= face)
+            lo = mid;
+        else
+            hi = mid - 1;
+    }
+    TriangleRef ref = {lo, face - mesh_first_face[lo]};
+    return ref;
+}
+
+inline void store_triangle(__global Triangle *triangles, int j, float3 a, float3 b, float3 c)
+{
+    Triangle t;
+    vstore3(a, 0, t.v0);
+    vstore3(b, 0, t.v1);
+    vstore3(c, 0, t.v2);
+    triangles[j] = t;
+}
+
+/* Each leaf's walker first lays its triangle out in leaf (sorted) order, with
+ * its (mesh, face) ref: the refit has to gather the triangle anyway. */
 __kernel void refit_radix_tree(__global const float *vertices, __global const int *faces,
                                __global const uint *primitive_ids, int n,
+                               __global const int *mesh_first_face, int mesh_count,
+                               __global Triangle *triangles, __global TriangleRef *refs,
                                __global const int *left_child, __global const int *right_child,
                                __global const int *parent, __global const int *range_first,
                                __global const int *range_last, __global volatile int *visits,
@@ -41,8 +69,11 @@ __kernel void refit_radix_tree(__global const float *vertices, __global const in
     if (j >= n)
         return;
     int node = (n - 1) + j;
+    int face = (int)primitive_ids[j];
     float3 a, b, c;
-    load_triangle(vertices, faces, (int)primitive_ids[j], &a, &b, &c);
+    load_triangle(vertices, faces, face, &a, &b, &c);
+    store_triangle(triangles, j, a, b, c);
+    refs[j] = triangle_ref(mesh_first_face, mesh_count, face);
     Aabb box = aabb_of_points(a, b, c);
     boxes[node] = box;
     sah_cost[node] = SAH_INTERSECT_COST * aabb_area(box);
@@ -161,9 +192,5 @@ __kernel void regather_triangles(__global const float *vertices, __global const 
     TriangleRef ref = refs[j];
     float3 a, b, c;
     load_triangle(vertices, faces, mesh_first_face[ref.geom_id] + ref.prim_id, &a, &b, &c);
-    Triangle t;
-    vstore3(a, 0, t.v0);
-    vstore3(b, 0, t.v1);
-    vstore3(c, 0, t.v2);
-    triangles[j] = t;
+    store_triangle(triangles, j, a, b, c);
 }
