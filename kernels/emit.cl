@@ -8,15 +8,6 @@
  */
 #include "hlbvh.h"
 
-#if MORTON_BITS == 30
-typedef uint morton_t;
-#define KEY_BITS 32
-#elif MORTON_BITS == 63
-typedef ulong morton_t;
-#define KEY_BITS 64
-#else
-#error "MORTON_BITS must be 30 or 63"
-#endif
 
 /* Length of the common prefix of keys i and j; -1 outside [0, n). */
 inline int common_prefix(__global const morton_t *keys, int n, int i, int j)

@@ -8,14 +8,6 @@
  */
 #include "hlbvh.h"
 
-#if MORTON_BITS == 30
-typedef uint morton_t;
-#elif MORTON_BITS == 63
-typedef ulong morton_t;
-#else
-#error "MORTON_BITS must be 30 or 63"
-#endif
-#define CLUSTER_SHIFT (MORTON_BITS - CLUSTER_BITS)
 
 inline int spans_clusters(__global const morton_t *keys, int first, int last)
 {

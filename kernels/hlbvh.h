@@ -33,6 +33,21 @@
  * second child of a one-triangle scene. */
 #define EMPTY_CHILD (-1)
 
+/* Morton keys: MORTON_BITS = 30 (10 bits per axis, uint) or 63 (21 bits per
+ * axis, ulong), set by the host as a -D define for the stages that read keys. */
+#ifdef MORTON_BITS
+#if MORTON_BITS == 30
+typedef uint morton_t;
+#define KEY_BITS 32
+#elif MORTON_BITS == 63
+typedef ulong morton_t;
+#define KEY_BITS 64
+#else
+#error "MORTON_BITS must be 30 or 63"
+#endif
+#define CLUSTER_SHIFT (MORTON_BITS - CLUSTER_BITS)
+#endif
+
 typedef struct {
     float lo[3];
     float hi[3];

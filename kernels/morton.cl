@@ -8,7 +8,6 @@
 #include "hlbvh.h"
 
 #if MORTON_BITS == 30
-typedef uint morton_t;
 #define AXIS_CELLS 1024.0f
 
 /* Spread the low 10 bits of v so two zero bits separate each. */
@@ -22,7 +21,6 @@ inline uint spread_bits(uint v)
     return v;
 }
 #elif MORTON_BITS == 63
-typedef ulong morton_t;
 #define AXIS_CELLS 2097152.0f
 
 /* Spread the low 21 bits of v so two zero bits separate each. */
@@ -36,8 +34,6 @@ inline ulong spread_bits(uint x)
     v = (v | (v << 2)) & 0x1249249249249249UL;
     return v;
 }
-#else
-#error "MORTON_BITS must be 30 or 63"
 #endif
 
 inline uint quantize(float x, float lo, float scale)

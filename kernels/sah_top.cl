@@ -10,14 +10,6 @@
  */
 #include "hlbvh.h"
 
-#if MORTON_BITS == 30
-typedef uint morton_t;
-#elif MORTON_BITS == 63
-typedef ulong morton_t;
-#else
-#error "MORTON_BITS must be 30 or 63"
-#endif
-#define CLUSTER_SHIFT (MORTON_BITS - CLUSTER_BITS)
 
 /* Levels built one kernel launch each before every task finishes its own
  * subtree serially (2^10 parallel subtrees is plenty for any device here). */
