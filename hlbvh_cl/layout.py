@@ -44,5 +44,11 @@ TRIANGLE = np.dtype([("v0", *_f3), ("v1", *_f3), ("v2", *_f3)])
 
 TRIANGLE_REF = np.dtype([("geom_id", np.int32), ("prim_id", np.int32)])
 
+RAY = np.dtype([("origin", *_f3), ("tmin", np.float32), ("direction", *_f3), ("tmax", np.float32)])
+
+HIT = np.dtype([("t", np.float32), ("geom_id", np.int32), ("prim_id", np.int32),
+                ("u", np.float32), ("v", np.float32), ("normal", *_f3)])
+
 #: name in hlbvh.h -> dtype, for the layout test
-STRUCTS = {"Aabb": AABB, "FlatNode": FLAT_NODE, "Triangle": TRIANGLE, "TriangleRef": TRIANGLE_REF}
+STRUCTS = {"Aabb": AABB, "FlatNode": FLAT_NODE, "Triangle": TRIANGLE, "TriangleRef": TRIANGLE_REF,
+           "Ray": RAY, "Hit": HIT}

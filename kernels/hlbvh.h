@@ -79,6 +79,24 @@ typedef struct {
     int prim_id;
 } TriangleRef;
 
+/* A ray as the traversal kernels read it (query.py fills these). */
+typedef struct {
+    float origin[3];
+    float tmin;
+    float direction[3];
+    float tmax;
+} Ray;
+
+/* One closest-hit result; t = INFINITY and ids -1 on a miss. */
+typedef struct {
+    float t;
+    int geom_id;
+    int prim_id;
+    float u;
+    float v;
+    float normal[3];
+} Hit;
+
 /* Helpers several stages share. */
 inline float3 load_vertex(__global const float *vertices, int index)
 {

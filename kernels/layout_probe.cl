@@ -26,4 +26,14 @@ __kernel void struct_layout(__global int *out)
     REPORT(12, offsetof(Triangle, v2));
     REPORT(13, sizeof(TriangleRef));
     REPORT(14, offsetof(TriangleRef, prim_id));
+    REPORT(15, sizeof(Ray));
+    REPORT(16, offsetof(Ray, tmin));
+    REPORT(17, offsetof(Ray, direction));
+    REPORT(18, offsetof(Ray, tmax));
+    REPORT(19, sizeof(Hit));
+    REPORT(20, offsetof(Hit, geom_id));
+    REPORT(21, offsetof(Hit, prim_id));
+    REPORT(22, offsetof(Hit, u));
+    REPORT(23, offsetof(Hit, v));
+    REPORT(24, offsetof(Hit, normal));
 }

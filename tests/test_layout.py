@@ -13,6 +13,9 @@ FIELDS = [
     ("FlatNode", "left_count"), ("FlatNode", "right_count"),
     ("Triangle", None), ("Triangle", "v1"), ("Triangle", "v2"),
     ("TriangleRef", None), ("TriangleRef", "prim_id"),
+    ("Ray", None), ("Ray", "tmin"), ("Ray", "direction"), ("Ray", "tmax"),
+    ("Hit", None), ("Hit", "geom_id"), ("Hit", "prim_id"), ("Hit", "u"), ("Hit", "v"),
+    ("Hit", "normal"),
 ]
 
 

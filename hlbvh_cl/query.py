@@ -1,0 +1,289 @@
+"""Ray queries on a DeviceTree: closest hit and any hit (kernels/traverse.cl).
+
+Conventions, shared with tests/oracle.py:
+  - a ray hits at distance t when tmin <= t <= tmax, with t in units of the
+    direction's length (directions are not normalised);
+  - tmin must be >= 0 and finite (as Embree's tnear), tmax >= tmin (may be inf);
+  - no back-face culling; degenerate (zero-area) triangles are never hit;
+  - u, v are barycentrics: hit = (1-u-v)*v0 + u*v1 + v*v2, and the normal is
+    cross(v1-v0, v2-v0) normalised (it follows the winding).
+"""
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+import pyopencl as cl
+
+from . import layout
+from .device import Runtime
+from .tree import DeviceTree
+
+RAY, HIT = layout.RAY, layout.HIT
+
+#: Rays per kernel launch at most: large enough to fill any device, small
+#: enough that 1e7 rays cost per ray what 1e6 do (buffers stay ~128 MiB).
+MAX_RAYS_PER_LAUNCH = 1 << 22
+
+#: Stack sizes are rounded up to a multiple of this so that few program
+#: variants get compiled.
+STACK_GRANULE = 16
+
+
+@dataclass
+class Hits:
+    """Closest hits of R rays; misses have t = inf, ids -1, u = v = 0, normal 0."""
+
+    t: np.ndarray        # float32 (R,)
+    prim_id: np.ndarray  # int32 (R,) face index within its own mesh
+    geom_id: np.ndarray  # int32 (R,) mesh index in the scene
+    u: np.ndarray        # float32 (R,)
+    v: np.ndarray        # float32 (R,)
+    normal: np.ndarray   # float32 (R, 3) unit geometric normal
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    @property
+    def hit(self) -> np.ndarray:
+        """bool (R,): which rays hit something."""
+        return self.geom_id >= 0
+
+
+def _work_group_size(rt: Runtime) -> int:
+    """Work-items per group for the traversal kernels.
+
+    Measured on the project's 2-core machine (bunny and Lucy, 512K random and
+    camera rays, sizes 1..64): PoCL's speed hardly depends on it (16 is at the
+    top); Intel's CPU runtime runs 8 about 1.3-1.5x faster than 16 or more,
+    where it vectorises 16 rays wide and loses to their divergence.  GPUs want
+    at least a warp/wavefront.
+    """
+    d = rt.device
+    if d.type == "gpu":
+        size = 64
+    elif d.id.startswith("intel"):
+        size = 8
+    else:
+        size = 16
+    return min(size, d.cl_device.max_work_group_size)
+
+
+class RayQuery:
+    """Closest-hit and any-hit queries on one device.
+
+    Device buffers for rays and results are reused between calls and only grow.
+    ``max_rays_per_launch`` caps the rays per kernel launch (bigger batches are
+    split into chunks); by default it follows the device's memory limits.
+    """
+
+    def __init__(self, rt: Runtime, max_rays_per_launch: int | None = None):
+        self.rt = rt
+        self.work_group_size = _work_group_size(rt)
+        self.max_rays_per_launch = self._chunk_size(max_rays_per_launch)
+        self._capacity = 0
+        self._rays: cl.Buffer | None = None
+        self._hits: cl.Buffer | None = None
+        self._occluded: cl.Buffer | None = None
+        self._staging = np.empty(0, RAY)
+        self._overflow = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 4)
+        self._lock = threading.Lock()
+        #: device time of the last query's kernels, milliseconds
+        self.last_kernel_ms = 0.0
+
+    def _chunk_size(self, requested: int | None) -> int:
+        d = self.rt.device
+        # Per ray: the Ray record plus the Hit record (the occlusion byte is smaller).
+        per_ray = RAY.itemsize + HIT.itemsize
+        fits = min(d.max_mem_alloc_size // max(RAY.itemsize, HIT.itemsize),
+                   d.global_mem_size // 4 // per_ray)  # leave room for the tree
+        size = min(MAX_RAYS_PER_LAUNCH, fits)
+        if requested is not None:
+            if isinstance(requested, bool) or not isinstance(requested, (int, np.integer)):
+                raise TypeError(f"max_rays_per_launch must be an int, got {type(requested).__name__}")
+            if requested < 1:
+                raise ValueError(f"max_rays_per_launch must be >= 1, got {requested}")
+            size = min(size, int(requested))
+        return max(1, size)
+
+    # -- public queries ---------------------------------------------------
+
+    def intersect(self, tree: DeviceTree, origins, directions, tmin=0.0, tmax=np.inf) -> Hits:
+        """Closest hit of each ray (origins[i] + t * directions[i], tmin <= t <= tmax)."""
+        origins, directions, tmin, tmax = _check_rays(origins, directions, tmin, tmax)
+        count = len(origins)
+        result = np.empty(count, HIT)
+        if count and self._check_tree(tree):
+            kernel = self.rt.kernel("traverse.cl", "intersect_closest", STACK_SIZE=_stack_size(tree))
+            self._run(count, origins, directions, tmin, tmax, lambda n: self.rt.run(
+                kernel, n, tree.nodes, tree.triangles, tree.refs, self._rays, self._hits,
+                self._overflow, np.uint32(n), local_size=self.work_group_size), "_hits", result)
+        elif count:
+            result["t"] = np.inf
+            result["geom_id"] = result["prim_id"] = -1
+            result["u"] = result["v"] = 0.0
+            result["normal"] = 0.0
+        return Hits(t=np.ascontiguousarray(result["t"]),
+                    prim_id=np.ascontiguousarray(result["prim_id"]),
+                    geom_id=np.ascontiguousarray(result["geom_id"]),
+                    u=np.ascontiguousarray(result["u"]), v=np.ascontiguousarray(result["v"]),
+                    normal=np.ascontiguousarray(result["normal"]))
+
+    def occluded(self, tree: DeviceTree, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
+        """bool (R,): whether anything is hit with tmin <= t <= tmax (stops at the first hit)."""
+        origins, directions, tmin, tmax = _check_rays(origins, directions, tmin, tmax)
+        count = len(origins)
+        result = np.zeros(count, np.uint8)
+        if count and self._check_tree(tree):
+            kernel = self.rt.kernel("traverse.cl", "intersect_any", STACK_SIZE=_stack_size(tree))
+            self._run(count, origins, directions, tmin, tmax, lambda n: self.rt.run(
+                kernel, n, tree.nodes, tree.triangles, self._rays, self._occluded,
+                self._overflow, np.uint32(n), local_size=self.work_group_size), "_occluded", result)
+        return result.astype(bool)
+
+    # -- internals ----------------------------------------------------------
+
+    def _check_tree(self, tree: DeviceTree) -> bool:
+        """Validates the tree; False when it holds no triangle (every ray misses)."""
+        if not isinstance(tree, DeviceTree):
+            raise TypeError(f"tree must be a hlbvh_cl.tree.DeviceTree, got {type(tree).__name__}")
+        if tree.triangle_count == 0:
+            return False
+        if tree.nodes.context != self.rt.context:
+            raise ValueError(f"tree lives on another OpenCL context than this RayQuery "
+                             f"({self.rt.device.id}); build it with the same runtime")
+        if tree.depth < 1 or tree.node_count < 1:
+            raise ValueError(f"tree is malformed: depth={tree.depth}, node_count={tree.node_count}")
+        return True
+
+    def _reserve(self, count: int) -> None:
+        """Grow-only device and staging buffers for `count` rays per launch."""
+        if count <= self._capacity:
+            return
+        capacity = min(self.max_rays_per_launch, max(count, 2 * self._capacity))
+        self.rt.check_allocation("ray query buffers", {
+            "rays": capacity * RAY.itemsize, "hits": capacity * HIT.itemsize, "occluded": capacity})
+        mf = cl.mem_flags
+        self._rays = cl.Buffer(self.rt.context, mf.READ_ONLY, capacity * RAY.itemsize)
+        self._hits = cl.Buffer(self.rt.context, mf.WRITE_ONLY, capacity * HIT.itemsize)
+        self._occluded = cl.Buffer(self.rt.context, mf.WRITE_ONLY, capacity)
+        self._staging = np.empty(capacity, RAY)
+        self._capacity = capacity
+
+    def _run(self, count, origins, directions, tmin, tmax, launch, output: str, result) -> None:
+        """Runs `launch(n)` over chunks of at most max_rays_per_launch rays and
+        reads the buffer named `output` into `result`."""
+        with self._lock:  # one query at a time: the buffers are shared
+            self._run_locked(count, origins, directions, tmin, tmax, launch, output, result)
+
+    def _run_locked(self, count, origins, directions, tmin, tmax, launch, output, result) -> None:
+        queue = self.rt.queue
+        chunk = self.max_rays_per_launch
+        self._reserve(min(count, chunk))
+        device_result = getattr(self, output)
+        cl.enqueue_copy(queue, self._overflow, np.zeros(1, np.int32))
+        events = []
+        for start in range(0, count, chunk):
+            stop = min(start + chunk, count)
+            n = stop - start
+            staging = self._staging[:n]
+            staging["origin"] = origins[start:stop]
+            staging["direction"] = directions[start:stop]
+            staging["tmin"] = tmin if tmin.ndim == 0 else tmin[start:stop]
+            staging["tmax"] = tmax if tmax.ndim == 0 else tmax[start:stop]
+            # Blocking: the staging array is refilled by the next chunk.
+            cl.enqueue_copy(queue, self._rays, staging, is_blocking=True)
+            events.append(launch(n))
+            cl.enqueue_copy(queue, result[start:stop], device_result, is_blocking=True)
+        overflow = np.zeros(1, np.int32)
+        cl.enqueue_copy(queue, overflow, self._overflow, is_blocking=True)
+        self.last_kernel_ms = sum((e.profile.end - e.profile.start) * 1e-6 for e in events)
+        if overflow[0]:
+            raise RuntimeError("ray traversal overflowed its stack (sized from DeviceTree.depth): "
+                               "the tree is deeper than its depth field says")
+
+
+def _stack_size(tree: DeviceTree) -> int:
+    return _round_up(max(int(tree.depth), 1), STACK_GRANULE)
+
+
+def _round_up(value: int, multiple: int) -> int:
+    return (value + multiple - 1) // multiple * multiple
+
+
+# -- input checks -------------------------------------------------------------
+
+def _numeric_array(name: str, value) -> np.ndarray:
+    try:
+        array = np.asarray(value)
+    except (ValueError, TypeError) as error:
+        raise ValueError(f"{name} is not a rectangular numeric array: {error}") from None
+    if array.dtype == np.bool_ or not (np.issubdtype(array.dtype, np.floating)
+                                       or np.issubdtype(array.dtype, np.integer)):
+        raise TypeError(f"{name} must hold real numbers (float32/float64), got dtype {array.dtype}")
+    return array
+
+
+def _vectors(name: str, value) -> np.ndarray:
+    """(R, 3) float32, finite."""
+    array = _numeric_array(name, value)
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (R, 3), got {array.shape}")
+    with np.errstate(over="ignore", invalid="ignore"):  # reported below, by row
+        vectors = np.ascontiguousarray(array, dtype=np.float32)
+    if not np.isfinite(vectors).all():
+        row = int(np.argmin(np.isfinite(vectors).all(axis=1)))
+        why = "is not finite" if not np.isfinite(array[row]).all() else "overflows float32"
+        raise ValueError(f"{name}[{row}] = {array[row].tolist()} {why}")
+    return vectors
+
+
+def _limits(name: str, value, count: int) -> np.ndarray:
+    """A float64 scalar (0-d) or (R,) array with no NaN."""
+    array = _numeric_array(name, value).astype(np.float64, copy=False)
+    if array.ndim == 1 and len(array) != count:
+        raise ValueError(f"{name} has {len(array)} entries but there are {count} rays")
+    if array.ndim > 1:
+        raise ValueError(f"{name} must be a scalar or have shape (R,), got {array.shape}")
+    nan = np.isnan(array)
+    if nan.any():
+        row = int(np.argmax(nan.reshape(-1)))
+        where = f"{name}[{row}]" if array.ndim else name
+        raise ValueError(f"{where} is NaN")
+    return array
+
+
+def _check_rays(origins, directions, tmin, tmax):
+    origins = _vectors("origins", origins)
+    directions = _vectors("directions", directions)
+    if len(origins) != len(directions):
+        raise ValueError(f"origins has {len(origins)} rows but directions has {len(directions)}")
+    count = len(origins)
+    # A largest component below float32's smallest normal (1.2e-38) makes
+    # |d|^2 < 1e-75, so only rows with a tiny |d|^2 need the exact test.
+    suspects = np.flatnonzero(np.einsum("ij,ij->i", directions, directions) < 1e-30)
+    largest = np.abs(directions[suspects]).max(axis=1) if len(suspects) else np.zeros(0)
+    short = largest < np.finfo(np.float32).tiny
+    if short.any():
+        row = int(suspects[np.argmax(short)])
+        what = ("has zero length" if not directions[row].any()
+                else "is too short to invert (subnormal)")
+        raise ValueError(f"directions[{row}] = {directions[row].tolist()} {what}; "
+                         "a direction needs a component of magnitude >= 1.2e-38")
+    tmin = _limits("tmin", tmin, count)
+    tmax = _limits("tmax", tmax, count)
+    bad = (tmin < 0) | ~np.isfinite(tmin)
+    if bad.any():
+        row = int(np.argmax(bad.reshape(-1)))
+        where = f"tmin[{row}]" if tmin.ndim else "tmin"
+        raise ValueError(f"{where} = {tmin.reshape(-1)[row]} must be finite and >= 0")
+    inverted = tmin > tmax
+    if inverted.ndim == 0 and inverted:
+        raise ValueError(f"tmin = {float(tmin)} is greater than tmax = {float(tmax)}")
+    if inverted.any():
+        row = int(np.argmax(inverted))
+        low = float(np.broadcast_to(tmin, (count,))[row])
+        high = float(np.broadcast_to(tmax, (count,))[row])
+        raise ValueError(f"ray {row}: tmin[{row}] = {low} is greater than tmax[{row}] = {high}")
+    return origins, directions, tmin.astype(np.float32), tmax.astype(np.float32)
