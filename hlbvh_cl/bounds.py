@@ -16,17 +16,15 @@ def partial_count(rt, triangle_count: int) -> int:
 
 
 def scene_bounds(rt, vertices: cl.Buffer, faces: cl.Buffer, triangle_count: int,
-                 centroids: cl.Buffer, bounds: cl.Buffer, wait_for=None) -> list[cl.Event]:
-    """bounds[0] <- box of all triangles, bounds[1] <- box of their centroids;
-    centroids[i] <- float4 centre of triangle i's box."""
+                 bounds: cl.Buffer, wait_for=None) -> list[cl.Event]:
+    """bounds[0] <- box of all triangles, bounds[1] <- box of their centroids."""
     partials = partial_count(rt, triangle_count)
     geometry = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, partials * layout.AABB.itemsize)
-    centroid_partials = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE,
-                                  partials * layout.AABB.itemsize)
+    centroids = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, partials * layout.AABB.itemsize)
     kernel = rt.kernel("bounds.cl", "reduce_triangle_bounds",
                        STRIDED_SLICES=int(rt.device.type == "gpu"))
-    reduce = rt.run(kernel, partials, vertices, faces, triangle_count, centroids, geometry,
-                    centroid_partials, wait_for=wait_for)
+    reduce = rt.run(kernel, partials,
+                    vertices, faces, triangle_count, geometry, centroids, wait_for=wait_for)
     fold = rt.run(rt.kernel("bounds.cl", "fold_partial_bounds", STRIDED_SLICES=0), 1,
-                  geometry, centroid_partials, partials, bounds, wait_for=[reduce], local_size=1)
+                  geometry, centroids, partials, bounds, wait_for=[reduce], local_size=1)
     return [reduce, fold]

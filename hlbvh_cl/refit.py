@@ -63,11 +63,8 @@ def refit_flat_tree(rt, tree: DeviceTree, vertices: cl.Buffer, faces: cl.Buffer,
                     mesh_first_face: cl.Buffer, wait_for=None) -> list[cl.Event]:
     """Re-read ``tree``'s triangles from moved vertices and refit every box;
     the topology is kept."""
-    gather = rt.run(rt.kernel("refit.cl", "regather_triangles", COLLAPSE_LEAVES=0),
-                    tree.triangle_count, vertices, faces, mesh_first_face, tree.refs,
-                    tree.triangle_count, tree.triangles, wait_for=wait_for)
-    visits, cleared = _zeroed_ints(rt, tree.node_count, [gather])
+    visits, cleared = _zeroed_ints(rt, tree.node_count, wait_for)
     walk = rt.run(rt.kernel("refit.cl", "refit_flat_tree", COLLAPSE_LEAVES=0), tree.node_count,
-                  tree.nodes, tree.parents, tree.triangles, visits, tree.node_count,
-                  wait_for=[cleared])
-    return [gather, cleared, walk]
+                  tree.nodes, tree.parents, vertices, faces, mesh_first_face, tree.refs,
+                  tree.triangles, visits, tree.node_count, wait_for=[cleared])
+    return [cleared, walk]

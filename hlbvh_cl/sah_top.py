@@ -63,14 +63,19 @@ def build_top(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: RadixTre
                          cluster_box, size, cluster_cost, cluster_height, wait_for=events[-1:]))
     events.append(rt.run(kernel("init_top_build"), clusters, clusters, order, tasks,
                          wait_for=events[-1:]))
-    # One launch per level until every task has finished its subtree (at most
-    # TOP_SERIAL_DEPTH + 1 levels: deeper tasks build their subtrees serially).
+    # One launch per level until every task has finished its subtree: at most
+    # serial_depth + 1 levels, as tasks that deep build their subtrees
+    # serially.  Each level costs a launch and a read-back (~1 ms on PoCL), so
+    # the parallel levels stop where there are enough subtrees to fill the
+    # device with work (about 64 clusters each).
+    serial_depth = _serial_depth(clusters, rt.device.compute_units, rt.device.type)
     task_count = np.ones(1, np.int32)
     while task_count[0]:
         events.append(cl.enqueue_fill_buffer(q, next_count, np.int32(0), 0, 4,
                                              wait_for=events[-1:]))
         events.append(rt.run(kernel("split_top_level"), int(task_count[0]), tasks,
-                             int(task_count[0]), next_tasks, next_count, stack, order,
+                             int(task_count[0]), serial_depth, next_tasks, next_count, stack,
+                             order,
                              cluster_box, size, left, right, parent, info, wait_for=events[-1:],
                              local_size=1))
         cl.enqueue_copy(q, task_count, next_count, wait_for=events[-1:])
@@ -87,3 +92,12 @@ def build_top(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: RadixTre
     cl.enqueue_copy(q, total, root_cost, wait_for=events[-1:])
     return TopTree(clusters, clusters - 1, int(depth_and_root[1]), left, right, boxes, roots,
                    int(depth_and_root[0]), float(total[0])), events
+
+
+def _serial_depth(clusters: int, compute_units: int, device_type: str) -> int:
+    """Levels built one launch each: until about 64 clusters per subtree, and
+    no further than needed for 16 subtrees per compute unit (256 on GPUs)."""
+    per_unit = 256 if device_type == "gpu" else 16
+    by_work = max(0, (clusters // 64).bit_length() - 1)
+    by_width = max(1, (per_unit * compute_units).bit_length() - 1)
+    return min(by_work, by_width)

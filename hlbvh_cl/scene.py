@@ -77,7 +77,11 @@ class Scene:
         return self._build.stats
 
     def rebuild(self) -> None:
-        """Build the tree from scratch over the current vertex positions."""
+        """Build the tree from scratch over the current vertex positions.
+
+        The old tree is released first, so a rebuild needs no more device
+        memory than the first build (which check_fits accounted for)."""
+        self._build = None
         self._build = build(self.runtime, self._geometry, self.builder, self.morton_bits)
         self._sah_stale = False
 

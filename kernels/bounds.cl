@@ -9,11 +9,8 @@
  */
 #include "hlbvh.h"
 
-/* Also stores each triangle's centroid (the centre of its box) so that the
- * Morton stage reads 16 contiguous bytes instead of gathering the triangle. */
 __kernel void reduce_triangle_bounds(__global const float *vertices, __global const int *faces,
-                                     int triangle_count, __global float4 *centroids,
-                                     __global Aabb *partial_geometry,
+                                     int triangle_count, __global Aabb *partial_geometry,
                                      __global Aabb *partial_centroids)
 {
     int gid = get_global_id(0);
@@ -24,18 +21,16 @@ __kernel void reduce_triangle_bounds(__global const float *vertices, __global co
     int begin = gid * per_item, end = min(triangle_count, begin + per_item), step = 1;
 #endif
     Aabb geometry = aabb_empty();
-    Aabb centroid_box = aabb_empty();
+    Aabb centroids = aabb_empty();
     for (int face = begin; face < end; face += step) {
         float3 a, b, c;
         load_triangle(vertices, faces, face, &a, &b, &c);
         Aabb box = aabb_of_points(a, b, c);
-        float3 centre = aabb_center(box);
         geometry = aabb_union(geometry, box);
-        centroid_box = aabb_grow(centroid_box, centre);
-        centroids[face] = (float4)(centre, 0.0f);
+        centroids = aabb_grow(centroids, aabb_center(box));
     }
     partial_geometry[gid] = geometry;
-    partial_centroids[gid] = centroid_box;
+    partial_centroids[gid] = centroids;
 }
 
 /* bounds[0] = scene box, bounds[1] = box of the triangle centroids. */

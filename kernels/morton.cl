@@ -42,15 +42,17 @@ inline uint quantize(float x, float lo, float scale)
     return (uint)clamp(cell, 0.0f, AXIS_CELLS - 1.0f);
 }
 
-__kernel void morton_codes(__global const float4 *centroids, int triangle_count,
-                           __global const Aabb *bounds, __global morton_t *keys,
-                           __global uint *primitive_ids)
+__kernel void morton_codes(__global const float *vertices, __global const int *faces,
+                           int triangle_count, __global const Aabb *bounds,
+                           __global morton_t *keys, __global uint *primitive_ids)
 {
     int face = get_global_id(0);
     if (face >= triangle_count)
         return;
     Aabb centroid_box = bounds[1];
-    float4 centroid = centroids[face];
+    float3 a, b, c;
+    load_triangle(vertices, faces, face, &a, &b, &c);
+    float3 centroid = aabb_center(aabb_of_points(a, b, c));
     float p[3] = {centroid.x, centroid.y, centroid.z};
     morton_t code = 0;
     for (int k = 0; k < 3; ++k) {

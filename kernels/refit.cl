@@ -104,13 +104,19 @@ __kernel void refit_radix_tree(__global const float *vertices, __global const in
     }
 }
 
-/* The box of the triangles [first, first + count) of a leaf. */
-inline Aabb leaf_box(__global const Triangle *triangles, int first, uint count)
+/* Re-read the triangles [first, first + count) of a leaf from the (moved)
+ * vertices through their refs, store them, and return their box. */
+inline Aabb regather_leaf(__global const float *vertices, __global const int *faces,
+                          __global const int *mesh_first_face, __global const TriangleRef *refs,
+                          __global Triangle *triangles, int first, uint count)
 {
     Aabb box = aabb_empty();
-    for (uint k = 0; k < count; ++k) {
-        Triangle t = triangles[first + (int)k];
-        box = aabb_union(box, aabb_of_points(vload3(0, t.v0), vload3(0, t.v1), vload3(0, t.v2)));
+    for (int j = first; j < first + (int)count; ++j) {
+        TriangleRef ref = refs[j];
+        float3 a, b, c;
+        load_triangle(vertices, faces, mesh_first_face[ref.geom_id] + ref.prim_id, &a, &b, &c);
+        store_triangle(triangles, j, a, b, c);
+        box = aabb_union(box, aabb_of_points(a, b, c));
     }
     return box;
 }
@@ -138,11 +144,15 @@ inline Aabb load_slot_volatile(__global const FlatNode *node, int right_slot)
     return box;
 }
 
-/* Refit of the flat tree: a walk starts at every node whose children are all
- * leaves; a node with k interior children waits for k arrivals. */
+/* Refit of the flat tree after vertices moved: a walk starts at every node
+ * whose children are all leaves; a node with k interior children waits for k
+ * arrivals.  Each leaf's triangles are re-read on the way (one pass over the
+ * triangle data, not a gather pass and then a refit pass). */
 __kernel void refit_flat_tree(__global FlatNode *nodes, __global const int *parents,
-                              __global const Triangle *triangles, __global volatile int *visits,
-                              int node_count)
+                              __global const float *vertices, __global const int *faces,
+                              __global const int *mesh_first_face,
+                              __global const TriangleRef *refs, __global Triangle *triangles,
+                              __global volatile int *visits, int node_count)
 {
     int i = get_global_id(0);
     if (i >= node_count)
@@ -155,9 +165,11 @@ __kernel void refit_flat_tree(__global FlatNode *nodes, __global const int *pare
         __global FlatNode *node = nodes + i;
         int left = node->left, right = node->right;
         uint left_count = node->left_count, right_count = node->right_count;
-        Aabb left_box = left_count > 0 ? leaf_box(triangles, left, left_count)
+        Aabb left_box = left_count > 0 ? regather_leaf(vertices, faces, mesh_first_face, refs,
+                                                       triangles, left, left_count)
                                        : load_slot_volatile(node, 0);
-        Aabb right_box = right_count > 0 ? leaf_box(triangles, right, right_count)
+        Aabb right_box = right_count > 0 ? regather_leaf(vertices, faces, mesh_first_face, refs,
+                                                         triangles, right, right_count)
                                          : load_slot_volatile(node, 1);
         if (left_count > 0)
             store_slot(node, 0, left_box);
@@ -180,17 +192,3 @@ __kernel void refit_flat_tree(__global FlatNode *nodes, __global const int *pare
     }
 }
 
-/* After vertices move: re-read each tree-ordered triangle through its ref. */
-__kernel void regather_triangles(__global const float *vertices, __global const int *faces,
-                                 __global const int *mesh_first_face,
-                                 __global const TriangleRef *refs, int n,
-                                 __global Triangle *triangles)
-{
-    int j = get_global_id(0);
-    if (j >= n)
-        return;
-    TriangleRef ref = refs[j];
-    float3 a, b, c;
-    load_triangle(vertices, faces, mesh_first_face[ref.geom_id] + ref.prim_id, &a, &b, &c);
-    store_triangle(triangles, j, a, b, c);
-}

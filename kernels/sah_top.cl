@@ -11,9 +11,6 @@
 #include "hlbvh.h"
 
 
-/* Levels built one kernel launch each before every task finishes its own
- * subtree serially (2^10 parallel subtrees is plenty for any device here). */
-#define TOP_SERIAL_DEPTH 10
 /* Isolating one huge cluster is tried only this near the root. */
 #define TOP_ISOLATE_DEPTH 8
 
@@ -209,10 +206,10 @@ inline int split_clusters(__global int *order, int begin, int end, int depth,
 /* One level of the top build: each task splits its range and hands its
  * children on.  The node splitting at m is top node m - 1: every split point
  * belongs to exactly one node, so nodes need no allocation.  Tasks at depth
- * TOP_SERIAL_DEPTH finish their whole subtree here, with order's own slice
+ * serial_depth finish their whole subtree here, with order's own slice
  * [begin, end) of `stack` as a private work stack; so the host loop runs at
- * most TOP_SERIAL_DEPTH + 1 levels whatever the input. */
-__kernel void split_top_level(__global const TopTask *tasks, int task_count,
+ * most serial_depth + 1 levels whatever the input. */
+__kernel void split_top_level(__global const TopTask *tasks, int task_count, int serial_depth,
                               __global TopTask *next_tasks, __global volatile int *next_count,
                               __global TopTask *stack, __global int *order,
                               __global const Aabb *cluster_box,
@@ -224,7 +221,7 @@ __kernel void split_top_level(__global const TopTask *tasks, int task_count,
     if (i >= task_count)
         return;
     TopTask task = tasks[i];
-    int serial = (task.side_and_depth >> 1) >= TOP_SERIAL_DEPTH;
+    int serial = (task.side_and_depth >> 1) >= serial_depth;
     int base = task.begin, top = base;
     while (1) {
         int depth = task.side_and_depth >> 1;

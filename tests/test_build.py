@@ -127,11 +127,10 @@ def test_morton_codes_match_numpy(meshes, name, bits):
     geometry = Geometry.upload(rt, mesh.vertices, mesh.faces, np.zeros(1, np.int32))
     n = mesh.triangle_count
     bounds = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 48)
-    centroids = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, n * 16)
     keys = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, n * (4 if bits == 30 else 8))
     ids = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, n * 4)
-    scene_bounds(rt, geometry.vertices, geometry.faces, n, centroids, bounds)
-    morton_codes(rt, centroids, n, bounds, keys, ids, bits)
+    scene_bounds(rt, geometry.vertices, geometry.faces, n, bounds)
+    morton_codes(rt, geometry.vertices, geometry.faces, n, bounds, keys, ids, bits)
     got = np.empty(n, np.uint32 if bits == 30 else np.uint64)
     got_ids = np.empty(n, np.uint32)
     cl.enqueue_copy(rt.queue, got, keys)
