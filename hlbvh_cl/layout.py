@@ -49,6 +49,15 @@ RAY = np.dtype([("origin", *_f3), ("tmin", np.float32), ("direction", *_f3), ("t
 HIT = np.dtype([("t", np.float32), ("geom_id", np.int32), ("prim_id", np.int32),
                 ("u", np.float32), ("v", np.float32), ("normal", *_f3)])
 
+PINHOLE_CAMERA = np.dtype([("eye", *_f3), ("forward", *_f3), ("right", *_f3), ("up", *_f3)])
+
+SHADE_PARAMS = np.dtype([
+    ("light_direction", *_f3), ("light_intensity", np.float32), ("ambient", np.float32),
+    ("sky_up", *_f3), ("sky_horizon", *_f3), ("sky_zenith", *_f3),
+    ("ray_offset", np.float32), ("depth_near", np.float32), ("depth_far", np.float32),
+    ("ao_distance", np.float32), ("ao_weight", np.float32),
+])
+
 #: name in hlbvh.h -> dtype, for the layout test
 STRUCTS = {"Aabb": AABB, "FlatNode": FLAT_NODE, "Triangle": TRIANGLE, "TriangleRef": TRIANGLE_REF,
-           "Ray": RAY, "Hit": HIT}
+           "Ray": RAY, "Hit": HIT, "PinholeCamera": PINHOLE_CAMERA, "ShadeParams": SHADE_PARAMS}

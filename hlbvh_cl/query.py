@@ -142,7 +142,35 @@ class RayQuery:
                 self._overflow, np.uint32(n), local_size=self.work_group_size), "_occluded", result)
         return result.astype(bool)
 
+    # -- device-buffer entry points (the renderer's) ------------------------
+
+    def enqueue_intersect(self, tree: DeviceTree, rays: cl.Buffer, hits: cl.Buffer, count: int,
+                          overflow: cl.Buffer, wait_for=None) -> cl.Event:
+        """Enqueue intersect_closest over `count` Ray records already on the
+        device; it writes `count` Hit records to `hits`.  Nothing is checked or
+        read back: the rays must follow the conventions above (a ray with
+        tmin > tmax hits nothing), and the caller clears the int32 `overflow`
+        flag beforehand and raises if a traversal set it."""
+        self._require_triangles(tree)
+        kernel = self.rt.kernel("traverse.cl", "intersect_closest", STACK_SIZE=_stack_size(tree))
+        return self.rt.run(kernel, count, tree.nodes, tree.triangles, tree.refs, rays, hits,
+                           overflow, np.uint32(count), wait_for=wait_for,
+                           local_size=self.work_group_size)
+
+    def enqueue_occluded(self, tree: DeviceTree, rays: cl.Buffer, occluded: cl.Buffer, count: int,
+                         overflow: cl.Buffer, wait_for=None) -> cl.Event:
+        """As enqueue_intersect, with intersect_any: occluded[i] = 1 (uchar)
+        where ray i hits anything."""
+        self._require_triangles(tree)
+        kernel = self.rt.kernel("traverse.cl", "intersect_any", STACK_SIZE=_stack_size(tree))
+        return self.rt.run(kernel, count, tree.nodes, tree.triangles, rays, occluded, overflow,
+                           np.uint32(count), wait_for=wait_for, local_size=self.work_group_size)
+
     # -- internals ----------------------------------------------------------
+
+    def _require_triangles(self, tree: DeviceTree) -> None:
+        if not self._check_tree(tree):
+            raise ValueError("the tree holds no triangle: there is nothing to trace rays against")
 
     def _check_tree(self, tree: DeviceTree) -> bool:
         """Validates the tree; False when it holds no triangle (every ray misses)."""

@@ -97,6 +97,34 @@ typedef struct {
     float normal[3];
 } Hit;
 
+/* A pinhole camera as the ray generation stage reads it (render.py fills it
+ * from a Camera, following scenefile.py's convention): the image-plane point
+ * (sx, sy) in [-1, 1]^2, x to the right and y up, gets the ray
+ * eye + t * (forward + sx * right + sy * up).  right and up are scaled by
+ * tan(fov / 2), right also by the aspect ratio width / height. */
+typedef struct {
+    float eye[3];
+    float forward[3];
+    float right[3];
+    float up[3];
+} PinholeCamera;
+
+/* What the shading stage reads besides the hits; render.py documents the
+ * formulas that use them. */
+typedef struct {
+    float light_direction[3];  /* unit, from the surface towards the light */
+    float light_intensity;
+    float ambient;
+    float sky_up[3];           /* unit; the background goes from horizon to zenith along it */
+    float sky_horizon[3];
+    float sky_zenith[3];
+    float ray_offset;          /* shadow and AO rays start this far off the surface */
+    float depth_near;          /* "depth" shading: distances near..far -> 1..0 */
+    float depth_far;
+    float ao_distance;         /* AO rays reach this far */
+    float ao_weight;           /* 1 / number of AO rays per sample */
+} ShadeParams;
+
 /* Helpers several stages share. */
 inline float3 load_vertex(__global const float *vertices, int index)
 {
@@ -155,6 +183,24 @@ inline void load_triangle(__global const float *vertices, __global const int *fa
     *a = load_vertex(vertices, faces[3 * face + 0]);
     *b = load_vertex(vertices, faces[3 * face + 1]);
     *c = load_vertex(vertices, faces[3 * face + 2]);
+}
+
+/* Deterministic random numbers for rendering: the PCG hash of Jarzynski &
+ * Olano 2020 ("Hash Functions for GPU Rendering", JCGT 9(3)), an integer
+ * hash good enough to be used without state. */
+inline uint hash_pcg(uint value)
+{
+    uint state = value * 747796405u + 2891336453u;
+    uint word = ((state >> ((state >> 28u) + 4u)) ^ state) * 277803737u;
+    return (word >> 22u) ^ word;
+}
+
+/* A number in [0, 1) fixed by (pixel, sample, dimension), the same on every
+ * run and device.  24 bits, so that the float is exact. */
+inline float random_unit(uint pixel, uint sample, uint dimension)
+{
+    uint h = hash_pcg(pixel + hash_pcg(sample + hash_pcg(dimension)));
+    return (float)(h >> 8) * 0x1p-24f;
 }
 
 #endif /* HLBVH_H */

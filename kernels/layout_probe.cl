@@ -36,4 +36,19 @@ __kernel void struct_layout(__global int *out)
     REPORT(22, offsetof(Hit, u));
     REPORT(23, offsetof(Hit, v));
     REPORT(24, offsetof(Hit, normal));
+    REPORT(25, sizeof(PinholeCamera));
+    REPORT(26, offsetof(PinholeCamera, forward));
+    REPORT(27, offsetof(PinholeCamera, right));
+    REPORT(28, offsetof(PinholeCamera, up));
+    REPORT(29, sizeof(ShadeParams));
+    REPORT(30, offsetof(ShadeParams, light_intensity));
+    REPORT(31, offsetof(ShadeParams, ambient));
+    REPORT(32, offsetof(ShadeParams, sky_up));
+    REPORT(33, offsetof(ShadeParams, sky_horizon));
+    REPORT(34, offsetof(ShadeParams, sky_zenith));
+    REPORT(35, offsetof(ShadeParams, ray_offset));
+    REPORT(36, offsetof(ShadeParams, depth_near));
+    REPORT(37, offsetof(ShadeParams, depth_far));
+    REPORT(38, offsetof(ShadeParams, ao_distance));
+    REPORT(39, offsetof(ShadeParams, ao_weight));
 }

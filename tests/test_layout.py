@@ -16,6 +16,12 @@ FIELDS = [
     ("Ray", None), ("Ray", "tmin"), ("Ray", "direction"), ("Ray", "tmax"),
     ("Hit", None), ("Hit", "geom_id"), ("Hit", "prim_id"), ("Hit", "u"), ("Hit", "v"),
     ("Hit", "normal"),
+    ("PinholeCamera", None), ("PinholeCamera", "forward"), ("PinholeCamera", "right"),
+    ("PinholeCamera", "up"),
+    ("ShadeParams", None), ("ShadeParams", "light_intensity"), ("ShadeParams", "ambient"),
+    ("ShadeParams", "sky_up"), ("ShadeParams", "sky_horizon"), ("ShadeParams", "sky_zenith"),
+    ("ShadeParams", "ray_offset"), ("ShadeParams", "depth_near"), ("ShadeParams", "depth_far"),
+    ("ShadeParams", "ao_distance"), ("ShadeParams", "ao_weight"),
 ]
 
 
