@@ -19,3 +19,6 @@ if ! "$PY" -m hlbvh_cl devices --require pocl; then
     "$PY" -m hlbvh_cl devices --require pocl || {
         echo "setup.sh: no PoCL device here can compile kernels; see README.md" >&2; exit 1; }
 fi
+
+# Optional: system libraries of bench/trace.py's peers (Open3D, Mitsuba); the tests do not need them.
+PYTHON="$PY" bash bench/setup_peers.sh || echo "setup.sh: benchmark peers not set up; bench/trace.py reports them missing" >&2

@@ -1,5 +1,5 @@
 """Scene: meshes on one device, one BVH over all of them, and the few verbs
-users call (construct, update_vertices/rebuild, intersect/occluded)."""
+users call (construct, update_vertices/rebuild, intersect/occluded, render)."""
 from __future__ import annotations
 
 import time
@@ -14,6 +14,8 @@ from .device import event_ms, runtime
 from .mesh import Mesh, _validate_vertices
 from .morton import key_dtype
 from .refit import refit_flat_tree
+from .render import AO_SAMPLES, Light, Renderer, RenderSettings, check_colors, check_light, \
+    default_colors
 
 
 def _as_meshes(meshes) -> list[Mesh]:
@@ -35,6 +37,11 @@ class Scene:
 
     ``geom_id`` of a triangle is the index of its mesh in ``meshes``;
     ``prim_id`` its face index within that mesh.
+
+    For rendering, ``colors`` holds one RGB triple (0..1) per mesh (by
+    default render.PALETTE, cycled) and ``light`` a hlbvh_cl.Light (by
+    default direction (1, 2, 1), intensity 1, ambient 0.15); both may be
+    reassigned at any time.
     """
 
     def __init__(self, meshes, device=None, builder: str = "hlbvh", morton_bits: int = 30):
@@ -56,6 +63,9 @@ class Scene:
         vertices = np.concatenate([m.vertices for m in self.meshes])
         self._geometry = Geometry.upload(self.runtime, vertices, faces, first_face)
         self._query = None
+        self._renderer = None
+        self.colors = default_colors(len(self.meshes))
+        self.light = Light()
         self.rebuild()
 
     @property
@@ -122,6 +132,28 @@ class Scene:
     def occluded(self, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
         """Whether each ray hits anything in [tmin, tmax] (any-hit, stops early)."""
         return self._ray_query().occluded(self.tree, origins, directions, tmin, tmax)
+
+    def render(self, camera, width: int, height: int, shading: str = "diffuse",
+               shadows: bool = True, spp: int = 1, ao_samples: int = AO_SAMPLES,
+               ao_distance: float | None = None, progress: bool = False) -> np.ndarray:
+        """Render the scene through a hlbvh_cl.Camera: a (height, width, 3)
+        uint8 RGB image.  shading is "diffuse", "normals", "depth" or "ao";
+        spp samples per pixel; ao_samples AO rays per sample, reaching
+        ao_distance (default 5% of the scene's diagonal).  progress shows a
+        tqdm bar on stderr for renders longer than a second.  The formulas
+        are in hlbvh_cl/render.py; ``render_stats`` times the last render."""
+        settings = RenderSettings.check(camera, width, height, shading, shadows, spp,
+                                        ao_samples, ao_distance)
+        colors = check_colors(self.colors, len(self.meshes))
+        light = check_light(self.light)
+        if self._renderer is None:
+            self._renderer = Renderer(self.runtime, self._ray_query())
+        return self._renderer.render(self.tree, settings, colors, light, progress=progress)
+
+    @property
+    def render_stats(self) -> dict:
+        """Rays and device times (ms per stage) of the last render; {} before one."""
+        return self._renderer.last_stats if self._renderer is not None else {}
 
     def _ray_query(self):
         if self._query is None:

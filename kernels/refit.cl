@@ -182,12 +182,14 @@ __kernel void refit_flat_tree(__global FlatNode *nodes, __global const int *pare
         __global FlatNode *up = nodes + p;
         store_slot(up, up->left_count == 0 && up->left == i ? 0 : 1,
                    aabb_union(left_box, right_box));
-        int waits_for = is_interior_slot(up->left, up->left_count) +
-                        is_interior_slot(up->right, up->right_count);
-        mem_fence(CLK_GLOBAL_MEM_FENCE);
-        if (atomic_inc(&visits[p]) + 1 < waits_for)
-            return;
-        mem_fence(CLK_GLOBAL_MEM_FENCE);
+        /* A parent with one interior child (this one) needs no counter. */
+        if (is_interior_slot(up->left, up->left_count) &&
+            is_interior_slot(up->right, up->right_count)) {
+            mem_fence(CLK_GLOBAL_MEM_FENCE);
+            if (atomic_inc(&visits[p]) == 0)
+                return; /* the sibling subtree is not done; its walker goes on */
+            mem_fence(CLK_GLOBAL_MEM_FENCE);
+        }
         i = p;
     }
 }
