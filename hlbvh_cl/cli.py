@@ -1,19 +1,28 @@
 """The ``hlbvh-cl`` command.
 
-    hlbvh-cl devices              list the OpenCL devices and their ids
-    hlbvh-cl info SCENE.toml      load a scene file, build its BVH, print the stats
+    hlbvh-cl devices                        list the OpenCL devices and their ids
+    hlbvh-cl info SCENE.toml                load a scene file, build its BVH, print the stats
+    hlbvh-cl render SCENE.toml -o out.png   render a scene file to an image, print the times
 
-A user's mistake (a bad scene file, an unknown device) ends with a one-line
-error and exit code 2, never a traceback.
+A user's mistake (a bad scene file or option, an unknown device) ends with a
+one-line error and exit code 2, never a traceback.
 """
 from __future__ import annotations
 
 import argparse
 import sys
 import time
+import warnings
+from pathlib import Path
 
-from . import Scene, devices
-from .device import DeviceMemoryError, KernelBuildError
+import pyopencl as cl
+
+from . import Camera, Light, Scene, devices
+from .device import DeviceMemoryError, KernelBuildError, select_device
+from .render import AO_SAMPLES, MAX_AO_SAMPLES, MAX_IMAGE_SIDE, MAX_SPP, SHADINGS
+
+#: Image formats the render command writes (through imageio).
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
 
 def _cmd_devices(args) -> int:
@@ -33,15 +42,19 @@ def _cmd_devices(args) -> int:
 
 
 def load_scene(path, device=None, builder: str = "hlbvh", morton_bits: int = 30):
-    """Read a scene file and build its Scene: (scene, description, load_seconds)."""
+    """Read a scene file and build its Scene: (scene, description, load_seconds).
+    The scene's colors and light are the file's."""
     from .scenefile import load_scene_file
     started = time.perf_counter()
     description = load_scene_file(path)
     loaded = time.perf_counter() - started
-    meshes = [entry.mesh for entry in description.meshes]
-    if description.ground is not None:
-        meshes.append(description.ground.mesh)
-    return Scene(meshes, device=device, builder=builder, morton_bits=morton_bits), description, loaded
+    geometries = description.geometries()
+    scene = Scene([mesh for mesh, _ in geometries], device=device, builder=builder,
+                  morton_bits=morton_bits)
+    scene.colors = [color for _, color in geometries]
+    light = description.light
+    scene.light = Light(light.direction, light.intensity, light.ambient)
+    return scene, description, loaded
 
 
 def _cmd_info(args) -> int:
@@ -63,8 +76,102 @@ def _cmd_info(args) -> int:
     return 0
 
 
+def _cmd_render(args) -> int:
+    output = Path(args.output)
+    if output.suffix.lower() not in IMAGE_SUFFIXES:
+        raise ValueError(f"cannot write {output}: the file name must end in one of "
+                         f"{', '.join(IMAGE_SUFFIXES)}")
+    if not output.parent.is_dir():
+        raise ValueError(f"cannot write {output}: folder {output.parent} does not exist")
+    select_device(args.device)  # an unknown device fails before the scene loads
+    started = time.perf_counter()
+    scene, description, loaded = load_scene(args.scene, args.device)
+    build_wall = time.perf_counter() - started - loaded
+    camera = Camera(description.camera.eye, description.camera.target, description.camera.up,
+                    description.camera.fov_deg)
+    width = args.width or description.width
+    height = args.height or description.height
+    options = dict(shading=args.shading, shadows=not args.no_shadows, spp=args.spp,
+                   ao_samples=args.ao_samples)
+    # A one-pixel render first: it compiles (or loads from the cache) every
+    # kernel the render uses, so the real render's times are its own.
+    warm_started = time.perf_counter()
+    scene.render(camera, 1, 1, **options)
+    render_compile = time.perf_counter() - warm_started
+    image = scene.render(camera, width, height, progress=sys.stderr.isatty(), **options)
+    written_started = time.perf_counter()
+    _write_image(output, image)
+    written = time.perf_counter() - written_started
+
+    bvh_ms = scene.stats["times_ms"]["total"]
+    widen_ms = scene.stats.get("widen_ms", 0.0)  # the wide tree traversal reads
+    build_ms = bvh_ms + widen_ms
+    rendered = scene.render_stats
+    times = rendered["times_ms"]
+    # Build kernels compile during the first build: its wall time beyond the
+    # device time is that compilation (or cache loading) and host work.
+    build_compile = max(0.0, build_wall - build_ms * 1e-3)
+    shading = args.shading + (" with shadows" if args.shading == "diffuse" and not args.no_shadows
+                              else "")
+    rays = f"{_count(rendered['primary_rays'])} primary"
+    if rendered["secondary_rays"]:
+        kind = "AO" if args.shading == "ao" else "shadow"
+        rays += f" + {_count(rendered['secondary_rays'])} {kind} rays"
+    print(f"scene        {description.path}: {len(scene.meshes)} meshes, "
+          f"{scene.stats['triangles']:,} triangles")
+    print(f"device       {scene.device}")
+    print(f"load         {loaded:7.2f} s   read, split and transform the meshes")
+    print(f"build        {build_ms:7.1f} ms  device: BVH {bvh_ms:.1f} + wide tree {widen_ms:.1f} "
+          f"(wall {build_wall * 1e3:.0f} ms)")
+    print(f"trace+shade  {times['total']:7.1f} ms  device (wall {times['wall']:.0f} ms): "
+          f"{width}x{height}, {shading}, {args.spp} spp, {rays}")
+    print(f"compile      {build_compile + render_compile:7.2f} s   kernels built or loaded from "
+          f"the cache: build {build_compile:.2f} s (wall - device), render {render_compile:.2f} s "
+          f"(a 1-pixel render)")
+    print(f"write        {written:7.2f} s   {output}")
+    print(f"total        {time.perf_counter() - started:7.2f} s")
+    return 0
+
+
+def _count(n: int) -> str:
+    return f"{n / 1e6:.2f}M" if n >= 1_000_000 else f"{n:,}"
+
+
+def _write_image(path: Path, image) -> None:
+    import imageio.v3 as iio
+    try:
+        iio.imwrite(path, image)
+    except (OSError, ValueError) as error:
+        raise ValueError(f"cannot write {path}: {error}") from None
+
+
+class _UsageError(Exception):
+    pass
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (its default prints the usage first)."""
+
+    def error(self, message):
+        raise _UsageError(message)
+
+
+def _integer_in(low: int, high: int):
+    """An argparse type: an integer in [low, high]."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"expected an integer from {low} to {high}, "
+                                             f"got {value}")
+        return value
+    return parse
+
+
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="hlbvh-cl", description=__doc__.split("\n\n")[0])
+    parser = _Parser(prog="hlbvh-cl", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     listing = sub.add_parser("devices", help="list OpenCL devices")
     listing.add_argument("--require", metavar="ID", default=None,
@@ -78,7 +185,31 @@ def main(argv=None) -> int:
     info.add_argument("--repeat", type=int, default=2,
                       help="builds to run; the stats are the last one's (default 2)")
     info.set_defaults(run=_cmd_info)
-    args = parser.parse_args(argv)
+    render = sub.add_parser("render", help="render a scene file to an image (PNG, JPEG, ...)")
+    render.add_argument("scene")
+    render.add_argument("-o", "--output", required=True, metavar="IMAGE",
+                        help=f"image file to write ({', '.join(IMAGE_SUFFIXES)})")
+    side = _integer_in(1, MAX_IMAGE_SIDE)
+    render.add_argument("--width", type=side, default=None,
+                        help="image width in pixels (default: the scene file's)")
+    render.add_argument("--height", type=side, default=None,
+                        help="image height in pixels (default: the scene file's)")
+    render.add_argument("--device", default=None, help="device id, index or name (default: auto)")
+    render.add_argument("--shading", default="diffuse", choices=SHADINGS)
+    render.add_argument("--spp", type=_integer_in(1, MAX_SPP), default=1,
+                        help="samples per pixel (default 1)")
+    render.add_argument("--ao-samples", type=_integer_in(1, MAX_AO_SAMPLES), default=AO_SAMPLES,
+                        help=f"ambient-occlusion rays per sample (default {AO_SAMPLES})")
+    render.add_argument("--no-shadows", action="store_true", help="diffuse shading without shadows")
+    render.set_defaults(run=_cmd_render)
+    try:
+        args = parser.parse_args(argv)
+    except _UsageError as error:
+        print(f"hlbvh-cl: error: {error}", file=sys.stderr)
+        return 2
+    # Some drivers (Intel's) log every build, and pyopencl turns the log into
+    # a warning: noise for the command's user, who sees real build errors anyway.
+    warnings.simplefilter("ignore", cl.CompilerWarning)
     try:
         return args.run(args)
     except (ValueError, TypeError, FileNotFoundError, DeviceMemoryError, KernelBuildError,

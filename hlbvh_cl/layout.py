@@ -28,6 +28,7 @@ CONSTANTS = _read_constants(HEADER)
 CLUSTER_BITS: int = CONSTANTS["CLUSTER_BITS"]
 MAX_LEAF_SIZE: int = CONSTANTS["MAX_LEAF_SIZE"]
 EMPTY_CHILD: int = CONSTANTS["EMPTY_CHILD"]
+WIDE_ARITY: int = CONSTANTS["WIDE_ARITY"]
 
 _f3 = (np.float32, 3)
 
@@ -38,6 +39,13 @@ FLAT_NODE = np.dtype([
     ("right_lo", *_f3), ("right_hi", *_f3),
     ("left", np.int32), ("right", np.int32),
     ("left_count", np.uint32), ("right_count", np.uint32),
+])
+
+_wide = (np.float32, WIDE_ARITY)
+WIDE_NODE = np.dtype([
+    ("lo_x", *_wide), ("hi_x", *_wide), ("lo_y", *_wide), ("hi_y", *_wide),
+    ("lo_z", *_wide), ("hi_z", *_wide),
+    ("child", np.int32, WIDE_ARITY), ("count", np.uint32, WIDE_ARITY),
 ])
 
 TRIANGLE = np.dtype([("v0", *_f3), ("v1", *_f3), ("v2", *_f3)])
@@ -59,5 +67,6 @@ SHADE_PARAMS = np.dtype([
 ])
 
 #: name in hlbvh.h -> dtype, for the layout test
-STRUCTS = {"Aabb": AABB, "FlatNode": FLAT_NODE, "Triangle": TRIANGLE, "TriangleRef": TRIANGLE_REF,
-           "Ray": RAY, "Hit": HIT, "PinholeCamera": PINHOLE_CAMERA, "ShadeParams": SHADE_PARAMS}
+STRUCTS = {"Aabb": AABB, "FlatNode": FLAT_NODE, "WideNode": WIDE_NODE, "Triangle": TRIANGLE,
+           "TriangleRef": TRIANGLE_REF, "Ray": RAY, "Hit": HIT, "PinholeCamera": PINHOLE_CAMERA,
+           "ShadeParams": SHADE_PARAMS}

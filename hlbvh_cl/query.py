@@ -1,5 +1,8 @@
 """Ray queries on a DeviceTree: closest hit and any hit (kernels/traverse.cl).
 
+Traversal reads the tree's wide form (DeviceTree.wide, made by
+hlbvh_cl.widen when the tree has none yet) and the tree's triangles.
+
 Conventions, shared with tests/oracle.py:
   - a ray hits at distance t when tmin <= t <= tmax, with t in units of the
     direction's length (directions are not normalised);
@@ -19,6 +22,7 @@ import pyopencl as cl
 from . import layout
 from .device import Runtime
 from .tree import DeviceTree
+from .widen import WideTree, wide_tree
 
 RAY, HIT = layout.RAY, layout.HIT
 
@@ -54,11 +58,12 @@ class Hits:
 def _work_group_size(rt: Runtime) -> int:
     """Work-items per group for the traversal kernels.
 
-    Measured on the project's 2-core machine (bunny and Lucy, 512K random and
-    camera rays, sizes 1..64): PoCL's speed hardly depends on it (16 is at the
-    top); Intel's CPU runtime runs 8 about 1.3-1.5x faster than 16 or more,
-    where it vectorises 16 rays wide and loses to their divergence.  GPUs want
-    at least a warp/wavefront.
+    Measured on the project's 2-core machine (bunny, camera and incoherent
+    rays): PoCL's speed hardly depends on it (8, 16 and 64 within noise);
+    Intel's CPU runtime runs 1, 4 and 8 alike.  At 16 and more Intel would
+    pack 16 rays into SIMD lanes (3-4x slower, divergence), which the kernels'
+    vec_type_hint now prevents, but 8 stays the safe choice.  GPUs want at
+    least a warp/wavefront.
     """
     d = rt.device
     if d.type == "gpu":
@@ -115,9 +120,9 @@ class RayQuery:
         count = len(origins)
         result = np.empty(count, HIT)
         if count and self._check_tree(tree):
-            kernel = self.rt.kernel("traverse.cl", "intersect_closest", STACK_SIZE=_stack_size(tree))
+            kernel, nodes = self._kernel(tree, "intersect_closest")
             self._run(count, origins, directions, tmin, tmax, lambda n: self.rt.run(
-                kernel, n, tree.nodes, tree.triangles, tree.refs, self._rays, self._hits,
+                kernel, n, nodes, tree.triangles, tree.refs, self._rays, self._hits,
                 self._overflow, np.uint32(n), local_size=self.work_group_size), "_hits", result)
         elif count:
             result["t"] = np.inf
@@ -136,9 +141,9 @@ class RayQuery:
         count = len(origins)
         result = np.zeros(count, np.uint8)
         if count and self._check_tree(tree):
-            kernel = self.rt.kernel("traverse.cl", "intersect_any", STACK_SIZE=_stack_size(tree))
+            kernel, nodes = self._kernel(tree, "intersect_any")
             self._run(count, origins, directions, tmin, tmax, lambda n: self.rt.run(
-                kernel, n, tree.nodes, tree.triangles, self._rays, self._occluded,
+                kernel, n, nodes, tree.triangles, self._rays, self._occluded,
                 self._overflow, np.uint32(n), local_size=self.work_group_size), "_occluded", result)
         return result.astype(bool)
 
@@ -152,8 +157,8 @@ class RayQuery:
         tmin > tmax hits nothing), and the caller clears the int32 `overflow`
         flag beforehand and raises if a traversal set it."""
         self._require_triangles(tree)
-        kernel = self.rt.kernel("traverse.cl", "intersect_closest", STACK_SIZE=_stack_size(tree))
-        return self.rt.run(kernel, count, tree.nodes, tree.triangles, tree.refs, rays, hits,
+        kernel, nodes = self._kernel(tree, "intersect_closest")
+        return self.rt.run(kernel, count, nodes, tree.triangles, tree.refs, rays, hits,
                            overflow, np.uint32(count), wait_for=wait_for,
                            local_size=self.work_group_size)
 
@@ -162,11 +167,18 @@ class RayQuery:
         """As enqueue_intersect, with intersect_any: occluded[i] = 1 (uchar)
         where ray i hits anything."""
         self._require_triangles(tree)
-        kernel = self.rt.kernel("traverse.cl", "intersect_any", STACK_SIZE=_stack_size(tree))
-        return self.rt.run(kernel, count, tree.nodes, tree.triangles, rays, occluded, overflow,
+        kernel, nodes = self._kernel(tree, "intersect_any")
+        return self.rt.run(kernel, count, nodes, tree.triangles, rays, occluded, overflow,
                            np.uint32(count), wait_for=wait_for, local_size=self.work_group_size)
 
     # -- internals ----------------------------------------------------------
+
+    def _kernel(self, tree: DeviceTree, name: str) -> tuple[cl.Kernel, cl.Buffer]:
+        """The traversal kernel `name` for `tree` and the node buffer it reads
+        (the tree's wide form, made on first use)."""
+        wide = wide_tree(self.rt, tree)
+        return (self.rt.kernel("traverse.cl", name, STACK_SIZE=_stack_size(tree, wide)),
+                wide.nodes)
 
     def _require_triangles(self, tree: DeviceTree) -> None:
         if not self._check_tree(tree):
@@ -232,8 +244,17 @@ class RayQuery:
                                "the tree is deeper than its depth field says")
 
 
-def _stack_size(tree: DeviceTree) -> int:
-    return _round_up(max(int(tree.depth), 1), STACK_GRANULE)
+def _stack_size(tree: DeviceTree, wide: WideTree | None = None) -> int:
+    """A stack that cannot overflow: a wide node pushes at most WIDE_ARITY - 1
+    children, and only those of the nodes on the path to the current one stay
+    on the stack.  The wide tree (``wide``, by default ``tree.wide``) is never
+    deeper than the BVH2, as every wide level descends at least one BVH2
+    level, so the BVH2's depth bounds it before it is made; it caps it too, so
+    that a tree whose depth field is too small overflows (and raises) instead
+    of being trusted in part."""
+    wide = wide if wide is not None else tree.wide
+    depth = max(1, int(tree.depth) if wide is None else min(int(tree.depth), int(wide.depth)))
+    return _round_up((layout.WIDE_ARITY - 1) * depth, STACK_GRANULE)
 
 
 def _round_up(value: int, multiple: int) -> int:

@@ -16,6 +16,7 @@ from .morton import key_dtype
 from .refit import refit_flat_tree
 from .render import AO_SAMPLES, Light, Renderer, RenderSettings, check_colors, check_light, \
     default_colors
+from .widen import refit_wide_tree, widen
 
 
 def _as_meshes(meshes) -> list[Mesh]:
@@ -79,8 +80,9 @@ class Scene:
     @property
     def stats(self) -> dict:
         """triangles, nodes, leaves, depth, sah_cost, times_ms (per stage, and
-        total) of the last build; after update_vertices, sah_cost is
-        recomputed from the refit boxes and update_ms holds the refit's times."""
+        total) of the last build, widen_ms (the wide tree made from it); after
+        update_vertices, sah_cost is recomputed from the refit boxes and
+        update_ms holds the refit's times."""
         if self._sah_stale:
             self._build.stats["sah_cost"] = self.tree.sah_cost(self.runtime.queue)
             self._sah_stale = False
@@ -93,6 +95,10 @@ class Scene:
         memory than the first build (which check_fits accounted for)."""
         self._build = None
         self._build = build(self.runtime, self._geometry, self.builder, self.morton_bits)
+        # the wide tree that traversal reads (stage 8), derived from the BVH2
+        self.tree.wide, events = widen(self.runtime, self.tree)
+        cl.wait_for_events(events)
+        self._build.stats["widen_ms"] = event_ms(events)
         self._sah_stale = False
 
     def update_vertices(self, geom_id: int, vertices) -> None:
@@ -116,6 +122,8 @@ class Scene:
                                  is_blocking=False)
         events = refit_flat_tree(rt, self.tree, self._geometry.vertices, self._geometry.faces,
                                  self._geometry.mesh_first_face, wait_for=[upload])
+        # the wide tree traversal reads copies the BVH2's boxes: rewrite it too
+        events += refit_wide_tree(rt, self.tree, wait_for=events[-1:])
         self.meshes[geom_id] = moved
         root = _read_root(rt.queue, self.tree.nodes, events)
         lo = np.minimum(root["left_lo"], root["right_lo"])

@@ -6,11 +6,15 @@ refit updates it in place, and ray queries only read it.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pyopencl as cl
 
 from . import layout
+
+if TYPE_CHECKING:
+    from .widen import WideTree
 
 
 @dataclass
@@ -27,6 +31,9 @@ class DeviceTree:
     parents    int32[node_count]: parent of each node (-1 for the root), for refit.
     depth      interior nodes on the longest root-to-leaf path (>= 1); a
                traversal stack of `depth` entries cannot overflow.
+    wide       the WideTree traversal reads (hlbvh_cl.widen), derived from
+               this tree: made by Scene after each build (or by the first query
+               on a tree that has none) and refit with it by update_vertices.
     """
 
     nodes: cl.Buffer
@@ -39,6 +46,7 @@ class DeviceTree:
     depth: int
     bounds_lo: np.ndarray
     bounds_hi: np.ndarray
+    wide: WideTree | None = None
 
     def read_nodes(self, queue: cl.CommandQueue) -> np.ndarray:
         out = np.empty(self.node_count, layout.FLAT_NODE)

@@ -51,4 +51,12 @@ __kernel void struct_layout(__global int *out)
     REPORT(37, offsetof(ShadeParams, depth_far));
     REPORT(38, offsetof(ShadeParams, ao_distance));
     REPORT(39, offsetof(ShadeParams, ao_weight));
+    REPORT(40, sizeof(WideNode));
+    REPORT(41, offsetof(WideNode, hi_x));
+    REPORT(42, offsetof(WideNode, lo_y));
+    REPORT(43, offsetof(WideNode, hi_y));
+    REPORT(44, offsetof(WideNode, lo_z));
+    REPORT(45, offsetof(WideNode, hi_z));
+    REPORT(46, offsetof(WideNode, child));
+    REPORT(47, offsetof(WideNode, count));
 }

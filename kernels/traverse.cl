@@ -1,5 +1,6 @@
-/* Ray queries: stackful traversal of the flat BVH2 (DeviceTree) with a
- * watertight ray/triangle test.  One work-item traces one ray.
+/* Ray queries: stackful traversal of the wide tree (WideNode, made from the
+ * flat BVH2 by widen.cl) with a watertight ray/triangle test.  One work-item
+ * traces one ray.
  *
  * Kernels
  *   intersect_closest  nearest hit in [tmin, tmax] -> Hit
@@ -13,9 +14,9 @@
  *   - u, v: hit = (1-u-v)*v0 + u*v1 + v*v2.
  *
  * Compile-time parameters (-D)
- *   STACK_SIZE  entries of the private traversal stack; the host passes
- *               DeviceTree.depth rounded up, so it cannot overflow (if it ever
- *               did, the ray is flagged and the host raises).
+ *   STACK_SIZE  entries of the private traversal stack; the host passes a
+ *               bound that cannot overflow for the tree (query.py), and if
+ *               it ever did, the ray is flagged and the host raises.
  */
 #include "hlbvh.h"
 
@@ -31,6 +32,28 @@
 #ifndef STACK_SIZE
 #error "STACK_SIZE must be defined (-D STACK_SIZE=...)"
 #endif
+
+/* One vector lane per child of a wide node. */
+#if WIDE_ARITY == 8
+typedef float8 float_lanes;
+typedef int8 int_lanes;
+#define vload_lanes vload8
+#define vstore_lanes vstore8
+#define LANES_HINT vec_type_hint(float8)
+#elif WIDE_ARITY == 4
+typedef float4 float_lanes;
+typedef int4 int_lanes;
+#define vload_lanes vload4
+#define vstore_lanes vstore4
+#define LANES_HINT vec_type_hint(float4)
+#else
+#error "WIDE_ARITY must be 4 or 8"
+#endif
+
+/* PoCL's inliner stops just short of the traversal loop and the triangle
+ * test (measured: about 10% slower on camera rays); every helper here is
+ * small or called in one place, so inline them all. */
+#define TRAVERSAL_INLINE inline __attribute__((always_inline))
 
 /* Ize 2013, "Robust BVH Ray Traversal" (JCGT 2(2)): scaling the exit distance
  * by 1 + 2*gamma(3) makes the slab test conservative under float rounding.  We
@@ -49,14 +72,19 @@ typedef struct {
     int kx, ky, kz;
     float sx, sy, sz;
     float okx, oky, okz;        /* origin, permuted */
+    /* Offsets (in floats) into a WideNode of the planes through which the ray
+     * enters the children's boxes on each axis: the lo planes where the
+     * inverse direction is positive, the hi planes where its sign bit is set
+     * (Williams et al. 2005).  The exit planes are at offset ^ WIDE_ARITY. */
+    int near_x, near_y, near_z;
 } RayData;
 
-inline float component(const float v[3], int axis)
+TRAVERSAL_INLINE float component(const float v[3], int axis)
 {
     return axis == 0 ? v[0] : (axis == 1 ? v[1] : v[2]);
 }
 
-inline RayData prepare_ray(__global const Ray* ray)
+TRAVERSAL_INLINE RayData prepare_ray(__global const Ray* ray)
 {
     RayData r;
     float d[3] = {ray->direction[0], ray->direction[1], ray->direction[2]};
@@ -82,32 +110,60 @@ inline RayData prepare_ray(__global const Ray* ray)
     r.okx = component(o, r.kx);
     r.oky = component(o, r.ky);
     r.okz = component(o, r.kz);
+    r.near_x = 0 * WIDE_ARITY + (signbit(r.inv_x) ? WIDE_ARITY : 0);
+    r.near_y = 2 * WIDE_ARITY + (signbit(r.inv_y) ? WIDE_ARITY : 0);
+    r.near_z = 4 * WIDE_ARITY + (signbit(r.inv_z) ? WIDE_ARITY : 0);
     return r;
 }
 
-/* Slab test (Kay & Kajiya 1986) of one child box.  Per axis the entry plane is
+/* Slab test (Kay & Kajiya 1986) of a wide node's WIDE_ARITY child boxes
+ * at once, one vector lane per child.  Per axis the entry plane is
  * chosen by the sign bit of the inverse direction (Williams et al. 2005), so a
  * 0 * inf = NaN (origin on a slab plane, direction component 0) can only be
  * the entry or exit of that axis, which fmax / fmin then ignore: a ray lying
- * in a face plane counts as inside, as the closed box demands.  Returns the
- * entry distance and whether [entry, exit] meets [tmin, limit]. */
-inline bool hit_box(const RayData* r, __global const float* lo, __global const float* hi,
-                    float limit, float* entry)
+ * in a face plane counts as inside, as the closed box demands.  Returns, per
+ * lane, whether [entry, exit] meets [tmin, limit] (-1 or 0), and the entry
+ * distances.  An unused slot's empty box (lo = +inf, hi = -inf) is missed. */
+TRAVERSAL_INLINE int_lanes hit_children(const RayData* r, __global const WideNode* node,
+                                        float limit, float_lanes* entry)
 {
-    float near_x = ((signbit(r->inv_x) ? hi[0] : lo[0]) - r->ox) * r->inv_x;
-    float near_y = ((signbit(r->inv_y) ? hi[1] : lo[1]) - r->oy) * r->inv_y;
-    float near_z = ((signbit(r->inv_z) ? hi[2] : lo[2]) - r->oz) * r->inv_z;
-    float far_x = ((signbit(r->inv_x) ? lo[0] : hi[0]) - r->ox) * r->inv_x;
-    float far_y = ((signbit(r->inv_y) ? lo[1] : hi[1]) - r->oy) * r->inv_y;
-    float far_z = ((signbit(r->inv_z) ? lo[2] : hi[2]) - r->oz) * r->inv_z;
-    float t_entry = fmax(fmax(near_x, near_y), fmax(near_z, r->tmin));
-    float t_exit = fmin(fmin(far_x, far_y), far_z) * EXIT_SCALE;
+    __global const float* planes = (__global const float*)node;
+    float_lanes near_x = (vload_lanes(0, planes + r->near_x) - r->ox) * r->inv_x;
+    float_lanes near_y = (vload_lanes(0, planes + r->near_y) - r->oy) * r->inv_y;
+    float_lanes near_z = (vload_lanes(0, planes + r->near_z) - r->oz) * r->inv_z;
+    float_lanes far_x = (vload_lanes(0, planes + (r->near_x ^ WIDE_ARITY)) - r->ox)
+                          * r->inv_x;
+    float_lanes far_y = (vload_lanes(0, planes + (r->near_y ^ WIDE_ARITY)) - r->oy)
+                          * r->inv_y;
+    float_lanes far_z = (vload_lanes(0, planes + (r->near_z ^ WIDE_ARITY)) - r->oz)
+                          * r->inv_z;
+    float_lanes t_entry = fmax(fmax(near_x, near_y), fmax(near_z, (float_lanes)(r->tmin)));
+    float_lanes t_exit = fmin(fmin(far_x, far_y), far_z) * EXIT_SCALE;
     *entry = t_entry;
-    return t_entry <= fmin(t_exit, limit);
+    return t_entry <= fmin(t_exit, (float_lanes)(limit));
+}
+
+/* The lanes set in `hit`, in lane order, into order[]; returns how many.
+ * (Spelt out lane by lane: a loop over a stored copy measured slower.) */
+TRAVERSAL_INLINE int hit_slots(int_lanes hit, int* order)
+{
+    int m = 0;
+    if (hit.s0) order[m++] = 0;
+    if (hit.s1) order[m++] = 1;
+    if (hit.s2) order[m++] = 2;
+    if (hit.s3) order[m++] = 3;
+#if WIDE_ARITY == 8
+    if (hit.s4) order[m++] = 4;
+    if (hit.s5) order[m++] = 5;
+    if (hit.s6) order[m++] = 6;
+    if (hit.s7) order[m++] = 7;
+#endif
+    return m;
 }
 
 /* cross(v1 - v0, v2 - v0): unnormalised, following the winding. */
-inline void geometric_normal(__global const Triangle* tri, float* nx, float* ny, float* nz)
+TRAVERSAL_INLINE void geometric_normal(__global const Triangle* tri, float* nx, float* ny,
+                                       float* nz)
 {
     float e1x = tri->v1[0] - tri->v0[0], e1y = tri->v1[1] - tri->v0[1], e1z = tri->v1[2] - tri->v0[2];
     float e2x = tri->v2[0] - tri->v0[0], e2y = tri->v2[1] - tri->v0[1], e2z = tri->v2[2] - tri->v0[2];
@@ -119,8 +175,8 @@ inline void geometric_normal(__global const Triangle* tri, float* nx, float* ny,
 /* Watertight ray/triangle test: Woop, Benthin & Wald 2013, "Watertight
  * Ray/Triangle Intersection" (JCGT 2(1)), without back-face culling.
  * On a hit with tmin <= t <= limit (t < limit when `strict`), writes t, u, v. */
-inline bool hit_triangle(const RayData* r, __global const Triangle* tri, float limit, bool strict,
-                         float* t_out, float* u_out, float* v_out)
+TRAVERSAL_INLINE bool hit_triangle(const RayData* r, __global const Triangle* tri, float limit,
+                                   bool strict, float* t_out, float* u_out, float* v_out)
 {
     /* Vertices relative to the origin, permuted (kx, ky, kz). */
     float ax = tri->v0[r->kx] - r->okx, ay = tri->v0[r->ky] - r->oky, az = tri->v0[r->kz] - r->okz;
@@ -171,8 +227,9 @@ inline bool hit_triangle(const RayData* r, __global const Triangle* tri, float l
 
 /* Pops the next stacked item that can still hold a hit within limit (items
  * whose box is entered beyond it are dropped); false when none is left. */
-inline bool pop(const int* stack_index, const uint* stack_count, const float* stack_entry,
-                int* sp, float limit, int* index, uint* count)
+TRAVERSAL_INLINE bool pop(const int* stack_index, const uint* stack_count,
+                          const float* stack_entry, int* sp, float limit, int* index,
+                          uint* count)
 {
     while (*sp > 0) {
         --*sp;
@@ -185,17 +242,21 @@ inline bool pop(const int* stack_index, const uint* stack_count, const float* st
     return false;
 }
 
-/* Traverses the tree, nearer child first (closest hit) or until the first hit
- * (any hit).  Returns the tree-order index of the hit triangle or -1; sets
- * *overflow when the stack was too small (the host then raises).
+/* Traverses the wide tree, nearer children first (closest hit) or until the
+ * first hit (any hit).  Returns the tree-order index of the hit triangle or
+ * -1; sets *overflow when the stack was too small (the host then raises).
  *
  * A stack item is a child slot: (index, count) with count 0 for an interior
- * node and count > 0 for a leaf.  The loop runs interior nodes until it holds
- * a leaf, then the leaf's triangles (Aila & Laine 2009's "while-while"), so
- * the work-items that a CPU runs in SIMD lanes stay in step. */
-inline int traverse(const RayData* r, __global const FlatNode* nodes,
-                    __global const Triangle* triangles, bool any_hit,
-                    float* t_hit, float* u_hit, float* v_hit, bool* overflow)
+ * node and count > 0 for a leaf, and the distance at which the ray enters its
+ * box.  At a wide node the children whose boxes the ray meets are sorted by
+ * that distance; the nearest is visited next and the others are pushed, the
+ * farthest first (Embree's single-ray BVH4/BVH8 traversal); any-hit rays
+ * too, as the nearer boxes hold an occluder sooner (measured faster on
+ * incoherent rays).  The loop runs interior nodes until it holds a leaf, then
+ * the leaf's triangles (Aila & Laine 2009's "while-while"). */
+TRAVERSAL_INLINE int traverse(const RayData* r, __global const WideNode* nodes,
+                              __global const Triangle* triangles, bool any_hit,
+                              float* t_hit, float* u_hit, float* v_hit, bool* overflow)
 {
     int stack_index[STACK_SIZE];
     uint stack_count[STACK_SIZE];
@@ -210,31 +271,39 @@ inline int traverse(const RayData* r, __global const FlatNode* nodes,
 
     while (!done) {
         while (!done && count == 0) {
-            __global const FlatNode* n = nodes + index;
-            float entry_left, entry_right;
-            /* (an EMPTY_CHILD's box is empty, so the test alone would do) */
-            bool visit_left = hit_box(r, n->left_lo, n->left_hi, limit, &entry_left)
-                              && n->left != EMPTY_CHILD;
-            bool visit_right = hit_box(r, n->right_lo, n->right_hi, limit, &entry_right)
-                               && n->right != EMPTY_CHILD;
-            if (visit_left && visit_right) {
-                bool left_first = entry_left <= entry_right;
-                if (sp == STACK_SIZE) {
-                    *overflow = true;
-                    return hit_index;
-                }
-                stack_index[sp] = left_first ? n->right : n->left;
-                stack_count[sp] = left_first ? n->right_count : n->left_count;
-                stack_entry[sp] = left_first ? entry_right : entry_left;
-                ++sp;
-                index = left_first ? n->left : n->right;
-                count = left_first ? n->left_count : n->right_count;
-            } else if (visit_left || visit_right) {
-                index = visit_left ? n->left : n->right;
-                count = visit_left ? n->left_count : n->right_count;
-            } else {
+            __global const WideNode* n = nodes + index;
+            float_lanes entry_lanes;
+            int_lanes hit_lanes = hit_children(r, n, limit, &entry_lanes)
+                                  & (vload_lanes(0, n->child) != (int_lanes)(EMPTY_CHILD));
+            float entry[WIDE_ARITY];
+            vstore_lanes(entry_lanes, 0, entry);
+            /* the slots hit, in slot order, then sorted by entry distance */
+            int order[WIDE_ARITY];
+            int m = hit_slots(hit_lanes, order);
+            if (m == 0) {
                 done = !pop(stack_index, stack_count, stack_entry, &sp, limit, &index, &count);
+                continue;
             }
+            for (int a = 1; a < m; ++a) {
+                int slot = order[a];
+                int b = a;
+                for (; b > 0 && entry[order[b - 1]] > entry[slot]; --b)
+                    order[b] = order[b - 1];
+                order[b] = slot;
+            }
+            if (sp + m - 1 > STACK_SIZE) {
+                *overflow = true;
+                return hit_index;
+            }
+            for (int a = m - 1; a > 0; --a) {
+                int slot = order[a];
+                stack_index[sp] = n->child[slot];
+                stack_count[sp] = n->count[slot];
+                stack_entry[sp] = entry[slot];
+                ++sp;
+            }
+            index = n->child[order[0]];
+            count = n->count[order[0]];
         }
         if (done)
             break;
@@ -255,15 +324,21 @@ inline int traverse(const RayData* r, __global const FlatNode* nodes,
     return hit_index;
 }
 
+/* The kernels already compute in vectors (a node's children); the hint
+ * keeps Intel's CPU compiler from also packing work-items into SIMD lanes,
+ * which measured 3-4x slower at 16 work-items per group (its default is to
+ * vectorise whenever the group size allows). */
+#define TRAVERSAL_KERNEL __kernel __attribute__((LANES_HINT))
+
 /* Closest hit of rays[0, ray_count) -> hits; overflow[0] is set to 1 if a
  * ray's traversal ran out of stack. */
-__kernel void intersect_closest(__global const FlatNode* nodes,
-                                __global const Triangle* triangles,
-                                __global const TriangleRef* refs,
-                                __global const Ray* rays,
-                                __global Hit* hits,
-                                __global int* overflow,
-                                const uint ray_count)
+TRAVERSAL_KERNEL void intersect_closest(__global const WideNode* nodes,
+                                        __global const Triangle* triangles,
+                                        __global const TriangleRef* refs,
+                                        __global const Ray* rays,
+                                        __global Hit* hits,
+                                        __global int* overflow,
+                                        const uint ray_count)
 {
     uint gid = get_global_id(0);
     if (gid >= ray_count)
@@ -305,12 +380,12 @@ __kernel void intersect_closest(__global const FlatNode* nodes,
 }
 
 /* Occlusion of rays[0, ray_count): occluded[i] = 1 if anything is hit. */
-__kernel void intersect_any(__global const FlatNode* nodes,
-                            __global const Triangle* triangles,
-                            __global const Ray* rays,
-                            __global uchar* occluded,
-                            __global int* overflow,
-                            const uint ray_count)
+TRAVERSAL_KERNEL void intersect_any(__global const WideNode* nodes,
+                                    __global const Triangle* triangles,
+                                    __global const Ray* rays,
+                                    __global uchar* occluded,
+                                    __global int* overflow,
+                                    const uint ray_count)
 {
     uint gid = get_global_id(0);
     if (gid >= ray_count)

@@ -22,6 +22,8 @@ FIELDS = [
     ("ShadeParams", "sky_up"), ("ShadeParams", "sky_horizon"), ("ShadeParams", "sky_zenith"),
     ("ShadeParams", "ray_offset"), ("ShadeParams", "depth_near"), ("ShadeParams", "depth_far"),
     ("ShadeParams", "ao_distance"), ("ShadeParams", "ao_weight"),
+    ("WideNode", None), ("WideNode", "hi_x"), ("WideNode", "lo_y"), ("WideNode", "hi_y"),
+    ("WideNode", "lo_z"), ("WideNode", "hi_z"), ("WideNode", "child"), ("WideNode", "count"),
 ]
 
 
@@ -42,3 +44,4 @@ def test_constants_come_from_the_header():
     assert f"#define CLUSTER_BITS {layout.CLUSTER_BITS}" in text
     assert f"#define MAX_LEAF_SIZE {layout.MAX_LEAF_SIZE}" in text
     assert layout.EMPTY_CHILD == -1 and "#define EMPTY_CHILD (-1)" in text
+    assert f"#define WIDE_ARITY {layout.WIDE_ARITY}" in text

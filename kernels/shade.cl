@@ -1,0 +1,222 @@
+/* Shading: closest hits -> colours, plus the shadow or ambient-occlusion rays
+ * that decide the rest of each colour, and the resolve that adds it.
+ * hlbvh_cl/render.py documents the formulas; in short, with n the hit's
+ * geometric normal turned towards the viewer and a the mesh's colour:
+ *   diffuse  a * (ambient + intensity * max(n.l, 0) * visible(l)), sky on a miss
+ *   normals  (n + 1) / 2, black on a miss
+ *   depth    (far - distance) / (far - near) clamped to [0, 1], black on a miss
+ *   ao       a * (fraction of ao rays that meet nothing), sky on a miss
+ *
+ * Kernels (one work-item per pixel of the current pass)
+ *   shade_hits      adds to accum what needs no further ray; for diffuse with
+ *                   SHADOWS writes each pixel's shadow ray (an empty ray
+ *                   where none is needed) and the light it would let through
+ *                   to `pending`; for ao writes a / ao_samples to `pending`
+ *   ao_rays         the k-th ambient-occlusion ray of every pixel
+ *   add_unoccluded  accum += pending where the shadow or AO ray hit nothing
+ *   encode_image    accum / samples -> 8-bit RGB, gamma-encoded (2) for diffuse and ao
+ *
+ * Compile-time parameters (-D)
+ *   SHADING  one of the SHADING_* names below
+ *   SHADOWS  1: diffuse shading traces shadow rays; 0: every light is visible
+ */
+#include "hlbvh.h"
+
+#define SHADING_DIFFUSE 1
+#define SHADING_NORMALS 2
+#define SHADING_DEPTH 3
+#define SHADING_AO 4
+
+#if !defined(SHADING) || !defined(SHADOWS)
+#error "SHADING and SHADOWS must be defined (-D SHADING=SHADING_DIFFUSE -D SHADOWS=1)"
+#endif
+#if SHADING != SHADING_DIFFUSE && SHADING != SHADING_NORMALS && SHADING != SHADING_DEPTH \
+    && SHADING != SHADING_AO
+#error "SHADING must be SHADING_DIFFUSE, SHADING_NORMALS, SHADING_DEPTH or SHADING_AO"
+#endif
+
+/* Radiance modes end with a display gamma; normals and depth are data. */
+#define ENCODE_GAMMA (SHADING == SHADING_DIFFUSE || SHADING == SHADING_AO)
+
+/* A ray with tmin > tmax: traversal rejects the root's children at once and
+ * reports no hit, so a pixel that needs no secondary ray costs one node. */
+inline void write_empty_ray(__global Ray* ray)
+{
+    ray->origin[0] = ray->origin[1] = ray->origin[2] = 0.0f;
+    ray->direction[0] = ray->direction[1] = 0.0f;
+    ray->direction[2] = 1.0f;
+    ray->tmin = 1.0f;
+    ray->tmax = 0.0f;
+}
+
+inline void write_ray(__global Ray* ray, float3 origin, float3 direction, float tmax)
+{
+    vstore3(origin, 0, ray->origin);
+    vstore3(direction, 0, ray->direction);
+    ray->tmin = 0.0f;
+    ray->tmax = tmax;
+}
+
+/* The unit geometric normal on the side the ray came from: meshes may be
+ * open or inconsistently wound, so both sides are front sides. */
+inline float3 facing_normal(__global const Hit* hit, float3 direction)
+{
+    float3 n = vload3(0, hit->normal);
+    return dot(n, direction) > 0.0f ? -n : n;
+}
+
+/* Where secondary rays start: the hit point moved ray_offset off the surface,
+ * on the viewer's side, so that they cannot hit their own triangle again. */
+inline float3 secondary_origin(__global const Ray* ray, __global const Hit* hit, float3 n,
+                               const ShadeParams* params)
+{
+    float3 hit_point = vload3(0, ray->origin) + hit->t * vload3(0, ray->direction);
+    return hit_point + params->ray_offset * n;
+}
+
+/* Background: from the horizon colour (directions at or below the horizon)
+ * to the zenith colour (straight up), linear in the sine of the elevation. */
+inline float3 sky(const ShadeParams* params, float3 direction)
+{
+    float elevation = clamp(dot(normalize(direction), vload3(0, params->sky_up)), 0.0f, 1.0f);
+    return mix(vload3(0, params->sky_horizon), vload3(0, params->sky_zenith), elevation);
+}
+
+__kernel void shade_hits(__global const Ray* rays,
+                         __global const Hit* hits,
+                         __global const float* albedo,    /* RGB per geom_id */
+                         const ShadeParams params,
+                         const uint ray_count,
+                         const uint sample,               /* 0 starts the sum */
+                         __global Ray* secondary,
+                         __global float4* pending,
+                         __global float4* accum)
+{
+    uint gid = get_global_id(0);
+    if (gid >= ray_count)
+        return;
+    __global const Ray* ray = rays + gid;
+    __global const Hit* hit = hits + gid;
+    float3 direction = vload3(0, ray->direction);
+    float3 colour = (float3)(0.0f);
+    float3 deferred = (float3)(0.0f);  /* added later if the secondary ray is free */
+
+    if (hit->geom_id < 0) {
+#if SHADING == SHADING_DIFFUSE || SHADING == SHADING_AO
+        colour = sky(&params, direction);
+#endif
+#if SHADING == SHADING_DIFFUSE && SHADOWS
+        write_empty_ray(secondary + gid);
+#endif
+    } else {
+        float3 n = facing_normal(hit, direction);
+#if SHADING == SHADING_DIFFUSE
+        float3 base = vload3(hit->geom_id, albedo);
+        float3 light = vload3(0, params.light_direction);
+        float cosine = fmax(dot(n, light), 0.0f);
+        float3 direct = base * (params.light_intensity * cosine);
+        colour = base * params.ambient;
+#if SHADOWS
+        if (cosine > 0.0f && params.light_intensity > 0.0f) {
+            deferred = direct;
+            write_ray(secondary + gid, secondary_origin(ray, hit, n, &params), light, INFINITY);
+        } else {
+            write_empty_ray(secondary + gid);
+        }
+#else
+        colour += direct;
+#endif
+#elif SHADING == SHADING_NORMALS
+        colour = 0.5f * (n + 1.0f);
+#elif SHADING == SHADING_DEPTH
+        float distance = hit->t * length(direction);
+        colour = (float3)(clamp((params.depth_far - distance)
+                                / (params.depth_far - params.depth_near), 0.0f, 1.0f));
+#elif SHADING == SHADING_AO
+        deferred = vload3(hit->geom_id, albedo) * params.ao_weight;
+#endif
+    }
+#if (SHADING == SHADING_DIFFUSE && SHADOWS) || SHADING == SHADING_AO
+    pending[gid] = (float4)(deferred, 0.0f);
+#endif
+    float4 before = sample == 0 ? (float4)(0.0f) : accum[gid];
+    accum[gid] = before + (float4)(colour, 0.0f);
+}
+
+/* Orthonormal basis around a unit n: Duff et al. 2017, "Building an
+ * Orthonormal Basis, Revisited" (JCGT 6(1)), branchless and exact at n.z = -1. */
+inline void orthonormal_basis(float3 n, float3* b1, float3* b2)
+{
+    float sign = copysign(1.0f, n.z);
+    float a = -1.0f / (sign + n.z);
+    float b = n.x * n.y * a;
+    *b1 = (float3)(1.0f + sign * n.x * n.x * a, sign * b, -sign * n.x);
+    *b2 = (float3)(b, sign + n.y * n.y * a, -n.y);
+}
+
+/* The k-th AO ray of each pixel: cosine-distributed about n (Malley's method:
+ * a uniform point on the unit disc, lifted to the hemisphere; pbrt-v4
+ * SampleCosineHemisphere) from random_unit(pixel, sample, 2 + 2k) and
+ * (..., 3 + 2k), reaching ao_distance.  Misses get an empty ray. */
+__kernel void ao_rays(__global const Ray* rays,
+                      __global const Hit* hits,
+                      const ShadeParams params,
+                      const uint first_pixel,
+                      const uint ray_count,
+                      const uint sample,
+                      const uint ao_index,
+                      __global Ray* secondary)
+{
+    uint gid = get_global_id(0);
+    if (gid >= ray_count)
+        return;
+    __global const Hit* hit = hits + gid;
+    if (hit->geom_id < 0) {
+        write_empty_ray(secondary + gid);
+        return;
+    }
+    __global const Ray* ray = rays + gid;
+    float3 n = facing_normal(hit, vload3(0, ray->direction));
+    uint pixel = first_pixel + gid;
+    float u1 = random_unit(pixel, sample, 2 + 2 * ao_index);
+    float u2 = random_unit(pixel, sample, 3 + 2 * ao_index);
+    float radius = sqrt(u1);
+    float angle = 2.0f * M_PI_F * u2;
+    float3 b1, b2;
+    orthonormal_basis(n, &b1, &b2);
+    float3 direction = radius * cos(angle) * b1 + radius * sin(angle) * b2
+                       + sqrt(1.0f - u1) * n;  /* u1 < 1, so never tangent */
+    write_ray(secondary + gid, secondary_origin(ray, hit, n, &params), direction,
+              params.ao_distance);
+}
+
+__kernel void add_unoccluded(__global const uchar* occluded,
+                             __global const float4* pending,
+                             const uint ray_count,
+                             __global float4* accum)
+{
+    uint gid = get_global_id(0);
+    if (gid >= ray_count || occluded[gid])
+        return;
+    accum[gid] += pending[gid];
+}
+
+/* RGB of pixel first_pixel + i = round(255 * encode(clamp(accum[i] * scale,
+ * 0, 1))), encode = sqrt for radiance (display gamma 2), the identity for
+ * data views. */
+__kernel void encode_image(__global const float4* accum,
+                           const uint first_pixel,
+                           const uint pixel_count,
+                           const float scale,          /* 1 / samples per pixel */
+                           __global uchar* image)      /* the whole image */
+{
+    uint gid = get_global_id(0);
+    if (gid >= pixel_count)
+        return;
+    /* fmin/fmax rather than clamp: they also turn a NaN into 0 */
+    float3 value = fmin(fmax(accum[gid].xyz * scale, 0.0f), 1.0f);
+#if ENCODE_GAMMA
+    value = sqrt(value);  /* gamma 2: looks as 2.2 does, and pow costs 60x more on PoCL */
+#endif
+    vstore3(convert_uchar3(value * 255.0f + 0.5f), first_pixel + gid, image);
+}

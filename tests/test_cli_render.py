@@ -1,0 +1,81 @@
+"""Smoke tests of `hlbvh-cl render`: images of the right size, timings
+printed, and a user's mistakes reported in one line with exit code 2."""
+import subprocess
+import sys
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+from hlbvh_cl.cli import main
+from hlbvh_cl.scenefile import load_scene_file
+
+SCENES = Path(__file__).resolve().parent.parent / "scenes"
+BUNNY = str(SCENES / "bunny_small.toml")
+
+
+def test_render_writes_the_image_and_prints_the_times(tmp_path, capsys):
+    out = tmp_path / "bunny.png"
+    assert main(["render", BUNNY, "-o", str(out), "--width", "64", "--height", "48"]) == 0
+    image = iio.imread(out)
+    assert image.shape == (48, 64, 3) and image.dtype == np.uint8
+    # the scene file's colours: its mesh colour appears, not only sky and ground
+    assert len(np.unique(image.reshape(-1, 3), axis=0)) > 20
+    printed = capsys.readouterr().out
+    for word in ("load", "build", "trace+shade", "compile", "write", "64x48", "diffuse"):
+        assert word in printed
+
+
+def test_render_takes_the_scene_file_size_and_the_options(tmp_path, capsys):
+    description = load_scene_file(BUNNY)
+    out = tmp_path / "normals.png"
+    assert main(["render", BUNNY, "-o", str(out), "--shading", "normals", "--spp", "2",
+                 "--height", "30"]) == 0
+    assert iio.imread(out).shape == (30, description.width, 3)
+    assert "normals" in capsys.readouterr().out
+    out = tmp_path / "ao.png"
+    assert main(["render", BUNNY, "-o", str(out), "--shading", "ao", "--ao-samples", "2",
+                 "--width", "20", "--height", "10", "--device", "pocl"]) == 0
+    assert iio.imread(out).shape == (10, 20, 3)
+
+
+def _one_line_error(capsys) -> str:
+    captured = capsys.readouterr()
+    err = captured.err.strip()
+    assert err.startswith("hlbvh-cl: error:") and "\n" not in err, err
+    return err
+
+
+@pytest.mark.parametrize("arguments, words", [
+    (["render", "missing.toml", "-o", "x.png"], "missing.toml"),
+    (["render", BUNNY, "-o", "x.png", "--spp", "0"], "--spp"),
+    (["render", BUNNY, "-o", "x.png", "--width", "wide"], "--width"),
+    (["render", BUNNY, "-o", "x.png", "--width", "20000"], "width"),
+    (["render", BUNNY, "-o", "x.png", "--shading", "phong"], "--shading"),
+    (["render", BUNNY, "-o", "x.png", "--device", "nope"], "nope"),
+    (["render", BUNNY, "-o", "x.unknown"], "x.unknown"),
+    (["render", BUNNY, "-o", "no/such/folder/x.png"], "does not exist"),
+    (["render", BUNNY], "-o"),
+])
+def test_user_mistakes_give_one_line_and_exit_2(arguments, words, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(arguments) == 2
+    assert words in _one_line_error(capsys)
+    assert not (tmp_path / "x.png").exists()
+
+
+def test_a_bad_scene_file_gives_one_line(tmp_path, capsys):
+    broken = tmp_path / "broken.toml"
+    broken.write_text('[render]\nwidth = 0\nheight = 10\n[camera]\neye = [0, 0, 1]\n'
+                      'target = [0, 0, 0]\n[[mesh]]\npath = "m.ply"\n')
+    assert main(["render", str(broken), "-o", str(tmp_path / "x.png")]) == 2
+    assert "render.width" in _one_line_error(capsys)
+
+
+def test_the_console_script_reports_without_traceback(tmp_path):
+    done = subprocess.run([sys.executable, "-m", "hlbvh_cl", "render", str(tmp_path / "none.toml"),
+                           "-o", str(tmp_path / "x.png")],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2
+    assert done.stderr.strip().startswith("hlbvh-cl: error:") and "Traceback" not in done.stderr
