@@ -1,0 +1,27 @@
+#!/usr/bin/env bash
+# The system libraries bench/trace.py's peers need, installed with apt-get
+# when an import shows them missing (the Python packages come with the
+# `bench` extra): Open3D loads libusb-1.0 when imported, and Mitsuba's
+# llvm_ad_rgb variant loads libLLVM at run time.  Safe to run again; a peer
+# that still cannot load is reported as missing by bench/trace.py.
+set -uo pipefail
+PY=${PYTHON:-python3}
+SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+
+needed=()
+if "$PY" -c "import importlib.util as u, sys; sys.exit(u.find_spec('open3d') is None)" 2>/dev/null \
+        && ! "$PY" -c "import open3d" >/dev/null 2>&1; then
+    needed+=(libusb-1.0-0)
+fi
+if "$PY" -c "import importlib.util as u, sys; sys.exit(u.find_spec('mitsuba') is None)" 2>/dev/null \
+        && ! "$PY" -c "import mitsuba; mitsuba.set_variant('llvm_ad_rgb')" >/dev/null 2>&1; then
+    needed+=(libllvm15)
+fi
+[ ${#needed[@]} -eq 0 ] && exit 0
+if ! command -v apt-get >/dev/null; then
+    echo "setup_peers.sh: install ${needed[*]} (or your system's equivalent) for the benchmark peers" >&2
+    exit 1
+fi
+echo "setup_peers.sh: installing ${needed[*]} for the benchmark peers" >&2
+$SUDO apt-get update -qq
+DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${needed[@]}" >/dev/null
