@@ -280,6 +280,31 @@ TRAVERSAL_INLINE int traverse(const RayData* r, __global const WideNode* nodes,
             /* the slots hit, in slot order, then sorted by entry distance */
             int order[WIDE_ARITY];
             int m = hit_slots(hit_lanes, order);
+            if (any_hit) {
+                /* Shadow rays: any hit ends the ray, so test the leaves in
+                 * reach before descending (a large occluder such as a
+                 * ground quad often sits in a leaf near the root). */
+                int interior = 0;
+                for (int a = 0; a < m; ++a) {
+                    int slot = order[a];
+                    uint leaf_count = n->count[slot];
+                    if (leaf_count == 0) {
+                        order[interior++] = slot;
+                        continue;
+                    }
+                    int first = n->child[slot];
+                    for (int i = first; i < first + (int)leaf_count; ++i) {
+                        float t, u, v;
+                        if (hit_triangle(r, triangles + i, limit, false, &t, &u, &v)) {
+                            *t_hit = t;
+                            *u_hit = u;
+                            *v_hit = v;
+                            return i;
+                        }
+                    }
+                }
+                m = interior;
+            }
             if (m == 0) {
                 done = !pop(stack_index, stack_count, stack_entry, &sp, limit, &index, &count);
                 continue;
