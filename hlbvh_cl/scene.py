@@ -79,10 +79,12 @@ class Scene:
 
     @property
     def stats(self) -> dict:
-        """triangles, nodes, leaves, depth, sah_cost, times_ms (per stage, and
-        total) of the last build, widen_ms (the wide tree made from it); after
+        """triangles, nodes, leaves, depth, sah_cost (of the binary tree) and
+        times_ms of the last build: device time per stage (bounds, morton,
+        sort, emit, refit, sah_top, flatten, and widen, the 8-wide copy that
+        traversal reads), their total, and the host's wall time.  After
         update_vertices, sah_cost is recomputed from the refit boxes and
-        update_ms holds the refit's times."""
+        update_ms holds the refit's times (both trees)."""
         if self._sah_stale:
             self._build.stats["sah_cost"] = self.tree.sah_cost(self.runtime.queue)
             self._sah_stale = False
@@ -94,11 +96,15 @@ class Scene:
         The old tree is released first, so a rebuild needs no more device
         memory than the first build (which check_fits accounted for)."""
         self._build = None
+        started = time.perf_counter()
         self._build = build(self.runtime, self._geometry, self.builder, self.morton_bits)
         # the wide tree that traversal reads (stage 8), derived from the BVH2
         self.tree.wide, events = widen(self.runtime, self.tree)
         cl.wait_for_events(events)
-        self._build.stats["widen_ms"] = event_ms(events)
+        times = self._build.stats["times_ms"]
+        times["widen"] = event_ms(events)
+        times["total"] += times["widen"]
+        times["wall"] = (time.perf_counter() - started) * 1e3
         self._sah_stale = False
 
     def update_vertices(self, geom_id: int, vertices) -> None:

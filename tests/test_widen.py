@@ -146,7 +146,10 @@ SCENES = {
 def test_wide_tree_invariants(name, builder):
     scene = hlbvh_cl.Scene(SCENES[name](), builder=builder)
     check_wide_tree(scene)
-    assert scene.stats["widen_ms"] >= 0
+    times = scene.stats["times_ms"]
+    assert times["widen"] >= 0
+    assert times["total"] == pytest.approx(sum(v for k, v in times.items()
+                                              if k not in ("total", "wall")))
 
 
 def test_widening_again_gives_the_same_tree():
