@@ -40,7 +40,8 @@ from common import (MESHES, SCENES, cpu_seconds, machine_info, peak_rss_bytes, p
                     write_json)
 
 from hlbvh_cl import Mesh, Scene  # noqa: E402
-from hlbvh_cl.build import BUILDERS, STAGES  # noqa: E402
+from hlbvh_cl.build import BUILDERS  # noqa: E402
+from hlbvh_cl.scene import STAGES  # noqa: E402
 from hlbvh_cl.cli import load_scene  # noqa: E402
 from hlbvh_cl.split import split_edges  # noqa: E402
 

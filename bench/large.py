@@ -28,7 +28,8 @@ from common import (MESHES, current_rss_bytes, machine_info, peak_rss_bytes,  # 
                     quiet_compiler_warnings, stopwatch, summary, table, write_json)
 
 from hlbvh_cl import DeviceMemoryError, Mesh, Scene  # noqa: E402
-from hlbvh_cl.build import STAGES, build_memory, check_fits  # noqa: E402
+from hlbvh_cl.build import build_memory, check_fits  # noqa: E402
+from hlbvh_cl.scene import STAGES  # noqa: E402
 from hlbvh_cl.device import runtime  # noqa: E402
 from hlbvh_cl.split import split_edges  # noqa: E402
 

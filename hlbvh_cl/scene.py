@@ -10,6 +10,7 @@ import pyopencl as cl
 
 from . import layout
 from .build import BUILDERS, Geometry, build, check_fits
+from .build import STAGES as BVH_STAGES
 from .device import event_ms, runtime
 from .mesh import Mesh, _validate_vertices
 from .morton import key_dtype
@@ -18,6 +19,10 @@ from .render import AO_SAMPLES, Light, Renderer, RenderSettings, check_colors, c
     default_colors
 from .widen import refit_wide_tree, widen
 
+
+#: stats["times_ms"] keys besides total and wall: the BVH2 build's stages,
+#: then the 8-wide copy that traversal reads.
+STAGES = BVH_STAGES + ("widen",)
 
 def _as_meshes(meshes) -> list[Mesh]:
     if isinstance(meshes, Mesh):

@@ -1,0 +1,139 @@
+"""Render timings: a scene file built and rendered (diffuse shading with
+shadows), as the original report timed its renders.
+
+One measurement of a scene file on a device (time_render):
+
+  1. load_scene reads the file and builds the BVH once: the reading is
+     reported as ``load_s``, and that first build pays for compiling the
+     build kernels (or loading them from the cache);
+  2. a 1x1 render compiles the render kernels;
+  3. one rebuild + render warms up (scratch buffers, caches);
+  4. ``repeats`` times: scene.rebuild() then scene.render(), each timed on
+     the host ("wall", numpy image out).
+
+"total" = rebuild + render of one repeat: the time to turn loaded triangles
+into an image, without file reading or compilation.  Compilation is
+estimated apart as (first build - median rebuild) + the 1x1 render.
+"""
+from __future__ import annotations
+
+import hashlib
+import math
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # common.py, as build.py and trace.py do
+
+import numpy as np  # noqa: E402
+from common import cpu_seconds, stopwatch, summary  # noqa: E402
+
+from hlbvh_cl import Camera  # noqa: E402
+from hlbvh_cl.cli import load_scene  # noqa: E402
+
+#: Shading of every timed render: what the report's renders did.
+SHADING = {"shading": "diffuse", "shadows": True, "spp": 1}
+
+# The original report's figures (build + render of one image, seconds).
+#: Its table: per-mesh render time at REPORT_RESOLUTION, keyed by our scene file's stem.
+REPORT_TIMES_S = {"bunny_small": 2.287, "armadillo_small": 2.576, "lucy_small": 2.597,
+                  "bunny": 2.352, "armadillo": 2.822, "lucy": 3.009}
+#: Its triangle counts, where known: only the table's first and last.
+REPORT_TRIANGLES = {"bunny_small": 1_392, "lucy": 2_805_572}
+REPORT_RESOLUTION = (1280, 720)
+#: Its reference scene at 2048x1536 took "about 40 s"; the target is 10 s.
+REPORT_REFERENCE_S = 40.0
+TARGET_REFERENCE_S = 10.0
+#: Targets for the reproduced table: each row this many times faster, and
+#: time ~ triangles^alpha with alpha at most this.
+TARGET_SPEEDUP = 20.0
+TARGET_ALPHA = 0.15
+
+
+def time_render(path: Path, device_id: str, width: int, height: int, repeats: int,
+                builder: str = "hlbvh", bar=None) -> tuple[dict, np.ndarray]:
+    """Times ``repeats`` (rebuild + render) of the scene file at ``path``
+    after a warm-up (module docstring): (figures, the last image).  Times in
+    seconds: "runs" lists each run's, "times_s" their {median, min, max}."""
+    if repeats < 1:
+        raise ValueError(f"repeats must be >= 1, got {repeats}")
+    path = Path(path)
+    elapsed = stopwatch()
+    scene, description, load_s = load_scene(path, device=device_id, builder=builder)
+    first_build_s = elapsed() - load_s
+    c = description.camera
+    camera = Camera(c.eye, c.target, c.up, c.fov_deg)
+
+    warm = stopwatch()
+    scene.render(camera, 1, 1, **SHADING)
+    render_compile_s = warm()
+
+    runs = []
+    image = None
+    cpu_before = timed = None
+    for run in range(repeats + 1):  # run 0 warms up
+        if run == 1:
+            cpu_before, timed = cpu_seconds(), stopwatch()
+        if bar is not None:
+            bar.set_postfix_str(f"{device_id} {path.name} {width}x{height} "
+                                f"{'warm-up' if run == 0 else f'run {run}/{repeats}'}")
+        whole = stopwatch()
+        scene.rebuild()
+        build_s = whole()
+        rendering = stopwatch()
+        image = scene.render(camera, width, height, **SHADING)
+        render_s = rendering()
+        total_s = whole()
+        if run:
+            runs.append({"build_s": build_s, "render_s": render_s, "total_s": total_s,
+                         "build_device_s": scene.stats["times_ms"]["total"] * 1e-3,
+                         "render_device_s": scene.render_stats["times_ms"]["total"] * 1e-3})
+    # CPU time over wall time of the timed runs: how many cores the work got
+    # (a CPU device's threads run in this process); well under the device's
+    # compute units means another process took some, or the work was too small
+    cores_used = (cpu_seconds() - cpu_before) / timed()
+    rendered = scene.render_stats
+    stats = scene.stats
+    times = {key: summary([r[key] for r in runs]) for key in runs[0]}
+    rays = rendered["primary_rays"] + rendered["secondary_rays"]
+    result = {
+        "scene": path.name, "device": scene.device.id, "builder": builder,
+        "width": width, "height": height, **SHADING,
+        "triangles": int(stats["triangles"]), "meshes": len(scene.meshes),
+        "nodes": int(stats["nodes"]), "sah_cost": float(stats["sah_cost"]),
+        "primary_rays": int(rendered["primary_rays"]),
+        "secondary_rays": int(rendered["secondary_rays"]),
+        "repeats": repeats,
+        "load_s": load_s,
+        "compile_s": {"build": max(0.0, first_build_s - times["build_s"]["median"]),
+                      "render": render_compile_s},
+        "first_build_s": first_build_s,
+        "times_s": times, "runs": runs, "cores_used": cores_used,
+        "render_mrays": rays / times["render_s"]["median"] / 1e6,
+        "image": image_summary(image),
+    }
+    del scene
+    return result, image
+
+
+def image_summary(image: np.ndarray) -> dict:
+    """What identifies an image in the JSON: its shape, mean and a digest."""
+    return {"shape": list(image.shape), "mean": float(image.mean()),
+            "sha256": hashlib.sha256(np.ascontiguousarray(image).tobytes()).hexdigest()[:16]}
+
+
+def image_difference(a: np.ndarray, b: np.ndarray) -> dict:
+    """How two renders of one scene differ: the fraction of pixels with any
+    channel different, and the largest channel difference (0..255)."""
+    if a.shape != b.shape:
+        raise ValueError(f"images differ in shape: {a.shape} and {b.shape}")
+    delta = np.abs(a.astype(np.int16) - b.astype(np.int16))
+    return {"pixels_differing": float(np.mean(delta.max(axis=2) > 0)),
+            "max_channel_difference": int(delta.max())}
+
+
+def report_alpha() -> float:
+    """The exponent of time ~ triangles^alpha through the report's first and
+    last rows, the only two whose triangle counts it gives."""
+    first, last = "bunny_small", "lucy"
+    return math.log(REPORT_TIMES_S[last] / REPORT_TIMES_S[first]) / math.log(
+        REPORT_TRIANGLES[last] / REPORT_TRIANGLES[first])
