@@ -6,6 +6,8 @@ set -euo pipefail
 cd "$(dirname "$0")"
 PY=${PYTHON:-python3}
 "$PY" -m pip install --quiet --disable-pip-version-check -e ".[test,bench,intel]"
+# pyenv only puts new console scripts (hlbvh-cl) on PATH after a rehash
+if command -v pyenv >/dev/null; then pyenv rehash || true; fi
 
 # PyPI's PoCL 3.0 is built on LLVM 14, which cannot compile for CPUs newer
 # than it knows ("unknown target CPU 'generic'"); Debian's PoCL 3.1 can.
