@@ -4,14 +4,13 @@ Never asserts speed: only that the figures exist, are finite and positive,
 and agree with what the scenes must give (triangle counts from trimesh and
 the scene file, binary-tree shape, SAH ratios of the reported costs).
 """
-import importlib.util
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from bench_support import json_numbers, load_bench
 import trimesh
 
 pytest.importorskip("matplotlib")
@@ -20,17 +19,11 @@ pytest.importorskip("mako")  # pyopencl's RadixSort, the sort peer
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def _load(name):
-    spec = importlib.util.spec_from_file_location(f"bench_{name}", ROOT / "bench" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.fixture(scope="module")
 def build_bench():
-    return _load("build")
+    return load_bench("build")
 
 
 @pytest.fixture(scope="module")
@@ -40,16 +33,6 @@ def quick_run(build_bench, tmp_path_factory):
     return returned, out
 
 
-def _numbers(value, path="result"):
-    """Every number in a JSON tree, with where it is."""
-    if isinstance(value, dict):
-        for key, item in value.items():
-            yield from _numbers(item, f"{path}.{key}")
-    elif isinstance(value, list):
-        for i, item in enumerate(value):
-            yield from _numbers(item, f"{path}[{i}]")
-    elif isinstance(value, (int, float)) and not isinstance(value, bool):
-        yield path, value
 
 
 def _check_spread(times, where):
@@ -61,7 +44,7 @@ def test_quick_json_is_complete_and_sane(build_bench, quick_run):
     returned, out = quick_run
     written = json.loads((out / "build.json").read_text())
     assert written["quick"] is True and list(written["devices"]) == ["pocl:0"]
-    for where, number in _numbers(written):
+    for where, number in json_numbers(written):
         assert math.isfinite(number), where
 
     config = build_bench.QUICK

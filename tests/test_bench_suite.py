@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from bench_support import json_numbers
 import trimesh
 
 pytest.importorskip("matplotlib")
@@ -46,15 +47,6 @@ def tiny_run(tmp_path_factory):
     return returned, written, folder
 
 
-def _numbers(value, path="suite"):
-    if isinstance(value, dict):
-        for key, item in value.items():
-            yield from _numbers(item, f"{path}.{key}")
-    elif isinstance(value, list):
-        for i, item in enumerate(value):
-            yield from _numbers(item, f"{path}[{i}]")
-    elif isinstance(value, (int, float)) and not isinstance(value, bool):
-        yield path, value
 
 
 def _spreads(value, path="suite"):
@@ -96,7 +88,7 @@ def test_json_is_complete_finite_and_positive(tiny_run):
     assert device["name"] and device["driver"] and device["compute_units"] >= 1
     assert len(written["loadavg_start"]) == len(written["loadavg_end"]) == 3
     assert written["machine"]["processor"] and written["machine"]["cpus"] >= 1
-    for where, number in _numbers(written):
+    for where, number in json_numbers(written, "suite"):
         assert math.isfinite(number), where
     spreads = list(_spreads(written))
     assert len(spreads) > 20

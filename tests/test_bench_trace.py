@@ -6,14 +6,13 @@ that every participant finds the same hits (Embree, called directly here,
 is the oracle), and that the derived figures (ratios, exponents) follow from
 the reported ones.
 """
-import importlib.util
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from bench_support import json_numbers, load_bench
 import trimesh
 
 pytest.importorskip("matplotlib")
@@ -25,17 +24,11 @@ import hlbvh_cl  # noqa: E402
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def _load(name):
-    spec = importlib.util.spec_from_file_location(f"bench_{name}", ROOT / "bench" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.fixture(scope="module")
 def trace():
-    return _load("trace")
+    return load_bench("trace")
 
 
 def _unit(v):
@@ -205,15 +198,6 @@ def quick_run(trace, tmp_path_factory):
     return returned, json.loads((out / "trace.json").read_text()), out
 
 
-def _numbers(value, path="result"):
-    if isinstance(value, dict):
-        for key, item in value.items():
-            yield from _numbers(item, f"{path}.{key}")
-    elif isinstance(value, list):
-        for i, item in enumerate(value):
-            yield from _numbers(item, f"{path}[{i}]")
-    elif isinstance(value, (int, float)) and not isinstance(value, bool):
-        yield path, value
 
 
 def _check_spread(values, where):
@@ -232,7 +216,7 @@ def test_quick_json_is_complete_and_sane(trace, quick_run):
     returned, written, out = quick_run
     assert written["quick"] is True
     assert returned["scenes"][0]["name"] == written["scenes"][0]["name"]
-    for where, number in _numbers(written):
+    for where, number in json_numbers(written):
         assert math.isfinite(number), where
     assert (out / "trace.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
