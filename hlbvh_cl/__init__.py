@@ -9,9 +9,10 @@
 """
 from .device import Device, DeviceMemoryError, KernelBuildError, devices
 from .mesh import Mesh
+from .query import Hits
 from .render import Camera, Light
 from .scene import Scene
 
-__all__ = ["Camera", "Device", "DeviceMemoryError", "KernelBuildError", "Light", "Mesh", "Scene",
-           "devices"]
+__all__ = ["Camera", "Device", "DeviceMemoryError", "Hits", "KernelBuildError", "Light", "Mesh",
+           "Scene", "devices"]
 __version__ = "0.1.0"
