@@ -36,8 +36,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # common.py and sort.p
 
 import numpy as np  # noqa: E402
 from common import (MESHES, SCENES, cpu_seconds, machine_info, peak_rss_bytes, pick_devices,  # noqa: E402
-                    progress, pyplot, quiet_compiler_warnings, ratio, stopwatch, summary, table,
-                    write_json)
+                    progress, pyplot, quiet_compiler_warnings, ratio, save_figure, stopwatch,
+                    summary, table, write_json)
 
 from hlbvh_cl import Mesh, Scene  # noqa: E402
 from hlbvh_cl.build import BUILDERS  # noqa: E402
@@ -399,11 +399,7 @@ def plot(results: dict, path: Path) -> Path:
     stages.set(ylabel="device time (ms, median)",
                title=f"stages of the {scene_name} build ({triangles:,} triangles)")
     stages.legend(fontsize=8)
-    figure.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path)
 
 
 # ---------------------------------------------------------------- main

@@ -15,7 +15,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # common.py, as build.py and trace.py do
 
 import numpy as np  # noqa: E402
-from common import pyplot, write_json  # noqa: E402
+from common import pyplot, save_figure, write_json  # noqa: E402
 
 #: RESULTS.md's section titles, in order (the test looks for them).
 SECTIONS = ("Highlights", "1. Devices", "2. The original report's table, reproduced",
@@ -606,11 +606,7 @@ def _plain_ticks(axis) -> None:
 
 
 def _save(figure, path: Path, plt) -> Path:
-    figure.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=100)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path, dpi=100)
 
 
 # ---------------------------------------------------------------- all of it

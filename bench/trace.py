@@ -65,8 +65,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # common.py and build.
 
 import numpy as np  # noqa: E402
 from common import (MESHES, SCENES, machine_info, peak_rss_bytes, pick_devices,  # noqa: E402
-                    progress, pyplot, quiet_compiler_warnings, ratio, stopwatch, summary, table,
-                    write_json)
+                    progress, pyplot, quiet_compiler_warnings, ratio, save_figure, stopwatch,
+                    summary, table, write_json)
 
 from hlbvh_cl import Mesh, Scene  # noqa: E402
 from hlbvh_cl.cli import load_scene  # noqa: E402
@@ -830,11 +830,7 @@ def plot(results: dict, path: Path) -> Path:
                 title=f"scaling: {data['workload']},\none surface split finer")
     scaling.grid(True, which="both", alpha=0.3)
     scaling.legend(fontsize=8)
-    figure.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path)
 
 
 # ---------------------------------------------------------------- main

@@ -18,6 +18,7 @@ from hlbvh_cl import query as query_module
 from hlbvh_cl.query import Hits, RayQuery
 from hlbvh_cl.tree import DeviceTree
 from oracle import brute_force_intersect, brute_force_occluded
+from shapes import grid_mesh
 
 MESHES = Path(__file__).resolve().parent.parent / "scenes" / "meshes"
 
@@ -46,16 +47,6 @@ def triangle_mesh() -> hlbvh_cl.Mesh:
                          name="triangle")
 
 
-def grid_mesh(n: int = 4) -> hlbvh_cl.Mesh:
-    """An n x n grid of unit squares in the plane z = 0, two triangles each."""
-    xs, ys = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
-    vertices = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1)
-    faces = []
-    for i in range(n):
-        for j in range(n):
-            a, b = i * (n + 1) + j, (i + 1) * (n + 1) + j
-            faces += [[a, b, b + 1], [a, b + 1, a + 1]]
-    return hlbvh_cl.Mesh(vertices, faces, name="grid")
 
 
 def degenerate_mesh() -> hlbvh_cl.Mesh:

@@ -14,6 +14,7 @@ import hlbvh_cl
 from hlbvh_cl import layout
 from hlbvh_cl.query import _stack_size
 from hlbvh_cl.widen import WideTree, refit_wide_tree, wide_tree, widen
+from shapes import grid_mesh
 
 MESHES = Path(__file__).resolve().parent.parent / "scenes" / "meshes"
 ARITY = layout.WIDE_ARITY
@@ -120,22 +121,13 @@ def _one_triangle():
     return hlbvh_cl.Mesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]])
 
 
-def _grid(n=6):
-    xs, ys = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
-    vertices = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1)
-    faces = []
-    for i in range(n):
-        for j in range(n):
-            a, b = i * (n + 1) + j, (i + 1) * (n + 1) + j
-            faces += [[a, b, b + 1], [a, b + 1, a + 1]]
-    return hlbvh_cl.Mesh(vertices, faces)
 
 
 SCENES = {
     "one triangle": lambda: [_one_triangle()],
     "two triangles": lambda: [hlbvh_cl.Mesh([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]],
                                             [[0, 1, 2], [1, 3, 2]])],
-    "grid": lambda: [_grid()],
+    "grid": lambda: [grid_mesh(6)],
     "knight": lambda: [_mesh("knight")],
     "bunny_small + teapot": lambda: [_mesh("bunny_small"), _mesh("teapot")],
 }

@@ -1,0 +1,16 @@
+"""Small synthetic meshes the tests share."""
+import numpy as np
+
+import hlbvh_cl
+
+
+def grid_mesh(n: int = 4) -> hlbvh_cl.Mesh:
+    """An n x n grid of unit squares in the plane z = 0, two triangles each."""
+    xs, ys = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
+    vertices = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1)
+    faces = []
+    for i in range(n):
+        for j in range(n):
+            a, b = i * (n + 1) + j, (i + 1) * (n + 1) + j
+            faces += [[a, b, b + 1], [a, b + 1, a + 1]]
+    return hlbvh_cl.Mesh(vertices, faces, name="grid")
