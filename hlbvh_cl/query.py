@@ -24,7 +24,6 @@ from .device import Runtime
 from .tree import DeviceTree
 from .widen import WideTree, wide_tree
 
-RAY, HIT = layout.RAY, layout.HIT
 
 #: Rays per kernel launch at most: large enough to fill any device, small
 #: enough that 1e7 rays cost per ray what 1e6 do (buffers stay ~128 MiB).
@@ -75,12 +74,21 @@ def _work_group_size(rt: Runtime) -> int:
     return min(size, d.cl_device.max_work_group_size)
 
 
+#: Device buffers of the numpy-facing queries, bytes per ray: the inputs, then
+#: one buffer per field of the results (kernels/traverse.cl's *_arrays kernels).
+RAY_ARRAYS = {"origins": 12, "directions": 12, "tmin": 4, "tmax": 4}
+HIT_ARRAYS = {"t": 4, "geom_id": 4, "prim_id": 4, "u": 4, "v": 4, "normal": 12}
+OCCLUDED_ARRAYS = {"occluded": 1}
+
+
 class RayQuery:
     """Closest-hit and any-hit queries on one device.
 
     Device buffers for rays and results are reused between calls and only grow.
-    ``max_rays_per_launch`` caps the rays per kernel launch (bigger batches are
-    split into chunks); by default it follows the device's memory limits.
+    Rays go up and results come back as the numpy arrays themselves (one
+    buffer per field, no packing on the host).  ``max_rays_per_launch`` caps
+    the rays per kernel launch (bigger batches are split into chunks); by
+    default it follows the device's memory limits.
     """
 
     def __init__(self, rt: Runtime, max_rays_per_launch: int | None = None):
@@ -88,10 +96,7 @@ class RayQuery:
         self.work_group_size = _work_group_size(rt)
         self.max_rays_per_launch = self._chunk_size(max_rays_per_launch)
         self._capacity = 0
-        self._rays: cl.Buffer | None = None
-        self._hits: cl.Buffer | None = None
-        self._occluded: cl.Buffer | None = None
-        self._staging = np.empty(0, RAY)
+        self._buffers: dict[str, cl.Buffer] = {}
         self._overflow = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 4)
         self._lock = threading.Lock()
         #: device time of the last query's kernels, milliseconds
@@ -99,9 +104,8 @@ class RayQuery:
 
     def _chunk_size(self, requested: int | None) -> int:
         d = self.rt.device
-        # Per ray: the Ray record plus the Hit record (the occlusion byte is smaller).
-        per_ray = RAY.itemsize + HIT.itemsize
-        fits = min(d.max_mem_alloc_size // max(RAY.itemsize, HIT.itemsize),
+        per_ray = sum({**RAY_ARRAYS, **HIT_ARRAYS, **OCCLUDED_ARRAYS}.values())
+        fits = min(d.max_mem_alloc_size // max(RAY_ARRAYS["origins"], HIT_ARRAYS["normal"]),
                    d.global_mem_size // 4 // per_ray)  # leave room for the tree
         size = min(MAX_RAYS_PER_LAUNCH, fits)
         if requested is not None:
@@ -118,22 +122,25 @@ class RayQuery:
         """Closest hit of each ray (origins[i] + t * directions[i], tmin <= t <= tmax)."""
         origins, directions, tmin, tmax = _check_rays(origins, directions, tmin, tmax)
         count = len(origins)
-        result = np.empty(count, HIT)
+        hits = Hits(t=np.empty(count, np.float32), prim_id=np.empty(count, np.int32),
+                    geom_id=np.empty(count, np.int32), u=np.empty(count, np.float32),
+                    v=np.empty(count, np.float32), normal=np.empty((count, 3), np.float32))
         if count and self._check_tree(tree):
-            kernel, nodes = self._kernel(tree, "intersect_closest")
-            self._run(count, origins, directions, tmin, tmax, lambda n: self.rt.run(
-                kernel, n, nodes, tree.triangles, tree.refs, self._rays, self._hits,
-                self._overflow, np.uint32(n), local_size=self.work_group_size), "_hits", result)
+            kernel, nodes = self._kernel(tree, "intersect_closest_arrays")
+
+            def launch(n, limits):
+                b = self._buffers  # as _run sized them
+                return self.rt.run(kernel, n, nodes, tree.triangles, tree.refs, b["origins"],
+                                   b["directions"], *limits, b["t"], b["geom_id"], b["prim_id"],
+                                   b["u"], b["v"], b["normal"], self._overflow, np.uint32(n),
+                                   local_size=self.work_group_size)
+            self._run(count, origins, directions, tmin, tmax, launch,
+                      {name: getattr(hits, name) for name in HIT_ARRAYS})
         elif count:
-            result["t"] = np.inf
-            result["geom_id"] = result["prim_id"] = -1
-            result["u"] = result["v"] = 0.0
-            result["normal"] = 0.0
-        return Hits(t=np.ascontiguousarray(result["t"]),
-                    prim_id=np.ascontiguousarray(result["prim_id"]),
-                    geom_id=np.ascontiguousarray(result["geom_id"]),
-                    u=np.ascontiguousarray(result["u"]), v=np.ascontiguousarray(result["v"]),
-                    normal=np.ascontiguousarray(result["normal"]))
+            hits.t[:] = np.inf
+            hits.geom_id[:] = hits.prim_id[:] = -1
+            hits.u[:] = hits.v[:] = hits.normal[:] = 0.0
+        return hits
 
     def occluded(self, tree: DeviceTree, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
         """bool (R,): whether anything is hit with tmin <= t <= tmax (stops at the first hit)."""
@@ -141,11 +148,15 @@ class RayQuery:
         count = len(origins)
         result = np.zeros(count, np.uint8)
         if count and self._check_tree(tree):
-            kernel, nodes = self._kernel(tree, "intersect_any")
-            self._run(count, origins, directions, tmin, tmax, lambda n: self.rt.run(
-                kernel, n, nodes, tree.triangles, self._rays, self._occluded,
-                self._overflow, np.uint32(n), local_size=self.work_group_size), "_occluded", result)
-        return result.astype(bool)
+            kernel, nodes = self._kernel(tree, "intersect_any_arrays")
+
+            def launch(n, limits):
+                b = self._buffers  # as _run sized them
+                return self.rt.run(kernel, n, nodes, tree.triangles, b["origins"],
+                                   b["directions"], *limits, b["occluded"], self._overflow,
+                                   np.uint32(n), local_size=self.work_group_size)
+            self._run(count, origins, directions, tmin, tmax, launch, {"occluded": result})
+        return result.view(bool)  # the kernel writes 0 or 1
 
     # -- device-buffer entry points (the renderer's) ------------------------
 
@@ -198,44 +209,50 @@ class RayQuery:
         return True
 
     def _reserve(self, count: int) -> None:
-        """Grow-only device and staging buffers for `count` rays per launch."""
+        """Grow-only device buffers for `count` rays per launch."""
         if count <= self._capacity:
             return
         capacity = min(self.max_rays_per_launch, max(count, 2 * self._capacity))
-        self.rt.check_allocation("ray query buffers", {
-            "rays": capacity * RAY.itemsize, "hits": capacity * HIT.itemsize, "occluded": capacity})
-        mf = cl.mem_flags
-        self._rays = cl.Buffer(self.rt.context, mf.READ_ONLY, capacity * RAY.itemsize)
-        self._hits = cl.Buffer(self.rt.context, mf.WRITE_ONLY, capacity * HIT.itemsize)
-        self._occluded = cl.Buffer(self.rt.context, mf.WRITE_ONLY, capacity)
-        self._staging = np.empty(capacity, RAY)
+        sizes = {**RAY_ARRAYS, **HIT_ARRAYS, **OCCLUDED_ARRAYS}
+        self._buffers = {}  # release the old ones before allocating
+        self.rt.check_allocation("ray query buffers",
+                                 {name: capacity * size for name, size in sizes.items()})
+        self._buffers = {name: cl.Buffer(self.rt.context, cl.mem_flags.READ_WRITE,
+                                         capacity * size) for name, size in sizes.items()}
         self._capacity = capacity
 
-    def _run(self, count, origins, directions, tmin, tmax, launch, output: str, result) -> None:
-        """Runs `launch(n)` over chunks of at most max_rays_per_launch rays and
-        reads the buffer named `output` into `result`."""
+    def _run(self, count, origins, directions, tmin, tmax, launch, outputs) -> None:
+        """Runs ``launch(n, limits)`` over chunks of at most max_rays_per_launch
+        rays and reads each device buffer named in ``outputs`` into its array."""
         with self._lock:  # one query at a time: the buffers are shared
-            self._run_locked(count, origins, directions, tmin, tmax, launch, output, result)
+            self._run_locked(count, origins, directions, tmin, tmax, launch, outputs)
 
-    def _run_locked(self, count, origins, directions, tmin, tmax, launch, output, result) -> None:
+    def _run_locked(self, count, origins, directions, tmin, tmax, launch, outputs) -> None:
         queue = self.rt.queue
         chunk = self.max_rays_per_launch
         self._reserve(min(count, chunk))
-        device_result = getattr(self, output)
+        b = self._buffers
+        # The queue runs in order, so each chunk's uploads wait for the last
+        # chunk's downloads; only the final read blocks.
         cl.enqueue_copy(queue, self._overflow, np.zeros(1, np.int32))
+        scalars = {}
+        for name, limit in (("tmin", tmin), ("tmax", tmax)):
+            if limit.ndim == 0:  # one value for every ray: step 0
+                scalars[name] = np.full(1, limit, np.float32)
+                cl.enqueue_copy(queue, b[name], scalars[name])
         events = []
         for start in range(0, count, chunk):
             stop = min(start + chunk, count)
-            n = stop - start
-            staging = self._staging[:n]
-            staging["origin"] = origins[start:stop]
-            staging["direction"] = directions[start:stop]
-            staging["tmin"] = tmin if tmin.ndim == 0 else tmin[start:stop]
-            staging["tmax"] = tmax if tmax.ndim == 0 else tmax[start:stop]
-            # Blocking: the staging array is refilled by the next chunk.
-            cl.enqueue_copy(queue, self._rays, staging, is_blocking=True)
-            events.append(launch(n))
-            cl.enqueue_copy(queue, result[start:stop], device_result, is_blocking=True)
+            cl.enqueue_copy(queue, b["origins"], origins[start:stop], is_blocking=False)
+            cl.enqueue_copy(queue, b["directions"], directions[start:stop], is_blocking=False)
+            limits = []
+            for name, limit in (("tmin", tmin), ("tmax", tmax)):
+                if limit.ndim:
+                    cl.enqueue_copy(queue, b[name], limit[start:stop], is_blocking=False)
+                limits += [b[name], np.uint32(1 if limit.ndim else 0)]
+            events.append(launch(stop - start, limits))
+            for name, array in outputs.items():
+                cl.enqueue_copy(queue, array[start:stop], b[name], is_blocking=False)
         overflow = np.zeros(1, np.int32)
         cl.enqueue_copy(queue, overflow, self._overflow, is_blocking=True)
         self.last_kernel_ms = sum((e.profile.end - e.profile.start) * 1e-6 for e in events)

@@ -5,6 +5,8 @@
  * Kernels
  *   intersect_closest  nearest hit in [tmin, tmax] -> Hit
  *   intersect_any      1 if any hit in [tmin, tmax] (stops at the first one)
+ *   intersect_closest_arrays, intersect_any_arrays
+ *                      the same on numpy-shaped arrays (one per field)
  *
  * Conventions (tests/oracle.py follows the same ones)
  *   - a hit at distance t counts when tmin <= t <= tmax (both ends closed,
@@ -84,19 +86,19 @@ TRAVERSAL_INLINE float component(const float v[3], int axis)
     return axis == 0 ? v[0] : (axis == 1 ? v[1] : v[2]);
 }
 
-TRAVERSAL_INLINE RayData prepare_ray(__global const Ray* ray)
+TRAVERSAL_INLINE RayData prepare_ray(float3 origin, float3 direction, float tmin, float tmax)
 {
     RayData r;
-    float d[3] = {ray->direction[0], ray->direction[1], ray->direction[2]};
-    r.ox = ray->origin[0];
-    r.oy = ray->origin[1];
-    r.oz = ray->origin[2];
+    float d[3] = {direction.x, direction.y, direction.z};
+    r.ox = origin.x;
+    r.oy = origin.y;
+    r.oz = origin.z;
     /* IEEE division: 1/+0 = +inf, 1/-0 = -inf, which the slab test relies on. */
     r.inv_x = 1.0f / d[0];
     r.inv_y = 1.0f / d[1];
     r.inv_z = 1.0f / d[2];
-    r.tmin = ray->tmin;
-    r.tmax = ray->tmax;
+    r.tmin = tmin;
+    r.tmax = tmax;
 
     float ax = fabs(d[0]), ay = fabs(d[1]), az = fabs(d[2]);
     r.kz = (ax >= ay && ax >= az) ? 0 : (ay >= az ? 1 : 2);
@@ -114,6 +116,11 @@ TRAVERSAL_INLINE RayData prepare_ray(__global const Ray* ray)
     r.near_y = 2 * WIDE_ARITY + (signbit(r.inv_y) ? WIDE_ARITY : 0);
     r.near_z = 4 * WIDE_ARITY + (signbit(r.inv_z) ? WIDE_ARITY : 0);
     return r;
+}
+
+TRAVERSAL_INLINE RayData prepare_ray_record(__global const Ray* ray)
+{
+    return prepare_ray(vload3(0, ray->origin), vload3(0, ray->direction), ray->tmin, ray->tmax);
 }
 
 /* Slab test (Kay & Kajiya 1986) of a wide node's WIDE_ARITY child boxes
@@ -355,8 +362,19 @@ TRAVERSAL_INLINE int traverse(const RayData* r, __global const WideNode* nodes,
  * vectorise whenever the group size allows). */
 #define TRAVERSAL_KERNEL __kernel __attribute__((LANES_HINT))
 
-/* Closest hit of rays[0, ray_count) -> hits; overflow[0] is set to 1 if a
- * ray's traversal ran out of stack. */
+/* The unit geometric normal of a hit triangle.  Scaled by its largest
+ * component first so that tiny or huge triangles neither underflow nor
+ * overflow the squared length. */
+TRAVERSAL_INLINE float3 unit_normal(__global const Triangle* tri)
+{
+    float nx, ny, nz;
+    geometric_normal(tri, &nx, &ny, &nz);
+    float3 n = (float3)(nx, ny, nz) * (1.0f / fmax(fabs(nx), fmax(fabs(ny), fabs(nz))));
+    return n * (1.0f / sqrt(n.x * n.x + n.y * n.y + n.z * n.z));
+}
+
+/* Closest hit of rays[0, ray_count) -> hits (the renderer's records);
+ * overflow[0] is set to 1 if a ray's traversal ran out of stack. */
 TRAVERSAL_KERNEL void intersect_closest(__global const WideNode* nodes,
                                         __global const Triangle* triangles,
                                         __global const TriangleRef* refs,
@@ -368,40 +386,21 @@ TRAVERSAL_KERNEL void intersect_closest(__global const WideNode* nodes,
     uint gid = get_global_id(0);
     if (gid >= ray_count)
         return;
-    RayData r = prepare_ray(rays + gid);
+    RayData r = prepare_ray_record(rays + gid);
     float t = INFINITY, u = 0.0f, v = 0.0f;
     bool out_of_stack;
     int index = traverse(&r, nodes, triangles, false, &t, &u, &v, &out_of_stack);
     if (out_of_stack)
         overflow[0] = 1;
-
+    bool found = index >= 0;
+    float3 normal = found ? unit_normal(triangles + index) : (float3)(0.0f);
     __global Hit* hit = hits + gid;
-    if (index < 0) {
-        hit->t = INFINITY;
-        hit->geom_id = -1;
-        hit->prim_id = -1;
-        hit->u = 0.0f;
-        hit->v = 0.0f;
-        hit->normal[0] = hit->normal[1] = hit->normal[2] = 0.0f;
-        return;
-    }
-    float nx, ny, nz;
-    geometric_normal(triangles + index, &nx, &ny, &nz);
-    /* Scale by the largest component first so tiny or huge triangles neither
-     * underflow nor overflow the squared length. */
-    float scale = 1.0f / fmax(fabs(nx), fmax(fabs(ny), fabs(nz)));
-    nx *= scale;
-    ny *= scale;
-    nz *= scale;
-    float inv_length = 1.0f / sqrt(nx * nx + ny * ny + nz * nz);
-    hit->t = t;
-    hit->geom_id = refs[index].geom_id;
-    hit->prim_id = refs[index].prim_id;
-    hit->u = u;
-    hit->v = v;
-    hit->normal[0] = nx * inv_length;
-    hit->normal[1] = ny * inv_length;
-    hit->normal[2] = nz * inv_length;
+    hit->t = found ? t : INFINITY;
+    hit->geom_id = found ? refs[index].geom_id : -1;
+    hit->prim_id = found ? refs[index].prim_id : -1;
+    hit->u = found ? u : 0.0f;
+    hit->v = found ? v : 0.0f;
+    vstore3(normal, 0, hit->normal);
 }
 
 /* Occlusion of rays[0, ray_count): occluded[i] = 1 if anything is hit. */
@@ -415,7 +414,73 @@ TRAVERSAL_KERNEL void intersect_any(__global const WideNode* nodes,
     uint gid = get_global_id(0);
     if (gid >= ray_count)
         return;
-    RayData r = prepare_ray(rays + gid);
+    RayData r = prepare_ray_record(rays + gid);
+    float t, u, v;
+    bool out_of_stack;
+    int index = traverse(&r, nodes, triangles, true, &t, &u, &v, &out_of_stack);
+    if (out_of_stack)
+        overflow[0] = 1;
+    occluded[gid] = index >= 0 ? 1 : 0;
+}
+
+/* The same two queries on the arrays numpy users hand in and get back
+ * (query.py): origins and directions packed (x, y, z) per ray, and one
+ * array per result field, so that the host neither packs records nor picks
+ * fields out of them (measured: that repacking took as long as tracing
+ * camera rays).  tmin[i * tmin_step], tmax[i * tmax_step]: step 0 gives
+ * every ray the same limit. */
+TRAVERSAL_INLINE RayData prepare_ray_arrays(uint i, __global const float* origins,
+                                            __global const float* directions,
+                                            __global const float* tmin, uint tmin_step,
+                                            __global const float* tmax, uint tmax_step)
+{
+    return prepare_ray(vload3(i, origins), vload3(i, directions), tmin[i * tmin_step],
+                       tmax[i * tmax_step]);
+}
+
+TRAVERSAL_KERNEL void intersect_closest_arrays(__global const WideNode* nodes,
+                                               __global const Triangle* triangles,
+                                               __global const TriangleRef* refs,
+                                               __global const float* origins,
+                                               __global const float* directions,
+                                               __global const float* tmin, const uint tmin_step,
+                                               __global const float* tmax, const uint tmax_step,
+                                               __global float* t_out, __global int* geom_out,
+                                               __global int* prim_out, __global float* u_out,
+                                               __global float* v_out, __global float* normal_out,
+                                               __global int* overflow, const uint ray_count)
+{
+    uint gid = get_global_id(0);
+    if (gid >= ray_count)
+        return;
+    RayData r = prepare_ray_arrays(gid, origins, directions, tmin, tmin_step, tmax, tmax_step);
+    float t = INFINITY, u = 0.0f, v = 0.0f;
+    bool out_of_stack;
+    int index = traverse(&r, nodes, triangles, false, &t, &u, &v, &out_of_stack);
+    if (out_of_stack)
+        overflow[0] = 1;
+    bool found = index >= 0;
+    t_out[gid] = found ? t : INFINITY;
+    geom_out[gid] = found ? refs[index].geom_id : -1;
+    prim_out[gid] = found ? refs[index].prim_id : -1;
+    u_out[gid] = found ? u : 0.0f;
+    v_out[gid] = found ? v : 0.0f;
+    vstore3(found ? unit_normal(triangles + index) : (float3)(0.0f), gid, normal_out);
+}
+
+TRAVERSAL_KERNEL void intersect_any_arrays(__global const WideNode* nodes,
+                                           __global const Triangle* triangles,
+                                           __global const float* origins,
+                                           __global const float* directions,
+                                           __global const float* tmin, const uint tmin_step,
+                                           __global const float* tmax, const uint tmax_step,
+                                           __global uchar* occluded, __global int* overflow,
+                                           const uint ray_count)
+{
+    uint gid = get_global_id(0);
+    if (gid >= ray_count)
+        return;
+    RayData r = prepare_ray_arrays(gid, origins, directions, tmin, tmin_step, tmax, tmax_step);
     float t, u, v;
     bool out_of_stack;
     int index = traverse(&r, nodes, triangles, true, &t, &u, &v, &out_of_stack);

@@ -446,12 +446,12 @@ def test_buffers_are_reused_and_only_grow():
     q = RayQuery(case.scene.runtime)
     origins, directions = random_rays(case, 300, seed=13)
     q.intersect(case.scene.tree, origins, directions)
-    buffers = (q._rays, q._hits)
+    buffers = dict(q._buffers)
     q.intersect(case.scene.tree, origins[:100], directions[:100])
     q.occluded(case.scene.tree, origins[:200], directions[:200])
-    assert (q._rays, q._hits) == buffers
+    assert q._buffers == buffers
     q.intersect(case.scene.tree, np.repeat(origins, 4, 0), np.repeat(directions, 4, 0))
-    assert q._rays is not buffers[0]
+    assert q._buffers["origins"] is not buffers["origins"]
 
 
 def test_stack_is_sized_from_the_tree_depth_and_overflow_raises():
@@ -593,7 +593,8 @@ def test_chunk_size_follows_device_memory():
     case = scene_case("cube")
     q = RayQuery(case.scene.runtime)
     d = case.scene.runtime.device
-    per_ray = query_module.RAY.itemsize + query_module.HIT.itemsize
+    buffers = {**query_module.RAY_ARRAYS, **query_module.HIT_ARRAYS,
+               **query_module.OCCLUDED_ARRAYS}
     assert q.max_rays_per_launch <= query_module.MAX_RAYS_PER_LAUNCH
-    assert q.max_rays_per_launch * query_module.HIT.itemsize <= d.max_mem_alloc_size
-    assert q.max_rays_per_launch * per_ray <= d.global_mem_size
+    assert q.max_rays_per_launch * max(buffers.values()) <= d.max_mem_alloc_size
+    assert q.max_rays_per_launch * sum(buffers.values()) <= d.global_mem_size
