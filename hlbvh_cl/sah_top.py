@@ -14,6 +14,7 @@ from .refit import RadixTreeMetrics
 from .scan import exclusive_scan
 
 TOP_TASK_BYTES = 16  # struct TopTask in sah_top.cl: four ints
+CLUSTER_RECORD_BYTES = 32  # struct ClusterRecord in sah_top.cl: two float4s
 
 
 @dataclass
@@ -49,8 +50,9 @@ def build_top(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: RadixTre
 
     def buf(count, itemsize=4):
         return cl.Buffer(ctx, cl.mem_flags.READ_WRITE, max(1, count) * itemsize)
-    first, roots, order = buf(clusters), buf(clusters), buf(clusters)
-    size, cluster_cost, cluster_height = buf(clusters), buf(clusters), buf(clusters)
+    first, roots = buf(clusters), buf(clusters)
+    records = buf(clusters, CLUSTER_RECORD_BYTES)
+    cluster_cost, cluster_height = buf(clusters), buf(clusters)
     cluster_box = buf(clusters, layout.AABB.itemsize)
     tasks, next_tasks, stack = (buf(clusters, TOP_TASK_BYTES) for _ in range(3))
     left, right, parent, cost, height = (buf(clusters) for _ in range(5))
@@ -60,8 +62,7 @@ def build_top(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: RadixTre
     events.append(rt.run(kernel("gather_cluster_starts"), n, scan, n, first, wait_for=events[-1:]))
     events.append(rt.run(kernel("gather_clusters"), clusters, scan, n, first, tree.range_first,
                          tree.range_last, metrics.boxes, metrics.sah_cost, metrics.height, roots,
-                         cluster_box, size, cluster_cost, cluster_height, wait_for=events[-1:]))
-    events.append(rt.run(kernel("init_top_build"), clusters, clusters, order, tasks,
+                         cluster_box, records, cluster_cost, cluster_height, tasks,
                          wait_for=events[-1:]))
     # One launch per level until every task has finished its subtree: at most
     # serial_depth + 1 levels, as tasks that deep build their subtrees
@@ -75,8 +76,7 @@ def build_top(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: RadixTre
                                              wait_for=events[-1:]))
         events.append(rt.run(kernel("split_top_level"), int(task_count[0]), tasks,
                              int(task_count[0]), serial_depth, next_tasks, next_count, stack,
-                             order,
-                             cluster_box, size, left, right, parent, info, wait_for=events[-1:],
+                             records, left, right, parent, info, wait_for=events[-1:],
                              local_size=1))
         cl.enqueue_copy(q, task_count, next_count, wait_for=events[-1:])
         tasks, next_tasks = next_tasks, tasks

@@ -33,19 +33,48 @@ __kernel void gather_cluster_starts(__global const uint *scan, int n, __global i
         cluster_first[scan[i]] = i;
 }
 
+/* What the split loop reads of a cluster: its box corners as float4s, so a
+ * union is one vector min and max and one vector expression bins all three
+ * axes (the Aabb struct of float[3]s compiled to scalar code and stack
+ * copies: 3-4x slower).  lo.w carries the cluster's triangle count, hi.w its
+ * index as a float (exact: clusters <= 2^CLUSTER_BITS <= 2^24).  The
+ * partition moves whole records, so every pass reads a node's clusters in
+ * sequence rather than through an index array. */
+#if CLUSTER_BITS > 24
+#error "ClusterRecord keeps the cluster index in a float: CLUSTER_BITS must be <= 24"
+#endif
+typedef struct {
+    float4 lo;
+    float4 hi;
+} ClusterRecord;
+
+/* A pending top node: the clusters records[begin..end) and where to hang it. */
+typedef struct {
+    int begin;
+    int end;
+    int parent; /* top node, or -1 for the root */
+    int side_and_depth; /* bit 0: right child of parent; the rest: depth */
+} TopTask;
+
 /* One work-item per cluster: its radix-tree root and the compact records the
- * top build reads (a few MB at most, instead of scattered radix-tree nodes). */
+ * top build reads (a few MB at most, instead of scattered radix-tree nodes).
+ * Work-item 0 also queues the root task over all clusters. */
 __kernel void gather_clusters(__global const uint *scan, int n, __global const int *cluster_first,
                               __global const int *range_first, __global const int *range_last,
                               __global const Aabb *boxes, __global const float *sah_cost,
                               __global const int *height, __global int *cluster_root,
-                              __global Aabb *cluster_box, __global float *cluster_size,
-                              __global float *cluster_cost, __global int *cluster_height)
+                              __global Aabb *cluster_box, __global ClusterRecord *records,
+                              __global float *cluster_cost, __global int *cluster_height,
+                              __global TopTask *tasks)
 {
     int c = get_global_id(0);
     int cluster_count = (int)scan[n];
     if (c >= cluster_count)
         return;
+    if (c == 0) {
+        TopTask root = {0, cluster_count, -1, 0};
+        tasks[0] = root;
+    }
     int first = cluster_first[c];
     int last = (c + 1 < cluster_count ? cluster_first[c + 1] : n) - 1;
     int root;
@@ -53,30 +82,76 @@ __kernel void gather_clusters(__global const uint *scan, int n, __global const i
         root = (n - 1) + first; /* a one-primitive cluster is a leaf node */
     else /* Karras: an internal node's range starts or ends at its own index */
         root = range_first[first] == first && range_last[first] == last ? first : last;
+    Aabb box = boxes[root];
     cluster_root[c] = root;
-    cluster_box[c] = boxes[root];
-    cluster_size[c] = (float)(last - first + 1);
+    cluster_box[c] = box;
+    ClusterRecord record = {(float4)(box.lo[0], box.lo[1], box.lo[2], (float)(last - first + 1)),
+                            (float4)(box.hi[0], box.hi[1], box.hi[2], (float)c)};
+    records[c] = record;
     cluster_cost[c] = sah_cost[root];
     cluster_height[c] = height[root];
 }
 
-inline int bin_of(float center, float lo, float inv_extent, int bins)
+/* fmin/fmax of an accumulator and a value, without the NaN handling that
+ * fmin/fmax pay for (a compare and a blend per call on x86): the accumulator
+ * is never NaN, and a NaN value is skipped either way. */
+inline float4 grow_lo(float4 acc, float4 value)
 {
-    return clamp((int)((center - lo) * inv_extent), 0, bins - 1);
+    return select(acc, value, value < acc);
 }
 
-inline float center_of(Aabb box, int axis)
+inline float4 grow_hi(float4 acc, float4 value)
 {
-    return 0.5f * (box.lo[axis] + box.hi[axis]);
+    return select(acc, value, value > acc);
 }
 
-/* A pending top node: the clusters order[begin..end) and where to hang it. */
-typedef struct {
-    int begin;
-    int end;
-    int parent; /* top node, or -1 for the root */
-    int side_and_depth; /* bit 0: right child of parent; the rest: depth */
-} TopTask;
+/* aabb_area of the box lo.xyz..hi.xyz, written as the same expression so the
+ * result is bit-identical (the trees must not depend on the record layout). */
+inline float area_of(float4 lo, float4 hi)
+{
+    float4 d = hi - lo;
+    if (!(d.x >= 0.0f && d.y >= 0.0f && d.z >= 0.0f))
+        return 0.0f;
+    return 2.0f * (d.x * d.y + d.y * d.z + d.z * d.x);
+}
+
+/* area_of of three boxes given their extents d0, d1, d2, in lanes x, y, z:
+ * transposed so each lane computes exactly area_of's expression. */
+inline float4 areas_of(float4 d0, float4 d1, float4 d2)
+{
+    float4 dx = (float4)(d0.x, d1.x, d2.x, 0.0f);
+    float4 dy = (float4)(d0.y, d1.y, d2.y, 0.0f);
+    float4 dz = (float4)(d0.z, d1.z, d2.z, 0.0f);
+    int4 valid = dx >= 0.0f & dy >= 0.0f & dz >= 0.0f;
+    return select((float4)(0.0f), 2.0f * (dx * dy + dy * dz + dz * dx), valid);
+}
+
+/* The bin of a record's centre on each axis (.xyz). */
+inline int4 bins_of(ClusterRecord r, float4 lo, float4 inv_extent, int bins)
+{
+    float4 center = 0.5f * (r.lo + r.hi);
+    return clamp(convert_int4((center - lo) * inv_extent), 0, bins - 1);
+}
+
+inline int lane(int4 v, int axis)
+{
+    return axis == 0 ? v.x : axis == 1 ? v.y : v.z;
+}
+
+inline float lane_f(float4 v, int axis)
+{
+    return axis == 0 ? v.x : axis == 1 ? v.y : v.z;
+}
+
+/* bins_of(r, ...) on `axis` is at most bins_after - 1: bins_of truncates
+ * x = (center - lo) * inv_extent (x >= 0, as lo is the least centre), and
+ * trunc(x) < B + 1 <=> x < B + 1; the clamp at bins - 1 never reaches B.
+ * Same float operations on one axis, so the same answer for less work. */
+inline int left_of_split(ClusterRecord r, int axis, float lo, float inv_extent, float bins_after)
+{
+    float center = 0.5f * (lane_f(r.lo, axis) + lane_f(r.hi, axis));
+    return (center - lo) * inv_extent < bins_after;
+}
 
 inline void attach(int ref, int parent, int side, __global int *top_left,
                    __global int *top_right, __global int *top_parent, __global int *info)
@@ -91,108 +166,191 @@ inline void attach(int ref, int parent, int side, __global int *top_left,
         top_parent[ref] = parent;
 }
 
-/* Split order[begin..end) with the binned SAH; partition it in place and
+/* split_clusters for two clusters (a third of all top nodes), without its
+ * loops and bin arrays but with its arithmetic, so the tree is the same:
+ * the split is always begin + 1, and the first axis of least cost whose
+ * bins_of separates the two puts the one in bin 0 on the left.  Isolation
+ * needs three clusters or more. */
+inline int split_pair(__global ClusterRecord *records, int begin)
+{
+    ClusterRecord a = records[begin], b = records[begin + 1];
+    float4 center_a = 0.5f * (a.lo + a.hi), center_b = 0.5f * (b.lo + b.hi);
+    float4 lo = grow_lo(center_a, center_b), extent = grow_hi(center_a, center_b) - lo;
+    lo.w = 0.0f;
+    float4 inv_extent = (float4)(extent.x > 0.0f ? 2 / extent.x : 0.0f,
+                                 extent.y > 0.0f ? 2 / extent.y : 0.0f,
+                                 extent.z > 0.0f ? 2 / extent.z : 0.0f, 0.0f);
+    int4 bin_a = bins_of(a, lo, inv_extent, 2), bin_b = bins_of(b, lo, inv_extent, 2);
+    float area_a = area_of(a.lo, a.hi), area_b = area_of(b.lo, b.hi);
+    float cost_a_left = a.lo.w * area_a + b.lo.w * area_b;
+    float cost_b_left = b.lo.w * area_b + a.lo.w * area_a;
+    float best_cost = INFINITY;
+    int swap = 0;
+    for (int axis = 0; axis < 3; ++axis) {
+        int side_a = lane(bin_a, axis);
+        if (side_a == lane(bin_b, axis)) /* also every axis with inv_extent 0 */
+            continue;
+        float cost = side_a == 0 ? cost_a_left : cost_b_left;
+        if (cost < best_cost) {
+            best_cost = cost;
+            swap = side_a != 0;
+        }
+    }
+    if (swap) {
+        records[begin] = b;
+        records[begin + 1] = a;
+    }
+    return begin + 1;
+}
+
+/* Split records[begin..end) with the binned SAH; partition it in place and
  * return the split point.  A split's cost is N_L A(L) + N_R A(R), N counting
  * triangles (Wald 2007).  Besides the bins it tries isolating the largest
  * cluster: centroid bins cannot separate a huge primitive (a ground plane)
  * whose centre lies among the others, and leaving it inside inflates every
  * box below.  (Only near the top, so isolation chains stay short.) */
-inline int split_clusters(__global int *order, int begin, int end, int depth,
-                          __global const Aabb *cluster_box, __global const float *cluster_size)
+inline int split_clusters(__global ClusterRecord *records, int begin, int end, int depth)
 {
-    Aabb centroid_box = aabb_empty();
+    if (end - begin == 2)
+        return split_pair(records, begin);
+    /* The isolation candidate needs the largest cluster (the first of equal
+     * areas), the triangle total and the box of the rest: gathered in the
+     * same pass, the rest growing by each cluster that stops being largest. */
+    int try_isolate = depth < TOP_ISOLATE_DEPTH && end - begin > 2;
+    float4 centroid_lo = (float4)(INFINITY), centroid_hi = (float4)(-INFINITY);
+    float4 rest_lo = centroid_lo, rest_hi = centroid_hi;
+    ClusterRecord big = {rest_lo, rest_hi};
     float total = 0.0f, largest_area = -1.0f;
     int largest = begin;
     for (int k = begin; k < end; ++k) {
-        Aabb box = cluster_box[order[k]];
-        centroid_box = aabb_grow(centroid_box, aabb_center(box));
-        total += cluster_size[order[k]];
-        float area = aabb_area(box);
-        if (area > largest_area) {
-            largest_area = area;
-            largest = k;
+        ClusterRecord r = records[k];
+        float4 center = 0.5f * (r.lo + r.hi);
+        centroid_lo = grow_lo(centroid_lo, center);
+        centroid_hi = grow_hi(centroid_hi, center);
+        if (try_isolate) {
+            total += r.lo.w;
+            float area = area_of(r.lo, r.hi);
+            ClusterRecord other = r;
+            if (area > largest_area) {
+                largest_area = area;
+                largest = k;
+                other = big;
+                big = r;
+            }
+            rest_lo = grow_lo(rest_lo, other.lo);
+            rest_hi = grow_hi(rest_hi, other.hi);
         }
     }
     /* As many bins as clusters, up to TOP_SAH_BINS: a node's cost stays
      * proportional to its clusters (3 x 32 bins per node measured ~3 us,
      * which dominated the deep levels' many small nodes). */
     int bins = min(end - begin, TOP_SAH_BINS);
-    float lo[3], inv_extent[3];
-    for (int axis = 0; axis < 3; ++axis) {
-        float extent = centroid_box.hi[axis] - centroid_box.lo[axis];
-        lo[axis] = centroid_box.lo[axis];
-        inv_extent[axis] = extent > 0.0f ? bins / extent : 0.0f;
-    }
+    float4 extent = centroid_hi - centroid_lo;
+    float4 lo = (float4)(centroid_lo.xyz, 0.0f);
+    float4 inv_extent = (float4)(extent.x > 0.0f ? bins / extent.x : 0.0f,
+                                 extent.y > 0.0f ? bins / extent.y : 0.0f,
+                                 extent.z > 0.0f ? bins / extent.z : 0.0f, 0.0f);
 
-    Aabb bin_box[3][TOP_SAH_BINS];
-    float bin_size[3][TOP_SAH_BINS];
-    for (int axis = 0; axis < 3; ++axis)
-        for (int b = 0; b < bins; ++b) {
-            bin_box[axis][b] = aabb_empty();
-            bin_size[axis][b] = 0.0f;
-        }
-    Aabb rest = aabb_empty();
-    for (int k = begin; k < end; ++k) {
-        int c = order[k];
-        Aabb box = cluster_box[c];
-        if (k != largest)
-            rest = aabb_union(rest, box);
+    /* Per axis a: bin_lo/hi[a][b] the box of bin b, and lane a of
+     * bin_size[b] its triangle count (so the sweep reads one vector). */
+    float4 bin_lo[3][TOP_SAH_BINS], bin_hi[3][TOP_SAH_BINS], bin_size[TOP_SAH_BINS];
+    for (int b = 0; b < bins; ++b) {
         for (int axis = 0; axis < 3; ++axis) {
-            int b = bin_of(center_of(box, axis), lo[axis], inv_extent[axis], bins);
-            bin_box[axis][b] = aabb_union(bin_box[axis][b], box);
-            bin_size[axis][b] += cluster_size[c];
+            bin_lo[axis][b] = (float4)(INFINITY);
+            bin_hi[axis][b] = (float4)(-INFINITY);
         }
+        bin_size[b] = (float4)(0.0f);
+    }
+    for (int k = begin; k < end; ++k) {
+        ClusterRecord r = records[k];
+        int4 b = bins_of(r, lo, inv_extent, bins);
+        bin_lo[0][b.x] = grow_lo(bin_lo[0][b.x], r.lo);
+        bin_hi[0][b.x] = grow_hi(bin_hi[0][b.x], r.hi);
+        bin_size[b.x].x += r.lo.w;
+        bin_lo[1][b.y] = grow_lo(bin_lo[1][b.y], r.lo);
+        bin_hi[1][b.y] = grow_hi(bin_hi[1][b.y], r.hi);
+        bin_size[b.y].y += r.lo.w;
+        bin_lo[2][b.z] = grow_lo(bin_lo[2][b.z], r.lo);
+        bin_hi[2][b.z] = grow_hi(bin_hi[2][b.z], r.hi);
+        bin_size[b.z].z += r.lo.w;
     }
 
+    /* Both sweeps run the three axes side by side, lane a for axis a: the
+     * per-bin work is a few vector ops instead of three scalar passes. */
+    float4 right_area[TOP_SAH_BINS], right_size[TOP_SAH_BINS];
+    float4 lo0 = (float4)(INFINITY), lo1 = lo0, lo2 = lo0;
+    float4 hi0 = (float4)(-INFINITY), hi1 = hi0, hi2 = hi0;
+    float4 size = (float4)(0.0f);
+    for (int b = bins - 1; b > 0; --b) {
+        lo0 = grow_lo(lo0, bin_lo[0][b]);
+        hi0 = grow_hi(hi0, bin_hi[0][b]);
+        lo1 = grow_lo(lo1, bin_lo[1][b]);
+        hi1 = grow_hi(hi1, bin_hi[1][b]);
+        lo2 = grow_lo(lo2, bin_lo[2][b]);
+        hi2 = grow_hi(hi2, bin_hi[2][b]);
+        size += bin_size[b];
+        right_area[b] = areas_of(hi0 - lo0, hi1 - lo1, hi2 - lo2);
+        right_size[b] = size;
+    }
+    /* An axis whose centroids coincide has no split (all in bin 0). */
+    int4 usable_axis = inv_extent != 0.0f;
+    float4 axis_cost = (float4)(INFINITY);
+    int4 axis_bin = (int4)(0);
+    lo0 = lo1 = lo2 = (float4)(INFINITY);
+    hi0 = hi1 = hi2 = (float4)(-INFINITY);
+    size = (float4)(0.0f);
+    for (int b = 0; b < bins - 1; ++b) {
+        lo0 = grow_lo(lo0, bin_lo[0][b]);
+        hi0 = grow_hi(hi0, bin_hi[0][b]);
+        lo1 = grow_lo(lo1, bin_lo[1][b]);
+        hi1 = grow_hi(hi1, bin_hi[1][b]);
+        lo2 = grow_lo(lo2, bin_lo[2][b]);
+        hi2 = grow_hi(hi2, bin_hi[2][b]);
+        size += bin_size[b];
+        float4 cost = size * areas_of(hi0 - lo0, hi1 - lo1, hi2 - lo2) +
+                      right_size[b + 1] * right_area[b + 1];
+        /* Strict <: per axis the first bin of least cost, as a scalar scan. */
+        int4 better = usable_axis & (size != 0.0f) & (right_size[b + 1] != 0.0f) &
+                      (cost < axis_cost);
+        axis_cost = select(axis_cost, cost, better);
+        axis_bin = select(axis_bin, (int4)(b), better);
+    }
+    /* Axes in order, strict <: the first (axis, bin) of least cost, the
+     * split a scan over axis 0, 1, 2 in turn would keep. */
     float best_cost = INFINITY;
     int best_axis = -1, best_bin = 0;
     for (int axis = 0; axis < 3; ++axis) {
-        if (inv_extent[axis] == 0.0f)
-            continue;
-        float right_area[TOP_SAH_BINS], right_size[TOP_SAH_BINS];
-        Aabb acc = aabb_empty();
-        float size = 0.0f;
-        for (int b = bins - 1; b > 0; --b) {
-            acc = aabb_union(acc, bin_box[axis][b]);
-            size += bin_size[axis][b];
-            right_area[b] = aabb_area(acc);
-            right_size[b] = size;
-        }
-        acc = aabb_empty();
-        size = 0.0f;
-        for (int b = 0; b < bins - 1; ++b) {
-            acc = aabb_union(acc, bin_box[axis][b]);
-            size += bin_size[axis][b];
-            if (size == 0.0f || right_size[b + 1] == 0.0f)
-                continue;
-            float cost = size * aabb_area(acc) + right_size[b + 1] * right_area[b + 1];
-            if (cost < best_cost) {
-                best_cost = cost;
-                best_axis = axis;
-                best_bin = b;
-            }
+        float cost = lane_f(axis_cost, axis);
+        if (cost < best_cost) {
+            best_cost = cost;
+            best_axis = axis;
+            best_bin = lane(axis_bin, axis);
         }
     }
-    float largest_size = cluster_size[order[largest]];
-    float isolate_cost = largest_size * largest_area + (total - largest_size) * aabb_area(rest);
 
     int middle = begin + (end - begin) / 2; /* no usable split: halve */
-    if (depth < TOP_ISOLATE_DEPTH && end - begin > 2 && isolate_cost < best_cost) {
-        int swap = order[largest];
-        order[largest] = order[end - 1];
-        order[end - 1] = swap;
-        middle = end - 1;
-    } else if (best_axis >= 0) {
+    int isolated = 0;
+    if (try_isolate) {
+        float largest_size = big.lo.w;
+        float isolate_cost =
+            largest_size * largest_area + (total - largest_size) * area_of(rest_lo, rest_hi);
+        if (isolate_cost < best_cost) {
+            records[largest] = records[end - 1];
+            records[end - 1] = big;
+            middle = end - 1;
+            isolated = 1;
+        }
+    }
+    if (!isolated && best_axis >= 0) {
+        float split_lo = lane_f(lo, best_axis), split_scale = lane_f(inv_extent, best_axis);
         int i = begin, j = end - 1;
         while (i <= j) {
-            Aabb box = cluster_box[order[i]];
-            if (bin_of(center_of(box, best_axis), lo[best_axis], inv_extent[best_axis], bins) <=
-                best_bin) {
+            ClusterRecord r = records[i];
+            if (left_of_split(r, best_axis, split_lo, split_scale, best_bin + 1.0f)) {
                 ++i;
             } else {
-                int swap = order[i];
-                order[i] = order[j];
-                order[j] = swap;
+                records[i] = records[j];
+                records[j] = r;
                 --j;
             }
         }
@@ -206,16 +364,14 @@ inline int split_clusters(__global int *order, int begin, int end, int depth,
 /* One level of the top build: each task splits its range and hands its
  * children on.  The node splitting at m is top node m - 1: every split point
  * belongs to exactly one node, so nodes need no allocation.  Tasks at depth
- * serial_depth finish their whole subtree here, with order's own slice
- * [begin, end) of `stack` as a private work stack; so the host loop runs at
- * most serial_depth + 1 levels whatever the input. */
+ * serial_depth finish their whole subtree here, with the slice [begin, end)
+ * of `stack` that matches their clusters as a private work stack; so the
+ * host loop runs at most serial_depth + 1 levels whatever the input. */
 __kernel void split_top_level(__global const TopTask *tasks, int task_count, int serial_depth,
                               __global TopTask *next_tasks, __global volatile int *next_count,
-                              __global TopTask *stack, __global int *order,
-                              __global const Aabb *cluster_box,
-                              __global const float *cluster_size, __global int *top_left,
-                              __global int *top_right, __global int *top_parent,
-                              __global int *info)
+                              __global TopTask *stack, __global ClusterRecord *records,
+                              __global int *top_left, __global int *top_right,
+                              __global int *top_parent, __global int *info)
 {
     int i = get_global_id(0);
     if (i >= task_count)
@@ -225,14 +381,14 @@ __kernel void split_top_level(__global const TopTask *tasks, int task_count, int
     int base = task.begin, top = base;
     while (1) {
         int depth = task.side_and_depth >> 1;
-        int middle = split_clusters(order, task.begin, task.end, depth, cluster_box, cluster_size);
+        int middle = split_clusters(records, task.begin, task.end, depth);
         int node = middle - 1;
         attach(node, task.parent, task.side_and_depth & 1, top_left, top_right, top_parent, info);
         int ranges[2][2] = {{task.begin, middle}, {middle, task.end}};
         for (int side = 0; side < 2; ++side) {
             if (ranges[side][1] - ranges[side][0] == 1) {
-                attach(~order[ranges[side][0]], node, side, top_left, top_right, top_parent,
-                       info);
+                attach(~(int)records[ranges[side][0]].hi.w, node, side, top_left, top_right,
+                       top_parent, info);
                 continue;
             }
             TopTask child = {ranges[side][0], ranges[side][1], node, ((depth + 1) << 1) | side};
@@ -294,17 +450,5 @@ __kernel void fold_top_nodes(int top_count, __global const int *top_left,
             return;
         mem_fence(CLK_GLOBAL_MEM_FENCE);
         t = p;
-    }
-}
-
-__kernel void init_top_build(int cluster_count, __global int *order, __global TopTask *tasks)
-{
-    int c = get_global_id(0);
-    if (c >= cluster_count)
-        return;
-    order[c] = c;
-    if (c == 0) {
-        TopTask root = {0, cluster_count, -1, 0};
-        tasks[0] = root;
     }
 }
