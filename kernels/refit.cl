@@ -6,8 +6,9 @@
  * refit_radix_tree runs during a build.  Besides the boxes it evaluates the
  * SAH bottom-up (cost = C_t * A(node) + cost(left) + cost(right), or
  * C_i * N * A(node) as a leaf) so that, with COLLAPSE_LEAVES, subtrees of at
- * most MAX_LEAF_SIZE triangles become leaves exactly where the SAH says a leaf
- * is cheaper.  refit_flat_tree refits the flat tree after vertices move.
+ * most MAX_LEAF_SIZE triangles become leaves where the SAH says a leaf costs
+ * at most COLLAPSE_COST_RATIO times as much (hlbvh.h).  refit_flat_tree
+ * refits the flat tree after vertices move.
  */
 #include "hlbvh.h"
 
@@ -93,7 +94,8 @@ __kernel void refit_radix_tree(__global const float *vertices, __global const in
         float as_interior = SAH_TRAVERSAL_COST * area + load_float_volatile(sah_cost, left) +
                             load_float_volatile(sah_cost, right);
         float as_leaf = SAH_INTERSECT_COST * (float)count * area;
-        int make_leaf = COLLAPSE_LEAVES && count <= MAX_LEAF_SIZE && as_leaf <= as_interior;
+        int make_leaf = COLLAPSE_LEAVES && count <= MAX_LEAF_SIZE &&
+                        as_leaf <= COLLAPSE_COST_RATIO * as_interior;
 
         boxes[node] = box;
         sah_cost[node] = make_leaf ? as_leaf : as_interior;
