@@ -19,8 +19,8 @@ def scene_bounds(rt, vertices: cl.Buffer, faces: cl.Buffer, triangle_count: int,
                  bounds: cl.Buffer, wait_for=None) -> list[cl.Event]:
     """bounds[0] <- box of all triangles, bounds[1] <- box of their centroids."""
     partials = partial_count(rt, triangle_count)
-    geometry = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, partials * layout.AABB.itemsize)
-    centroids = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, partials * layout.AABB.itemsize)
+    geometry = rt.pool.take(partials * layout.AABB.itemsize)
+    centroids = rt.pool.take(partials * layout.AABB.itemsize)
     kernel = rt.kernel("bounds.cl", "reduce_triangle_bounds",
                        STRIDED_SLICES=int(rt.device.type == "gpu"))
     reduce = rt.run(kernel, partials,

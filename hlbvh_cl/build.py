@@ -95,7 +95,7 @@ def build(rt: Runtime, geometry: Geometry, builder: str = "hlbvh",
           morton_bits: int = 30) -> BuildResult:
     """Build a DeviceTree over ``geometry`` on the device.  Builds on one
     runtime are serialised: they share the sorter's scratch buffers."""
-    with rt.build_lock:
+    with rt.build_lock, rt.pool.build():
         return _build(rt, geometry, builder, morton_bits)
 
 
@@ -106,12 +106,10 @@ def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int) -> B
     n = geometry.triangle_count
     check_fits(rt, geometry.vertex_count, n, morton_bits)
     hlbvh = builder == "hlbvh"
-    ctx = rt.context
     started = time.perf_counter()
     stage_events: dict[str, list] = {name: [] for name in STAGES}
 
-    def buf(nbytes):
-        return cl.Buffer(ctx, cl.mem_flags.READ_WRITE, max(4, nbytes))
+    buf = rt.pool.take
 
     bounds = buf(2 * layout.AABB.itemsize)
     stage_events["bounds"] = scene_bounds(rt, geometry.vertices, geometry.faces, n, bounds)
@@ -152,6 +150,7 @@ def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int) -> B
     rt.queue.finish()
     wall_ms = (time.perf_counter() - started) * 1e3
 
+    rt.pool.keep(nodes, parents, triangles, refs)
     tree_out = DeviceTree(nodes=nodes, triangles=triangles, refs=refs, parents=parents,
                           node_count=node_count, leaf_count=leaf_count, triangle_count=n,
                           depth=depth, bounds_lo=scene_box[0]["lo"].copy(),

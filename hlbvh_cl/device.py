@@ -64,6 +64,8 @@ _register_intel_cpu_runtime()
 import numpy as np  # noqa: E402
 import pyopencl as cl  # noqa: E402  (after the ICD set-up above)
 
+from .pool import BufferPool  # noqa: E402  (imports pyopencl too)
+
 _VENDORS = (
     ("portable computing language", "pocl"), ("intel", "intel"), ("nvidia", "nvidia"),
     ("advanced micro devices", "amd"), ("amd", "amd"), ("apple", "apple"), ("rusticl", "rusticl"),
@@ -235,7 +237,9 @@ class Runtime:
         self._programs: dict[tuple, cl.Program] = {}
         self._kernels: dict[tuple, cl.Kernel] = {}
         self._lock = threading.Lock()
-        self.build_lock = threading.Lock()
+        self.build_lock = threading.RLock()  # builds share the pool and the sorter
+        #: device buffers the build stages take and recycle (hlbvh_cl.pool)
+        self.pool = BufferPool(self.context)
 
     def program(self, filename: str, **defines) -> cl.Program:
         key = (filename, tuple(sorted(defines.items())))

@@ -22,7 +22,7 @@ class RadixTree:
     @classmethod
     def allocate(cls, rt, n: int) -> "RadixTree":
         def ints(count):
-            return cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, max(1, count) * 4)
+            return rt.pool.take(count * 4)
         return cls(n, ints(n - 1), ints(n - 1), ints(2 * n - 1), ints(n - 1), ints(n - 1))
 
     def read(self, queue) -> dict[str, np.ndarray]:

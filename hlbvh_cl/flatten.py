@@ -26,8 +26,7 @@ def flatten_nodes(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: Radi
     root_is_leaf = n == 1 or (top is None and _read_scalar(q, metrics.collapsed, np.int32,
                                                           wait_for=wait_for) != 0)
     if root_is_leaf:
-        nodes = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, layout.FLAT_NODE.itemsize)
-        parents = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, 4)
+        nodes, parents = rt.pool.take(layout.FLAT_NODE.itemsize), rt.pool.take(4)
         event = rt.run(rt.kernel("flatten.cl", "write_leaf_root", **defines), 1, n, metrics.boxes,
                        nodes, parents, wait_for=wait_for, local_size=1)
         root_box = np.empty(1, layout.AABB)
@@ -36,7 +35,7 @@ def flatten_nodes(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: Radi
         # the root node (C_t A) over one leaf of n triangles (C_i n A)
         return nodes, parents, 1, 1, root_box[0], 1, area * (1.0 + n), [event]
 
-    live = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, n * 4)
+    live = rt.pool.take(n * 4)
     events = [rt.run(rt.kernel("flatten.cl", "mark_live_nodes", **defines), n - 1, keys, n,
                      tree.parent, tree.range_first, tree.range_last, metrics.collapsed, live,
                      wait_for=wait_for)]
@@ -45,8 +44,8 @@ def flatten_nodes(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: Radi
     top_count = top.top_count if top else 0
     node_count = top_count + live_count
     rt.check_allocation("flat tree", {"nodes": node_count * layout.FLAT_NODE.itemsize})
-    nodes = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, node_count * layout.FLAT_NODE.itemsize)
-    parents = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, node_count * 4)
+    nodes = rt.pool.take(node_count * layout.FLAT_NODE.itemsize)
+    parents = rt.pool.take(node_count * 4)
     events.append(rt.run(rt.kernel("flatten.cl", "write_flat_nodes", **defines), n - 1, n,
                          top_count, live, tree.left_child, tree.right_child, tree.range_first,
                          tree.range_last, metrics.collapsed, metrics.boxes, nodes, parents,

@@ -199,6 +199,9 @@ class RayQuery:
         """Validates the tree; False when it holds no triangle (every ray misses)."""
         if not isinstance(tree, DeviceTree):
             raise TypeError(f"tree must be a hlbvh_cl.tree.DeviceTree, got {type(tree).__name__}")
+        if tree.released:
+            raise ValueError("this DeviceTree was released when its Scene rebuilt: "
+                             "use the scene's current tree (scene.tree)")
         if tree.triangle_count == 0:
             return False
         if tree.nodes.context != self.rt.context:

@@ -27,15 +27,14 @@ class RadixTreeMetrics:
 
     @classmethod
     def allocate(cls, rt, n: int) -> "RadixTreeMetrics":
-        def buf(nbytes):
-            return cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, max(4, nbytes))
+        buf = rt.pool.take
         nodes = 2 * n - 1
         return cls(buf(nodes * layout.AABB.itemsize), buf(nodes * 4), buf(nodes * 4),
                    buf((n - 1) * 4))
 
 
 def _zeroed_ints(rt, count: int, wait_for=None) -> tuple[cl.Buffer, cl.Event]:
-    buf = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, max(1, count) * 4)
+    buf = rt.pool.take(count * 4)
     return buf, cl.enqueue_fill_buffer(rt.queue, buf, np.int32(0), 0, max(1, count) * 4,
                                        wait_for=wait_for)
 

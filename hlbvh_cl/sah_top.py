@@ -38,7 +38,7 @@ def build_top(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: RadixTre
     Returns None when one cluster holds everything (the radix tree is kept)."""
     n = tree.n
     ctx, q = rt.context, rt.queue
-    scan = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, (n + 1) * 4)
+    scan = rt.pool.take((n + 1) * 4)
     events = [rt.run(rt.kernel("sah_top.cl", "mark_cluster_starts", MORTON_BITS=bits), n,
                      keys, n, scan, wait_for=wait_for)]
     events += exclusive_scan(rt, scan, n, wait_for=events[-1:])
@@ -49,7 +49,7 @@ def build_top(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: RadixTre
         return None, events
 
     def buf(count, itemsize=4):
-        return cl.Buffer(ctx, cl.mem_flags.READ_WRITE, max(1, count) * itemsize)
+        return rt.pool.take(count * itemsize)
     first, roots = buf(clusters), buf(clusters)
     records = buf(clusters, CLUSTER_RECORD_BYTES)
     cluster_cost, cluster_height = buf(clusters), buf(clusters)

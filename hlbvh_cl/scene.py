@@ -99,13 +99,21 @@ class Scene:
         """Build the tree from scratch over the current vertex positions.
 
         The old tree is released first, so a rebuild needs no more device
-        memory than the first build (which check_fits accounted for)."""
-        self._build = None
-        started = time.perf_counter()
-        self._build = build(self.runtime, self._geometry, self.builder, self.morton_bits)
-        # the wide tree that traversal reads (stage 8), derived from the BVH2
-        self.tree.wide, events = widen(self.runtime, self.tree)
-        cl.wait_for_events(events)
+        memory than the first build (which check_fits accounted for), and
+        the new one reuses its buffers and the last build's scratch
+        (hlbvh_cl.pool); a DeviceTree taken from ``scene.tree`` before is
+        invalid after."""
+        rt = self.runtime
+        with rt.build_lock:
+            old, self._build = getattr(self, "_build", None), None
+            if old is not None:
+                old.tree.release(rt.pool)
+            started = time.perf_counter()
+            with rt.pool.build():
+                self._build = build(rt, self._geometry, self.builder, self.morton_bits)
+                # the wide tree that traversal reads (stage 8), derived from the BVH2
+                self.tree.wide, events = widen(rt, self.tree)
+            cl.wait_for_events(events)
         times = self._build.stats["times_ms"]
         times["widen"] = event_ms(events)
         times["total"] += times["widen"]

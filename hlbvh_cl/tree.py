@@ -34,6 +34,8 @@ class DeviceTree:
     wide       the WideTree traversal reads (hlbvh_cl.widen), derived from
                this tree: made by Scene after each build (or by the first query
                on a tree that has none) and refit with it by update_vertices.
+    released   set by :meth:`release`: the buffers went back to a pool (the
+               Scene that owned the tree rebuilt it) and must not be read.
     """
 
     nodes: cl.Buffer
@@ -47,6 +49,17 @@ class DeviceTree:
     bounds_lo: np.ndarray
     bounds_hi: np.ndarray
     wide: WideTree | None = None
+    released: bool = False
+
+    def release(self, pool) -> None:
+        """Give this tree's device buffers (and its wide tree's) back to
+        ``pool`` for the next build to reuse; the tree is unusable after."""
+        wide = self.wide
+        pool.give(self.nodes, self.triangles, self.refs, self.parents,
+                  *((wide.nodes, wide.slots, wide.first_child) if wide is not None else ()))
+        self.nodes = self.triangles = self.refs = self.parents = None
+        self.wide = None
+        self.released = True
 
     def read_nodes(self, queue: cl.CommandQueue) -> np.ndarray:
         out = np.empty(self.node_count, layout.FLAT_NODE)

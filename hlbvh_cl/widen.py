@@ -59,6 +59,11 @@ def widen(rt: Runtime, tree: DeviceTree, wait_for=None) -> tuple[WideTree, list[
 
     One level of wide nodes per round; each round reads back the size of the
     next level (4 bytes)."""
+    with rt.pool.build():
+        return _widen(rt, tree, wait_for)
+
+
+def _widen(rt: Runtime, tree: DeviceTree, wait_for) -> tuple[WideTree, list[cl.Event]]:
     if tree.node_count < 1:
         raise ValueError(f"tree has node_count={tree.node_count}; widening needs a root node")
     ctx, q = rt.context, rt.queue
@@ -67,11 +72,9 @@ def widen(rt: Runtime, tree: DeviceTree, wait_for=None) -> tuple[WideTree, list[
     rt.check_allocation("widening the tree", {
         "sources": capacity * 4, "slots": capacity * arity * 4, "first children": capacity * 4,
         "interior counts": (capacity + 1) * 4})
-    mf = cl.mem_flags
-    source = cl.Buffer(ctx, mf.READ_WRITE, capacity * 4)
-    slots = cl.Buffer(ctx, mf.READ_WRITE, capacity * arity * 4)
-    first_child = cl.Buffer(ctx, mf.READ_WRITE, capacity * 4)
-    interior = cl.Buffer(ctx, mf.READ_WRITE, (capacity + 1) * 4)
+    take = rt.pool.take
+    source, slots = take(capacity * 4), take(capacity * arity * 4)
+    first_child, interior = take(capacity * 4), take((capacity + 1) * 4)
     choose = rt.kernel(KERNEL_FILE, "choose_wide_slots")
     link = rt.kernel(KERNEL_FILE, "link_wide_children")
 
@@ -94,14 +97,14 @@ def widen(rt: Runtime, tree: DeviceTree, wait_for=None) -> tuple[WideTree, list[
     node_count = level_first
     rt.check_allocation("wide tree", {"nodes": node_count * layout.WIDE_NODE.itemsize})
     # keep only the used part of the choice, for refits
-    kept_slots = cl.Buffer(ctx, mf.READ_WRITE, node_count * arity * 4)
-    kept_first = cl.Buffer(ctx, mf.READ_WRITE, node_count * 4)
+    kept_slots, kept_first = take(node_count * arity * 4), take(node_count * 4)
     events.append(cl.enqueue_copy(q, kept_slots, slots, byte_count=node_count * arity * 4,
                                   wait_for=events[-1:]))
     events.append(cl.enqueue_copy(q, kept_first, first_child, byte_count=node_count * 4,
                                   wait_for=events[-1:]))
-    wide = WideTree(nodes=cl.Buffer(ctx, mf.READ_WRITE, node_count * layout.WIDE_NODE.itemsize),
-                    slots=kept_slots, first_child=kept_first, node_count=node_count, depth=depth)
+    wide = WideTree(nodes=take(node_count * layout.WIDE_NODE.itemsize), slots=kept_slots,
+                    first_child=kept_first, node_count=node_count, depth=depth)
+    rt.pool.keep(wide.nodes, wide.slots, wide.first_child)
     events += refit_wide_tree(rt, tree, wide, wait_for=events[-1:])
     return wide, events
 
