@@ -1,4 +1,4 @@
-"""Stage 1 host side: scene and centroid bounds (kernels/bounds.cl)."""
+"""Stage 1 host side: scene and centroid bounds, and the centroids (kernels/bounds.cl)."""
 from __future__ import annotations
 
 import pyopencl as cl
@@ -16,15 +16,17 @@ def partial_count(rt, triangle_count: int) -> int:
 
 
 def scene_bounds(rt, vertices: cl.Buffer, faces: cl.Buffer, triangle_count: int,
-                 bounds: cl.Buffer, wait_for=None) -> list[cl.Event]:
-    """bounds[0] <- box of all triangles, bounds[1] <- box of their centroids."""
+                 bounds: cl.Buffer, centroids: cl.Buffer, wait_for=None) -> list[cl.Event]:
+    """bounds[0] <- box of all triangles, bounds[1] <- box of their centroids;
+    centroids[i] <- triangle i's box centre (float4, w = 0)."""
     partials = partial_count(rt, triangle_count)
     geometry = rt.pool.take(partials * layout.AABB.itemsize)
-    centroids = rt.pool.take(partials * layout.AABB.itemsize)
+    centroid_boxes = rt.pool.take(partials * layout.AABB.itemsize)
     kernel = rt.kernel("bounds.cl", "reduce_triangle_bounds",
                        STRIDED_SLICES=int(rt.device.type == "gpu"))
     reduce = rt.run(kernel, partials,
-                    vertices, faces, triangle_count, geometry, centroids, wait_for=wait_for)
+                    vertices, faces, triangle_count, geometry, centroid_boxes, centroids,
+                    wait_for=wait_for)
     fold = rt.run(rt.kernel("bounds.cl", "fold_partial_bounds", STRIDED_SLICES=0), 1,
-                  geometry, centroids, partials, bounds, wait_for=[reduce], local_size=1)
+                  geometry, centroid_boxes, partials, bounds, wait_for=[reduce], local_size=1)
     return [reduce, fold]

@@ -57,7 +57,7 @@ def build_memory(vertex_count: int, triangle_count: int, morton_bits: int) -> di
     n = triangle_count
     key = key_dtype(morton_bits).itemsize
     return {
-        "vertices": vertex_count * 12, "faces": n * 12,
+        "vertices": vertex_count * 12, "faces": n * 12, "centroids": n * 16,
         "morton keys (x2 for the sort)": 2 * n * key, "primitive ids (x2 for the sort)": 2 * n * 4,
         "radix tree links": 5 * n * 4, "radix tree boxes": (2 * n - 1) * layout.AABB.itemsize,
         "radix tree costs, heights, flags": (2 * n - 1) * 8 + 2 * n * 4,
@@ -111,13 +111,13 @@ def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int) -> B
 
     buf = rt.pool.take
 
-    bounds = buf(2 * layout.AABB.itemsize)
-    stage_events["bounds"] = scene_bounds(rt, geometry.vertices, geometry.faces, n, bounds)
+    bounds, centroids = buf(2 * layout.AABB.itemsize), buf(n * 16)
+    stage_events["bounds"] = scene_bounds(rt, geometry.vertices, geometry.faces, n, bounds,
+                                          centroids)
 
     keys, primitive_ids = buf(n * dtype.itemsize), buf(n * 4)
-    stage_events["morton"] = morton_codes(rt, geometry.vertices, geometry.faces, n, bounds, keys,
-                                          primitive_ids, morton_bits,
-                                          wait_for=stage_events["bounds"][-1:])
+    stage_events["morton"] = morton_codes(rt, centroids, n, bounds, keys, primitive_ids,
+                                          morton_bits, wait_for=stage_events["bounds"][-1:])
 
     # The result may sit in the sorter's scratch, which the next build on this
     # runtime reuses: nothing sorted outlives this build (refits use refs).

@@ -13,11 +13,12 @@ def key_dtype(bits: int) -> np.dtype:
     return np.dtype(np.uint32 if bits == 30 else np.uint64)
 
 
-def morton_codes(rt, vertices: cl.Buffer, faces: cl.Buffer, triangle_count: int,
-                 bounds: cl.Buffer, keys: cl.Buffer, primitive_ids: cl.Buffer, bits: int,
+def morton_codes(rt, centroids: cl.Buffer, triangle_count: int, bounds: cl.Buffer,
+                 keys: cl.Buffer, primitive_ids: cl.Buffer, bits: int,
                  wait_for=None) -> list[cl.Event]:
-    """keys[i] <- Morton code of triangle i's centroid; primitive_ids[i] <- i."""
+    """keys[i] <- Morton code of centroids[i] (float4, from the bounds stage)
+    over the centroid box bounds[1]; primitive_ids[i] <- i."""
     key_dtype(bits)
     kernel = rt.kernel("morton.cl", "morton_codes", MORTON_BITS=bits)
-    return [rt.run(kernel, triangle_count, vertices, faces, triangle_count, bounds, keys,
+    return [rt.run(kernel, triangle_count, centroids, triangle_count, bounds, keys,
                    primitive_ids, wait_for=wait_for)]

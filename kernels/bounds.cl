@@ -1,5 +1,9 @@
 /* Stage 1: scene bounds and centroid bounds by a two-level parallel reduction.
  *
+ * The pass also stores every centroid (float4, in face order) for the Morton
+ * stage, which then reads 16 sequential bytes per triangle instead of
+ * gathering its three vertices again.
+ *
  * Each work-item folds a slice of the triangles into partial boxes; one
  * work-item then folds the partials.  No local memory and no barriers:
  * simple to run correctly on PoCL's CPU device, and the second level touches
@@ -11,7 +15,7 @@
 
 __kernel void reduce_triangle_bounds(__global const float *vertices, __global const int *faces,
                                      int triangle_count, __global Aabb *partial_geometry,
-                                     __global Aabb *partial_centroids)
+                                     __global Aabb *partial_centroids, __global float4 *centroids)
 {
     int gid = get_global_id(0);
 #if STRIDED_SLICES
@@ -20,17 +24,27 @@ __kernel void reduce_triangle_bounds(__global const float *vertices, __global co
     int per_item = (triangle_count + get_global_size(0) - 1) / get_global_size(0);
     int begin = gid * per_item, end = min(triangle_count, begin + per_item), step = 1;
 #endif
-    Aabb geometry = aabb_empty();
-    Aabb centroids = aabb_empty();
+    /* float3 accumulators: PoCL runs the loop as written, so the three axes
+     * share each vector min/max instead of three scalar ones. */
+    float3 geometry_lo = (float3)(INFINITY), geometry_hi = (float3)(-INFINITY);
+    float3 centroid_lo = (float3)(INFINITY), centroid_hi = (float3)(-INFINITY);
     for (int face = begin; face < end; face += step) {
         float3 a, b, c;
         load_triangle(vertices, faces, face, &a, &b, &c);
-        Aabb box = aabb_of_points(a, b, c);
-        geometry = aabb_union(geometry, box);
-        centroids = aabb_grow(centroids, aabb_center(box));
+        float3 lo = fmin(a, fmin(b, c)), hi = fmax(a, fmax(b, c));
+        float3 centroid = 0.5f * (lo + hi); /* = aabb_center of the triangle's box */
+        geometry_lo = fmin(geometry_lo, lo);
+        geometry_hi = fmax(geometry_hi, hi);
+        centroid_lo = fmin(centroid_lo, centroid);
+        centroid_hi = fmax(centroid_hi, centroid);
+        centroids[face] = (float4)(centroid, 0.0f);
     }
+    Aabb geometry = {{geometry_lo.x, geometry_lo.y, geometry_lo.z},
+                     {geometry_hi.x, geometry_hi.y, geometry_hi.z}};
+    Aabb centroid_box = {{centroid_lo.x, centroid_lo.y, centroid_lo.z},
+                         {centroid_hi.x, centroid_hi.y, centroid_hi.z}};
     partial_geometry[gid] = geometry;
-    partial_centroids[gid] = centroids;
+    partial_centroids[gid] = centroid_box;
 }
 
 /* bounds[0] = scene box, bounds[1] = box of the triangle centroids. */

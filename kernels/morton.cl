@@ -7,11 +7,15 @@
  */
 #include "hlbvh.h"
 
+/* The kernel works on the three axes at once in vector lanes (x, y, z, and
+ * an unused w): PoCL runs it as written, so this is ~3x fewer instructions
+ * than a loop over the axes. */
 #if MORTON_BITS == 30
 #define AXIS_CELLS 1024.0f
+typedef uint4 spread_t;
 
-/* Spread the low 10 bits of v so two zero bits separate each. */
-inline uint spread_bits(uint v)
+/* Spread the low 10 bits of each lane so two zero bits separate each. */
+inline uint4 spread_bits(uint4 v)
 {
     v &= 0x3ffu;
     v = (v | (v << 16)) & 0x030000ffu;
@@ -22,11 +26,12 @@ inline uint spread_bits(uint v)
 }
 #elif MORTON_BITS == 63
 #define AXIS_CELLS 2097152.0f
+typedef ulong4 spread_t;
 
-/* Spread the low 21 bits of v so two zero bits separate each. */
-inline ulong spread_bits(uint x)
+/* Spread the low 21 bits of each lane so two zero bits separate each. */
+inline ulong4 spread_bits(uint4 x)
 {
-    ulong v = x & 0x1fffffu;
+    ulong4 v = convert_ulong4(x & 0x1fffffu);
     v = (v | (v << 32)) & 0x1f00000000ffffUL;
     v = (v | (v << 16)) & 0x1f0000ff0000ffUL;
     v = (v | (v << 8)) & 0x100f00f00f00f00fUL;
@@ -36,31 +41,21 @@ inline ulong spread_bits(uint x)
 }
 #endif
 
-inline uint quantize(float x, float lo, float scale)
-{
-    float cell = (x - lo) * scale;
-    return (uint)clamp(cell, 0.0f, AXIS_CELLS - 1.0f);
-}
-
-__kernel void morton_codes(__global const float *vertices, __global const int *faces,
-                           int triangle_count, __global const Aabb *bounds,
-                           __global morton_t *keys, __global uint *primitive_ids)
+/* centroids: the triangles' box centres, stored by the bounds stage. */
+__kernel void morton_codes(__global const float4 *centroids, int triangle_count,
+                           __global const Aabb *bounds, __global morton_t *keys,
+                           __global uint *primitive_ids)
 {
     int face = get_global_id(0);
     if (face >= triangle_count)
         return;
-    Aabb centroid_box = bounds[1];
-    float3 a, b, c;
-    load_triangle(vertices, faces, face, &a, &b, &c);
-    float3 centroid = aabb_center(aabb_of_points(a, b, c));
-    float p[3] = {centroid.x, centroid.y, centroid.z};
-    morton_t code = 0;
-    for (int k = 0; k < 3; ++k) {
-        float extent = centroid_box.hi[k] - centroid_box.lo[k];
-        /* A flat axis (all centroids equal) quantises to cell 0. */
-        float scale = extent > 0.0f ? AXIS_CELLS / extent : 0.0f;
-        code |= spread_bits(quantize(p[k], centroid_box.lo[k], scale)) << (2 - k);
-    }
-    keys[face] = code;
+    Aabb box = bounds[1];
+    float4 lo = (float4)(box.lo[0], box.lo[1], box.lo[2], 0.0f);
+    float4 extent = (float4)(box.hi[0], box.hi[1], box.hi[2], 0.0f) - lo;
+    /* A flat axis (all centroids equal) quantises to cell 0. */
+    float4 scale = select((float4)(0.0f), AXIS_CELLS / extent, extent > 0.0f);
+    float4 cell = clamp((centroids[face] - lo) * scale, 0.0f, AXIS_CELLS - 1.0f);
+    spread_t s = spread_bits(convert_uint4(cell));
+    keys[face] = (morton_t)((s.x << 2) | (s.y << 1) | s.z);
     primitive_ids[face] = (uint)face;
 }
