@@ -13,6 +13,7 @@ import pyopencl as cl
 from . import layout
 from .emit import RadixTree
 from .tree import DeviceTree
+from .widen import wide_tree
 
 
 @dataclass
@@ -60,10 +61,13 @@ def refit_radix_tree(rt, vertices: cl.Buffer, faces: cl.Buffer, primitive_ids: c
 
 def refit_flat_tree(rt, tree: DeviceTree, vertices: cl.Buffer, faces: cl.Buffer,
                     mesh_first_face: cl.Buffer, wait_for=None) -> list[cl.Event]:
-    """Re-read ``tree``'s triangles from moved vertices and refit every box;
-    the topology is kept."""
+    """Re-read ``tree``'s triangles from moved vertices and refit every box,
+    those of its wide tree (made first if it has none) included; the
+    topology is kept."""
+    wide = wide_tree(rt, tree)
     visits, cleared = _zeroed_ints(rt, tree.node_count, wait_for)
     walk = rt.run(rt.kernel("refit.cl", "refit_flat_tree", COLLAPSE_LEAVES=0), tree.node_count,
                   tree.nodes, tree.parents, vertices, faces, mesh_first_face, tree.refs,
-                  tree.triangles, visits, tree.node_count, wait_for=[cleared])
+                  tree.triangles, visits, tree.node_count, wide.nodes, wide.lane_of_slot,
+                  wait_for=[cleared])
     return [cleared, walk]

@@ -17,7 +17,7 @@ from .morton import key_dtype
 from .refit import refit_flat_tree
 from .render import AO_SAMPLES, Light, Renderer, RenderSettings, check_colors, check_light, \
     default_colors
-from .widen import refit_wide_tree, widen
+from .widen import widen
 
 
 #: stats["times_ms"] keys besides total and wall: the BVH2 build's stages,
@@ -141,8 +141,6 @@ class Scene:
                                  is_blocking=False)
         events = refit_flat_tree(rt, self.tree, self._geometry.vertices, self._geometry.faces,
                                  self._geometry.mesh_first_face, wait_for=[upload])
-        # the wide tree traversal reads copies the BVH2's boxes: rewrite it too
-        events += refit_wide_tree(rt, self.tree, wait_for=events[-1:])
         self.meshes[geom_id] = moved
         root = _read_root(rt.queue, self.tree.nodes, events)
         lo = np.minimum(root["left_lo"], root["right_lo"])

@@ -56,7 +56,8 @@ class DeviceTree:
         ``pool`` for the next build to reuse; the tree is unusable after."""
         wide = self.wide
         pool.give(self.nodes, self.triangles, self.refs, self.parents,
-                  *((wide.nodes, wide.slots, wide.first_child) if wide is not None else ()))
+                  *((wide.nodes, wide.slots, wide.first_child, wide.lane_of_slot)
+                    if wide is not None else ()))
         self.nodes = self.triangles = self.refs = self.parents = None
         self.wide = None
         self.released = True

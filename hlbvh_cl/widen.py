@@ -29,12 +29,16 @@ class WideTree:
                  child copies (2 * node + side, NO_SLOT when unused).
     first_child  int32[node_count]: the wide index of each node's first
                  interior child (the others follow in slot order).
+    lane_of_slot int32[2 * BVH2 node_count]: for each BVH2 child slot, the
+                 wide child copying it (WIDE_ARITY * node + k), or -1; the
+                 BVH2 refit writes through it (refit.cl).
     depth        wide nodes on the longest root-to-leaf path (>= 1).
     """
 
     nodes: cl.Buffer
     slots: cl.Buffer
     first_child: cl.Buffer
+    lane_of_slot: cl.Buffer
     node_count: int
     depth: int
 
@@ -102,9 +106,15 @@ def _widen(rt: Runtime, tree: DeviceTree, wait_for) -> tuple[WideTree, list[cl.E
                                   wait_for=events[-1:]))
     events.append(cl.enqueue_copy(q, kept_first, first_child, byte_count=node_count * 4,
                                   wait_for=events[-1:]))
+    lane_of_slot = take(2 * tree.node_count * 4)
+    events.append(cl.enqueue_fill_buffer(q, lane_of_slot, np.int32(-1), 0, 2 * tree.node_count * 4,
+                                         wait_for=events[-1:]))
+    events.append(rt.run(rt.kernel(KERNEL_FILE, "map_wide_lanes"), node_count, node_count,
+                         kept_slots, lane_of_slot, wait_for=events[-1:]))
     wide = WideTree(nodes=take(node_count * layout.WIDE_NODE.itemsize), slots=kept_slots,
-                    first_child=kept_first, node_count=node_count, depth=depth)
-    rt.pool.keep(wide.nodes, wide.slots, wide.first_child)
+                    first_child=kept_first, lane_of_slot=lane_of_slot, node_count=node_count,
+                    depth=depth)
+    rt.pool.keep(wide.nodes, wide.slots, wide.first_child, wide.lane_of_slot)
     events += refit_wide_tree(rt, tree, wide, wait_for=events[-1:])
     return wide, events
 

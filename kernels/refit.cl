@@ -128,13 +128,29 @@ inline int is_interior_slot(int index, uint count)
     return count == 0 && index != EMPTY_CHILD;
 }
 
-inline void store_slot(__global FlatNode *node, int right_slot, Aabb box)
+/* Store the box of child slot `right_slot` of flat node i, and into the wide
+ * child that copies that slot if there is one (widen.cl's map_wide_lanes), so
+ * that the wide tree needs no pass of its own. */
+inline void store_slot(__global FlatNode *nodes, int i, int right_slot, Aabb box,
+                       __global WideNode *wide, __global const int *lane_of_slot)
 {
+    __global FlatNode *node = nodes + i;
     __global float *lo = right_slot ? node->right_lo : node->left_lo;
     __global float *hi = right_slot ? node->right_hi : node->left_hi;
     for (int k = 0; k < 3; ++k) {
         lo[k] = box.lo[k];
         hi[k] = box.hi[k];
+    }
+    int lane = lane_of_slot[2 * i + right_slot];
+    if (lane >= 0) {
+        __global WideNode *w = wide + lane / WIDE_ARITY;
+        int k = lane % WIDE_ARITY;
+        w->lo_x[k] = box.lo[0];
+        w->hi_x[k] = box.hi[0];
+        w->lo_y[k] = box.lo[1];
+        w->hi_y[k] = box.hi[1];
+        w->lo_z[k] = box.lo[2];
+        w->hi_z[k] = box.hi[2];
     }
 }
 
@@ -146,15 +162,16 @@ inline Aabb load_slot_volatile(__global const FlatNode *node, int right_slot)
     return box;
 }
 
-/* Refit of the flat tree after vertices moved: a walk starts at every node
- * whose children are all leaves; a node with k interior children waits for k
+/* Refit of the flat tree (and of its wide copy) after vertices moved: a walk
+ * starts at every node whose children are all leaves; a node with k interior children waits for k
  * arrivals.  Each leaf's triangles are re-read on the way (one pass over the
  * triangle data, not a gather pass and then a refit pass). */
 __kernel void refit_flat_tree(__global FlatNode *nodes, __global const int *parents,
                               __global const float *vertices, __global const int *faces,
                               __global const int *mesh_first_face,
                               __global const TriangleRef *refs, __global Triangle *triangles,
-                              __global volatile int *visits, int node_count)
+                              __global volatile int *visits, int node_count,
+                              __global WideNode *wide, __global const int *lane_of_slot)
 {
     int i = get_global_id(0);
     if (i >= node_count)
@@ -174,16 +191,16 @@ __kernel void refit_flat_tree(__global FlatNode *nodes, __global const int *pare
                                                          triangles, right, right_count)
                                          : load_slot_volatile(node, 1);
         if (left_count > 0)
-            store_slot(node, 0, left_box);
+            store_slot(nodes, i, 0, left_box, wide, lane_of_slot);
         if (right_count > 0)
-            store_slot(node, 1, right_box);
+            store_slot(nodes, i, 1, right_box, wide, lane_of_slot);
 
         int p = parents[i];
         if (p < 0)
             return;
         __global FlatNode *up = nodes + p;
-        store_slot(up, up->left_count == 0 && up->left == i ? 0 : 1,
-                   aabb_union(left_box, right_box));
+        store_slot(nodes, p, up->left_count == 0 && up->left == i ? 0 : 1,
+                   aabb_union(left_box, right_box), wide, lane_of_slot);
         /* A parent with one interior child (this one) needs no counter. */
         if (is_interior_slot(up->left, up->left_count) &&
             is_interior_slot(up->right, up->right_count)) {

@@ -156,6 +156,23 @@ __kernel void link_wide_children(int level_first, int level_count, int next_firs
     }
 }
 
+/* lane_of_slot[slot] = WIDE_ARITY * w + k where wide node w's child k copies
+ * BVH2 slot `slot` (the buffer holds -1 beforehand): the refit of the BVH2
+ * (refit.cl) then writes each new box into the wide node too, in the same
+ * pass. */
+__kernel void map_wide_lanes(int wide_count, __global const uint *slots,
+                             __global int *lane_of_slot)
+{
+    int w = get_global_id(0);
+    if (w >= wide_count)
+        return;
+    for (int k = 0; k < WIDE_ARITY; ++k) {
+        uint slot = slots[WIDE_ARITY * w + k];
+        if (slot != NO_SLOT)
+            lane_of_slot[slot] = WIDE_ARITY * w + k;
+    }
+}
+
 /* Every wide node from its chosen slots and the BVH2's current boxes. */
 __kernel void write_wide_nodes(int wide_count, __global const uint *slots,
                                __global const int *first_child, __global const FlatNode *nodes,
