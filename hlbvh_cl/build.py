@@ -64,6 +64,7 @@ def build_memory(vertex_count: int, triangle_count: int, morton_bits: int) -> di
         "scans": 2 * (n + 1) * 4,
         "flat nodes": max(1, n - 1) * layout.FLAT_NODE.itemsize, "flat parents": n * 4,
         "triangles": n * layout.TRIANGLE.itemsize, "triangle refs": n * layout.TRIANGLE_REF.itemsize,
+        "triangle vertex ids": n * 12,
     }
 
 
@@ -130,9 +131,10 @@ def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int) -> B
 
     metrics = RadixTreeMetrics.allocate(rt, n)
     triangles, refs = buf(n * layout.TRIANGLE.itemsize), buf(n * layout.TRIANGLE_REF.itemsize)
+    vertex_ids = buf(n * 12)
     stage_events["refit"] = refit_radix_tree(
         rt, geometry.vertices, geometry.faces, primitive_ids, geometry.mesh_first_face,
-        geometry.mesh_count, tree, metrics, triangles, refs, collapse_leaves=hlbvh,
+        geometry.mesh_count, tree, metrics, triangles, refs, vertex_ids, collapse_leaves=hlbvh,
         wait_for=stage_events["emit"][-1:])
 
     top = None
@@ -150,8 +152,9 @@ def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int) -> B
     rt.queue.finish()
     wall_ms = (time.perf_counter() - started) * 1e3
 
-    rt.pool.keep(nodes, parents, triangles, refs)
+    rt.pool.keep(nodes, parents, triangles, refs, vertex_ids)
     tree_out = DeviceTree(nodes=nodes, triangles=triangles, refs=refs, parents=parents,
+                          vertex_ids=vertex_ids,
                           node_count=node_count, leaf_count=leaf_count, triangle_count=n,
                           depth=depth, bounds_lo=scene_box[0]["lo"].copy(),
                           bounds_hi=scene_box[0]["hi"].copy())

@@ -43,31 +43,33 @@ def _zeroed_ints(rt, count: int, wait_for=None) -> tuple[cl.Buffer, cl.Event]:
 def refit_radix_tree(rt, vertices: cl.Buffer, faces: cl.Buffer, primitive_ids: cl.Buffer,
                      mesh_first_face: cl.Buffer, mesh_count: int, tree: RadixTree,
                      metrics: RadixTreeMetrics, triangles: cl.Buffer, refs: cl.Buffer,
-                     collapse_leaves: bool, wait_for=None) -> list[cl.Event]:
+                     vertex_ids: cl.Buffer, collapse_leaves: bool,
+                     wait_for=None) -> list[cl.Event]:
     """Boxes, SAH costs and collapse flags of every radix-tree node; on the
-    way, the triangles and their refs in leaf order."""
+    way, the triangles, their refs and their vertex ids in leaf order."""
     n = tree.n
     visits, cleared = _zeroed_ints(rt, n - 1, wait_for)
     if n == 1:  # no internal node; the walk ends at once
         cl.enqueue_fill_buffer(rt.queue, metrics.collapsed, np.int32(0), 0, 4)
     kernel = rt.kernel("refit.cl", "refit_radix_tree", COLLAPSE_LEAVES=int(collapse_leaves))
     walk = rt.run(kernel, n, vertices, faces, primitive_ids, n, mesh_first_face, mesh_count,
-                  triangles, refs, tree.left_child,
+                  triangles, refs, vertex_ids, tree.left_child,
                   tree.right_child, tree.parent, tree.range_first, tree.range_last, visits,
                   metrics.boxes, metrics.sah_cost, metrics.height, metrics.collapsed,
                   wait_for=[cleared])
     return [cleared, walk]
 
 
-def refit_flat_tree(rt, tree: DeviceTree, vertices: cl.Buffer, faces: cl.Buffer,
-                    mesh_first_face: cl.Buffer, wait_for=None) -> list[cl.Event]:
+def refit_flat_tree(rt, tree: DeviceTree, vertices: cl.Buffer, wait_for=None) -> list[cl.Event]:
     """Re-read ``tree``'s triangles from moved vertices and refit every box,
     those of its wide tree (made first if it has none) included; the
     topology is kept."""
+    if tree.vertex_ids is None:
+        raise ValueError("this tree has no vertex ids (it was not made by a build): "
+                         "it cannot be refit")
     wide = wide_tree(rt, tree)
     visits, cleared = _zeroed_ints(rt, tree.node_count, wait_for)
     walk = rt.run(rt.kernel("refit.cl", "refit_flat_tree", COLLAPSE_LEAVES=0), tree.node_count,
-                  tree.nodes, tree.parents, vertices, faces, mesh_first_face, tree.refs,
-                  tree.triangles, visits, tree.node_count, wide.nodes, wide.lane_of_slot,
-                  wait_for=[cleared])
+                  tree.nodes, tree.parents, vertices, tree.vertex_ids, tree.triangles, visits,
+                  tree.node_count, wide.nodes, wide.lane_of_slot, wait_for=[cleared])
     return [cleared, walk]

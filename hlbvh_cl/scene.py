@@ -139,8 +139,7 @@ class Scene:
         upload = cl.enqueue_copy(rt.queue, self._geometry.vertices, moved.vertices,
                                  dst_offset=int(self._vertex_offsets[geom_id]) * 12,
                                  is_blocking=False)
-        events = refit_flat_tree(rt, self.tree, self._geometry.vertices, self._geometry.faces,
-                                 self._geometry.mesh_first_face, wait_for=[upload])
+        events = refit_flat_tree(rt, self.tree, self._geometry.vertices, wait_for=[upload])
         self.meshes[geom_id] = moved
         root = _read_root(rt.queue, self.tree.nodes, events)
         lo = np.minimum(root["left_lo"], root["right_lo"])

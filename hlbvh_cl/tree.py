@@ -28,6 +28,9 @@ class DeviceTree:
                one-triangle scene.
     triangles  Triangle[triangle_count] (layout.TRIANGLE), in leaf order.
     refs       TriangleRef[triangle_count]: geometry id and face index in its mesh.
+    vertex_ids int32[3 * triangle_count]: each tree-ordered triangle's vertex
+               indices into the scene's vertices, which a refit re-reads
+               (None for a tree made by hand: it cannot be refit).
     parents    int32[node_count]: parent of each node (-1 for the root), for refit.
     depth      interior nodes on the longest root-to-leaf path (>= 1); a
                traversal stack of `depth` entries cannot overflow.
@@ -49,16 +52,17 @@ class DeviceTree:
     bounds_lo: np.ndarray
     bounds_hi: np.ndarray
     wide: WideTree | None = None
+    vertex_ids: cl.Buffer | None = None
     released: bool = False
 
     def release(self, pool) -> None:
         """Give this tree's device buffers (and its wide tree's) back to
         ``pool`` for the next build to reuse; the tree is unusable after."""
         wide = self.wide
-        pool.give(self.nodes, self.triangles, self.refs, self.parents,
+        pool.give(self.nodes, self.triangles, self.refs, self.parents, self.vertex_ids,
                   *((wide.nodes, wide.slots, wide.first_child, wide.lane_of_slot)
                     if wide is not None else ()))
-        self.nodes = self.triangles = self.refs = self.parents = None
+        self.nodes = self.triangles = self.refs = self.parents = self.vertex_ids = None
         self.wide = None
         self.released = True
 

@@ -60,7 +60,7 @@ __kernel void refit_radix_tree(__global const float *vertices, __global const in
                                __global const uint *primitive_ids, int n,
                                __global const int *mesh_first_face, int mesh_count,
                                __global Triangle *triangles, __global TriangleRef *refs,
-                               __global const int *left_child, __global const int *right_child,
+                               __global int *vertex_ids, __global const int *left_child, __global const int *right_child,
                                __global const int *parent, __global const int *range_first,
                                __global const int *range_last, __global volatile int *visits,
                                __global Aabb *boxes, __global float *sah_cost,
@@ -75,6 +75,7 @@ __kernel void refit_radix_tree(__global const float *vertices, __global const in
     load_triangle(vertices, faces, face, &a, &b, &c);
     store_triangle(triangles, j, a, b, c);
     refs[j] = triangle_ref(mesh_first_face, mesh_count, face);
+    vstore3(vload3(face, faces), j, vertex_ids);
     Aabb box = aabb_of_points(a, b, c);
     boxes[node] = box;
     sah_cost[node] = SAH_INTERSECT_COST * aabb_area(box);
@@ -107,16 +108,16 @@ __kernel void refit_radix_tree(__global const float *vertices, __global const in
 }
 
 /* Re-read the triangles [first, first + count) of a leaf from the (moved)
- * vertices through their refs, store them, and return their box. */
-inline Aabb regather_leaf(__global const float *vertices, __global const int *faces,
-                          __global const int *mesh_first_face, __global const TriangleRef *refs,
+ * vertices through their vertex ids (stored in leaf order by the build, so
+ * that a refit reads them in sequence rather than chasing the faces), store
+ * them, and return their box. */
+inline Aabb regather_leaf(__global const float *vertices, __global const int *vertex_ids,
                           __global Triangle *triangles, int first, uint count)
 {
     Aabb box = aabb_empty();
     for (int j = first; j < first + (int)count; ++j) {
-        TriangleRef ref = refs[j];
         float3 a, b, c;
-        load_triangle(vertices, faces, mesh_first_face[ref.geom_id] + ref.prim_id, &a, &b, &c);
+        load_triangle(vertices, vertex_ids, j, &a, &b, &c);
         store_triangle(triangles, j, a, b, c);
         box = aabb_union(box, aabb_of_points(a, b, c));
     }
@@ -167,9 +168,8 @@ inline Aabb load_slot_volatile(__global const FlatNode *node, int right_slot)
  * arrivals.  Each leaf's triangles are re-read on the way (one pass over the
  * triangle data, not a gather pass and then a refit pass). */
 __kernel void refit_flat_tree(__global FlatNode *nodes, __global const int *parents,
-                              __global const float *vertices, __global const int *faces,
-                              __global const int *mesh_first_face,
-                              __global const TriangleRef *refs, __global Triangle *triangles,
+                              __global const float *vertices, __global const int *vertex_ids,
+                              __global Triangle *triangles,
                               __global volatile int *visits, int node_count,
                               __global WideNode *wide, __global const int *lane_of_slot)
 {
@@ -184,11 +184,11 @@ __kernel void refit_flat_tree(__global FlatNode *nodes, __global const int *pare
         __global FlatNode *node = nodes + i;
         int left = node->left, right = node->right;
         uint left_count = node->left_count, right_count = node->right_count;
-        Aabb left_box = left_count > 0 ? regather_leaf(vertices, faces, mesh_first_face, refs,
-                                                       triangles, left, left_count)
+        Aabb left_box = left_count > 0 ? regather_leaf(vertices, vertex_ids, triangles, left,
+                                                       left_count)
                                        : load_slot_volatile(node, 0);
-        Aabb right_box = right_count > 0 ? regather_leaf(vertices, faces, mesh_first_face, refs,
-                                                         triangles, right, right_count)
+        Aabb right_box = right_count > 0 ? regather_leaf(vertices, vertex_ids, triangles, right,
+                                                         right_count)
                                          : load_slot_volatile(node, 1);
         if (left_count > 0)
             store_slot(nodes, i, 0, left_box, wide, lane_of_slot);
