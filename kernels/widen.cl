@@ -59,56 +59,72 @@ inline Aabb slot_box(__global const FlatNode *nodes, uint slot)
     return box;
 }
 
+/* What a slot bids to be opened: its box's area if it is interior, else -1
+ * (never chosen). */
+inline float opening_bid(__global const FlatNode *nodes, uint slot)
+{
+    return slot_is_interior(nodes, slot) ? aabb_area(slot_box(nodes, slot)) : -1.0f;
+}
+
 /* Replaces slots[at] (an interior slot) by the non-empty child slots of its
- * node, in place, keeping the left-to-right order; returns the new count. */
-inline int open_slot(__global const FlatNode *nodes, uint *slots, int used, int at)
+ * node, in place, keeping the left-to-right order and each slot's bid;
+ * returns the new count. */
+inline int open_slot(__global const FlatNode *nodes, uint *slots, float *bids, int used, int at)
 {
     int node = slot_child(nodes, slots[at]);
     uint left = 2u * (uint)node, right = left + 1u;
     bool keep_left = !slot_is_empty(nodes, left), keep_right = !slot_is_empty(nodes, right);
     int added = (int)keep_left + (int)keep_right;
     /* shift the slots after `at` by added - 1 (at most one place right) */
-    if (added == 2)
-        for (int k = used - 1; k > at; --k)
+    if (added == 2) {
+        for (int k = used - 1; k > at; --k) {
             slots[k + 1] = slots[k];
-    else if (added == 0)
-        for (int k = at; k + 1 < used; ++k)
+            bids[k + 1] = bids[k];
+        }
+    } else if (added == 0) {
+        for (int k = at; k + 1 < used; ++k) {
             slots[k] = slots[k + 1];
-    if (keep_left && keep_right) {
-        slots[at] = left;
-        slots[at + 1] = right;
-    } else if (keep_left || keep_right) {
-        slots[at] = keep_left ? left : right;
+            bids[k] = bids[k + 1];
+        }
+    }
+    int k = at;
+    if (keep_left) {
+        slots[k] = left;
+        bids[k++] = opening_bid(nodes, left);
+    }
+    if (keep_right) {
+        slots[k] = right;
+        bids[k] = opening_bid(nodes, right);
     }
     return used - 1 + added;
 }
 
 /* The child slots of the wide node made from BVH2 node `node` (greedy
- * opening, largest area first; ties go to the leftmost slot). */
+ * opening, largest area first; ties go to the leftmost slot).  Each slot's
+ * bid is computed once, when it enters the list (not at every round). */
 inline int choose_slots(__global const FlatNode *nodes, int node, uint *slots)
 {
+    float bids[WIDE_ARITY];
     int used = 0;
     for (uint side = 0; side < 2; ++side) {
         uint slot = 2u * (uint)node + side;
-        if (!slot_is_empty(nodes, slot))
-            slots[used++] = slot;
+        if (!slot_is_empty(nodes, slot)) {
+            slots[used] = slot;
+            bids[used++] = opening_bid(nodes, slot);
+        }
     }
     /* every opening descends one BVH2 level, so this ends */
     while (used < WIDE_ARITY) {
         int best = -1;
-        float best_area = -1.0f;
+        float best_bid = -1.0f;
         for (int k = 0; k < used; ++k) {
-            if (!slot_is_interior(nodes, slots[k]))
-                continue;
-            float area = aabb_area(slot_box(nodes, slots[k]));
-            if (area > best_area) {
-                best_area = area;
-                best = k;
-            }
+            bool better = bids[k] > best_bid;
+            best = better ? k : best;
+            best_bid = better ? bids[k] : best_bid;
         }
         if (best < 0)
             break;
-        used = open_slot(nodes, slots, used, best);
+        used = open_slot(nodes, slots, bids, used, best);
     }
     return used;
 }
