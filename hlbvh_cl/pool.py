@@ -60,6 +60,11 @@ class BufferPool:
             self._free = {}  # what this build did not reuse is dropped
             self.give(*scratch)
 
+    def clear(self) -> None:
+        """Drop every free buffer (a Scene that goes away calls this, so that
+        its last build's scratch does not outlive it)."""
+        self._free = {}
+
     @property
     def free_bytes(self) -> int:
         return sum(size * len(buffers) for size, buffers in self._free.items())

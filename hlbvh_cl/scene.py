@@ -3,6 +3,7 @@ users call (construct, update_vertices/rebuild, intersect/occluded, render)."""
 from __future__ import annotations
 
 import time
+import weakref
 from collections.abc import Sequence
 
 import numpy as np
@@ -68,6 +69,8 @@ class Scene:
                                 zip(self.meshes, self._vertex_offsets[:-1])])
         vertices = np.concatenate([m.vertices for m in self.meshes])
         self._geometry = Geometry.upload(self.runtime, vertices, faces, first_face)
+        # the runtime's pool keeps this scene's build scratch for its rebuilds; not beyond it
+        weakref.finalize(self, self.runtime.pool.clear)
         self._query = None
         self._renderer = None
         self.colors = default_colors(len(self.meshes))

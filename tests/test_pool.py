@@ -81,3 +81,14 @@ def test_a_released_tree_cannot_be_queried():
     query = scene._ray_query()
     with pytest.raises(ValueError, match="released when its Scene rebuilt"):
         query.intersect(old, np.zeros((1, 3)), np.ones((1, 3)))
+
+
+def test_a_scene_that_goes_away_takes_its_scratch_with_it():
+    import gc
+    scene = Scene([Mesh.load(MESH_DIR / "knight.ply")])
+    pool = scene.runtime.pool
+    scene.rebuild()
+    assert pool.free_bytes > 0  # the last build's scratch, kept for the next rebuild
+    del scene
+    gc.collect()
+    assert pool.free_bytes == 0
