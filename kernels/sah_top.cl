@@ -445,10 +445,10 @@ __kernel void fold_top_nodes(int top_count, __global const int *top_left,
             return;
         }
         int waits_for = (top_left[p] >= 0) + (top_right[p] >= 0);
-        mem_fence(CLK_GLOBAL_MEM_FENCE);
+        write_mem_fence(CLK_GLOBAL_MEM_FENCE); /* release, as in refit.cl */
         if (atomic_inc(&visits[p]) + 1 < waits_for)
             return;
-        mem_fence(CLK_GLOBAL_MEM_FENCE);
+        read_mem_fence(CLK_GLOBAL_MEM_FENCE); /* acquire */
         t = p;
     }
 }
