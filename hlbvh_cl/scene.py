@@ -139,12 +139,13 @@ class Scene:
         moved = Mesh(positions, old.faces, name=old.name)
         rt = self.runtime
         started = time.perf_counter()
-        upload = cl.enqueue_copy(rt.queue, self._geometry.vertices, moved.vertices,
-                                 dst_offset=int(self._vertex_offsets[geom_id]) * 12,
-                                 is_blocking=False)
-        events = refit_flat_tree(rt, self.tree, self._geometry.vertices, wait_for=[upload])
-        self.meshes[geom_id] = moved
-        root = _read_root(rt.queue, self.tree.nodes, events)
+        with rt.build_lock:  # not while a build on this runtime uses the pool
+            upload = cl.enqueue_copy(rt.queue, self._geometry.vertices, moved.vertices,
+                                     dst_offset=int(self._vertex_offsets[geom_id]) * 12,
+                                     is_blocking=False)
+            events = refit_flat_tree(rt, self.tree, self._geometry.vertices, wait_for=[upload])
+            self.meshes[geom_id] = moved
+            root = _read_root(rt.queue, self.tree.nodes, events)
         lo = np.minimum(root["left_lo"], root["right_lo"])
         hi = np.maximum(root["left_hi"], root["right_hi"])
         self.tree.bounds_lo, self.tree.bounds_hi = lo, hi
