@@ -41,8 +41,10 @@ class BufferPool:
 
     def keep(self, *buffers: cl.Buffer) -> None:
         """Mark buffers taken in the current build as its results: they stay
-        out of the pool when the build ends."""
-        self._kept.update(id(b) for b in buffers)
+        out of the pool when the build ends.  (Outside a build: nothing to do,
+        as nothing taken comes back on its own.)"""
+        if self._taken is not None:
+            self._kept.update(id(b) for b in buffers)
 
     @contextmanager
     def build(self):
