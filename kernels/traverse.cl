@@ -376,8 +376,45 @@ TRAVERSAL_INLINE float3 unit_normal(__global const Triangle* tri)
     return n * (1.0f / sqrt(n.x * n.x + n.y * n.y + n.z * n.z));
 }
 
-/* Closest hit of rays[0, ray_count) -> hits (the renderer's records);
- * overflow[0] is set to 1 if a ray's traversal ran out of stack. */
+/* One ray's closest hit as a Hit record (a miss: t = INFINITY, ids -1, the
+ * rest 0) and whether it hits anything at all: the two queries, shared by the
+ * record kernels and the array kernels.  overflow[0] is set to 1 if the
+ * traversal ran out of stack. */
+TRAVERSAL_INLINE Hit closest_hit(RayData r, __global const WideNode* nodes,
+                                 __global const Triangle* triangles,
+                                 __global const TriangleRef* refs, __global int* overflow)
+{
+    float t = INFINITY, u = 0.0f, v = 0.0f;
+    bool out_of_stack;
+    int index = traverse(&r, nodes, triangles, false, &t, &u, &v, &out_of_stack);
+    if (out_of_stack)
+        overflow[0] = 1;
+    bool found = index >= 0;
+    Hit hit;
+    hit.t = found ? t : INFINITY;
+    hit.geom_id = found ? refs[index].geom_id : -1;
+    hit.prim_id = found ? refs[index].prim_id : -1;
+    hit.u = found ? u : 0.0f;
+    hit.v = found ? v : 0.0f;
+    float3 normal = found ? unit_normal(triangles + index) : (float3)(0.0f);
+    hit.normal[0] = normal.x;
+    hit.normal[1] = normal.y;
+    hit.normal[2] = normal.z;
+    return hit;
+}
+
+TRAVERSAL_INLINE uchar any_hit(RayData r, __global const WideNode* nodes,
+                               __global const Triangle* triangles, __global int* overflow)
+{
+    float t, u, v;
+    bool out_of_stack;
+    int index = traverse(&r, nodes, triangles, true, &t, &u, &v, &out_of_stack);
+    if (out_of_stack)
+        overflow[0] = 1;
+    return index >= 0 ? 1 : 0;
+}
+
+/* Closest hit of rays[0, ray_count) -> hits (the renderer's records). */
 TRAVERSAL_KERNEL void intersect_closest(__global const WideNode* nodes,
                                         __global const Triangle* triangles,
                                         __global const TriangleRef* refs,
@@ -387,23 +424,8 @@ TRAVERSAL_KERNEL void intersect_closest(__global const WideNode* nodes,
                                         const uint ray_count)
 {
     uint gid = get_global_id(0);
-    if (gid >= ray_count)
-        return;
-    RayData r = prepare_ray_record(rays + gid);
-    float t = INFINITY, u = 0.0f, v = 0.0f;
-    bool out_of_stack;
-    int index = traverse(&r, nodes, triangles, false, &t, &u, &v, &out_of_stack);
-    if (out_of_stack)
-        overflow[0] = 1;
-    bool found = index >= 0;
-    float3 normal = found ? unit_normal(triangles + index) : (float3)(0.0f);
-    __global Hit* hit = hits + gid;
-    hit->t = found ? t : INFINITY;
-    hit->geom_id = found ? refs[index].geom_id : -1;
-    hit->prim_id = found ? refs[index].prim_id : -1;
-    hit->u = found ? u : 0.0f;
-    hit->v = found ? v : 0.0f;
-    vstore3(normal, 0, hit->normal);
+    if (gid < ray_count)
+        hits[gid] = closest_hit(prepare_ray_record(rays + gid), nodes, triangles, refs, overflow);
 }
 
 /* Occlusion of rays[0, ray_count): occluded[i] = 1 if anything is hit. */
@@ -415,15 +437,8 @@ TRAVERSAL_KERNEL void intersect_any(__global const WideNode* nodes,
                                     const uint ray_count)
 {
     uint gid = get_global_id(0);
-    if (gid >= ray_count)
-        return;
-    RayData r = prepare_ray_record(rays + gid);
-    float t, u, v;
-    bool out_of_stack;
-    int index = traverse(&r, nodes, triangles, true, &t, &u, &v, &out_of_stack);
-    if (out_of_stack)
-        overflow[0] = 1;
-    occluded[gid] = index >= 0 ? 1 : 0;
+    if (gid < ray_count)
+        occluded[gid] = any_hit(prepare_ray_record(rays + gid), nodes, triangles, overflow);
 }
 
 /* The same two queries on the arrays numpy users hand in and get back
@@ -456,19 +471,14 @@ TRAVERSAL_KERNEL void intersect_closest_arrays(__global const WideNode* nodes,
     uint gid = get_global_id(0);
     if (gid >= ray_count)
         return;
-    RayData r = prepare_ray_arrays(gid, origins, directions, tmin, tmin_step, tmax, tmax_step);
-    float t = INFINITY, u = 0.0f, v = 0.0f;
-    bool out_of_stack;
-    int index = traverse(&r, nodes, triangles, false, &t, &u, &v, &out_of_stack);
-    if (out_of_stack)
-        overflow[0] = 1;
-    bool found = index >= 0;
-    t_out[gid] = found ? t : INFINITY;
-    geom_out[gid] = found ? refs[index].geom_id : -1;
-    prim_out[gid] = found ? refs[index].prim_id : -1;
-    u_out[gid] = found ? u : 0.0f;
-    v_out[gid] = found ? v : 0.0f;
-    vstore3(found ? unit_normal(triangles + index) : (float3)(0.0f), gid, normal_out);
+    Hit hit = closest_hit(prepare_ray_arrays(gid, origins, directions, tmin, tmin_step, tmax,
+                                             tmax_step), nodes, triangles, refs, overflow);
+    t_out[gid] = hit.t;
+    geom_out[gid] = hit.geom_id;
+    prim_out[gid] = hit.prim_id;
+    u_out[gid] = hit.u;
+    v_out[gid] = hit.v;
+    vstore3(vload3(0, hit.normal), gid, normal_out);
 }
 
 TRAVERSAL_KERNEL void intersect_any_arrays(__global const WideNode* nodes,
@@ -483,11 +493,6 @@ TRAVERSAL_KERNEL void intersect_any_arrays(__global const WideNode* nodes,
     uint gid = get_global_id(0);
     if (gid >= ray_count)
         return;
-    RayData r = prepare_ray_arrays(gid, origins, directions, tmin, tmin_step, tmax, tmax_step);
-    float t, u, v;
-    bool out_of_stack;
-    int index = traverse(&r, nodes, triangles, true, &t, &u, &v, &out_of_stack);
-    if (out_of_stack)
-        overflow[0] = 1;
-    occluded[gid] = index >= 0 ? 1 : 0;
+    occluded[gid] = any_hit(prepare_ray_arrays(gid, origins, directions, tmin, tmin_step, tmax,
+                                               tmax_step), nodes, triangles, overflow);
 }
