@@ -19,6 +19,9 @@
  *   STACK_SIZE  entries of the private traversal stack; the host passes a
  *               bound that cannot overflow for the tree (query.py), and if
  *               it ever did, the ray is flagged and the host raises.
+ *   PACKET_SIZE rays per work-item: 1 (one ray each, for GPUs, whose SIMT
+ *               lanes already run neighbouring rays together), or 8 or 16
+ *               (ray packets, for CPUs; see "packets" below).
  */
 #include "hlbvh.h"
 
@@ -33,6 +36,9 @@
 
 #ifndef STACK_SIZE
 #error "STACK_SIZE must be defined (-D STACK_SIZE=...)"
+#endif
+#ifndef PACKET_SIZE
+#error "PACKET_SIZE must be defined (-D PACKET_SIZE=...)"
 #endif
 
 /* One vector lane per child of a wide node. */
@@ -252,6 +258,34 @@ TRAVERSAL_INLINE bool pop(const int* stack_index, const uint* stack_count,
     return false;
 }
 
+/* Sorts the m children of n listed in order[] by their entry distance, pushes
+ * all but the nearest (the farthest first) and makes the nearest the current
+ * (index, count); false if the stack has no room for them. */
+TRAVERSAL_INLINE bool descend(__global const WideNode* n, int* order, int m, const float* entry,
+                              int* stack_index, uint* stack_count, float* stack_entry, int* sp,
+                              int* index, uint* count)
+{
+    for (int a = 1; a < m; ++a) {
+        int slot = order[a];
+        int b = a;
+        for (; b > 0 && entry[order[b - 1]] > entry[slot]; --b)
+            order[b] = order[b - 1];
+        order[b] = slot;
+    }
+    if (*sp + m - 1 > STACK_SIZE)
+        return false;
+    for (int a = m - 1; a > 0; --a) {
+        int slot = order[a];
+        stack_index[*sp] = n->child[slot];
+        stack_count[*sp] = n->count[slot];
+        stack_entry[*sp] = entry[slot];
+        ++*sp;
+    }
+    *index = n->child[order[0]];
+    *count = n->count[order[0]];
+    return true;
+}
+
 /* Traverses the wide tree, nearer children first (closest hit) or until the
  * first hit (any hit).  Returns the tree-order index of the hit triangle or
  * -1; sets *overflow when the stack was too small (the host then raises).
@@ -319,26 +353,11 @@ TRAVERSAL_INLINE int traverse(const RayData* r, __global const WideNode* nodes,
                 done = !pop(stack_index, stack_count, stack_entry, &sp, limit, &index, &count);
                 continue;
             }
-            for (int a = 1; a < m; ++a) {
-                int slot = order[a];
-                int b = a;
-                for (; b > 0 && entry[order[b - 1]] > entry[slot]; --b)
-                    order[b] = order[b - 1];
-                order[b] = slot;
-            }
-            if (sp + m - 1 > STACK_SIZE) {
+            if (!descend(n, order, m, entry, stack_index, stack_count, stack_entry, &sp, &index,
+                         &count)) {
                 *overflow = true;
                 return hit_index;
             }
-            for (int a = m - 1; a > 0; --a) {
-                int slot = order[a];
-                stack_index[sp] = n->child[slot];
-                stack_count[sp] = n->count[slot];
-                stack_entry[sp] = entry[slot];
-                ++sp;
-            }
-            index = n->child[order[0]];
-            count = n->count[order[0]];
         }
         if (done)
             break;
@@ -359,6 +378,245 @@ TRAVERSAL_INLINE int traverse(const RayData* r, __global const WideNode* nodes,
     return hit_index;
 }
 
+
+/* ---------------------------------------------------------------- packets
+ * Coherent rays (camera rays, shadow rays towards one light) visit nearly the
+ * same nodes, so one work-item traces PACKET_SIZE consecutive rays together,
+ * one vector lane per ray: the node walk, the stack and the child sort are
+ * paid once per packet instead of once per ray, and each box and triangle is
+ * tested against all the rays at once (Wald, Slusallek, Benthin & Wagner 2001,
+ * "Interactive Rendering with Coherent Ray Tracing"; on BVHs Wald, Boulos &
+ * Shirley 2007).  A packet is traced this way only when its rays share the
+ * signs of their direction components and the axis the watertight test
+ * projects along (kz): then every plane offset and vertex permutation is the
+ * same for all lanes and stays scalar.  Other packets (incoherent rays)
+ * trace their rays one by one with the single-ray traversal above; the lanes
+ * of a packet computed either way give the same hits (ties aside), as each
+ * lane runs the single-ray arithmetic. */
+#if PACKET_SIZE > 1
+#if PACKET_SIZE == 16
+typedef float16 float_packet;
+typedef int16 int_packet;
+#define vload_packet vload16
+#define vstore_packet vstore16
+#define convert_double_packet convert_double16
+#define convert_float_packet convert_float16
+typedef double16 double_packet;
+#elif PACKET_SIZE == 8
+typedef float8 float_packet;
+typedef int8 int_packet;
+#define vload_packet vload8
+#define vstore_packet vstore8
+#define convert_double_packet convert_double8
+#define convert_float_packet convert_float8
+typedef double8 double_packet;
+#else
+#error "PACKET_SIZE must be 8 or 16"
+#endif
+
+/* RayData of PACKET_SIZE rays, one lane each, with the fields the packet
+ * shares kept scalar. */
+typedef struct {
+    float_packet ox, oy, oz;
+    float_packet inv_x, inv_y, inv_z;
+    float_packet tmin, tmax;
+    float_packet sx, sy, sz;
+    float_packet okx, oky, okz;
+    int kx, ky, kz;
+    int near_x, near_y, near_z;
+} Packet;
+
+TRAVERSAL_INLINE float packet_min(float_packet v)
+{
+#if PACKET_SIZE == 16
+    float8 a = fmin(v.lo, v.hi);
+#else
+    float8 a = v;
+#endif
+    float4 b = fmin(a.lo, a.hi);
+    float2 c = fmin(b.lo, b.hi);
+    return fmin(c.x, c.y);
+}
+
+TRAVERSAL_INLINE float packet_max(float_packet v)
+{
+#if PACKET_SIZE == 16
+    float8 a = fmax(v.lo, v.hi);
+#else
+    float8 a = v;
+#endif
+    float4 b = fmax(a.lo, a.hi);
+    float2 c = fmax(b.lo, b.hi);
+    return fmax(c.x, c.y);
+}
+
+/* Gathers the lanes' RayData into a Packet; false when they do not share
+ * direction signs and kz (then they are traced one by one). */
+TRAVERSAL_INLINE bool make_packet(const RayData* lanes, Packet* p)
+{
+    const RayData* r0 = lanes;
+    for (int l = 1; l < PACKET_SIZE; ++l) {
+        const RayData* r = lanes + l;
+        if (r->kz != r0->kz || r->near_x != r0->near_x || r->near_y != r0->near_y
+            || r->near_z != r0->near_z)
+            return false;
+    }
+    float f[13][PACKET_SIZE];
+    for (int l = 0; l < PACKET_SIZE; ++l) {
+        const RayData* r = lanes + l;
+        f[0][l] = r->ox;  f[1][l] = r->oy;  f[2][l] = r->oz;
+        f[3][l] = r->inv_x;  f[4][l] = r->inv_y;  f[5][l] = r->inv_z;
+        f[6][l] = r->tmin;  f[7][l] = r->tmax;
+        f[8][l] = r->sx;  f[9][l] = r->sy;  f[10][l] = r->sz;
+        f[11][l] = r->okx;  f[12][l] = r->oky;
+    }
+    p->ox = vload_packet(0, f[0]);  p->oy = vload_packet(0, f[1]);  p->oz = vload_packet(0, f[2]);
+    p->inv_x = vload_packet(0, f[3]);  p->inv_y = vload_packet(0, f[4]);
+    p->inv_z = vload_packet(0, f[5]);
+    p->tmin = vload_packet(0, f[6]);  p->tmax = vload_packet(0, f[7]);
+    p->sx = vload_packet(0, f[8]);  p->sy = vload_packet(0, f[9]);  p->sz = vload_packet(0, f[10]);
+    p->okx = vload_packet(0, f[11]);  p->oky = vload_packet(0, f[12]);
+    for (int l = 0; l < PACKET_SIZE; ++l)
+        f[0][l] = lanes[l].okz;
+    p->okz = vload_packet(0, f[0]);
+    p->kx = r0->kx;  p->ky = r0->ky;  p->kz = r0->kz;
+    p->near_x = r0->near_x;  p->near_y = r0->near_y;  p->near_z = r0->near_z;
+    return true;
+}
+
+/* hit_triangle for every lane: the same arithmetic per lane.  Returns the
+ * lanes that hit (-1), with their t, u, v in *t_out, *u_out, *v_out. */
+TRAVERSAL_INLINE int_packet hit_triangle_packet(const Packet* p, __global const Triangle* tri,
+                                                float_packet limit, int_packet strict,
+                                                float_packet* t_out, float_packet* u_out,
+                                                float_packet* v_out)
+{
+    float_packet ax = tri->v0[p->kx] - p->okx, ay = tri->v0[p->ky] - p->oky,
+                 az = tri->v0[p->kz] - p->okz;
+    float_packet bx = tri->v1[p->kx] - p->okx, by = tri->v1[p->ky] - p->oky,
+                 bz = tri->v1[p->kz] - p->okz;
+    float_packet cx = tri->v2[p->kx] - p->okx, cy = tri->v2[p->ky] - p->oky,
+                 cz = tri->v2[p->kz] - p->okz;
+    ax = ax - p->sx * az;  ay = ay - p->sy * az;
+    bx = bx - p->sx * bz;  by = by - p->sy * bz;
+    cx = cx - p->sx * cz;  cy = cy - p->sy * cz;
+    float_packet e_u = cx * by - cy * bx;
+    float_packet e_v = ax * cy - ay * cx;
+    float_packet e_w = bx * ay - by * ax;
+#ifdef cl_khr_fp64
+    int_packet on_edge = (e_u == 0.0f) | (e_v == 0.0f) | (e_w == 0.0f);
+    if (any(on_edge)) {
+        double_packet dax = convert_double_packet(ax), day = convert_double_packet(ay);
+        double_packet dbx = convert_double_packet(bx), dby = convert_double_packet(by);
+        double_packet dcx = convert_double_packet(cx), dcy = convert_double_packet(cy);
+        e_u = select(e_u, convert_float_packet(dcx * dby - dcy * dbx), on_edge);
+        e_v = select(e_v, convert_float_packet(dax * dcy - day * dcx), on_edge);
+        e_w = select(e_w, convert_float_packet(dbx * day - dby * dax), on_edge);
+    }
+#endif
+    int_packet outside = ((e_u < 0.0f) | (e_v < 0.0f) | (e_w < 0.0f))
+                         & ((e_u > 0.0f) | (e_v > 0.0f) | (e_w > 0.0f));
+    float_packet det = e_u + e_v + e_w;
+    float_packet t_scaled = e_u * (p->sz * az) + e_v * (p->sz * bz) + e_w * (p->sz * cz);
+    float_packet inv_det = 1.0f / det;
+    float_packet t = t_scaled * inv_det;
+    int_packet hit = ~outside & (det != 0.0f) & (t >= p->tmin)
+                     & select(t <= limit, t < limit, strict);
+    if (!any(hit))
+        return hit;
+    float nx, ny, nz;
+    geometric_normal(tri, &nx, &ny, &nz);
+    if (nx == 0.0f && ny == 0.0f && nz == 0.0f)
+        return (int_packet)(0);
+    *t_out = t;
+    *u_out = e_v * inv_det;
+    *v_out = e_w * inv_det;
+    return hit;
+}
+
+/* traverse() for a packet: returns each lane's tree-order hit triangle or -1
+ * and its t, u, v.  Children are visited in the order of the nearest entry
+ * over the lanes that hit them; a popped child is skipped when even that
+ * entry lies beyond every lane's limit. */
+TRAVERSAL_INLINE int_packet traverse_packet(const Packet* p, __global const WideNode* nodes,
+                                            __global const Triangle* triangles, bool any_hit,
+                                            float_packet* t_hit, float_packet* u_hit,
+                                            float_packet* v_hit, bool* overflow)
+{
+    int stack_index[STACK_SIZE];
+    uint stack_count[STACK_SIZE];
+    float stack_entry[STACK_SIZE];
+    int sp = 0;
+    int_packet hit_index = (int_packet)(-1);
+    float_packet limit = p->tmax;
+    float reach = packet_max(limit);  /* the farthest any lane still looks */
+    int index = 0;
+    uint count = 0;
+    bool done = false;
+    *overflow = false;
+
+    while (!done) {
+        while (!done && count == 0) {
+            __global const WideNode* n = nodes + index;
+            __global const float* planes = (__global const float*)n;
+            float entry[WIDE_ARITY];
+            int order[WIDE_ARITY];
+            int m = 0;
+            for (int c = 0; c < WIDE_ARITY; ++c) {
+                if (n->child[c] == EMPTY_CHILD)
+                    continue;
+                float_packet near_x = (planes[p->near_x + c] - p->ox) * p->inv_x;
+                float_packet near_y = (planes[p->near_y + c] - p->oy) * p->inv_y;
+                float_packet near_z = (planes[p->near_z + c] - p->oz) * p->inv_z;
+                float_packet far_x = (planes[(p->near_x ^ WIDE_ARITY) + c] - p->ox) * p->inv_x;
+                float_packet far_y = (planes[(p->near_y ^ WIDE_ARITY) + c] - p->oy) * p->inv_y;
+                float_packet far_z = (planes[(p->near_z ^ WIDE_ARITY) + c] - p->oz) * p->inv_z;
+                float_packet t_entry = fmax(fmax(near_x, near_y), fmax(near_z, p->tmin));
+                float_packet t_exit = fmin(fmin(far_x, far_y), far_z) * EXIT_SCALE;
+                int_packet hit = t_entry <= fmin(t_exit, limit);
+                if (any(hit)) {
+                    entry[c] = packet_min(select((float_packet)(INFINITY), t_entry, hit));
+                    order[m++] = c;
+                }
+            }
+            if (m == 0) {
+                done = !pop(stack_index, stack_count, stack_entry, &sp, reach, &index, &count);
+                continue;
+            }
+            if (!descend(n, order, m, entry, stack_index, stack_count, stack_entry, &sp, &index,
+                         &count)) {
+                *overflow = true;
+                return hit_index;
+            }
+        }
+        if (done)
+            break;
+        for (uint i = (uint)index; i < (uint)index + count; ++i) {
+            float_packet t, u, v;
+            int_packet hit = hit_triangle_packet(p, triangles + i, limit, hit_index >= 0,
+                                                 &t, &u, &v);
+            if (any(hit)) {
+                hit_index = select(hit_index, (int_packet)((int)i), hit);
+                limit = select(limit, t, hit);
+                *t_hit = select(*t_hit, t, hit);
+                *u_hit = select(*u_hit, u, hit);
+                *v_hit = select(*v_hit, v, hit);
+                if (any_hit) {
+                    /* a lane that hit is done: no box or triangle is met
+                     * below -INFINITY */
+                    limit = select(limit, (float_packet)(-INFINITY), hit);
+                    if (all(hit_index >= 0))
+                        return hit_index;
+                }
+                reach = packet_max(limit);
+            }
+        }
+        done = !pop(stack_index, stack_count, stack_entry, &sp, reach, &index, &count);
+    }
+    return hit_index;
+}
+#endif /* PACKET_SIZE > 1 */
+
 /* The kernels already compute in vectors (a node's children); the hint
  * keeps Intel's CPU compiler from also packing work-items into SIMD lanes,
  * which measured 3-4x slower at 16 work-items per group (its default is to
@@ -377,18 +635,11 @@ TRAVERSAL_INLINE float3 unit_normal(__global const Triangle* tri)
 }
 
 /* One ray's closest hit as a Hit record (a miss: t = INFINITY, ids -1, the
- * rest 0) and whether it hits anything at all: the two queries, shared by the
- * record kernels and the array kernels.  overflow[0] is set to 1 if the
- * traversal ran out of stack. */
-TRAVERSAL_INLINE Hit closest_hit(RayData r, __global const WideNode* nodes,
-                                 __global const Triangle* triangles,
-                                 __global const TriangleRef* refs, __global int* overflow)
+ * rest 0) from the tree-order index of the triangle hit (-1: none). */
+TRAVERSAL_INLINE Hit make_hit(int index, float t, float u, float v,
+                              __global const Triangle* triangles,
+                              __global const TriangleRef* refs)
 {
-    float t = INFINITY, u = 0.0f, v = 0.0f;
-    bool out_of_stack;
-    int index = traverse(&r, nodes, triangles, false, &t, &u, &v, &out_of_stack);
-    if (out_of_stack)
-        overflow[0] = 1;
     bool found = index >= 0;
     Hit hit;
     hit.t = found ? t : INFINITY;
@@ -403,15 +654,85 @@ TRAVERSAL_INLINE Hit closest_hit(RayData r, __global const WideNode* nodes,
     return hit;
 }
 
-TRAVERSAL_INLINE uchar any_hit(RayData r, __global const WideNode* nodes,
-                               __global const Triangle* triangles, __global int* overflow)
+/* The two queries for the rays lanes[0, used), shared by the record kernels
+ * and the array kernels: closest hits as Hit records, and any hit as 0 or 1.
+ * With packets, the lanes are traced together when make_packet accepts them
+ * and one by one otherwise; lanes[used, PACKET_SIZE) repeat lanes[used - 1]
+ * (a packet pays nothing for them) and are not written.  overflow[0] is set
+ * to 1 if a traversal ran out of stack. */
+TRAVERSAL_INLINE void closest_hits(const RayData* lanes, uint used,
+                                   __global const WideNode* nodes,
+                                   __global const Triangle* triangles,
+                                   __global const TriangleRef* refs, __global int* overflow,
+                                   Hit* hits)
 {
-    float t, u, v;
-    bool out_of_stack;
-    int index = traverse(&r, nodes, triangles, true, &t, &u, &v, &out_of_stack);
+    bool out_of_stack = false;
+#if PACKET_SIZE > 1
+    Packet p;
+    if (make_packet(lanes, &p)) {
+        float_packet t = (float_packet)(INFINITY), u = (float_packet)(0.0f),
+                     v = (float_packet)(0.0f);
+        int index[PACKET_SIZE];
+        float t_lanes[PACKET_SIZE], u_lanes[PACKET_SIZE], v_lanes[PACKET_SIZE];
+        vstore_packet(traverse_packet(&p, nodes, triangles, false, &t, &u, &v, &out_of_stack),
+                      0, index);
+        vstore_packet(t, 0, t_lanes);
+        vstore_packet(u, 0, u_lanes);
+        vstore_packet(v, 0, v_lanes);
+        for (uint l = 0; l < used; ++l)
+            hits[l] = make_hit(index[l], t_lanes[l], u_lanes[l], v_lanes[l], triangles, refs);
+        if (out_of_stack)
+            overflow[0] = 1;
+        return;
+    }
+#endif
+    for (uint l = 0; l < used; ++l) {
+        float t = INFINITY, u = 0.0f, v = 0.0f;
+        bool lane_out_of_stack;
+        int index = traverse(lanes + l, nodes, triangles, false, &t, &u, &v, &lane_out_of_stack);
+        hits[l] = make_hit(index, t, u, v, triangles, refs);
+        out_of_stack |= lane_out_of_stack;
+    }
     if (out_of_stack)
         overflow[0] = 1;
-    return index >= 0 ? 1 : 0;
+}
+
+TRAVERSAL_INLINE void any_hits(const RayData* lanes, uint used, __global const WideNode* nodes,
+                               __global const Triangle* triangles, __global int* overflow,
+                               uchar* occluded)
+{
+    bool out_of_stack = false;
+#if PACKET_SIZE > 1
+    Packet p;
+    if (make_packet(lanes, &p)) {
+        float_packet t, u, v;
+        int index[PACKET_SIZE];
+        vstore_packet(traverse_packet(&p, nodes, triangles, true, &t, &u, &v, &out_of_stack),
+                      0, index);
+        for (uint l = 0; l < used; ++l)
+            occluded[l] = index[l] >= 0 ? 1 : 0;
+        if (out_of_stack)
+            overflow[0] = 1;
+        return;
+    }
+#endif
+    for (uint l = 0; l < used; ++l) {
+        float t, u, v;
+        bool lane_out_of_stack;
+        int index = traverse(lanes + l, nodes, triangles, true, &t, &u, &v, &lane_out_of_stack);
+        occluded[l] = index >= 0 ? 1 : 0;
+        out_of_stack |= lane_out_of_stack;
+    }
+    if (out_of_stack)
+        overflow[0] = 1;
+}
+
+/* Work-item i traces rays [i * PACKET_SIZE, ...) : how many of them exist
+ * (0 for the items past the end), and the first one. */
+TRAVERSAL_INLINE uint packet_rays(uint ray_count, uint* first)
+{
+    *first = get_global_id(0) * PACKET_SIZE;
+    return *first < ray_count ? min((uint)PACKET_SIZE, ray_count - *first) : 0;
 }
 
 /* Closest hit of rays[0, ray_count) -> hits (the renderer's records). */
@@ -423,9 +744,16 @@ TRAVERSAL_KERNEL void intersect_closest(__global const WideNode* nodes,
                                         __global int* overflow,
                                         const uint ray_count)
 {
-    uint gid = get_global_id(0);
-    if (gid < ray_count)
-        hits[gid] = closest_hit(prepare_ray_record(rays + gid), nodes, triangles, refs, overflow);
+    uint first, used = packet_rays(ray_count, &first);
+    if (used == 0)
+        return;
+    RayData lanes[PACKET_SIZE];
+    for (uint l = 0; l < PACKET_SIZE; ++l)
+        lanes[l] = prepare_ray_record(rays + first + min(l, used - 1));
+    Hit found[PACKET_SIZE];
+    closest_hits(lanes, used, nodes, triangles, refs, overflow, found);
+    for (uint l = 0; l < used; ++l)
+        hits[first + l] = found[l];
 }
 
 /* Occlusion of rays[0, ray_count): occluded[i] = 1 if anything is hit. */
@@ -436,9 +764,16 @@ TRAVERSAL_KERNEL void intersect_any(__global const WideNode* nodes,
                                     __global int* overflow,
                                     const uint ray_count)
 {
-    uint gid = get_global_id(0);
-    if (gid < ray_count)
-        occluded[gid] = any_hit(prepare_ray_record(rays + gid), nodes, triangles, overflow);
+    uint first, used = packet_rays(ray_count, &first);
+    if (used == 0)
+        return;
+    RayData lanes[PACKET_SIZE];
+    for (uint l = 0; l < PACKET_SIZE; ++l)
+        lanes[l] = prepare_ray_record(rays + first + min(l, used - 1));
+    uchar found[PACKET_SIZE];
+    any_hits(lanes, used, nodes, triangles, overflow, found);
+    for (uint l = 0; l < used; ++l)
+        occluded[first + l] = found[l];
 }
 
 /* The same two queries on the arrays numpy users hand in and get back
@@ -446,14 +781,19 @@ TRAVERSAL_KERNEL void intersect_any(__global const WideNode* nodes,
  * array per result field, so that the host neither packs records nor picks
  * fields out of them (measured: that repacking took as long as tracing
  * camera rays).  tmin[i * tmin_step], tmax[i * tmax_step]: step 0 gives
- * every ray the same limit. */
-TRAVERSAL_INLINE RayData prepare_ray_arrays(uint i, __global const float* origins,
-                                            __global const float* directions,
-                                            __global const float* tmin, uint tmin_step,
-                                            __global const float* tmax, uint tmax_step)
+ * every ray the same limit.  Lanes past `used` repeat the last ray. */
+TRAVERSAL_INLINE void prepare_lanes_arrays(uint first, uint used,
+                                           __global const float* origins,
+                                           __global const float* directions,
+                                           __global const float* tmin, uint tmin_step,
+                                           __global const float* tmax, uint tmax_step,
+                                           RayData* lanes)
 {
-    return prepare_ray(vload3(i, origins), vload3(i, directions), tmin[i * tmin_step],
-                       tmax[i * tmax_step]);
+    for (uint l = 0; l < PACKET_SIZE; ++l) {
+        uint i = first + min(l, used - 1);
+        lanes[l] = prepare_ray(vload3(i, origins), vload3(i, directions), tmin[i * tmin_step],
+                               tmax[i * tmax_step]);
+    }
 }
 
 TRAVERSAL_KERNEL void intersect_closest_arrays(__global const WideNode* nodes,
@@ -468,17 +808,23 @@ TRAVERSAL_KERNEL void intersect_closest_arrays(__global const WideNode* nodes,
                                                __global float* v_out, __global float* normal_out,
                                                __global int* overflow, const uint ray_count)
 {
-    uint gid = get_global_id(0);
-    if (gid >= ray_count)
+    uint first, used = packet_rays(ray_count, &first);
+    if (used == 0)
         return;
-    Hit hit = closest_hit(prepare_ray_arrays(gid, origins, directions, tmin, tmin_step, tmax,
-                                             tmax_step), nodes, triangles, refs, overflow);
-    t_out[gid] = hit.t;
-    geom_out[gid] = hit.geom_id;
-    prim_out[gid] = hit.prim_id;
-    u_out[gid] = hit.u;
-    v_out[gid] = hit.v;
-    vstore3(vload3(0, hit.normal), gid, normal_out);
+    RayData lanes[PACKET_SIZE];
+    prepare_lanes_arrays(first, used, origins, directions, tmin, tmin_step, tmax, tmax_step,
+                         lanes);
+    Hit found[PACKET_SIZE];
+    closest_hits(lanes, used, nodes, triangles, refs, overflow, found);
+    for (uint l = 0; l < used; ++l) {
+        uint i = first + l;
+        t_out[i] = found[l].t;
+        geom_out[i] = found[l].geom_id;
+        prim_out[i] = found[l].prim_id;
+        u_out[i] = found[l].u;
+        v_out[i] = found[l].v;
+        vstore3(vload3(0, found[l].normal), i, normal_out);
+    }
 }
 
 TRAVERSAL_KERNEL void intersect_any_arrays(__global const WideNode* nodes,
@@ -490,9 +836,14 @@ TRAVERSAL_KERNEL void intersect_any_arrays(__global const WideNode* nodes,
                                            __global uchar* occluded, __global int* overflow,
                                            const uint ray_count)
 {
-    uint gid = get_global_id(0);
-    if (gid >= ray_count)
+    uint first, used = packet_rays(ray_count, &first);
+    if (used == 0)
         return;
-    occluded[gid] = any_hit(prepare_ray_arrays(gid, origins, directions, tmin, tmin_step, tmax,
-                                               tmax_step), nodes, triangles, overflow);
+    RayData lanes[PACKET_SIZE];
+    prepare_lanes_arrays(first, used, origins, directions, tmin, tmin_step, tmax, tmax_step,
+                         lanes);
+    uchar found[PACKET_SIZE];
+    any_hits(lanes, used, nodes, triangles, overflow, found);
+    for (uint l = 0; l < used; ++l)
+        occluded[first + l] = found[l];
 }

@@ -1,0 +1,122 @@
+"""Ray packets (kernels/traverse.cl, PACKET_SIZE): on CPUs a work-item traces
+8 consecutive rays together when they share direction signs and the axis of
+the watertight test, and one by one otherwise.  Every packet size must give
+the oracle's answers (tests/oracle.py), including watertightness; these
+tests use rays that do form packets, and check that they do.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import hlbvh_cl
+from hlbvh_cl.query import PACKET_SIZES, RayQuery
+from test_query import MESHES, assert_matches_oracle, random_rays, scene_case
+from test_watertight import _interior_points, _unique_edges
+
+
+def packet_keys(directions: np.ndarray) -> np.ndarray:
+    """What make_packet compares between lanes: the axis of largest |d| (kz,
+    ties as the kernel breaks them) and the sign bits of the direction."""
+    a = np.abs(directions)
+    kz = np.where((a[:, 0] >= a[:, 1]) & (a[:, 0] >= a[:, 2]), 0, np.where(a[:, 1] >= a[:, 2], 1, 2))
+    return kz * 8 + (np.signbit(directions) * [1, 2, 4]).sum(axis=1)
+
+
+def coherent_fraction(directions: np.ndarray, packet_size: int) -> float:
+    """Fraction of the whole packets whose lanes make_packet accepts."""
+    whole = len(directions) // packet_size * packet_size
+    keys = packet_keys(directions[:whole]).reshape(-1, packet_size)
+    return float(np.mean(np.all(keys == keys[:, :1], axis=1)))
+
+
+def camera_rays(case, width: int, height: int):
+    """Row-major pinhole rays (40 degrees) from outside the box, looking at its centre."""
+    centre = (case.lo + case.hi) / 2
+    eye = centre + np.array([0.2, 0.3, 1.0]) / np.linalg.norm([0.2, 0.3, 1.0]) * 1.3 * case.extent
+    forward = (centre - eye) / np.linalg.norm(centre - eye)
+    right = np.cross(forward, [0.0, 1.0, 0.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    half = np.tan(np.radians(20.0))
+    x = (2 * (np.arange(width) + 0.5) / width - 1) * half * width / height
+    y = (1 - 2 * (np.arange(height) + 0.5) / height) * half
+    directions = (forward + x[None, :, None] * right + y[:, None, None] * up).reshape(-1, 3)
+    origins = np.broadcast_to(eye, directions.shape)
+    return origins.astype(np.float32), directions.astype(np.float32)
+
+
+def query(case, packet_size: int) -> RayQuery:
+    return RayQuery(case.scene.runtime, packet_size=packet_size)
+
+
+@pytest.mark.parametrize("packet_size", PACKET_SIZES)
+@pytest.mark.parametrize("name", ["knight", "bunny_small", "teapot", "cube"])
+def test_camera_rays_match_oracle(name, packet_size):
+    case = scene_case(name)
+    origins, directions = camera_rays(case, 48, 32)
+    if packet_size > 1:  # most rays go in packets, some one by one (kz changes across the view)
+        assert 0.5 < coherent_fraction(directions, packet_size) < 1.0
+    q = query(case, packet_size)
+    hits = q.intersect(case.scene.tree, origins, directions)
+    assert_matches_oracle(case, hits, origins, directions)
+    assert 0.1 < hits.hit.mean(), "the camera should see the mesh"
+    np.testing.assert_array_equal(q.occluded(case.scene.tree, origins, directions), hits.hit)
+    # a tmax per ray that cuts off about half of the hits, varying within packets
+    tmax = np.where(hits.hit, hits.t * np.random.default_rng(3).uniform(0.5, 1.5, len(hits)),
+                    np.inf).astype(np.float32)
+    cut = q.intersect(case.scene.tree, origins, directions, tmax=tmax)
+    assert_matches_oracle(case, cut, origins, directions, tmax=tmax)
+    assert 0 < cut.hit.sum() < hits.hit.sum()
+    np.testing.assert_array_equal(q.occluded(case.scene.tree, origins, directions, tmax=tmax),
+                                  cut.hit)
+
+
+@pytest.mark.parametrize("packet_size", [8, 16])
+def test_partial_and_mixed_packets_match_oracle(packet_size):
+    """Ray counts that leave the last packet part-full, and packets whose
+    lanes mix coherent and random rays (traced one by one)."""
+    case = scene_case("knight")
+    origins, directions = camera_rays(case, 24, 16)
+    wild_o, wild_d = random_rays(case, len(origins), seed=9)
+    mixed = np.arange(len(origins)) % 5 == 0
+    origins, directions = origins.copy(), directions.copy()
+    origins[mixed], directions[mixed] = wild_o[mixed], wild_d[mixed]
+    q = query(case, packet_size)
+    for count in (1, packet_size - 1, packet_size + 1, 3 * packet_size + 5, len(origins)):
+        hits = q.intersect(case.scene.tree, origins[:count], directions[:count])
+        assert_matches_oracle(case, hits, origins[:count], directions[:count])
+        np.testing.assert_array_equal(
+            q.occluded(case.scene.tree, origins[:count], directions[:count]), hits.hit)
+
+
+@pytest.mark.parametrize("packet_size", [8, 16])
+@pytest.mark.parametrize("name", ["knight", "armadillo"])
+def test_rays_from_inside_in_packets_always_hit(name, packet_size):
+    """test_watertight's rays at vertices and edge midpoints, ordered so that
+    they form packets."""
+    mesh = hlbvh_cl.Mesh.load(MESHES / f"{name}.ply")
+    scene = hlbvh_cl.Scene([mesh])
+    q = RayQuery(scene.runtime, packet_size=packet_size)
+    vertices = mesh.vertices.astype(np.float64)
+    edges = _unique_edges(mesh.faces)
+    midpoints = (vertices[edges[:, 0]] + vertices[edges[:, 1]]) / 2
+    for origin in _interior_points(mesh, 2, seed=4):
+        for what, points in (("vertices", vertices), ("edge midpoints", midpoints)):
+            directions = (points - origin).astype(np.float32)
+            directions = directions[np.any(directions != 0, axis=1)]
+            directions = directions[np.argsort(packet_keys(directions), kind="stable")]
+            assert coherent_fraction(directions, packet_size) > 0.6
+            origins = np.repeat(origin[None].astype(np.float32), len(directions), 0)
+            hits = q.intersect(scene.tree, origins, directions)
+            missed = np.flatnonzero(~hits.hit)
+            assert len(missed) == 0, (f"{name}: {len(missed)} of {len(directions)} rays from "
+                                      f"inside aimed at {what} escaped (first: directions "
+                                      f"{directions[missed[:3]].tolist()})")
+            assert q.occluded(scene.tree, origins, directions).all()
+
+
+def test_packet_size_is_checked():
+    case = scene_case("cube")
+    with pytest.raises(ValueError, match="packet_size"):
+        RayQuery(case.scene.runtime, packet_size=4)
