@@ -394,7 +394,9 @@ def _load_mesh(reader: _Reader, spec: _MeshSpec, ground_y: float, step) -> MeshE
 
     used = _used_rows(faces, len(vertices))
     points = vertices.astype(np.float64) * np.array(spec.scale)
-    points = points @ _rotation(spec.rotate_deg).T
+    # einsum, not a matrix product: BLAS threads spin on after the call and
+    # would slow the build kernels that follow on a CPU device.
+    points = np.einsum("ij,kj->ik", points, _rotation(spec.rotate_deg))
     if spec.fit_height is not None:
         extent = np.ptp(points[used, 1])
         if not extent > 0:

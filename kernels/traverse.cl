@@ -124,9 +124,35 @@ TRAVERSAL_INLINE RayData prepare_ray(float3 origin, float3 direction, float tmin
     return r;
 }
 
-TRAVERSAL_INLINE RayData prepare_ray_record(__global const Ray* ray)
+/* The rays one work-item traces, one lane each (PACKET_SIZE of them), as
+ * loaded: lanes past the last ray repeat it (a packet pays nothing for them
+ * and they are not written back). */
+typedef struct {
+    float origin[3][PACKET_SIZE];
+    float direction[3][PACKET_SIZE];
+    float tmin[PACKET_SIZE];
+    float tmax[PACKET_SIZE];
+} RayLanes;
+
+TRAVERSAL_INLINE void set_lane(RayLanes* lanes, uint l, float3 origin, float3 direction,
+                               float tmin, float tmax)
 {
-    return prepare_ray(vload3(0, ray->origin), vload3(0, ray->direction), ray->tmin, ray->tmax);
+    lanes->origin[0][l] = origin.x;
+    lanes->origin[1][l] = origin.y;
+    lanes->origin[2][l] = origin.z;
+    lanes->direction[0][l] = direction.x;
+    lanes->direction[1][l] = direction.y;
+    lanes->direction[2][l] = direction.z;
+    lanes->tmin[l] = tmin;
+    lanes->tmax[l] = tmax;
+}
+
+TRAVERSAL_INLINE RayData prepare_lane(const RayLanes* lanes, uint l)
+{
+    return prepare_ray((float3)(lanes->origin[0][l], lanes->origin[1][l], lanes->origin[2][l]),
+                       (float3)(lanes->direction[0][l], lanes->direction[1][l],
+                                lanes->direction[2][l]),
+                       lanes->tmin[l], lanes->tmax[l]);
 }
 
 /* Slab test (Kay & Kajiya 1986) of a wide node's WIDE_ARITY child boxes
@@ -450,37 +476,43 @@ TRAVERSAL_INLINE float packet_max(float_packet v)
     return fmax(c.x, c.y);
 }
 
-/* Gathers the lanes' RayData into a Packet; false when they do not share
- * direction signs and kz (then they are traced one by one). */
-TRAVERSAL_INLINE bool make_packet(const RayData* lanes, Packet* p)
+/* prepare_ray for every lane, in vector arithmetic; false when the lanes do
+ * not share direction signs and kz (then they are traced one by one). */
+TRAVERSAL_INLINE bool prepare_packet(const RayLanes* in, Packet* p)
 {
-    const RayData* r0 = lanes;
-    for (int l = 1; l < PACKET_SIZE; ++l) {
-        const RayData* r = lanes + l;
-        if (r->kz != r0->kz || r->near_x != r0->near_x || r->near_y != r0->near_y
-            || r->near_z != r0->near_z)
-            return false;
+    float_packet o[3], d[3];
+    for (int k = 0; k < 3; ++k) {
+        o[k] = vload_packet(0, in->origin[k]);
+        d[k] = vload_packet(0, in->direction[k]);
     }
-    float f[13][PACKET_SIZE];
-    for (int l = 0; l < PACKET_SIZE; ++l) {
-        const RayData* r = lanes + l;
-        f[0][l] = r->ox;  f[1][l] = r->oy;  f[2][l] = r->oz;
-        f[3][l] = r->inv_x;  f[4][l] = r->inv_y;  f[5][l] = r->inv_z;
-        f[6][l] = r->tmin;  f[7][l] = r->tmax;
-        f[8][l] = r->sx;  f[9][l] = r->sy;  f[10][l] = r->sz;
-        f[11][l] = r->okx;  f[12][l] = r->oky;
-    }
-    p->ox = vload_packet(0, f[0]);  p->oy = vload_packet(0, f[1]);  p->oz = vload_packet(0, f[2]);
-    p->inv_x = vload_packet(0, f[3]);  p->inv_y = vload_packet(0, f[4]);
-    p->inv_z = vload_packet(0, f[5]);
-    p->tmin = vload_packet(0, f[6]);  p->tmax = vload_packet(0, f[7]);
-    p->sx = vload_packet(0, f[8]);  p->sy = vload_packet(0, f[9]);  p->sz = vload_packet(0, f[10]);
-    p->okx = vload_packet(0, f[11]);  p->oky = vload_packet(0, f[12]);
-    for (int l = 0; l < PACKET_SIZE; ++l)
-        f[0][l] = lanes[l].okz;
-    p->okz = vload_packet(0, f[0]);
-    p->kx = r0->kx;  p->ky = r0->ky;  p->kz = r0->kz;
-    p->near_x = r0->near_x;  p->near_y = r0->near_y;  p->near_z = r0->near_z;
+    float_packet ax = fabs(d[0]), ay = fabs(d[1]), az = fabs(d[2]);
+    int_packet kz = select(select((int_packet)(2), (int_packet)(1), ay >= az), (int_packet)(0),
+                           (ax >= ay) & (ax >= az));
+    int_packet neg_x = signbit(d[0]), neg_y = signbit(d[1]), neg_z = signbit(d[2]);
+    if (any((kz != (int_packet)(kz.s0)) | (neg_x != (int_packet)(neg_x.s0))
+            | (neg_y != (int_packet)(neg_y.s0)) | (neg_z != (int_packet)(neg_z.s0))))
+        return false;
+    p->kz = kz.s0;
+    p->kx = p->kz == 2 ? 0 : p->kz + 1;
+    p->ky = p->kx == 2 ? 0 : p->kx + 1;
+    p->ox = o[0];
+    p->oy = o[1];
+    p->oz = o[2];
+    p->inv_x = 1.0f / d[0];
+    p->inv_y = 1.0f / d[1];
+    p->inv_z = 1.0f / d[2];
+    p->tmin = vload_packet(0, in->tmin);
+    p->tmax = vload_packet(0, in->tmax);
+    float_packet dkz = d[p->kz];
+    p->sx = d[p->kx] / dkz;
+    p->sy = d[p->ky] / dkz;
+    p->sz = 1.0f / dkz;
+    p->okx = o[p->kx];
+    p->oky = o[p->ky];
+    p->okz = o[p->kz];
+    p->near_x = 0 * WIDE_ARITY + (neg_x.s0 ? WIDE_ARITY : 0);
+    p->near_y = 2 * WIDE_ARITY + (neg_y.s0 ? WIDE_ARITY : 0);
+    p->near_z = 4 * WIDE_ARITY + (neg_z.s0 ? WIDE_ARITY : 0);
     return true;
 }
 
@@ -656,11 +688,11 @@ TRAVERSAL_INLINE Hit make_hit(int index, float t, float u, float v,
 
 /* The two queries for the rays lanes[0, used), shared by the record kernels
  * and the array kernels: closest hits as Hit records, and any hit as 0 or 1.
- * With packets, the lanes are traced together when make_packet accepts them
+ * With packets, the lanes are traced together when prepare_packet accepts them
  * and one by one otherwise; lanes[used, PACKET_SIZE) repeat lanes[used - 1]
  * (a packet pays nothing for them) and are not written.  overflow[0] is set
  * to 1 if a traversal ran out of stack. */
-TRAVERSAL_INLINE void closest_hits(const RayData* lanes, uint used,
+TRAVERSAL_INLINE void closest_hits(const RayLanes* lanes, uint used,
                                    __global const WideNode* nodes,
                                    __global const Triangle* triangles,
                                    __global const TriangleRef* refs, __global int* overflow,
@@ -669,7 +701,7 @@ TRAVERSAL_INLINE void closest_hits(const RayData* lanes, uint used,
     bool out_of_stack = false;
 #if PACKET_SIZE > 1
     Packet p;
-    if (make_packet(lanes, &p)) {
+    if (prepare_packet(lanes, &p)) {
         float_packet t = (float_packet)(INFINITY), u = (float_packet)(0.0f),
                      v = (float_packet)(0.0f);
         int index[PACKET_SIZE];
@@ -689,7 +721,8 @@ TRAVERSAL_INLINE void closest_hits(const RayData* lanes, uint used,
     for (uint l = 0; l < used; ++l) {
         float t = INFINITY, u = 0.0f, v = 0.0f;
         bool lane_out_of_stack;
-        int index = traverse(lanes + l, nodes, triangles, false, &t, &u, &v, &lane_out_of_stack);
+        RayData r = prepare_lane(lanes, l);
+        int index = traverse(&r, nodes, triangles, false, &t, &u, &v, &lane_out_of_stack);
         hits[l] = make_hit(index, t, u, v, triangles, refs);
         out_of_stack |= lane_out_of_stack;
     }
@@ -697,14 +730,14 @@ TRAVERSAL_INLINE void closest_hits(const RayData* lanes, uint used,
         overflow[0] = 1;
 }
 
-TRAVERSAL_INLINE void any_hits(const RayData* lanes, uint used, __global const WideNode* nodes,
+TRAVERSAL_INLINE void any_hits(const RayLanes* lanes, uint used, __global const WideNode* nodes,
                                __global const Triangle* triangles, __global int* overflow,
                                uchar* occluded)
 {
     bool out_of_stack = false;
 #if PACKET_SIZE > 1
     Packet p;
-    if (make_packet(lanes, &p)) {
+    if (prepare_packet(lanes, &p)) {
         float_packet t, u, v;
         int index[PACKET_SIZE];
         vstore_packet(traverse_packet(&p, nodes, triangles, true, &t, &u, &v, &out_of_stack),
@@ -719,7 +752,8 @@ TRAVERSAL_INLINE void any_hits(const RayData* lanes, uint used, __global const W
     for (uint l = 0; l < used; ++l) {
         float t, u, v;
         bool lane_out_of_stack;
-        int index = traverse(lanes + l, nodes, triangles, true, &t, &u, &v, &lane_out_of_stack);
+        RayData r = prepare_lane(lanes, l);
+        int index = traverse(&r, nodes, triangles, true, &t, &u, &v, &lane_out_of_stack);
         occluded[l] = index >= 0 ? 1 : 0;
         out_of_stack |= lane_out_of_stack;
     }
@@ -735,6 +769,16 @@ TRAVERSAL_INLINE uint packet_rays(uint ray_count, uint* first)
     return *first < ray_count ? min((uint)PACKET_SIZE, ray_count - *first) : 0;
 }
 
+TRAVERSAL_INLINE void load_lanes_records(__global const Ray* rays, uint first, uint used,
+                                         RayLanes* lanes)
+{
+    for (uint l = 0; l < PACKET_SIZE; ++l) {
+        __global const Ray* ray = rays + first + min(l, used - 1);
+        set_lane(lanes, l, vload3(0, ray->origin), vload3(0, ray->direction), ray->tmin,
+                 ray->tmax);
+    }
+}
+
 /* Closest hit of rays[0, ray_count) -> hits (the renderer's records). */
 TRAVERSAL_KERNEL void intersect_closest(__global const WideNode* nodes,
                                         __global const Triangle* triangles,
@@ -747,11 +791,10 @@ TRAVERSAL_KERNEL void intersect_closest(__global const WideNode* nodes,
     uint first, used = packet_rays(ray_count, &first);
     if (used == 0)
         return;
-    RayData lanes[PACKET_SIZE];
-    for (uint l = 0; l < PACKET_SIZE; ++l)
-        lanes[l] = prepare_ray_record(rays + first + min(l, used - 1));
+    RayLanes lanes;
+    load_lanes_records(rays, first, used, &lanes);
     Hit found[PACKET_SIZE];
-    closest_hits(lanes, used, nodes, triangles, refs, overflow, found);
+    closest_hits(&lanes, used, nodes, triangles, refs, overflow, found);
     for (uint l = 0; l < used; ++l)
         hits[first + l] = found[l];
 }
@@ -767,11 +810,10 @@ TRAVERSAL_KERNEL void intersect_any(__global const WideNode* nodes,
     uint first, used = packet_rays(ray_count, &first);
     if (used == 0)
         return;
-    RayData lanes[PACKET_SIZE];
-    for (uint l = 0; l < PACKET_SIZE; ++l)
-        lanes[l] = prepare_ray_record(rays + first + min(l, used - 1));
+    RayLanes lanes;
+    load_lanes_records(rays, first, used, &lanes);
     uchar found[PACKET_SIZE];
-    any_hits(lanes, used, nodes, triangles, overflow, found);
+    any_hits(&lanes, used, nodes, triangles, overflow, found);
     for (uint l = 0; l < used; ++l)
         occluded[first + l] = found[l];
 }
@@ -782,17 +824,16 @@ TRAVERSAL_KERNEL void intersect_any(__global const WideNode* nodes,
  * fields out of them (measured: that repacking took as long as tracing
  * camera rays).  tmin[i * tmin_step], tmax[i * tmax_step]: step 0 gives
  * every ray the same limit.  Lanes past `used` repeat the last ray. */
-TRAVERSAL_INLINE void prepare_lanes_arrays(uint first, uint used,
-                                           __global const float* origins,
-                                           __global const float* directions,
-                                           __global const float* tmin, uint tmin_step,
-                                           __global const float* tmax, uint tmax_step,
-                                           RayData* lanes)
+TRAVERSAL_INLINE void load_lanes_arrays(uint first, uint used, __global const float* origins,
+                                        __global const float* directions,
+                                        __global const float* tmin, uint tmin_step,
+                                        __global const float* tmax, uint tmax_step,
+                                        RayLanes* lanes)
 {
     for (uint l = 0; l < PACKET_SIZE; ++l) {
         uint i = first + min(l, used - 1);
-        lanes[l] = prepare_ray(vload3(i, origins), vload3(i, directions), tmin[i * tmin_step],
-                               tmax[i * tmax_step]);
+        set_lane(lanes, l, vload3(i, origins), vload3(i, directions), tmin[i * tmin_step],
+                 tmax[i * tmax_step]);
     }
 }
 
@@ -811,11 +852,11 @@ TRAVERSAL_KERNEL void intersect_closest_arrays(__global const WideNode* nodes,
     uint first, used = packet_rays(ray_count, &first);
     if (used == 0)
         return;
-    RayData lanes[PACKET_SIZE];
-    prepare_lanes_arrays(first, used, origins, directions, tmin, tmin_step, tmax, tmax_step,
-                         lanes);
+    RayLanes lanes;
+    load_lanes_arrays(first, used, origins, directions, tmin, tmin_step, tmax, tmax_step,
+                      &lanes);
     Hit found[PACKET_SIZE];
-    closest_hits(lanes, used, nodes, triangles, refs, overflow, found);
+    closest_hits(&lanes, used, nodes, triangles, refs, overflow, found);
     for (uint l = 0; l < used; ++l) {
         uint i = first + l;
         t_out[i] = found[l].t;
@@ -839,11 +880,11 @@ TRAVERSAL_KERNEL void intersect_any_arrays(__global const WideNode* nodes,
     uint first, used = packet_rays(ray_count, &first);
     if (used == 0)
         return;
-    RayData lanes[PACKET_SIZE];
-    prepare_lanes_arrays(first, used, origins, directions, tmin, tmin_step, tmax, tmax_step,
-                         lanes);
+    RayLanes lanes;
+    load_lanes_arrays(first, used, origins, directions, tmin, tmin_step, tmax, tmax_step,
+                      &lanes);
     uchar found[PACKET_SIZE];
-    any_hits(lanes, used, nodes, triangles, overflow, found);
+    any_hits(&lanes, used, nodes, triangles, overflow, found);
     for (uint l = 0; l < used; ++l)
         occluded[first + l] = found[l];
 }
