@@ -566,6 +566,34 @@ TRAVERSAL_INLINE int_packet hit_triangle_packet(const Packet* p, __global const 
     return hit;
 }
 
+/* The triangles [first, first + count) of a leaf against every lane: the
+ * lanes that hit one nearer than their limit take it (limit, hit_index, t, u,
+ * v) and `reach` follows.  For any hit a lane that hits is done (its limit
+ * becomes -INFINITY, below every box and triangle); returns true when every
+ * lane is. */
+TRAVERSAL_INLINE bool hit_leaf_packet(const Packet* p, __global const Triangle* triangles,
+                                      int first, uint count, bool any_hit, float_packet* limit,
+                                      float* reach, int_packet* hit_index, float_packet* t_hit,
+                                      float_packet* u_hit, float_packet* v_hit)
+{
+    for (uint i = (uint)first; i < (uint)first + count; ++i) {
+        float_packet t, u, v;
+        int_packet hit = hit_triangle_packet(p, triangles + i, *limit, *hit_index >= 0, &t, &u,
+                                             &v);
+        if (!any(hit))
+            continue;
+        *hit_index = select(*hit_index, (int_packet)((int)i), hit);
+        *limit = select(*limit, any_hit ? (float_packet)(-INFINITY) : t, hit);
+        *t_hit = select(*t_hit, t, hit);
+        *u_hit = select(*u_hit, u, hit);
+        *v_hit = select(*v_hit, v, hit);
+        *reach = packet_max(*limit);
+        if (any_hit && all(*hit_index >= 0))
+            return true;
+    }
+    return false;
+}
+
 /* traverse() for a packet: returns each lane's tree-order hit triangle or -1
  * and its t, u, v.  Children are visited in the order of the nearest entry
  * over the lanes that hit them; a popped child is skipped when even that
@@ -611,6 +639,19 @@ TRAVERSAL_INLINE int_packet traverse_packet(const Packet* p, __global const Wide
                     order[m++] = c;
                 }
             }
+            if (any_hit) {
+                /* As traverse(): the leaves in reach first (shadow rays). */
+                int interior = 0;
+                for (int a = 0; a < m; ++a) {
+                    int slot = order[a];
+                    if (n->count[slot] == 0)
+                        order[interior++] = slot;
+                    else if (hit_leaf_packet(p, triangles, n->child[slot], n->count[slot], true,
+                                             &limit, &reach, &hit_index, t_hit, u_hit, v_hit))
+                        return hit_index;
+                }
+                m = interior;
+            }
             if (m == 0) {
                 done = !pop(stack_index, stack_count, stack_entry, &sp, reach, &index, &count);
                 continue;
@@ -623,26 +664,9 @@ TRAVERSAL_INLINE int_packet traverse_packet(const Packet* p, __global const Wide
         }
         if (done)
             break;
-        for (uint i = (uint)index; i < (uint)index + count; ++i) {
-            float_packet t, u, v;
-            int_packet hit = hit_triangle_packet(p, triangles + i, limit, hit_index >= 0,
-                                                 &t, &u, &v);
-            if (any(hit)) {
-                hit_index = select(hit_index, (int_packet)((int)i), hit);
-                limit = select(limit, t, hit);
-                *t_hit = select(*t_hit, t, hit);
-                *u_hit = select(*u_hit, u, hit);
-                *v_hit = select(*v_hit, v, hit);
-                if (any_hit) {
-                    /* a lane that hit is done: no box or triangle is met
-                     * below -INFINITY */
-                    limit = select(limit, (float_packet)(-INFINITY), hit);
-                    if (all(hit_index >= 0))
-                        return hit_index;
-                }
-                reach = packet_max(limit);
-            }
-        }
+        if (hit_leaf_packet(p, triangles, index, count, any_hit, &limit, &reach, &hit_index,
+                            t_hit, u_hit, v_hit))
+            return hit_index;
         done = !pop(stack_index, stack_count, stack_entry, &sp, reach, &index, &count);
     }
     return hit_index;
