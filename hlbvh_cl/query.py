@@ -21,6 +21,7 @@ import pyopencl as cl
 
 from . import layout
 from .device import Runtime
+from .results import ResultPool
 from .tree import DeviceTree
 from .widen import WideTree, wide_tree
 
@@ -94,13 +95,16 @@ def _work_group_size(rt: Runtime) -> int:
 #: one buffer per field of the results (kernels/traverse.cl's *_arrays kernels).
 RAY_ARRAYS = {"origins": 12, "directions": 12, "tmin": 4, "tmax": 4}
 HIT_ARRAYS = {"t": 4, "geom_id": 4, "prim_id": 4, "u": 4, "v": 4, "normal": 12}
+HIT_DTYPES = {"t": np.float32, "geom_id": np.int32, "prim_id": np.int32, "u": np.float32,
+              "v": np.float32, "normal": np.float32}
 OCCLUDED_ARRAYS = {"occluded": 1}
 
 
 class RayQuery:
     """Closest-hit and any-hit queries on one device.
 
-    Device buffers for rays and results are reused between calls and only grow.
+    Device buffers for rays and results are reused between calls and only grow,
+    and so is the host memory of results the caller has dropped (ResultPool).
     Rays go up and results come back as the numpy arrays themselves (one
     buffer per field, no packing on the host).  ``max_rays_per_launch`` caps
     the rays per kernel launch (bigger batches are split into chunks); by
@@ -123,6 +127,7 @@ class RayQuery:
         self._buffers: dict[str, cl.Buffer] = {}
         self._overflow = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 4)
         self._lock = threading.Lock()
+        self._results = ResultPool()
         #: device time of the last query's kernels, milliseconds
         self.last_kernel_ms = 0.0
 
@@ -146,9 +151,9 @@ class RayQuery:
         """Closest hit of each ray (origins[i] + t * directions[i], tmin <= t <= tmax)."""
         origins, directions, tmin, tmax = _check_rays(origins, directions, tmin, tmax)
         count = len(origins)
-        hits = Hits(t=np.empty(count, np.float32), prim_id=np.empty(count, np.int32),
-                    geom_id=np.empty(count, np.int32), u=np.empty(count, np.float32),
-                    v=np.empty(count, np.float32), normal=np.empty((count, 3), np.float32))
+        hits = Hits(**self._results.arrays(
+            {name: ((count, 3) if name == "normal" else (count,), HIT_DTYPES[name])
+             for name in HIT_ARRAYS}))
         if count and self._check_tree(tree):
             kernel, nodes = self._kernel(tree, "intersect_closest_arrays")
 
@@ -171,7 +176,7 @@ class RayQuery:
         """bool (R,): whether anything is hit with tmin <= t <= tmax (stops at the first hit)."""
         origins, directions, tmin, tmax = _check_rays(origins, directions, tmin, tmax)
         count = len(origins)
-        result = np.zeros(count, np.uint8)
+        result = self._results.arrays({"occluded": ((count,), np.uint8)})["occluded"]
         if count and self._check_tree(tree):
             kernel, nodes = self._kernel(tree, "intersect_any_arrays")
 
