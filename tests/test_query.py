@@ -423,7 +423,10 @@ def test_empty_batch():
     assert occluded.shape == (0,) and occluded.dtype == bool
 
 
-def test_batches_split_into_chunks_equal_one_launch():
+@pytest.mark.parametrize("zero_copy", [True, False], ids=["in-place", "device-copies"])
+def test_batches_split_into_chunks_equal_one_launch(zero_copy):
+    """Also: the kernels on the numpy arrays in place (CPUs) and through device
+    buffers (GPUs) give the same results."""
     case = scene_case("bunny_small")
     origins, directions = random_rays(case, 5000, seed=11)
     rng = np.random.default_rng(12)
@@ -431,6 +434,7 @@ def test_batches_split_into_chunks_equal_one_launch():
     tmax = tmin + rng.uniform(0.5, 3, len(origins))
     whole = RayQuery(case.scene.runtime)
     chunked = RayQuery(case.scene.runtime, max_rays_per_launch=777)
+    chunked.zero_copy = zero_copy
     assert chunked.max_rays_per_launch == 777 and whole.max_rays_per_launch >= 5000
     a = whole.intersect(case.scene.tree, origins, directions, tmin, tmax)
     b = chunked.intersect(case.scene.tree, origins, directions, tmin, tmax)
@@ -442,8 +446,10 @@ def test_batches_split_into_chunks_equal_one_launch():
 
 
 def test_buffers_are_reused_and_only_grow():
+    """Where the kernels cannot use the numpy arrays in place (GPUs)."""
     case = scene_case("cube")
     q = RayQuery(case.scene.runtime)
+    q.zero_copy = False
     origins, directions = random_rays(case, 300, seed=13)
     q.intersect(case.scene.tree, origins, directions)
     buffers = dict(q._buffers)
@@ -452,6 +458,25 @@ def test_buffers_are_reused_and_only_grow():
     assert q._buffers == buffers
     q.intersect(case.scene.tree, np.repeat(origins, 4, 0), np.repeat(directions, 4, 0))
     assert q._buffers["origins"] is not buffers["origins"]
+
+
+def test_in_place_queries_take_any_array_layout():
+    """Read-only and unaligned rays, and a result held across a later query."""
+    case = scene_case("knight")
+    origins, directions = random_rays(case, 2000, seed=15)
+    q = RayQuery(case.scene.runtime)
+    q.zero_copy = True
+    expected = q.intersect(case.scene.tree, origins, directions)
+    raw = np.zeros(origins.nbytes + 4, np.uint8)
+    unaligned = raw[4:].view(np.float32).reshape(origins.shape)
+    unaligned[:] = origins
+    frozen = directions.copy()
+    frozen.flags.writeable = False
+    got = q.intersect(case.scene.tree, unaligned, frozen)
+    q.intersect(case.scene.tree, origins[::-1].copy(), directions[::-1].copy())
+    for field in ("t", "prim_id", "geom_id", "u", "v", "normal"):
+        np.testing.assert_array_equal(getattr(got, field), getattr(expected, field))
+    assert_matches_oracle(case, got, origins, directions)
 
 
 def test_stack_is_sized_from_the_tree_depth_and_overflow_raises():
