@@ -53,7 +53,26 @@ def test_a_kept_view_keeps_its_block():
         arrays["b"][:] = 0
         assert not np.shares_memory(arrays["b"], kept)
     assert np.all(kept == 42)
-    assert len(pool._blocks) <= pool.keep
+    del others
+    gc.collect()
+    assert len(pool._free) <= pool.keep
+
+
+def test_mixed_sizes_and_held_results():
+    """Requests of two sizes, the older results of each held a while."""
+    pool = ResultPool()
+    small = {"a": ((BIG // 2,), np.uint8)}
+    held = []
+    for k in range(8):
+        arrays = pool.arrays(fields() if k % 2 else small)
+        for array in arrays.values():
+            array[...] = k
+        held.append(arrays)
+        if len(held) > 3:
+            held.pop(0)
+        for j, older in enumerate(held):
+            value = k - len(held) + 1 + j
+            assert all(np.all(array == value) for array in older.values())
 
 
 def test_small_results_are_plain_arrays():
