@@ -594,6 +594,24 @@ TRAVERSAL_INLINE bool hit_leaf_packet(const Packet* p, __global const Triangle* 
     return false;
 }
 
+/* Asks the CPU to start loading the node or the leaf's triangles behind
+ * child `slot` of n, which the packet visits now or after a pop: a packet's
+ * misses are few but each stalls all its lanes.  Measured on 1280x720
+ * camera rays, 3.6M triangles: 62 -> 56 ms (prefetching only the nodes or
+ * only the triangles gained less); 2K triangles unchanged.  (Packets are
+ * compiled for CPUs only, whose compilers are Clang-based.) */
+TRAVERSAL_INLINE void prefetch_child(__global const WideNode* n, int slot,
+                                     __global const WideNode* nodes,
+                                     __global const Triangle* triangles)
+{
+    uint count = n->count[slot];
+    __global const char* first = count == 0 ? (__global const char*)(nodes + n->child[slot])
+                                            : (__global const char*)(triangles + n->child[slot]);
+    uint bytes = count == 0 ? (uint)sizeof(WideNode) : count * (uint)sizeof(Triangle);
+    for (uint offset = 0; offset < bytes; offset += 64)
+        __builtin_prefetch(first + offset);
+}
+
 /* traverse() for a packet: returns each lane's tree-order hit triangle or -1
  * and its t, u, v.  Children are visited in the order of the nearest entry
  * over the lanes that hit them; a popped child is skipped when even that
@@ -656,6 +674,8 @@ TRAVERSAL_INLINE int_packet traverse_packet(const Packet* p, __global const Wide
                 done = !pop(stack_index, stack_count, stack_entry, &sp, reach, &index, &count);
                 continue;
             }
+            for (int a = 0; a < m; ++a)
+                prefetch_child(n, order[a], nodes, triangles);
             if (!descend(n, order, m, entry, stack_index, stack_count, stack_entry, &sp, &index,
                          &count)) {
                 *overflow = true;
