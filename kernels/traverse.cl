@@ -572,7 +572,8 @@ TRAVERSAL_INLINE int_packet hit_triangle_packet(const Packet* p, __global const 
  * becomes -INFINITY, below every box and triangle); returns true when every
  * lane is. */
 TRAVERSAL_INLINE bool hit_leaf_packet(const Packet* p, __global const Triangle* triangles,
-                                      int first, uint count, bool any_hit, float_packet* limit,
+                                      __global const TriangleRef* refs, int first, uint count,
+                                      bool any_hit, float_packet* limit,
                                       float* reach, int_packet* hit_index, float_packet* t_hit,
                                       float_packet* u_hit, float_packet* v_hit)
 {
@@ -582,6 +583,8 @@ TRAVERSAL_INLINE bool hit_leaf_packet(const Packet* p, __global const Triangle* 
                                              &v);
         if (!any(hit))
             continue;
+        if (!any_hit)  /* the hit's ids are read at the end: a miss of its own */
+            __builtin_prefetch(refs + i);
         *hit_index = select(*hit_index, (int_packet)((int)i), hit);
         *limit = select(*limit, any_hit ? (float_packet)(-INFINITY) : t, hit);
         *t_hit = select(*t_hit, t, hit);
@@ -617,7 +620,8 @@ TRAVERSAL_INLINE void prefetch_child(__global const WideNode* n, int slot,
  * over the lanes that hit them; a popped child is skipped when even that
  * entry lies beyond every lane's limit. */
 TRAVERSAL_INLINE int_packet traverse_packet(const Packet* p, __global const WideNode* nodes,
-                                            __global const Triangle* triangles, bool any_hit,
+                                            __global const Triangle* triangles,
+                                            __global const TriangleRef* refs, bool any_hit,
                                             float_packet* t_hit, float_packet* u_hit,
                                             float_packet* v_hit, bool* overflow)
 {
@@ -664,7 +668,7 @@ TRAVERSAL_INLINE int_packet traverse_packet(const Packet* p, __global const Wide
                     int slot = order[a];
                     if (n->count[slot] == 0)
                         order[interior++] = slot;
-                    else if (hit_leaf_packet(p, triangles, n->child[slot], n->count[slot], true,
+                    else if (hit_leaf_packet(p, triangles, refs, n->child[slot], n->count[slot], true,
                                              &limit, &reach, &hit_index, t_hit, u_hit, v_hit))
                         return hit_index;
                 }
@@ -684,7 +688,7 @@ TRAVERSAL_INLINE int_packet traverse_packet(const Packet* p, __global const Wide
         }
         if (done)
             break;
-        if (hit_leaf_packet(p, triangles, index, count, any_hit, &limit, &reach, &hit_index,
+        if (hit_leaf_packet(p, triangles, refs, index, count, any_hit, &limit, &reach, &hit_index,
                             t_hit, u_hit, v_hit))
             return hit_index;
         done = !pop(stack_index, stack_count, stack_entry, &sp, reach, &index, &count);
@@ -750,7 +754,7 @@ TRAVERSAL_INLINE void closest_hits(const RayLanes* lanes, uint used,
                      v = (float_packet)(0.0f);
         int index[PACKET_SIZE];
         float t_lanes[PACKET_SIZE], u_lanes[PACKET_SIZE], v_lanes[PACKET_SIZE];
-        vstore_packet(traverse_packet(&p, nodes, triangles, false, &t, &u, &v, &out_of_stack),
+        vstore_packet(traverse_packet(&p, nodes, triangles, refs, false, &t, &u, &v, &out_of_stack),
                       0, index);
         vstore_packet(t, 0, t_lanes);
         vstore_packet(u, 0, u_lanes);
@@ -784,7 +788,7 @@ TRAVERSAL_INLINE void any_hits(const RayLanes* lanes, uint used, __global const 
     if (prepare_packet(lanes, &p)) {
         float_packet t, u, v;
         int index[PACKET_SIZE];
-        vstore_packet(traverse_packet(&p, nodes, triangles, true, &t, &u, &v, &out_of_stack),
+        vstore_packet(traverse_packet(&p, nodes, triangles, 0, true, &t, &u, &v, &out_of_stack),
                       0, index);
         for (uint l = 0; l < used; ++l)
             occluded[l] = index[l] >= 0 ? 1 : 0;
