@@ -133,13 +133,17 @@ class RayQuery:
         self.work_group_size = _work_group_size(rt)
         if packet_size is None:
             packet_size = _packet_size(rt)
+        elif isinstance(packet_size, bool) or not isinstance(packet_size, (int, np.integer)):
+            raise TypeError(f"packet_size must be an int, got {type(packet_size).__name__}")
         elif packet_size not in PACKET_SIZES:
             raise ValueError(f"packet_size must be one of {PACKET_SIZES}, got {packet_size!r}")
-        self.packet_size = packet_size
+        self.packet_size = int(packet_size)
         self.max_rays_per_launch = self._chunk_size(max_rays_per_launch)
         self._capacity = 0
         self._buffers: dict[str, cl.Buffer] = {}
-        self._overflow = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 4)
+        # int32 [0]: a traversal overflowed its stack; [1]: packets traced as
+        # packets (only counted with count_packets)
+        self._counters = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 8)
         self._scalars = {name: cl.Buffer(rt.context, cl.mem_flags.READ_ONLY, 4)
                          for name in ("tmin", "tmax")}
         #: whether the kernels read the rays and write the results in the
@@ -150,6 +154,10 @@ class RayQuery:
         self._results = ResultPool()
         #: device time of the last query's kernels, milliseconds
         self.last_kernel_ms = 0.0
+        #: for tests: count the work-items whose rays were traced as one packet
+        #: (kernels built with COUNT_PACKETS) into last_packets
+        self.count_packets = False
+        self.last_packets: int | None = None
 
     def _chunk_size(self, requested: int | None) -> int:
         d = self.rt.device
@@ -171,17 +179,16 @@ class RayQuery:
         """Closest hit of each ray (origins[i] + t * directions[i], tmin <= t <= tmax)."""
         origins, directions, tmin, tmax = _check_rays(origins, directions, tmin, tmax)
         count = len(origins)
-        hits = Hits(**self._results.arrays(
-            {name: ((count, 3) if name == "normal" else (count,), HIT_DTYPES[name])
-             for name in HIT_ARRAYS}))
+        hits = Hits(**{name: self._results.empty((count, 3) if name == "normal" else count,
+                                                 HIT_DTYPES[name]) for name in HIT_ARRAYS})
         if count and self._check_tree(tree):
-            kernel, nodes = self._kernel(tree, "intersect_closest_arrays")
+            kernel, nodes = self._kernel(tree, "intersect_closest_arrays", self.count_packets)
 
             def launch(n, b, limits):
                 return self.rt.run(kernel, self._work_items(n), nodes, tree.triangles,
                                    tree.refs, b["origins"],
                                    b["directions"], *limits, b["t"], b["geom_id"], b["prim_id"],
-                                   b["u"], b["v"], b["normal"], self._overflow, np.uint32(n),
+                                   b["u"], b["v"], b["normal"], self._counters, np.uint32(n),
                                    local_size=self.work_group_size)
             self._run(count, origins, directions, tmin, tmax, launch,
                       {name: getattr(hits, name) for name in HIT_ARRAYS})
@@ -195,14 +202,14 @@ class RayQuery:
         """bool (R,): whether anything is hit with tmin <= t <= tmax (stops at the first hit)."""
         origins, directions, tmin, tmax = _check_rays(origins, directions, tmin, tmax)
         count = len(origins)
-        result = self._results.arrays({"occluded": ((count,), np.uint8)})["occluded"]
+        result = self._results.empty(count, np.uint8)
         if count and self._check_tree(tree):
-            kernel, nodes = self._kernel(tree, "intersect_any_arrays")
+            kernel, nodes = self._kernel(tree, "intersect_any_arrays", self.count_packets)
 
             def launch(n, b, limits):
                 return self.rt.run(kernel, self._work_items(n), nodes, tree.triangles,
                                    b["origins"],
-                                   b["directions"], *limits, b["occluded"], self._overflow,
+                                   b["directions"], *limits, b["occluded"], self._counters,
                                    np.uint32(n), local_size=self.work_group_size)
             self._run(count, origins, directions, tmin, tmax, launch, {"occluded": result})
         return result.view(bool)  # the kernel writes 0 or 1
@@ -235,12 +242,17 @@ class RayQuery:
 
     # -- internals ----------------------------------------------------------
 
-    def _kernel(self, tree: DeviceTree, name: str) -> tuple[cl.Kernel, cl.Buffer]:
+    def _kernel(self, tree: DeviceTree, name: str,
+                count_packets: bool = False) -> tuple[cl.Kernel, cl.Buffer]:
         """The traversal kernel `name` for `tree` and the node buffer it reads
         (the tree's wide form, made on first use)."""
         wide = wide_tree(self.rt, tree)
-        return (self.rt.kernel("traverse.cl", name, STACK_SIZE=_stack_size(tree, wide),
-                               PACKET_SIZE=self.packet_size), wide.nodes)
+        defines = {"STACK_SIZE": _stack_size(tree, wide), "PACKET_SIZE": self.packet_size}
+        if self.rt.device.type == "cpu":
+            defines["PREFETCH"] = 1  # __builtin_prefetch: CPU compilers are Clang-based
+        if count_packets:
+            defines["COUNT_PACKETS"] = 1
+        return self.rt.kernel("traverse.cl", name, **defines), wide.nodes
 
     def _work_items(self, rays: int) -> int:
         """Work-items that trace `rays` rays, packet_size rays each."""
@@ -280,16 +292,23 @@ class RayQuery:
         self._capacity = capacity
 
     def _run(self, count, origins, directions, tmin, tmax, launch, outputs) -> None:
-        """Runs ``launch(n, limits)`` over chunks of at most max_rays_per_launch
-        rays and reads each device buffer named in ``outputs`` into its array."""
+        """Runs ``launch(n, buffers, limits)`` over chunks of at most
+        max_rays_per_launch rays; the results land in the arrays of
+        ``outputs`` (in place, or read back from the device buffers)."""
         with self._lock:  # one query at a time: the buffers are shared
-            self._run_locked(count, origins, directions, tmin, tmax, launch, outputs)
+            try:
+                self._run_locked(count, origins, directions, tmin, tmax, launch, outputs)
+            except BaseException:
+                # Kernels of earlier chunks may still write into the caller's
+                # arrays (zero copy): let them finish before anyone reuses them.
+                self.rt.queue.finish()
+                raise
 
     def _run_locked(self, count, origins, directions, tmin, tmax, launch, outputs) -> None:
         queue, chunk = self.rt.queue, self.max_rays_per_launch
         if not self.zero_copy:
             self._reserve(min(count, chunk))
-        cl.enqueue_copy(queue, self._overflow, np.zeros(1, np.int32))
+        cl.enqueue_copy(queue, self._counters, np.zeros(2, np.int32))
         # per-ray arrays go chunk by chunk; a scalar limit is one value, step 0
         inputs = {"origins": origins, "directions": directions}
         limits = {}
@@ -300,8 +319,9 @@ class RayQuery:
                 cl.enqueue_copy(queue, self._scalars[name], np.full(1, limit, np.float32))
                 limits[name] = self._scalars[name]
         # The queue runs in order, so each chunk's inputs wait for the last
-        # chunk's results; only the final read blocks.
-        events = []
+        # chunk's results; only the final read blocks.  (pyopencl's events of
+        # non-blocking copies wait when they are dropped: keep them.)
+        events, transfers = [], []
         for start in range(0, count, chunk):
             part = slice(start, min(start + chunk, count))
             if self.zero_copy:
@@ -311,11 +331,13 @@ class RayQuery:
                                 for name, array in outputs.items()})
             else:
                 buffers = self._buffers
-                for name, array in inputs.items():
-                    cl.enqueue_copy(queue, buffers[name], array[part], is_blocking=False)
-            steps = [(limits.get(name) or buffers[name], np.uint32(name in inputs))
-                     for name in ("tmin", "tmax")]
-            events.append(launch(part.stop - part.start, buffers, [a for s in steps for a in s]))
+                transfers += [cl.enqueue_copy(queue, buffers[name], array[part], is_blocking=False)
+                              for name, array in inputs.items()]
+            steps = []
+            for name in ("tmin", "tmax"):
+                steps += [limits[name] if name in limits else buffers[name],
+                          np.uint32(name in inputs)]
+            events.append(launch(part.stop - part.start, buffers, steps))
             for name, array in outputs.items():
                 if self.zero_copy:  # the results are in place once the buffer is mapped
                     mapped, _ = cl.enqueue_map_buffer(queue, buffers[name], cl.map_flags.READ, 0,
@@ -323,11 +345,13 @@ class RayQuery:
                                                       is_blocking=False)
                     mapped.base.release(queue)
                 else:
-                    cl.enqueue_copy(queue, array[part], buffers[name], is_blocking=False)
-        overflow = np.zeros(1, np.int32)
-        cl.enqueue_copy(queue, overflow, self._overflow, is_blocking=True)
+                    transfers.append(cl.enqueue_copy(queue, array[part], buffers[name],
+                                                     is_blocking=False))
+        counters = np.zeros(2, np.int32)
+        cl.enqueue_copy(queue, counters, self._counters, is_blocking=True)
         self.last_kernel_ms = sum((e.profile.end - e.profile.start) * 1e-6 for e in events)
-        if overflow[0]:
+        self.last_packets = int(counters[1]) if self.count_packets else None
+        if counters[0]:
             raise RuntimeError("ray traversal overflowed its stack (sized from DeviceTree.depth): "
                                "the tree is deeper than its depth field says")
 
@@ -368,7 +392,7 @@ def _numeric_array(name: str, value) -> np.ndarray:
 
 #: Rows per block of the input checks: a block's temporaries stay in cache and
 #: are reused, where whole-batch temporaries would cost a page fault per 4 KiB
-#: on every call (measured: 14 -> 6 ms of checks for 3.1M rays).
+#: on every call (measured: 14 -> 8 ms of checks for 3.1M rays).
 CHECK_BLOCK = 1 << 16
 
 
@@ -382,7 +406,8 @@ def _vectors(name: str, value) -> np.ndarray:
     if array.ndim != 2 or array.shape[1] != 3:
         raise ValueError(f"{name} must have shape (R, 3), got {array.shape}")
     with np.errstate(over="ignore", invalid="ignore"):  # reported below, by row
-        vectors = np.ascontiguousarray(array, dtype=np.float32)
+        # aligned too: the kernels may read the array itself (zero copy)
+        vectors = np.require(array, np.float32, ["C_CONTIGUOUS", "ALIGNED"])
     if not all(np.isfinite(block).all() for block in _blocks(vectors)):
         row = int(np.argmin(np.isfinite(vectors).all(axis=1)))
         why = "is not finite" if not np.isfinite(array[row]).all() else "overflows float32"
@@ -408,6 +433,8 @@ def _limits(name: str, value, count: int) -> np.ndarray:
 def _check_rays(origins, directions, tmin, tmax):
     origins = _vectors("origins", origins)
     directions = _vectors("directions", directions)
+    if np.may_share_memory(origins, directions):  # two host-pointer buffers must not overlap
+        directions = directions.copy()
     if len(origins) != len(directions):
         raise ValueError(f"origins has {len(origins)} rows but directions has {len(directions)}")
     count = len(origins)

@@ -1,6 +1,7 @@
 /* Ray queries: stackful traversal of the wide tree (WideNode, made from the
- * flat BVH2 by widen.cl) with a watertight ray/triangle test.  One work-item
- * traces one ray.
+ * flat BVH2 by widen.cl) with a watertight ray/triangle test.  A work-item
+ * traces PACKET_SIZE consecutive rays: on CPUs as one packet when they are
+ * coherent (see "packets" below), else one by one.
  *
  * Kernels
  *   intersect_closest  nearest hit in [tmin, tmax] -> Hit
@@ -22,6 +23,11 @@
  *   PACKET_SIZE rays per work-item: 1 (one ray each, for GPUs, whose SIMT
  *               lanes already run neighbouring rays together), or 8 or 16
  *               (ray packets, for CPUs; see "packets" below).
+ *   PREFETCH    defined on CPUs: traversal prefetches what it visits next
+ *               (__builtin_prefetch, which the CPUs' Clang-based OpenCL
+ *               compilers know).
+ *   COUNT_PACKETS  defined by tests: overflow[1] counts the work-items whose
+ *               rays were traced as one packet.
  */
 #include "hlbvh.h"
 
@@ -317,21 +323,21 @@ TRAVERSAL_INLINE bool descend(__global const WideNode* n, int* order, int m, con
  * traversal waits on such loads (sampled: about half the time of incoherent
  * rays).  Measured: packets of 1280x720 camera rays on 3.6M triangles 62 ->
  * 56 ms (prefetching only the nodes or only the triangles gained less), 2K
- * triangles unchanged; single incoherent rays 1.01-1.08x.  Compiled for CPUs
- * only (PACKET_SIZE > 1), whose OpenCL compilers are Clang-based. */
-#if PACKET_SIZE > 1
+ * triangles unchanged; single incoherent rays 1.01-1.08x.  Without PREFETCH
+ * (GPUs) it does nothing. */
 TRAVERSAL_INLINE void prefetch_child(__global const WideNode* n, int slot,
                                      __global const WideNode* nodes,
                                      __global const Triangle* triangles)
 {
+#ifdef PREFETCH
     uint count = n->count[slot];
     __global const char* first = count == 0 ? (__global const char*)(nodes + n->child[slot])
                                             : (__global const char*)(triangles + n->child[slot]);
     uint bytes = count == 0 ? (uint)sizeof(WideNode) : count * (uint)sizeof(Triangle);
     for (uint offset = 0; offset < bytes; offset += 64)
         __builtin_prefetch(first + offset);
-}
 #endif
+}
 
 /* Traverses the wide tree, nearer children first (closest hit) or until the
  * first hit (any hit).  Returns the tree-order index of the hit triangle or
@@ -400,10 +406,8 @@ TRAVERSAL_INLINE int traverse(const RayData* r, __global const WideNode* nodes,
                 done = !pop(stack_index, stack_count, stack_entry, &sp, limit, &index, &count);
                 continue;
             }
-#if PACKET_SIZE > 1
             for (int a = 0; a < m; ++a)
                 prefetch_child(n, order[a], nodes, triangles);
-#endif
             if (!descend(n, order, m, entry, stack_index, stack_count, stack_entry, &sp, &index,
                          &count)) {
                 *overflow = true;
@@ -450,17 +454,21 @@ typedef float16 float_packet;
 typedef int16 int_packet;
 #define vload_packet vload16
 #define vstore_packet vstore16
+#ifdef cl_khr_fp64
 #define convert_double_packet convert_double16
 #define convert_float_packet convert_float16
 typedef double16 double_packet;
+#endif
 #elif PACKET_SIZE == 8
 typedef float8 float_packet;
 typedef int8 int_packet;
 #define vload_packet vload8
 #define vstore_packet vstore8
+#ifdef cl_khr_fp64
 #define convert_double_packet convert_double8
 #define convert_float_packet convert_float8
 typedef double8 double_packet;
+#endif
 #else
 #error "PACKET_SIZE must be 8 or 16"
 #endif
@@ -541,6 +549,22 @@ TRAVERSAL_INLINE bool prepare_packet(const RayLanes* in, Packet* p)
     return true;
 }
 
+/* hit_children's slab test of child c of a node (its planes) for every lane:
+ * which lanes meet its box within their limit, and where they enter it. */
+TRAVERSAL_INLINE int_packet hit_child_packet(const Packet* p, __global const float* planes, int c,
+                                             float_packet limit, float_packet* t_entry)
+{
+    float_packet near_x = (planes[p->near_x + c] - p->ox) * p->inv_x;
+    float_packet near_y = (planes[p->near_y + c] - p->oy) * p->inv_y;
+    float_packet near_z = (planes[p->near_z + c] - p->oz) * p->inv_z;
+    float_packet far_x = (planes[(p->near_x ^ WIDE_ARITY) + c] - p->ox) * p->inv_x;
+    float_packet far_y = (planes[(p->near_y ^ WIDE_ARITY) + c] - p->oy) * p->inv_y;
+    float_packet far_z = (planes[(p->near_z ^ WIDE_ARITY) + c] - p->oz) * p->inv_z;
+    *t_entry = fmax(fmax(near_x, near_y), fmax(near_z, p->tmin));
+    float_packet t_exit = fmin(fmin(far_x, far_y), far_z) * EXIT_SCALE;
+    return *t_entry <= fmin(t_exit, limit);
+}
+
 /* hit_triangle for every lane: the same arithmetic per lane.  Returns the
  * lanes that hit (-1), with their t, u, v in *t_out, *u_out, *v_out. */
 TRAVERSAL_INLINE int_packet hit_triangle_packet(const Packet* p, __global const Triangle* tri,
@@ -591,9 +615,9 @@ TRAVERSAL_INLINE int_packet hit_triangle_packet(const Packet* p, __global const 
     return hit;
 }
 
-/* The triangles [first, first + count) of a leaf against every lane: the
- * lanes that hit one nearer than their limit take it (limit, hit_index, t, u,
- * v) and `reach` follows.  For any hit a lane that hits is done (its limit
+/* The triangles [first, first + count) of a leaf against every lane: a lane
+ * takes a hit within its limit (limit, hit_index, t, u, v; as in traverse(),
+ * at t == limit only while it has no hit yet) and `reach` follows.  For any hit a lane that hits is done (its limit
  * becomes -INFINITY, below every box and triangle); returns true when every
  * lane is. */
 TRAVERSAL_INLINE bool hit_leaf_packet(const Packet* p, __global const Triangle* triangles,
@@ -608,8 +632,10 @@ TRAVERSAL_INLINE bool hit_leaf_packet(const Packet* p, __global const Triangle* 
                                              &v);
         if (!any(hit))
             continue;
+#ifdef PREFETCH
         if (!any_hit)  /* the hit's ids are read at the end: a miss of its own */
             __builtin_prefetch(refs + i);
+#endif
         *hit_index = select(*hit_index, (int_packet)((int)i), hit);
         *limit = select(*limit, any_hit ? (float_packet)(-INFINITY) : t, hit);
         *t_hit = select(*t_hit, t, hit);
@@ -654,15 +680,8 @@ TRAVERSAL_INLINE int_packet traverse_packet(const Packet* p, __global const Wide
             for (int c = 0; c < WIDE_ARITY; ++c) {
                 if (n->child[c] == EMPTY_CHILD)
                     continue;
-                float_packet near_x = (planes[p->near_x + c] - p->ox) * p->inv_x;
-                float_packet near_y = (planes[p->near_y + c] - p->oy) * p->inv_y;
-                float_packet near_z = (planes[p->near_z + c] - p->oz) * p->inv_z;
-                float_packet far_x = (planes[(p->near_x ^ WIDE_ARITY) + c] - p->ox) * p->inv_x;
-                float_packet far_y = (planes[(p->near_y ^ WIDE_ARITY) + c] - p->oy) * p->inv_y;
-                float_packet far_z = (planes[(p->near_z ^ WIDE_ARITY) + c] - p->oz) * p->inv_z;
-                float_packet t_entry = fmax(fmax(near_x, near_y), fmax(near_z, p->tmin));
-                float_packet t_exit = fmin(fmin(far_x, far_y), far_z) * EXIT_SCALE;
-                int_packet hit = t_entry <= fmin(t_exit, limit);
+                float_packet t_entry;
+                int_packet hit = hit_child_packet(p, planes, c, limit, &t_entry);
                 if (any(hit)) {
                     entry[c] = packet_min(select((float_packet)(INFINITY), t_entry, hit));
                     order[m++] = c;
@@ -757,6 +776,9 @@ TRAVERSAL_INLINE void closest_hits(const RayLanes* lanes, uint used,
 #if PACKET_SIZE > 1
     Packet p;
     if (prepare_packet(lanes, &p)) {
+#ifdef COUNT_PACKETS
+        atomic_inc(overflow + 1);
+#endif
         float_packet t = (float_packet)(INFINITY), u = (float_packet)(0.0f),
                      v = (float_packet)(0.0f);
         int index[PACKET_SIZE];
@@ -793,7 +815,10 @@ TRAVERSAL_INLINE void any_hits(const RayLanes* lanes, uint used, __global const 
 #if PACKET_SIZE > 1
     Packet p;
     if (prepare_packet(lanes, &p)) {
-        float_packet t, u, v;
+#ifdef COUNT_PACKETS
+        atomic_inc(overflow + 1);
+#endif
+        float_packet t = (float_packet)(0.0f), u = t, v = t;  /* unused: any hit */
         int index[PACKET_SIZE];
         vstore_packet(traverse_packet(&p, nodes, triangles, 0, true, &t, &u, &v, &out_of_stack),
                       0, index);

@@ -16,18 +16,36 @@ from test_watertight import _interior_points, _unique_edges
 
 
 def packet_keys(directions: np.ndarray) -> np.ndarray:
-    """What make_packet compares between lanes: the axis of largest |d| (kz,
-    ties as the kernel breaks them) and the sign bits of the direction."""
+    """What prepare_packet compares between lanes: the axis of largest |d|
+    (kz, ties as the kernel breaks them) and the sign bits of the direction."""
     a = np.abs(directions)
     kz = np.where((a[:, 0] >= a[:, 1]) & (a[:, 0] >= a[:, 2]), 0, np.where(a[:, 1] >= a[:, 2], 1, 2))
     return kz * 8 + (np.signbit(directions) * [1, 2, 4]).sum(axis=1)
 
 
 def coherent_fraction(directions: np.ndarray, packet_size: int) -> float:
-    """Fraction of the whole packets whose lanes make_packet accepts."""
+    """Fraction of the whole packets whose lanes prepare_packet accepts."""
     whole = len(directions) // packet_size * packet_size
     keys = packet_keys(directions[:whole]).reshape(-1, packet_size)
     return float(np.mean(np.all(keys == keys[:, :1], axis=1)))
+
+
+def expected_packets(directions: np.ndarray, packet_size: int) -> int:
+    """Work-items whose rays the kernel should trace as one packet: a last,
+    part-full packet repeats its last ray in the lanes past the end."""
+    keys = packet_keys(directions)
+    pad = -len(keys) % packet_size
+    keys = np.concatenate([keys, np.repeat(keys[-1:], pad)]).reshape(-1, packet_size)
+    return int(np.sum(np.all(keys == keys[:, :1], axis=1)))
+
+
+def traced(q: RayQuery, query: str, case, origins, directions, **limits):
+    """q's query, checking that the kernel formed exactly the packets expected."""
+    q.count_packets = True
+    result = getattr(q, query)(case.scene.tree, origins, directions, **limits)
+    expected = expected_packets(directions, q.packet_size) if q.packet_size > 1 else 0
+    assert q.last_packets == expected
+    return result
 
 
 def camera_rays(case, width: int, height: int):
@@ -58,36 +76,45 @@ def test_camera_rays_match_oracle(name, packet_size):
     if packet_size > 1:  # most rays go in packets, some one by one (kz changes across the view)
         assert 0.5 < coherent_fraction(directions, packet_size) < 1.0
     q = query(case, packet_size)
-    hits = q.intersect(case.scene.tree, origins, directions)
+    hits = traced(q, "intersect", case, origins, directions)
     assert_matches_oracle(case, hits, origins, directions)
     assert 0.1 < hits.hit.mean(), "the camera should see the mesh"
-    np.testing.assert_array_equal(q.occluded(case.scene.tree, origins, directions), hits.hit)
-    # a tmax per ray that cuts off about half of the hits, varying within packets
-    tmax = np.where(hits.hit, hits.t * np.random.default_rng(3).uniform(0.5, 1.5, len(hits)),
-                    np.inf).astype(np.float32)
-    cut = q.intersect(case.scene.tree, origins, directions, tmax=tmax)
+    np.testing.assert_array_equal(traced(q, "occluded", case, origins, directions), hits.hit)
+    # per-ray limits that vary within packets: a tmax that cuts off about half
+    # of the hits, and a tmin that skips the nearest surface of some rays
+    rng = np.random.default_rng(3)
+    tmax = np.where(hits.hit, hits.t * rng.uniform(0.5, 1.5, len(hits)), np.inf).astype(np.float32)
+    cut = traced(q, "intersect", case, origins, directions, tmax=tmax)
     assert_matches_oracle(case, cut, origins, directions, tmax=tmax)
     assert 0 < cut.hit.sum() < hits.hit.sum()
-    np.testing.assert_array_equal(q.occluded(case.scene.tree, origins, directions, tmax=tmax),
+    np.testing.assert_array_equal(traced(q, "occluded", case, origins, directions, tmax=tmax),
                                   cut.hit)
+    tmin = np.where(hits.hit & (rng.random(len(hits)) < 0.5), hits.t * 1.001, 0).astype(np.float32)
+    beyond = traced(q, "intersect", case, origins, directions, tmin=tmin)
+    assert_matches_oracle(case, beyond, origins, directions, tmin=tmin)
+    assert np.any(beyond.t[tmin > 0] > hits.t[tmin > 0])  # some rays went on to a farther surface
 
 
 @pytest.mark.parametrize("packet_size", [8, 16])
-def test_partial_and_mixed_packets_match_oracle(packet_size):
-    """Ray counts that leave the last packet part-full, and packets whose
-    lanes mix coherent and random rays (traced one by one)."""
+@pytest.mark.parametrize("mixed", [False, True], ids=["coherent", "mixed"])
+def test_partial_and_mixed_packets_match_oracle(packet_size, mixed):
+    """Ray counts that leave the last packet part-full, on camera rays, and on
+    packets whose lanes mix coherent and random rays (traced one by one)."""
     case = scene_case("knight")
     origins, directions = camera_rays(case, 24, 16)
-    wild_o, wild_d = random_rays(case, len(origins), seed=9)
-    mixed = np.arange(len(origins)) % 5 == 0
-    origins, directions = origins.copy(), directions.copy()
-    origins[mixed], directions[mixed] = wild_o[mixed], wild_d[mixed]
+    if mixed:
+        wild_o, wild_d = random_rays(case, len(origins), seed=9)
+        every_fifth = np.arange(len(origins)) % 5 == 0
+        origins, directions = origins.copy(), directions.copy()
+        origins[every_fifth], directions[every_fifth] = wild_o[every_fifth], wild_d[every_fifth]
     q = query(case, packet_size)
     for count in (1, packet_size - 1, packet_size + 1, 3 * packet_size + 5, len(origins)):
-        hits = q.intersect(case.scene.tree, origins[:count], directions[:count])
-        assert_matches_oracle(case, hits, origins[:count], directions[:count])
-        np.testing.assert_array_equal(
-            q.occluded(case.scene.tree, origins[:count], directions[:count]), hits.hit)
+        o, d = origins[:count], directions[:count]
+        hits = traced(q, "intersect", case, o, d)
+        assert_matches_oracle(case, hits, o, d)
+        np.testing.assert_array_equal(traced(q, "occluded", case, o, d), hits.hit)
+    if not mixed:
+        assert q.last_packets > 0
 
 
 @pytest.mark.parametrize("packet_size", [8, 16])
@@ -108,7 +135,9 @@ def test_rays_from_inside_in_packets_always_hit(name, packet_size):
             directions = directions[np.argsort(packet_keys(directions), kind="stable")]
             assert coherent_fraction(directions, packet_size) > 0.6
             origins = np.repeat(origin[None].astype(np.float32), len(directions), 0)
+            q.count_packets = True
             hits = q.intersect(scene.tree, origins, directions)
+            assert q.last_packets == expected_packets(directions, packet_size)
             missed = np.flatnonzero(~hits.hit)
             assert len(missed) == 0, (f"{name}: {len(missed)} of {len(directions)} rays from "
                                       f"inside aimed at {what} escaped (first: directions "
@@ -120,3 +149,6 @@ def test_packet_size_is_checked():
     case = scene_case("cube")
     with pytest.raises(ValueError, match="packet_size"):
         RayQuery(case.scene.runtime, packet_size=4)
+    for wrong in (True, 8.0, "8"):
+        with pytest.raises(TypeError, match="packet_size"):
+            RayQuery(case.scene.runtime, packet_size=wrong)

@@ -16,6 +16,7 @@ import pytest
 import hlbvh_cl
 from hlbvh_cl import query as query_module
 from hlbvh_cl.query import Hits, RayQuery
+from hlbvh_cl.results import MIN_POOLED_BYTES
 from hlbvh_cl.tree import DeviceTree
 from oracle import brute_force_intersect, brute_force_occluded
 from shapes import grid_mesh
@@ -461,27 +462,41 @@ def test_buffers_are_reused_and_only_grow():
 
 
 def test_in_place_queries_take_any_array_layout():
-    """Read-only and unaligned rays, and a result held across a later query."""
+    """Read-only, unaligned and shared rays in place give what device copies
+    give; results large enough to come from the ResultPool survive a later
+    query."""
     case = scene_case("knight")
-    origins, directions = random_rays(case, 2000, seed=15)
-    q = RayQuery(case.scene.runtime)
-    q.zero_copy = True
-    expected = q.intersect(case.scene.tree, origins, directions)
-    raw = np.zeros(origins.nbytes + 4, np.uint8)
-    unaligned = raw[4:].view(np.float32).reshape(origins.shape)
+    count = MIN_POOLED_BYTES // 4 + 1000
+    origins, directions = random_rays(case, count, seed=15)
+    in_place = RayQuery(case.scene.runtime)
+    in_place.zero_copy = True
+    copied = RayQuery(case.scene.runtime)
+    copied.zero_copy = False
+    expected = copied.intersect(case.scene.tree, origins, directions)
+    raw = np.zeros(origins.nbytes + 5, np.uint8)
+    unaligned = raw[1:1 + origins.nbytes].view(np.float32).reshape(origins.shape)  # 1-byte offset
     unaligned[:] = origins
     frozen = directions.copy()
     frozen.flags.writeable = False
-    got = q.intersect(case.scene.tree, unaligned, frozen)
-    q.intersect(case.scene.tree, origins[::-1].copy(), directions[::-1].copy())
+    got = in_place.intersect(case.scene.tree, unaligned, frozen)
+    in_place.intersect(case.scene.tree, origins[::-1].copy(), directions[::-1].copy())
     for field in ("t", "prim_id", "geom_id", "u", "v", "normal"):
         np.testing.assert_array_equal(getattr(got, field), getattr(expected, field))
-    assert_matches_oracle(case, got, origins, directions)
+    # one array as both origins and directions, and two overlapping views
+    points = np.ascontiguousarray(origins[:500])
+    np.testing.assert_array_equal(in_place.intersect(case.scene.tree, points, points).t,
+                                  copied.intersect(case.scene.tree, points, points.copy()).t)
+    rows = np.ascontiguousarray(origins[:750])
+    overlapping = in_place.intersect(case.scene.tree, rows[:500], rows[250:])
+    assert_matches_oracle(case, overlapping, rows[:500].copy(), rows[250:].copy())
 
 
-def test_stack_is_sized_from_the_tree_depth_and_overflow_raises():
+@pytest.mark.parametrize("packet_size", [1, 8])
+def test_stack_is_sized_from_the_tree_depth_and_overflow_raises(packet_size):
     """A hand-made chain tree that pushes one subtree per level: with its true
-    depth the nearest hit is found; with a depth that lies, the query raises."""
+    depth the nearest hit is found; with a depth that lies, the query raises.
+    (With packets of 8 the one ray fills a packet: the packet traversal's
+    stack; with 1, the single-ray traversal's.)"""
     import pyopencl as cl
     from hlbvh_cl import layout
 
@@ -535,7 +550,7 @@ def test_stack_is_sized_from_the_tree_depth_and_overflow_raises():
                           bounds_lo=np.array([-1, -1, 1], np.float32),
                           bounds_hi=np.array([3, 3, levels], np.float32))
 
-    q = RayQuery(rt)
+    q = RayQuery(rt, packet_size=packet_size)
     origins, directions = [[0.0, 0.0, 0.0]], [[0.0, 0.0, 1.0]]
     hits = q.intersect(tree(levels), origins, directions)
     assert hits.prim_id[0] == 0 and hits.t[0] == 1.0
