@@ -339,6 +339,28 @@ TRAVERSAL_INLINE void prefetch_child(__global const WideNode* n, int slot,
 #endif
 }
 
+/* What follows a node whose children order[0, m) the ray or packet meets:
+ * the nearest child, the others pushed and all of them prefetched, or when m
+ * is 0 the next stacked item in reach of `limit`.  Returns NEXT_ITEM (in
+ * *index, *count), NO_ITEM (the stack ran out) or STACK_FULL. */
+#define NEXT_ITEM 0
+#define NO_ITEM 1
+#define STACK_FULL 2
+TRAVERSAL_INLINE int next_item(__global const WideNode* n, int* order, int m, const float* entry,
+                               __global const WideNode* nodes,
+                               __global const Triangle* triangles, int* stack_index,
+                               uint* stack_count, float* stack_entry, int* sp, float limit,
+                               int* index, uint* count)
+{
+    if (m == 0)
+        return pop(stack_index, stack_count, stack_entry, sp, limit, index, count) ? NEXT_ITEM
+                                                                                     : NO_ITEM;
+    for (int a = 0; a < m; ++a)
+        prefetch_child(n, order[a], nodes, triangles);
+    return descend(n, order, m, entry, stack_index, stack_count, stack_entry, sp, index, count)
+               ? NEXT_ITEM : STACK_FULL;
+}
+
 /* Traverses the wide tree, nearer children first (closest hit) or until the
  * first hit (any hit).  Returns the tree-order index of the hit triangle or
  * -1; sets *overflow when the stack was too small (the host then raises).
@@ -402,17 +424,13 @@ TRAVERSAL_INLINE int traverse(const RayData* r, __global const WideNode* nodes,
                 }
                 m = interior;
             }
-            if (m == 0) {
-                done = !pop(stack_index, stack_count, stack_entry, &sp, limit, &index, &count);
-                continue;
-            }
-            for (int a = 0; a < m; ++a)
-                prefetch_child(n, order[a], nodes, triangles);
-            if (!descend(n, order, m, entry, stack_index, stack_count, stack_entry, &sp, &index,
-                         &count)) {
+            int next = next_item(n, order, m, entry, nodes, triangles, stack_index, stack_count,
+                                 stack_entry, &sp, limit, &index, &count);
+            if (next == STACK_FULL) {
                 *overflow = true;
                 return hit_index;
             }
+            done = next == NO_ITEM;
         }
         if (done)
             break;
@@ -700,17 +718,13 @@ TRAVERSAL_INLINE int_packet traverse_packet(const Packet* p, __global const Wide
                 }
                 m = interior;
             }
-            if (m == 0) {
-                done = !pop(stack_index, stack_count, stack_entry, &sp, reach, &index, &count);
-                continue;
-            }
-            for (int a = 0; a < m; ++a)
-                prefetch_child(n, order[a], nodes, triangles);
-            if (!descend(n, order, m, entry, stack_index, stack_count, stack_entry, &sp, &index,
-                         &count)) {
+            int next = next_item(n, order, m, entry, nodes, triangles, stack_index, stack_count,
+                                 stack_entry, &sp, reach, &index, &count);
+            if (next == STACK_FULL) {
                 *overflow = true;
                 return hit_index;
             }
+            done = next == NO_ITEM;
         }
         if (done)
             break;
