@@ -106,9 +106,10 @@ def _work_group_size(rt: Runtime) -> int:
 #: Device buffers of the numpy-facing queries, bytes per ray: the inputs, then
 #: one buffer per field of the results (kernels/traverse.cl's *_arrays kernels).
 RAY_ARRAYS = {"origins": 12, "directions": 12, "tmin": 4, "tmax": 4}
-HIT_ARRAYS = {"t": 4, "geom_id": 4, "prim_id": 4, "u": 4, "v": 4, "normal": 12}
-HIT_DTYPES = {"t": np.float32, "geom_id": np.int32, "prim_id": np.int32, "u": np.float32,
-              "v": np.float32, "normal": np.float32}
+#: Hits' fields: dtype and values per ray.
+HIT_FIELDS = {"t": (np.float32, 1), "geom_id": (np.int32, 1), "prim_id": (np.int32, 1),
+              "u": (np.float32, 1), "v": (np.float32, 1), "normal": (np.float32, 3)}
+HIT_ARRAYS = {name: np.dtype(dtype).itemsize * n for name, (dtype, n) in HIT_FIELDS.items()}
 OCCLUDED_ARRAYS = {"occluded": 1}
 
 
@@ -179,8 +180,8 @@ class RayQuery:
         """Closest hit of each ray (origins[i] + t * directions[i], tmin <= t <= tmax)."""
         origins, directions, tmin, tmax = _check_rays(origins, directions, tmin, tmax)
         count = len(origins)
-        hits = Hits(**{name: self._results.empty((count, 3) if name == "normal" else count,
-                                                 HIT_DTYPES[name]) for name in HIT_ARRAYS})
+        hits = Hits(**{name: self._results.empty((count, n) if n > 1 else count, dtype)
+                       for name, (dtype, n) in HIT_FIELDS.items()})
         if count and self._check_tree(tree):
             kernel, nodes = self._kernel(tree, "intersect_closest_arrays", self.count_packets)
 
