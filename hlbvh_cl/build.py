@@ -1,5 +1,5 @@
-"""The build pipeline: bounds -> Morton codes -> radix sort -> Karras emission
--> refit (+ SAH collapse) -> SAH top over clusters -> flat tree.
+"""The build pipeline: bounds -> Morton codes -> radix sort -> radix tree with
+its boxes (+ SAH collapse) -> SAH top over clusters -> flat tree.
 
 Every stage runs on the device; this module only sequences them, sizes the
 buffers (failing before any allocation when the device is too small) and
@@ -16,16 +16,15 @@ import pyopencl as cl
 from . import layout
 from .bounds import scene_bounds
 from .device import Runtime, event_ms
-from .emit import RadixTree, emit_internal_nodes
 from .flatten import box_area, flatten_nodes
 from .morton import key_dtype, morton_codes
-from .refit import RadixTreeMetrics, refit_radix_tree
+from .radix_tree import RadixTree, RadixTreeMetrics, build_radix_tree
 from .sah_top import build_top
 from .sort import RadixSorter
 from .tree import DeviceTree
 
 BUILDERS = ("hlbvh", "lbvh")
-STAGES = ("bounds", "morton", "sort", "emit", "refit", "sah_top", "flatten")
+STAGES = ("bounds", "morton", "sort", "radix_tree", "sah_top", "flatten")
 MAX_TRIANGLES = 2**31 - 2  # node indices are int32 (2n - 1 of them must fit)
 
 
@@ -125,24 +124,20 @@ def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int) -> B
     keys, primitive_ids, stage_events["sort"] = _sorter(rt, dtype).sort(
         keys, primitive_ids, n, morton_bits, wait_for=stage_events["morton"][-1:])
 
-    tree = RadixTree.allocate(rt, n)
-    stage_events["emit"] = emit_internal_nodes(rt, keys, morton_bits, tree,
-                                               wait_for=stage_events["sort"][-1:])
-
-    metrics = RadixTreeMetrics.allocate(rt, n)
+    tree, metrics = RadixTree.allocate(rt, n), RadixTreeMetrics.allocate(rt, n)
     triangles, refs = buf(n * layout.TRIANGLE.itemsize), buf(n * layout.TRIANGLE_REF.itemsize)
     vertex_ids = buf(n * 12)
-    stage_events["refit"] = refit_radix_tree(
-        rt, geometry.vertices, geometry.faces, primitive_ids, geometry.mesh_first_face,
-        geometry.mesh_count, tree, metrics, triangles, refs, vertex_ids, collapse_leaves=hlbvh,
-        wait_for=stage_events["emit"][-1:])
+    stage_events["radix_tree"] = build_radix_tree(
+        rt, keys, morton_bits, geometry.vertices, geometry.faces, primitive_ids,
+        geometry.mesh_first_face, geometry.mesh_count, tree, metrics, triangles, refs, vertex_ids,
+        collapse_leaves=hlbvh, wait_for=stage_events["sort"][-1:])
 
     top = None
     if hlbvh and n > 1:
         top, stage_events["sah_top"] = build_top(rt, keys, morton_bits, tree, metrics,
-                                                 wait_for=stage_events["refit"][-1:])
+                                                 wait_for=stage_events["radix_tree"][-1:])
 
-    last = (stage_events["sah_top"] or stage_events["refit"])[-1:]
+    last = (stage_events["sah_top"] or stage_events["radix_tree"])[-1:]
     nodes, parents, node_count, leaf_count, root_box, depth, cost, stage_events["flatten"] = \
         flatten_nodes(
         rt, keys, morton_bits, tree, metrics, top, use_clusters=hlbvh, wait_for=last)

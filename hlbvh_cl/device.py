@@ -265,16 +265,21 @@ class Runtime:
         cost per work-group, and 64 measured ~3x slower on a plain copy."""
         return min(256, self.device.cl_device.max_work_group_size)
 
-    def run(self, kernel: cl.Kernel, work_items: int, *args, wait_for=None,
+    def run(self, kernel: cl.Kernel, work_items: int | tuple[int, int], *args, wait_for=None,
             local_size: int | None = None) -> cl.Event:
-        """Enqueue ``kernel`` over ``work_items`` items (rounded up to whole
-        work-groups; every kernel checks its own bound).  Python ints and
-        floats become int32 and float32 arguments."""
+        """Enqueue ``kernel`` over ``work_items`` items, or a 2D range
+        (columns, rows) in work-groups of one row; columns are rounded up to
+        whole work-groups, and every kernel checks its own bound.  Python
+        ints and floats become int32 and float32 arguments."""
         local_size = local_size or self.group_size
         kernel.set_args(*(_kernel_arg(a) for a in args))
-        groups = max(1, -(-work_items // local_size))
-        return cl.enqueue_nd_range_kernel(self.queue, kernel, (groups * local_size,),
-                                          (local_size,), wait_for=wait_for)
+        columns, rows = work_items if isinstance(work_items, tuple) else (work_items, None)
+        size = max(1, -(-columns // local_size)) * local_size
+        if rows is None:
+            return cl.enqueue_nd_range_kernel(self.queue, kernel, (size,), (local_size,),
+                                              wait_for=wait_for)
+        return cl.enqueue_nd_range_kernel(self.queue, kernel, (size, max(1, rows)),
+                                          (local_size, 1), wait_for=wait_for)
 
     def _build(self, filename: str, defines: dict) -> cl.Program:
         folder = kernel_dir()

@@ -5,8 +5,7 @@ import numpy as np
 import pyopencl as cl
 
 from . import layout
-from .emit import RadixTree
-from .refit import RadixTreeMetrics
+from .radix_tree import RadixTree, RadixTreeMetrics
 from .sah_top import TopTree
 from .scan import exclusive_scan
 
@@ -53,8 +52,8 @@ def flatten_nodes(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: Radi
     if top:
         events.append(rt.run(rt.kernel("flatten.cl", "write_top_nodes", **defines), top_count, n,
                              top_count, top.root, live, top.top_left, top.top_right, top.top_boxes,
-                             top.cluster_roots, tree.range_first, tree.range_last,
-                             metrics.collapsed, metrics.boxes, nodes, parents,
+                             top.cluster_roots, top.cluster_boxes, tree.range_first,
+                             tree.range_last, metrics.collapsed, nodes, parents,
                              wait_for=events[-1:]))
         root_box = np.empty(1, layout.AABB)
         cl.enqueue_copy(q, root_box, top.top_boxes, src_offset=top.root * layout.AABB.itemsize,

@@ -9,8 +9,7 @@ import numpy as np
 import pyopencl as cl
 
 from . import layout
-from .emit import RadixTree
-from .refit import RadixTreeMetrics
+from .radix_tree import RadixTree, RadixTreeMetrics
 from .scan import exclusive_scan
 
 TOP_TASK_BYTES = 16  # struct TopTask in sah_top.cl: four ints
@@ -28,6 +27,7 @@ class TopTree:
     top_right: cl.Buffer
     top_boxes: cl.Buffer     # Aabb
     cluster_roots: cl.Buffer  # int32: radix-tree node of each cluster
+    cluster_boxes: cl.Buffer  # Aabb of each cluster (its root's box, gathered compactly)
     depth: int
     sah_cost: float          # of the whole tree, not normalised
 
@@ -91,7 +91,7 @@ def build_top(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: RadixTre
     cl.enqueue_copy(q, depth_and_root, info, wait_for=events[-1:])
     cl.enqueue_copy(q, total, root_cost, wait_for=events[-1:])
     return TopTree(clusters, clusters - 1, int(depth_and_root[1]), left, right, boxes, roots,
-                   int(depth_and_root[0]), float(total[0])), events
+                   cluster_box, int(depth_and_root[0]), float(total[0])), events
 
 
 def _serial_depth(clusters: int, compute_units: int, device_type: str) -> int:

@@ -89,7 +89,7 @@ class Scene:
     def stats(self) -> dict:
         """triangles, nodes, leaves, depth, sah_cost (of the binary tree) and
         times_ms of the last build: device time per stage (bounds, morton,
-        sort, emit, refit, sah_top, flatten, and widen, the 8-wide copy that
+        sort, radix_tree, sah_top, flatten, and widen, the 8-wide copy that
         traversal reads), their total, and the host's wall time.  After
         update_vertices, sah_cost is recomputed from the refit boxes and
         update_ms holds the refit's times (both trees)."""

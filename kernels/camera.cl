@@ -1,8 +1,10 @@
 /* Primary ray generation: one pinhole-camera ray per pixel and sample.
  *
  * Kernel
- *   primary_rays  rays[i] for pixel first_pixel + i of a width x height image,
- *                 pixels in row-major order from the top-left one
+ *   primary_rays  one ray per pixel of the pass of `rows` rows from row
+ *                 first_row of a width x height image (pixels row-major from
+ *                 the top-left one), in tile order: over the 2D range of
+ *                 pixel_in_pass (hlbvh.h)
  *
  * Pixel (x, y), y counting down from the top row, is the square
  * [x, x + 1] x [y, y + 1]; a sample at (x + jx, y + jy) maps to the image
@@ -12,26 +14,27 @@
  * random_unit(pixel, sample, 1)) (hlbvh.h), so a render with several samples
  * per pixel is the same every time.
  *
- * Row-major order keeps a work-group's rays next to each other on the image,
- * hence coherent; measured on PoCL, 4x4 to 32x32 pixel tiles were no faster.
+ * Tile order (hlbvh.h) keeps a CPU ray packet's rays next to each other on
+ * the image, hence coherent.  (Before packets, 4x4 to 32x32 pixel tiles were
+ * no faster than row-major order on PoCL.)
  */
 #include "hlbvh.h"
 
 __kernel void primary_rays(const PinholeCamera camera,
                            const uint width,
                            const uint height,
-                           const uint first_pixel,
-                           const uint ray_count,
+                           const uint first_row,
+                           const uint rows,
                            const uint sample,
                            const int jitter,
                            __global Ray* rays)
 {
-    uint gid = get_global_id(0);
-    if (gid >= ray_count)
+    uint gid;
+    uint2 at;
+    if (!pixel_in_pass(get_global_id(0), get_global_id(1), width, rows, &gid, &at))
         return;
-    uint pixel = first_pixel + gid;
-    uint x = pixel % width;
-    uint y = pixel / width;
+    uint x = at.x, y = first_row + at.y;
+    uint pixel = y * width + x;
     float jx = jitter ? random_unit(pixel, sample, 0) : 0.5f;
     float jy = jitter ? random_unit(pixel, sample, 1) : 0.5f;
     float sx = 2.0f * ((float)x + jx) / (float)width - 1.0f;

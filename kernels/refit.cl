@@ -1,115 +1,11 @@
-/* Stage 5: bottom-up refit with atomic visit counters (Karras 2012, sec. 4;
- * Apetrei 2014).  One work-item starts at each leaf and walks up; at every
- * node the first arrival stops and the second, which sees both children
- * finished, computes the node and goes on.  One pass, no level sync.
- *
- * refit_radix_tree runs during a build.  Besides the boxes it evaluates the
- * SAH bottom-up (cost = C_t * A(node) + cost(left) + cost(right), or
- * C_i * N * A(node) as a leaf) so that, with COLLAPSE_LEAVES, subtrees of at
- * most MAX_LEAF_SIZE triangles become leaves where the SAH says a leaf costs
- * at most COLLAPSE_COST_RATIO times as much (hlbvh.h).  refit_flat_tree
- * refits the flat tree after vertices move.
+/* Refit of a finished tree after its vertices moved (Scene.update_vertices):
+ * the topology is kept, and every box is recomputed bottom-up with atomic
+ * visit counters (Karras 2012, sec. 4): one walk starts at every node whose
+ * children are all leaves; at every node the first arrival stops and the
+ * last, which sees all children finished, computes the node and goes on.
+ * (A build computes its boxes as it builds the radix tree: radix_tree.cl.)
  */
 #include "hlbvh.h"
-
-/* Loads that must see another work-item's writes made before its atomic. */
-inline Aabb load_box_volatile(__global const Aabb *boxes, int index)
-{
-    volatile __global const float *p = (volatile __global const float *)(boxes + index);
-    Aabb box = {{p[0], p[1], p[2]}, {p[3], p[4], p[5]}};
-    return box;
-}
-
-inline float load_float_volatile(__global const float *values, int index)
-{
-    return ((volatile __global const float *)values)[index];
-}
-
-inline int load_int_volatile(__global const int *values, int index)
-{
-    return ((volatile __global const int *)values)[index];
-}
-
-/* The mesh a concatenated face belongs to: the last whose first face is <= face. */
-inline TriangleRef triangle_ref(__global const int *mesh_first_face, int mesh_count, int face)
-{
-    int lo = 0, hi = mesh_count - 1;
-    while (lo < hi) {
-        int mid = (lo + hi + 1) >> 1;
-        if (mesh_first_face[mid] <= face)
-            lo = mid;
-        else
-            hi = mid - 1;
-    }
-    TriangleRef ref = {lo, face - mesh_first_face[lo]};
-    return ref;
-}
-
-inline void store_triangle(__global Triangle *triangles, int j, float3 a, float3 b, float3 c)
-{
-    Triangle t;
-    vstore3(a, 0, t.v0);
-    vstore3(b, 0, t.v1);
-    vstore3(c, 0, t.v2);
-    triangles[j] = t;
-}
-
-/* Each leaf's walker first lays its triangle out in leaf (sorted) order, with
- * its (mesh, face) ref: the refit has to gather the triangle anyway. */
-__kernel void refit_radix_tree(__global const float *vertices, __global const int *faces,
-                               __global const uint *primitive_ids, int n,
-                               __global const int *mesh_first_face, int mesh_count,
-                               __global Triangle *triangles, __global TriangleRef *refs,
-                               __global int *vertex_ids, __global const int *left_child, __global const int *right_child,
-                               __global const int *parent, __global const int *range_first,
-                               __global const int *range_last, __global volatile int *visits,
-                               __global Aabb *boxes, __global float *sah_cost,
-                               __global int *height, __global int *collapsed)
-{
-    int j = get_global_id(0);
-    if (j >= n)
-        return;
-    int node = (n - 1) + j;
-    int face = (int)primitive_ids[j];
-    float3 a, b, c;
-    load_triangle(vertices, faces, face, &a, &b, &c);
-    store_triangle(triangles, j, a, b, c);
-    refs[j] = triangle_ref(mesh_first_face, mesh_count, face);
-    vstore3(vload3(face, faces), j, vertex_ids);
-    Aabb box = aabb_of_points(a, b, c);
-    boxes[node] = box;
-    sah_cost[node] = SAH_INTERSECT_COST * aabb_area(box);
-    height[node] = 0;
-
-    node = parent[node];
-    while (node >= 0) {
-        /* Release, then acquire: the boxes written below this node happen
-         * before the count, which happens before the sibling's are read.
-         * Store-only and load-only fences suffice; full mem_fences measured
-         * 3.6x slower on Intel's CPU runtime (366 vs 102 ms), PoCL the same. */
-        write_mem_fence(CLK_GLOBAL_MEM_FENCE);
-        if (atomic_inc(&visits[node]) == 0)
-            return; /* the sibling subtree is not done; its walker goes on */
-        read_mem_fence(CLK_GLOBAL_MEM_FENCE);
-
-        int left = left_child[node], right = right_child[node];
-        box = aabb_union(load_box_volatile(boxes, left), load_box_volatile(boxes, right));
-        float area = aabb_area(box);
-        int count = range_last[node] - range_first[node] + 1;
-        float as_interior = SAH_TRAVERSAL_COST * area + load_float_volatile(sah_cost, left) +
-                            load_float_volatile(sah_cost, right);
-        float as_leaf = SAH_INTERSECT_COST * (float)count * area;
-        int make_leaf = COLLAPSE_LEAVES && count <= MAX_LEAF_SIZE &&
-                        as_leaf <= COLLAPSE_COST_RATIO * as_interior;
-
-        boxes[node] = box;
-        sah_cost[node] = make_leaf ? as_leaf : as_interior;
-        height[node] = make_leaf ? 0 : 1 + max(load_int_volatile(height, left),
-                                               load_int_volatile(height, right));
-        collapsed[node] = make_leaf;
-        node = parent[node];
-    }
-}
 
 /* Re-read the triangles [first, first + count) of a leaf from the (moved)
  * vertices through their vertex ids (stored in leaf order by the build, so
@@ -208,7 +104,7 @@ __kernel void refit_flat_tree(__global FlatNode *nodes, __global const int *pare
         /* A parent with one interior child (this one) needs no counter. */
         if (is_interior_slot(up->left, up->left_count) &&
             is_interior_slot(up->right, up->right_count)) {
-            write_mem_fence(CLK_GLOBAL_MEM_FENCE); /* release, as in refit_radix_tree */
+            write_mem_fence(CLK_GLOBAL_MEM_FENCE); /* release, then acquire */
             if (atomic_inc(&visits[p]) == 0)
                 return; /* the sibling subtree is not done; its walker goes on */
             read_mem_fence(CLK_GLOBAL_MEM_FENCE); /* acquire */

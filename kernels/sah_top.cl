@@ -105,6 +105,13 @@ inline float4 grow_hi(float4 acc, float4 value)
     return select(acc, value, value > acc);
 }
 
+/* grow_lo on xyz, a sum on w: a bin's lower corner and its triangle count. */
+inline float4 grow_bin(float4 acc, float4 value)
+{
+    float4 low = grow_lo(acc, value);
+    return (float4)(low.xyz, acc.w + value.w);
+}
+
 /* aabb_area of the box lo.xyz..hi.xyz, written as the same expression so the
  * result is bit-identical (the trees must not depend on the record layout). */
 inline float area_of(float4 lo, float4 hi)
@@ -244,36 +251,35 @@ inline int split_clusters(__global ClusterRecord *records, int begin, int end, i
     /* As many bins as clusters, up to TOP_SAH_BINS: a node's cost stays
      * proportional to its clusters (3 x 32 bins per node measured ~3 us,
      * which dominated the deep levels' many small nodes). */
-    int bins = min(end - begin, TOP_SAH_BINS);
+    int bins = min(max((end - begin) / 2, 2), TOP_SAH_BINS);
     float4 extent = centroid_hi - centroid_lo;
     float4 lo = (float4)(centroid_lo.xyz, 0.0f);
     float4 inv_extent = (float4)(extent.x > 0.0f ? bins / extent.x : 0.0f,
                                  extent.y > 0.0f ? bins / extent.y : 0.0f,
                                  extent.z > 0.0f ? bins / extent.z : 0.0f, 0.0f);
 
-    /* Per axis a: bin_lo/hi[a][b] the box of bin b, and lane a of
-     * bin_size[b] its triangle count (so the sweep reads one vector). */
-    float4 bin_lo[3][TOP_SAH_BINS], bin_hi[3][TOP_SAH_BINS], bin_size[TOP_SAH_BINS];
-    for (int b = 0; b < bins; ++b) {
-        for (int axis = 0; axis < 3; ++axis) {
-            bin_lo[axis][b] = (float4)(INFINITY);
+    /* Per axis a: bin_lo/hi[a][b] the box of bin b, with bin b's triangle
+     * count in bin_lo's w lane (grow_bin). */
+    float4 bin_lo[3][TOP_SAH_BINS], bin_hi[3][TOP_SAH_BINS];
+    for (int axis = 0; axis < 3; ++axis)
+        for (int b = 0; b < bins; ++b) {
+            bin_lo[axis][b] = (float4)(INFINITY, INFINITY, INFINITY, 0.0f);
             bin_hi[axis][b] = (float4)(-INFINITY);
         }
-        bin_size[b] = (float4)(0.0f);
-    }
     for (int k = begin; k < end; ++k) {
         ClusterRecord r = records[k];
         int4 b = bins_of(r, lo, inv_extent, bins);
-        bin_lo[0][b.x] = grow_lo(bin_lo[0][b.x], r.lo);
+        bin_lo[0][b.x] = grow_bin(bin_lo[0][b.x], r.lo);
         bin_hi[0][b.x] = grow_hi(bin_hi[0][b.x], r.hi);
-        bin_size[b.x].x += r.lo.w;
-        bin_lo[1][b.y] = grow_lo(bin_lo[1][b.y], r.lo);
+        bin_lo[1][b.y] = grow_bin(bin_lo[1][b.y], r.lo);
         bin_hi[1][b.y] = grow_hi(bin_hi[1][b.y], r.hi);
-        bin_size[b.y].y += r.lo.w;
-        bin_lo[2][b.z] = grow_lo(bin_lo[2][b.z], r.lo);
+        bin_lo[2][b.z] = grow_bin(bin_lo[2][b.z], r.lo);
         bin_hi[2][b.z] = grow_hi(bin_hi[2][b.z], r.hi);
-        bin_size[b.z].z += r.lo.w;
     }
+    /* Lane a of bin_size[b]: bin b's count on axis a, so the sweeps read one vector. */
+    float4 bin_size[TOP_SAH_BINS];
+    for (int b = 0; b < bins; ++b)
+        bin_size[b] = (float4)(bin_lo[0][b].w, bin_lo[1][b].w, bin_lo[2][b].w, 0.0f);
 
     /* Both sweeps run the three axes side by side, lane a for axis a: the
      * per-bin work is a few vector ops instead of three scalar passes. */

@@ -7,7 +7,9 @@
  *   depth    (far - distance) / (far - near) clamped to [0, 1], black on a miss
  *   ao       a * (fraction of ao rays that meet nothing), sky on a miss
  *
- * Kernels (one work-item per pixel of the current pass)
+ * Kernels (one work-item per pixel of the current pass; ao_rays and
+ * encode_image over pixel_in_pass's 2D range, hlbvh.h, the others 1D in ray
+ * order)
  *   shade_hits      adds to accum what needs no further ray; for diffuse with
  *                   SHADOWS writes each pixel's shadow ray (an empty ray
  *                   where none is needed) and the light it would let through
@@ -39,12 +41,15 @@
 #define ENCODE_GAMMA (SHADING == SHADING_DIFFUSE || SHADING == SHADING_AO)
 
 /* A ray with tmin > tmax: traversal rejects the root's children at once and
- * reports no hit, so a pixel that needs no secondary ray costs one node. */
-inline void write_empty_ray(__global Ray* ray)
+ * reports no hit, so a pixel that needs no secondary ray costs one node.  It
+ * takes the direction of its neighbours' rays (the light's, for shadows):
+ * CPU traversal traces 8 rays as one packet only when their directions share
+ * signs and dominant axis (traverse.cl), and an odd empty ray would send its
+ * whole packet down the one-ray-at-a-time path. */
+inline void write_empty_ray(__global Ray* ray, float3 direction)
 {
     ray->origin[0] = ray->origin[1] = ray->origin[2] = 0.0f;
-    ray->direction[0] = ray->direction[1] = 0.0f;
-    ray->direction[2] = 1.0f;
+    vstore3(direction, 0, ray->direction);
     ray->tmin = 1.0f;
     ray->tmax = 0.0f;
 }
@@ -106,7 +111,7 @@ __kernel void shade_hits(__global const Ray* rays,
         colour = sky(&params, direction);
 #endif
 #if SHADING == SHADING_DIFFUSE && SHADOWS
-        write_empty_ray(secondary + gid);
+        write_empty_ray(secondary + gid, vload3(0, params.light_direction));
 #endif
     } else {
         float3 n = facing_normal(hit, direction);
@@ -121,7 +126,7 @@ __kernel void shade_hits(__global const Ray* rays,
             deferred = direct;
             write_ray(secondary + gid, secondary_origin(ray, hit, n, &params), light, INFINITY);
         } else {
-            write_empty_ray(secondary + gid);
+            write_empty_ray(secondary + gid, light);
         }
 #else
         colour += direct;
@@ -161,23 +166,25 @@ inline void orthonormal_basis(float3 n, float3* b1, float3* b2)
 __kernel void ao_rays(__global const Ray* rays,
                       __global const Hit* hits,
                       const ShadeParams params,
-                      const uint first_pixel,
-                      const uint ray_count,
+                      const uint width,
+                      const uint first_row,
+                      const uint rows,
                       const uint sample,
                       const uint ao_index,
                       __global Ray* secondary)
 {
-    uint gid = get_global_id(0);
-    if (gid >= ray_count)
+    uint gid;
+    uint2 at;
+    if (!pixel_in_pass(get_global_id(0), get_global_id(1), width, rows, &gid, &at))
         return;
     __global const Hit* hit = hits + gid;
-    if (hit->geom_id < 0) {
-        write_empty_ray(secondary + gid);
+    if (hit->geom_id < 0) { /* AO rays scatter: any direction will do */
+        write_empty_ray(secondary + gid, vload3(0, params.sky_up));
         return;
     }
     __global const Ray* ray = rays + gid;
     float3 n = facing_normal(hit, vload3(0, ray->direction));
-    uint pixel = first_pixel + gid;
+    uint pixel = (first_row + at.y) * width + at.x;
     float u1 = random_unit(pixel, sample, 2 + 2 * ao_index);
     float u2 = random_unit(pixel, sample, 3 + 2 * ao_index);
     float radius = sqrt(u1);
@@ -201,22 +208,24 @@ __kernel void add_unoccluded(__global const uchar* occluded,
     accum[gid] += pending[gid];
 }
 
-/* RGB of pixel first_pixel + i = round(255 * encode(clamp(accum[i] * scale,
- * 0, 1))), encode = sqrt for radiance (display gamma 2), the identity for
- * data views. */
+/* RGB of the pixel of ray i (pixel_in_pass's 2D range) = round(255 *
+ * encode(clamp(accum[i] * scale, 0, 1))), encode = sqrt for radiance
+ * (display gamma 2), the identity for data views. */
 __kernel void encode_image(__global const float4* accum,
-                           const uint first_pixel,
-                           const uint pixel_count,
+                           const uint width,
+                           const uint first_row,
+                           const uint rows,
                            const float scale,          /* 1 / samples per pixel */
                            __global uchar* image)      /* the whole image */
 {
-    uint gid = get_global_id(0);
-    if (gid >= pixel_count)
+    uint gid;
+    uint2 at;
+    if (!pixel_in_pass(get_global_id(0), get_global_id(1), width, rows, &gid, &at))
         return;
     /* fmin/fmax rather than clamp: they also turn a NaN into 0 */
     float3 value = fmin(fmax(accum[gid].xyz * scale, 0.0f), 1.0f);
 #if ENCODE_GAMMA
     value = sqrt(value);  /* gamma 2: looks as 2.2 does, and pow costs 60x more on PoCL */
 #endif
-    vstore3(convert_uchar3(value * 255.0f + 0.5f), first_pixel + gid, image);
+    vstore3(convert_uchar3(value * 255.0f + 0.5f), (first_row + at.y) * width + at.x, image);
 }

@@ -1,0 +1,82 @@
+"""Stage 4 host side: the binary radix tree with its boxes, SAH costs and
+collapse decisions, in one bottom-up pass (kernels/radix_tree.cl; Karras
+2012's tree, built as Apetrei 2014 does)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pyopencl as cl
+
+from . import layout
+
+
+@dataclass
+class RadixTree:
+    """Binary radix tree over n sorted primitives: internal nodes 0..n-2,
+    leaf of sorted primitive j = node n-1+j."""
+
+    n: int
+    left_child: cl.Buffer    # int32[n-1]
+    right_child: cl.Buffer   # int32[n-1]
+    parent: cl.Buffer        # int32[2n-1], -1 at the root
+    range_first: cl.Buffer   # int32[n-1]: first sorted primitive under the node
+    range_last: cl.Buffer    # int32[n-1]
+
+    @classmethod
+    def allocate(cls, rt, n: int) -> "RadixTree":
+        def ints(count):
+            return rt.pool.take(count * 4)
+        return cls(n, ints(n - 1), ints(n - 1), ints(2 * n - 1), ints(n - 1), ints(n - 1))
+
+    def read(self, queue) -> dict[str, np.ndarray]:
+        """Host copies, for tests."""
+        out = {}
+        for name, count in (("left_child", self.n - 1), ("right_child", self.n - 1),
+                            ("parent", 2 * self.n - 1), ("range_first", self.n - 1),
+                            ("range_last", self.n - 1)):
+            out[name] = np.empty(count, np.int32)
+            if count:
+                cl.enqueue_copy(queue, out[name], getattr(self, name))
+        return out
+
+
+@dataclass
+class RadixTreeMetrics:
+    """Per radix-tree node (2n-1 of them): box, SAH cost, height in the final
+    tree, and (internal nodes) whether the node collapsed into a leaf."""
+
+    boxes: cl.Buffer       # Aabb[2n-1]
+    sah_cost: cl.Buffer    # float32[2n-1], not normalised
+    height: cl.Buffer      # int32[2n-1], 0 for a leaf
+    collapsed: cl.Buffer   # int32[n-1]
+
+    @classmethod
+    def allocate(cls, rt, n: int) -> "RadixTreeMetrics":
+        buf = rt.pool.take
+        nodes = 2 * n - 1
+        return cls(buf(nodes * layout.AABB.itemsize), buf(nodes * 4), buf(nodes * 4),
+                   buf((n - 1) * 4))
+
+
+def build_radix_tree(rt, keys: cl.Buffer, bits: int, vertices: cl.Buffer, faces: cl.Buffer,
+                     primitive_ids: cl.Buffer, mesh_first_face: cl.Buffer, mesh_count: int,
+                     tree: RadixTree, metrics: RadixTreeMetrics, triangles: cl.Buffer,
+                     refs: cl.Buffer, vertex_ids: cl.Buffer, collapse_leaves: bool,
+                     wait_for=None) -> list[cl.Event]:
+    """The tree's nodes, boxes, SAH costs and collapse flags; on the way, the
+    triangles, their refs and their vertex ids in leaf (sorted) order."""
+    n = tree.n
+    far_end = rt.pool.take(max(1, n - 1) * 4)  # -1: no child of the split has arrived
+    cleared = cl.enqueue_fill_buffer(rt.queue, far_end, np.int32(-1), 0, max(1, n - 1) * 4,
+                                     wait_for=wait_for)
+    if n == 1:  # no internal node: the lone leaf is the root
+        cl.enqueue_fill_buffer(rt.queue, metrics.collapsed, np.int32(0), 0, 4)
+    kernel = rt.kernel("radix_tree.cl", "build_radix_tree", MORTON_BITS=bits,
+                       COLLAPSE_LEAVES=int(collapse_leaves))
+    walk = rt.run(kernel, n, keys, n, vertices, faces, primitive_ids, mesh_first_face,
+                  mesh_count, triangles, refs, vertex_ids, far_end, tree.left_child,
+                  tree.right_child, tree.parent, tree.range_first, tree.range_last,
+                  metrics.boxes, metrics.sah_cost, metrics.height, metrics.collapsed,
+                  wait_for=[cleared])
+    return [cleared, walk]

@@ -1,0 +1,154 @@
+/* Stage 4: the binary radix tree over the sorted primitives, with each
+ * node's box, SAH cost and collapse decision, in one bottom-up pass
+ * (Apetrei 2014, "Fast and Simple Agglomerative LBVH Construction").
+ *
+ * The tree is Karras's (2012, "Maximizing Parallelism in the Construction of
+ * BVHs, Octrees, and k-d Trees"), numbered as he numbers it: internal node i
+ * is i (0 = the root), the leaf of sorted primitive j is node n - 1 + j, and
+ * equal keys are told apart by their index (Karras sec. 4).  Instead of a
+ * binary search per node followed by a refit walk, one work-item starts at
+ * each leaf and walks up.  A node covering the primitives [first, last] has
+ * as parent the split at `last` (it is the left child) when the keys across
+ * that end differ less than the keys across `first - 1 | first`, else the
+ * split at first - 1 (it is the right child).  At each split the first
+ * arrival leaves its far end and stops; the second learns the parent's whole
+ * range, emits it and computes it from both children, and goes on.
+ *
+ * Karras's number of a node is its parent's split if it is a left child, and
+ * that split + 1 if it is a right child: its range ends at, or starts at, its
+ * own number.  So the walker names each node as soon as it knows the node's
+ * range, and the tree is the one emit-then-refit built (same arrays).
+ *
+ * On the way the walker evaluates the SAH bottom-up (cost = C_t A(node) +
+ * cost(left) + cost(right), or C_i N A(node) as a leaf) so that, with
+ * COLLAPSE_LEAVES, subtrees of at most MAX_LEAF_SIZE triangles become leaves
+ * where the SAH says a leaf costs at most COLLAPSE_COST_RATIO times as much
+ * (hlbvh.h); and each leaf's walker lays its triangle out in leaf (sorted)
+ * order, with its (mesh, face) ref and vertex ids.
+ */
+#include "hlbvh.h"
+
+
+/* Whether the node over [first, last] is its parent's left child: the keys
+ * across its right end differ less than those across its left end (the
+ * highest differing bit decides; the two can never tie).  Equal keys on both
+ * sides compare the indices instead, as Karras's tie-break does. */
+inline int is_left_child(__global const morton_t *keys, int n, int first, int last)
+{
+    if (first == 0)
+        return 1;
+    if (last == n - 1)
+        return 0;
+    morton_t left_gap = keys[first - 1] ^ keys[first];
+    morton_t right_gap = keys[last] ^ keys[last + 1];
+    if (left_gap != right_gap)
+        return right_gap < left_gap;
+    return (uint)(last ^ (last + 1)) < (uint)((first - 1) ^ first);
+}
+
+/* Karras's number of the internal node over [first, last]. */
+inline int internal_node(__global const morton_t *keys, int n, int first, int last)
+{
+    if (first == 0 && last == n - 1)
+        return 0;
+    return is_left_child(keys, n, first, last) ? last : first;
+}
+
+/* Loads that must see another work-item's writes made before its atomic. */
+inline Aabb load_box_volatile(__global const Aabb *boxes, int index)
+{
+    volatile __global const float *p = (volatile __global const float *)(boxes + index);
+    Aabb box = {{p[0], p[1], p[2]}, {p[3], p[4], p[5]}};
+    return box;
+}
+
+/* The mesh a concatenated face belongs to: the last whose first face is <= face. */
+inline TriangleRef triangle_ref(__global const int *mesh_first_face, int mesh_count, int face)
+{
+    int lo = 0, hi = mesh_count - 1;
+    while (lo < hi) {
+        int mid = (lo + hi + 1) >> 1;
+        if (mesh_first_face[mid] <= face)
+            lo = mid;
+        else
+            hi = mid - 1;
+    }
+    TriangleRef ref = {lo, face - mesh_first_face[lo]};
+    return ref;
+}
+
+/* far_end[s] holds -1 until the first child of split s arrives. */
+__kernel void build_radix_tree(__global const morton_t *keys, int n,
+                               __global const float *vertices, __global const int *faces,
+                               __global const uint *primitive_ids,
+                               __global const int *mesh_first_face, int mesh_count,
+                               __global Triangle *triangles, __global TriangleRef *refs,
+                               __global int *vertex_ids, __global volatile int *far_end,
+                               __global int *left_child, __global int *right_child,
+                               __global int *parent, __global int *range_first,
+                               __global int *range_last, __global Aabb *boxes,
+                               __global float *sah_cost, __global int *height,
+                               __global int *collapsed)
+{
+    int j = get_global_id(0);
+    if (j >= n)
+        return;
+    int face = (int)primitive_ids[j];
+    float3 a, b, c;
+    load_triangle(vertices, faces, face, &a, &b, &c);
+    store_triangle(triangles, j, a, b, c);
+    refs[j] = triangle_ref(mesh_first_face, mesh_count, face);
+    vstore3(vload3(face, faces), j, vertex_ids);
+    Aabb box = aabb_of_points(a, b, c);
+    int node = (n - 1) + j;
+    boxes[node] = box;
+    sah_cost[node] = SAH_INTERSECT_COST * aabb_area(box);
+    height[node] = 0;
+    if (n == 1)
+        parent[0] = -1;
+
+    int first = j, last = j;
+    int left_side = is_left_child(keys, n, first, last);
+    while (!(first == 0 && last == n - 1)) {
+        int split = left_side ? last : first - 1;
+        /* Release, then acquire: this node's writes happen before the
+         * exchange, which happens before the sibling reads them (store-only
+         * and load-only fences: full mem_fences measured 3.6x slower on
+         * Intel's CPU runtime). */
+        write_mem_fence(CLK_GLOBAL_MEM_FENCE);
+        int other = atomic_xchg(&far_end[split], left_side ? first : last);
+        if (other < 0)
+            return; /* the sibling subtree is not done; its walker goes on */
+        read_mem_fence(CLK_GLOBAL_MEM_FENCE);
+        if (left_side)
+            last = other;
+        else
+            first = other;
+
+        int left = first == split ? (n - 1) + split : split;
+        int right = last == split + 1 ? (n - 1) + split + 1 : split + 1;
+        left_side = is_left_child(keys, n, first, last);
+        node = first == 0 && last == n - 1 ? 0 : left_side ? last : first;
+        left_child[node] = left;
+        right_child[node] = right;
+        parent[left] = node;
+        parent[right] = node;
+        range_first[node] = first;
+        range_last[node] = last;
+
+        box = aabb_union(load_box_volatile(boxes, left), load_box_volatile(boxes, right));
+        float area = aabb_area(box);
+        int count = last - first + 1;
+        volatile __global const float *costs = sah_cost;
+        volatile __global const int *heights = height;
+        float as_interior = SAH_TRAVERSAL_COST * area + costs[left] + costs[right];
+        float as_leaf = SAH_INTERSECT_COST * (float)count * area;
+        int make_leaf = COLLAPSE_LEAVES && count <= MAX_LEAF_SIZE &&
+                        as_leaf <= COLLAPSE_COST_RATIO * as_interior;
+        boxes[node] = box;
+        sah_cost[node] = make_leaf ? as_leaf : as_interior;
+        height[node] = make_leaf ? 0 : 1 + max(heights[left], heights[right]);
+        collapsed[node] = make_leaf;
+    }
+    parent[node] = -1; /* the root's walker */
+}
