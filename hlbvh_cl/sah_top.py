@@ -14,6 +14,7 @@ from .scan import exclusive_scan
 
 TOP_TASK_BYTES = 16  # struct TopTask in sah_top.cl: four ints
 CLUSTER_RECORD_BYTES = 32  # struct ClusterRecord in sah_top.cl: two float4s
+TOP_COST_GROUP = 64  # work-items of sum_top_cost's one work-group (a -D define)
 
 
 @dataclass
@@ -38,8 +39,10 @@ def build_top(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: RadixTre
     Returns None when one cluster holds everything (the radix tree is kept)."""
     n = tree.n
     ctx, q = rt.context, rt.queue
+    kernel = functools.partial(rt.kernel, "sah_top.cl", MORTON_BITS=bits,
+                               TOP_COST_GROUP=TOP_COST_GROUP)
     scan = rt.pool.take((n + 1) * 4)
-    events = [rt.run(rt.kernel("sah_top.cl", "mark_cluster_starts", MORTON_BITS=bits), n,
+    events = [rt.run(kernel("mark_cluster_starts"), n,
                      keys, n, scan, wait_for=wait_for)]
     events += exclusive_scan(rt, scan, n, wait_for=events[-1:])
     cluster_count = np.empty(1, np.uint32)
@@ -55,15 +58,15 @@ def build_top(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: RadixTre
     cluster_cost, cluster_height = buf(clusters), buf(clusters)
     cluster_box = buf(clusters, layout.AABB.itemsize)
     tasks, next_tasks, stack = (buf(clusters, TOP_TASK_BYTES) for _ in range(3))
-    left, right, parent, cost, height = (buf(clusters) for _ in range(5))
+    left, right = buf(clusters), buf(clusters)
     boxes = buf(clusters, layout.AABB.itemsize)
-    info, root_cost, next_count = buf(2), buf(1), buf(1)
-    kernel = functools.partial(rt.kernel, "sah_top.cl", MORTON_BITS=bits)
+    info, root_cost, next_count = buf(2), buf(1), buf(1)  # info: depth, root
     events.append(rt.run(kernel("gather_cluster_starts"), n, scan, n, first, wait_for=events[-1:]))
     events.append(rt.run(kernel("gather_clusters"), clusters, scan, n, first, tree.range_first,
                          tree.range_last, metrics.boxes, metrics.sah_cost, metrics.height, roots,
                          cluster_box, records, cluster_cost, cluster_height, tasks,
                          wait_for=events[-1:]))
+    events.append(cl.enqueue_fill_buffer(q, info, np.int32(0), 0, 8, wait_for=events[-1:]))
     # One launch per level until every task has finished its subtree: at most
     # serial_depth + 1 levels, as tasks that deep build their subtrees
     # serially.  Each level costs a launch and a read-back (~1 ms on PoCL), so
@@ -76,16 +79,13 @@ def build_top(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: RadixTre
                                              wait_for=events[-1:]))
         events.append(rt.run(kernel("split_top_level"), int(task_count[0]), tasks,
                              int(task_count[0]), serial_depth, next_tasks, next_count, stack,
-                             records, left, right, parent, info, wait_for=events[-1:],
-                             local_size=1))
+                             records, cluster_height, left, right, boxes, info,
+                             wait_for=events[-1:], local_size=1))
         cl.enqueue_copy(q, task_count, next_count, wait_for=events[-1:])
         tasks, next_tasks = next_tasks, tasks
-    visits = buf(clusters)
-    events.append(cl.enqueue_fill_buffer(q, visits, np.int32(0), 0, clusters * 4,
-                                         wait_for=events[-1:]))
-    events.append(rt.run(kernel("fold_top_nodes"), clusters - 1, clusters - 1, left, right,
-                         parent, cluster_box, cluster_cost, cluster_height, visits, boxes, cost,
-                         height, info, root_cost, wait_for=events[-1:]))
+    events.append(rt.run(kernel("sum_top_cost"), TOP_COST_GROUP, clusters - 1, boxes, clusters,
+                         cluster_cost, root_cost, wait_for=events[-1:],
+                         local_size=TOP_COST_GROUP))
     depth_and_root = np.empty(2, np.int32)
     total = np.empty(1, np.float32)
     cl.enqueue_copy(q, depth_and_root, info, wait_for=events[-1:])

@@ -6,13 +6,19 @@
  * of their Morton code.  Each cluster is exactly one subtree of the radix
  * tree, so the LBVH below it is kept and only the nodes above the clusters
  * are replaced by a binned-SAH tree over the cluster boxes, built level by
- * level in parallel (split_top_level) and folded bottom-up (fold_top_nodes).
+ * level in parallel (split_top_level), which also writes each top node's box
+ * and the tree's depth; sum_top_cost then adds up its SAH cost.
  */
 #include "hlbvh.h"
 
 
 /* Isolating one huge cluster is tried only this near the root. */
 #define TOP_ISOLATE_DEPTH 8
+
+/* Work-items of sum_top_cost's one work-group: set by the host (-D). */
+#ifndef TOP_COST_GROUP
+#error "TOP_COST_GROUP must be defined"
+#endif
 
 /* flags[i] = 1 where sorted primitive i starts a cluster (scanned afterwards). */
 __kernel void mark_cluster_starts(__global const morton_t *keys, int n, __global uint *flags)
@@ -161,7 +167,7 @@ inline int left_of_split(ClusterRecord r, int axis, float lo, float inv_extent, 
 }
 
 inline void attach(int ref, int parent, int side, __global int *top_left,
-                   __global int *top_right, __global int *top_parent, __global int *info)
+                   __global int *top_right, volatile __global int *info)
 {
     if (parent < 0)
         info[1] = ref; /* the root */
@@ -169,8 +175,6 @@ inline void attach(int ref, int parent, int side, __global int *top_left,
         top_right[parent] = ref;
     else
         top_left[parent] = ref;
-    if (ref >= 0)
-        top_parent[ref] = parent;
 }
 
 /* split_clusters for two clusters (a third of all top nodes), without its
@@ -178,9 +182,11 @@ inline void attach(int ref, int parent, int side, __global int *top_left,
  * the split is always begin + 1, and the first axis of least cost whose
  * bins_of separates the two puts the one in bin 0 on the left.  Isolation
  * needs three clusters or more. */
-inline int split_pair(__global ClusterRecord *records, int begin)
+inline int split_pair(__global ClusterRecord *records, int begin, float4 *box_lo, float4 *box_hi)
 {
     ClusterRecord a = records[begin], b = records[begin + 1];
+    *box_lo = grow_lo(a.lo, b.lo);
+    *box_hi = grow_hi(a.hi, b.hi);
     float4 center_a = 0.5f * (a.lo + a.hi), center_b = 0.5f * (b.lo + b.hi);
     float4 lo = grow_lo(center_a, center_b), extent = grow_hi(center_a, center_b) - lo;
     lo.w = 0.0f;
@@ -211,15 +217,16 @@ inline int split_pair(__global ClusterRecord *records, int begin)
 }
 
 /* Split records[begin..end) with the binned SAH; partition it in place and
- * return the split point.  A split's cost is N_L A(L) + N_R A(R), N counting
+ * return the split point, and the box of the whole range in *box_lo/hi.  A split's cost is N_L A(L) + N_R A(R), N counting
  * triangles (Wald 2007).  Besides the bins it tries isolating the largest
  * cluster: centroid bins cannot separate a huge primitive (a ground plane)
  * whose centre lies among the others, and leaving it inside inflates every
  * box below.  (Only near the top, so isolation chains stay short.) */
-inline int split_clusters(__global ClusterRecord *records, int begin, int end, int depth)
+inline int split_clusters(__global ClusterRecord *records, int begin, int end, int depth,
+                          float4 *box_lo, float4 *box_hi)
 {
     if (end - begin == 2)
-        return split_pair(records, begin);
+        return split_pair(records, begin, box_lo, box_hi);
     /* The isolation candidate needs the largest cluster (the first of equal
      * areas), the triangle total and the box of the rest: gathered in the
      * same pass, the rest growing by each cluster that stops being largest. */
@@ -227,6 +234,7 @@ inline int split_clusters(__global ClusterRecord *records, int begin, int end, i
     float4 centroid_lo = (float4)(INFINITY), centroid_hi = (float4)(-INFINITY);
     float4 rest_lo = centroid_lo, rest_hi = centroid_hi;
     ClusterRecord big = {rest_lo, rest_hi};
+    float4 lo_corner = rest_lo, hi_corner = rest_hi;
     float total = 0.0f, largest_area = -1.0f;
     int largest = begin;
     for (int k = begin; k < end; ++k) {
@@ -234,6 +242,8 @@ inline int split_clusters(__global ClusterRecord *records, int begin, int end, i
         float4 center = 0.5f * (r.lo + r.hi);
         centroid_lo = grow_lo(centroid_lo, center);
         centroid_hi = grow_hi(centroid_hi, center);
+        lo_corner = grow_lo(lo_corner, r.lo);
+        hi_corner = grow_hi(hi_corner, r.hi);
         if (try_isolate) {
             total += r.lo.w;
             float area = area_of(r.lo, r.hi);
@@ -251,6 +261,8 @@ inline int split_clusters(__global ClusterRecord *records, int begin, int end, i
     /* As many bins as clusters, up to TOP_SAH_BINS: a node's cost stays
      * proportional to its clusters (3 x 32 bins per node measured ~3 us,
      * which dominated the deep levels' many small nodes). */
+    *box_lo = lo_corner;
+    *box_hi = hi_corner;
     int bins = min(max((end - begin) / 2, 2), TOP_SAH_BINS);
     float4 extent = centroid_hi - centroid_lo;
     float4 lo = (float4)(centroid_lo.xyz, 0.0f);
@@ -376,8 +388,9 @@ inline int split_clusters(__global ClusterRecord *records, int begin, int end, i
 __kernel void split_top_level(__global const TopTask *tasks, int task_count, int serial_depth,
                               __global TopTask *next_tasks, __global volatile int *next_count,
                               __global TopTask *stack, __global ClusterRecord *records,
-                              __global int *top_left, __global int *top_right,
-                              __global int *top_parent, __global int *info)
+                              __global const int *cluster_height, __global int *top_left,
+                              __global int *top_right, __global Aabb *top_boxes,
+                              __global volatile int *info)
 {
     int i = get_global_id(0);
     if (i >= task_count)
@@ -387,14 +400,19 @@ __kernel void split_top_level(__global const TopTask *tasks, int task_count, int
     int base = task.begin, top = base;
     while (1) {
         int depth = task.side_and_depth >> 1;
-        int middle = split_clusters(records, task.begin, task.end, depth);
+        float4 lo, hi;
+        int middle = split_clusters(records, task.begin, task.end, depth, &lo, &hi);
         int node = middle - 1;
-        attach(node, task.parent, task.side_and_depth & 1, top_left, top_right, top_parent, info);
+        Aabb box = {{lo.x, lo.y, lo.z}, {hi.x, hi.y, hi.z}};
+        top_boxes[node] = box;
+        attach(node, task.parent, task.side_and_depth & 1, top_left, top_right, info);
         int ranges[2][2] = {{task.begin, middle}, {middle, task.end}};
         for (int side = 0; side < 2; ++side) {
             if (ranges[side][1] - ranges[side][0] == 1) {
-                attach(~(int)records[ranges[side][0]].hi.w, node, side, top_left, top_right,
-                       top_parent, info);
+                int cluster = (int)records[ranges[side][0]].hi.w;
+                attach(~cluster, node, side, top_left, top_right, info);
+                /* the tree's depth: top nodes on the path, then the cluster's subtree */
+                atomic_max(&info[0], depth + 1 + cluster_height[cluster]);
                 continue;
             }
             TopTask child = {ranges[side][0], ranges[side][1], node, ((depth + 1) << 1) | side};
@@ -409,52 +427,26 @@ __kernel void split_top_level(__global const TopTask *tasks, int task_count, int
     }
 }
 
-/* Bottom-up over the top nodes with visit counters, as in refit.cl: a node
- * starts when both children are clusters, else waits for its top children. */
-__kernel void fold_top_nodes(int top_count, __global const int *top_left,
-                             __global const int *top_right, __global const int *top_parent,
-                             __global const Aabb *cluster_box, __global const float *cluster_cost,
-                             __global const int *cluster_height, __global volatile int *visits,
-                             __global Aabb *top_boxes, __global float *top_cost,
-                             __global int *top_height, __global int *info,
-                             __global float *sah_cost_out)
+/* The SAH cost of the whole tree: cost(node) = C_t A(node) + cost(left) +
+ * cost(right) unrolls into the sum of C_t A over the top nodes plus the
+ * clusters' costs.  One work-group: each work-item sums a fixed stride,
+ * work-item 0 adds the partial sums in order (the same total every run). */
+__kernel void sum_top_cost(int top_count, __global const Aabb *top_boxes, int cluster_count,
+                           __global const float *cluster_cost, __global float *sah_cost_out)
 {
-    int t = get_global_id(0);
-    if (t >= top_count || top_left[t] >= 0 || top_right[t] >= 0)
-        return;
-    while (1) {
-        int children[2] = {top_left[t], top_right[t]};
-        Aabb box = aabb_empty();
-        float cost = 0.0f;
-        int h = 0;
-        for (int side = 0; side < 2; ++side) {
-            int ref = children[side];
-            if (ref >= 0) {
-                volatile __global const float *b = (volatile __global const float *)(top_boxes + ref);
-                Aabb child = {{b[0], b[1], b[2]}, {b[3], b[4], b[5]}};
-                box = aabb_union(box, child);
-                cost += ((volatile __global const float *)top_cost)[ref];
-                h = max(h, ((volatile __global const int *)top_height)[ref]);
-            } else {
-                box = aabb_union(box, cluster_box[~ref]);
-                cost += cluster_cost[~ref];
-                h = max(h, cluster_height[~ref]);
-            }
-        }
-        top_boxes[t] = box;
-        top_cost[t] = SAH_TRAVERSAL_COST * aabb_area(box) + cost;
-        top_height[t] = 1 + h;
-        int p = top_parent[t];
-        if (p < 0) {
-            info[0] = 1 + h;
-            sah_cost_out[0] = top_cost[t];
-            return;
-        }
-        int waits_for = (top_left[p] >= 0) + (top_right[p] >= 0);
-        write_mem_fence(CLK_GLOBAL_MEM_FENCE); /* release, as in refit.cl */
-        if (atomic_inc(&visits[p]) + 1 < waits_for)
-            return;
-        read_mem_fence(CLK_GLOBAL_MEM_FENCE); /* acquire */
-        t = p;
+    __local float partial[TOP_COST_GROUP];
+    int i = get_local_id(0);
+    float sum = 0.0f;
+    for (int t = i; t < top_count; t += TOP_COST_GROUP)
+        sum += SAH_TRAVERSAL_COST * aabb_area(top_boxes[t]);
+    for (int c = i; c < cluster_count; c += TOP_COST_GROUP)
+        sum += cluster_cost[c];
+    partial[i] = sum;
+    barrier(CLK_LOCAL_MEM_FENCE);
+    if (i == 0) {
+        float total = 0.0f;
+        for (int k = 0; k < TOP_COST_GROUP; ++k)
+            total += partial[k];
+        sah_cost_out[0] = total;
     }
 }
