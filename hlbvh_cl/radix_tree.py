@@ -67,15 +67,16 @@ def build_radix_tree(rt, keys: cl.Buffer, bits: int, vertices: cl.Buffer, faces:
     """The tree's nodes, boxes, SAH costs and collapse flags; on the way, the
     triangles, their refs and their vertex ids in leaf (sorted) order."""
     n = tree.n
-    far_end = rt.pool.take(max(1, n - 1) * 4)  # -1: no child of the split has arrived
-    cleared = cl.enqueue_fill_buffer(rt.queue, far_end, np.int32(-1), 0, max(1, n - 1) * 4,
+    splits = max(1, n - 1)
+    far_end, visits = rt.pool.take(2 * splits * 4), rt.pool.take(splits * 4)
+    cleared = cl.enqueue_fill_buffer(rt.queue, visits, np.int32(0), 0, splits * 4,
                                      wait_for=wait_for)
     if n == 1:  # no internal node: the lone leaf is the root
         cl.enqueue_fill_buffer(rt.queue, metrics.collapsed, np.int32(0), 0, 4)
     kernel = rt.kernel("radix_tree.cl", "build_radix_tree", MORTON_BITS=bits,
                        COLLAPSE_LEAVES=int(collapse_leaves))
     walk = rt.run(kernel, n, keys, n, vertices, faces, primitive_ids, mesh_first_face,
-                  mesh_count, triangles, refs, vertex_ids, far_end, tree.left_child,
+                  mesh_count, triangles, refs, vertex_ids, far_end, visits, tree.left_child,
                   tree.right_child, tree.parent, tree.range_first, tree.range_last,
                   metrics.boxes, metrics.sah_cost, metrics.height, metrics.collapsed,
                   wait_for=[cleared])

@@ -10,9 +10,10 @@
  * each leaf and walks up.  A node covering the primitives [first, last] has
  * as parent the split at `last` (it is the left child) when the keys across
  * that end differ less than the keys across `first - 1 | first`, else the
- * split at first - 1 (it is the right child).  At each split the first
- * arrival leaves its far end and stops; the second learns the parent's whole
- * range, emits it and computes it from both children, and goes on.
+ * split at first - 1 (it is the right child).  At each split both arrivals
+ * leave their far end and count themselves in; the first stops, the second
+ * learns the parent's whole range, emits it and computes it from both
+ * children, and goes on.
  *
  * Karras's number of a node is its parent's split if it is a left child, and
  * that split + 1 if it is a right child: its range ends at, or starts at, its
@@ -27,6 +28,16 @@
  * order, with its (mesh, face) ref and vertex ids.
  */
 #include "hlbvh.h"
+
+/* Intel's CPU compiler runs this kernel 16 work-items to a vector, and a
+ * vector of walkers climbs as long as its longest walk: lucy (100K
+ * triangles) took 12 ms so, 2.5-3.1 ms one work-item at a time.  (PoCL does
+ * not vectorize it.) */
+#ifdef cl_intel_vec_len_hint
+#define ONE_WORK_ITEM_AT_A_TIME __attribute__((intel_vec_len_hint(1)))
+#else
+#define ONE_WORK_ITEM_AT_A_TIME
+#endif
 
 
 /* Whether the node over [first, last] is its parent's left child: the keys
@@ -77,18 +88,19 @@ inline TriangleRef triangle_ref(__global const int *mesh_first_face, int mesh_co
     return ref;
 }
 
-/* far_end[s] holds -1 until the first child of split s arrives. */
-__kernel void build_radix_tree(__global const morton_t *keys, int n,
-                               __global const float *vertices, __global const int *faces,
-                               __global const uint *primitive_ids,
-                               __global const int *mesh_first_face, int mesh_count,
-                               __global Triangle *triangles, __global TriangleRef *refs,
-                               __global int *vertex_ids, __global volatile int *far_end,
-                               __global int *left_child, __global int *right_child,
-                               __global int *parent, __global int *range_first,
-                               __global int *range_last, __global Aabb *boxes,
-                               __global float *sah_cost, __global int *height,
-                               __global int *collapsed)
+/* far_end[2s + side]: the far end of split s's child on that side (left 0);
+ * visits[s] (zeroed): how many of its children have arrived. */
+__kernel ONE_WORK_ITEM_AT_A_TIME
+void build_radix_tree(__global const morton_t *keys, int n, __global const float *vertices,
+                      __global const int *faces, __global const uint *primitive_ids,
+                      __global const int *mesh_first_face, int mesh_count,
+                      __global Triangle *triangles, __global TriangleRef *refs,
+                      __global int *vertex_ids, __global int *far_end,
+                      __global volatile int *visits, __global int *left_child,
+                      __global int *right_child, __global int *parent,
+                      __global int *range_first, __global int *range_last,
+                      __global Aabb *boxes, __global float *sah_cost, __global int *height,
+                      __global int *collapsed)
 {
     int j = get_global_id(0);
     if (j >= n)
@@ -111,15 +123,16 @@ __kernel void build_radix_tree(__global const morton_t *keys, int n,
     int left_side = is_left_child(keys, n, first, last);
     while (!(first == 0 && last == n - 1)) {
         int split = left_side ? last : first - 1;
-        /* Release, then acquire: this node's writes happen before the
-         * exchange, which happens before the sibling reads them (store-only
-         * and load-only fences: full mem_fences measured 3.6x slower on
-         * Intel's CPU runtime). */
+        far_end[2 * split + !left_side] = left_side ? first : last;
+        /* Release, then acquire: this node's writes happen before the count,
+         * which happens before the sibling reads them (store-only and
+         * load-only fences: full mem_fences measured 3.6x slower on Intel's
+         * CPU runtime; so did atomic_xchg, which it fences with mfence). */
         write_mem_fence(CLK_GLOBAL_MEM_FENCE);
-        int other = atomic_xchg(&far_end[split], left_side ? first : last);
-        if (other < 0)
+        if (atomic_inc(&visits[split]) == 0)
             return; /* the sibling subtree is not done; its walker goes on */
         read_mem_fence(CLK_GLOBAL_MEM_FENCE);
+        int other = ((volatile __global const int *)far_end)[2 * split + left_side];
         if (left_side)
             last = other;
         else
