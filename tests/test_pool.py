@@ -9,7 +9,7 @@ import pytest
 
 from hlbvh_cl import Mesh, Scene
 from hlbvh_cl.device import runtime
-from hlbvh_cl.pool import BufferPool
+from hlbvh_cl.pool import KEEP_BUILDS, BufferPool
 
 MESH_DIR = Path(__file__).resolve().parent.parent / "scenes" / "meshes"
 
@@ -29,7 +29,7 @@ def test_take_reuses_a_given_buffer_of_the_same_size_only(pool):
     assert pool.take(0).size == 4  # never an empty buffer
 
 
-def test_a_build_returns_its_scratch_keeps_its_results_and_drops_the_unused(pool):
+def test_a_build_returns_its_scratch_and_keeps_its_results(pool):
     stale = pool.take(48)
     pool.give(stale)
     with pool.build():
@@ -38,9 +38,36 @@ def test_a_build_returns_its_scratch_keeps_its_results_and_drops_the_unused(pool
             inner = pool.take(256)
         assert pool.free_bytes == 48  # nothing comes back before the outer scope ends
         pool.keep(result)
-    assert pool.free_bytes == 64 + 256  # the scratch came back; the unused 48 were dropped
-    assert pool.take(64) is scratch and pool.take(256) is inner
+    # the scratch came back, and the unused 48 stay: 48 + 64 + 256 is within
+    # the budget (KEEP_BUILDS x the 448 bytes this build took)
+    assert pool.free_bytes == 48 + 64 + 256
+    assert pool.take(64) is scratch and pool.take(256) is inner and pool.take(48) is stale
     assert pool.take(128) is not result
+
+
+def _build(pool, sizes):
+    with pool.build():
+        return [pool.take(size) for size in sizes]
+
+
+def test_scenes_rebuilt_in_turn_each_find_their_buffers(pool):
+    first_a, first_b = _build(pool, [1000, 3000]), _build(pool, [2000, 500])
+    for _ in range(3):
+        again_a, again_b = _build(pool, [1000, 3000]), _build(pool, [2000, 500])
+        assert all(x is y for x, y in zip(again_a, first_a))
+        assert all(x is y for x, y in zip(again_b, first_b))
+
+
+def test_free_bytes_stay_within_budget_oldest_dropped_first(pool):
+    big = _build(pool, [1000])[0]  # budget: KEEP_BUILDS x 1000 bytes
+    assert KEEP_BUILDS * 1000 < 1000 + 700 + 600
+    old, new = pool.take(700), pool.take(600)
+    pool.give(old)
+    pool.give(new)
+    _build(pool, [])  # the end of a build evicts: 1000 + 700 + 600 is over the budget
+    assert pool.free_bytes <= KEEP_BUILDS * 1000
+    assert pool.take(600) is new  # the most recently returned stays
+    assert pool.take(1000) is not big  # the one returned longest ago went first
 
 
 def test_scratch_comes_back_after_an_error(pool):
