@@ -131,30 +131,42 @@ def bench_builds(device_id: str, config: Config, errors: list, show: bool) -> li
 
 def bench_renders(device_id: str, scenes, resolution, repeats: int, images: dict, errors: list,
                   show: bool, label: str) -> list[dict]:
-    """render.time_render() of each scene file; each image is compared with
-    the first device's image of the same scene (``images`` keeps those)."""
+    """render.time_renders() of the scene files, in interleaved rounds; each
+    image is compared with the first device's image of the same scene
+    (``images`` keeps those)."""
     width, height = resolution
     rows = []
-    with progress(len(scenes), f"{label} {device_id}", show) as bar:
-        for name in scenes:
-            try:
-                result, image = render_bench.time_render(SCENES / name, device_id, width, height,
-                                                         repeats, bar=bar)
-                first = images.setdefault((name, width, height), (device_id, image))
-                if first[0] != device_id:
-                    result["image_vs"] = {"device": first[0],
-                                          **render_bench.image_difference(image, first[1])}
-                rows.append(result)
-                seconds = result["times_s"]["total_s"]["median"]
-                report_s = render_bench.REPORT_TIMES_S.get(name.removesuffix(".toml"))
-                _say(f"  {device_id} {name} {width}x{height}: build + render {seconds:.3f} s"
-                     + (f" (report {report_s} s: {report_s / seconds:.1f}x)"
-                        if report_s and (width, height) == render_bench.REPORT_RESOLUTION else ""))
-            except Exception as error:
-                errors.append(_failure(f"render {device_id} {name}", error))
-            gc.collect()
-            bar.update()
+    with progress(len(scenes) * (repeats + 1), f"{label} {device_id}", show) as bar:
+        try:
+            timed = render_bench.time_renders([SCENES / name for name in scenes], device_id,
+                                              width, height, repeats, bar=_Ticker(bar))
+        except Exception as error:  # one failure must not hide the other figures
+            errors.append(_failure(f"render {device_id} {', '.join(scenes)}", error))
+            timed = []
+        for name, (result, image) in zip(scenes, timed):
+            first = images.setdefault((name, width, height), (device_id, image))
+            if first[0] != device_id:
+                result["image_vs"] = {"device": first[0],
+                                      **render_bench.image_difference(image, first[1])}
+            rows.append(result)
+            seconds = result["times_s"]["total_s"]["median"]
+            report_s = render_bench.REPORT_TIMES_S.get(name.removesuffix(".toml"))
+            _say(f"  {device_id} {name} {width}x{height}: build + render {seconds:.3f} s"
+                 + (f" (report {report_s} s: {report_s / seconds:.1f}x)"
+                    if report_s and (width, height) == render_bench.REPORT_RESOLUTION else ""))
+        gc.collect()
     return rows
+
+
+class _Ticker:
+    """A progress bar that advances one step per (scene, run) postfix set."""
+
+    def __init__(self, bar):
+        self.bar = bar
+
+    def set_postfix_str(self, text: str) -> None:
+        self.bar.set_postfix_str(text)
+        self.bar.update()
 
 
 def table_section(rows_by_device: dict, config: Config) -> dict:

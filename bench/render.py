@@ -1,15 +1,18 @@
-"""Render timings: a scene file built and rendered (diffuse shading with
+"""Render timings: scene files built and rendered (diffuse shading with
 shadows), as the original report timed its renders.
 
-One measurement of a scene file on a device (time_render):
+Measuring scene files on a device (time_renders):
 
-  1. load_scene reads the file and builds the BVH once: the reading is
+  1. load_scene reads each file and builds the BVH once: the reading is
      reported as ``load_s``, and that first build pays for compiling the
      build kernels (or loading them from the cache);
   2. a 1x1 render compiles the render kernels;
-  3. one rebuild + render warms up (scratch buffers, caches);
-  4. ``repeats`` times: scene.rebuild() then scene.render(), each timed on
-     the host ("wall", numpy image out).
+  3. one rebuild + render of each warms up (scratch buffers, caches);
+  4. ``repeats`` rounds, each timing scene.rebuild() then scene.render() once
+     per scene in turn, on the host ("wall", numpy image out).  Rounds rather
+     than one scene's repeats after another's: on a shared machine a burst of
+     load then falls on every scene alike, and ratios between rows (the
+     fitted exponent alpha) do not depend on which row it hit.
 
 "total" = rebuild + render of one repeat: the time to turn loaded triangles
 into an image, without file reading or compilation.  Compilation is
@@ -49,70 +52,84 @@ TARGET_SPEEDUP = 20.0
 TARGET_ALPHA = 0.15
 
 
-def time_render(path: Path, device_id: str, width: int, height: int, repeats: int,
-                builder: str = "hlbvh", bar=None) -> tuple[dict, np.ndarray]:
-    """Times ``repeats`` (rebuild + render) of the scene file at ``path``
-    after a warm-up (module docstring): (figures, the last image).  Times in
-    seconds: "runs" lists each run's, "times_s" their {median, min, max}."""
+def time_renders(paths, device_id: str, width: int, height: int, repeats: int,
+                 builder: str = "hlbvh", bar=None) -> list[tuple[dict, np.ndarray]]:
+    """Times ``repeats`` rounds of (rebuild + render) of each scene file in
+    ``paths`` after a warm-up (module docstring): per file, (figures, the
+    last image).  Times in seconds: "runs" lists each run's, "times_s" their
+    {median, min, max}."""
     if repeats < 1:
         raise ValueError(f"repeats must be >= 1, got {repeats}")
-    path = Path(path)
-    elapsed = stopwatch()
-    scene, description, load_s = load_scene(path, device=device_id, builder=builder)
-    first_build_s = elapsed() - load_s
-    c = description.camera
-    camera = Camera(c.eye, c.target, c.up, c.fov_deg)
-
-    warm = stopwatch()
-    scene.render(camera, 1, 1, **SHADING)
-    render_compile_s = warm()
-
-    runs = []
-    image = None
-    cpu_before = timed = None
+    timings = [_SceneTiming(Path(path), device_id, width, height, builder) for path in paths]
     for run in range(repeats + 1):  # run 0 warms up
-        if run == 1:
-            cpu_before, timed = cpu_seconds(), stopwatch()
-        if bar is not None:
-            bar.set_postfix_str(f"{device_id} {path.name} {width}x{height} "
-                                f"{'warm-up' if run == 0 else f'run {run}/{repeats}'}")
-        whole = stopwatch()
-        scene.rebuild()
+        for timing in timings:
+            if bar is not None:
+                bar.set_postfix_str(f"{device_id} {timing.path.name} {width}x{height} "
+                                    f"{'warm-up' if run == 0 else f'run {run}/{repeats}'}")
+            timing.run(timed=run > 0)
+    results = [(timing.result(), timing.image) for timing in timings]
+    del timings
+    return results
+
+
+class _SceneTiming:
+    """One scene file loaded on a device, and its timed runs."""
+
+    def __init__(self, path: Path, device_id: str, width: int, height: int, builder: str):
+        self.path, self.width, self.height, self.builder = path, width, height, builder
+        elapsed = stopwatch()
+        self.scene, description, self.load_s = load_scene(path, device=device_id,
+                                                          builder=builder)
+        self.first_build_s = elapsed() - self.load_s
+        c = description.camera
+        self.camera = Camera(c.eye, c.target, c.up, c.fov_deg)
+        warm = stopwatch()
+        self.scene.render(self.camera, 1, 1, **SHADING)
+        self.render_compile_s = warm()
+        self.runs: list[dict] = []
+        self.cpu_s = self.wall_s = 0.0
+        self.image = None
+
+    def run(self, timed: bool) -> None:
+        cpu_before, whole = cpu_seconds(), stopwatch()
+        self.scene.rebuild()
         build_s = whole()
         rendering = stopwatch()
-        image = scene.render(camera, width, height, **SHADING)
+        self.image = self.scene.render(self.camera, self.width, self.height, **SHADING)
         render_s = rendering()
         total_s = whole()
-        if run:
-            runs.append({"build_s": build_s, "render_s": render_s, "total_s": total_s,
-                         "build_device_s": scene.stats["times_ms"]["total"] * 1e-3,
-                         "render_device_s": scene.render_stats["times_ms"]["total"] * 1e-3})
-    # CPU time over wall time of the timed runs: how many cores the work got
-    # (a CPU device's threads run in this process); well under the device's
-    # compute units means another process took some, or the work was too small
-    cores_used = (cpu_seconds() - cpu_before) / timed()
-    rendered = scene.render_stats
-    stats = scene.stats
-    times = {key: summary([r[key] for r in runs]) for key in runs[0]}
-    rays = rendered["primary_rays"] + rendered["secondary_rays"]
-    result = {
-        "scene": path.name, "device": scene.device.id, "builder": builder,
-        "width": width, "height": height, **SHADING,
-        "triangles": int(stats["triangles"]), "meshes": len(scene.meshes),
-        "nodes": int(stats["nodes"]), "sah_cost": float(stats["sah_cost"]),
-        "primary_rays": int(rendered["primary_rays"]),
-        "secondary_rays": int(rendered["secondary_rays"]),
-        "repeats": repeats,
-        "load_s": load_s,
-        "compile_s": {"build": max(0.0, first_build_s - times["build_s"]["median"]),
-                      "render": render_compile_s},
-        "first_build_s": first_build_s,
-        "times_s": times, "runs": runs, "cores_used": cores_used,
-        "render_mrays": rays / times["render_s"]["median"] / 1e6,
-        "image": image_summary(image),
-    }
-    del scene
-    return result, image
+        if not timed:
+            return
+        # CPU time over wall time of the timed runs: how many cores the work
+        # got (a CPU device's threads run in this process); well under the
+        # device's compute units means another process took some, or the
+        # work was too small
+        self.cpu_s += cpu_seconds() - cpu_before
+        self.wall_s += total_s
+        self.runs.append({"build_s": build_s, "render_s": render_s, "total_s": total_s,
+                          "build_device_s": self.scene.stats["times_ms"]["total"] * 1e-3,
+                          "render_device_s": self.scene.render_stats["times_ms"]["total"] * 1e-3})
+
+    def result(self) -> dict:
+        rendered, stats, runs = self.scene.render_stats, self.scene.stats, self.runs
+        times = {key: summary([r[key] for r in runs]) for key in runs[0]}
+        rays = rendered["primary_rays"] + rendered["secondary_rays"]
+        return {
+            "scene": self.path.name, "device": self.scene.device.id, "builder": self.builder,
+            "width": self.width, "height": self.height, **SHADING,
+            "triangles": int(stats["triangles"]), "meshes": len(self.scene.meshes),
+            "nodes": int(stats["nodes"]), "sah_cost": float(stats["sah_cost"]),
+            "primary_rays": int(rendered["primary_rays"]),
+            "secondary_rays": int(rendered["secondary_rays"]),
+            "repeats": len(runs),
+            "load_s": self.load_s,
+            "compile_s": {"build": max(0.0, self.first_build_s - times["build_s"]["median"]),
+                          "render": self.render_compile_s},
+            "first_build_s": self.first_build_s,
+            "times_s": times, "runs": runs, "cores_used": self.cpu_s / self.wall_s,
+            "render_mrays": rays / times["render_s"]["median"] / 1e6,
+            "image": image_summary(self.image),
+        }
 
 
 def image_summary(image: np.ndarray) -> dict:

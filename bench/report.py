@@ -462,9 +462,11 @@ def _method_section(suite: dict) -> list[str]:
            f"warm-up, {config['reference_repeats']} for the reference render.",
            "- Builds: `bench/build.py` `measure()`: the scene is built once (compiling), "
            "rebuilt once to warm up, then rebuilt and refitted `repeats` times.",
-           "- Renders: `bench/render.py` `time_render()`: the scene file is read and built "
+           "- Renders: `bench/render.py` `time_renders()`: each scene file is read and built "
            "(both timed apart), a 1x1 render compiles the render kernels, one rebuild + render "
-           "warms up, then each run times `scene.rebuild()` + `scene.render()`.",
+           "of each warms up, then `repeats` rounds time `scene.rebuild()` + `scene.render()` "
+           "of every scene in turn (so that load from other processes falls on all rows "
+           "alike, and the fitted alpha does not depend on which row it hit).",
            "- Rays: `bench/trace.py` `bench_case()`: every participant is built, runs each "
            "query once to warm up, then `repeats` rounds of one call per participant (so that "
            "load from other processes falls on all alike); wall time of one call, numpy in and "
