@@ -98,7 +98,7 @@ def _say(text: str) -> None:
 def _failure(where: str, error: Exception) -> dict:
     _say(f"FAILED {where}: {type(error).__name__}: {error}")
     return {"where": where, "error": f"{type(error).__name__}: {error}",
-            "traceback": traceback.format_exc()}
+            "traceback": "".join(traceback.format_exception(error))}
 
 
 # ---------------------------------------------------------------- 1. builds
@@ -137,13 +137,13 @@ def bench_renders(device_id: str, scenes, resolution, repeats: int, images: dict
     width, height = resolution
     rows = []
     with progress(len(scenes) * (repeats + 1), f"{label} {device_id}", show) as bar:
-        try:
-            timed = render_bench.time_renders([SCENES / name for name in scenes], device_id,
-                                              width, height, repeats, bar=_Ticker(bar))
-        except Exception as error:  # one failure must not hide the other figures
-            errors.append(_failure(f"render {device_id} {', '.join(scenes)}", error))
-            timed = []
-        for name, (result, image) in zip(scenes, timed):
+        timed = render_bench.time_renders([SCENES / name for name in scenes], device_id,
+                                          width, height, repeats, bar=_Ticker(bar))
+        for name, outcome in zip(scenes, timed):
+            if isinstance(outcome, Exception):
+                errors.append(_failure(f"render {device_id} {name}", outcome))
+                continue
+            result, image = outcome
             first = images.setdefault((name, width, height), (device_id, image))
             if first[0] != device_id:
                 result["image_vs"] = {"device": first[0],
@@ -159,7 +159,7 @@ def bench_renders(device_id: str, scenes, resolution, repeats: int, images: dict
 
 
 class _Ticker:
-    """A progress bar that advances one step per (scene, run) postfix set."""
+    """A progress bar that advances one step as each (scene, run) starts."""
 
     def __init__(self, bar):
         self.bar = bar

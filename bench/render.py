@@ -53,21 +53,32 @@ TARGET_ALPHA = 0.15
 
 
 def time_renders(paths, device_id: str, width: int, height: int, repeats: int,
-                 builder: str = "hlbvh", bar=None) -> list[tuple[dict, np.ndarray]]:
+                 builder: str = "hlbvh", bar=None) -> list[tuple[dict, np.ndarray] | Exception]:
     """Times ``repeats`` rounds of (rebuild + render) of each scene file in
     ``paths`` after a warm-up (module docstring): per file, (figures, the
-    last image).  Times in seconds: "runs" lists each run's, "times_s" their
-    {median, min, max}."""
+    last image), or the exception that stopped that file (the others go
+    on).  Times in seconds: "runs" lists each run's, "times_s" their
+    {median, min, max}.  Every scene stays loaded until the end."""
     if repeats < 1:
         raise ValueError(f"repeats must be >= 1, got {repeats}")
-    timings = [_SceneTiming(Path(path), device_id, width, height, builder) for path in paths]
+    timings: list = []
+    for path in paths:
+        try:
+            timings.append(_SceneTiming(Path(path), device_id, width, height, builder))
+        except Exception as error:  # one failure must not hide the other figures
+            timings.append(error)
     for run in range(repeats + 1):  # run 0 warms up
-        for timing in timings:
+        for k, timing in enumerate(timings):
+            if isinstance(timing, Exception):
+                continue
             if bar is not None:
                 bar.set_postfix_str(f"{device_id} {timing.path.name} {width}x{height} "
                                     f"{'warm-up' if run == 0 else f'run {run}/{repeats}'}")
-            timing.run(timed=run > 0)
-    results = [(timing.result(), timing.image) for timing in timings]
+            try:
+                timing.run(timed=run > 0)
+            except Exception as error:
+                timings[k] = error
+    results = [t if isinstance(t, Exception) else (t.result(), t.image) for t in timings]
     del timings
     return results
 

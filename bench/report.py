@@ -466,7 +466,9 @@ def _method_section(suite: dict) -> list[str]:
            "(both timed apart), a 1x1 render compiles the render kernels, one rebuild + render "
            "of each warms up, then `repeats` rounds time `scene.rebuild()` + `scene.render()` "
            "of every scene in turn (so that load from other processes falls on all rows "
-           "alike, and the fitted alpha does not depend on which row it hit).",
+           "alike, and the fitted alpha does not depend on which row it hit). All the scenes "
+           "stay loaded meanwhile, and each run follows another scene's, whose data it finds "
+           "in the caches; earlier results timed one scene's runs back to back.",
            "- Rays: `bench/trace.py` `bench_case()`: every participant is built, runs each "
            "query once to warm up, then `repeats` rounds of one call per participant (so that "
            "load from other processes falls on all alike); wall time of one call, numpy in and "

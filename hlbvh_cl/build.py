@@ -25,7 +25,7 @@ from .tree import DeviceTree
 
 BUILDERS = ("hlbvh", "lbvh")
 STAGES = ("bounds", "morton", "sort", "radix_tree", "sah_top", "flatten")
-MAX_TRIANGLES = 2**31 - 2  # node indices are int32 (2n - 1 of them must fit)
+MAX_TRIANGLES = 2**30  # node indices are int32 (2n - 1 of them must fit)
 
 
 @dataclass
@@ -58,7 +58,9 @@ def build_memory(vertex_count: int, triangle_count: int, morton_bits: int) -> di
     return {
         "vertices": vertex_count * 12, "faces": n * 12, "centroids": n * 16,
         "morton keys (x2 for the sort)": 2 * n * key, "primitive ids (x2 for the sort)": 2 * n * 4,
-        "radix tree links": 5 * n * 4, "radix tree boxes": (2 * n - 1) * layout.AABB.itemsize,
+        "radix tree links": (6 * n - 5) * 4,
+        "radix tree walk (far ends, arrival counts)": 3 * max(1, n - 1) * 4,
+        "radix tree boxes": (2 * n - 1) * layout.AABB.itemsize,
         "radix tree costs, heights, flags": (2 * n - 1) * 8 + 2 * n * 4,
         "scans": 2 * (n + 1) * 4,
         "flat nodes": max(1, n - 1) * layout.FLAT_NODE.itemsize, "flat parents": n * 4,

@@ -1,4 +1,4 @@
-"""Stage 7 host side: the flat, traversal-ready tree (kernels/flatten.cl)."""
+"""Stage 6 host side: the flat, traversal-ready tree (kernels/flatten.cl)."""
 from __future__ import annotations
 
 import numpy as np
@@ -20,7 +20,7 @@ def flatten_nodes(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: Radi
                   top: TopTree | None, use_clusters: bool, wait_for=None):
     """Returns (nodes, parents, node_count, leaf_count, root_box, depth,
     sah_cost_unnormalised, events)."""
-    n, ctx, q = tree.n, rt.context, rt.queue
+    n, q = tree.n, rt.queue
     defines = dict(MORTON_BITS=bits, USE_CLUSTERS=int(use_clusters))
     root_is_leaf = n == 1 or (top is None and _read_scalar(q, metrics.collapsed, np.int32,
                                                           wait_for=wait_for) != 0)

@@ -11,12 +11,14 @@ same sizes.  Free buffers a build does not take stay, so that scenes rebuilt
 in turn each find their own sizes again (with one build's leftovers dropped,
 two scenes rebuilt alternately allocated everything afresh every time: the
 reference scene's rebuild on Intel's runtime took 0.49 s instead of 0.27).
-What the pool keeps free is bounded by KEEP_BUILDS times the bytes of the
-largest build it has served: past that, the buffers returned longest ago go
-first.
+At the end of each build, what the pool keeps free is cut to KEEP_BUILDS times
+the bytes of the largest build it has served, the buffers returned longest
+ago first.  A Scene that goes away empties the pool (its memory is given back;
+the other scenes' next rebuilds allocate afresh once).
 """
 from __future__ import annotations
 
+import threading
 from contextlib import contextmanager
 
 import pyopencl as cl
@@ -33,17 +35,19 @@ class BufferPool:
         self._returned: dict[int, int] = {}          # id of a free buffer -> when it came back
         self._clock = 0
         self._budget = 0                             # KEEP_BUILDS x the largest build's bytes
+        self._lock = threading.Lock()  # clear() may come from a finalizer in any thread
         self._taken: list[cl.Buffer] | None = None  # during a build: every buffer it took
         self._kept: set[int] = set()                # ... and the ids of those it keeps
 
     def take(self, nbytes: int) -> cl.Buffer:
         """A READ_WRITE buffer of max(4, nbytes) bytes, recycled when one is free."""
         nbytes = max(4, int(nbytes))
-        free = self._free.get(nbytes)
-        if free:
-            buffer = free.pop()
-            del self._returned[id(buffer)]
-        else:
+        with self._lock:
+            free = self._free.get(nbytes)
+            buffer = free.pop() if free else None
+            if buffer is not None:
+                self._returned.pop(id(buffer), None)
+        if buffer is None:
             buffer = cl.Buffer(self._context, cl.mem_flags.READ_WRITE, nbytes)
         if self._taken is not None:
             self._taken.append(buffer)
@@ -51,11 +55,12 @@ class BufferPool:
 
     def give(self, *buffers: cl.Buffer | None) -> None:
         """Hand buffers back; the caller must not use them again."""
-        self._clock += 1
-        for buffer in buffers:
-            if buffer is not None:
-                self._free.setdefault(buffer.size, []).append(buffer)
-                self._returned[id(buffer)] = self._clock
+        with self._lock:
+            self._clock += 1
+            for buffer in buffers:
+                if buffer is not None and id(buffer) not in self._returned:  # not twice
+                    self._free.setdefault(buffer.size, []).append(buffer)
+                    self._returned[id(buffer)] = self._clock
 
     def keep(self, *buffers: cl.Buffer) -> None:
         """Mark buffers taken in the current build as its results: they stay
@@ -84,23 +89,25 @@ class BufferPool:
     def _evict(self) -> None:
         """Drop the buffers returned longest ago until the free bytes fit the
         budget."""
-        excess = self.free_bytes - self._budget
-        if excess <= 0:
-            return
-        free = sorted((b for buffers in self._free.values() for b in buffers),
-                      key=lambda b: self._returned[id(b)])
-        while excess > 0:
-            dropped = free.pop(0)
-            del self._returned[id(dropped)]
-            excess -= dropped.size
-        self._free = {}
-        for buffer in free:
-            self._free.setdefault(buffer.size, []).append(buffer)
+        with self._lock:
+            excess = self.free_bytes - self._budget
+            if excess <= 0:
+                return
+            free = sorted((b for buffers in self._free.values() for b in buffers),
+                          key=lambda b: self._returned[id(b)])
+            while excess > 0:
+                dropped = free.pop(0)
+                del self._returned[id(dropped)]
+                excess -= dropped.size
+            self._free = {}
+            for buffer in free:
+                self._free.setdefault(buffer.size, []).append(buffer)
 
     def clear(self) -> None:
         """Drop every free buffer (a Scene that goes away calls this, so that
         its last build's scratch does not outlive it)."""
-        self._free, self._returned, self._budget = {}, {}, 0
+        with self._lock:
+            self._free, self._returned, self._budget = {}, {}, 0
 
     @property
     def free_bytes(self) -> int:

@@ -432,11 +432,11 @@ class Renderer:
                 count = int(pass_rows) * width
                 n = np.uint32(count)
                 # pixel_in_pass's 2D range (hlbvh.h): bands of TILE_ROWS rows
-                bands = (layout.TILE_ROWS * width, -(-int(pass_rows) // layout.TILE_ROWS))
+                tile_range = (layout.TILE_ROWS * width, -(-int(pass_rows) // layout.TILE_ROWS))
                 for sample in range(settings.spp):
                     s = np.uint32(sample)
                     events["camera"].append(rt.run(
-                        kernels["camera"], bands, camera, np.uint32(width), np.uint32(height),
+                        kernels["camera"], tile_range, camera, np.uint32(width), np.uint32(height),
                         first_row, pass_rows, s, np.int32(settings.spp > 1), b.primary))
                     events["closest"].append(self.query.enqueue_intersect(
                         tree, b.primary, b.hits, count, self._overflow))
@@ -447,7 +447,7 @@ class Renderer:
                     for k in range(secondary_passes):
                         if shading == "ao":
                             events["shade"].append(rt.run(
-                                kernels["ao_rays"], bands, b.primary, b.hits, params,
+                                kernels["ao_rays"], tile_range, b.primary, b.hits, params,
                                 np.uint32(width), first_row, pass_rows, s, np.uint32(k),
                                 b.secondary))
                         events["occluded"].append(self.query.enqueue_occluded(
@@ -456,7 +456,7 @@ class Renderer:
                             kernels["add_unoccluded"], count, b.occluded, b.pending, n, b.accum))
                         _advance(bar, events["resolve"][-1])
                 events["encode"].append(rt.run(
-                    kernels["encode_image"], bands, b.accum, np.uint32(width), first_row, pass_rows,
+                    kernels["encode_image"], tile_range, b.accum, np.uint32(width), first_row, pass_rows,
                     np.float32(1.0 / settings.spp), b.image))
         cl.enqueue_copy(queue, image, b.image, is_blocking=True)
         overflow = np.zeros(1, np.int32)

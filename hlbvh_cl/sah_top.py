@@ -1,4 +1,4 @@
-"""Stage 6 host side: the HLBVH's SAH top over Morton clusters (kernels/sah_top.cl)."""
+"""Stage 5 host side: the HLBVH's SAH top over Morton clusters (kernels/sah_top.cl)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -19,7 +19,8 @@ TOP_COST_GROUP = 64  # work-items of sum_top_cost's one work-group (a -D define)
 
 @dataclass
 class TopTree:
-    """SAH nodes above the clusters: top_count = clusters - 1 nodes, root 0."""
+    """SAH nodes above the clusters: top_count = clusters - 1 nodes (the root
+    is the node of the first split, `root`)."""
 
     cluster_count: int
     top_count: int
@@ -38,7 +39,7 @@ def build_top(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: RadixTre
     """Find the clusters and, when there are two or more, build the SAH top.
     Returns None when one cluster holds everything (the radix tree is kept)."""
     n = tree.n
-    ctx, q = rt.context, rt.queue
+    q = rt.queue
     kernel = functools.partial(rt.kernel, "sah_top.cl", MORTON_BITS=bits,
                                TOP_COST_GROUP=TOP_COST_GROUP)
     scan = rt.pool.take((n + 1) * 4)

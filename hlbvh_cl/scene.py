@@ -114,7 +114,7 @@ class Scene:
             started = time.perf_counter()
             with rt.pool.build():
                 self._build = build(rt, self._geometry, self.builder, self.morton_bits)
-                # the wide tree that traversal reads (stage 8), derived from the BVH2
+                # the wide tree that traversal reads (stage 7), derived from the BVH2
                 self.tree.wide, events = widen(rt, self.tree)
             cl.wait_for_events(events)
         times = self._build.stats["times_ms"]

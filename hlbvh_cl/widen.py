@@ -1,4 +1,4 @@
-"""Stage 8 host side: the wide tree traversal reads (kernels/widen.cl).
+"""Stage 7 host side: the wide tree traversal reads (kernels/widen.cl).
 
 The build's product stays the flat BVH2 (DeviceTree); the WideTree is
 derived from it, kept on it (``DeviceTree.wide``) and rewritten from the
@@ -70,7 +70,7 @@ def widen(rt: Runtime, tree: DeviceTree, wait_for=None) -> tuple[WideTree, list[
 def _widen(rt: Runtime, tree: DeviceTree, wait_for) -> tuple[WideTree, list[cl.Event]]:
     if tree.node_count < 1:
         raise ValueError(f"tree has node_count={tree.node_count}; widening needs a root node")
-    ctx, q = rt.context, rt.queue
+    q = rt.queue
     arity = layout.WIDE_ARITY
     capacity = tree.node_count  # each wide node stands for a distinct BVH2 node
     rt.check_allocation("widening the tree", {

@@ -1,4 +1,4 @@
-/* Stage 7: the flat tree that traversal reads.
+/* Stage 6: the flat tree that traversal reads.
  *
  * Interior nodes that survive (not inside a collapsed leaf, and, for the
  * HLBVH, not above the clusters) are compacted by a scan and written after

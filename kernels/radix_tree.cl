@@ -18,7 +18,8 @@
  * Karras's number of a node is its parent's split if it is a left child, and
  * that split + 1 if it is a right child: its range ends at, or starts at, its
  * own number.  So the walker names each node as soon as it knows the node's
- * range, and the tree is the one emit-then-refit built (same arrays).
+ * range (tests/test_radix_tree.py checks the arrays against a top-down
+ * build from Karras's definition).
  *
  * On the way the walker evaluates the SAH bottom-up (cost = C_t A(node) +
  * cost(left) + cost(right), or C_i N A(node) as a leaf) so that, with
@@ -55,14 +56,6 @@ inline int is_left_child(__global const morton_t *keys, int n, int first, int la
     if (left_gap != right_gap)
         return right_gap < left_gap;
     return (uint)(last ^ (last + 1)) < (uint)((first - 1) ^ first);
-}
-
-/* Karras's number of the internal node over [first, last]. */
-inline int internal_node(__global const morton_t *keys, int n, int first, int last)
-{
-    if (first == 0 && last == n - 1)
-        return 0;
-    return is_left_child(keys, n, first, last) ? last : first;
 }
 
 /* Loads that must see another work-item's writes made before its atomic. */
@@ -116,8 +109,6 @@ void build_radix_tree(__global const morton_t *keys, int n, __global const float
     boxes[node] = box;
     sah_cost[node] = SAH_INTERSECT_COST * aabb_area(box);
     height[node] = 0;
-    if (n == 1)
-        parent[0] = -1;
 
     int first = j, last = j;
     int left_side = is_left_child(keys, n, first, last);
@@ -141,6 +132,7 @@ void build_radix_tree(__global const morton_t *keys, int n, __global const float
         int left = first == split ? (n - 1) + split : split;
         int right = last == split + 1 ? (n - 1) + split + 1 : split + 1;
         left_side = is_left_child(keys, n, first, last);
+        /* Karras's number: the root 0, else the end it shares with its parent's split */
         node = first == 0 && last == n - 1 ? 0 : left_side ? last : first;
         left_child[node] = left;
         right_child[node] = right;

@@ -1,4 +1,4 @@
-/* Stage 8: the wide tree that traversal reads, collapsed from the flat BVH2.
+/* Stage 7: the wide tree that traversal reads, collapsed from the flat BVH2.
  *
  * Each wide node stands for one interior node b of the BVH2.  Its children
  * are found by opening, starting from b's two child slots, the interior slot

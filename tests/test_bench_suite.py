@@ -279,3 +279,13 @@ def test_no_working_device_is_a_clear_error(tmp_path):
         suite_main.main(["--tiny", "--devices", "no-such-device", "--out", str(tmp_path),
                          "--no-progress"])
     assert not any(tmp_path.iterdir())
+
+
+def test_a_failing_scene_leaves_the_others_timed(tmp_path):
+    scenes = ROOT / "scenes"
+    missing = tmp_path / "missing.toml"
+    outcomes = render_bench.time_renders([scenes / "bunny_small.toml", missing], "pocl", 32, 24, 1)
+    assert isinstance(outcomes[1], Exception) and "missing.toml" in str(outcomes[1])
+    result, image = outcomes[0]
+    assert result["scene"] == "bunny_small.toml" and image.shape == (24, 32, 3)
+    assert result["times_s"]["total_s"]["median"] > 0

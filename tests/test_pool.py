@@ -70,6 +70,15 @@ def test_free_bytes_stay_within_budget_oldest_dropped_first(pool):
     assert pool.take(1000) is not big  # the one returned longest ago went first
 
 
+def test_a_buffer_given_twice_is_free_once(pool):
+    a = pool.take(64)
+    pool.give(a)
+    pool.give(a)
+    assert pool.free_bytes == 64
+    assert pool.take(64) is a
+    assert pool.take(64) is not a
+
+
 def test_scratch_comes_back_after_an_error(pool):
     with pytest.raises(RuntimeError):
         with pool.build():

@@ -32,7 +32,7 @@ def karras_oracle(keys: np.ndarray) -> dict[str, np.ndarray]:
     out = {name: np.full(count, -7, np.int32) for name, count in (
         ("left_child", n - 1), ("right_child", n - 1), ("parent", 2 * n - 1),
         ("range_first", n - 1), ("range_last", n - 1))}
-    out["parent"][0 if n > 1 else 0] = -1
+    out["parent"][0] = -1  # the root: internal node 0, or the lone leaf 0 when n == 1
     stack = [(0, 0, n - 1)] if n > 1 else []
     while stack:
         node, first, last = stack.pop()
@@ -52,7 +52,7 @@ def karras_oracle(keys: np.ndarray) -> dict[str, np.ndarray]:
 
 def run_device(keys: np.ndarray, bits: int, vertices: np.ndarray, collapse: bool):
     """build_radix_tree over triangle j = vertices[3j:3j+3] with the given
-    sorted keys; returns (tree arrays, boxes, sah_cost, collapsed)."""
+    sorted keys; returns (tree arrays, boxes, sah_cost, height, collapsed)."""
     rt = runtime()
     n = len(keys)
     faces = np.arange(3 * n, dtype=np.int32).reshape(n, 3)
@@ -72,12 +72,13 @@ def run_device(keys: np.ndarray, bits: int, vertices: np.ndarray, collapse: bool
         arrays = tree.read(rt.queue)
         boxes = np.empty(2 * n - 1, layout.AABB)
         cost = np.empty(2 * n - 1, np.float32)
+        height = np.empty(2 * n - 1, np.int32)
         collapsed = np.empty(max(1, n - 1), np.int32)
         for host, device in ((boxes, metrics.boxes), (cost, metrics.sah_cost),
-                             (collapsed, metrics.collapsed)):
+                             (height, metrics.height), (collapsed, metrics.collapsed)):
             cl.enqueue_copy(rt.queue, host, device)
         rt.queue.finish()
-    return arrays, boxes, cost, collapsed[:n - 1]
+    return arrays, boxes, cost, height, collapsed[:n - 1]
 
 
 def random_case(rng, n: int, bits: int, distinct: int):
@@ -92,7 +93,7 @@ def random_case(rng, n: int, bits: int, distinct: int):
 
 def check_against_oracle(keys, vertices, bits, collapse):
     n = len(keys)
-    arrays, boxes, cost, collapsed = run_device(keys, bits, vertices, collapse)
+    arrays, boxes, cost, height, collapsed = run_device(keys, bits, vertices, collapse)
     expected = karras_oracle(keys)
     for name, want in expected.items():
         assert np.array_equal(arrays[name], want), name
@@ -115,9 +116,12 @@ def check_against_oracle(keys, vertices, bits, collapse):
         if collapsed[node]:
             assert collapse and count <= layout.MAX_LEAF_SIZE
             assert cost[node] == pytest.approx(leaf, rel=1e-5)
+            assert height[node] == 0  # a leaf of the final tree
         else:
             assert cost[node] == pytest.approx(interior, rel=1e-5)
+            assert height[node] == 1 + max(height[left], height[right])
     assert collapse or not collapsed.any()
+    assert (height[n - 1:] == 0).all()
     return collapsed
 
 
@@ -135,9 +139,10 @@ def test_tree_matches_karras_definition(bits, n, distinct):
 def test_one_primitive_is_a_lone_root_leaf():
     rng = np.random.default_rng(5)
     keys, vertices = random_case(rng, 1, 30, 1)
-    arrays, boxes, _, _ = run_device(keys, 30, vertices, collapse=True)
-    assert arrays["parent"].tolist() == [-1]
+    arrays, boxes, _, height, _ = run_device(keys, 30, vertices, collapse=True)
+    assert arrays["parent"].tolist() == [-1] and height.tolist() == [0]
     assert np.array_equal(boxes["lo"][0], vertices.min(axis=0))
+    assert np.array_equal(boxes["hi"][0], vertices.max(axis=0))
 
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
