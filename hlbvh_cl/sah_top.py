@@ -61,28 +61,31 @@ def build_top(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: RadixTre
     tasks, next_tasks, stack = (buf(clusters, TOP_TASK_BYTES) for _ in range(3))
     left, right = buf(clusters), buf(clusters)
     boxes = buf(clusters, layout.AABB.itemsize)
-    info, root_cost, next_count = buf(2), buf(1), buf(1)  # info: depth, root
+    info, root_cost = buf(2), buf(1)  # info: depth, root
     events.append(rt.run(kernel("gather_cluster_starts"), n, scan, n, first, wait_for=events[-1:]))
     events.append(rt.run(kernel("gather_clusters"), clusters, scan, n, first, tree.range_first,
                          tree.range_last, metrics.boxes, metrics.sah_cost, metrics.height, roots,
                          cluster_box, records, cluster_cost, cluster_height, tasks,
                          wait_for=events[-1:]))
     events.append(cl.enqueue_fill_buffer(q, info, np.int32(0), 0, 8, wait_for=events[-1:]))
-    # One launch per level until every task has finished its subtree: at most
-    # serial_depth + 1 levels, as tasks that deep build their subtrees
-    # serially.  Each level costs a launch and a read-back (~1 ms on PoCL), so
-    # the parallel levels stop where there are enough subtrees to fill the
-    # device with work (about 64 clusters each).
+    # One launch per level, levels 0..serial_depth: tasks at serial_depth
+    # build their whole subtrees, so nothing is left after them.  Level L has
+    # at most 2^L tasks (each task queues at most two), so the launches are
+    # sized without reading the counts back: a read-back per level cost each
+    # build a round trip to the device (~0.1 ms on PoCL).  The parallel
+    # levels stop where there are enough subtrees to fill the device with
+    # work (about 64 clusters each).
     serial_depth = _serial_depth(clusters, rt.device.compute_units, rt.device.type)
-    task_count = np.ones(1, np.int32)
-    while task_count[0]:
-        events.append(cl.enqueue_fill_buffer(q, next_count, np.int32(0), 0, 4,
-                                             wait_for=events[-1:]))
-        events.append(rt.run(kernel("split_top_level"), int(task_count[0]), tasks,
-                             int(task_count[0]), serial_depth, next_tasks, next_count, stack,
-                             records, cluster_height, left, right, boxes, info,
-                             wait_for=events[-1:], local_size=1))
-        cl.enqueue_copy(q, task_count, next_count, wait_for=events[-1:])
+    task_counts = buf(serial_depth + 2)  # [L]: tasks queued for level L
+    events.append(cl.enqueue_fill_buffer(q, task_counts, np.int32(0), 0, (serial_depth + 2) * 4,
+                                         wait_for=events[-1:]))
+    events.append(cl.enqueue_fill_buffer(q, task_counts, np.int32(1), 0, 4,
+                                         wait_for=events[-1:]))  # the root task
+    for level in range(serial_depth + 1):
+        events.append(rt.run(kernel("split_top_level"), min(1 << level, clusters), tasks, level,
+                             serial_depth, next_tasks, task_counts, stack, records,
+                             cluster_height, left, right, boxes, info, wait_for=events[-1:],
+                             local_size=1))
         tasks, next_tasks = next_tasks, tasks
     events.append(rt.run(kernel("sum_top_cost"), TOP_COST_GROUP, clusters - 1, boxes, clusters,
                          cluster_cost, root_cost, wait_for=events[-1:],

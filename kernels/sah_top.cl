@@ -381,23 +381,13 @@ inline int split_clusters(__global ClusterRecord *records, int begin, int end, i
     return middle;
 }
 
-/* One level of the top build: each task splits its range and hands its
- * children on.  The node splitting at m is top node m - 1: every split point
- * belongs to exactly one node, so nodes need no allocation.  Tasks at depth
- * serial_depth finish their whole subtree here, with the slice [begin, end)
- * of `stack` that matches their clusters as a private work stack; so the
- * host loop runs at most serial_depth + 1 levels whatever the input. */
-__kernel void split_top_level(__global const TopTask *tasks, int task_count, int serial_depth,
-                              __global TopTask *next_tasks, __global volatile int *next_count,
-                              __global TopTask *stack, __global ClusterRecord *records,
-                              __global const int *cluster_height, __global int *top_left,
-                              __global int *top_right, __global Aabb *top_boxes,
-                              __global volatile int *info)
+/* One task of split_top_level, and its whole subtree if it is serial. */
+inline void split_task(TopTask task, int level, int serial_depth, __global TopTask *next_tasks,
+                       __global volatile int *task_counts, __global TopTask *stack,
+                       __global ClusterRecord *records, __global const int *cluster_height,
+                       __global int *top_left, __global int *top_right,
+                       __global Aabb *top_boxes, __global volatile int *info)
 {
-    int i = get_global_id(0);
-    if (i >= task_count)
-        return;
-    TopTask task = tasks[i];
     int serial = (task.side_and_depth >> 1) >= serial_depth;
     int base = task.begin, top = base;
     while (1) {
@@ -421,12 +411,39 @@ __kernel void split_top_level(__global const TopTask *tasks, int task_count, int
             if (serial)
                 stack[top++] = child;
             else
-                next_tasks[atomic_inc(next_count)] = child;
+                next_tasks[atomic_inc(&task_counts[level + 1])] = child;
         }
         if (top == base)
             return;
         task = stack[--top];
     }
+}
+
+/* One level of the top build: each task splits its range and hands its
+ * children on.  The node splitting at m is top node m - 1: every split point
+ * belongs to exactly one node, so nodes need no allocation.  Tasks at depth
+ * serial_depth finish their whole subtree here, with the slice [begin, end)
+ * of `stack` that matches their clusters as a private work stack; so the
+ * host runs serial_depth + 1 levels whatever the input.
+ *
+ * The host launches 2^level work-items, as many as the level can have
+ * tasks, without reading back how many it has.  Work-item i takes the tasks
+ * [i * count / items, (i + 1) * count / items), so that the tasks spread
+ * over all the work-items: PoCL hands each core a block of consecutive
+ * work-groups, and the first `count` work-items would all be on one core
+ * (measured: the serial level took twice as long). */
+__kernel void split_top_level(__global const TopTask *tasks, int level, int serial_depth,
+                              __global TopTask *next_tasks, __global volatile int *task_counts,
+                              __global TopTask *stack, __global ClusterRecord *records,
+                              __global const int *cluster_height, __global int *top_left,
+                              __global int *top_right, __global Aabb *top_boxes,
+                              __global volatile int *info)
+{
+    long i = get_global_id(0), items = get_global_size(0);
+    long count = task_counts[level]; /* the tasks the level before queued */
+    for (long t = i * count / items; t < (i + 1) * count / items; ++t)
+        split_task(tasks[t], level, serial_depth, next_tasks, task_counts, stack, records,
+                   cluster_height, top_left, top_right, top_boxes, info);
 }
 
 /* The SAH cost of the whole tree: cost(node) = C_t A(node) + cost(left) +
