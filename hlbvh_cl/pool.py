@@ -8,9 +8,10 @@ buffers go back, and ``Scene.rebuild`` gives back the tree it replaces.
 
 Buffers match by exact size, since a rebuild of the same geometry asks for the
 same sizes.  Free buffers a build does not take stay, so that scenes rebuilt
-in turn each find their own sizes again (with one build's leftovers dropped,
-two scenes rebuilt alternately allocated everything afresh every time: the
-reference scene's rebuild on Intel's runtime took 0.49 s instead of 0.27).
+in turn each find their own sizes again: Lucy (100K triangles) and the
+reference scene rebuilt alternately on PoCL took 27-34 and 275-337 ms a
+rebuild when each build dropped the other's buffers, 17-20 and 235-250 ms so
+(A/B, three rounds).
 At the end of each build, what the pool keeps free is cut to KEEP_BUILDS times
 the bytes of the largest build it has served, the buffers returned longest
 ago first.  A Scene that goes away empties the pool (its memory is given back;
