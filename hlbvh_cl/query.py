@@ -58,7 +58,7 @@ class Hits:
         return self.geom_id >= 0
 
 
-def _packet_size(rt: Runtime) -> int:
+def default_packet_size(rt: Runtime) -> int:
     """Rays per work-item (kernels/traverse.cl's PACKET_SIZE).
 
     CPUs trace 8 consecutive rays as one packet in vector lanes: measured on
@@ -133,7 +133,7 @@ class RayQuery:
         self.rt = rt
         self.work_group_size = _work_group_size(rt)
         if packet_size is None:
-            packet_size = _packet_size(rt)
+            packet_size = default_packet_size(rt)
         elif isinstance(packet_size, bool) or not isinstance(packet_size, (int, np.integer)):
             raise TypeError(f"packet_size must be an int, got {type(packet_size).__name__}")
         elif packet_size not in PACKET_SIZES:

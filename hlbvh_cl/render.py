@@ -60,7 +60,7 @@ import pyopencl as cl
 
 from . import layout
 from .device import Runtime, event_ms
-from .query import RayQuery
+from .query import RayQuery, default_packet_size
 from .tree import DeviceTree
 
 SHADINGS = ("diffuse", "normals", "depth", "ao")
@@ -353,6 +353,12 @@ class _Buffers:
             self.image_capacity = image_pixels
 
 
+def tile_packet_size(rt: Runtime) -> int:
+    """Rays per packet for the renderer's rays: a whole pixel tile (hlbvh.h)
+    where the device traces packets (CPUs), else one."""
+    return layout.TILE_COLUMNS * layout.TILE_ROWS if default_packet_size(rt) > 1 else 1
+
+
 class Renderer:
     """The render pipeline on one device: kernels and reusable buffers.
 
@@ -369,7 +375,7 @@ class Renderer:
 
     def __init__(self, rt: Runtime, query: RayQuery | None = None):
         self.rt = rt
-        self.query = query or RayQuery(rt)
+        self.query = query or RayQuery(rt, packet_size=tile_packet_size(rt))
         self._buffers = _Buffers()
         self._overflow = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 4)
         self._albedo: cl.Buffer | None = None

@@ -175,7 +175,7 @@ class Scene:
         colors = check_colors(self.colors, len(self.meshes))
         light = check_light(self.light)
         if self._renderer is None:
-            self._renderer = Renderer(self.runtime, self._ray_query())
+            self._renderer = Renderer(self.runtime)  # its own queries: tile-sized packets
         return self._renderer.render(self.tree, settings, colors, light, progress=progress)
 
     @property

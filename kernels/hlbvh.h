@@ -225,35 +225,54 @@ inline void store_triangle(__global Triangle *triangles, int j, float3 a, float3
 }
 
 /* Rendering traces a pass of whole image rows in tile order.  Bands of
- * TILE_ROWS = 2 rows are cut into tiles of TILE_COLUMNS x 2 pixels, left to
- * right, each tile row-major; a band's last width % TILE_COLUMNS columns,
- * and a last band of one row, stay row-major.  8 consecutive rays, one CPU
- * ray packet (traverse.cl), then cover a 4x2 tile instead of an 8x1 strip:
- * primary and shadow rays on the 70-100K-triangle meshes at 1280x720 took
- * 0.90-0.93x the kernel time of row-major order (PoCL).
+ * TILE_ROWS rows are cut into tiles of TILE_COLUMNS x TILE_ROWS pixels, left
+ * to right, each tile row-major; a band's last width % TILE_COLUMNS columns,
+ * and a last band of fewer rows, stay row-major.  One CPU ray packet
+ * (traverse.cl; the renderer asks for TILE_COLUMNS * TILE_ROWS rays per
+ * packet) then covers a tile rather than a strip of a row.  Measured on PoCL
+ * at 1280x720, closest-hit and shadow-ray kernels: 4x2 tiles with packets of
+ * 8 took 0.90-0.93x the time of row-major order (70-100K-triangle meshes);
+ * 4x4 tiles with packets of 16 then 0.85x (closest) and 0.89-0.95x (shadows)
+ * of that, on Lucy's 100K and 2K triangles alike.
  *
  * The kernels that map rays to pixels run over a 2D range
  * (TILE_ROWS * width, bands): work-item (k, band) is the pass's ray
  * band * TILE_ROWS * width + k, and its pixel takes no integer division
  * (CPU devices run those one lane at a time: 0.3 ms per 1M rays on PoCL). */
 #define TILE_COLUMNS 4
-#define TILE_ROWS 2
+#define TILE_ROWS 4
+
+/* How many of the multiples value, 2 value, ... (TILE_ROWS - 1) value are
+ * <= k: k / value when that is below TILE_ROWS, without a division. */
+inline uint rows_below(uint k, uint value)
+{
+    uint y = 0;
+    for (uint r = 1; r < TILE_ROWS; ++r)
+        y += k >= r * value;
+    return y;
+}
 
 /* The ray and the pixel (column, row within the pass) of work-item
  * (k, band) of a pass of `rows` rows; false if it has none. */
 inline bool pixel_in_pass(uint k, uint band, uint width, uint rows, uint *ray, uint2 *pixel)
 {
     uint first_row = band * TILE_ROWS;
-    if (first_row >= rows || k >= min((uint)TILE_ROWS, rows - first_row) * width)
+    if (first_row >= rows)
         return false;
-    uint x = k, y = 0; /* the pass's last band, of one row */
+    uint band_rows = min((uint)TILE_ROWS, rows - first_row);
+    if (k >= band_rows * width)
+        return false;
     uint tiled = (width & ~(TILE_COLUMNS - 1u)) * TILE_ROWS;
-    if (rows - first_row >= TILE_ROWS && k < tiled) {
+    uint x, y;
+    if (band_rows < TILE_ROWS) { /* the pass's last band, of fewer rows */
+        y = rows_below(k, width);
+        x = k - y * width;
+    } else if (k < tiled) {
         x = k / (TILE_COLUMNS * TILE_ROWS) * TILE_COLUMNS + k % TILE_COLUMNS;
         y = k / TILE_COLUMNS % TILE_ROWS;
-    } else if (rows - first_row >= TILE_ROWS) { /* the last width % TILE_COLUMNS columns */
+    } else { /* the last width % TILE_COLUMNS columns */
         uint columns = width % TILE_COLUMNS, rest = k - tiled;
-        y = rest >= columns;
+        y = rows_below(rest, columns);
         x = width - columns + rest - y * columns;
     }
     *ray = first_row * width + k;

@@ -186,9 +186,11 @@ def test_diffuse_without_shadows_matches_the_oracle(scene, geometry):
     assert not np.array_equal(expected, with_shadows)
 
 
-# Sizes whose widths and heights are not multiples of the 4x2 pixel tiles
-# that rays are traced in (hlbvh.h, pixel_in_pass) as well as one that is.
-@pytest.mark.parametrize("width, height", [(WIDTH, HEIGHT), (50, 37), (33, 17), (3, 5)])
+# Sizes whose widths and heights are not multiples of the pixel tiles that
+# rays are traced in (hlbvh.h, pixel_in_pass: last bands of 1, 2 and 3 rows,
+# last columns of 1, 2 and 3), as well as one that is.
+@pytest.mark.parametrize("width, height", [(WIDTH, HEIGHT), (50, 37), (33, 17), (3, 5), (21, 19),
+                                           (13, 30)])
 def test_normals_match_the_oracle(scene, geometry, width, height):
     eye, directions = camera_rays(CAMERA, width, height)
     h = primary_hits(geometry, eye, directions)
