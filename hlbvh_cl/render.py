@@ -385,9 +385,14 @@ class Renderer:
 
     def chunk_rows(self, width: int, height: int) -> int:
         """Image rows rendered per pass (PIXELS_PER_PASS, or fewer if one
-        traversal launch holds fewer rays)."""
+        traversal launch holds fewer rays); whole bands of pixel tiles
+        (layout.TILE_ROWS rows) when a pass holds one, so that only the
+        image's last pass may end in a part band."""
         pixels = min(PIXELS_PER_PASS, self.query.max_rays_per_launch)
-        return max(1, min(height, pixels // width))
+        rows = max(1, min(height, pixels // width))
+        if rows < height and rows >= layout.TILE_ROWS:
+            rows -= rows % layout.TILE_ROWS
+        return rows
 
     def render(self, tree: DeviceTree, settings: RenderSettings, colors: np.ndarray, light: Light,
                progress: bool = False) -> np.ndarray:
@@ -462,8 +467,8 @@ class Renderer:
                             kernels["add_unoccluded"], count, b.occluded, b.pending, n, b.accum))
                         _advance(bar, events["resolve"][-1])
                 events["encode"].append(rt.run(
-                    kernels["encode_image"], tile_range, b.accum, np.uint32(width), first_row, pass_rows,
-                    np.float32(1.0 / settings.spp), b.image))
+                    kernels["encode_image"], tile_range, b.accum, np.uint32(width), first_row,
+                    pass_rows, np.float32(1.0 / settings.spp), b.image))
         cl.enqueue_copy(queue, image, b.image, is_blocking=True)
         overflow = np.zeros(1, np.int32)
         cl.enqueue_copy(queue, overflow, self._overflow, is_blocking=True)
