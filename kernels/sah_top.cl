@@ -166,6 +166,25 @@ inline int left_of_split(ClusterRecord r, int axis, float lo, float inv_extent, 
     return (center - lo) * inv_extent < bins_after;
 }
 
+/* Move the records left of the split before the others; returns the
+ * first of the others. */
+inline int partition_records(__global ClusterRecord *records, int begin, int end, int axis,
+                             float lo, float inv_extent, float bins_after)
+{
+    int i = begin, j = end - 1;
+    while (i <= j) {
+        ClusterRecord r = records[i];
+        if (left_of_split(r, axis, lo, inv_extent, bins_after)) {
+            ++i;
+        } else {
+            records[i] = records[j];
+            records[j] = r;
+            --j;
+        }
+    }
+    return i;
+}
+
 inline void attach(int ref, int parent, int side, __global int *top_left,
                    __global int *top_right, volatile __global int *info)
 {
@@ -363,18 +382,14 @@ inline int split_clusters(__global ClusterRecord *records, int begin, int end, i
     }
     if (!isolated && best_axis >= 0) {
         float split_lo = lane_f(lo, best_axis), split_scale = lane_f(inv_extent, best_axis);
-        int i = begin, j = end - 1;
-        while (i <= j) {
-            ClusterRecord r = records[i];
-            if (left_of_split(r, best_axis, split_lo, split_scale, best_bin + 1.0f)) {
-                ++i;
-            } else {
-                records[i] = records[j];
-                records[j] = r;
-                --j;
-            }
-        }
-        middle = i;
+        float bins_after = best_bin + 1.0f;
+        /* A literal axis per call, so each inlined loop reads one lane. */
+        if (best_axis == 0)
+            middle = partition_records(records, begin, end, 0, split_lo, split_scale, bins_after);
+        else if (best_axis == 1)
+            middle = partition_records(records, begin, end, 1, split_lo, split_scale, bins_after);
+        else
+            middle = partition_records(records, begin, end, 2, split_lo, split_scale, bins_after);
     }
     if (middle == begin || middle == end)
         middle = begin + (end - begin) / 2;
