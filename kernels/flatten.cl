@@ -101,6 +101,33 @@ inline int top_slot(int t, int top_root)
     return t == top_root ? 0 : (t == 0 ? top_root : t);
 }
 
+/* Where child `ref` of a top node (>= 0 a top node, < 0 the cluster ~ref)
+ * lands in its parent's slot, and its box; `parent` is the parent's slot. */
+inline void top_child(int ref, int parent, int n, int top_count, int top_root,
+                      __global const uint *live_scan, __global const Aabb *top_boxes,
+                      __global const int *cluster_roots, __global const Aabb *cluster_boxes,
+                      __global const int *range_first, __global const int *range_last,
+                      __global const int *collapsed, __global int *parents, int *index,
+                      uint *count, Aabb *box)
+{
+    if (ref >= 0) {
+        *index = top_slot(ref, top_root);
+        *count = 0;
+        *box = top_boxes[ref];
+    } else {
+        /* the cluster's box from the compact copy, not boxes[root]: a
+         * random read into the radix tree's boxes took 60% of the time */
+        child_slot(cluster_roots[~ref], n, top_count, live_scan, range_first, range_last,
+                   collapsed, index, count);
+        *box = cluster_boxes[~ref];
+    }
+    if (*count == 0)
+        parents[*index] = parent;
+}
+
+/* Two calls to top_child rather than a loop over the sides: PoCL keeps a
+ * work-item's private arrays in memory, and copying them took half the
+ * kernel's time. */
 __kernel void write_top_nodes(int n, int top_count, int top_root, __global const uint *live_scan,
                               __global const int *top_left, __global const int *top_right,
                               __global const Aabb *top_boxes, __global const int *cluster_roots,
@@ -111,27 +138,17 @@ __kernel void write_top_nodes(int n, int top_count, int top_root, __global const
     int t = get_global_id(0);
     if (t >= top_count)
         return;
-    int refs[2] = {top_left[t], top_right[t]};
-    int index[2];
-    uint count[2];
-    Aabb box[2];
-    for (int side = 0; side < 2; ++side) {
-        if (refs[side] >= 0) {
-            index[side] = top_slot(refs[side], top_root);
-            count[side] = 0;
-            box[side] = top_boxes[refs[side]];
-        } else {
-            /* the cluster's box from the compact copy, not boxes[root]: a
-             * random read into the radix tree's boxes took 60% of the time */
-            child_slot(cluster_roots[~refs[side]], n, top_count, live_scan, range_first,
-                       range_last, collapsed, &index[side], &count[side]);
-            box[side] = cluster_boxes[~refs[side]];
-        }
-        if (count[side] == 0)
-            parents[index[side]] = top_slot(t, top_root);
-    }
-    write_node(nodes + top_slot(t, top_root), box[0], box[1], index[0], count[0], index[1],
-               count[1]);
+    int self = top_slot(t, top_root);
+    int left, right;
+    uint left_count, right_count;
+    Aabb left_box, right_box;
+    top_child(top_left[t], self, n, top_count, top_root, live_scan, top_boxes, cluster_roots,
+              cluster_boxes, range_first, range_last, collapsed, parents, &left, &left_count,
+              &left_box);
+    top_child(top_right[t], self, n, top_count, top_root, live_scan, top_boxes, cluster_roots,
+              cluster_boxes, range_first, range_last, collapsed, parents, &right, &right_count,
+              &right_box);
+    write_node(nodes + self, left_box, right_box, left, left_count, right, right_count);
     if (t == top_root)
         parents[0] = -1;
 }
