@@ -73,11 +73,13 @@ def build_radix_tree(rt, keys: cl.Buffer, bits: int, vertices: cl.Buffer, faces:
                                      wait_for=wait_for)
     if n == 1:  # no internal node: the lone leaf is the root
         cl.enqueue_fill_buffer(rt.queue, metrics.collapsed, np.int32(0), 0, 4)
-    kernel = rt.kernel("radix_tree.cl", "build_radix_tree", MORTON_BITS=bits,
-                       COLLAPSE_LEAVES=int(collapse_leaves))
-    walk = rt.run(kernel, n, keys, n, vertices, faces, primitive_ids, mesh_first_face,
-                  mesh_count, triangles, refs, vertex_ids, far_end, visits, tree.left_child,
-                  tree.right_child, tree.parent, tree.range_first, tree.range_last,
-                  metrics.boxes, metrics.sah_cost, metrics.height, metrics.collapsed,
-                  wait_for=[cleared])
-    return [cleared, walk]
+    defines = dict(MORTON_BITS=bits, COLLAPSE_LEAVES=int(collapse_leaves))
+    leaves = rt.run(rt.kernel("radix_tree.cl", "lay_out_leaves", **defines), n, n, vertices,
+                    faces, primitive_ids, mesh_first_face, mesh_count, triangles, refs,
+                    vertex_ids, metrics.boxes, metrics.sah_cost, metrics.height,
+                    wait_for=[cleared])
+    walk = rt.run(rt.kernel("radix_tree.cl", "build_radix_tree", **defines), n, keys, n,
+                  far_end, visits, tree.left_child, tree.right_child, tree.parent,
+                  tree.range_first, tree.range_last, metrics.boxes, metrics.sah_cost,
+                  metrics.height, metrics.collapsed, wait_for=[leaves])
+    return [cleared, leaves, walk]

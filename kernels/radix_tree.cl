@@ -25,15 +25,17 @@
  * cost(left) + cost(right), or C_i N A(node) as a leaf) so that, with
  * COLLAPSE_LEAVES, subtrees of at most MAX_LEAF_SIZE triangles become leaves
  * where the SAH says a leaf costs at most COLLAPSE_COST_RATIO times as much
- * (hlbvh.h); and each leaf's walker lays its triangle out in leaf (sorted)
- * order, with its (mesh, face) ref and vertex ids.
+ * (hlbvh.h).  A kernel before the walk (lay_out_leaves) lays the triangles
+ * out in leaf (sorted) order, with their (mesh, face) refs and vertex ids,
+ * and sets up the leaves the walkers start from.
  */
 #include "hlbvh.h"
 
-/* Intel's CPU compiler runs this kernel 16 work-items to a vector, and a
+/* Intel's CPU compiler runs these kernels 16 work-items to a vector, and a
  * vector of walkers climbs as long as its longest walk: lucy (100K
- * triangles) took 12 ms so, 2.5-3.1 ms one work-item at a time.  (PoCL does
- * not vectorize it.) */
+ * triangles) took 12 ms so, 2.5-3.1 ms one work-item at a time; the leaves'
+ * gathers too ran faster one at a time (1.26 -> 0.90 ms).  (PoCL does not
+ * vectorize them.) */
 #ifdef cl_intel_vec_len_hint
 #define ONE_WORK_ITEM_AT_A_TIME __attribute__((intel_vec_len_hint(1)))
 #else
@@ -81,19 +83,18 @@ inline TriangleRef triangle_ref(__global const int *mesh_first_face, int mesh_co
     return ref;
 }
 
-/* far_end[2s + side]: the far end of split s's child on that side (left 0);
- * visits[s] (zeroed): how many of its children have arrived. */
+/* The leaves, one work-item per sorted primitive j: the triangle laid out
+ * in leaf (sorted) order with its (mesh, face) ref and vertex ids, and the
+ * leaf's box, SAH cost and height.  Apart from the walk because the walk's
+ * atomic waits for every store before it to reach the cache: after these
+ * (a missing cache line each) it took a quarter of the walk's time. */
 __kernel ONE_WORK_ITEM_AT_A_TIME
-void build_radix_tree(__global const morton_t *keys, int n, __global const float *vertices,
-                      __global const int *faces, __global const uint *primitive_ids,
-                      __global const int *mesh_first_face, int mesh_count,
-                      __global Triangle *triangles, __global TriangleRef *refs,
-                      __global int *vertex_ids, __global int *far_end,
-                      __global volatile int *visits, __global int *left_child,
-                      __global int *right_child, __global int *parent,
-                      __global int *range_first, __global int *range_last,
-                      __global Aabb *boxes, __global float *sah_cost, __global int *height,
-                      __global int *collapsed)
+void lay_out_leaves(int n, __global const float *vertices, __global const int *faces,
+                    __global const uint *primitive_ids,
+                    __global const int *mesh_first_face, int mesh_count,
+                    __global Triangle *triangles, __global TriangleRef *refs,
+                    __global int *vertex_ids, __global Aabb *boxes,
+                    __global float *sah_cost, __global int *height)
 {
     int j = get_global_id(0);
     if (j >= n)
@@ -109,6 +110,27 @@ void build_radix_tree(__global const morton_t *keys, int n, __global const float
     boxes[node] = box;
     sah_cost[node] = SAH_INTERSECT_COST * aabb_area(box);
     height[node] = 0;
+}
+
+/* far_end[2s + side]: the far end of split s's child on that side (left 0);
+ * visits[s] (zeroed): how many of its children have arrived.  The walker
+ * carries its own subtree's box, cost and height, and reads only the
+ * sibling's. */
+__kernel ONE_WORK_ITEM_AT_A_TIME
+void build_radix_tree(__global const morton_t *keys, int n, __global int *far_end,
+                      __global volatile int *visits, __global int *left_child,
+                      __global int *right_child, __global int *parent,
+                      __global int *range_first, __global int *range_last,
+                      __global Aabb *boxes, __global float *sah_cost, __global int *height,
+                      __global int *collapsed)
+{
+    int j = get_global_id(0);
+    if (j >= n)
+        return;
+    int node = (n - 1) + j;
+    Aabb box = boxes[node];
+    float cost = sah_cost[node];
+    int subtree_height = 0;
 
     int first = j, last = j;
     int left_side = is_left_child(keys, n, first, last);
@@ -131,6 +153,7 @@ void build_radix_tree(__global const morton_t *keys, int n, __global const float
 
         int left = first == split ? (n - 1) + split : split;
         int right = last == split + 1 ? (n - 1) + split + 1 : split + 1;
+        int sibling = left_side ? right : left;
         left_side = is_left_child(keys, n, first, last);
         /* Karras's number: the root 0, else the end it shares with its parent's split */
         node = first == 0 && last == n - 1 ? 0 : left_side ? last : first;
@@ -141,18 +164,20 @@ void build_radix_tree(__global const morton_t *keys, int n, __global const float
         range_first[node] = first;
         range_last[node] = last;
 
-        box = aabb_union(load_box_volatile(boxes, left), load_box_volatile(boxes, right));
+        box = aabb_union(box, load_box_volatile(boxes, sibling));
         float area = aabb_area(box);
         int count = last - first + 1;
-        volatile __global const float *costs = sah_cost;
-        volatile __global const int *heights = height;
-        float as_interior = SAH_TRAVERSAL_COST * area + costs[left] + costs[right];
+        float as_interior = SAH_TRAVERSAL_COST * area + cost +
+                            ((volatile __global const float *)sah_cost)[sibling];
         float as_leaf = SAH_INTERSECT_COST * (float)count * area;
         int make_leaf = COLLAPSE_LEAVES && count <= MAX_LEAF_SIZE &&
                         as_leaf <= COLLAPSE_COST_RATIO * as_interior;
+        cost = make_leaf ? as_leaf : as_interior;
+        subtree_height = make_leaf ? 0 : 1 + max(subtree_height,
+                                                 ((volatile __global const int *)height)[sibling]);
         boxes[node] = box;
-        sah_cost[node] = make_leaf ? as_leaf : as_interior;
-        height[node] = make_leaf ? 0 : 1 + max(heights[left], heights[right]);
+        sah_cost[node] = cost;
+        height[node] = subtree_height;
         collapsed[node] = make_leaf;
     }
     parent[node] = -1; /* the root's walker */
