@@ -31,12 +31,12 @@ __kernel void reduce_triangle_bounds(__global const float *vertices, __global co
     for (int face = begin; face < end; face += step) {
         float3 a, b, c;
         load_triangle(vertices, faces, face, &a, &b, &c);
-        float3 lo = fmin(a, fmin(b, c)), hi = fmax(a, fmax(b, c));
+        float3 lo = GROW_LO(GROW_LO(a, b), c), hi = GROW_HI(GROW_HI(a, b), c);
         float3 centroid = 0.5f * (lo + hi); /* = aabb_center of the triangle's box */
-        geometry_lo = fmin(geometry_lo, lo);
-        geometry_hi = fmax(geometry_hi, hi);
-        centroid_lo = fmin(centroid_lo, centroid);
-        centroid_hi = fmax(centroid_hi, centroid);
+        geometry_lo = GROW_LO(geometry_lo, lo);
+        geometry_hi = GROW_HI(geometry_hi, hi);
+        centroid_lo = GROW_LO(centroid_lo, centroid);
+        centroid_hi = GROW_HI(centroid_hi, centroid);
         centroids[face] = (float4)(centroid, 0.0f);
     }
     Aabb geometry = {{geometry_lo.x, geometry_lo.y, geometry_lo.z},

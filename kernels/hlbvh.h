@@ -160,6 +160,13 @@ inline float3 load_vertex(__global const float *vertices, int index)
     return vload3(index, vertices);
 }
 
+/* The lesser / greater of an accumulator and a value, scalars or vectors:
+ * fmin/fmax without the NaN handling they pay for (a compare and a blend
+ * per call on x86).  The accumulator is never NaN, and a NaN value leaves it
+ * unchanged, as fmin/fmax would. */
+#define GROW_LO(acc, value) select((acc), (value), (value) < (acc))
+#define GROW_HI(acc, value) select((acc), (value), (value) > (acc))
+
 inline Aabb aabb_empty(void)
 {
     Aabb box = {{INFINITY, INFINITY, INFINITY}, {-INFINITY, -INFINITY, -INFINITY}};
@@ -168,8 +175,8 @@ inline Aabb aabb_empty(void)
 
 inline Aabb aabb_of_points(float3 a, float3 b, float3 c)
 {
-    float3 lo = fmin(a, fmin(b, c));
-    float3 hi = fmax(a, fmax(b, c));
+    float3 lo = GROW_LO(GROW_LO(a, b), c);
+    float3 hi = GROW_HI(GROW_HI(a, b), c);
     Aabb box = {{lo.x, lo.y, lo.z}, {hi.x, hi.y, hi.z}};
     return box;
 }
@@ -178,16 +185,9 @@ inline Aabb aabb_union(Aabb a, Aabb b)
 {
     Aabb box;
     for (int k = 0; k < 3; ++k) {
-        box.lo[k] = fmin(a.lo[k], b.lo[k]);
-        box.hi[k] = fmax(a.hi[k], b.hi[k]);
+        box.lo[k] = GROW_LO(a.lo[k], b.lo[k]);
+        box.hi[k] = GROW_HI(a.hi[k], b.hi[k]);
     }
-    return box;
-}
-
-inline Aabb aabb_grow(Aabb a, float3 p)
-{
-    Aabb box = {{fmin(a.lo[0], p.x), fmin(a.lo[1], p.y), fmin(a.lo[2], p.z)},
-                {fmax(a.hi[0], p.x), fmax(a.hi[1], p.y), fmax(a.hi[2], p.z)}};
     return box;
 }
 

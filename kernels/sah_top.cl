@@ -98,17 +98,15 @@ __kernel void gather_clusters(__global const uint *scan, int n, __global const i
     cluster_height[c] = height[root];
 }
 
-/* fmin/fmax of an accumulator and a value, without the NaN handling that
- * fmin/fmax pay for (a compare and a blend per call on x86): the accumulator
- * is never NaN, and a NaN value is skipped either way. */
+/* GROW_LO / GROW_HI (hlbvh.h) on float4s. */
 inline float4 grow_lo(float4 acc, float4 value)
 {
-    return select(acc, value, value < acc);
+    return GROW_LO(acc, value);
 }
 
 inline float4 grow_hi(float4 acc, float4 value)
 {
-    return select(acc, value, value > acc);
+    return GROW_HI(acc, value);
 }
 
 /* grow_lo on xyz, a sum on w: a bin's lower corner and its triangle count. */
