@@ -55,7 +55,7 @@ def build_top(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: RadixTre
     def buf(count, itemsize=4):
         return rt.pool.take(count * itemsize)
     first, roots = buf(clusters), buf(clusters)
-    records = buf(clusters, CLUSTER_RECORD_BYTES)
+    records, records_odd = buf(clusters, CLUSTER_RECORD_BYTES), buf(clusters, CLUSTER_RECORD_BYTES)
     cluster_cost, cluster_height = buf(clusters), buf(clusters)
     cluster_box = buf(clusters, layout.AABB.itemsize)
     tasks, next_tasks, stack = (buf(clusters, TOP_TASK_BYTES) for _ in range(3))
@@ -83,7 +83,7 @@ def build_top(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: RadixTre
                                          wait_for=events[-1:]))  # the root task
     for level in range(serial_depth + 1):
         events.append(rt.run(kernel("split_top_level"), min(1 << level, clusters), tasks, level,
-                             serial_depth, next_tasks, task_counts, stack, records,
+                             serial_depth, next_tasks, task_counts, stack, records, records_odd,
                              cluster_height, left, right, boxes, info, wait_for=events[-1:],
                              local_size=1))
         tasks, next_tasks = next_tasks, tasks
