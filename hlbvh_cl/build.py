@@ -19,7 +19,7 @@ from .device import Runtime, event_ms
 from .flatten import box_area, flatten_nodes
 from .morton import key_dtype, morton_codes
 from .radix_tree import RadixTree, RadixTreeMetrics, build_radix_tree
-from .sah_top import build_top
+from .sah_top import BYTES_PER_CLUSTER, build_top, max_clusters
 from .sort import RadixSorter
 from .tree import DeviceTree
 
@@ -66,6 +66,7 @@ def build_memory(vertex_count: int, triangle_count: int, morton_bits: int) -> di
         "flat nodes": max(1, n - 1) * layout.FLAT_NODE.itemsize, "flat parents": n * 4,
         "triangles": n * layout.TRIANGLE.itemsize, "triangle refs": n * layout.TRIANGLE_REF.itemsize,
         "triangle vertex ids": n * 12,
+        "SAH top (clusters)": max_clusters(n) * BYTES_PER_CLUSTER,
     }
 
 

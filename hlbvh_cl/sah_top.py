@@ -15,6 +15,15 @@ from .scan import exclusive_scan
 TOP_TASK_BYTES = 16  # struct TopTask in sah_top.cl: four ints
 CLUSTER_RECORD_BYTES = 32  # struct ClusterRecord in sah_top.cl: two float4s
 TOP_COST_GROUP = 64  # work-items of sum_top_cost's one work-group (a -D define)
+# Device bytes build_top takes per cluster: first primitive, root, two record
+# buffers, cost, height, box, three task lists, two child links, top box.
+BYTES_PER_CLUSTER = (4 + 4 + 2 * CLUSTER_RECORD_BYTES + 4 + 4 + layout.AABB.itemsize
+                     + 3 * TOP_TASK_BYTES + 2 * 4 + layout.AABB.itemsize)
+
+
+def max_clusters(triangle_count: int) -> int:
+    """The most clusters a build over triangle_count triangles can have."""
+    return min(triangle_count, 1 << layout.CLUSTER_BITS)
 
 
 @dataclass
