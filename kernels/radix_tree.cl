@@ -136,16 +136,35 @@ void build_radix_tree(__global const morton_t *keys, int n, __global int *far_en
     int left_side = is_left_child(keys, n, first, last);
     while (!(first == 0 && last == n - 1)) {
         int split = left_side ? last : first - 1;
-        far_end[2 * split + !left_side] = left_side ? first : last;
-        /* Release, then acquire: this node's writes happen before the count,
-         * which happens before the sibling reads them (store-only and
-         * load-only fences: full mem_fences measured 3.6x slower on Intel's
-         * CPU runtime; so did atomic_xchg, which it fences with mfence). */
-        write_mem_fence(CLK_GLOBAL_MEM_FENCE);
-        if (atomic_inc(&visits[split]) == 0)
-            return; /* the sibling subtree is not done; its walker goes on */
-        read_mem_fence(CLK_GLOBAL_MEM_FENCE);
-        int other = ((volatile __global const int *)far_end)[2 * split + left_side];
+        int other;
+        /* A sibling that is a leaf is ready (lay_out_leaves wrote it), so
+         * there is nothing to wait for: a subtree's walker goes on alone, and
+         * of two leaves the left one; a leaf beside a subtree stops.  Only
+         * two subtrees meet through the atomic count, about a third of the
+         * splits.  The right child of `split` is the leaf split + 1 when
+         * that leaf is a right child; the left one the leaf split when it
+         * is a left child. */
+        int sibling_is_leaf = left_side ? !is_left_child(keys, n, split + 1, split + 1)
+                                        : is_left_child(keys, n, split, split);
+        if (sibling_is_leaf) {
+            if (first == last && !left_side)
+                return;
+            other = left_side ? split + 1 : split;
+        } else if (first == last) {
+            return;
+        } else {
+            far_end[2 * split + !left_side] = left_side ? first : last;
+            /* Release, then acquire: this node's writes happen before the
+             * count, which happens before the sibling reads them (store-only
+             * and load-only fences: full mem_fences measured 3.6x slower on
+             * Intel's CPU runtime; so did atomic_xchg, which it fences with
+             * mfence). */
+            write_mem_fence(CLK_GLOBAL_MEM_FENCE);
+            if (atomic_inc(&visits[split]) == 0)
+                return; /* the sibling subtree is not done; its walker goes on */
+            read_mem_fence(CLK_GLOBAL_MEM_FENCE);
+            other = ((volatile __global const int *)far_end)[2 * split + left_side];
+        }
         if (left_side)
             last = other;
         else
