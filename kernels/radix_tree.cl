@@ -10,10 +10,11 @@
  * each leaf and walks up.  A node covering the primitives [first, last] has
  * as parent the split at `last` (it is the left child) when the keys across
  * that end differ less than the keys across `first - 1 | first`, else the
- * split at first - 1 (it is the right child).  At each split both arrivals
- * leave their far end and count themselves in; the first stops, the second
- * learns the parent's whole range, emits it and computes it from both
- * children, and goes on.
+ * split at first - 1 (it is the right child).  At a split where two
+ * subtrees meet, both arrivals leave their far end and count themselves in;
+ * the first stops, the second learns the parent's whole range, emits it and
+ * computes it from both children, and goes on.  A leaf child needs no
+ * meeting: its data is laid out before the walk.
  *
  * Karras's number of a node is its parent's split if it is a left child, and
  * that split + 1 if it is a right child: its range ends at, or starts at, its
