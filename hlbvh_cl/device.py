@@ -260,6 +260,12 @@ class Runtime:
         return kernel
 
     @property
+    def prefetch_defines(self) -> dict:
+        """PREFETCH=1 for kernels that ask for cache lines ahead with
+        __builtin_prefetch (CPU devices: their compilers are Clang-based)."""
+        return {"PREFETCH": 1} if self.device.type == "cpu" else {}
+
+    @property
     def group_size(self) -> int:
         """Default work-group size.  256 rather than 64: PoCL pays a fixed
         cost per work-group, and 64 measured ~3x slower on a plain copy."""

@@ -248,9 +248,8 @@ class RayQuery:
         """The traversal kernel `name` for `tree` and the node buffer it reads
         (the tree's wide form, made on first use)."""
         wide = wide_tree(self.rt, tree)
-        defines = {"STACK_SIZE": _stack_size(tree, wide), "PACKET_SIZE": self.packet_size}
-        if self.rt.device.type == "cpu":
-            defines["PREFETCH"] = 1  # __builtin_prefetch: CPU compilers are Clang-based
+        defines = {"STACK_SIZE": _stack_size(tree, wide), "PACKET_SIZE": self.packet_size,
+                   **self.rt.prefetch_defines}
         if count_packets:
             defines["COUNT_PACKETS"] = 1
         return self.rt.kernel("traverse.cl", name, **defines), wide.nodes

@@ -79,7 +79,7 @@ def _widen(rt: Runtime, tree: DeviceTree, wait_for) -> tuple[WideTree, list[cl.E
     take = rt.pool.take
     source, slots = take(capacity * 4), take(capacity * arity * 4)
     first_child, interior = take(capacity * 4), take((capacity + 1) * 4)
-    choose = rt.kernel(KERNEL_FILE, "choose_wide_slots")
+    choose = rt.kernel(KERNEL_FILE, "choose_wide_slots", **rt.prefetch_defines)
     link = rt.kernel(KERNEL_FILE, "link_wide_children")
 
     events = [cl.enqueue_fill_buffer(q, source, np.int32(0), 0, 4, wait_for=wait_for)]

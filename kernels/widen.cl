@@ -59,6 +59,17 @@ inline Aabb slot_box(__global const FlatNode *nodes, uint slot)
     return box;
 }
 
+/* Starts loading the BVH2 node behind an interior slot, which the greedy
+ * opening will likely read: the openings of a wide node are a chain of
+ * dependent loads, and prefetching every candidate overlaps them. */
+inline void prefetch_slot_node(__global const FlatNode *nodes, uint slot)
+{
+#ifdef PREFETCH
+    if (slot_is_interior(nodes, slot))
+        __builtin_prefetch(nodes + slot_child(nodes, slot));
+#endif
+}
+
 /* What a slot bids to be opened: its box's area if it is interior, else -1
  * (never chosen). */
 inline float opening_bid(__global const FlatNode *nodes, uint slot)
@@ -89,10 +100,12 @@ inline int open_slot(__global const FlatNode *nodes, uint *slots, float *bids, i
     }
     int k = at;
     if (keep_left) {
+        prefetch_slot_node(nodes, left);
         slots[k] = left;
         bids[k++] = opening_bid(nodes, left);
     }
     if (keep_right) {
+        prefetch_slot_node(nodes, right);
         slots[k] = right;
         bids[k] = opening_bid(nodes, right);
     }
@@ -109,6 +122,7 @@ inline int choose_slots(__global const FlatNode *nodes, int node, uint *slots)
     for (uint side = 0; side < 2; ++side) {
         uint slot = 2u * (uint)node + side;
         if (!slot_is_empty(nodes, slot)) {
+            prefetch_slot_node(nodes, slot);
             slots[used] = slot;
             bids[used++] = opening_bid(nodes, slot);
         }
