@@ -374,7 +374,8 @@ TRAVERSAL_INLINE int next_item(__global const WideNode* n, int* order, int m, co
  * incoherent rays).  The loop runs interior nodes until it holds a leaf, then
  * the leaf's triangles (Aila & Laine 2009's "while-while"). */
 TRAVERSAL_INLINE int traverse(const RayData* r, __global const WideNode* nodes,
-                              __global const Triangle* triangles, bool any_hit,
+                              __global const Triangle* triangles,
+                              __global const TriangleRef* refs, bool any_hit,
                               float* t_hit, float* u_hit, float* v_hit, bool* overflow)
 {
     int stack_index[STACK_SIZE];
@@ -437,6 +438,10 @@ TRAVERSAL_INLINE int traverse(const RayData* r, __global const WideNode* nodes,
         for (uint i = (uint)index; i < (uint)index + count; ++i) {
             float t, u, v;
             if (hit_triangle(r, triangles + i, limit, hit_index >= 0, &t, &u, &v)) {
+#ifdef PREFETCH
+                if (!any_hit)  /* the hit's ids are read at the end: a miss of its own */
+                    __builtin_prefetch(refs + i);
+#endif
                 hit_index = (int)i;
                 limit = t;
                 *t_hit = t;
@@ -813,7 +818,7 @@ TRAVERSAL_INLINE void closest_hits(const RayLanes* lanes, uint used,
         float t = INFINITY, u = 0.0f, v = 0.0f;
         bool lane_out_of_stack;
         RayData r = prepare_lane(lanes, l);
-        int index = traverse(&r, nodes, triangles, false, &t, &u, &v, &lane_out_of_stack);
+        int index = traverse(&r, nodes, triangles, refs, false, &t, &u, &v, &lane_out_of_stack);
         hits[l] = make_hit(index, t, u, v, triangles, refs);
         out_of_stack |= lane_out_of_stack;
     }
@@ -847,7 +852,7 @@ TRAVERSAL_INLINE void any_hits(const RayLanes* lanes, uint used, __global const 
         float t, u, v;
         bool lane_out_of_stack;
         RayData r = prepare_lane(lanes, l);
-        int index = traverse(&r, nodes, triangles, true, &t, &u, &v, &lane_out_of_stack);
+        int index = traverse(&r, nodes, triangles, 0, true, &t, &u, &v, &lane_out_of_stack);
         occluded[l] = index >= 0 ? 1 : 0;
         out_of_stack |= lane_out_of_stack;
     }
