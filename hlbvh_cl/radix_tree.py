@@ -64,8 +64,9 @@ def build_radix_tree(rt, keys: cl.Buffer, bits: int, vertices: cl.Buffer, faces:
                      tree: RadixTree, metrics: RadixTreeMetrics, triangles: cl.Buffer,
                      refs: cl.Buffer, vertex_ids: cl.Buffer, collapse_leaves: bool,
                      wait_for=None) -> list[cl.Event]:
-    """The tree's nodes, boxes, SAH costs and collapse flags; on the way, the
-    triangles, their refs and their vertex ids in leaf (sorted) order."""
+    """The tree's nodes, boxes, SAH costs and collapse flags (one bottom-up
+    walk), and before them the triangles, their refs and their vertex ids in
+    leaf (sorted) order with the leaves' boxes (lay_out_leaves)."""
     n = tree.n
     splits = max(1, n - 1)
     far_end, visits = rt.pool.take(2 * splits * 4), rt.pool.take(splits * 4)
