@@ -339,6 +339,16 @@ TRAVERSAL_INLINE void prefetch_child(__global const WideNode* n, int slot,
 #endif
 }
 
+/* A closest hit's ids (refs[i]) are read when the traversal ends, a cache
+ * miss of their own: start loading them when the hit is found. */
+TRAVERSAL_INLINE void prefetch_hit_ids(__global const TriangleRef* refs, uint i, bool any_hit)
+{
+#ifdef PREFETCH
+    if (!any_hit)
+        __builtin_prefetch(refs + i);
+#endif
+}
+
 /* What follows a node whose children order[0, m) the ray or packet meets:
  * the nearest child, the others pushed and all of them prefetched, or when m
  * is 0 the next stacked item in reach of `limit`.  Returns NEXT_ITEM (in
@@ -438,10 +448,7 @@ TRAVERSAL_INLINE int traverse(const RayData* r, __global const WideNode* nodes,
         for (uint i = (uint)index; i < (uint)index + count; ++i) {
             float t, u, v;
             if (hit_triangle(r, triangles + i, limit, hit_index >= 0, &t, &u, &v)) {
-#ifdef PREFETCH
-                if (!any_hit)  /* the hit's ids are read at the end: a miss of its own */
-                    __builtin_prefetch(refs + i);
-#endif
+                prefetch_hit_ids(refs, i, any_hit);
                 hit_index = (int)i;
                 limit = t;
                 *t_hit = t;
@@ -655,10 +662,7 @@ TRAVERSAL_INLINE bool hit_leaf_packet(const Packet* p, __global const Triangle* 
                                              &v);
         if (!any(hit))
             continue;
-#ifdef PREFETCH
-        if (!any_hit)  /* the hit's ids are read at the end: a miss of its own */
-            __builtin_prefetch(refs + i);
-#endif
+        prefetch_hit_ids(refs, i, any_hit);
         *hit_index = select(*hit_index, (int_packet)((int)i), hit);
         *limit = select(*limit, any_hit ? (float_packet)(-INFINITY) : t, hit);
         *t_hit = select(*t_hit, t, hit);
