@@ -540,28 +540,30 @@ typedef struct {
     int near_x, near_y, near_z;
 } Packet;
 
+/* The least / greatest lane of a packet whose lanes are never NaN (entry
+ * distances, limits): GROW_LO / GROW_HI, without fmin / fmax's NaN tests. */
 TRAVERSAL_INLINE float packet_min(float_packet v)
 {
 #if PACKET_SIZE == 16
-    float8 a = fmin(v.lo, v.hi);
+    float8 a = GROW_LO(v.lo, v.hi);
 #else
     float8 a = v;
 #endif
-    float4 b = fmin(a.lo, a.hi);
-    float2 c = fmin(b.lo, b.hi);
-    return fmin(c.x, c.y);
+    float4 b = GROW_LO(a.lo, a.hi);
+    float2 c = GROW_LO(b.lo, b.hi);
+    return GROW_LO(c.x, c.y);
 }
 
 TRAVERSAL_INLINE float packet_max(float_packet v)
 {
 #if PACKET_SIZE == 16
-    float8 a = fmax(v.lo, v.hi);
+    float8 a = GROW_HI(v.lo, v.hi);
 #else
     float8 a = v;
 #endif
-    float4 b = fmax(a.lo, a.hi);
-    float2 c = fmax(b.lo, b.hi);
-    return fmax(c.x, c.y);
+    float4 b = GROW_HI(a.lo, a.hi);
+    float2 c = GROW_HI(b.lo, b.hi);
+    return GROW_HI(c.x, c.y);
 }
 
 /* any() of a packet's lane flags (-1 or 0) as one test: the halves are
