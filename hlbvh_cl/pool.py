@@ -20,6 +20,7 @@ the other scenes' next rebuilds allocate afresh once).
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from contextlib import contextmanager
 
 import pyopencl as cl
@@ -30,8 +31,8 @@ KEEP_BUILDS = 2
 
 
 class BufferPool:
-    def __init__(self, context: cl.Context):
-        self._context = context
+    def __init__(self, allocate: Callable[[int], cl.Buffer]):
+        self._allocate = allocate  # nbytes -> a fresh READ_WRITE buffer (Runtime.allocate)
         self._free: dict[int, list[cl.Buffer]] = {}  # by size, most recently returned last
         self._returned: dict[int, int] = {}          # id of a free buffer -> when it came back
         self._clock = 0
@@ -49,7 +50,7 @@ class BufferPool:
             if buffer is not None:
                 self._returned.pop(id(buffer), None)
         if buffer is None:
-            buffer = cl.Buffer(self._context, cl.mem_flags.READ_WRITE, nbytes)
+            buffer = self._allocate(nbytes)
         if self._taken is not None:
             self._taken.append(buffer)
         return buffer

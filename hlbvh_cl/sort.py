@@ -120,8 +120,8 @@ class RadixSorter:
                                  {"scratch keys": key_bytes, "scratch values": 4 * n})
         # Drop the old pair first so both are never held at once.
         self._scratch_keys = self._scratch_values = None
-        self._scratch_keys = cl.Buffer(self.rt.context, cl.mem_flags.READ_WRITE, key_bytes)
-        self._scratch_values = cl.Buffer(self.rt.context, cl.mem_flags.READ_WRITE, 4 * n)
+        self._scratch_keys = self.rt.allocate(key_bytes)
+        self._scratch_values = self.rt.allocate(4 * n)
         self._scratch_capacity = n
 
     def _check_sort_args(self, keys, values, n, key_bits) -> tuple[int, int]:

@@ -16,7 +16,7 @@ MESH_DIR = Path(__file__).resolve().parent.parent / "scenes" / "meshes"
 
 @pytest.fixture
 def pool():
-    return BufferPool(runtime().context)
+    return BufferPool(runtime().allocate)
 
 
 def test_take_reuses_a_given_buffer_of_the_same_size_only(pool):
