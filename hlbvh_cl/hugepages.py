@@ -1,16 +1,15 @@
-"""2 MiB pages for the large buffers of CPU devices (Linux transparent huge pages).
+"""2 MiB pages for the large buffers of a CPU device (Linux transparent huge pages).
 
 A CPU device's buffers are host memory in 4 KiB pages.  Traversal reads the
 tree's nodes and triangles at random, so a tree larger than what the TLB
 covers (a few MiB of 4 KiB pages) pays a page walk on many loads.  Linux backs
 memory with 2 MiB pages where the process asks for them (madvise
 MADV_HUGEPAGE; /sys/kernel/mm/transparent_hugepage/enabled set to "madvise",
-the common default), as Embree does for its own allocations.  Measured on
-this project's machine (2.9M-triangle reference scene, 1M incoherent rays):
-PoCL 224 -> 200 ms, Intel's CPU runtime 236 -> 206 ms; Lucy split to 3.6M
-triangles 422 -> 353 ms.  The first write of a fresh 256 MiB buffer also
-took 12-21 ms instead of 51-59 (one page fault per 2 MiB instead of per
-4 KiB).
+the common default).  Measured on this project's machine with PoCL
+(2.9M-triangle reference scene, 1M incoherent rays, two processes each way,
+alternating): 230-232 -> 206-208 ms; camera rays and rebuilds unchanged.
+The first write of a fresh 256 MiB buffer also took 12-21 ms instead of
+51-59 (one page fault per 2 MiB instead of per 4 KiB).
 
 The advice must come before the memory is first written, so it is given when
 a buffer is made: the buffer is mapped (on CPU devices the map returns the
@@ -18,13 +17,15 @@ buffer's own memory), the 2 MiB-aligned part of it is advised, and it is
 unmapped.  Where the advice is not available (another OS, THP disabled) the
 buffer stays as it is: this only changes speed.
 
-The cost is on a scene's first build, whose kernels fault the fresh pages in
-(later rebuilds reuse the pool's buffers).  With 2 MiB pages that first
-build of the reference scene took 0.97-0.99 s on PoCL instead of 1.06-1.10,
-but 1.31 s instead of 1.10 on Intel's CPU runtime, whose threads then wait
-on each other's faults (scattered writes of the fresh tree 2-3x slower).
-Faulting the pages in from the host first cost Intel more still (about
-2 ms per MiB on this VM), so the pages are left to the kernels.
+Only PoCL's buffers are advised (Runtime.huge_pages).  The cost falls on a
+scene's first build, whose kernels fault the fresh pages in (rebuilds reuse
+the pool's buffers).  On PoCL the first build of the reference scene took
+0.97-0.99 s instead of 1.06-1.10 (scene file read included).  Intel's CPU
+runtime took 1.31 s instead of 1.10, its threads waiting on each other's
+faults (scattered writes of the fresh tree 2-3x slower), and `python -m
+bench` measured its Scene() of the reference scene at 0.71 s instead of 0.37
+with no gain on its incoherent rays; faulting the pages in from the host
+first cost it more still (about 2 ms per MiB on this VM).
 """
 from __future__ import annotations
 
