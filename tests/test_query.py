@@ -618,6 +618,26 @@ def test_bad_input_raises_before_any_kernel(monkeypatch, origins, directions, tm
         case.scene.occluded(origins, directions, tmin, tmax)
 
 
+def test_short_directions_are_found_in_any_block_of_a_large_batch(monkeypatch):
+    """The direction check goes block by block and only looks at rows in the
+    blocks that hold a tiny component: a short row is found (and named) past
+    the first block, while tiny components in a row that is long enough pass."""
+    case = scene_case("cube")
+    monkeypatch.setattr(RayQuery, "_run", lambda *a, **k: pytest.fail("a kernel ran"))
+    count = 3 * query_module.CHECK_BLOCK + 17
+    origins = np.zeros((count, 3), np.float32)
+    directions = np.tile(np.float32([0.3, -0.5, 0.8]), (count, 1))
+    directions[5] = [0.0, 1e-40, 1.0]          # tiny components, long enough
+    directions[count - 3] = [-0.0, 1e-39, 0.0]  # the last block
+    directions[count - 1] = [0.0, 0.0, 0.0]
+    for query in (case.scene.intersect, case.scene.occluded):
+        with pytest.raises(ValueError, match=rf"directions\[{count - 3}\].*too short"):
+            query(origins, directions)
+    directions[count - 3] = [1e-30, 0.0, 0.0]
+    with pytest.raises(ValueError, match=rf"directions\[{count - 1}\].*zero length"):
+        case.scene.intersect(origins, directions)
+
+
 def test_bad_tree_and_chunk_size():
     case = scene_case("cube")
     q = RayQuery(case.scene.runtime)
