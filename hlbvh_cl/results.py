@@ -27,8 +27,9 @@ import numpy as np
 #: Arrays smaller than this are plain np.empty arrays (cheap to allocate).
 MIN_POOLED_BYTES = 1 << 20
 
-#: A lent array starts at a multiple of this (a cache line).
-ALIGNMENT = 64
+#: A lent array starts at a multiple of this: a page, so that a device may
+#: use it in place (hlbvh_cl.query: Intel's CPU runtime requires a page).
+ALIGNMENT = 4096
 
 
 class _Lease:

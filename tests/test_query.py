@@ -446,6 +446,29 @@ def test_batches_split_into_chunks_equal_one_launch(zero_copy):
     assert 0 < a.hit.mean() < 1
 
 
+@pytest.mark.parametrize("chunk", [None, 1 << 16, 777], ids=["one-launch", "page-chunks", "odd-chunks"])
+def test_results_written_in_place_equal_read_back_results(chunk):
+    """With device copies of the rays, the kernels may write the results
+    straight into the pool's page-aligned result arrays (Intel's CPU runtime
+    does by default): the same results as reading them back, also when a
+    batch splits into chunks, some of which do not start on a page."""
+    case = scene_case("knight")
+    count = MIN_POOLED_BYTES // 4 + 1000
+    origins, directions = random_rays(case, count, seed=16)
+    copied = RayQuery(case.scene.runtime)
+    copied.zero_copy, copied.outputs_in_place = False, False
+    written = RayQuery(case.scene.runtime, max_rays_per_launch=chunk)
+    written.zero_copy, written.outputs_in_place = False, True
+    expected = copied.intersect(case.scene.tree, origins, directions)
+    got = written.intersect(case.scene.tree, origins, directions)
+    for field in ("t", "prim_id", "geom_id", "u", "v", "normal"):
+        assert getattr(got, field).ctypes.data % query_module.RESULT_ALIGNMENT == 0
+        np.testing.assert_array_equal(getattr(got, field), getattr(expected, field))
+    assert 0 < got.hit.mean() < 1
+    np.testing.assert_array_equal(written.occluded(case.scene.tree, origins, directions),
+                                  copied.occluded(case.scene.tree, origins, directions))
+
+
 def test_buffers_are_reused_and_only_grow():
     """Where the kernels cannot use the numpy arrays in place (GPUs)."""
     case = scene_case("cube")
