@@ -444,7 +444,8 @@ TRAVERSAL_INLINE int traverse(const RayData* r, __global const WideNode* nodes,
                 /* Shadow rays: any hit ends the ray, so test the leaves in
                  * reach before descending (a large occluder such as a
                  * ground quad often sits in a leaf near the root). */
-                uint leaves = mask & lane_mask(vload_lanes(0, (__global const int*)n->count) != (int_lanes)(0));
+                int_lanes counts = vload_lanes(0, (__global const int*)n->count);
+                uint leaves = mask & lane_mask(counts != (int_lanes)(0));
                 mask ^= leaves;
                 for (; leaves != 0; leaves &= leaves - 1u) {
                     int slot = lowest_slot(leaves);
