@@ -539,6 +539,14 @@ typedef struct {
     float_packet okx, oky, okz;
     int kx, ky, kz;
     int near_x, near_y, near_z;
+    /* The packet as one interval ray, for culling a node's children with
+     * interval arithmetic before the per-lane tests (hit_children_interval):
+     * per axis the lanes' least and greatest inverse direction, and the
+     * origin component that bounds the entry (near_o) and the exit (far_o)
+     * distances from below and above; the least tmin. */
+    float inv_lo_x, inv_lo_y, inv_lo_z, inv_hi_x, inv_hi_y, inv_hi_z;
+    float near_ox, near_oy, near_oz, far_ox, far_oy, far_oz;
+    float tmin_lo;
 } Packet;
 
 /* The least / greatest lane of a packet whose lanes are never NaN (entry
@@ -632,7 +640,72 @@ TRAVERSAL_INLINE bool prepare_packet(const RayLanes* in, Packet* p)
     p->near_x = 0 * WIDE_ARITY + (neg_x.s0 ? WIDE_ARITY : 0);
     p->near_y = 2 * WIDE_ARITY + (neg_y.s0 ? WIDE_ARITY : 0);
     p->near_z = 4 * WIDE_ARITY + (neg_z.s0 ? WIDE_ARITY : 0);
+    p->inv_lo_x = packet_min(p->inv_x);
+    p->inv_lo_y = packet_min(p->inv_y);
+    p->inv_lo_z = packet_min(p->inv_z);
+    p->inv_hi_x = packet_max(p->inv_x);
+    p->inv_hi_y = packet_max(p->inv_y);
+    p->inv_hi_z = packet_max(p->inv_z);
+    /* (plane - o) * inv over the lanes: the least entry comes from the
+     * greatest origin when the direction is positive, the least when it is
+     * negative; the greatest exit the other way round. */
+    float o_lo_x = packet_min(o[0]), o_lo_y = packet_min(o[1]), o_lo_z = packet_min(o[2]);
+    float o_hi_x = packet_max(o[0]), o_hi_y = packet_max(o[1]), o_hi_z = packet_max(o[2]);
+    p->near_ox = neg_x.s0 ? o_lo_x : o_hi_x;
+    p->near_oy = neg_y.s0 ? o_lo_y : o_hi_y;
+    p->near_oz = neg_z.s0 ? o_lo_z : o_hi_z;
+    p->far_ox = neg_x.s0 ? o_hi_x : o_lo_x;
+    p->far_oy = neg_y.s0 ? o_hi_y : o_lo_y;
+    p->far_oz = neg_z.s0 ? o_hi_z : o_lo_z;
+    p->tmin_lo = packet_min(p->tmin);
     return true;
+}
+
+/* A bound, from below (entry) or above (exit), of (plane - o) * inv over
+ * the packet's lanes for each child: `offset` (o - plane) is the bounding
+ * origin's, and the factor is the end of [inv_lo, inv_hi] that makes the
+ * product least (entry: inv_lo where the offset is >= 0, else inv_hi) or
+ * greatest (exit: the other end).  Both signs of the direction follow the
+ * same rule (prepare_packet picks the origin). */
+TRAVERSAL_INLINE float_lanes entry_bound(float_lanes offset, float inv_lo, float inv_hi)
+{
+    return offset * select((float_lanes)(inv_hi), (float_lanes)(inv_lo), offset >= 0.0f);
+}
+
+TRAVERSAL_INLINE float_lanes exit_bound(float_lanes offset, float inv_lo, float inv_hi)
+{
+    return offset * select((float_lanes)(inv_lo), (float_lanes)(inv_hi), offset >= 0.0f);
+}
+
+/* The children of a node that some lane of the packet may meet within
+ * `reach`, as a bit mask, from one slab test of the interval ray (interval
+ * arithmetic over the lanes: Boulos et al. 2007, "Geometric and Arithmetic
+ * Culling Methods for Entire Ray Packets").  Float rounding is monotone, so
+ * each bound is as far out as the per-lane results computed the same way:
+ * a child left out here fails hit_child_packet for every lane, and the
+ * culling changes no result.  A NaN (0 * inf) bound is ignored, as in
+ * hit_children, which only widens the interval. */
+TRAVERSAL_INLINE uint hit_children_interval(const Packet* p, __global const WideNode* node,
+                                            float reach)
+{
+    __global const float* planes = (__global const float*)node;
+    float_lanes near_x = entry_bound(vload_lanes(0, planes + p->near_x) - p->near_ox,
+                                     p->inv_lo_x, p->inv_hi_x);
+    float_lanes near_y = entry_bound(vload_lanes(0, planes + p->near_y) - p->near_oy,
+                                     p->inv_lo_y, p->inv_hi_y);
+    float_lanes near_z = entry_bound(vload_lanes(0, planes + p->near_z) - p->near_oz,
+                                     p->inv_lo_z, p->inv_hi_z);
+    float_lanes far_x = exit_bound(vload_lanes(0, planes + (p->near_x ^ WIDE_ARITY)) - p->far_ox,
+                                   p->inv_lo_x, p->inv_hi_x);
+    float_lanes far_y = exit_bound(vload_lanes(0, planes + (p->near_y ^ WIDE_ARITY)) - p->far_oy,
+                                   p->inv_lo_y, p->inv_hi_y);
+    float_lanes far_z = exit_bound(vload_lanes(0, planes + (p->near_z ^ WIDE_ARITY)) - p->far_oz,
+                                   p->inv_lo_z, p->inv_hi_z);
+    float_lanes t_entry = GROW_HI(GROW_HI(GROW_HI((float_lanes)(p->tmin_lo), near_x), near_y),
+                                  near_z);
+    float_lanes t_exit = GROW_LO(GROW_LO(GROW_LO((float_lanes)(INFINITY), far_x), far_y), far_z)
+                         * EXIT_SCALE;
+    return lane_mask(t_entry <= GROW_LO(t_exit, (float_lanes)(reach)));
 }
 
 /* hit_children's slab test of child c of a node (its planes) for every lane:
@@ -760,7 +833,8 @@ TRAVERSAL_INLINE int_packet traverse_packet(const Packet* p, __global const Wide
             __global const float* planes = (__global const float*)n;
             float entry[WIDE_ARITY];
             uint mask = 0;
-            for (int c = 0; c < WIDE_ARITY; ++c) {
+            for (uint rest = hit_children_interval(p, n, reach); rest != 0; rest &= rest - 1u) {
+                int c = lowest_slot(rest);
                 float_packet t_entry;
                 int_packet hit = hit_child_packet(p, planes, c, limit, &t_entry);
                 if (packet_any(hit)) {

@@ -152,3 +152,26 @@ def test_packet_size_is_checked():
     for wrong in (True, 8.0, "8"):
         with pytest.raises(TypeError, match="packet_size"):
             RayQuery(case.scene.runtime, packet_size=wrong)
+
+
+@pytest.mark.parametrize("zero", [0.0, -0.0], ids=["+0", "-0"])
+@pytest.mark.parametrize("name", ["cube", "knight"])
+def test_axis_parallel_packets_match_oracle(name, zero):
+    """Packets of rays along -z whose x and y components are 0 (the inverse
+    direction is infinite, and the interval test of a node's children meets
+    0 * inf) and whose origins sit on a lattice through the mesh's bounds,
+    so lanes start on box planes, and spread so that part of each packet
+    misses: every answer is the oracle's, and the rays do form packets."""
+    case = scene_case(name)
+    steps = np.linspace(0.0, 1.0, 16)
+    x, y = np.meshgrid(case.lo[0] + steps * (case.hi[0] - case.lo[0]) * 1.25,
+                       case.lo[1] + steps * (case.hi[1] - case.lo[1]))
+    origins = np.stack([x.ravel(), y.ravel(), np.full(x.size, case.hi[2] + 1.0)], axis=1)
+    origins = origins.astype(np.float32)
+    directions = np.tile(np.array([zero, zero, -1.0], np.float32), (len(origins), 1))
+    q = query(case, 8)
+    hits = traced(q, "intersect", case, origins, directions)
+    assert q.last_packets == len(origins) // 8
+    assert_matches_oracle(case, hits, origins, directions)
+    assert 0 < hits.hit.sum() < len(origins)
+    np.testing.assert_array_equal(traced(q, "occluded", case, origins, directions), hits.hit)
