@@ -187,8 +187,11 @@ void build_radix_tree(__global const morton_t *keys, int n, __global int *far_en
         box = aabb_union(box, load_box_volatile(boxes, sibling));
         float area = aabb_area(box);
         int count = last - first + 1;
-        float as_interior = SAH_TRAVERSAL_COST * area + cost +
-                            ((volatile __global const float *)sah_cost)[sibling];
+        /* The children's costs added first, as one commutative sum: which
+         * walker arrives second (and adds the other's cost) varies from run
+         * to run, and (a + b) + c need not equal (a + c) + b in float. */
+        float as_interior = SAH_TRAVERSAL_COST * area +
+                            (cost + ((volatile __global const float *)sah_cost)[sibling]);
         float as_leaf = SAH_INTERSECT_COST * (float)count * area;
         int make_leaf = COLLAPSE_LEAVES && count <= MAX_LEAF_SIZE &&
                         as_leaf <= COLLAPSE_COST_RATIO * as_interior;
