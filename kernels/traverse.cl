@@ -161,6 +161,22 @@ TRAVERSAL_INLINE RayData prepare_lane(const RayLanes* lanes, uint l)
                        lanes->tmin[l], lanes->tmax[l]);
 }
 
+/* The closing step of a slab test, one lane per child: the entry is the
+ * latest of tmin and the near planes' distances, the exit the earliest far
+ * plane's (NaNs ignored: see hit_children), scaled by EXIT_SCALE; whether
+ * they meet within limit (-1 or 0), and the entry. */
+TRAVERSAL_INLINE int_lanes slabs_meet(float_lanes near_x, float_lanes near_y,
+                                      float_lanes near_z, float_lanes far_x, float_lanes far_y,
+                                      float_lanes far_z, float tmin, float limit,
+                                      float_lanes* entry)
+{
+    float_lanes t_entry = GROW_HI(GROW_HI(GROW_HI((float_lanes)(tmin), near_x), near_y), near_z);
+    float_lanes t_exit = GROW_LO(GROW_LO(GROW_LO((float_lanes)(INFINITY), far_x), far_y), far_z)
+                         * EXIT_SCALE;
+    *entry = t_entry;
+    return t_entry <= GROW_LO(t_exit, (float_lanes)(limit));
+}
+
 /* Slab test (Kay & Kajiya 1986) of a wide node's WIDE_ARITY child boxes
  * at once, one vector lane per child.  Per axis the entry plane is
  * chosen by the sign bit of the inverse direction (Williams et al. 2005), so a
@@ -187,11 +203,7 @@ TRAVERSAL_INLINE int_lanes hit_children(const RayData* r, __global const WideNod
                           * r->inv_y;
     float_lanes far_z = (vload_lanes(0, planes + (r->near_z ^ WIDE_ARITY)) - r->oz)
                           * r->inv_z;
-    float_lanes t_entry = GROW_HI(GROW_HI(GROW_HI((float_lanes)(r->tmin), near_x), near_y), near_z);
-    float_lanes t_exit = GROW_LO(GROW_LO(GROW_LO((float_lanes)(INFINITY), far_x), far_y), far_z)
-                         * EXIT_SCALE;
-    *entry = t_entry;
-    return t_entry <= GROW_LO(t_exit, (float_lanes)(limit));
+    return slabs_meet(near_x, near_y, near_z, far_x, far_y, far_z, r->tmin, limit, entry);
 }
 
 /* The lanes set in `hit` (-1) as a bit mask: bit c for child c. */
@@ -662,7 +674,7 @@ TRAVERSAL_INLINE bool prepare_packet(const RayLanes* in, Packet* p)
 }
 
 /* A bound, from below (entry) or above (exit), of (plane - o) * inv over
- * the packet's lanes for each child: `offset` (o - plane) is the bounding
+ * the packet's lanes for each child: `offset` (plane - o) is the bounding
  * origin's, and the factor is the end of [inv_lo, inv_hi] that makes the
  * product least (entry: inv_lo where the offset is >= 0, else inv_hi) or
  * greatest (exit: the other end).  Both signs of the direction follow the
@@ -701,11 +713,9 @@ TRAVERSAL_INLINE uint hit_children_interval(const Packet* p, __global const Wide
                                    p->inv_lo_y, p->inv_hi_y);
     float_lanes far_z = exit_bound(vload_lanes(0, planes + (p->near_z ^ WIDE_ARITY)) - p->far_oz,
                                    p->inv_lo_z, p->inv_hi_z);
-    float_lanes t_entry = GROW_HI(GROW_HI(GROW_HI((float_lanes)(p->tmin_lo), near_x), near_y),
-                                  near_z);
-    float_lanes t_exit = GROW_LO(GROW_LO(GROW_LO((float_lanes)(INFINITY), far_x), far_y), far_z)
-                         * EXIT_SCALE;
-    return lane_mask(t_entry <= GROW_LO(t_exit, (float_lanes)(reach)));
+    float_lanes entry;
+    return lane_mask(slabs_meet(near_x, near_y, near_z, far_x, far_y, far_z, p->tmin_lo, reach,
+                                &entry));
 }
 
 /* hit_children's slab test of child c of a node (its planes) for every lane:

@@ -17,6 +17,7 @@ from hlbvh_cl.bounds import scene_bounds
 from hlbvh_cl.build import Geometry, build
 from hlbvh_cl.device import Runtime, runtime
 from hlbvh_cl.morton import morton_codes
+from hlbvh_cl.scenefile import load_scene_file
 
 from invariants import check_tree
 
@@ -183,7 +184,6 @@ def test_rebuilds_are_bit_for_bit_the_same(builder):
     run; neither the tree nor its SAH cost may depend on it.  (The LBVH's
     cost once did, in its last bits: about one rebuild in 150 of this
     scene differed.)"""
-    from hlbvh_cl.scenefile import load_scene_file
     scenes = Path(__file__).resolve().parent.parent / "scenes"
     description = load_scene_file(scenes / "bunny_small.toml")
     scene = Scene([mesh for mesh, _ in description.geometries()], builder=builder)
