@@ -206,9 +206,23 @@ TRAVERSAL_INLINE int_lanes hit_children(const RayData* r, __global const WideNod
     return slabs_meet(near_x, near_y, near_z, far_x, far_y, far_z, r->tmin, limit, entry);
 }
 
-/* The lanes set in `hit` (-1) as a bit mask: bit c for child c. */
+/* x86's sign-bit mask instruction, where the OpenCL compiler is a Clang
+ * that exposes it (PoCL's CPU device; Intel's CPU runtime does not). */
+#if defined(__has_builtin) && WIDE_ARITY == 8
+#if __has_builtin(__builtin_ia32_movmskps256)
+#define HAVE_MOVEMASK8
+#endif
+#endif
+
+/* The lanes set in `hit` (-1) as a bit mask: bit c for child c.  One
+ * movmskps where the compiler offers it: the portable fold below is a chain
+ * of six dependent instructions on every node step (A/B on PoCL: incoherent
+ * rays 1.03-1.08x, camera rays 1.02-1.03x). */
 TRAVERSAL_INLINE uint lane_mask(int_lanes hit)
 {
+#ifdef HAVE_MOVEMASK8
+    return (uint)__builtin_ia32_movmskps256(as_float8(hit));
+#else
 #if WIDE_ARITY == 8
     int8 bits = hit & (int8)(1, 2, 4, 8, 16, 32, 64, 128);
     int4 folded = bits.lo | bits.hi;
@@ -217,6 +231,7 @@ TRAVERSAL_INLINE uint lane_mask(int_lanes hit)
 #endif
     int2 quarter = folded.lo | folded.hi;
     return (uint)(quarter.x | quarter.y);
+#endif
 }
 
 /* The lowest set bit's position; mask != 0.  (clz is OpenCL 1.2, ctz 2.0.) */
@@ -292,17 +307,25 @@ TRAVERSAL_INLINE bool hit_triangle(const RayData* r, __global const Triangle* tr
     return true;
 }
 
+/* A stacked child slot: (index, count) as in WideNode, and the distance at
+ * which the ray enters its box.  One array of these rather than one per
+ * field: one base address for the compiler to keep (A/B on PoCL, bunny
+ * incoherent rays 1.06x, elsewhere 0.99-1.02x). */
+typedef struct {
+    int index;
+    uint count;
+    float entry;
+} StackItem;
+
 /* Pops the next stacked item that can still hold a hit within limit (items
  * whose box is entered beyond it are dropped); false when none is left. */
-TRAVERSAL_INLINE bool pop(const int* stack_index, const uint* stack_count,
-                          const float* stack_entry, int* sp, float limit, int* index,
-                          uint* count)
+TRAVERSAL_INLINE bool pop(const StackItem* stack, int* sp, float limit, int* index, uint* count)
 {
     while (*sp > 0) {
         --*sp;
-        if (stack_entry[*sp] <= limit) {
-            *index = stack_index[*sp];
-            *count = stack_count[*sp];
+        if (stack[*sp].entry <= limit) {
+            *index = stack[*sp].index;
+            *count = stack[*sp].count;
             return true;
         }
     }
@@ -314,8 +337,11 @@ TRAVERSAL_INLINE bool pop(const int* stack_index, const uint* stack_count,
  * traversal waits on such loads (sampled: about half the time of incoherent
  * rays).  Measured: packets of 1280x720 camera rays on 3.6M triangles 62 ->
  * 56 ms (prefetching only the nodes or only the triangles gained less), 2K
- * triangles unchanged; single incoherent rays 1.01-1.08x.  Without PREFETCH
- * (GPUs) it does nothing. */
+ * triangles unchanged; single incoherent rays 1.01-1.08x.  Four lines, the
+ * first, the next two and the last (a node's four; all of a leaf of up to
+ * 256 bytes, 7 triangles), without a loop: its exit branch mispredicted
+ * (bunny, incoherent rays 1.04x, A/B).  Without PREFETCH (GPUs) it does
+ * nothing. */
 TRAVERSAL_INLINE void prefetch_child(__global const WideNode* n, int slot,
                                      __global const WideNode* nodes,
                                      __global const Triangle* triangles)
@@ -324,9 +350,11 @@ TRAVERSAL_INLINE void prefetch_child(__global const WideNode* n, int slot,
     uint count = n->count[slot];
     __global const char* first = count == 0 ? (__global const char*)(nodes + n->child[slot])
                                             : (__global const char*)(triangles + n->child[slot]);
-    uint bytes = count == 0 ? (uint)sizeof(WideNode) : count * (uint)sizeof(Triangle);
-    for (uint offset = 0; offset < bytes; offset += 64)
-        __builtin_prefetch(first + offset);
+    uint last = (count == 0 ? (uint)sizeof(WideNode) : count * (uint)sizeof(Triangle)) - 1u;
+    __builtin_prefetch(first);
+    __builtin_prefetch(first + min(64u, last));
+    __builtin_prefetch(first + min(128u, last));
+    __builtin_prefetch(first + last);
 #endif
 }
 
@@ -357,13 +385,11 @@ TRAVERSAL_INLINE void prefetch_hit_ids(__global const TriangleRef* refs, uint i,
 #define STACK_FULL 2
 TRAVERSAL_INLINE int next_item(__global const WideNode* n, uint mask, const float* entry,
                                __global const WideNode* nodes,
-                               __global const Triangle* triangles, int* stack_index,
-                               uint* stack_count, float* stack_entry, int* sp, float limit,
-                               int* index, uint* count)
+                               __global const Triangle* triangles, StackItem* stack, int* sp,
+                               float limit, int* index, uint* count)
 {
     if (mask == 0)
-        return pop(stack_index, stack_count, stack_entry, sp, limit, index, count) ? NEXT_ITEM
-                                                                                     : NO_ITEM;
+        return pop(stack, sp, limit, index, count) ? NEXT_ITEM : NO_ITEM;
     int near = lowest_slot(mask);
     mask &= mask - 1u;
     if (*sp + (int)popcount(mask) > STACK_SIZE)
@@ -380,9 +406,7 @@ TRAVERSAL_INLINE int next_item(__global const WideNode* n, uint mask, const floa
             far = near;
             near = nearer;
         }
-        stack_index[*sp] = n->child[far];
-        stack_count[*sp] = n->count[far];
-        stack_entry[*sp] = entry[far];
+        stack[*sp] = (StackItem){n->child[far], n->count[far], entry[far]};
         ++*sp;
     } else {
         /* three or more: push them all in slot order, each one sinking below
@@ -396,19 +420,14 @@ TRAVERSAL_INLINE int next_item(__global const WideNode* n, uint mask, const floa
             prefetch_child(n, slot, nodes, triangles);
             float e = entry[slot];
             int at = *sp;
-            for (; at > first && stack_entry[at - 1] <= e; --at) {
-                stack_index[at] = stack_index[at - 1];
-                stack_count[at] = stack_count[at - 1];
-                stack_entry[at] = stack_entry[at - 1];
-            }
-            stack_index[at] = n->child[slot];
-            stack_count[at] = n->count[slot];
-            stack_entry[at] = e;
+            for (; at > first && stack[at - 1].entry <= e; --at)
+                stack[at] = stack[at - 1];
+            stack[at] = (StackItem){n->child[slot], n->count[slot], e};
             ++*sp;
         }
         --*sp;
-        *index = stack_index[*sp];
-        *count = stack_count[*sp];
+        *index = stack[*sp].index;
+        *count = stack[*sp].count;
         return NEXT_ITEM;
     }
     *index = n->child[near];
@@ -433,9 +452,7 @@ TRAVERSAL_INLINE int traverse(const RayData* r, __global const WideNode* nodes,
                               __global const TriangleRef* refs, bool any_hit,
                               float* t_hit, float* u_hit, float* v_hit, bool* overflow)
 {
-    int stack_index[STACK_SIZE + 1];  /* + 1: see next_item */
-    uint stack_count[STACK_SIZE + 1];
-    float stack_entry[STACK_SIZE + 1];
+    StackItem stack[STACK_SIZE + 1];  /* + 1: see next_item */
     int sp = 0;
     int hit_index = -1;
     float limit = r->tmax;     /* shrinks to the nearest hit so far */
@@ -473,8 +490,8 @@ TRAVERSAL_INLINE int traverse(const RayData* r, __global const WideNode* nodes,
                     }
                 }
             }
-            int next = next_item(n, mask, entry, nodes, triangles, stack_index, stack_count,
-                                 stack_entry, &sp, limit, &index, &count);
+            int next = next_item(n, mask, entry, nodes, triangles, stack, &sp, limit, &index,
+                                 &count);
             if (next == STACK_FULL) {
                 *overflow = true;
                 return hit_index;
@@ -496,7 +513,7 @@ TRAVERSAL_INLINE int traverse(const RayData* r, __global const WideNode* nodes,
                     return hit_index;
             }
         }
-        done = !pop(stack_index, stack_count, stack_entry, &sp, limit, &index, &count);
+        done = !pop(stack, &sp, limit, &index, &count);
     }
     return hit_index;
 }
@@ -825,9 +842,7 @@ TRAVERSAL_INLINE int_packet traverse_packet(const Packet* p, __global const Wide
                                             float_packet* t_hit, float_packet* u_hit,
                                             float_packet* v_hit, bool* overflow)
 {
-    int stack_index[STACK_SIZE + 1];  /* + 1: see next_item */
-    uint stack_count[STACK_SIZE + 1];
-    float stack_entry[STACK_SIZE + 1];
+    StackItem stack[STACK_SIZE + 1];  /* + 1: see next_item */
     int sp = 0;
     int_packet hit_index = (int_packet)(-1);
     float_packet limit = p->tmax;
@@ -864,8 +879,8 @@ TRAVERSAL_INLINE int_packet traverse_packet(const Packet* p, __global const Wide
                         return hit_index;
                 }
             }
-            int next = next_item(n, mask, entry, nodes, triangles, stack_index, stack_count,
-                                 stack_entry, &sp, reach, &index, &count);
+            int next = next_item(n, mask, entry, nodes, triangles, stack, &sp, reach, &index,
+                                 &count);
             if (next == STACK_FULL) {
                 *overflow = true;
                 return hit_index;
@@ -877,7 +892,7 @@ TRAVERSAL_INLINE int_packet traverse_packet(const Packet* p, __global const Wide
         if (hit_leaf_packet(p, triangles, refs, index, count, any_hit, &limit, &reach, &hit_index,
                             t_hit, u_hit, v_hit))
             return hit_index;
-        done = !pop(stack_index, stack_count, stack_entry, &sp, reach, &index, &count);
+        done = !pop(stack, &sp, reach, &index, &count);
     }
     return hit_index;
 }
@@ -955,14 +970,22 @@ TRAVERSAL_INLINE void closest_hits(const RayLanes* lanes, uint used,
         return;
     }
 #endif
+    /* The hits' ids and normals are read once every lane is traced: their
+     * cache misses then overlap instead of ending each ray (perf: the read
+     * of refs took ~6% of the incoherent kernel; A/B 1.00-1.04x). */
+    int index[PACKET_SIZE];
+    float t[PACKET_SIZE], u[PACKET_SIZE], v[PACKET_SIZE];
     for (uint l = 0; l < used; ++l) {
-        float t = INFINITY, u = 0.0f, v = 0.0f;
         bool lane_out_of_stack;
         RayData r = prepare_lane(lanes, l);
-        int index = traverse(&r, nodes, triangles, refs, false, &t, &u, &v, &lane_out_of_stack);
-        hits[l] = make_hit(index, t, u, v, triangles, refs);
+        t[l] = INFINITY;
+        u[l] = v[l] = 0.0f;
+        index[l] = traverse(&r, nodes, triangles, refs, false, t + l, u + l, v + l,
+                            &lane_out_of_stack);
         out_of_stack |= lane_out_of_stack;
     }
+    for (uint l = 0; l < used; ++l)
+        hits[l] = make_hit(index[l], t[l], u[l], v[l], triangles, refs);
     if (out_of_stack)
         overflow[0] = 1;
 }
@@ -1070,6 +1093,15 @@ TRAVERSAL_INLINE void load_lanes_arrays(uint first, uint used, __global const fl
                                         __global const float* tmax, uint tmax_step,
                                         RayLanes* lanes)
 {
+#ifdef PREFETCH
+    /* The next work-item's rays (CPUs run a group's items in order): between
+     * two work-items' loads lie thousands of random reads, and the hardware
+     * prefetcher loses the stream (A/B on PoCL, incoherent rays 1.01-1.02x). */
+    for (uint offset = 0; offset < 3 * PACKET_SIZE * sizeof(float); offset += 64) {
+        __builtin_prefetch((__global const char*)(origins + 3 * (first + PACKET_SIZE)) + offset);
+        __builtin_prefetch((__global const char*)(directions + 3 * (first + PACKET_SIZE)) + offset);
+    }
+#endif
     for (uint l = 0; l < PACKET_SIZE; ++l) {
         uint i = first + min(l, used - 1);
         set_lane(lanes, l, vload3(i, origins), vload3(i, directions), tmin[i * tmin_step],
