@@ -62,14 +62,19 @@ class Hits:
 def default_packet_size(rt: Runtime) -> int:
     """Rays per work-item (kernels/traverse.cl's PACKET_SIZE).
 
-    CPUs trace 8 consecutive rays as one packet in vector lanes: measured on
-    the reference scene's 2048x1536 camera rays, the traversal kernel is 1.1x
-    (PoCL) and 1.2x (Intel's CPU runtime) faster than one ray per work-item,
-    and 16 rays per packet were no faster.  Incoherent rays fall back to one
-    ray at a time inside the kernel (same speed).  GPUs run one ray per
-    work-item: their SIMT lanes already trace neighbouring rays together.
+    CPUs trace 16 consecutive rays as one packet in vector lanes.  Packets of
+    8 were 1.1x (PoCL) and 1.2x (Intel's CPU runtime) faster than one ray per
+    work-item on the reference scene's 2048x1536 camera rays; since packets
+    cull children with one interval test, 16 beat 8 (A/B, kernel time):
+    camera rays at 2048x1536 1.28-1.38x on bunny and Lucy, 1.03-1.07x on the
+    reference scene; over the scaling series of bench/trace.py (1280x720, 2K
+    to 3.6M triangles) Intel 1.04-1.26x at every size, PoCL 1.1-1.6x up to
+    400K triangles, even at 900K and 0.95-0.98x from 1.6M on.  Incoherent
+    rays fall back to one ray at a time inside the kernel (0.98-1.02x).  GPUs
+    run one ray per work-item: their SIMT lanes already trace neighbouring
+    rays together.
     """
-    return 1 if rt.device.type == "gpu" else 8
+    return 1 if rt.device.type == "gpu" else 16
 
 
 def _zero_copy(rt: Runtime) -> bool:
@@ -140,7 +145,7 @@ class RayQuery:
     buffer per field, no packing on the host).  ``max_rays_per_launch`` caps
     the rays per kernel launch (bigger batches are split into chunks); by
     default it follows the device's memory limits.  ``packet_size`` is the
-    rays each work-item traces (PACKET_SIZES; by default 8 on CPUs and 1 on
+    rays each work-item traces (PACKET_SIZES; by default 16 on CPUs and 1 on
     GPUs): every size gives the same hits, ties aside.
     """
 
