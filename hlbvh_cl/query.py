@@ -65,14 +65,14 @@ def default_packet_size(rt: Runtime) -> int:
     CPUs trace 16 consecutive rays as one packet in vector lanes.  Packets of
     8 were 1.1x (PoCL) and 1.2x (Intel's CPU runtime) faster than one ray per
     work-item on the reference scene's 2048x1536 camera rays; since packets
-    cull children with one interval test, 16 beat 8 (A/B, kernel time):
-    camera rays at 2048x1536 1.28-1.38x on bunny and Lucy, 1.03-1.07x on the
-    reference scene; over the scaling series of bench/trace.py (1280x720, 2K
-    to 3.6M triangles) Intel 1.04-1.26x at every size, PoCL 1.1-1.6x up to
-    400K triangles, even at 900K and 0.95-0.98x from 1.6M on.  Incoherent
-    rays fall back to one ray at a time inside the kernel (0.98-1.02x).  GPUs
-    run one ray per work-item: their SIMT lanes already trace neighbouring
-    rays together.
+    cull children with one interval test, 16 beat 8 on most scenes (A/B,
+    kernel time): camera rays at 2048x1536 1.28-1.38x on bunny and Lucy,
+    1.03-1.07x on the reference scene; over the scaling series of
+    bench/trace.py (1280x720, 2K to 3.6M triangles) Intel 1.04-1.26x at every
+    size, PoCL 1.02-1.6x up to 400K triangles, even at 900K and 0.94-0.98x
+    from 1.6M on.  Incoherent rays fall back to one ray at a time inside the
+    kernel (0.98-1.02x).  GPUs run one ray per work-item: their SIMT lanes
+    already trace neighbouring rays together.
     """
     return 1 if rt.device.type == "gpu" else 16
 

@@ -337,11 +337,12 @@ TRAVERSAL_INLINE bool pop(const StackItem* stack, int* sp, float limit, int* ind
  * traversal waits on such loads (sampled: about half the time of incoherent
  * rays).  Measured: packets of 1280x720 camera rays on 3.6M triangles 62 ->
  * 56 ms (prefetching only the nodes or only the triangles gained less), 2K
- * triangles unchanged; single incoherent rays 1.01-1.08x.  Four lines, the
- * first, the next two and the last (a node's four; all of a leaf of up to
- * 256 bytes, 7 triangles), without a loop: its exit branch mispredicted
- * (bunny, incoherent rays 1.04x, A/B).  Without PREFETCH (GPUs) it does
- * nothing. */
+ * triangles unchanged; single incoherent rays 1.01-1.08x.  Four lines, at
+ * the first byte, 64 and 128 bytes on and the last byte (a node's four
+ * lines; every line of a leaf of up to 5 triangles, 180 bytes, as no two
+ * points lie more than a line apart; of bigger leaves most), without a
+ * loop: its exit branch mispredicted (bunny, incoherent rays 1.04x, A/B).
+ * Without PREFETCH (GPUs) it does nothing. */
 TRAVERSAL_INLINE void prefetch_child(__global const WideNode* n, int slot,
                                      __global const WideNode* nodes,
                                      __global const Triangle* triangles)
@@ -1106,7 +1107,9 @@ TRAVERSAL_INLINE void load_lanes_arrays(uint first, uint used, __global const fl
 #ifdef PREFETCH
     /* The next work-item's rays (CPUs run a group's items in order): between
      * two work-items' loads lie thousands of random reads, and the hardware
-     * prefetcher loses the stream (A/B on PoCL, incoherent rays 1.01-1.02x). */
+     * prefetcher loses the stream (A/B on PoCL, incoherent rays 1.01-1.02x).
+     * Past the last ray this asks for memory the kernel never reads, which
+     * a prefetch may: it never faults. */
     for (uint offset = 0; offset < 3 * PACKET_SIZE * sizeof(float); offset += 64) {
         __builtin_prefetch((__global const char*)(origins + 3 * (first + PACKET_SIZE)) + offset);
         __builtin_prefetch((__global const char*)(directions + 3 * (first + PACKET_SIZE)) + offset);
