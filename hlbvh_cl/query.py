@@ -13,7 +13,9 @@ Conventions, shared with tests/oracle.py:
 """
 from __future__ import annotations
 
+import os
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -422,24 +424,89 @@ def _numeric_array(name: str, value) -> np.ndarray:
 #: on every call (measured: 14 -> 8 ms of checks for 3.1M rays).
 CHECK_BLOCK = 1 << 16
 
+#: float32's smallest normal: a direction needs a component at least this
+#: large, or its inverse overflows.
+_TINY = np.finfo(np.float32).tiny
 
-def _blocks(rows: np.ndarray):
-    return (rows[start:start + CHECK_BLOCK] for start in range(0, len(rows), CHECK_BLOCK))
+_check_pool: ThreadPoolExecutor | None = None
+_check_pool_lock = threading.Lock()
 
 
-def _vectors(name: str, value) -> np.ndarray:
-    """(R, 3) float32, finite."""
+def _check_threads() -> ThreadPoolExecutor:
+    """The threads the ray checks of large batches are split over (one per
+    CPU; numpy releases the GIL inside its reductions)."""
+    global _check_pool
+    with _check_pool_lock:
+        if _check_pool is None:
+            _check_pool = ThreadPoolExecutor(max_workers=os.cpu_count() or 1,
+                                             thread_name_prefix="hlbvh_cl-checks")
+        return _check_pool
+
+
+def _vectors(name: str, value) -> tuple[np.ndarray, np.ndarray]:
+    """(R, 3) float32 (C-contiguous, aligned) and the array as given, whose
+    values are checked later (_rays_are_valid)."""
     array = _numeric_array(name, value)
     if array.ndim != 2 or array.shape[1] != 3:
         raise ValueError(f"{name} must have shape (R, 3), got {array.shape}")
-    with np.errstate(over="ignore", invalid="ignore"):  # reported below, by row
+    with np.errstate(over="ignore", invalid="ignore"):  # reported by row, later
         # aligned too: the kernels may read the array itself (zero copy)
-        vectors = np.require(array, np.float32, ["C_CONTIGUOUS", "ALIGNED"])
-    if not all(np.isfinite(block).all() for block in _blocks(vectors)):
-        row = int(np.argmin(np.isfinite(vectors).all(axis=1)))
-        why = "is not finite" if not np.isfinite(array[row]).all() else "overflows float32"
-        raise ValueError(f"{name}[{row}] = {array[row].tolist()} {why}")
-    return vectors
+        return np.require(array, np.float32, ["C_CONTIGUOUS", "ALIGNED"]), array
+
+
+def _rows_are_valid(origins: np.ndarray, directions: np.ndarray, start: int, stop: int) -> bool:
+    """Whether the rays [start, stop) have finite origins and finite
+    directions with a component of magnitude >= _TINY: one pass, block by
+    block.  min() and max() propagate NaN, so they test finiteness without a
+    temporary; a direction's magnitudes serve both of its tests, and only a
+    block that holds a tiny component looks at its rows."""
+    magnitudes = np.empty((min(CHECK_BLOCK, stop - start), 3), np.float32)
+    for first in range(start, stop, CHECK_BLOCK):
+        last = min(first + CHECK_BLOCK, stop)
+        block = origins[first:last]
+        if not (np.isfinite(block.min()) and np.isfinite(block.max())):
+            return False
+        size = np.abs(directions[first:last], out=magnitudes[:last - first])
+        if not np.isfinite(size.max()):
+            return False
+        if size.min() < _TINY and (size.max(axis=1) < _TINY).any():
+            return False
+    return True
+
+
+def _rays_are_valid(origins: np.ndarray, directions: np.ndarray) -> bool:
+    """_rows_are_valid over every ray, a run of blocks per thread for large
+    batches.  Measured on a 2-core Intel Xeon, 3.1M rays: the whole of
+    _check_rays 16.3 -> 6.8 ms (the fused pass alone, on one thread: 10.6)."""
+    count = len(origins)
+    blocks = -(-count // CHECK_BLOCK)
+    parts = min(os.cpu_count() or 1, blocks)
+    if parts <= 1:
+        return _rows_are_valid(origins, directions, 0, count)
+    step = -(-blocks // parts) * CHECK_BLOCK
+    bounds = [(first, min(first + step, count)) for first in range(0, count, step)]
+    rest = [_check_threads().submit(_rows_are_valid, origins, directions, *b) for b in bounds[1:]]
+    valid = _rows_are_valid(origins, directions, *bounds[0])
+    return all([future.result() for future in rest]) and valid
+
+
+def _raise_first_bad_ray(name: str, vectors: np.ndarray, given: np.ndarray,
+                         directions: bool) -> None:
+    """Raises the ValueError naming the first bad row of ``vectors`` (as
+    float32; ``given`` as the caller gave it), if it has one."""
+    finite = np.isfinite(vectors).all(axis=1)
+    if not finite.all():
+        row = int(np.argmin(finite))
+        why = "is not finite" if not np.isfinite(given[row]).all() else "overflows float32"
+        raise ValueError(f"{name}[{row}] = {given[row].tolist()} {why}")
+    if directions:
+        short = np.flatnonzero(np.abs(vectors).max(axis=1) < _TINY)
+        if len(short):
+            row = int(short[0])
+            what = ("has zero length" if not vectors[row].any()
+                    else "is too short to invert (subnormal)")
+            raise ValueError(f"{name}[{row}] = {vectors[row].tolist()} {what}; "
+                             "a direction needs a component of magnitude >= 1.2e-38")
 
 
 def _limits(name: str, value, count: int) -> np.ndarray:
@@ -458,30 +525,17 @@ def _limits(name: str, value, count: int) -> np.ndarray:
 
 
 def _check_rays(origins, directions, tmin, tmax):
-    origins = _vectors("origins", origins)
-    directions = _vectors("directions", directions)
+    origins, given_origins = _vectors("origins", origins)
+    directions, given_directions = _vectors("directions", directions)
     if np.may_share_memory(origins, directions):  # two host-pointer buffers must not overlap
         directions = directions.copy()
     if len(origins) != len(directions):
         raise ValueError(f"origins has {len(origins)} rows but directions has {len(directions)}")
     count = len(origins)
-    # A row is too short when its largest component is below float32's
-    # smallest normal (1.2e-38).  Most blocks have no component that small,
-    # which one contiguous min() shows; only the others take the row maxima,
-    # over columns (3.1M rays: 8.7 -> 5.2 ms for the whole check).
-    tiny = np.finfo(np.float32).tiny
-    magnitudes = np.empty((min(count, CHECK_BLOCK), 3), np.float32)
-    for start, block in zip(range(0, count, CHECK_BLOCK), _blocks(directions)):
-        size = np.abs(block, out=magnitudes[:len(block)])
-        if size.min() >= tiny:
-            continue
-        short = np.flatnonzero(np.maximum(np.maximum(size[:, 0], size[:, 1]), size[:, 2]) < tiny)
-        if len(short):
-            row = start + int(short[0])
-            what = ("has zero length" if not directions[row].any()
-                    else "is too short to invert (subnormal)")
-            raise ValueError(f"directions[{row}] = {directions[row].tolist()} {what}; "
-                             "a direction needs a component of magnitude >= 1.2e-38")
+    if not _rays_are_valid(origins, directions):
+        _raise_first_bad_ray("origins", origins, given_origins, directions=False)
+        _raise_first_bad_ray("directions", directions, given_directions, directions=True)
+        raise RuntimeError("hlbvh_cl internal error: a block of rays failed its check but no row did")
     tmin = _limits("tmin", tmin, count)
     tmax = _limits("tmax", tmax, count)
     bad = (tmin < 0) | ~np.isfinite(tmin)

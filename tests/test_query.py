@@ -661,6 +661,26 @@ def test_short_directions_are_found_in_any_block_of_a_large_batch(monkeypatch):
         case.scene.intersect(origins, directions)
 
 
+@pytest.mark.parametrize("which, row, value, message", [
+    ("origins", "last", [0.0, np.nan, 0.0], "not finite"),
+    ("origins", "middle", [1e39, 0.0, 0.0], "overflows float32"),
+    ("directions", "middle", [0.0, -np.inf, 1.0], "not finite"),
+    ("directions", "first", [0.0, 0.0, 0.0], "zero length"),
+])
+def test_bad_rows_are_named_in_every_part_of_a_large_batch(monkeypatch, which, row, value, message):
+    """Large batches are checked a run of blocks per thread: a bad row is
+    named by its index wherever it lies, and no kernel runs."""
+    case = scene_case("cube")
+    monkeypatch.setattr(RayQuery, "_run", lambda *a, **k: pytest.fail("a kernel ran"))
+    count = 4 * query_module.CHECK_BLOCK + 5
+    index = {"first": 3, "middle": 2 * query_module.CHECK_BLOCK + 1, "last": count - 2}[row]
+    rays = {"origins": np.zeros((count, 3)), "directions": np.tile([0.3, -0.5, 0.8], (count, 1))}
+    rays[which][index] = value
+    for query in (case.scene.intersect, case.scene.occluded):
+        with pytest.raises(ValueError, match=rf"{which}\[{index}\] = .*{message}"):
+            query(rays["origins"], rays["directions"])
+
+
 def test_bad_tree_and_chunk_size():
     case = scene_case("cube")
     q = RayQuery(case.scene.runtime)
