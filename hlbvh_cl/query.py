@@ -64,19 +64,27 @@ class Hits:
 def default_packet_size(rt: Runtime) -> int:
     """Rays per work-item (kernels/traverse.cl's PACKET_SIZE).
 
-    CPUs trace 16 consecutive rays as one packet in vector lanes.  Packets of
-    8 were 1.1x (PoCL) and 1.2x (Intel's CPU runtime) faster than one ray per
-    work-item on the reference scene's 2048x1536 camera rays; since packets
-    cull children with one interval test, 16 beat 8 on most scenes (A/B,
-    kernel time): camera rays at 2048x1536 1.28-1.38x on bunny and Lucy,
-    1.03-1.07x on the reference scene; over the scaling series of
-    bench/trace.py (1280x720, 2K to 3.6M triangles) Intel 1.04-1.26x at every
-    size, PoCL 1.02-1.6x up to 400K triangles, even at 900K and 0.94-0.98x
-    from 1.6M on.  Incoherent rays fall back to one ray at a time inside the
-    kernel (0.98-1.02x).  GPUs run one ray per work-item: their SIMT lanes
-    already trace neighbouring rays together.
+    CPUs trace consecutive rays as one packet in vector lanes, as many as one
+    of the device's native float vectors holds (CL_DEVICE_NATIVE_VECTOR_WIDTH_
+    FLOAT): 16 with AVX-512, else 8; a packet of two registers' width spills.
+    Kernel times, A/B, camera rays:
+    - AVX-512 (AMD Zen 5), 2048x1536: 16 beat 8 by 1.28-1.38x on bunny and
+      Lucy and 1.03-1.07x on the reference scene.
+    - AVX2 (AMD EPYC, 8 floats), 2048x1536: 8 beat 16 by 1.5-2.2x on PoCL
+      (reference scene, bunny, Lucy) and 1.25x with Intel's CPU runtime on
+      the reference scene (on bunny and Lucy, Intel's ran 16 1.06-1.12x
+      faster).
+      On bench/trace.py's scaling series (1280x720, Lucy split from 2K to 3.6M
+      triangles) 8 beat 16 by 1.45-2.55x on PoCL, and on Intel's by 1.07-1.34x
+      from 100K triangles on, growing with the mesh (16 won at 2K, 1.23x).
+    Incoherent rays fall back to one ray at a time inside the kernel (packet
+    size within 4% either way).  Packets of 8 were 1.1x (PoCL) and 1.2x
+    (Intel) faster than one ray per work-item.  GPUs run one ray per
+    work-item: their SIMT lanes already trace neighbouring rays together.
     """
-    return 1 if rt.device.type == "gpu" else 16
+    if rt.device.type == "gpu":
+        return 1
+    return 16 if rt.device.cl_device.native_vector_width_float >= 16 else 8
 
 
 def _zero_copy(rt: Runtime) -> bool:

@@ -357,9 +357,12 @@ class _Buffers:
 
 
 def tile_packet_size(rt: Runtime) -> int:
-    """Rays per packet for the renderer's rays: a whole pixel tile (hlbvh.h)
-    where the device traces packets (CPUs), else one."""
-    return layout.TILE_COLUMNS * layout.TILE_ROWS if default_packet_size(rt) > 1 else 1
+    """Rays per packet for the renderer's rays: default_packet_size, which
+    divides a pixel tile (hlbvh.h), so that a packet is a whole tile or whole
+    rows of one."""
+    size = default_packet_size(rt)
+    assert (layout.TILE_COLUMNS * layout.TILE_ROWS) % size == 0
+    return size
 
 
 class Renderer:
