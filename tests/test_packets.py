@@ -6,11 +6,13 @@ tests use rays that do form packets, and check that they do.
 """
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
 import hlbvh_cl
-from hlbvh_cl.query import PACKET_SIZES, RayQuery
+from hlbvh_cl.query import PACKET_SIZES, RayQuery, default_packet_size
 from test_query import MESHES, assert_matches_oracle, random_rays, scene_case
 from test_watertight import _interior_points, _unique_edges
 
@@ -152,6 +154,14 @@ def test_packet_size_is_checked():
     for wrong in (True, 8.0, "8"):
         with pytest.raises(TypeError, match="packet_size"):
             RayQuery(case.scene.runtime, packet_size=wrong)
+
+
+@pytest.mark.parametrize("device_type, float_width, expected",
+                         [("gpu", 16, 1), ("cpu", 4, 8), ("cpu", 8, 8), ("cpu", 16, 16)])
+def test_default_packet_size_is_one_native_float_vector(device_type, float_width, expected):
+    device = SimpleNamespace(type=device_type,
+                             cl_device=SimpleNamespace(native_vector_width_float=float_width))
+    assert default_packet_size(SimpleNamespace(device=device)) == expected
 
 
 @pytest.mark.parametrize("zero", [0.0, -0.0], ids=["+0", "-0"])

@@ -17,7 +17,7 @@ import pytest
 
 import hlbvh_cl
 from hlbvh_cl import render as render_module
-from hlbvh_cl.query import RayQuery
+from hlbvh_cl.query import PACKET_SIZES, RayQuery
 from oracle import brute_force_intersect, brute_force_occluded
 
 MESHES = Path(__file__).resolve().parent.parent / "scenes" / "meshes"
@@ -281,6 +281,21 @@ def test_rendering_in_row_chunks_gives_the_same_image(scene, options):
                                                   options.get("ao_samples", 16), None)
     chunked = small.render(scene.tree, settings, np.asarray(COLORS, np.float32), LIGHT)
     assert np.array_equal(chunked, whole)
+
+
+@pytest.mark.parametrize("options", [{}, {"shading": "ao", "ao_samples": 3}])
+def test_every_packet_size_renders_the_same_image(scene, options):
+    # 50 x 37: tiles cut short at the right and bottom edges; a packet of 8 is
+    # half a tile, one of 16 a whole one (render.tile_packet_size)
+    settings = render_module.RenderSettings.check(CAMERA, 50, 37, options.get("shading", "diffuse"),
+                                                  True, 1, options.get("ao_samples", 16), None)
+    images = {}
+    for size in PACKET_SIZES:
+        renderer = render_module.Renderer(scene.runtime, RayQuery(scene.runtime, packet_size=size))
+        images[size] = renderer.render(scene.tree, settings, np.asarray(COLORS, np.float32), LIGHT)
+    assert images[1].shape == (37, 50, 3) and images[1].std() > 0
+    for size, image in images.items():
+        assert np.array_equal(image, images[1]), f"packet size {size} renders another image"
 
 
 def test_every_mode_gives_an_image_of_the_asked_size(scene):
