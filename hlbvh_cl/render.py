@@ -60,7 +60,7 @@ import pyopencl as cl
 
 from . import layout
 from .device import Runtime, event_ms
-from .query import RayQuery, default_packet_size
+from .query import RayQuery
 from .tree import DeviceTree
 
 SHADINGS = ("diffuse", "normals", "depth", "ao")
@@ -356,15 +356,6 @@ class _Buffers:
             self.image_capacity = image_pixels
 
 
-def tile_packet_size(rt: Runtime) -> int:
-    """Rays per packet for the renderer's rays: default_packet_size, which
-    divides a pixel tile (hlbvh.h), so that a packet is a whole tile or whole
-    rows of one."""
-    size = default_packet_size(rt)
-    assert (layout.TILE_COLUMNS * layout.TILE_ROWS) % size == 0
-    return size
-
-
 class Renderer:
     """The render pipeline on one device: kernels and reusable buffers.
 
@@ -381,7 +372,8 @@ class Renderer:
 
     def __init__(self, rt: Runtime, query: RayQuery | None = None):
         self.rt = rt
-        self.query = query or RayQuery(rt, packet_size=tile_packet_size(rt))
+        # the default packet (1, 8 or 16 rays) is a pixel tile, half of one or one pixel
+        self.query = query or RayQuery(rt)
         self._buffers = _Buffers()
         self._overflow = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 4)
         self._albedo: cl.Buffer | None = None

@@ -175,7 +175,7 @@ class Scene:
         colors = check_colors(self.colors, len(self.meshes))
         light = check_light(self.light)
         if self._renderer is None:
-            self._renderer = Renderer(self.runtime)  # its own queries: tile-sized packets
+            self._renderer = Renderer(self.runtime)  # its own queries and buffers
         return self._renderer.render(self.tree, settings, colors, light, progress=progress)
 
     @property

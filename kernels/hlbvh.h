@@ -228,7 +228,7 @@ inline void store_triangle(__global Triangle *triangles, int j, float3 a, float3
  * TILE_ROWS rows are cut into tiles of TILE_COLUMNS x TILE_ROWS pixels, left
  * to right, each tile row-major; a band's last width % TILE_COLUMNS columns,
  * and a last band of fewer rows, stay row-major.  A CPU ray packet
- * (traverse.cl: 16 or 8 rays, render.py's tile_packet_size) then covers a
+ * (traverse.cl: 16 or 8 rays, query.py's default_packet_size) then covers a
  * tile or half of one rather than a strip of a row.  Measured on PoCL
  * at 1280x720, closest-hit and shadow-ray kernels: 4x2 tiles with packets of
  * 8 took 0.90-0.93x the time of row-major order (70-100K-triangle meshes);
