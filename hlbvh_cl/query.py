@@ -88,7 +88,8 @@ def default_packet_size(rt: Runtime) -> int:
     """
     if rt.device.type == "gpu":
         return 1
-    if rt.device.cl_device.native_vector_width_float >= 16 or host_has_avx512():
+    on_host = rt.device.type == "cpu"  # an accelerator's lanes are its own
+    if rt.device.cl_device.native_vector_width_float >= 16 or (on_host and host_has_avx512()):
         return 16
     return 8
 

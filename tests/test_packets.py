@@ -159,7 +159,8 @@ def test_packet_size_is_checked():
 
 @pytest.mark.parametrize("device_type, float_width, avx512, expected",
                          [("gpu", 16, True, 1), ("cpu", 4, False, 8), ("cpu", 8, False, 8),
-                          ("cpu", 16, False, 16), ("cpu", 8, True, 16)])
+                          ("cpu", 16, False, 16), ("cpu", 8, True, 16),
+                          ("accelerator", 8, True, 8)])
 def test_default_packet_size_is_one_native_float_vector(monkeypatch, device_type, float_width,
                                                         avx512, expected):
     monkeypatch.setattr(query_module, "host_has_avx512", lambda: avx512)
