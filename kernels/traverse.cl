@@ -51,14 +51,10 @@
 #if WIDE_ARITY == 8
 typedef float8 float_lanes;
 typedef int8 int_lanes;
-#define vload_lanes vload8
-#define vstore_lanes vstore8
 #define LANES_HINT vec_type_hint(float8)
 #elif WIDE_ARITY == 4
 typedef float4 float_lanes;
 typedef int4 int_lanes;
-#define vload_lanes vload4
-#define vstore_lanes vstore4
 #define LANES_HINT vec_type_hint(float4)
 #else
 #error "WIDE_ARITY must be 4 or 8"
@@ -68,6 +64,34 @@ typedef int4 int_lanes;
  * test (measured: about 10% slower on camera rays); every helper here is
  * small or called in one place, so inline them all. */
 #define TRAVERSAL_INLINE inline __attribute__((always_inline))
+
+/* A WideNode's plane or count row as one vector load.  A row starts at a
+ * multiple of 4 * WIDE_ARITY bytes within the node, and nodes and buffers
+ * at multiples of its size (buffers are aligned to at least the largest
+ * built-in type, 128 bytes), so the load is aligned.  A plain load rather
+ * than vload8, which PoCL 3.0 calls out of line (see GROW_LO in hlbvh.h). */
+#define LOAD_ROW(type, row) (*(__global const type*)(row))
+
+/* Sign bit and absolute value by their bits, for the same reason. */
+#define SIGN_BIT(x) (as_uint(x) >> 31)
+#define ABS_FLOAT(x) as_float(as_uint(x) & 0x7fffffffu)
+#define LESSER(a, b) ((a) < (b) ? (a) : (b))
+
+/* The three floats at p[3 * i] (vload3, spelled out likewise). */
+TRAVERSAL_INLINE float3 load_xyz(__global const float* p, uint i)
+{
+    return (float3)(p[3 * i], p[3 * i + 1], p[3 * i + 2]);
+}
+
+/* sqrt as one instruction where the compiler is a Clang (PoCL calls sqrt). */
+#if defined(__has_builtin)
+#if __has_builtin(__builtin_sqrtf)
+#define SQUARE_ROOT __builtin_sqrtf
+#endif
+#endif
+#ifndef SQUARE_ROOT
+#define SQUARE_ROOT sqrt
+#endif
 
 /* Ize 2013, "Robust BVH Ray Traversal" (JCGT 2(2)): scaling the exit distance
  * by 1 + 2*gamma(3) makes the slab test conservative under float rounding.  We
@@ -112,7 +136,7 @@ TRAVERSAL_INLINE RayData prepare_ray(float3 origin, float3 direction, float tmin
     r.tmin = tmin;
     r.tmax = tmax;
 
-    float ax = fabs(d[0]), ay = fabs(d[1]), az = fabs(d[2]);
+    float ax = ABS_FLOAT(d[0]), ay = ABS_FLOAT(d[1]), az = ABS_FLOAT(d[2]);
     r.kz = (ax >= ay && ax >= az) ? 0 : (ay >= az ? 1 : 2);
     r.kx = r.kz == 2 ? 0 : r.kz + 1;
     r.ky = r.kx == 2 ? 0 : r.kx + 1;
@@ -124,9 +148,9 @@ TRAVERSAL_INLINE RayData prepare_ray(float3 origin, float3 direction, float tmin
     r.okx = component(o, r.kx);
     r.oky = component(o, r.ky);
     r.okz = component(o, r.kz);
-    r.near_x = 0 * WIDE_ARITY + (signbit(r.inv_x) ? WIDE_ARITY : 0);
-    r.near_y = 2 * WIDE_ARITY + (signbit(r.inv_y) ? WIDE_ARITY : 0);
-    r.near_z = 4 * WIDE_ARITY + (signbit(r.inv_z) ? WIDE_ARITY : 0);
+    r.near_x = 0 * WIDE_ARITY + (SIGN_BIT(r.inv_x) ? WIDE_ARITY : 0);
+    r.near_y = 2 * WIDE_ARITY + (SIGN_BIT(r.inv_y) ? WIDE_ARITY : 0);
+    r.near_z = 4 * WIDE_ARITY + (SIGN_BIT(r.inv_z) ? WIDE_ARITY : 0);
     return r;
 }
 
@@ -194,14 +218,14 @@ TRAVERSAL_INLINE int_lanes hit_children(const RayData* r, __global const WideNod
                                         float limit, float_lanes* entry)
 {
     __global const float* planes = (__global const float*)node;
-    float_lanes near_x = (vload_lanes(0, planes + r->near_x) - r->ox) * r->inv_x;
-    float_lanes near_y = (vload_lanes(0, planes + r->near_y) - r->oy) * r->inv_y;
-    float_lanes near_z = (vload_lanes(0, planes + r->near_z) - r->oz) * r->inv_z;
-    float_lanes far_x = (vload_lanes(0, planes + (r->near_x ^ WIDE_ARITY)) - r->ox)
+    float_lanes near_x = (LOAD_ROW(float_lanes, planes + r->near_x) - r->ox) * r->inv_x;
+    float_lanes near_y = (LOAD_ROW(float_lanes, planes + r->near_y) - r->oy) * r->inv_y;
+    float_lanes near_z = (LOAD_ROW(float_lanes, planes + r->near_z) - r->oz) * r->inv_z;
+    float_lanes far_x = (LOAD_ROW(float_lanes, planes + (r->near_x ^ WIDE_ARITY)) - r->ox)
                           * r->inv_x;
-    float_lanes far_y = (vload_lanes(0, planes + (r->near_y ^ WIDE_ARITY)) - r->oy)
+    float_lanes far_y = (LOAD_ROW(float_lanes, planes + (r->near_y ^ WIDE_ARITY)) - r->oy)
                           * r->inv_y;
-    float_lanes far_z = (vload_lanes(0, planes + (r->near_z ^ WIDE_ARITY)) - r->oz)
+    float_lanes far_z = (LOAD_ROW(float_lanes, planes + (r->near_z ^ WIDE_ARITY)) - r->oz)
                           * r->inv_z;
     return slabs_meet(near_x, near_y, near_z, far_x, far_y, far_z, r->tmin, limit, entry);
 }
@@ -234,10 +258,30 @@ TRAVERSAL_INLINE uint lane_mask(int_lanes hit)
 #endif
 }
 
-/* The lowest set bit's position; mask != 0.  (clz is OpenCL 1.2, ctz 2.0.) */
+/* The lowest set bit's position; mask != 0.  One tzcnt where the compiler
+ * is a Clang (else clz, which is OpenCL 1.2; ctz is 2.0). */
+#if defined(__has_builtin)
+#if __has_builtin(__builtin_ctz) && __has_builtin(__builtin_popcount)
+#define HAVE_BIT_BUILTINS
+#endif
+#endif
+
 TRAVERSAL_INLINE int lowest_slot(uint mask)
 {
+#ifdef HAVE_BIT_BUILTINS
+    return __builtin_ctz(mask);
+#else
     return 31 - (int)clz(mask & (0u - mask));
+#endif
+}
+
+TRAVERSAL_INLINE int bit_count(uint mask)
+{
+#ifdef HAVE_BIT_BUILTINS
+    return __builtin_popcount(mask);
+#else
+    return (int)popcount(mask);
+#endif
 }
 
 /* cross(v1 - v0, v2 - v0): unnormalised, following the winding. */
@@ -353,8 +397,8 @@ TRAVERSAL_INLINE void prefetch_child(__global const WideNode* n, int slot,
                                             : (__global const char*)(triangles + n->child[slot]);
     uint last = (count == 0 ? (uint)sizeof(WideNode) : count * (uint)sizeof(Triangle)) - 1u;
     __builtin_prefetch(first);
-    __builtin_prefetch(first + min(64u, last));
-    __builtin_prefetch(first + min(128u, last));
+    __builtin_prefetch(first + LESSER(64u, last));
+    __builtin_prefetch(first + LESSER(128u, last));
     __builtin_prefetch(first + last);
 #endif
 }
@@ -393,7 +437,7 @@ TRAVERSAL_INLINE int next_item(__global const WideNode* n, uint mask, const floa
         return pop(stack, sp, limit, index, count) ? NEXT_ITEM : NO_ITEM;
     int near = lowest_slot(mask);
     mask &= mask - 1u;
-    if (*sp + (int)popcount(mask) > STACK_SIZE)
+    if (*sp + bit_count(mask) > STACK_SIZE)
         return STACK_FULL;
     if (mask == 0) {
         prefetch_child(n, near, nodes, triangles);
@@ -465,16 +509,17 @@ TRAVERSAL_INLINE int traverse(const RayData* r, __global const WideNode* nodes,
     while (!done) {
         while (!done && count == 0) {
             __global const WideNode* n = nodes + index;
-            float_lanes entry_lanes;
-            int_lanes hit_lanes = hit_children(r, n, limit, &entry_lanes);
-            float entry[WIDE_ARITY];
-            vstore_lanes(entry_lanes, 0, entry);
-            uint mask = lane_mask(hit_lanes);
+            /* A union rather than vstore8 (PoCL: see LOAD_ROW). */
+            union {
+                float_lanes lanes;
+                float slot[WIDE_ARITY];
+            } entry;
+            uint mask = lane_mask(hit_children(r, n, limit, &entry.lanes));
             if (any_hit) {
                 /* Shadow rays: any hit ends the ray, so test the leaves in
                  * reach before descending (a large occluder such as a
                  * ground quad often sits in a leaf near the root). */
-                int_lanes counts = vload_lanes(0, (__global const int*)n->count);
+                int_lanes counts = LOAD_ROW(int_lanes, n->count);
                 uint leaves = mask & lane_mask(counts != (int_lanes)(0));
                 mask ^= leaves;
                 for (; leaves != 0; leaves &= leaves - 1u) {
@@ -491,7 +536,7 @@ TRAVERSAL_INLINE int traverse(const RayData* r, __global const WideNode* nodes,
                     }
                 }
             }
-            int next = next_item(n, mask, entry, nodes, triangles, stack, &sp, limit, &index,
+            int next = next_item(n, mask, entry.slot, nodes, triangles, stack, &sp, limit, &index,
                                  &count);
             if (next == STACK_FULL) {
                 *overflow = true;
@@ -540,6 +585,8 @@ typedef float16 float_packet;
 typedef int16 int_packet;
 #define vload_packet vload16
 #define vstore_packet vstore16
+#define as_int_packet as_int16
+#define as_float_packet as_float16
 #ifdef cl_khr_fp64
 #define convert_double_packet convert_double16
 #define convert_float_packet convert_float16
@@ -550,6 +597,8 @@ typedef float8 float_packet;
 typedef int8 int_packet;
 #define vload_packet vload8
 #define vstore_packet vstore8
+#define as_int_packet as_int8
+#define as_float_packet as_float8
 #ifdef cl_khr_fp64
 #define convert_double_packet convert_double8
 #define convert_float_packet convert_float8
@@ -652,10 +701,15 @@ TRAVERSAL_INLINE bool prepare_packet(const RayLanes* in, Packet* p)
         o[k] = vload_packet(0, in->origin[k]);
         d[k] = vload_packet(0, in->direction[k]);
     }
-    float_packet ax = fabs(d[0]), ay = fabs(d[1]), az = fabs(d[2]);
-    int_packet kz = select(select((int_packet)(2), (int_packet)(1), ay >= az), (int_packet)(0),
-                           (ax >= ay) & (ax >= az));
-    int_packet neg_x = signbit(d[0]), neg_y = signbit(d[1]), neg_z = signbit(d[2]);
+    /* fabs, signbit and select by bits and ?: (PoCL: see LOAD_ROW) */
+    int_packet magnitude = (int_packet)(0x7fffffff);
+    float_packet ax = as_float_packet(as_int_packet(d[0]) & magnitude),
+                 ay = as_float_packet(as_int_packet(d[1]) & magnitude),
+                 az = as_float_packet(as_int_packet(d[2]) & magnitude);
+    int_packet kz = (ax >= ay) & (ax >= az) ? (int_packet)(0)
+                                            : (ay >= az ? (int_packet)(1) : (int_packet)(2));
+    int_packet neg_x = as_int_packet(d[0]) < 0, neg_y = as_int_packet(d[1]) < 0,
+               neg_z = as_int_packet(d[2]) < 0;
     if (packet_any((kz != (int_packet)(kz.s0)) | (neg_x != (int_packet)(neg_x.s0))
             | (neg_y != (int_packet)(neg_y.s0)) | (neg_z != (int_packet)(neg_z.s0))))
         return false;
@@ -709,12 +763,12 @@ TRAVERSAL_INLINE bool prepare_packet(const RayLanes* in, Packet* p)
  * same rule (prepare_packet picks the origin). */
 TRAVERSAL_INLINE float_lanes entry_bound(float_lanes offset, float inv_lo, float inv_hi)
 {
-    return offset * select((float_lanes)(inv_hi), (float_lanes)(inv_lo), offset >= 0.0f);
+    return offset * (offset >= 0.0f ? (float_lanes)(inv_lo) : (float_lanes)(inv_hi));
 }
 
 TRAVERSAL_INLINE float_lanes exit_bound(float_lanes offset, float inv_lo, float inv_hi)
 {
-    return offset * select((float_lanes)(inv_lo), (float_lanes)(inv_hi), offset >= 0.0f);
+    return offset * (offset >= 0.0f ? (float_lanes)(inv_hi) : (float_lanes)(inv_lo));
 }
 
 /* The children of a node that some lane of the packet may meet within
@@ -729,17 +783,17 @@ TRAVERSAL_INLINE uint hit_children_interval(const Packet* p, __global const Wide
                                             float reach)
 {
     __global const float* planes = (__global const float*)node;
-    float_lanes near_x = entry_bound(vload_lanes(0, planes + p->near_x) - p->near_ox,
+    float_lanes near_x = entry_bound(LOAD_ROW(float_lanes, planes + p->near_x) - p->near_ox,
                                      p->inv_lo_x, p->inv_hi_x);
-    float_lanes near_y = entry_bound(vload_lanes(0, planes + p->near_y) - p->near_oy,
+    float_lanes near_y = entry_bound(LOAD_ROW(float_lanes, planes + p->near_y) - p->near_oy,
                                      p->inv_lo_y, p->inv_hi_y);
-    float_lanes near_z = entry_bound(vload_lanes(0, planes + p->near_z) - p->near_oz,
+    float_lanes near_z = entry_bound(LOAD_ROW(float_lanes, planes + p->near_z) - p->near_oz,
                                      p->inv_lo_z, p->inv_hi_z);
-    float_lanes far_x = exit_bound(vload_lanes(0, planes + (p->near_x ^ WIDE_ARITY)) - p->far_ox,
+    float_lanes far_x = exit_bound(LOAD_ROW(float_lanes, planes + (p->near_x ^ WIDE_ARITY)) - p->far_ox,
                                    p->inv_lo_x, p->inv_hi_x);
-    float_lanes far_y = exit_bound(vload_lanes(0, planes + (p->near_y ^ WIDE_ARITY)) - p->far_oy,
+    float_lanes far_y = exit_bound(LOAD_ROW(float_lanes, planes + (p->near_y ^ WIDE_ARITY)) - p->far_oy,
                                    p->inv_lo_y, p->inv_hi_y);
-    float_lanes far_z = exit_bound(vload_lanes(0, planes + (p->near_z ^ WIDE_ARITY)) - p->far_oz,
+    float_lanes far_z = exit_bound(LOAD_ROW(float_lanes, planes + (p->near_z ^ WIDE_ARITY)) - p->far_oz,
                                    p->inv_lo_z, p->inv_hi_z);
     float_lanes entry;
     return lane_mask(slabs_meet(near_x, near_y, near_z, far_x, far_y, far_z, p->tmin_lo, reach,
@@ -788,9 +842,9 @@ TRAVERSAL_INLINE int_packet hit_triangle_packet(const Packet* p, __global const 
         double_packet dax = convert_double_packet(ax), day = convert_double_packet(ay);
         double_packet dbx = convert_double_packet(bx), dby = convert_double_packet(by);
         double_packet dcx = convert_double_packet(cx), dcy = convert_double_packet(cy);
-        e_u = select(e_u, convert_float_packet(dcx * dby - dcy * dbx), on_edge);
-        e_v = select(e_v, convert_float_packet(dax * dcy - day * dcx), on_edge);
-        e_w = select(e_w, convert_float_packet(dbx * day - dby * dax), on_edge);
+        e_u = on_edge ? convert_float_packet(dcx * dby - dcy * dbx) : e_u;
+        e_v = on_edge ? convert_float_packet(dax * dcy - day * dcx) : e_v;
+        e_w = on_edge ? convert_float_packet(dbx * day - dby * dax) : e_w;
     }
 #endif
     int_packet outside = ((e_u < 0.0f) | (e_v < 0.0f) | (e_w < 0.0f))
@@ -800,7 +854,7 @@ TRAVERSAL_INLINE int_packet hit_triangle_packet(const Packet* p, __global const 
     float_packet inv_det = 1.0f / det;
     float_packet t = t_scaled * inv_det;
     int_packet hit = ~outside & (det != 0.0f) & (t >= p->tmin)
-                     & select(t <= limit, t < limit, strict);
+                     & (strict ? t < limit : t <= limit);
     if (!packet_any(hit))
         return hit;
     float nx, ny, nz;
@@ -831,11 +885,11 @@ TRAVERSAL_INLINE bool hit_leaf_packet(const Packet* p, __global const Triangle* 
         if (!packet_any(hit))
             continue;
         prefetch_hit_ids(refs, i, any_hit);
-        *hit_index = select(*hit_index, (int_packet)((int)i), hit);
-        *limit = select(*limit, any_hit ? (float_packet)(-INFINITY) : t, hit);
-        *t_hit = select(*t_hit, t, hit);
-        *u_hit = select(*u_hit, u, hit);
-        *v_hit = select(*v_hit, v, hit);
+        *hit_index = hit ? (int_packet)((int)i) : *hit_index;
+        *limit = hit ? (any_hit ? (float_packet)(-INFINITY) : t) : *limit;
+        *t_hit = hit ? t : *t_hit;
+        *u_hit = hit ? u : *u_hit;
+        *v_hit = hit ? v : *v_hit;
         *reach = packet_max(*limit);
         if (any_hit && packet_all(*hit_index >= 0))
             return true;
@@ -874,7 +928,7 @@ TRAVERSAL_INLINE int_packet traverse_packet(const Packet* p, __global const Wide
                 float_packet t_entry;
                 int_packet hit = hit_child_packet(p, planes, c, limit, &t_entry);
                 if (packet_any(hit)) {
-                    entry[c] = packet_min(select((float_packet)(INFINITY), t_entry, hit));
+                    entry[c] = packet_min(hit ? t_entry : (float_packet)(INFINITY));
                     mask |= 1u << c;
                 }
             }
@@ -922,8 +976,9 @@ TRAVERSAL_INLINE float3 unit_normal(__global const Triangle* tri)
 {
     float nx, ny, nz;
     geometric_normal(tri, &nx, &ny, &nz);
-    float3 n = (float3)(nx, ny, nz) * (1.0f / fmax(fabs(nx), fmax(fabs(ny), fabs(nz))));
-    return n * (1.0f / sqrt(n.x * n.x + n.y * n.y + n.z * n.z));
+    float largest = GROW_HI(GROW_HI(ABS_FLOAT(nx), ABS_FLOAT(ny)), ABS_FLOAT(nz));
+    float3 n = (float3)(nx, ny, nz) * (1.0f / largest);
+    return n * (1.0f / SQUARE_ROOT(n.x * n.x + n.y * n.y + n.z * n.z));
 }
 
 /* One ray's closest hit as a Hit record (a miss: t = INFINITY, ids -1, the
@@ -1040,15 +1095,15 @@ TRAVERSAL_INLINE void any_hits(const RayLanes* lanes, uint used, __global const 
 TRAVERSAL_INLINE uint packet_rays(uint ray_count, uint* first)
 {
     *first = get_global_id(0) * PACKET_SIZE;
-    return *first < ray_count ? min((uint)PACKET_SIZE, ray_count - *first) : 0;
+    return *first < ray_count ? LESSER((uint)PACKET_SIZE, ray_count - *first) : 0;
 }
 
 TRAVERSAL_INLINE void load_lanes_records(__global const Ray* rays, uint first, uint used,
                                          RayLanes* lanes)
 {
     for (uint l = 0; l < PACKET_SIZE; ++l) {
-        __global const Ray* ray = rays + first + min(l, used - 1);
-        set_lane(lanes, l, vload3(0, ray->origin), vload3(0, ray->direction), ray->tmin,
+        __global const Ray* ray = rays + first + LESSER(l, used - 1);
+        set_lane(lanes, l, load_xyz(ray->origin, 0), load_xyz(ray->direction, 0), ray->tmin,
                  ray->tmax);
     }
 }
@@ -1116,8 +1171,8 @@ TRAVERSAL_INLINE void load_lanes_arrays(uint first, uint used, __global const fl
     }
 #endif
     for (uint l = 0; l < PACKET_SIZE; ++l) {
-        uint i = first + min(l, used - 1);
-        set_lane(lanes, l, vload3(i, origins), vload3(i, directions), tmin[i * tmin_step],
+        uint i = first + LESSER(l, used - 1);
+        set_lane(lanes, l, load_xyz(origins, i), load_xyz(directions, i), tmin[i * tmin_step],
                  tmax[i * tmax_step]);
     }
 }
@@ -1149,7 +1204,8 @@ TRAVERSAL_KERNEL void intersect_closest_arrays(__global const WideNode* nodes,
         prim_out[i] = found[l].prim_id;
         u_out[i] = found[l].u;
         v_out[i] = found[l].v;
-        vstore3(vload3(0, found[l].normal), i, normal_out);
+        for (uint k = 0; k < 3; ++k)
+            normal_out[3 * i + k] = found[l].normal[k];
     }
 }
 
