@@ -155,9 +155,14 @@ typedef struct {
 } ShadeParams;
 
 /* Helpers several stages share. */
+
+/* Vertex `index` by three scalar reads rather than vload3, which PoCL 3.0
+ * calls out of line (see GROW_LO; perf: about half of the bounds pass's
+ * time and a third of lay_out_leaves' went to vload3 and vstore3). */
 inline float3 load_vertex(__global const float *vertices, int index)
 {
-    return vload3(index, vertices);
+    __global const float *v = vertices + 3 * (size_t)index;
+    return (float3)(v[0], v[1], v[2]);
 }
 
 /* The lesser / greater of an accumulator and a value, scalars or vectors:
@@ -218,13 +223,11 @@ inline void load_triangle(__global const float *vertices, __global const int *fa
     *c = load_vertex(vertices, faces[3 * face + 2]);
 }
 
-/* Triangle j of the tree-ordered triangle array. */
+/* Triangle j of the tree-ordered triangle array (an initializer, not
+ * vstore3: see load_vertex). */
 inline void store_triangle(__global Triangle *triangles, int j, float3 a, float3 b, float3 c)
 {
-    Triangle t;
-    vstore3(a, 0, t.v0);
-    vstore3(b, 0, t.v1);
-    vstore3(c, 0, t.v2);
+    Triangle t = {{a.x, a.y, a.z}, {b.x, b.y, b.z}, {c.x, c.y, c.z}};
     triangles[j] = t;
 }
 
@@ -263,7 +266,7 @@ inline bool pixel_in_pass(uint k, uint band, uint width, uint rows, uint *ray, u
     uint first_row = band * TILE_ROWS;
     if (first_row >= rows)
         return false;
-    uint band_rows = min((uint)TILE_ROWS, rows - first_row);
+    uint band_rows = rows - first_row < TILE_ROWS ? rows - first_row : TILE_ROWS; /* min: see GROW_LO */
     if (k >= band_rows * width)
         return false;
     uint tiled = (width & ~(TILE_COLUMNS - 1u)) * TILE_ROWS;

@@ -52,9 +52,13 @@ __kernel void morton_codes(__global const float4 *centroids, int triangle_count,
     Aabb box = bounds[1];
     float4 lo = (float4)(box.lo[0], box.lo[1], box.lo[2], 0.0f);
     float4 extent = (float4)(box.hi[0], box.hi[1], box.hi[2], 0.0f) - lo;
-    /* A flat axis (all centroids equal) quantises to cell 0. */
-    float4 scale = select((float4)(0.0f), AXIS_CELLS / extent, extent > 0.0f);
-    float4 cell = clamp((centroids[face] - lo) * scale, 0.0f, AXIS_CELLS - 1.0f);
+    /* A flat axis (all centroids equal) quantises to cell 0.  select and
+     * clamp spelled with ?: (PoCL calls them out of line: see GROW_LO in
+     * hlbvh.h); a NaN still goes to 0, as clamp's fmax sends it. */
+    float4 scale = extent > 0.0f ? AXIS_CELLS / extent : (float4)(0.0f);
+    float4 cell = (centroids[face] - lo) * scale;
+    cell = cell > 0.0f ? cell : (float4)(0.0f);
+    cell = cell < AXIS_CELLS - 1.0f ? cell : (float4)(AXIS_CELLS - 1.0f);
     spread_t s = spread_bits(convert_uint4(cell));
     keys[face] = (morton_t)((s.x << 2) | (s.y << 1) | s.z);
     primitive_ids[face] = (uint)face;

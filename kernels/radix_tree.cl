@@ -105,7 +105,8 @@ void lay_out_leaves(int n, __global const float *vertices, __global const int *f
     load_triangle(vertices, faces, face, &a, &b, &c);
     store_triangle(triangles, j, a, b, c);
     refs[j] = triangle_ref(mesh_first_face, mesh_count, face);
-    vstore3(vload3(face, faces), j, vertex_ids);
+    for (int k = 0; k < 3; ++k) /* not vstore3(vload3()): see load_vertex */
+        vertex_ids[3 * j + k] = faces[3 * face + k];
     Aabb box = aabb_of_points(a, b, c);
     int node = (n - 1) + j;
     boxes[node] = box;
