@@ -156,13 +156,18 @@ typedef struct {
 
 /* Helpers several stages share. */
 
-/* Vertex `index` by three scalar reads rather than vload3, which PoCL 3.0
- * calls out of line (see GROW_LO; perf: about half of the bounds pass's
- * time and a third of lay_out_leaves' went to vload3 and vstore3). */
+/* The three floats from p[0] on, in any address space: vload3 spelled out,
+ * as PoCL 3.0 calls vload3 out of line (see GROW_LO; perf: about half of the
+ * bounds pass's time and a third of lay_out_leaves' went to vload3 and
+ * vstore3). */
+#define LOAD_XYZ(p) ((float3)((p)[0], (p)[1], (p)[2]))
+
+/* min(a, b) for scalars, spelled with ?: for the same reason. */
+#define LESSER(a, b) ((a) < (b) ? (a) : (b))
+
 inline float3 load_vertex(__global const float *vertices, int index)
 {
-    __global const float *v = vertices + 3 * (size_t)index;
-    return (float3)(v[0], v[1], v[2]);
+    return LOAD_XYZ(vertices + 3 * (size_t)index);
 }
 
 /* The lesser / greater of an accumulator and a value, scalars or vectors:
@@ -266,7 +271,7 @@ inline bool pixel_in_pass(uint k, uint band, uint width, uint rows, uint *ray, u
     uint first_row = band * TILE_ROWS;
     if (first_row >= rows)
         return false;
-    uint band_rows = rows - first_row < TILE_ROWS ? rows - first_row : TILE_ROWS; /* min: see GROW_LO */
+    uint band_rows = LESSER((uint)TILE_ROWS, rows - first_row);
     if (k >= band_rows * width)
         return false;
     uint tiled = (width & ~(TILE_COLUMNS - 1u)) * TILE_ROWS;

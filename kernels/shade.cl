@@ -42,10 +42,9 @@
 
 /* PoCL 3.0 calls vload3, vstore3, dot, fmax and other builtins out of line
  * (see GROW_LO in hlbvh.h; perf, diffuse: 70% of shade_hits' time in such
- * calls), so most are spelled out.  dot3 adds the products in dot's order,
- * and apart from them, which in one expression could fuse into fmas. */
-#define LOAD3(p) ((float3)((p)[0], (p)[1], (p)[2]))
-
+ * calls), so most are spelled out (LOAD_XYZ, store3, dot3).  dot3 adds the
+ * products in dot's order, and apart from them, which in one expression
+ * could fuse into fmas. */
 inline void store3(__global float* p, float3 v)
 {
     p[0] = v.x;
@@ -85,7 +84,7 @@ inline void write_ray(__global Ray* ray, float3 origin, float3 direction, float 
  * open or inconsistently wound, so both sides are front sides. */
 inline float3 facing_normal(__global const Hit* hit, float3 direction)
 {
-    float3 n = LOAD3(hit->normal);
+    float3 n = LOAD_XYZ(hit->normal);
     return dot3(n, direction) > 0.0f ? -n : n;
 }
 
@@ -94,7 +93,7 @@ inline float3 facing_normal(__global const Hit* hit, float3 direction)
 inline float3 secondary_origin(__global const Ray* ray, __global const Hit* hit, float3 n,
                                const ShadeParams* params)
 {
-    float3 hit_point = LOAD3(ray->origin) + hit->t * LOAD3(ray->direction);
+    float3 hit_point = LOAD_XYZ(ray->origin) + hit->t * LOAD_XYZ(ray->direction);
     return hit_point + params->ray_offset * n;
 }
 
@@ -102,10 +101,10 @@ inline float3 secondary_origin(__global const Ray* ray, __global const Hit* hit,
  * to the zenith colour (straight up), linear in the sine of the elevation. */
 inline float3 sky(const ShadeParams* params, float3 direction)
 {
-    float elevation = dot3(normalize(direction), LOAD3(params->sky_up));
+    float elevation = dot3(normalize(direction), LOAD_XYZ(params->sky_up));
     elevation = elevation > 0.0f ? (elevation < 1.0f ? elevation : 1.0f) : 0.0f; /* clamp */
-    float3 horizon = LOAD3(params->sky_horizon);
-    float3 rise = (LOAD3(params->sky_zenith) - horizon) * elevation;
+    float3 horizon = LOAD_XYZ(params->sky_horizon);
+    float3 rise = (LOAD_XYZ(params->sky_zenith) - horizon) * elevation;
     return horizon + rise; /* mix, unfused (see dot3) */
 }
 
@@ -124,7 +123,7 @@ __kernel void shade_hits(__global const Ray* rays,
         return;
     __global const Ray* ray = rays + gid;
     __global const Hit* hit = hits + gid;
-    float3 direction = LOAD3(ray->direction);
+    float3 direction = LOAD_XYZ(ray->direction);
     float3 colour = (float3)(0.0f);
     float3 deferred = (float3)(0.0f);  /* added later if the secondary ray is free */
 
@@ -133,13 +132,13 @@ __kernel void shade_hits(__global const Ray* rays,
         colour = sky(&params, direction);
 #endif
 #if SHADING == SHADING_DIFFUSE && SHADOWS
-        write_empty_ray(secondary + gid, LOAD3(params.light_direction));
+        write_empty_ray(secondary + gid, LOAD_XYZ(params.light_direction));
 #endif
     } else {
         float3 n = facing_normal(hit, direction);
 #if SHADING == SHADING_DIFFUSE
-        float3 base = LOAD3(albedo + 3 * hit->geom_id);
-        float3 light = LOAD3(params.light_direction);
+        float3 base = LOAD_XYZ(albedo + 3 * hit->geom_id);
+        float3 light = LOAD_XYZ(params.light_direction);
         float cosine = dot3(n, light);
         cosine = cosine > 0.0f ? cosine : 0.0f; /* fmax(cosine, 0), a NaN to 0 too */
         float3 direct = base * (params.light_intensity * cosine);
@@ -161,7 +160,7 @@ __kernel void shade_hits(__global const Ray* rays,
         colour = (float3)(clamp((params.depth_far - distance)
                                 / (params.depth_far - params.depth_near), 0.0f, 1.0f));
 #elif SHADING == SHADING_AO
-        deferred = LOAD3(albedo + 3 * hit->geom_id) * params.ao_weight;
+        deferred = LOAD_XYZ(albedo + 3 * hit->geom_id) * params.ao_weight;
 #endif
     }
 #if (SHADING == SHADING_DIFFUSE && SHADOWS) || SHADING == SHADING_AO
@@ -202,11 +201,11 @@ __kernel void ao_rays(__global const Ray* rays,
         return;
     __global const Hit* hit = hits + gid;
     if (hit->geom_id < 0) { /* AO rays scatter: any direction will do */
-        write_empty_ray(secondary + gid, LOAD3(params.sky_up));
+        write_empty_ray(secondary + gid, LOAD_XYZ(params.sky_up));
         return;
     }
     __global const Ray* ray = rays + gid;
-    float3 n = facing_normal(hit, LOAD3(ray->direction));
+    float3 n = facing_normal(hit, LOAD_XYZ(ray->direction));
     uint pixel = (first_row + at.y) * width + at.x;
     float u1 = random_unit(pixel, sample, 2 + 2 * ao_index);
     float u2 = random_unit(pixel, sample, 3 + 2 * ao_index);
@@ -249,7 +248,7 @@ __kernel void encode_image(__global const float4* accum,
     if (!pixel_in_pass(get_global_id(0), get_global_id(1), width, rows, &gid, &at))
         return;
     /* fmin(fmax(value, 0), 1), which turns a NaN into 0 too, spelled with
-     * ?: as are the stores (PoCL: see LOAD3) */
+     * ?: as are the stores (PoCL: see store3) */
     float3 value = accum[gid].xyz * scale;
     value = value > 0.0f ? value : (float3)(0.0f);
     value = value < 1.0f ? value : (float3)(1.0f);

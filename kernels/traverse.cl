@@ -75,13 +75,6 @@ typedef int4 int_lanes;
 /* Sign bit and absolute value by their bits, for the same reason. */
 #define SIGN_BIT(x) (as_uint(x) >> 31)
 #define ABS_FLOAT(x) as_float(as_uint(x) & 0x7fffffffu)
-#define LESSER(a, b) ((a) < (b) ? (a) : (b))
-
-/* The three floats at p[3 * i] (vload3, spelled out likewise). */
-TRAVERSAL_INLINE float3 load_xyz(__global const float* p, uint i)
-{
-    return (float3)(p[3 * i], p[3 * i + 1], p[3 * i + 2]);
-}
 
 /* sqrt as one instruction where the compiler is a Clang (PoCL calls sqrt). */
 #if defined(__has_builtin)
@@ -1103,7 +1096,7 @@ TRAVERSAL_INLINE void load_lanes_records(__global const Ray* rays, uint first, u
 {
     for (uint l = 0; l < PACKET_SIZE; ++l) {
         __global const Ray* ray = rays + first + LESSER(l, used - 1);
-        set_lane(lanes, l, load_xyz(ray->origin, 0), load_xyz(ray->direction, 0), ray->tmin,
+        set_lane(lanes, l, LOAD_XYZ(ray->origin), LOAD_XYZ(ray->direction), ray->tmin,
                  ray->tmax);
     }
 }
@@ -1172,7 +1165,7 @@ TRAVERSAL_INLINE void load_lanes_arrays(uint first, uint used, __global const fl
 #endif
     for (uint l = 0; l < PACKET_SIZE; ++l) {
         uint i = first + LESSER(l, used - 1);
-        set_lane(lanes, l, load_xyz(origins, i), load_xyz(directions, i), tmin[i * tmin_step],
+        set_lane(lanes, l, LOAD_XYZ(origins + 3 * i), LOAD_XYZ(directions + 3 * i), tmin[i * tmin_step],
                  tmax[i * tmax_step]);
     }
 }
