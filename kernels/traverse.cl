@@ -782,12 +782,12 @@ TRAVERSAL_INLINE uint hit_children_interval(const Packet* p, __global const Wide
                                      p->inv_lo_y, p->inv_hi_y);
     float_lanes near_z = entry_bound(LOAD_ROW(float_lanes, planes + p->near_z) - p->near_oz,
                                      p->inv_lo_z, p->inv_hi_z);
-    float_lanes far_x = exit_bound(LOAD_ROW(float_lanes, planes + (p->near_x ^ WIDE_ARITY)) - p->far_ox,
-                                   p->inv_lo_x, p->inv_hi_x);
-    float_lanes far_y = exit_bound(LOAD_ROW(float_lanes, planes + (p->near_y ^ WIDE_ARITY)) - p->far_oy,
-                                   p->inv_lo_y, p->inv_hi_y);
-    float_lanes far_z = exit_bound(LOAD_ROW(float_lanes, planes + (p->near_z ^ WIDE_ARITY)) - p->far_oz,
-                                   p->inv_lo_z, p->inv_hi_z);
+    float_lanes far_x = exit_bound(LOAD_ROW(float_lanes, planes + (p->near_x ^ WIDE_ARITY))
+                                   - p->far_ox, p->inv_lo_x, p->inv_hi_x);
+    float_lanes far_y = exit_bound(LOAD_ROW(float_lanes, planes + (p->near_y ^ WIDE_ARITY))
+                                   - p->far_oy, p->inv_lo_y, p->inv_hi_y);
+    float_lanes far_z = exit_bound(LOAD_ROW(float_lanes, planes + (p->near_z ^ WIDE_ARITY))
+                                   - p->far_oz, p->inv_lo_z, p->inv_hi_z);
     float_lanes entry;
     return lane_mask(slabs_meet(near_x, near_y, near_z, far_x, far_y, far_z, p->tmin_lo, reach,
                                 &entry));
@@ -1165,8 +1165,8 @@ TRAVERSAL_INLINE void load_lanes_arrays(uint first, uint used, __global const fl
 #endif
     for (uint l = 0; l < PACKET_SIZE; ++l) {
         uint i = first + LESSER(l, used - 1);
-        set_lane(lanes, l, LOAD_XYZ(origins + 3 * i), LOAD_XYZ(directions + 3 * i), tmin[i * tmin_step],
-                 tmax[i * tmax_step]);
+        set_lane(lanes, l, LOAD_XYZ(origins + 3 * i), LOAD_XYZ(directions + 3 * i),
+                 tmin[i * tmin_step], tmax[i * tmax_step]);
     }
 }
 
