@@ -422,7 +422,7 @@ TRAVERSAL_INLINE void prefetch_hit_ids(__global const TriangleRef* refs, uint i,
  * Where a lane mask is one instruction (movmskps, see lane_mask), each child
  * goes straight to its place, counted from the first pushed: the number of
  * met children that are farther, or as far in a later slot, from one
- * vector compare pair and a popcount.  The insertion sort used elsewhere
+ * vector compare pair and a popcount.  The insertion sort (the other branch)
  * mispredicts its data-dependent loop exits: A/B on PoCL, incoherent rays
  * teapot 1.07-1.10x, bunny 1.04x, reference scene 1.03x, camera rays
  * 1.02-1.03x.  Intel's CPU runtime, whose lane mask is a chain of six
@@ -457,7 +457,7 @@ TRAVERSAL_INLINE void push_sorted(__global const WideNode* n, uint mask,
 }
 
 /* What follows a node whose children in `mask` the ray or packet meets, at
- * the distances in `entry`: the nearest child, the others pushed and all
+ * the distances in `entries`: the nearest child, the others pushed and all
  * of them prefetched, or when none is met the next stacked item in reach of
  * `limit`.  Returns NEXT_ITEM (in *index, *count), NO_ITEM (the stack ran
  * out) or STACK_FULL.
@@ -897,9 +897,9 @@ TRAVERSAL_INLINE int_packet hit_triangle_packet(const Packet* p, __global const 
 
 /* The triangles [first, first + count) of a leaf against every lane: a lane
  * takes a hit within its limit (limit, hit_index, t, u, v; as in traverse(),
- * at t == limit only while it has no hit yet) and `reach` follows.  For any hit a lane that hits is done (its limit
- * becomes -INFINITY, below every box and triangle); returns true when every
- * lane is. */
+ * at t == limit only while it has no hit yet) and `reach` follows.  For any
+ * hit a lane that hits is done (its limit becomes -INFINITY, below every box
+ * and triangle); returns true when every lane is. */
 TRAVERSAL_INLINE bool hit_leaf_packet(const Packet* p, __global const Triangle* triangles,
                                       __global const TriangleRef* refs, int first, uint count,
                                       bool any_hit, float_packet* limit,
@@ -949,7 +949,7 @@ TRAVERSAL_INLINE int_packet traverse_packet(const Packet* p, __global const Wide
         while (!done && count == 0) {
             __global const WideNode* n = nodes + index;
             __global const float* planes = (__global const float*)n;
-            /* Lanes of children no lane meets stay +inf: next_item compares
+            /* Lanes of children no lane meets stay +inf: push_sorted compares
              * whole vectors (and masks them). */
             ChildEntries entry = {(float_lanes)(INFINITY)};
             uint mask = 0;
