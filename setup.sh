@@ -10,8 +10,10 @@ PY=${PYTHON:-python3}
 if command -v pyenv >/dev/null; then pyenv rehash || true; fi
 
 # PyPI's PoCL 3.0 is built on LLVM 14, which cannot compile for CPUs newer
-# than it knows ("unknown target CPU 'generic'"); Debian's PoCL 3.1 can.
-if ! "$PY" -m hlbvh_cl devices --require pocl; then
+# than it knows ("unknown target CPU 'generic'"), and crashes on the
+# traversal's vector code on some AVX-512 CPUs; Debian's PoCL 3.1 can.  The
+# device listing runs the real kernels in a child process (hlbvh_cl/probe.py).
+if ! "$PY" -m hlbvh_cl devices --require pocl --no-fallback; then
     if command -v apt-get >/dev/null; then
         SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
         echo "setup.sh: installing Debian's PoCL (pocl-opencl-icd)" >&2

@@ -9,7 +9,7 @@ from . import layout
 def partial_count(rt, triangle_count: int) -> int:
     """Work-items of the first reduction level: enough to fill the device,
     about one per 64 triangles at most, in whole work-groups."""
-    per_unit = 2048 if rt.device.type == "gpu" else 256
+    per_unit = 2048 if rt.profile.gpu else 256
     wanted = per_unit * rt.device.compute_units
     group = rt.group_size
     return max(group, min(wanted, -(-triangle_count // 64) * 64) // group * group)
@@ -23,7 +23,7 @@ def scene_bounds(rt, vertices: cl.Buffer, faces: cl.Buffer, triangle_count: int,
     geometry = rt.pool.take(partials * layout.AABB.itemsize)
     centroid_boxes = rt.pool.take(partials * layout.AABB.itemsize)
     kernel = rt.kernel("bounds.cl", "reduce_triangle_bounds",
-                       STRIDED_SLICES=int(rt.device.type == "gpu"))
+                       STRIDED_SLICES=int(rt.profile.gpu))
     reduce = rt.run(kernel, partials,
                     vertices, faces, triangle_count, geometry, centroid_boxes, centroids,
                     wait_for=wait_for)

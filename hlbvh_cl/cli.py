@@ -25,19 +25,41 @@ from .render import AO_SAMPLES, MAX_AO_SAMPLES, MAX_IMAGE_SIDE, MAX_SPP, SHADING
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
 
+def _device_state(d) -> str:
+    """What the kernel probe found for a device, in one line."""
+    if d.simulator:
+        return f"a simulator: used only when named (device='{d.id}'), never by default"
+    verdict = d.verdict
+    if verdict.chosen is None:
+        return f"cannot run kernels: {verdict.problem}"
+    state = f"ok: kernels {verdict.chosen.name}"
+    if verdict.mrays_per_s:
+        state += f", {verdict.mrays_per_s:.1f} Mrays/s in the probe"
+    for failed, reason in verdict.failures:
+        state += f"; {failed.name} failed: {reason}"
+    return state
+
+
 def _cmd_devices(args) -> int:
     found = devices()
     if not found:
         print("no OpenCL device found; install PoCL: pip install pocl-binary-distribution")
         return 1
     for d in found:
-        state = "ok" if d.problem is None else f"cannot compile kernels: {d.problem}"
         print(f"{d.id:10s} {d.type:4s} {d.name} [{d.platform}, driver {d.driver_version}, "
-              f"{d.compute_units} compute units] {state}")
-    if args.require and not any(d.problem is None and args.require in d.id for d in found):
-        print(f"hlbvh-cl: error: no working device whose id contains {args.require!r}",
-              file=sys.stderr)
-        return 1
+              f"{d.compute_units} compute units, profile {d.profile.name}] {_device_state(d)}")
+    usable = [d for d in found if d.skipped_because is None]
+    print(f"default: {select_device().id if usable else 'none (no device runs the kernels)'}")
+    if args.require:
+        def passes(d):
+            verdict = d.verdict
+            return verdict.chosen is not None and not (args.no_fallback and verdict.failures)
+        matching = [d for d in found if args.require in d.id and not d.simulator]
+        if not any(passes(d) for d in matching):
+            which = "runs its fastest kernel variant" if args.no_fallback else "runs kernels"
+            print(f"hlbvh-cl: error: no device whose id contains {args.require!r} {which}",
+                  file=sys.stderr)
+            return 1
     return 0
 
 
@@ -176,6 +198,8 @@ def main(argv=None) -> int:
     listing = sub.add_parser("devices", help="list OpenCL devices")
     listing.add_argument("--require", metavar="ID", default=None,
                          help="exit 1 unless a working device's id contains ID (e.g. pocl)")
+    listing.add_argument("--no-fallback", action="store_true",
+                         help="with --require: the device must run its fastest kernel variant")
     listing.set_defaults(run=_cmd_devices)
     info = sub.add_parser("info", help="build a scene file's BVH and print its stats")
     info.add_argument("scene")

@@ -10,19 +10,14 @@ import ctypes
 import os
 import sys
 import threading
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .paths import kernel_dir
+from .paths import cache_root, kernel_dir
+from .profile import Profile, Variant, profile_name
 
 _INSTALL_HINT = ("install an OpenCL driver; the portable CPU one comes from PyPI: "
                  "pip install pocl-binary-distribution  (or: pip install 'pyopencl[pocl]')")
-
-
-def _cache_root() -> Path:
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "hlbvh_cl"
 
 
 def _register_intel_cpu_runtime() -> None:
@@ -39,7 +34,7 @@ def _register_intel_cpu_runtime() -> None:
     lib = Path(sys.prefix) / "lib" / "libintelocl.so"
     if not lib.is_file():
         return
-    folder = _cache_root() / "icd"
+    folder = cache_root() / "icd"
     try:
         folder.mkdir(parents=True, exist_ok=True)
         entries = {"intel-cpu-hlbvh_cl.icd": f"{lib}\n"}
@@ -101,31 +96,40 @@ class Device:
         return f"{self.id} ({self.type}) {self.name} [{self.platform}]"
 
     @property
+    def simulator(self) -> bool:
+        """A simulator (Oclgrind): correct but about 1000x slower than a CPU
+        runtime, so used only when named, never by default."""
+        return "oclgrind" in self.platform.lower()
+
+    @property
+    def profile(self) -> Profile:
+        """The profile this device runs (hlbvh_cl.profile; $HLBVH_CL_PROFILE)."""
+        return Profile(profile_name(self.type))
+
+    @property
+    def verdict(self):
+        """What the kernel probe found for this device in its current profile
+        (hlbvh_cl.probe.Verdict): the variant it runs and why faster ones
+        failed.  Probed once per device, driver and kernel sources."""
+        from . import probe
+        return probe.verdict(self, self.profile)
+
+    @property
     def problem(self) -> str | None:
-        """Why this device cannot run kernels, or None when it can.
+        """Why this device cannot run the library's kernels, or None when it
+        can: every kernel variant crashed, hung, failed to build or gave wrong
+        hits in the probe (some drivers list a device they cannot compile
+        for: PyPI's PoCL 3.0 fails with "unknown target CPU 'generic'" on CPUs
+        newer than its LLVM 14)."""
+        return self.verdict.problem
 
-        Found by compiling a one-line kernel once per process: some drivers
-        list a device they cannot compile for (PyPI's PoCL 3.0, built on
-        LLVM 14, fails with "unknown target CPU 'generic'" on CPUs newer than
-        LLVM 14 knows)."""
-        if self.id not in _problems:
-            _problems[self.id] = _probe(self.cl_device)
-        return _problems[self.id]
-
-
-_problems: dict[str, str | None] = {}
-
-
-def _probe(cl_device) -> str | None:
-    try:
-        context = cl.Context([cl_device])
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            cl.Program(context, "__kernel void probe(__global int *x) { x[0] = 1; }").build()
-    except cl.Error as error:
-        lines = [line.strip() for line in str(error).splitlines() if "error" in line.lower()]
-        return lines[-1] if lines else str(error).strip().splitlines()[0]
-    return None
+    @property
+    def skipped_because(self) -> str | None:
+        """Why the automatic choice passes this device over, or None."""
+        if self.simulator:
+            return "a simulator: used only when named"
+        problem = self.problem
+        return f"its kernels fail: {problem}" if problem else None
 
 
 def _type_name(device_type: int) -> str:
@@ -190,12 +194,20 @@ def _match(spec, available: list[Device], source: str) -> Device:
                if text and (text in d.id or text in d.name.lower() or text in d.platform.lower())]
     if not matches:
         raise ValueError(f"{source}={spec!r} matches no OpenCL device; present: {listing}")
-    # A name may match several devices: take the first that can compile kernels.
-    return next((d for d in matches if d.problem is None), matches[0])
+    if len(matches) == 1:
+        return matches[0]
+    # A name may match several devices (PyPI's and Debian's PoCL): take the
+    # one whose kernels run, at full width if possible, and fastest.
+    working = [d for d in matches if d.problem is None]
+    if not working:
+        return matches[0]
+    return max(working, key=lambda d: (not d.verdict.failures, d.verdict.mrays_per_s or 0.0))
 
 
 def select_device(device=None) -> Device:
-    """Pick a device: the argument, then $HLBVH_CL_DEVICE, then a GPU, then a CPU."""
+    """Pick a device: the argument, then $HLBVH_CL_DEVICE, then the default:
+    a GPU, else the CPU runtime that traced fastest in its probe, else any
+    other device; never a simulator or a device whose kernels fail."""
     available = devices()
     if not available:
         raise RuntimeError(f"hlbvh_cl found no OpenCL platform on this machine: {_INSTALL_HINT}")
@@ -205,13 +217,14 @@ def select_device(device=None) -> Device:
     if env:
         return _match(env, available, "HLBVH_CL_DEVICE")
     for wanted in ("gpu", "cpu", "accelerator", "other"):
-        for d in available:
-            if d.type == wanted and d.problem is None:
-                return d
-    problems = "; ".join(f"{d.id}: {d.problem}" for d in available)
-    raise RuntimeError(f"no OpenCL device here can compile kernels ({problems}); {_INSTALL_HINT}. "
-                       "On Debian/Ubuntu, the distribution's PoCL (apt-get install "
-                       "pocl-opencl-icd) supports newer CPUs than PyPI's.")
+        working = [d for d in available
+                   if d.type == wanted and not d.simulator and d.problem is None]
+        if working:
+            return max(working, key=lambda d: d.verdict.mrays_per_s or 0.0)
+    skipped = "; ".join(f"{d.id}: {d.skipped_because}" for d in available)
+    raise RuntimeError(f"no OpenCL device here can run hlbvh_cl's kernels ({skipped}); "
+                       f"{_INSTALL_HINT}. On Debian/Ubuntu, the distribution's PoCL (apt-get "
+                       "install pocl-opencl-icd) supports newer CPUs than PyPI's.")
 
 
 class KernelBuildError(RuntimeError):
@@ -230,8 +243,22 @@ class Runtime:
     runs.
     """
 
-    def __init__(self, device: Device):
+    def __init__(self, device: Device, profile: Profile | None = None,
+                 variant: Variant | None = None):
+        """``profile`` defaults to the device's; ``variant`` to the one its
+        probe chose (KernelBuildError when none passed)."""
         self.device = device
+        self.profile = profile = profile or device.profile
+        if variant is None:
+            from . import probe
+            found = probe.verdict(device, profile)
+            if found.chosen is None:
+                raise KernelBuildError(f"no kernel variant runs on {device}: {found.problem}")
+            for failed, reason in found.failures:
+                probe.warn_fallback(device, failed, reason, found.chosen)
+            variant = found.chosen
+        #: how every program of this runtime is compiled (hlbvh_cl.profile)
+        self.variant = variant
         self.context = cl.Context([device.cl_device])
         self.queue = cl.CommandQueue(self.context,
                                      properties=cl.command_queue_properties.PROFILING_ENABLE)
@@ -243,7 +270,7 @@ class Runtime:
         #: whether allocate() asks for 2 MiB pages (hlbvh_cl.hugepages): on
         #: PoCL's CPU device, where it measured faster; Intel's CPU runtime
         #: built fresh scenes slower with them (reference scene 0.37 -> 0.71 s)
-        self.huge_pages = device.type == "cpu" and device.id.startswith("pocl")
+        self.huge_pages = not profile.gpu and device.id.startswith("pocl")
         self._advice_queue: cl.CommandQueue | None = None  # see allocate
         self.pool = BufferPool(self.allocate)
 
@@ -273,15 +300,40 @@ class Runtime:
         key = (filename, name, tuple(sorted(defines.items())))
         kernel = self._kernels.get(key)
         if kernel is None:
-            kernel = getattr(self.program(filename, **defines), name)
+            try:
+                kernel = cl.Kernel(self.program(filename, **defines), name)
+            except cl.Error as error:  # e.g. a driver that built the program but cannot run it
+                raise KernelBuildError(f"{filename}: kernel {name} cannot be created on "
+                                       f"{self.device}: {error}") from None
             self._kernels[key] = kernel
         return kernel
+
+    def packet_variant(self, packet_size: int) -> Variant:
+        """This runtime's variant with ``packet_size`` rays per work-item if
+        its probe passes; else the next smaller packet that does (down to the
+        safest variant), with a one-line warning."""
+        from . import probe
+        from .profile import PACKET_SIZES, SAFEST
+        wanted = self.variant.with_packet(packet_size)
+        smaller = [self.variant.with_packet(p) for p in sorted(PACKET_SIZES, reverse=True)
+                   if p < packet_size]
+        reason = None
+        for variant in [wanted, *smaller, SAFEST]:
+            failed = None if variant == self.variant else probe.usable(self.device, self.profile,
+                                                                       variant)
+            if failed is None:
+                if variant != wanted:
+                    probe.warn_fallback(self.device, wanted, reason, variant)
+                return variant
+            reason = reason or failed
+        raise KernelBuildError(f"no kernel variant with at most {packet_size} rays per "
+                               f"work-item runs on {self.device}: {reason}")
 
     @property
     def prefetch_defines(self) -> dict:
         """PREFETCH=1 for kernels that ask for cache lines ahead with
-        __builtin_prefetch (CPU devices: their compilers are Clang-based)."""
-        return {"PREFETCH": 1} if self.device.type == "cpu" else {}
+        __builtin_prefetch (the CPU profile)."""
+        return {} if self.profile.gpu else {"PREFETCH": 1}
 
     @property
     def group_size(self) -> int:
@@ -306,6 +358,7 @@ class Runtime:
                                           (local_size, 1), wait_for=wait_for)
 
     def _build(self, filename: str, defines: dict) -> cl.Program:
+        defines = {**self.variant.defines, **defines}
         folder = kernel_dir()
         source = (folder / filename).read_text()
         options = ["-I", str(folder), "-cl-std=CL1.2"]
@@ -348,18 +401,29 @@ def _define_value(value) -> str:
     return str(value)
 
 
-_runtimes: dict[str, Runtime] = {}
+_runtimes: dict[tuple[str, str], Runtime] = {}
 _runtimes_lock = threading.Lock()
 
 
 def runtime(device=None) -> Runtime:
-    """The shared runtime of a device (selected as in :func:`select_device`)."""
+    """The shared runtime of a device (selected as in :func:`select_device`)
+    in its current profile."""
     chosen = select_device(device)
+    key = (chosen.id, chosen.profile.name)
     with _runtimes_lock:
-        rt = _runtimes.get(chosen.id)
+        rt = _runtimes.get(key)
         if rt is None:
             rt = Runtime(chosen)
-            _runtimes[chosen.id] = rt
+            _runtimes[key] = rt
+    return rt
+
+
+def install_runtime(device: Device, profile: Profile, variant: Variant) -> Runtime:
+    """A runtime with a fixed variant, shared as runtime(device) (the probe's
+    child runs its candidate this way)."""
+    rt = Runtime(device, profile, variant)
+    with _runtimes_lock:
+        _runtimes[(device.id, profile.name)] = rt
     return rt
 
 

@@ -1,7 +1,14 @@
 """Where the OpenCL sources live: inside the wheel, or beside the package in a checkout."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
+
+
+def cache_root() -> Path:
+    """hlbvh_cl's folder in the user's cache ($XDG_CACHE_HOME or ~/.cache)."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "hlbvh_cl"
 
 
 def kernel_dir() -> Path:

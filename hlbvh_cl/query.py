@@ -13,7 +13,6 @@ Conventions, shared with tests/oracle.py:
 """
 from __future__ import annotations
 
-import functools
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -24,6 +23,7 @@ import pyopencl as cl
 
 from . import layout
 from .device import Runtime
+from .profile import PACKET_SIZES
 from .results import ALIGNMENT as RESULT_ALIGNMENT
 from .results import ResultPool
 from .tree import DeviceTree
@@ -34,8 +34,6 @@ from .widen import WideTree, wide_tree
 #: enough that 1e7 rays cost per ray what 1e6 do (buffers stay ~128 MiB).
 MAX_RAYS_PER_LAUNCH = 1 << 22
 
-#: Rays per work-item the traversal kernels can be built for (PACKET_SIZE).
-PACKET_SIZES = (1, 8, 16)
 
 #: Stack sizes are rounded up to a multiple of this so that few program
 #: variants get compiled.
@@ -63,49 +61,11 @@ class Hits:
 
 
 def default_packet_size(rt: Runtime) -> int:
-    """Rays per work-item (kernels/traverse.cl's PACKET_SIZE).
-
-    CPUs trace consecutive rays as one packet in vector lanes, as many as one
-    of the device's native float vectors holds (CL_DEVICE_NATIVE_VECTOR_WIDTH_
-    FLOAT): 16 with AVX-512, else 8; a packet of two registers' width spills.
-    A CPU device runs on the host's cores, so an AVX-512 host (/proc/cpuinfo)
-    gets 16 whatever its runtime reports: the runtimes' reports on AVX-512
-    were not checked here, the speed-up of 16 there was.
-    Kernel times, A/B, camera rays:
-    - AVX-512 (AMD Zen 5), 2048x1536: 16 beat 8 by 1.28-1.38x on bunny and
-      Lucy and 1.03-1.07x on the reference scene.
-    - AVX2 (AMD EPYC, 8 floats), 2048x1536: 8 beat 16 by 1.5-2.2x on PoCL
-      (reference scene, bunny, Lucy) and 1.25x with Intel's CPU runtime on
-      the reference scene (on bunny and Lucy, Intel's ran 16 1.06-1.12x
-      faster).
-      On bench/trace.py's scaling series (1280x720, Lucy split from 2K to 3.6M
-      triangles) 8 beat 16 by 1.45-2.55x on PoCL, and on Intel's by 1.07-1.34x
-      from 100K triangles on, growing with the mesh (16 won at 2K, 1.23x).
-    Incoherent rays fall back to one ray at a time inside the kernel (packet
-    size within 4% either way).  Packets of 8 were 1.1x (PoCL) and 1.2x
-    (Intel) faster than one ray per work-item.  GPUs run one ray per
-    work-item: their SIMT lanes already trace neighbouring rays together.
-    """
-    if rt.device.type == "gpu":
-        return 1
-    on_host = rt.device.type == "cpu"  # an accelerator's lanes are its own
-    if rt.device.cl_device.native_vector_width_float >= 16 or (on_host and host_has_avx512()):
-        return 16
-    return 8
-
-
-@functools.cache
-def host_has_avx512() -> bool:
-    """Whether the host CPU has AVX-512F (Linux's /proc/cpuinfo; False where
-    there is no such file)."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("flags"):
-                    return "avx512f" in line.split()
-    except OSError:
-        pass
-    return False
+    """Rays per work-item (kernels/traverse.cl's PACKET_SIZE): the runtime's
+    kernel variant, which its probe chose (hlbvh_cl.profile, hlbvh_cl.probe):
+    on CPUs one native float vector of the compiler's real target, on GPUs
+    one ray (their SIMT lanes already trace neighbouring rays together)."""
+    return rt.variant.packet_size
 
 
 def _zero_copy(rt: Runtime) -> bool:
@@ -117,7 +77,8 @@ def _zero_copy(rt: Runtime) -> bool:
     occluded 41 -> 36 ms (interleaved A/B).  Intel's CPU runtime measured the
     other way (107 -> 136 ms and 37 -> 70 ms), and a GPU's memory is its own.
     """
-    return rt.device.id.startswith("pocl") and bool(rt.device.cl_device.host_unified_memory)
+    return (not rt.profile.gpu and rt.device.id.startswith("pocl")
+            and bool(rt.device.cl_device.host_unified_memory))
 
 
 def _outputs_in_place(rt: Runtime) -> bool:
@@ -131,7 +92,7 @@ def _outputs_in_place(rt: Runtime) -> bool:
     camera rays 58.8 -> 64.2 Mrays/s (bunny) and 36.0 -> 38.4 (reference
     scene), same results (A/B in one process).
     """
-    return rt.device.id.startswith("intel") and rt.device.type == "cpu"
+    return rt.device.id.startswith("intel") and not rt.profile.gpu
 
 
 def _work_group_size(rt: Runtime) -> int:
@@ -145,7 +106,7 @@ def _work_group_size(rt: Runtime) -> int:
     least a warp/wavefront.
     """
     d = rt.device
-    if d.type == "gpu":
+    if rt.profile.gpu:
         size = 64
     elif d.id.startswith("intel"):
         size = 8
@@ -176,8 +137,8 @@ class RayQuery:
     buffer per field, no packing on the host).  ``max_rays_per_launch`` caps
     the rays per kernel launch (bigger batches are split into chunks); by
     default it follows the device's memory limits.  ``packet_size`` is the
-    rays each work-item traces (PACKET_SIZES; by default 16 on CPUs and 1 on
-    GPUs): every size gives the same hits, ties aside.
+    rays each work-item traces (PACKET_SIZES; by default the runtime's kernel
+    variant's): every size gives the same hits, ties aside.
     """
 
     def __init__(self, rt: Runtime, max_rays_per_launch: int | None = None,
@@ -190,7 +151,10 @@ class RayQuery:
             raise TypeError(f"packet_size must be an int, got {type(packet_size).__name__}")
         elif packet_size not in PACKET_SIZES:
             raise ValueError(f"packet_size must be one of {PACKET_SIZES}, got {packet_size!r}")
-        self.packet_size = int(packet_size)
+        #: the variant traversal is compiled as (a requested packet size that
+        #: the device cannot run gives way to a smaller one, with a warning)
+        self.variant = rt.packet_variant(int(packet_size))
+        self.packet_size = self.variant.packet_size
         self.max_rays_per_launch = self._chunk_size(max_rays_per_launch)
         self._capacity = 0
         self._buffers: dict[str, cl.Buffer] = {}
@@ -304,7 +268,7 @@ class RayQuery:
         (the tree's wide form, made on first use)."""
         wide = wide_tree(self.rt, tree)
         defines = {"STACK_SIZE": _stack_size(tree, wide), "PACKET_SIZE": self.packet_size,
-                   **self.rt.prefetch_defines}
+                   **self.variant.defines, **self.rt.prefetch_defines}
         if count_packets:
             defines["COUNT_PACKETS"] = 1
         return self.rt.kernel("traverse.cl", name, **defines), wide.nodes

@@ -84,7 +84,7 @@ def build_top(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: RadixTre
     # build a round trip to the device (~0.1 ms on PoCL).  The parallel
     # levels stop where there are enough subtrees to fill the device with
     # work (about 64 clusters each).
-    serial_depth = _serial_depth(clusters, rt.device.compute_units, rt.device.type)
+    serial_depth = _serial_depth(clusters, rt.device.compute_units, rt.profile.gpu)
     task_counts = buf(serial_depth + 2)  # [L]: tasks queued for level L
     events.append(cl.enqueue_fill_buffer(q, task_counts, np.int32(0), 0, (serial_depth + 2) * 4,
                                          wait_for=events[-1:]))
@@ -107,10 +107,10 @@ def build_top(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: RadixTre
                    cluster_box, int(depth_and_root[0]), float(total[0])), events
 
 
-def _serial_depth(clusters: int, compute_units: int, device_type: str) -> int:
+def _serial_depth(clusters: int, compute_units: int, gpu: bool) -> int:
     """Levels built one launch each: until about 64 clusters per subtree, and
     no further than needed for 16 subtrees per compute unit (256 on GPUs)."""
-    per_unit = 256 if device_type == "gpu" else 16
+    per_unit = 256 if gpu else 16
     by_work = max(0, (clusters // 64).bit_length() - 1)
     by_width = max(1, (per_unit * compute_units).bit_length() - 1)
     return min(by_work, by_width)

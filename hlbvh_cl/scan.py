@@ -59,7 +59,7 @@ def _plan(rt: Runtime) -> _ScanPlan:
         plan = _plans.get(rt)
         if plan is None:
             d = rt.device
-            if d.type == "cpu":
+            if not rt.profile.gpu:
                 group_size = CPU_GROUP_SIZE
                 max_tiles = CPU_TILES_PER_COMPUTE_UNIT * d.compute_units
             else:

@@ -75,7 +75,7 @@ class RadixSorter:
         self.max_key_bits = 8 * self.key_dtype.itemsize
         self.group_size = self._choose_group_size()
         d = rt.device
-        per_cu = CPU_GROUPS_PER_COMPUTE_UNIT if d.type == "cpu" else GPU_GROUPS_PER_COMPUTE_UNIT
+        per_cu = GPU_GROUPS_PER_COMPUTE_UNIT if rt.profile.gpu else CPU_GROUPS_PER_COMPUTE_UNIT
         self.max_groups = max(1, per_cu * d.compute_units)
         # +1: exclusive_scan writes the total after the last entry.
         self._histogram = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE,
@@ -93,7 +93,7 @@ class RadixSorter:
         d = self.rt.device
         cl_device = d.cl_device
         per_item_bytes = 4 * self.radix
-        limit = min(CPU_GROUP_SIZE if d.type == "cpu" else GPU_GROUP_SIZE,
+        limit = min(GPU_GROUP_SIZE if self.rt.profile.gpu else CPU_GROUP_SIZE,
                     cl_device.max_work_group_size, cl_device.local_mem_size // per_item_bytes)
         if limit < 1:
             raise ValueError(f"radix_bits={self.radix_bits} needs {per_item_bytes} bytes of local "

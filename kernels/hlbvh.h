@@ -9,6 +9,22 @@
 #ifndef HLBVH_H
 #define HLBVH_H
 
+/* Compiler builtins are only ever a faster spelling of plain OpenCL C: each
+ * use asks HAS_BUILTIN(name) and keeps a portable fallback.  The host defines
+ * PLAIN_OPENCL for compilers that claim a builtin they cannot lower (Oclgrind
+ * accepts __builtin_ctz, then fails on llvm.cttz), and for its safest kernel
+ * variant (hlbvh_cl/probe.py). */
+#if defined(__has_builtin) && !defined(PLAIN_OPENCL)
+#define HAS_BUILTIN(name) __has_builtin(name)
+#else
+#define HAS_BUILTIN(name) 0
+#endif
+
+/* PREFETCH (set by the host for CPU devices) asks for __builtin_prefetch. */
+#if defined(PREFETCH) && !HAS_BUILTIN(__builtin_prefetch)
+#undef PREFETCH
+#endif
+
 /* HLBVH clusters are the runs of primitives that share the top CLUSTER_BITS
  * bits of their Morton code.  pbrt-v3's HLBVHBuild uses 12; 21 (7 per axis)
  * puts the SAH deep enough to lower the SAH cost of the Stanford meshes to

@@ -61,11 +61,14 @@ inline int is_left_child(__global const morton_t *keys, int n, int first, int la
     return (uint)(last ^ (last + 1)) < (uint)((first - 1) ^ first);
 }
 
-/* Loads that must see another work-item's writes made before its atomic. */
+/* Loads that must see another work-item's writes made before its atomic.
+ * Each corner through a pointer to its own array: indexing past lo[2] into
+ * hi reads beyond a declared array, even though it stays in the struct. */
 inline Aabb load_box_volatile(__global const Aabb *boxes, int index)
 {
-    volatile __global const float *p = (volatile __global const float *)(boxes + index);
-    Aabb box = {{p[0], p[1], p[2]}, {p[3], p[4], p[5]}};
+    volatile __global const float *lo = (volatile __global const float *)boxes[index].lo;
+    volatile __global const float *hi = (volatile __global const float *)boxes[index].hi;
+    Aabb box = {{lo[0], lo[1], lo[2]}, {hi[0], hi[1], hi[2]}};
     return box;
 }
 

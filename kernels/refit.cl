@@ -7,21 +7,26 @@
  */
 #include "hlbvh.h"
 
+/* The boxes of the two functions below come back through a pointer, not as
+ * a return value: a returned struct is written through a noalias (sret)
+ * pointer, and inlining such a function leaves calls to
+ * llvm.experimental.noalias.scope.decl, which Oclgrind cannot run. */
+
 /* Re-read the triangles [first, first + count) of a leaf from the (moved)
  * vertices through their vertex ids (stored in leaf order by the build, so
  * that a refit reads them in sequence rather than chasing the faces), store
- * them, and return their box. */
-inline Aabb regather_leaf(__global const float *vertices, __global const int *vertex_ids,
-                          __global Triangle *triangles, int first, uint count)
+ * them, and set *box to their box. */
+inline void regather_leaf(__global const float *vertices, __global const int *vertex_ids,
+                          __global Triangle *triangles, int first, uint count, Aabb *box)
 {
-    Aabb box = aabb_empty();
+    Aabb leaf = aabb_empty();
     for (int j = first; j < first + (int)count; ++j) {
         float3 a, b, c;
         load_triangle(vertices, vertex_ids, j, &a, &b, &c);
         store_triangle(triangles, j, a, b, c);
-        box = aabb_union(box, aabb_of_points(a, b, c));
+        leaf = aabb_union(leaf, aabb_of_points(a, b, c));
     }
-    return box;
+    *box = leaf;
 }
 
 inline int is_interior_slot(int index, uint count)
@@ -55,12 +60,12 @@ inline void store_slot(__global FlatNode *nodes, int i, int right_slot, Aabb box
     }
 }
 
-inline Aabb load_slot_volatile(__global const FlatNode *node, int right_slot)
+inline void load_slot_volatile(__global const FlatNode *node, int right_slot, Aabb *box)
 {
     volatile __global const float *lo = right_slot ? node->right_lo : node->left_lo;
     volatile __global const float *hi = right_slot ? node->right_hi : node->left_hi;
-    Aabb box = {{lo[0], lo[1], lo[2]}, {hi[0], hi[1], hi[2]}};
-    return box;
+    Aabb slot = {{lo[0], lo[1], lo[2]}, {hi[0], hi[1], hi[2]}};
+    *box = slot;
 }
 
 /* Refit of the flat tree (and of its wide copy) after vertices moved: a walk
@@ -84,12 +89,15 @@ __kernel void refit_flat_tree(__global FlatNode *nodes, __global const int *pare
         __global FlatNode *node = nodes + i;
         int left = node->left, right = node->right;
         uint left_count = node->left_count, right_count = node->right_count;
-        Aabb left_box = left_count > 0 ? regather_leaf(vertices, vertex_ids, triangles, left,
-                                                       left_count)
-                                       : load_slot_volatile(node, 0);
-        Aabb right_box = right_count > 0 ? regather_leaf(vertices, vertex_ids, triangles, right,
-                                                         right_count)
-                                         : load_slot_volatile(node, 1);
+        Aabb left_box, right_box;
+        if (left_count > 0)
+            regather_leaf(vertices, vertex_ids, triangles, left, left_count, &left_box);
+        else
+            load_slot_volatile(node, 0, &left_box);
+        if (right_count > 0)
+            regather_leaf(vertices, vertex_ids, triangles, right, right_count, &right_box);
+        else
+            load_slot_volatile(node, 1, &right_box);
         if (left_count > 0)
             store_slot(nodes, i, 0, left_box, wide, lane_of_slot);
         if (right_count > 0)

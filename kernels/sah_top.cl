@@ -137,11 +137,14 @@ inline float4 areas_of(float4 d0, float4 d1, float4 d2)
     return select((float4)(0.0f), 2.0f * (dx * dy + dy * dz + dz * dx), valid);
 }
 
-/* The bin of a record's centre on each axis (.xyz). */
+/* The bin of a record's centre on each axis (.xyz).  The bounds are int4s:
+ * the spec's clamp(int4, int, int) means the same, but Oclgrind 19.10 fills
+ * only lane x from scalar bounds and leaves lanes y..w garbage (bins out of
+ * the arrays below). */
 inline int4 bins_of(ClusterRecord r, float4 lo, float4 inv_extent, int bins)
 {
     float4 center = 0.5f * (r.lo + r.hi);
-    return clamp(convert_int4((center - lo) * inv_extent), 0, bins - 1);
+    return clamp(convert_int4((center - lo) * inv_extent), (int4)(0), (int4)(bins - 1));
 }
 
 inline int lane(int4 v, int axis)

@@ -72,15 +72,30 @@ typedef int4 int_lanes;
  * than vload8, which PoCL 3.0 calls out of line (see GROW_LO in hlbvh.h). */
 #define LOAD_ROW(type, row) (*(__global const type*)(row))
 
+/* The plane row (lo_x, hi_x, lo_y, hi_y, lo_z or hi_z) that starts `offset`
+ * bytes into a node: the row's own array, addressed from the node's first
+ * byte as offsetof would, so that a read stays within it (an offset in
+ * floats from lo_x would index lo_x past its end). */
+TRAVERSAL_INLINE __global const float* plane_row(__global const WideNode* node, int offset)
+{
+    return (__global const float*)((__global const uchar*)node + offset);
+}
+
+/* The byte offsets of a node's lo rows on each axis (WideNode's rows are
+ * lo_x, hi_x, lo_y, hi_y, lo_z, hi_z, ...); an axis's other row is at
+ * offset ^ ROW_BYTES. */
+#define ROW_BYTES (WIDE_ARITY * 4)
+#define LO_X_ROW (0 * ROW_BYTES)
+#define LO_Y_ROW (2 * ROW_BYTES)
+#define LO_Z_ROW (4 * ROW_BYTES)
+
 /* Sign bit and absolute value by their bits, for the same reason. */
 #define SIGN_BIT(x) (as_uint(x) >> 31)
 #define ABS_FLOAT(x) as_float(as_uint(x) & 0x7fffffffu)
 
 /* sqrt as one instruction where the compiler is a Clang (PoCL calls sqrt). */
-#if defined(__has_builtin)
-#if __has_builtin(__builtin_sqrtf)
+#if HAS_BUILTIN(__builtin_sqrtf)
 #define SQUARE_ROOT __builtin_sqrtf
-#endif
 #endif
 #ifndef SQUARE_ROOT
 #define SQUARE_ROOT sqrt
@@ -103,14 +118,19 @@ typedef struct {
     int kx, ky, kz;
     float sx, sy, sz;
     float okx, oky, okz;        /* origin, permuted */
-    /* Offsets (in floats) into a WideNode of the planes through which the ray
+    /* Byte offsets (plane_row) of the rows of planes through which the ray
      * enters the children's boxes on each axis: the lo planes where the
      * inverse direction is positive, the hi planes where its sign bit is set
-     * (Williams et al. 2005).  The exit planes are at offset ^ WIDE_ARITY. */
+     * (Williams et al. 2005).  The exit planes are at offset ^ ROW_BYTES. */
     int near_x, near_y, near_z;
 } RayData;
 
-TRAVERSAL_INLINE RayData prepare_ray(float3 origin, float3 direction, float tmin, float tmax)
+/* The helpers that fill a RayData or a Hit write it through a pointer rather
+ * than return it: a returned struct goes through a noalias (sret) pointer,
+ * and inlining that leaves llvm.experimental.noalias.scope.decl calls,
+ * which Oclgrind cannot run. */
+TRAVERSAL_INLINE void prepare_ray(RayData* ray, float3 origin, float3 direction, float tmin,
+                                  float tmax)
 {
     RayData r;
     float d[3] = {direction.x, direction.y, direction.z};
@@ -141,10 +161,10 @@ TRAVERSAL_INLINE RayData prepare_ray(float3 origin, float3 direction, float tmin
     r.okx = o[r.kx];
     r.oky = o[r.ky];
     r.okz = o[r.kz];
-    r.near_x = 0 * WIDE_ARITY + (SIGN_BIT(r.inv_x) ? WIDE_ARITY : 0);
-    r.near_y = 2 * WIDE_ARITY + (SIGN_BIT(r.inv_y) ? WIDE_ARITY : 0);
-    r.near_z = 4 * WIDE_ARITY + (SIGN_BIT(r.inv_z) ? WIDE_ARITY : 0);
-    return r;
+    r.near_x = LO_X_ROW + (SIGN_BIT(r.inv_x) ? ROW_BYTES : 0);
+    r.near_y = LO_Y_ROW + (SIGN_BIT(r.inv_y) ? ROW_BYTES : 0);
+    r.near_z = LO_Z_ROW + (SIGN_BIT(r.inv_z) ? ROW_BYTES : 0);
+    *ray = r;
 }
 
 /* The rays one work-item traces, one lane each (PACKET_SIZE of them), as
@@ -170,12 +190,11 @@ TRAVERSAL_INLINE void set_lane(RayLanes* lanes, uint l, float3 origin, float3 di
     lanes->tmax[l] = tmax;
 }
 
-TRAVERSAL_INLINE RayData prepare_lane(const RayLanes* lanes, uint l)
+TRAVERSAL_INLINE void prepare_lane(RayData* ray, const RayLanes* lanes, uint l)
 {
-    return prepare_ray((float3)(lanes->origin[0][l], lanes->origin[1][l], lanes->origin[2][l]),
-                       (float3)(lanes->direction[0][l], lanes->direction[1][l],
-                                lanes->direction[2][l]),
-                       lanes->tmin[l], lanes->tmax[l]);
+    prepare_ray(ray, (float3)(lanes->origin[0][l], lanes->origin[1][l], lanes->origin[2][l]),
+                (float3)(lanes->direction[0][l], lanes->direction[1][l], lanes->direction[2][l]),
+                lanes->tmin[l], lanes->tmax[l]);
 }
 
 /* The closing step of a slab test, one lane per child: the entry is the
@@ -210,25 +229,22 @@ TRAVERSAL_INLINE int_lanes slabs_meet(float_lanes near_x, float_lanes near_y,
 TRAVERSAL_INLINE int_lanes hit_children(const RayData* r, __global const WideNode* node,
                                         float limit, float_lanes* entry)
 {
-    __global const float* planes = (__global const float*)node;
-    float_lanes near_x = (LOAD_ROW(float_lanes, planes + r->near_x) - r->ox) * r->inv_x;
-    float_lanes near_y = (LOAD_ROW(float_lanes, planes + r->near_y) - r->oy) * r->inv_y;
-    float_lanes near_z = (LOAD_ROW(float_lanes, planes + r->near_z) - r->oz) * r->inv_z;
-    float_lanes far_x = (LOAD_ROW(float_lanes, planes + (r->near_x ^ WIDE_ARITY)) - r->ox)
+    float_lanes near_x = (LOAD_ROW(float_lanes, plane_row(node, r->near_x)) - r->ox) * r->inv_x;
+    float_lanes near_y = (LOAD_ROW(float_lanes, plane_row(node, r->near_y)) - r->oy) * r->inv_y;
+    float_lanes near_z = (LOAD_ROW(float_lanes, plane_row(node, r->near_z)) - r->oz) * r->inv_z;
+    float_lanes far_x = (LOAD_ROW(float_lanes, plane_row(node, r->near_x ^ ROW_BYTES)) - r->ox)
                           * r->inv_x;
-    float_lanes far_y = (LOAD_ROW(float_lanes, planes + (r->near_y ^ WIDE_ARITY)) - r->oy)
+    float_lanes far_y = (LOAD_ROW(float_lanes, plane_row(node, r->near_y ^ ROW_BYTES)) - r->oy)
                           * r->inv_y;
-    float_lanes far_z = (LOAD_ROW(float_lanes, planes + (r->near_z ^ WIDE_ARITY)) - r->oz)
+    float_lanes far_z = (LOAD_ROW(float_lanes, plane_row(node, r->near_z ^ ROW_BYTES)) - r->oz)
                           * r->inv_z;
     return slabs_meet(near_x, near_y, near_z, far_x, far_y, far_z, r->tmin, limit, entry);
 }
 
 /* x86's sign-bit mask of 8 floats (vmovmskps), where the OpenCL compiler is
  * a Clang that exposes it (PoCL's CPU device; Intel's CPU runtime does not). */
-#if defined(__has_builtin)
-#if __has_builtin(__builtin_ia32_movmskps256)
+#if HAS_BUILTIN(__builtin_ia32_movmskps256)
 #define HAVE_MOVMSKPS256
-#endif
 #endif
 
 /* The lanes set in `hit` (-1) as a bit mask: bit c for child c.  One
@@ -251,12 +267,19 @@ TRAVERSAL_INLINE uint lane_mask(int_lanes hit)
 #endif
 }
 
-/* The lowest set bit's position; mask != 0.  One tzcnt where the compiler
- * is a Clang (else clz, which is OpenCL 1.2; ctz is 2.0). */
-#if defined(__has_builtin)
-#if __has_builtin(__builtin_ctz) && __has_builtin(__builtin_popcount)
+/* The lowest set bit's position (mask != 0) and the number of set bits of a
+ * child mask: one tzcnt / popcnt where the compiler is a Clang, else plain
+ * arithmetic (ctz is OpenCL 2.0, and Oclgrind cannot run popcount()). */
+#if HAS_BUILTIN(__builtin_ctz) && HAS_BUILTIN(__builtin_popcount)
 #define HAVE_BIT_BUILTINS
 #endif
+
+/* Whether a non-zero mask has one bit set.  LLVM turns the classic test
+ * into llvm.ctpop, which Oclgrind cannot run, hence the plain spelling. */
+#ifdef PLAIN_OPENCL
+#define ONE_BIT(mask) (bit_count(mask) == 1)
+#else
+#define ONE_BIT(mask) (((mask) & ((mask) - 1u)) == 0)
 #endif
 
 TRAVERSAL_INLINE int lowest_slot(uint mask)
@@ -273,7 +296,12 @@ TRAVERSAL_INLINE int bit_count(uint mask)
 #ifdef HAVE_BIT_BUILTINS
     return __builtin_popcount(mask);
 #else
-    return (int)popcount(mask);
+    /* Masks hold WIDE_ARITY <= 8 bits: two nibbles, each counted by a
+     * lookup in a 64-bit constant (a form LLVM does not turn back into
+     * llvm.ctpop, which Oclgrind cannot run). */
+    const ulong nibble_bits = 0x4332322132212110ul;
+    return (int)(((nibble_bits >> (4u * (mask & 15u))) & 15u)
+                 + ((nibble_bits >> (4u * ((mask >> 4) & 15u))) & 15u));
 #endif
 }
 
@@ -486,7 +514,7 @@ TRAVERSAL_INLINE int next_item(__global const WideNode* n, uint mask,
         return STACK_FULL;
     if (mask == 0) {
         prefetch_child(n, near, nodes, triangles);
-    } else if ((mask & (mask - 1u)) == 0) {
+    } else if (ONE_BIT(mask)) {
         /* two: push the farther */
         int far = lowest_slot(mask);
         prefetch_child(n, near, nodes, triangles);
@@ -734,14 +762,17 @@ TRAVERSAL_INLINE bool prepare_packet(const RayLanes* in, Packet* p)
     float_packet ax = as_float_packet(as_int_packet(d[0]) & magnitude),
                  ay = as_float_packet(as_int_packet(d[1]) & magnitude),
                  az = as_float_packet(as_int_packet(d[2]) & magnitude);
-    int_packet kz = (ax >= ay) & (ax >= az) ? (int_packet)(0)
-                                            : (ay >= az ? (int_packet)(1) : (int_packet)(2));
+    /* Each lane's kz, as prepare_ray picks it, held in floats: LLVM makes
+     * ?: between integer constants a zext of the compare lanes, which
+     * Oclgrind gets wrong (its vector compares give -1 per true lane). */
+    float_packet kz = ((ax >= ay) & (ax >= az)) ? (float_packet)(0.0f)
+                      : (ay >= az ? (float_packet)(1.0f) : (float_packet)(2.0f));
     int_packet neg_x = as_int_packet(d[0]) < 0, neg_y = as_int_packet(d[1]) < 0,
                neg_z = as_int_packet(d[2]) < 0;
-    if (packet_any((kz != (int_packet)(kz.s0)) | (neg_x != (int_packet)(neg_x.s0))
+    if (packet_any((kz != (float_packet)(kz.s0)) | (neg_x != (int_packet)(neg_x.s0))
             | (neg_y != (int_packet)(neg_y.s0)) | (neg_z != (int_packet)(neg_z.s0))))
         return false;
-    p->kz = kz.s0;
+    p->kz = (int)kz.s0;
     p->kx = p->kz == 2 ? 0 : p->kz + 1;
     p->ky = p->kx == 2 ? 0 : p->kx + 1;
     p->ox = o[0];
@@ -759,9 +790,9 @@ TRAVERSAL_INLINE bool prepare_packet(const RayLanes* in, Packet* p)
     p->okx = o[p->kx];
     p->oky = o[p->ky];
     p->okz = o[p->kz];
-    p->near_x = 0 * WIDE_ARITY + (neg_x.s0 ? WIDE_ARITY : 0);
-    p->near_y = 2 * WIDE_ARITY + (neg_y.s0 ? WIDE_ARITY : 0);
-    p->near_z = 4 * WIDE_ARITY + (neg_z.s0 ? WIDE_ARITY : 0);
+    p->near_x = LO_X_ROW + (neg_x.s0 ? ROW_BYTES : 0);
+    p->near_y = LO_Y_ROW + (neg_y.s0 ? ROW_BYTES : 0);
+    p->near_z = LO_Z_ROW + (neg_z.s0 ? ROW_BYTES : 0);
     p->inv_lo_x = packet_min(p->inv_x);
     p->inv_lo_y = packet_min(p->inv_y);
     p->inv_lo_z = packet_min(p->inv_z);
@@ -810,35 +841,34 @@ TRAVERSAL_INLINE float_lanes exit_bound(float_lanes offset, float inv_lo, float 
 TRAVERSAL_INLINE uint hit_children_interval(const Packet* p, __global const WideNode* node,
                                             float reach)
 {
-    __global const float* planes = (__global const float*)node;
-    float_lanes near_x = entry_bound(LOAD_ROW(float_lanes, planes + p->near_x) - p->near_ox,
-                                     p->inv_lo_x, p->inv_hi_x);
-    float_lanes near_y = entry_bound(LOAD_ROW(float_lanes, planes + p->near_y) - p->near_oy,
-                                     p->inv_lo_y, p->inv_hi_y);
-    float_lanes near_z = entry_bound(LOAD_ROW(float_lanes, planes + p->near_z) - p->near_oz,
-                                     p->inv_lo_z, p->inv_hi_z);
-    float_lanes far_x = exit_bound(LOAD_ROW(float_lanes, planes + (p->near_x ^ WIDE_ARITY))
+    float_lanes near_x = entry_bound(LOAD_ROW(float_lanes, plane_row(node, p->near_x))
+                                     - p->near_ox, p->inv_lo_x, p->inv_hi_x);
+    float_lanes near_y = entry_bound(LOAD_ROW(float_lanes, plane_row(node, p->near_y))
+                                     - p->near_oy, p->inv_lo_y, p->inv_hi_y);
+    float_lanes near_z = entry_bound(LOAD_ROW(float_lanes, plane_row(node, p->near_z))
+                                     - p->near_oz, p->inv_lo_z, p->inv_hi_z);
+    float_lanes far_x = exit_bound(LOAD_ROW(float_lanes, plane_row(node, p->near_x ^ ROW_BYTES))
                                    - p->far_ox, p->inv_lo_x, p->inv_hi_x);
-    float_lanes far_y = exit_bound(LOAD_ROW(float_lanes, planes + (p->near_y ^ WIDE_ARITY))
+    float_lanes far_y = exit_bound(LOAD_ROW(float_lanes, plane_row(node, p->near_y ^ ROW_BYTES))
                                    - p->far_oy, p->inv_lo_y, p->inv_hi_y);
-    float_lanes far_z = exit_bound(LOAD_ROW(float_lanes, planes + (p->near_z ^ WIDE_ARITY))
+    float_lanes far_z = exit_bound(LOAD_ROW(float_lanes, plane_row(node, p->near_z ^ ROW_BYTES))
                                    - p->far_oz, p->inv_lo_z, p->inv_hi_z);
     float_lanes entry;
     return lane_mask(slabs_meet(near_x, near_y, near_z, far_x, far_y, far_z, p->tmin_lo, reach,
                                 &entry));
 }
 
-/* hit_children's slab test of child c of a node (its planes) for every lane:
- * which lanes meet its box within their limit, and where they enter it. */
-TRAVERSAL_INLINE int_packet hit_child_packet(const Packet* p, __global const float* planes, int c,
+/* hit_children's slab test of child c of a node for every lane: which lanes
+ * meet its box within their limit, and where they enter it. */
+TRAVERSAL_INLINE int_packet hit_child_packet(const Packet* p, __global const WideNode* node, int c,
                                              float_packet limit, float_packet* t_entry)
 {
-    float_packet near_x = (planes[p->near_x + c] - p->ox) * p->inv_x;
-    float_packet near_y = (planes[p->near_y + c] - p->oy) * p->inv_y;
-    float_packet near_z = (planes[p->near_z + c] - p->oz) * p->inv_z;
-    float_packet far_x = (planes[(p->near_x ^ WIDE_ARITY) + c] - p->ox) * p->inv_x;
-    float_packet far_y = (planes[(p->near_y ^ WIDE_ARITY) + c] - p->oy) * p->inv_y;
-    float_packet far_z = (planes[(p->near_z ^ WIDE_ARITY) + c] - p->oz) * p->inv_z;
+    float_packet near_x = (plane_row(node, p->near_x)[c] - p->ox) * p->inv_x;
+    float_packet near_y = (plane_row(node, p->near_y)[c] - p->oy) * p->inv_y;
+    float_packet near_z = (plane_row(node, p->near_z)[c] - p->oz) * p->inv_z;
+    float_packet far_x = (plane_row(node, p->near_x ^ ROW_BYTES)[c] - p->ox) * p->inv_x;
+    float_packet far_y = (plane_row(node, p->near_y ^ ROW_BYTES)[c] - p->oy) * p->inv_y;
+    float_packet far_z = (plane_row(node, p->near_z ^ ROW_BYTES)[c] - p->oz) * p->inv_z;
     *t_entry = GROW_HI(GROW_HI(GROW_HI(p->tmin, near_x), near_y), near_z);
     float_packet t_exit = GROW_LO(GROW_LO(GROW_LO((float_packet)(INFINITY), far_x), far_y), far_z)
                           * EXIT_SCALE;
@@ -875,13 +905,19 @@ TRAVERSAL_INLINE int_packet hit_triangle_packet(const Packet* p, __global const 
         e_w = on_edge ? convert_float_packet(dbx * day - dby * dax) : e_w;
     }
 #endif
-    int_packet outside = ((e_u < 0.0f) | (e_v < 0.0f) | (e_w < 0.0f))
-                         & ((e_u > 0.0f) | (e_v > 0.0f) | (e_w > 0.0f));
+    /* hit_triangle's test that the three do not straddle 0, written as the
+     * lanes where all three are >= 0 or all are <= 0.  It differs from
+     * ~outside only in a lane with a NaN, whose t is then NaN and fails the
+     * test of t below.  (~outside became an xor of the compare lanes with an i1
+     * true vector, which Oclgrind gets wrong: its vector compares give -1
+     * per true lane.) */
+    int_packet inside = ((e_u >= 0.0f) & (e_v >= 0.0f) & (e_w >= 0.0f))
+                        | ((e_u <= 0.0f) & (e_v <= 0.0f) & (e_w <= 0.0f));
     float_packet det = e_u + e_v + e_w;
     float_packet t_scaled = e_u * (p->sz * az) + e_v * (p->sz * bz) + e_w * (p->sz * cz);
     float_packet inv_det = 1.0f / det;
     float_packet t = t_scaled * inv_det;
-    int_packet hit = ~outside & (det != 0.0f) & (t >= p->tmin)
+    int_packet hit = inside & (det != 0.0f) & (t >= p->tmin)
                      & (strict ? t < limit : t <= limit);
     if (!packet_any(hit))
         return hit;
@@ -948,7 +984,6 @@ TRAVERSAL_INLINE int_packet traverse_packet(const Packet* p, __global const Wide
     while (!done) {
         while (!done && count == 0) {
             __global const WideNode* n = nodes + index;
-            __global const float* planes = (__global const float*)n;
             /* Lanes of children no lane meets stay +inf: push_sorted compares
              * whole vectors (and masks them). */
             ChildEntries entry = {(float_lanes)(INFINITY)};
@@ -956,7 +991,7 @@ TRAVERSAL_INLINE int_packet traverse_packet(const Packet* p, __global const Wide
             for (uint rest = hit_children_interval(p, n, reach); rest != 0; rest &= rest - 1u) {
                 int c = lowest_slot(rest);
                 float_packet t_entry;
-                int_packet hit = hit_child_packet(p, planes, c, limit, &t_entry);
+                int_packet hit = hit_child_packet(p, n, c, limit, &t_entry);
                 if (packet_any(hit)) {
                     entry.slot[c] = packet_min(hit ? t_entry : (float_packet)(INFINITY));
                     mask |= 1u << c;
@@ -1013,9 +1048,9 @@ TRAVERSAL_INLINE float3 unit_normal(__global const Triangle* tri)
 
 /* One ray's closest hit as a Hit record (a miss: t = INFINITY, ids -1, the
  * rest 0) from the tree-order index of the triangle hit (-1: none). */
-TRAVERSAL_INLINE Hit make_hit(int index, float t, float u, float v,
-                              __global const Triangle* triangles,
-                              __global const TriangleRef* refs)
+TRAVERSAL_INLINE void make_hit(Hit* out, int index, float t, float u, float v,
+                               __global const Triangle* triangles,
+                               __global const TriangleRef* refs)
 {
     bool found = index >= 0;
     Hit hit;
@@ -1028,7 +1063,7 @@ TRAVERSAL_INLINE Hit make_hit(int index, float t, float u, float v,
     hit.normal[0] = normal.x;
     hit.normal[1] = normal.y;
     hit.normal[2] = normal.z;
-    return hit;
+    *out = hit;
 }
 
 /* The two queries for the rays lanes[0, used), shared by the record kernels
@@ -1060,7 +1095,7 @@ TRAVERSAL_INLINE void closest_hits(const RayLanes* lanes, uint used,
         vstore_packet(u, 0, u_lanes);
         vstore_packet(v, 0, v_lanes);
         for (uint l = 0; l < used; ++l)
-            hits[l] = make_hit(index[l], t_lanes[l], u_lanes[l], v_lanes[l], triangles, refs);
+            make_hit(hits + l, index[l], t_lanes[l], u_lanes[l], v_lanes[l], triangles, refs);
         if (out_of_stack)
             overflow[0] = 1;
         return;
@@ -1073,7 +1108,8 @@ TRAVERSAL_INLINE void closest_hits(const RayLanes* lanes, uint used,
     float t[PACKET_SIZE], u[PACKET_SIZE], v[PACKET_SIZE];
     for (uint l = 0; l < used; ++l) {
         bool lane_out_of_stack;
-        RayData r = prepare_lane(lanes, l);
+        RayData r;
+        prepare_lane(&r, lanes, l);
         t[l] = INFINITY;
         u[l] = v[l] = 0.0f;
         index[l] = traverse(&r, nodes, triangles, refs, false, t + l, u + l, v + l,
@@ -1081,7 +1117,7 @@ TRAVERSAL_INLINE void closest_hits(const RayLanes* lanes, uint used,
         out_of_stack |= lane_out_of_stack;
     }
     for (uint l = 0; l < used; ++l)
-        hits[l] = make_hit(index[l], t[l], u[l], v[l], triangles, refs);
+        make_hit(hits + l, index[l], t[l], u[l], v[l], triangles, refs);
     if (out_of_stack)
         overflow[0] = 1;
 }
@@ -1111,7 +1147,8 @@ TRAVERSAL_INLINE void any_hits(const RayLanes* lanes, uint used, __global const 
     for (uint l = 0; l < used; ++l) {
         float t, u, v;
         bool lane_out_of_stack;
-        RayData r = prepare_lane(lanes, l);
+        RayData r;
+        prepare_lane(&r, lanes, l);
         int index = traverse(&r, nodes, triangles, 0, true, &t, &u, &v, &lane_out_of_stack);
         occluded[l] = index >= 0 ? 1 : 0;
         out_of_stack |= lane_out_of_stack;

@@ -39,14 +39,6 @@ def test_selection_by_id_index_substring_and_environment(monkeypatch):
         select_device()
 
 
-def test_automatic_choice_prefers_a_working_gpu_then_cpu(monkeypatch):
-    monkeypatch.delenv("HLBVH_CL_DEVICE", raising=False)
-    chosen = select_device()
-    working = [d for d in hlbvh_cl.devices() if d.problem is None]
-    gpus = [d for d in working if d.type == "gpu"]
-    assert chosen == (gpus[0] if gpus else [d for d in working if d.type == "cpu"][0])
-
-
 def test_bad_device_arguments():
     with pytest.raises(ValueError, match="out of range"):
         select_device(999)

@@ -6,13 +6,11 @@ tests use rays that do form packets, and check that they do.
 """
 from __future__ import annotations
 
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 import hlbvh_cl
-from hlbvh_cl import query as query_module
 from hlbvh_cl.query import PACKET_SIZES, RayQuery
 from test_query import MESHES, assert_matches_oracle, random_rays, scene_case
 from test_watertight import _interior_points, _unique_edges
@@ -155,23 +153,6 @@ def test_packet_size_is_checked():
     for wrong in (True, 8.0, "8"):
         with pytest.raises(TypeError, match="packet_size"):
             RayQuery(case.scene.runtime, packet_size=wrong)
-
-
-@pytest.mark.parametrize("device_type, float_width, avx512, expected",
-                         [("gpu", 16, True, 1), ("cpu", 4, False, 8), ("cpu", 8, False, 8),
-                          ("cpu", 16, False, 16), ("cpu", 8, True, 16),
-                          ("accelerator", 8, True, 8)])
-def test_default_packet_size_is_one_native_float_vector(monkeypatch, device_type, float_width,
-                                                        avx512, expected):
-    monkeypatch.setattr(query_module, "host_has_avx512", lambda: avx512)
-    device = SimpleNamespace(type=device_type,
-                             cl_device=SimpleNamespace(native_vector_width_float=float_width))
-    assert query_module.default_packet_size(SimpleNamespace(device=device)) == expected
-
-
-def test_host_has_avx512_reads_the_cpu_flags():
-    flags = next((line.split() for line in open("/proc/cpuinfo") if line.startswith("flags")), [])
-    assert query_module.host_has_avx512() == ("avx512f" in flags)
 
 
 @pytest.mark.parametrize("zero", [0.0, -0.0], ids=["+0", "-0"])

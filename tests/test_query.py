@@ -73,9 +73,10 @@ MESH_MAKERS = {
 class SceneCase:
     """A Scene plus the concatenated arrays the oracle needs."""
 
-    def __init__(self, meshes, builder: str = "hlbvh"):
+    def __init__(self, meshes, builder: str = "hlbvh", morton_bits: int = 30, scene=None):
+        """``scene``: one already built over ``meshes`` (else built here)."""
         self.meshes = meshes
-        self.scene = hlbvh_cl.Scene(meshes, builder=builder)
+        self.scene = scene or hlbvh_cl.Scene(meshes, builder=builder, morton_bits=morton_bits)
         self.vertices = np.concatenate([m.vertices for m in meshes]).astype(np.float64)
         offsets = np.cumsum([0] + [m.vertex_count for m in meshes])
         self.faces = np.concatenate([m.faces + off for m, off in zip(meshes, offsets)])
@@ -512,6 +513,37 @@ def test_in_place_queries_take_any_array_layout():
     rows = np.ascontiguousarray(origins[:750])
     overlapping = in_place.intersect(case.scene.tree, rows[:500], rows[250:])
     assert_matches_oracle(case, overlapping, rows[:500].copy(), rows[250:].copy())
+
+
+def morton_chain_mesh(duplicates: int = 16384) -> hlbvh_cl.Mesh:
+    """Small triangles whose 63-bit Morton codes are 1 << j for j = 0..62 (one
+    coordinate bit set each), many more at code 0 and one at the far corner:
+    the Karras tree is a chain that splits off one triangle per bit, and the
+    LBVH is deeper than 64."""
+    centres = [np.eye(3)[axis] * 2.0 ** (a - 21) for a in range(21) for axis in range(3)]
+    centres = np.array(centres + [np.zeros(3)] * duplicates + [np.ones(3)])
+    sizes = 1e-3 * np.maximum(np.abs(centres).max(axis=1), 2.0 ** -21)[:, None, None]
+    corners = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]]) - [1 / 3, 1 / 3, 0]
+    vertices = (centres[:, None, :] + sizes * corners).reshape(-1, 3)
+    return hlbvh_cl.Mesh(vertices, np.arange(len(vertices)).reshape(-1, 3), name="chain")
+
+
+@pytest.mark.parametrize("packet_size", [1, 8, 16])
+def test_a_tree_deeper_than_64_traces_within_its_stack(packet_size):
+    """Every profile sizes its private stack from the tree's depth: a built
+    tree of depth > 64 neither overflows nor loses a hit."""
+    case = _scene_cache.setdefault("chain", SceneCase([morton_chain_mesh()], "lbvh", 63))
+    assert case.scene.stats["depth"] > 64
+    centres = case.vertices[case.faces].mean(axis=1)
+    chain = centres[:63]  # one ray down onto each triangle of the chain, then some at random
+    rng = np.random.default_rng(5)
+    origins = np.concatenate([chain + [0, 0, 1], rng.uniform(0, 1, (200, 3)) + [0, 0, 1]])
+    directions = np.concatenate([np.tile([0.0, 0, -1], (63, 1)), rng.normal(size=(200, 3))])
+    q = RayQuery(case.scene.runtime, packet_size=packet_size)
+    hits = q.intersect(case.scene.tree, origins, directions)  # raises if the stack overflows
+    assert hits.hit[:63].all()
+    assert_matches_oracle(case, hits, origins, directions)
+    np.testing.assert_array_equal(q.occluded(case.scene.tree, origins, directions), hits.hit)
 
 
 @pytest.mark.parametrize("packet_size", [1, 8])

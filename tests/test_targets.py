@@ -1,0 +1,55 @@
+"""The correctness tests on every other working device and profile.
+
+The rest of the suite runs on one target (conftest: PoCL, its own profile).
+Each case here runs the correctness modules again in a child pytest on one
+more target: every other device whose kernels run (Intel's CPU runtime, a GPU
+where there is one), and the GPU profile forced on PoCL, so that the path a
+GPU takes (one ray per work-item, GPU work-group sizes, device copies) is
+tested where there is no GPU.  The simulator has its own tier
+(test_oclgrind.py).
+"""
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import hlbvh_cl
+
+#: Modules that check results against an oracle or invariants.
+CORRECTNESS = ["test_query.py", "test_oracle.py", "test_embree.py", "test_watertight.py",
+               "test_packets.py", "test_build.py", "test_radix_tree.py", "test_split.py",
+               "test_sort.py", "test_scan.py", "test_widen.py", "test_render.py", "test_layout.py"]
+
+HERE = Path(__file__).resolve().parent
+
+
+def _targets() -> list[tuple[str, str]]:
+    """(device id, profile) pairs besides the suite's own."""
+    if os.environ.get("HLBVH_CL_TARGET_CHILD"):
+        return []  # already inside one of these runs
+    main = hlbvh_cl.device.select_device()
+    found = []
+    for d in hlbvh_cl.devices():
+        if d.simulator or d.problem is not None:
+            continue
+        if d.id != main.id:
+            found.append((d.id, d.profile.name))
+        if d.type == "cpu" and d.id == main.id:
+            found.append((d.id, "gpu"))
+    return found
+
+
+@pytest.mark.parametrize("device, profile", _targets())
+def test_correctness_suite_on(device, profile):
+    env = {**os.environ, "HLBVH_CL_DEVICE": device, "HLBVH_CL_PROFILE": profile,
+           "HLBVH_CL_TARGET_CHILD": "1"}
+    command = [sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider",
+               *(str(HERE / name) for name in CORRECTNESS)]
+    done = subprocess.run(command, env=env, capture_output=True, text=True, cwd=HERE.parent,
+                          stdin=subprocess.DEVNULL)
+    summary = done.stdout.strip().splitlines()[-1:] or ["no output"]
+    print(f"{device} ({profile} profile): {summary[0]}")
+    assert done.returncode == 0, f"{device} with the {profile} profile:\n{done.stdout[-6000:]}" \
+                                 f"\n{done.stderr[-2000:]}"
