@@ -18,7 +18,7 @@ from pathlib import Path
 import pyopencl as cl
 
 from . import Camera, Light, Scene, devices
-from .device import DeviceMemoryError, KernelBuildError, select_device
+from .device import DeviceMemoryError, KernelBuildError, select_device, unregistered
 from .render import AO_SAMPLES, MAX_AO_SAMPLES, MAX_IMAGE_SIDE, MAX_SPP, SHADINGS
 
 #: Image formats the render command writes (through imageio).
@@ -48,6 +48,8 @@ def _cmd_devices(args) -> int:
     for d in found:
         print(f"{d.id:10s} {d.type:4s} {d.name} [{d.platform}, driver {d.driver_version}, "
               f"{d.compute_units} compute units, profile {d.profile.name}] {_device_state(d)}")
+    for note in unregistered:
+        print(f"not registered: {note}")
     usable = [d for d in found if d.skipped_because is None]
     print(f"default: {select_device().id if usable else 'none (no device runs the kernels)'}")
     if args.require:

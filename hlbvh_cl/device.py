@@ -10,14 +10,27 @@ import ctypes
 import os
 import sys
 import threading
+import warnings
+from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import TimeoutError as FuturesTimeout
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+import pyopencl as cl
+
+from .hugepages import advise_huge_pages
 from .paths import cache_root, kernel_dir
+from .pool import BufferPool
 from .profile import Profile, Variant, profile_name
 
 _INSTALL_HINT = ("install an OpenCL driver; the portable CPU one comes from PyPI: "
                  "pip install pocl-binary-distribution  (or: pip install 'pyopencl[pocl]')")
+
+
+#: Runtimes found installed but not made visible to the ICD loader, and why
+#: (shown by devices()'s warning, `hlbvh-cl devices` and selection errors).
+unregistered: list[str] = []
 
 
 def _register_intel_cpu_runtime() -> None:
@@ -26,13 +39,21 @@ def _register_intel_cpu_runtime() -> None:
     Its wheel ships an .icd file pointing at a build machine's path, so the ICD
     loader never finds it.  We write a vendors folder holding a correct .icd
     plus copies of the system's own .icd files (so GPUs stay visible) and point
-    OCL_ICD_VENDORS at it.  This must run before pyopencl lists platforms.  A
-    user's own OCL_ICD_VENDORS always wins.
+    OCL_ICD_VENDORS at it.  Runs the first time devices are listed (the ICD
+    loader reads the variable then); a user's own OCL_ICD_VENDORS always
+    wins.  A runtime that cannot be registered is named in ``unregistered``.
     """
-    if "OCL_ICD_VENDORS" in os.environ:
-        return
     lib = Path(sys.prefix) / "lib" / "libintelocl.so"
     if not lib.is_file():
+        return
+    what = f"Intel's CPU runtime ({lib})"
+    user_folder = os.environ.get("OCL_ICD_VENDORS")
+    if user_folder is not None:
+        listed = Path(user_folder)
+        icds = list(listed.glob("*.icd")) if listed.is_dir() else []
+        if not any(str(lib) in icd.read_text(errors="replace") for icd in icds):
+            unregistered.append(f"{what}: OCL_ICD_VENDORS={user_folder} is set and holds no "
+                                f".icd file naming it; add one whose one line is {lib}")
         return
     folder = cache_root() / "icd"
     try:
@@ -49,18 +70,11 @@ def _register_intel_cpu_runtime() -> None:
         # libintelocl.so finds libimf & co. through its RUNPATH ($ORIGIN);
         # loading it here is a cheap check that the runtime is complete.
         ctypes.CDLL(str(lib.parent / "libimf.so"), mode=ctypes.RTLD_GLOBAL)
-    except OSError:
+    except OSError as error:
+        unregistered.append(f"{what} could not be registered: {error}")
         return
     os.environ["OCL_ICD_VENDORS"] = str(folder)
 
-
-_register_intel_cpu_runtime()
-
-import numpy as np  # noqa: E402
-import pyopencl as cl  # noqa: E402  (after the ICD set-up above)
-
-from .hugepages import advise_huge_pages  # noqa: E402  (imports pyopencl too)
-from .pool import BufferPool  # noqa: E402
 
 _VENDORS = (
     ("portable computing language", "pocl"), ("intel", "intel"), ("nvidia", "nvidia"),
@@ -149,6 +163,7 @@ def devices() -> list[Device]:
     """Every OpenCL device present, in platform order."""
     global _devices_cache
     if _devices_cache is None:
+        _register_intel_cpu_runtime()
         try:
             platforms = cl.get_platforms()
         except cl.Error:
@@ -169,6 +184,12 @@ def devices() -> list[Device]:
                     name=d.name.strip(), type=_type_name(d.type), driver_version=d.driver_version,
                     compute_units=d.max_compute_units, global_mem_size=d.global_mem_size,
                     max_mem_alloc_size=d.max_mem_alloc_size, cl_device=d))
+        if "OCL_ICD_VENDORS" in os.environ and (Path(sys.prefix) / "lib" / "libintelocl.so").is_file() \
+                and not unregistered and not any(d.id.startswith("intel") for d in found):
+            unregistered.append("Intel's CPU runtime was registered but the ICD loader did not "
+                                "list it (libintelocl.so or a library it needs failed to load)")
+        for note in unregistered:
+            warnings.warn(f"hlbvh_cl: {note}", RuntimeWarning, stacklevel=2)
         _devices_cache = found
     return list(_devices_cache)
 
@@ -193,7 +214,9 @@ def _match(spec, available: list[Device], source: str) -> Device:
     matches = [d for d in available
                if text and (text in d.id or text in d.name.lower() or text in d.platform.lower())]
     if not matches:
-        raise ValueError(f"{source}={spec!r} matches no OpenCL device; present: {listing}")
+        missing = "".join(f"; not registered: {note}" for note in unregistered)
+        raise ValueError(f"{source}={spec!r} matches no OpenCL device; present: {listing}"
+                         f"{missing}")
     if len(matches) == 1:
         return matches[0]
     # A name may match several devices (PyPI's and Debian's PoCL): take the
@@ -265,6 +288,8 @@ class Runtime:
         self._programs: dict[tuple, cl.Program] = {}
         self._kernels: dict[tuple, cl.Kernel] = {}
         self._lock = threading.Lock()
+        self._launch_lock = threading.Lock()
+        self._waiter: ThreadPoolExecutor | None = None  # see wait()
         self.build_lock = threading.RLock()  # builds share the pool and the sorter
         #: device buffers the build stages take and recycle (hlbvh_cl.pool)
         #: whether allocate() asks for 2 MiB pages (hlbvh_cl.hugepages): on
@@ -348,14 +373,43 @@ class Runtime:
         whole work-groups, and every kernel checks its own bound.  Python
         ints and floats become int32 and float32 arguments."""
         local_size = local_size or self.group_size
-        kernel.set_args(*(_kernel_arg(a) for a in args))
+        values = [_kernel_arg(a) for a in args]
         columns, rows = work_items if isinstance(work_items, tuple) else (work_items, None)
         size = max(1, -(-columns // local_size)) * local_size
-        if rows is None:
-            return cl.enqueue_nd_range_kernel(self.queue, kernel, (size,), (local_size,),
+        global_size, group = ((size,), (local_size,)) if rows is None else \
+            ((size, max(1, rows)), (local_size, 1))
+        # Kernel objects are shared by every scene and thread of this runtime:
+        # setting the arguments and enqueueing must not interleave.
+        with self._launch_lock:
+            kernel.set_args(*values)
+            return cl.enqueue_nd_range_kernel(self.queue, kernel, global_size, group,
                                               wait_for=wait_for)
-        return cl.enqueue_nd_range_kernel(self.queue, kernel, (size, max(1, rows)),
-                                          (local_size, 1), wait_for=wait_for)
+
+    def wait(self, events) -> None:
+        """Waits for ``events`` so that Ctrl-C still raises at once.
+
+        cl.wait_for_events blocks in C, where Python cannot raise
+        KeyboardInterrupt, so a thread of this runtime's blocks there and this
+        one waits on its future, which a signal interrupts.  Blocking (not
+        polling) matters: a CPU runtime may run work on the waiting thread
+        (Intel's does), and polling would leave it a core short."""
+        events = [event for event in events if event is not None]
+        if not events:
+            return
+        if self.device.simulator:
+            # Oclgrind's uninitialised-value check crashed (19.10) when
+            # another thread than the caller waited on its kernels.
+            cl.wait_for_events(events)
+            return
+        if self._waiter is None:
+            self._waiter = ThreadPoolExecutor(max_workers=1,
+                                              thread_name_prefix=f"hlbvh_cl-wait-{self.device.id}")
+        done = self._waiter.submit(cl.wait_for_events, events)
+        while True:
+            try:
+                return done.result(timeout=0.25)
+            except FuturesTimeout:
+                continue
 
     def _build(self, filename: str, defines: dict) -> cl.Program:
         defines = {**self.variant.defines, **defines}

@@ -30,9 +30,10 @@ from .tree import DeviceTree
 from .widen import WideTree, wide_tree
 
 
-#: Rays per kernel launch at most: large enough to fill any device, small
-#: enough that 1e7 rays cost per ray what 1e6 do (buffers stay ~128 MiB).
-MAX_RAYS_PER_LAUNCH = 1 << 22
+#: Rays per kernel launch at most: enough to fill any device, few enough that
+#: a launch ends soon, so that Ctrl-C (which waits for the launches in
+#: flight, at most two) is answered within a second.
+MAX_RAYS_PER_LAUNCH = 1 << 20
 
 
 #: Stack sizes are rounded up to a multiple of this so that few program
@@ -318,8 +319,9 @@ class RayQuery:
             try:
                 self._run_locked(count, origins, directions, tmin, tmax, launch, outputs)
             except BaseException:
-                # Kernels of earlier chunks may still write into the caller's
-                # arrays (zero copy): let them finish before anyone reuses them.
+                # Ctrl-C, or an error: the launches in flight (at most two)
+                # may still write into the caller's arrays (zero copy) and the
+                # shared buffers; let them end before anyone reuses those.
                 self.rt.queue.finish()
                 raise
 
@@ -342,6 +344,8 @@ class RayQuery:
         # non-blocking copies wait when they are dropped: keep them.)
         events, transfers = [], []
         for start in range(0, count, chunk):
+            if len(events) >= 2:  # at most two launches in flight: Ctrl-C waits for few
+                self.rt.wait(events[-2:-1])
             part = slice(start, min(start + chunk, count))
             if self.zero_copy:
                 buffers = {name: self._wrap(array[part], cl.mem_flags.READ_ONLY)
@@ -370,7 +374,7 @@ class RayQuery:
                     transfers.append(cl.enqueue_copy(queue, array[part], buffers[name],
                                                      is_blocking=False))
         counters = np.zeros(2, np.int32)
-        cl.enqueue_copy(queue, counters, self._counters, is_blocking=True)
+        self.rt.wait([cl.enqueue_copy(queue, counters, self._counters, is_blocking=False)])
         self.last_kernel_ms = sum((e.profile.end - e.profile.start) * 1e-6 for e in events)
         self.last_packets = int(counters[1]) if self.count_packets else None
         if counters[0]:

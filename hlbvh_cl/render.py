@@ -395,7 +395,13 @@ class Renderer:
     def render(self, tree: DeviceTree, settings: RenderSettings, colors: np.ndarray, light: Light,
                progress: bool = False) -> np.ndarray:
         with self._lock:  # the buffers are shared
-            return self._render(tree, settings, colors, light, progress)
+            try:
+                return self._render(tree, settings, colors, light, progress)
+            except BaseException:
+                # Ctrl-C: the steps in flight (at most two) end before the
+                # buffers serve another render.
+                self.rt.queue.finish()
+                raise
 
     def _kernels(self, settings: RenderSettings) -> dict:
         defines = {"SHADING": f"SHADING_{settings.shading.upper()}",
@@ -435,6 +441,16 @@ class Renderer:
                                         "encode")}
         chunks = range(0, height, rows)
         bar = _progress_bar(progress, len(chunks) * settings.spp * (1 + secondary_passes))
+        steps: list[cl.Event] = []
+
+        def step_done(event: cl.Event) -> None:
+            """At most two steps (a pass's rays of one kind) in flight, so that
+            Ctrl-C, which waits for them, is answered soon; the bar advances."""
+            steps.append(event)
+            if len(steps) > 2:
+                rt.wait(steps[-3:-2])
+            _advance(bar, rt, event)
+
         with bar:
             for row in chunks:
                 first_row, pass_rows = np.uint32(row), np.uint32(min(rows, height - row))
@@ -452,7 +468,7 @@ class Renderer:
                     events["shade"].append(rt.run(
                         kernels["shade_hits"], count, b.primary, b.hits, albedo, params, n, s,
                         b.secondary, b.pending, b.accum))
-                    _advance(bar, events["shade"][-1])
+                    step_done(events["shade"][-1])
                     for k in range(secondary_passes):
                         if shading == "ao":
                             events["shade"].append(rt.run(
@@ -463,13 +479,13 @@ class Renderer:
                             tree, b.secondary, b.occluded, count, self._overflow))
                         events["resolve"].append(rt.run(
                             kernels["add_unoccluded"], count, b.occluded, b.pending, n, b.accum))
-                        _advance(bar, events["resolve"][-1])
+                        step_done(events["resolve"][-1])
                 events["encode"].append(rt.run(
                     kernels["encode_image"], tile_range, b.accum, np.uint32(width), first_row,
                     pass_rows, np.float32(1.0 / settings.spp), b.image))
-        cl.enqueue_copy(queue, image, b.image, is_blocking=True)
         overflow = np.zeros(1, np.int32)
-        cl.enqueue_copy(queue, overflow, self._overflow, is_blocking=True)
+        rt.wait([cl.enqueue_copy(queue, image, b.image, is_blocking=False),
+                 cl.enqueue_copy(queue, overflow, self._overflow, is_blocking=False)])
         if overflow[0]:
             raise RuntimeError("ray traversal overflowed its stack: the tree is deeper than "
                                "its depth field says")
@@ -492,7 +508,7 @@ def _progress_bar(enabled: bool, total: int):
                 leave=False, disable=not enabled)
 
 
-def _advance(bar, event: cl.Event) -> None:
+def _advance(bar, rt: Runtime, event: cl.Event) -> None:
     if not bar.disable:  # waiting costs a sync per pass: only with a visible bar
-        event.wait()
+        rt.wait([event])
         bar.update(1)

@@ -2,6 +2,7 @@
 users call (construct, update_vertices/rebuild, intersect/occluded, render)."""
 from __future__ import annotations
 
+import threading
 import time
 import weakref
 from collections.abc import Sequence
@@ -49,6 +50,11 @@ class Scene:
     default render.PALETTE, cycled) and ``light`` a hlbvh_cl.Light (by
     default direction (1, 2, 1), intensity 1, ambient 0.15); both may be
     reassigned at any time.
+
+    Every method may be called from any thread: each takes the scene's lock,
+    so concurrent calls run in some serial order and no call sees a tree
+    that a rebuild or refit has half made.  Scenes on one device share its
+    queue, in order, and its kernels (Runtime.run).
     """
 
     def __init__(self, meshes, device=None, builder: str = "hlbvh", morton_bits: int = 30):
@@ -58,6 +64,7 @@ class Scene:
         key_dtype(morton_bits)
         self.builder = builder
         self.morton_bits = morton_bits
+        self._lock = threading.RLock()
         self.runtime = runtime(device)
         vertex_counts = [m.vertex_count for m in self.meshes]
         face_counts = [m.triangle_count for m in self.meshes]
@@ -83,7 +90,8 @@ class Scene:
 
     @property
     def tree(self):
-        return self._build.tree
+        with self._lock:
+            return self._build.tree
 
     @property
     def stats(self) -> dict:
@@ -93,10 +101,11 @@ class Scene:
         traversal reads), their total, and the host's wall time.  After
         update_vertices, sah_cost is recomputed from the refit boxes and
         update_ms holds the refit's times (both trees)."""
-        if self._sah_stale:
-            self._build.stats["sah_cost"] = self.tree.sah_cost(self.runtime.queue)
-            self._sah_stale = False
-        return self._build.stats
+        with self._lock:
+            if self._sah_stale:
+                self._build.stats["sah_cost"] = self.tree.sah_cost(self.runtime.queue)
+                self._sah_stale = False
+            return self._build.stats
 
     def rebuild(self) -> None:
         """Build the tree from scratch over the current vertex positions.
@@ -107,7 +116,7 @@ class Scene:
         (hlbvh_cl.pool); a DeviceTree taken from ``scene.tree`` before is
         invalid after."""
         rt = self.runtime
-        with rt.build_lock:
+        with self._lock, rt.build_lock:
             old, self._build = getattr(self, "_build", None), None
             if old is not None:
                 old.tree.release(rt.pool)
@@ -139,27 +148,30 @@ class Scene:
         moved = Mesh(positions, old.faces, name=old.name)
         rt = self.runtime
         started = time.perf_counter()
-        with rt.build_lock:  # not while a build on this runtime uses the pool
+        with self._lock, rt.build_lock:  # not while a build on this runtime uses the pool
             upload = cl.enqueue_copy(rt.queue, self._geometry.vertices, moved.vertices,
                                      dst_offset=int(self._vertex_offsets[geom_id]) * 12,
                                      is_blocking=False)
             events = refit_flat_tree(rt, self.tree, self._geometry.vertices, wait_for=[upload])
             self.meshes[geom_id] = moved
             root = _read_root(rt.queue, self.tree.nodes, events)
-        lo = np.minimum(root["left_lo"], root["right_lo"])
-        hi = np.maximum(root["left_hi"], root["right_hi"])
-        self.tree.bounds_lo, self.tree.bounds_hi = lo, hi
-        self._sah_stale = True
-        self._build.stats["update_ms"] = {"upload": event_ms([upload]), "refit": event_ms(events),
-                                   "wall": (time.perf_counter() - started) * 1e3}
+            lo = np.minimum(root["left_lo"], root["right_lo"])
+            hi = np.maximum(root["left_hi"], root["right_hi"])
+            self.tree.bounds_lo, self.tree.bounds_hi = lo, hi
+            self._sah_stale = True
+            self._build.stats["update_ms"] = {"upload": event_ms([upload]),
+                                              "refit": event_ms(events),
+                                              "wall": (time.perf_counter() - started) * 1e3}
 
     def intersect(self, origins, directions, tmin=0.0, tmax=np.inf):
         """Closest hit of each ray: a Hits with t, prim_id, geom_id, u, v, normal."""
-        return self._ray_query().intersect(self.tree, origins, directions, tmin, tmax)
+        with self._lock:
+            return self._ray_query().intersect(self.tree, origins, directions, tmin, tmax)
 
     def occluded(self, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
         """Whether each ray hits anything in [tmin, tmax] (any-hit, stops early)."""
-        return self._ray_query().occluded(self.tree, origins, directions, tmin, tmax)
+        with self._lock:
+            return self._ray_query().occluded(self.tree, origins, directions, tmin, tmax)
 
     def render(self, camera, width: int, height: int, shading: str = "diffuse",
                shadows: bool = True, spp: int = 1, ao_samples: int = AO_SAMPLES,
@@ -174,9 +186,10 @@ class Scene:
                                         ao_samples, ao_distance)
         colors = check_colors(self.colors, len(self.meshes))
         light = check_light(self.light)
-        if self._renderer is None:
-            self._renderer = Renderer(self.runtime)  # its own queries and buffers
-        return self._renderer.render(self.tree, settings, colors, light, progress=progress)
+        with self._lock:
+            if self._renderer is None:
+                self._renderer = Renderer(self.runtime)  # its own queries and buffers
+            return self._renderer.render(self.tree, settings, colors, light, progress=progress)
 
     @property
     def render_stats(self) -> dict:

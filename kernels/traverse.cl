@@ -110,6 +110,9 @@ TRAVERSAL_INLINE __global const float* plane_row(__global const WideNode* node, 
 /* Everything about a ray that traversal reuses at each node and triangle. */
 typedef struct {
     float ox, oy, oz;           /* origin */
+#ifdef cl_khr_fp64
+    float dx, dy, dz;           /* direction, for refine_t */
+#endif
     float inv_x, inv_y, inv_z;  /* 1/direction; +-INFINITY for a +-0 component */
     float tmin, tmax;
     /* Woop et al. 2013: the axis of largest |direction| becomes z
@@ -137,6 +140,11 @@ TRAVERSAL_INLINE void prepare_ray(RayData* ray, float3 origin, float3 direction,
     r.ox = origin.x;
     r.oy = origin.y;
     r.oz = origin.z;
+#ifdef cl_khr_fp64
+    r.dx = d[0];
+    r.dy = d[1];
+    r.dz = d[2];
+#endif
     /* IEEE division: 1/+0 = +inf, 1/-0 = -inf, which the slab test relies on. */
     r.inv_x = 1.0f / d[0];
     r.inv_y = 1.0f / d[1];
@@ -316,6 +324,50 @@ TRAVERSAL_INLINE void geometric_normal(__global const Triangle* tri, float* nx, 
     *nz = e1x * e2y - e1y * e2x;
 }
 
+#ifdef cl_khr_fp64
+/* Woop's t = (e_u*Az + e_v*Bz + e_w*Cz)/det is float arithmetic on the
+ * sheared vertices: when the triangle is large compared with the hit
+ * distance, Az, Bz, Cz are large and nearly cancel, and t loses most of its
+ * relative precision (a triangle 1e5 across hit at distance 1).  So once
+ * the edge test says inside, t is recomputed as dot(v0 - o, n) / dot(d, n)
+ * in double: with float inputs v1 - v0, v2 - v0 and v0 - o are exact and
+ * only the plane's own rounding (~1e-16 relative) is left.  The edge test
+ * still decides inside/outside (watertightness).  refine_t and the packet
+ * path evaluate the same expressions in the same order (no contraction,
+ * FP_CONTRACT OFF above), so single rays and packets give identical t. */
+#define REFINE_NUM(vx, vy, vz, ox, oy, oz, nx, ny, nz) \
+    ((((vx) - (ox)) * (nx) + ((vy) - (oy)) * (ny)) + ((vz) - (oz)) * (nz))
+#define REFINE_DEN(dx, dy, dz, nx, ny, nz) (((dx) * (nx) + (dy) * (ny)) + (dz) * (nz))
+
+/* The triangle's first vertex and its plane's normal cross(v1 - v0, v2 - v0)
+ * in double, for refine_t and its packet form. */
+TRAVERSAL_INLINE void plane_double(__global const Triangle* tri, double* v0, double* n)
+{
+    v0[0] = tri->v0[0];
+    v0[1] = tri->v0[1];
+    v0[2] = tri->v0[2];
+    double e1x = (double)tri->v1[0] - v0[0], e1y = (double)tri->v1[1] - v0[1],
+           e1z = (double)tri->v1[2] - v0[2];
+    double e2x = (double)tri->v2[0] - v0[0], e2y = (double)tri->v2[1] - v0[1],
+           e2z = (double)tri->v2[2] - v0[2];
+    n[0] = e1y * e2z - e1z * e2y;
+    n[1] = e1z * e2x - e1x * e2z;
+    n[2] = e1x * e2y - e1y * e2x;
+}
+
+TRAVERSAL_INLINE float refine_t(const RayData* r, __global const Triangle* tri)
+{
+    double v0[3], n[3];
+    plane_double(tri, v0, n);
+    double num = REFINE_NUM(v0[0], v0[1], v0[2], (double)r->ox, (double)r->oy, (double)r->oz,
+                            n[0], n[1], n[2]);
+    double den = REFINE_DEN((double)r->dx, (double)r->dy, (double)r->dz, n[0], n[1], n[2]);
+    /* den == 0 (zero area, or parallel in double) gives inf or NaN, which
+     * the caller rejects. */
+    return (float)(num / den);
+}
+#endif
+
 /* Watertight ray/triangle test: Woop, Benthin & Wald 2013, "Watertight
  * Ray/Triangle Intersection" (JCGT 2(1)), without back-face culling.
  * On a hit with tmin <= t <= limit (t < limit when `strict`), writes t, u, v. */
@@ -354,11 +406,14 @@ TRAVERSAL_INLINE bool hit_triangle(const RayData* r, __global const Triangle* tr
     float det = e_u + e_v + e_w;
     if (det == 0.0f)
         return false;
-    float t_scaled = e_u * (r->sz * az) + e_v * (r->sz * bz) + e_w * (r->sz * cz);
     float inv_det = 1.0f / det;
-    float t = t_scaled * inv_det;
-    /* Written so that a NaN t fails. */
-    if (!(t >= r->tmin && (strict ? t < limit : t <= limit)))
+#ifdef cl_khr_fp64
+    float t = refine_t(r, tri);
+#else
+    float t = (e_u * (r->sz * az) + e_v * (r->sz * bz) + e_w * (r->sz * cz)) * inv_det;
+#endif
+    /* Written so that a NaN t fails; an infinite t (tmax = inf) too. */
+    if (!(t >= r->tmin && ABS_FLOAT(t) < INFINITY && (strict ? t < limit : t <= limit)))
         return false;
     /* A zero-area triangle can still give det != 0 after rounding the shear;
      * never report it (its normal is undefined).  Only accepted hits pay. */
@@ -367,8 +422,10 @@ TRAVERSAL_INLINE bool hit_triangle(const RayData* r, __global const Triangle* tr
     if (nx == 0.0f && ny == 0.0f && nz == 0.0f)
         return false;
     *t_out = t;
-    *u_out = e_v * inv_det;
-    *v_out = e_w * inv_det;
+    /* e_v / det rounds to at most 1 + ulp, and to NaN when det overflows or
+     * underflows: clamp (fmax maps NaN to 0) so u, v stay in [0, 1]. */
+    *u_out = fmin(fmax(e_v * inv_det, 0.0f), 1.0f);
+    *v_out = fmin(fmax(e_w * inv_det, 0.0f), 1.0f);
     return true;
 }
 
@@ -668,6 +725,9 @@ typedef double8 double_packet;
  * shares kept scalar. */
 typedef struct {
     float_packet ox, oy, oz;
+#ifdef cl_khr_fp64
+    float_packet dx, dy, dz;  /* direction, for refine_t */
+#endif
     float_packet inv_x, inv_y, inv_z;
     float_packet tmin, tmax;
     float_packet sx, sy, sz;
@@ -778,6 +838,11 @@ TRAVERSAL_INLINE bool prepare_packet(const RayLanes* in, Packet* p)
     p->ox = o[0];
     p->oy = o[1];
     p->oz = o[2];
+#ifdef cl_khr_fp64
+    p->dx = d[0];
+    p->dy = d[1];
+    p->dz = d[2];
+#endif
     p->inv_x = 1.0f / d[0];
     p->inv_y = 1.0f / d[1];
     p->inv_z = 1.0f / d[2];
@@ -914,11 +979,32 @@ TRAVERSAL_INLINE int_packet hit_triangle_packet(const Packet* p, __global const 
     int_packet inside = ((e_u >= 0.0f) & (e_v >= 0.0f) & (e_w >= 0.0f))
                         | ((e_u <= 0.0f) & (e_v <= 0.0f) & (e_w <= 0.0f));
     float_packet det = e_u + e_v + e_w;
-    float_packet t_scaled = e_u * (p->sz * az) + e_v * (p->sz * bz) + e_w * (p->sz * cz);
     float_packet inv_det = 1.0f / det;
-    float_packet t = t_scaled * inv_det;
-    int_packet hit = inside & (det != 0.0f) & (t >= p->tmin)
-                     & (strict ? t < limit : t <= limit);
+#ifdef cl_khr_fp64
+    /* refine_t per lane (see there), only when some lane is inside. */
+    int_packet hit = inside & (det != 0.0f);
+    if (!packet_any(hit))
+        return hit;
+    float_packet t;
+    {
+        double v0[3], n[3];
+        plane_double(tri, v0, n);
+        double_packet num = REFINE_NUM((double_packet)(v0[0]), (double_packet)(v0[1]),
+                                       (double_packet)(v0[2]), convert_double_packet(p->ox),
+                                       convert_double_packet(p->oy),
+                                       convert_double_packet(p->oz), n[0], n[1], n[2]);
+        double_packet den = REFINE_DEN(convert_double_packet(p->dx), convert_double_packet(p->dy),
+                                       convert_double_packet(p->dz), n[0], n[1], n[2]);
+        t = convert_float_packet(num / den);
+    }
+#else
+    int_packet hit;
+    float_packet t = (e_u * (p->sz * az) + e_v * (p->sz * bz) + e_w * (p->sz * cz)) * inv_det;
+#endif
+    /* As hit_triangle: NaN and infinite t fail. */
+    int_packet finite = as_int_packet(t) & (int_packet)(0x7fffffff);
+    hit = inside & (det != 0.0f) & (t >= p->tmin) & (finite < (int_packet)(0x7f800000))
+          & (strict ? t < limit : t <= limit);
     if (!packet_any(hit))
         return hit;
     float nx, ny, nz;
@@ -926,8 +1012,8 @@ TRAVERSAL_INLINE int_packet hit_triangle_packet(const Packet* p, __global const 
     if (nx == 0.0f && ny == 0.0f && nz == 0.0f)
         return (int_packet)(0);
     *t_out = t;
-    *u_out = e_v * inv_det;
-    *v_out = e_w * inv_det;
+    *u_out = fmin(fmax(e_v * inv_det, (float_packet)(0.0f)), (float_packet)(1.0f));
+    *v_out = fmin(fmax(e_w * inv_det, (float_packet)(0.0f)), (float_packet)(1.0f));
     return hit;
 }
 

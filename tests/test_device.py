@@ -77,3 +77,38 @@ def test_compile_error_shows_the_build_log(tmp_path, monkeypatch):
     with pytest.raises(KernelBuildError, match="broken.cl failed to build") as info:
         rt.program("broken.cl")
     assert "nope" in str(info.value)  # the compiler's own message is in the log
+
+
+@pytest.mark.skipif(not (Path(sys.prefix) / "lib" / "libintelocl.so").is_file(),
+                    reason="intel-opencl-rt is not installed")
+def test_a_runtime_that_cannot_be_registered_says_why(tmp_path):
+    """A user's OCL_ICD_VENDORS folder without Intel's .icd hides the runtime:
+    devices() warns and the error for device='intel' names the reason."""
+    import subprocess
+    child = ("import warnings, hlbvh_cl\n"
+             "from hlbvh_cl.device import select_device\n"
+             "with warnings.catch_warnings(record=True) as caught:\n"
+             "    warnings.simplefilter('always')\n"
+             "    hlbvh_cl.devices()\n"
+             "print([str(w.message) for w in caught])\n"
+             "try:\n"
+             "    select_device('intel')\n"
+             "except ValueError as error:\n"
+             "    print(error)\n")
+    env = {**os.environ, "OCL_ICD_VENDORS": str(tmp_path)}
+    env.pop("HLBVH_CL_DEVICE", None)
+    done = subprocess.run([sys.executable, "-c", child], env=env, capture_output=True, text=True,
+                          timeout=120)
+    warned, error = done.stdout.strip().splitlines()[-2:]
+    assert "Intel's CPU runtime" in warned and f"OCL_ICD_VENDORS={tmp_path}" in warned
+    assert "matches no OpenCL device" in error and "not registered: Intel's CPU runtime" in error
+
+
+def test_importing_changes_nothing_outside_the_package():
+    import subprocess
+    child = ("import os; before = dict(os.environ); import pyopencl; before = dict(os.environ)\n"
+             "import hlbvh_cl; print(dict(os.environ) == before)")
+    env = {k: v for k, v in os.environ.items() if k != "OCL_ICD_VENDORS"}
+    done = subprocess.run([sys.executable, "-c", child], env=env, capture_output=True, text=True,
+                          timeout=120)
+    assert done.stdout.strip() == "True", done.stderr

@@ -1,0 +1,109 @@
+"""Thread safety: any mix of queries, renders, refits and rebuilds from many
+threads, on one Scene or several Scenes of one device, gives what some serial
+order of the same calls gives, bit for bit."""
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+import hlbvh_cl
+from shapes import grid_mesh
+
+MESHES = "scenes/meshes"
+SECONDS = 20.0
+
+
+def _rays(scene, count, seed):
+    rng = np.random.default_rng(seed)
+    lo, hi = scene.tree.bounds_lo, scene.tree.bounds_hi
+    centre, size = (lo + hi) / 2, float(np.max(hi - lo))
+    origins = centre + rng.normal(size=(count, 3)) * size
+    targets = centre + rng.normal(size=(count, 3)) * size * 0.2
+    return origins.astype(np.float32), (targets - origins).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def scenes():
+    from pathlib import Path
+    root = Path(__file__).resolve().parent.parent / MESHES
+    bunny = hlbvh_cl.Mesh.load(root / "bunny_small.ply")
+    teapot = hlbvh_cl.Mesh.load(root / "teapot.ply")
+    return [hlbvh_cl.Scene([bunny, grid_mesh(3)]), hlbvh_cl.Scene([teapot])]
+
+
+def _calls(scene, k):
+    """The calls the threads make on a scene, each with a fixed input."""
+    origins, directions = _rays(scene, 20000, k)
+    lo, hi = scene.tree.bounds_lo, scene.tree.bounds_hi
+    eye = (lo + hi) / 2 + (hi - lo) * [0.2, 0.9, 1.4]
+    camera = hlbvh_cl.Camera(eye, (lo + hi) / 2)
+    return {
+        "intersect": lambda: scene.intersect(origins, directions),
+        "occluded": lambda: scene.occluded(origins, directions),
+        "render": lambda: scene.render(camera, 48, 32, shading="diffuse"),
+    }
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, np.ndarray):
+        return a.shape == b.shape and a.dtype == b.dtype and np.array_equal(a, b)
+    return all(np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True)
+               for f in ("t", "prim_id", "geom_id", "u", "v", "normal"))
+
+
+def test_threads_get_serial_results_while_scenes_rebuild(scenes):
+    calls = [(i, name, fn) for i, s in enumerate(scenes) for name, fn in _calls(s, i).items()]
+    expected = {(i, name): fn() for i, name, fn in calls}  # serial order, one thread
+    vertices = [s.meshes[0].vertices.copy() for s in scenes]
+
+    stop = time.monotonic() + SECONDS
+    failures: list[str] = []
+    counts = {"queries": 0, "rebuilds": 0}
+    lock = threading.Lock()
+
+    def worker(seed):
+        rng = np.random.default_rng(seed)
+        while time.monotonic() < stop and not failures:
+            i, name, fn = calls[rng.integers(len(calls))]
+            try:
+                got = fn()
+            except Exception as error:  # noqa: BLE001 - reported below
+                failures.append(f"scene {i} {name}: {type(error).__name__}: {error}")
+                return
+            if not _same(got, expected[(i, name)]):
+                failures.append(f"scene {i} {name}: result differs from the serial one")
+            with lock:
+                counts["queries"] += 1
+
+    def rebuilder():
+        k = 0
+        while time.monotonic() < stop and not failures:
+            scene = scenes[k % 2]
+            try:
+                if k % 3 == 2:  # same positions: the refit boxes are the build's
+                    scene.update_vertices(0, vertices[k % 2])
+                else:
+                    scene.rebuild()  # bit for bit the same tree (test_build)
+            except Exception as error:  # noqa: BLE001
+                failures.append(f"scene {k % 2} rebuild: {type(error).__name__}: {error}")
+                return
+            k += 1
+            with lock:
+                counts["rebuilds"] += 1
+
+    previous = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)
+    try:
+        threads = [threading.Thread(target=worker, args=(seed,)) for seed in range(4)]
+        threads.append(threading.Thread(target=rebuilder))
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(timeout=SECONDS + 60)
+        assert not any(t.is_alive() for t in threads), "a thread is stuck"
+    finally:
+        sys.setswitchinterval(previous)
+    assert not failures, failures[:5]
+    assert counts["queries"] > 20 and counts["rebuilds"] > 5, counts
