@@ -19,6 +19,7 @@ mesh, which ranks devices for the default choice.
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -61,16 +62,22 @@ _memory: dict[str, dict] = {}
 _warned: set = set()
 
 
-def _device_key(cl_device, profile: Profile) -> str:
-    platform = cl_device.platform
-    parts = [str(FORMAT), profile.name, platform.name, platform.version, cl_device.name,
-             cl_device.version, cl_device.driver_version, cl_device.vendor]
-    digest = hashlib.sha256("\0".join(parts).encode())
-    folder = kernel_dir()
+@functools.cache
+def _sources_digest(folder: Path) -> str:
+    """The kernel sources' hash (read once per process)."""
+    digest = hashlib.sha256()
     for path in sorted(folder.iterdir()):
         if path.suffix in (".cl", ".h"):
             digest.update(path.name.encode() + b"\0" + path.read_bytes())
-    return digest.hexdigest()[:32]
+    return digest.hexdigest()
+
+
+def _device_key(cl_device, profile: Profile) -> str:
+    platform = cl_device.platform
+    parts = [str(FORMAT), profile.name, platform.name, platform.version, cl_device.name,
+             cl_device.version, cl_device.driver_version, cl_device.vendor,
+             _sources_digest(kernel_dir())]
+    return hashlib.sha256("\0".join(parts).encode()).hexdigest()[:32]
 
 
 def _cache_file(key: str) -> Path:
