@@ -61,14 +61,6 @@ class Hits:
         return self.geom_id >= 0
 
 
-def default_packet_size(rt: Runtime) -> int:
-    """Rays per work-item (kernels/traverse.cl's PACKET_SIZE): the runtime's
-    kernel variant, which its probe chose (hlbvh_cl.profile, hlbvh_cl.probe):
-    on CPUs one native float vector of the compiler's real target, on GPUs
-    one ray (their SIMT lanes already trace neighbouring rays together)."""
-    return rt.variant.packet_size
-
-
 def _zero_copy(rt: Runtime) -> bool:
     """Whether queries hand the kernels the numpy arrays themselves
     (CL_MEM_USE_HOST_PTR) instead of device copies.
@@ -147,7 +139,7 @@ class RayQuery:
         self.rt = rt
         self.work_group_size = _work_group_size(rt)
         if packet_size is None:
-            packet_size = default_packet_size(rt)
+            packet_size = rt.variant.packet_size  # the one its probe chose
         elif isinstance(packet_size, bool) or not isinstance(packet_size, (int, np.integer)):
             raise TypeError(f"packet_size must be an int, got {type(packet_size).__name__}")
         elif packet_size not in PACKET_SIZES:

@@ -1,6 +1,5 @@
 """Ctrl-C: a long render or query raises KeyboardInterrupt within a second,
 and the process can trace again at once (kernels/queue state drained)."""
-import os
 import signal
 import subprocess
 import sys

@@ -286,7 +286,7 @@ def test_rendering_in_row_chunks_gives_the_same_image(scene, options):
 @pytest.mark.parametrize("options", [{}, {"shading": "ao", "ao_samples": 3}])
 def test_every_packet_size_renders_the_same_image(scene, options):
     # 50 x 37: tiles cut short at the right and bottom edges; a packet of 8 is
-    # half a tile, one of 16 a whole one (query.default_packet_size)
+    # half a tile, one of 16 a whole one (the runtime's kernel variant)
     settings = render_module.RenderSettings.check(CAMERA, 50, 37, options.get("shading", "diffuse"),
                                                   True, 1, options.get("ao_samples", 16), None)
     images = {}
