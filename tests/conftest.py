@@ -17,6 +17,14 @@ def pytest_report_header(config):
     return lines
 
 
+@pytest.fixture(scope="session")
+def suite_device():
+    """The device this run tests: the one $HLBVH_CL_DEVICE names (tests name
+    it through this, never a vendor of their own)."""
+    from hlbvh_cl.device import select_device
+    return select_device(os.environ["HLBVH_CL_DEVICE"])
+
+
 @pytest.fixture(autouse=True)
 def check_every_tree(monkeypatch):
     from invariants import check_tree

@@ -1,5 +1,5 @@
 """`python -m bench` (bench/__main__.py) on its hidden --tiny configuration:
-one small scene, PoCL, 1 repeat, into a temporary folder.
+one small scene, the suite's device, 1 repeat, into a temporary folder.
 
 Never asserts speed: only that suite.json, the plots and RESULTS.md are
 complete and sane: finite positive times, triangle counts from trimesh,
@@ -38,9 +38,15 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
 @pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
+def ours(suite_device):
+    """The id the suite's device has in the bench's results."""
+    return suite_device.id
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory, ours):
     folder = tmp_path_factory.mktemp("suite")
-    argv = ["--tiny", "--devices", "pocl", "--out", str(folder / "results"),
+    argv = ["--tiny", "--devices", ours, "--out", str(folder / "results"),
             "--markdown", str(folder / "RESULTS.md"), "--no-progress"]
     returned = suite_main.main(argv)
     written = json.loads((folder / "results" / "suite.json").read_text())
@@ -78,13 +84,13 @@ def _embree_hits(vertices, faces, origins, directions) -> int:
 
 # ---------------------------------------------------------------- structure
 
-def test_json_is_complete_finite_and_positive(tiny_run):
+def test_json_is_complete_finite_and_positive(tiny_run, ours):
     returned, written, _ = tiny_run
     assert written["mode"] == "tiny" and written["errors"] == []
-    assert written["command"].startswith("python -m bench --tiny --devices pocl")
+    assert written["command"].startswith(f"python -m bench --tiny --devices {ours}")
     assert set(written) == set(returned)
-    assert list(written["devices"]) == ["pocl:0"]
-    device = written["devices"]["pocl:0"]
+    assert list(written["devices"]) == [ours]
+    device = written["devices"][ours]
     assert device["name"] and device["driver"] and device["compute_units"] >= 1
     assert len(written["loadavg_start"]) == len(written["loadavg_end"]) == 3
     assert written["machine"]["processor"] and written["machine"]["cpus"] >= 1
@@ -98,33 +104,33 @@ def test_json_is_complete_finite_and_positive(tiny_run):
             assert s["min"] > 0, (where, s)
 
 
-def test_builds_cover_both_builders(tiny_run):
+def test_builds_cover_both_builders(tiny_run, ours):
     _, written, _ = tiny_run
-    results = written["build"]["pocl:0"]
+    results = written["build"][ours]
     assert sorted((r["case"], r["builder"]) for r in results) == sorted(
         (case, builder) for case in CONFIG.build_cases for builder in ("hlbvh", "lbvh"))
     for r in results:
         assert r["triangles"] == _scene_triangles(r["case"])
         assert r["times_ms"]["wall"]["median"] > 0 and r["deterministic"] is True
     # compilation: each builder's first build beyond its median rebuild, and the 1x1 render
-    compiled = written["devices"]["pocl:0"]["compile_s"]
+    compiled = written["devices"][ours]["compile_s"]
     assert set(compiled["build"]) == {"hlbvh", "lbvh"}
     for r in results:
         expected = max(0.0, r["first_build_ms"]["wall"] - r["times_ms"]["wall"]["median"]) / 1e3
         assert compiled["build"][r["builder"]] == pytest.approx(expected)
-    first_render = written["table"]["devices"]["pocl:0"]["rows"][0]
+    first_render = written["table"]["devices"][ours]["rows"][0]
     assert compiled["render"] == first_render["compile_s"]["render"] >= 0
 
 
-def test_render_timings_are_consistent(tiny_run):
+def test_render_timings_are_consistent(tiny_run, ours):
     _, written, _ = tiny_run
-    rows = written["table"]["devices"]["pocl:0"]["rows"]
-    reference = written["reference"]["devices"]["pocl:0"]
+    rows = written["table"]["devices"][ours]["rows"]
+    reference = written["reference"]["devices"][ours]
     assert [r["scene"] for r in rows] == list(CONFIG.table_scenes)
     assert reference["scene"] == CONFIG.reference_scene
     for r, (width, height) in [(row, CONFIG.table_resolution) for row in rows] + [
             (reference, CONFIG.reference_resolution)]:
-        assert r["device"] == "pocl:0"
+        assert r["device"] == ours
         assert r["triangles"] == _scene_triangles(r["scene"])
         assert (r["width"], r["height"]) == (width, height)
         assert r["image"]["shape"] == [height, width, 3]
@@ -139,16 +145,16 @@ def test_render_timings_are_consistent(tiny_run):
         assert r["cores_used"] > 0
     # not the report's resolution: no speed-up claimed, one row: no exponent
     assert all(r["speedup"] is None for r in rows)
-    assert written["table"]["devices"]["pocl:0"]["alpha"] is None
-    assert written["reference"]["devices"]["pocl:0"]["speedup"] is None
+    assert written["table"]["devices"][ours]["alpha"] is None
+    assert written["reference"]["devices"][ours]["speedup"] is None
 
 
-def test_speedups_and_exponent_follow_from_the_times(tiny_run):
+def test_speedups_and_exponent_follow_from_the_times(tiny_run, ours):
     _, written, _ = tiny_run
     # the tiny run's row, seen at the report's resolution, and a second row
     # made from it with 10x the triangles and twice the time
     # (min, median and max spread apart: the median is the figure)
-    row = copy.deepcopy(written["table"]["devices"]["pocl:0"]["rows"][0])
+    row = copy.deepcopy(written["table"]["devices"][ours]["rows"][0])
     median = row["times_s"]["total_s"]["median"]
     row["times_s"]["total_s"] = {"median": median, "min": 0.9 * median, "max": 1.3 * median}
     other = copy.deepcopy(row)
@@ -156,27 +162,27 @@ def test_speedups_and_exponent_follow_from_the_times(tiny_run):
     other["times_s"]["total_s"] = {key: 2 * seconds
                                    for key, seconds in row["times_s"]["total_s"].items()}
     config = dataclasses.replace(CONFIG, table_resolution=render_bench.REPORT_RESOLUTION)
-    table = suite_main.table_section({"pocl:0": [copy.deepcopy(row), other]}, config)
-    first, second = table["devices"]["pocl:0"]["rows"]
+    table = suite_main.table_section({ours: [copy.deepcopy(row), other]}, config)
+    first, second = table["devices"][ours]["rows"]
     assert first["speedup"] == pytest.approx(
         render_bench.REPORT_TIMES_S["bunny_small"] / row["times_s"]["total_s"]["median"])
     assert second["speedup"] == pytest.approx(
         render_bench.REPORT_TIMES_S["lucy"] / other["times_s"]["total_s"]["median"])
-    assert table["devices"]["pocl:0"]["alpha"] == pytest.approx(math.log(2) / math.log(10))
+    assert table["devices"][ours]["alpha"] == pytest.approx(math.log(2) / math.log(10))
     assert table["report_alpha_first_last"] == pytest.approx(
         math.log(3.009 / 2.287) / math.log(2_805_572 / 1_392))
 
 
 # ---------------------------------------------------------------- rays
 
-def test_hits_agree_across_participants_and_with_embree(tiny_run):
+def test_hits_agree_across_participants_and_with_embree(tiny_run, ours):
     _, written, _ = tiny_run
     (scene,) = written["trace"]["scenes"]
     assert scene["name"] == CONFIG.trace_scenes[0] and scene["errors"] == {}
     assert scene["triangles"] == _scene_triangles(scene["name"])
     participants = set(scene["participants"])
     peers = {name for name, p in written["peers"].items() if p["available"]}
-    assert participants == {"pocl:0", "pocl:0 lbvh"} | peers
+    assert participants == {ours, f"{ours} lbvh"} | peers
     assert "embreex" in peers
 
     # the same rays, regenerated, traced by embreex in one plain call
@@ -214,14 +220,14 @@ def test_hits_agree_across_participants_and_with_embree(tiny_run):
     assert set(scene["build_times_s"]) == participants
 
 
-def test_tree_quality_matches_the_builds(tiny_run):
+def test_tree_quality_matches_the_builds(tiny_run, ours):
     _, written, _ = tiny_run
-    rows = written["tree_quality"]["pocl:0"]
+    rows = written["tree_quality"][ours]
     assert [(r["scene"], r["builder"]) for r in rows] == [
         (CONFIG.trace_scenes[0], "hlbvh"), (CONFIG.trace_scenes[0], "lbvh")]
     hlbvh, lbvh = rows
     for r in rows:  # the traced tree is the one section 1 built: builds are deterministic
-        built = next(b for b in written["build"]["pocl:0"]
+        built = next(b for b in written["build"][ours]
                      if b["case"] == r["scene"] and b["builder"] == r["builder"])
         assert r["sah_cost"] == pytest.approx(built["sah_cost"])
         assert r["nodes"] == built["nodes"] and r["leaves"] == built["leaves"]
@@ -241,9 +247,9 @@ def test_tree_quality_matches_the_builds(tiny_run):
         kernel_s = {r["participant"]: w["results"][r["participant"]]["intersect_kernel_s"]
                     for r in rows}
         assert v["kernel_mrays"][w["name"]] == pytest.approx(
-            kernel_s["pocl:0 lbvh"]["median"] / kernel_s["pocl:0"]["median"])
+            kernel_s[f"{ours} lbvh"]["median"] / kernel_s[ours]["median"])
         assert hlbvh["kernel_mrays"][w["name"]]["median"] == pytest.approx(
-            w["rays"] / kernel_s["pocl:0"]["median"] / 1e6)
+            w["rays"] / kernel_s[ours]["median"] / 1e6)
 
 
 # ---------------------------------------------------------------- RESULTS.md
@@ -281,10 +287,10 @@ def test_no_working_device_is_a_clear_error(tmp_path):
     assert not any(tmp_path.iterdir())
 
 
-def test_a_failing_scene_leaves_the_others_timed(tmp_path):
+def test_a_failing_scene_leaves_the_others_timed(tmp_path, ours):
     scenes = ROOT / "scenes"
     missing = tmp_path / "missing.toml"
-    outcomes = render_bench.time_renders([scenes / "bunny_small.toml", missing], "pocl", 32, 24, 1)
+    outcomes = render_bench.time_renders([scenes / "bunny_small.toml", missing], ours, 32, 24, 1)
     assert isinstance(outcomes[1], Exception) and "missing.toml" in str(outcomes[1])
     result, image = outcomes[0]
     assert result["scene"] == "bunny_small.toml" and image.shape == (24, 32, 3)

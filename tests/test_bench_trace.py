@@ -164,37 +164,39 @@ class _FailsOnSecondQuery:
         self.closed = True
 
 
-def test_a_failing_peer_is_reported_and_the_others_measured(trace, capsys):
-    from hlbvh_cl.device import select_device
+def test_a_failing_peer_is_reported_and_the_others_measured(trace, capsys, suite_device):
     case = trace.mesh_case("bunny_small.ply")
     config = trace.QUICK
     workloads = case.workloads(config)
-    ours, flaky = trace.OurDevice(select_device("pocl")), _FailsOnSecondQuery()
+    ours, flaky = trace.OurDevice(suite_device), _FailsOnSecondQuery()
     out = trace.bench_case(case, workloads, [ours, flaky], repeats=2)
     assert out["errors"] == {"flaky": "RuntimeError: flaky peer gave up"}
     assert flaky.closed and ours.scene is None
     assert [w["rays"] for w in out["workloads"]] == [len(r) for r in workloads]
+    name = suite_device.id  # results are named by device id
     for workload in out["workloads"]:
-        assert list(workload["results"]) == ["pocl:0"] and workload["reference"] == "pocl:0"
-        assert workload["results"]["pocl:0"]["disagreement"] == {"intersect": 0.0, "occluded": 0.0}
-        assert workload["ratios"] == {"pocl:0": {}}
+        assert list(workload["results"]) == [name] and workload["reference"] == name
+        assert workload["results"][name]["disagreement"] == {"intersect": 0.0, "occluded": 0.0}
+        assert workload["ratios"] == {name: {}}
     assert "flaky peer gave up" in capsys.readouterr().err  # the traceback is shown
 
 
 # ---------------------------------------------------------------- the quick run
 
-def _devices() -> str:
-    """pocl, and Intel's runtime too when it works: hits must agree across devices."""
-    ids = ["pocl"]
-    if any(d.id.startswith("intel") and d.problem is None for d in hlbvh_cl.devices()):
-        ids.append("intel")
-    return ",".join(ids)
+@pytest.fixture(scope="module")
+def device_ids(suite_device) -> list[str]:
+    """The suite's device, and one more that works when there is one: hits
+    must agree across devices."""
+    others = (d.id for d in hlbvh_cl.devices()
+              if d.id != suite_device.id and d.skipped_because is None)
+    return [suite_device.id, *list(others)[:1]]
 
 
 @pytest.fixture(scope="module")
-def quick_run(trace, tmp_path_factory):
+def quick_run(trace, device_ids, tmp_path_factory):
     out = tmp_path_factory.mktemp("trace")
-    returned = trace.main(["--quick", "--devices", _devices(), "--out", str(out), "--no-progress"])
+    returned = trace.main(["--quick", "--devices", ",".join(device_ids), "--out", str(out),
+                           "--no-progress"])
     return returned, json.loads((out / "trace.json").read_text()), out
 
 
@@ -212,7 +214,7 @@ def _embree_hits(vertices, faces, origins, directions) -> int:
     return int((scene.run(origins, directions) >= 0).sum())
 
 
-def test_quick_json_is_complete_and_sane(trace, quick_run):
+def test_quick_json_is_complete_and_sane(trace, quick_run, device_ids):
     returned, written, out = quick_run
     assert written["quick"] is True
     assert returned["scenes"][0]["name"] == written["scenes"][0]["name"]
@@ -223,7 +225,7 @@ def test_quick_json_is_complete_and_sane(trace, quick_run):
     config = trace.QUICK
     participants = written["participants"]
     devices = [n for n, p in participants.items() if p["kind"] == "device"]
-    assert devices[0] == "pocl:0" and len(devices) == len(_devices().split(","))
+    assert devices == device_ids
     assert set(trace.PEERS) <= set(participants)  # every peer: measured or reported missing
     for name in trace.PEERS:
         assert participants[name]["available"] or participants[name]["problem"], name
@@ -269,19 +271,20 @@ def test_quick_json_is_complete_and_sane(trace, quick_run):
                             / results[peer][f"{q}_mrays"]["median"])
 
 
-def test_quick_hits_match_a_direct_embree_call(trace, quick_run):
+def test_quick_hits_match_a_direct_embree_call(trace, quick_run, suite_device):
     # the same rays, regenerated, traced by embreex in one plain call
     _, written, _ = quick_run
     config = trace.QUICK
+    ours = suite_device.id
     mesh = hlbvh_cl.Mesh.load(ROOT / "scenes" / "meshes" / config.meshes[0])
     lo, hi = mesh.bounds()
     workloads = written["scenes"][0]["workloads"]
     for (width, height), workload in zip(config.resolutions, workloads):
         camera = trace.framed_camera(lo, hi, width / height)
         rays = trace.camera_rays(camera, width, height)
-        assert workload["results"]["pocl:0"]["hits"] == _embree_hits(mesh.vertices, mesh.faces, *rays)
+        assert workload["results"][ours]["hits"] == _embree_hits(mesh.vertices, mesh.faces, *rays)
     rays = trace.incoherent_rays(lo, hi, config.incoherent_rays, config.seed)
-    assert workloads[-1]["results"]["pocl:0"]["hits"] == _embree_hits(mesh.vertices, mesh.faces, *rays)
+    assert workloads[-1]["results"][ours]["hits"] == _embree_hits(mesh.vertices, mesh.faces, *rays)
 
 
 def test_quick_scaling_and_targets(trace, quick_run):

@@ -73,31 +73,31 @@ def test_default_device_is_never_a_simulator_and_always_works(monkeypatch):
 
 
 @pytest.fixture
-def fresh_probes(tmp_path, monkeypatch):
-    """Verdicts in an empty folder of this test's own (compiled programs stay
-    in the usual caches)."""
+def fresh_probes(tmp_path, monkeypatch, suite_device):
+    """The suite's device, its verdicts in an empty folder of this test's own
+    (compiled programs stay in the usual caches)."""
     monkeypatch.setattr(probe, "cache_root", lambda: tmp_path)
     monkeypatch.setattr(probe, "_memory", {})
     monkeypatch.setattr(probe, "_warned", set())
-    return select_device("pocl")
+    return suite_device
 
 
 def test_a_variant_that_crashes_the_compiler_falls_back_with_one_warning(fresh_probes,
                                                                          monkeypatch):
-    pocl = fresh_probes
-    best = pocl.verdict.chosen  # probed in a child, cached in tmp_path
+    device = fresh_probes
+    best = device.verdict.chosen  # probed in a child, cached in tmp_path
     assert best is not None and list(probe.cache_root().glob("probes/*.json"))
     monkeypatch.setattr(probe, "_memory", {})
     for path in probe.cache_root().glob("probes/*.json"):
         path.unlink()
     monkeypatch.setenv("HLBVH_CL_PROBE_FAULT", f"{best.name}:abort")
-    verdict = pocl.verdict  # the child aborts as LLVM does; this process goes on
+    verdict = device.verdict  # the child aborts as LLVM does; this process goes on
     assert verdict.chosen is not None and verdict.chosen != best
     (failed, reason), = verdict.failures
     assert failed == best and "injected" in reason and "signal 6" in reason
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        rt = Runtime(pocl)
+        rt = Runtime(device)
     assert rt.variant == verdict.chosen
     messages = [str(w.message) for w in caught if "hlbvh_cl" in str(w.message)]
     assert len(messages) == 1 and f"cannot run kernel variant {best.name}" in messages[0]
@@ -113,20 +113,20 @@ def test_a_hanging_variant_times_out(fresh_probes, monkeypatch):
 
 def test_a_device_where_no_variant_runs_raises_kernel_build_error(fresh_probes, monkeypatch):
     monkeypatch.setenv("HLBVH_CL_PROBE_FAULT", "*:abort")
-    pocl = fresh_probes
-    assert pocl.problem is not None and "packet1-plain" in pocl.problem
-    with pytest.raises(KernelBuildError, match="no kernel variant runs on pocl"):
-        Runtime(pocl)
+    device = fresh_probes
+    assert device.problem is not None and "packet1-plain" in device.problem
+    with pytest.raises(KernelBuildError, match=f"no kernel variant runs on {device.id}"):
+        Runtime(device)
     with pytest.raises(RuntimeError, match="no OpenCL device here can run"):
-        monkeypatch.setattr(device_module, "_devices_cache", [pocl])
+        monkeypatch.setattr(device_module, "_devices_cache", [device])
         monkeypatch.delenv("HLBVH_CL_DEVICE", raising=False)
         select_device()
 
 
 def test_a_requested_packet_the_device_cannot_run_gives_way(fresh_probes, monkeypatch):
     from hlbvh_cl.query import RayQuery
-    pocl = fresh_probes
-    rt = Runtime(pocl)
+    device = fresh_probes
+    rt = Runtime(device)
     monkeypatch.setenv("HLBVH_CL_PROBE_FAULT", "packet16:abort")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -135,9 +135,9 @@ def test_a_requested_packet_the_device_cannot_run_gives_way(fresh_probes, monkey
     assert any("cannot run kernel variant packet16" in str(w.message) for w in caught)
 
 
-def test_every_profile_gives_the_same_hits(monkeypatch):
-    """The GPU profile (one ray per work-item, device copies, GPU group
-    sizes) forced on a CPU device traces what the CPU profile traces."""
+def test_every_profile_gives_the_same_hits(monkeypatch, suite_device):
+    """Each profile forced on the suite's device traces what the other does
+    (the GPU profile: one ray per work-item, device copies, GPU group sizes)."""
     from shapes import grid_mesh
     mesh = grid_mesh(6)
     rng = np.random.default_rng(3)
@@ -146,7 +146,7 @@ def test_every_profile_gives_the_same_hits(monkeypatch):
     results = {}
     for name in ("cpu", "gpu"):
         monkeypatch.setenv("HLBVH_CL_PROFILE", name)
-        scene = hlbvh_cl.Scene([mesh], device="pocl")
+        scene = hlbvh_cl.Scene([mesh], device=suite_device)
         assert scene.runtime.profile.name == name
         results[name] = scene.intersect(origins, directions)
     assert results["gpu"].hit.any()

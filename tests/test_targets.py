@@ -1,12 +1,12 @@
 """The correctness tests on every other working device and profile.
 
-The rest of the suite runs on one target (conftest: PoCL, its own profile).
-Each case here runs the correctness modules again in a child pytest on one
-more target: every other device whose kernels run (Intel's CPU runtime, a GPU
-where there is one), and the GPU profile forced on PoCL, so that the path a
-GPU takes (one ray per work-item, GPU work-group sizes, device copies) is
-tested where there is no GPU.  The simulator has its own tier
-(test_oclgrind.py).
+The rest of the suite runs on one target (conftest: $HLBVH_CL_DEVICE, PoCL by
+default, its own profile).  Each case here runs the correctness modules again
+in a child pytest on one more target: every other device whose kernels run
+(Intel's CPU runtime, a GPU where there is one), and the GPU profile forced on
+the suite's device when that is a CPU, so that the path a GPU takes (one ray
+per work-item, GPU work-group sizes, device copies) is tested where there is
+no GPU.  The simulator has its own tier (test_oclgrind.py).
 """
 import os
 import subprocess
