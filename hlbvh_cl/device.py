@@ -7,7 +7,9 @@ vendor's devices in platform order (``pocl:0``, ``intel:0``, ``nvidia:1``).
 from __future__ import annotations
 
 import ctypes
+import functools
 import os
+import re
 import sys
 import threading
 import warnings
@@ -137,6 +139,25 @@ class Device:
         newer than its LLVM 14)."""
         return self.verdict.problem
 
+    @functools.cached_property
+    def acquire_release_std(self) -> str | None:
+        """The ``-cl-std`` under which this device's compiler offers
+        acquire-release atomics at device scope (OpenCL C 2.0, or 3.0 with
+        those two optional features), or None for an OpenCL C 1.2 compiler
+        (kernels/handoff.h)."""
+        try:
+            versions = {(v.version >> 22, (v.version >> 12) & 0x3FF)
+                        for v in self.cl_device.get_info(cl.device_info.OPENCL_C_ALL_VERSIONS)}
+            features = {f.name for f in self.cl_device.get_info(cl.device_info.OPENCL_C_FEATURES)}
+        except (cl.Error, AttributeError):  # an OpenCL 1.x or 2.x driver: its one version
+            versions, features = {_c_version(self.cl_device.opencl_c_version)}, set()
+        if (3, 0) in versions and {"__opencl_c_atomic_order_acq_rel",
+                                   "__opencl_c_atomic_scope_device"} <= features:
+            return "CL3.0"
+        if any(major == 2 for major, _ in versions):
+            return "CL2.0"
+        return None
+
     @property
     def skipped_because(self) -> str | None:
         """Why the automatic choice passes this device over, or None."""
@@ -144,6 +165,12 @@ class Device:
             return "a simulator: used only when named"
         problem = self.problem
         return f"its kernels fail: {problem}" if problem else None
+
+
+def _c_version(text: str) -> tuple[int, int]:
+    """(major, minor) of a CL_DEVICE_OPENCL_C_VERSION string ("OpenCL C 1.2 ...")."""
+    match = re.match(r"OpenCL C (\d+)\.(\d+)", text)
+    return (int(match[1]), int(match[2])) if match else (1, 2)
 
 
 def _type_name(device_type: int) -> str:
@@ -355,6 +382,13 @@ class Runtime:
                                f"work-item runs on {self.device}: {reason}")
 
     @property
+    def handoff_defines(self) -> dict:
+        """ACQUIRE_RELEASE for the bottom-up kernels (kernels/handoff.h):
+        1 where the device's compiler offers acquire-release atomics; their
+        programs are then built for that OpenCL C version."""
+        return {"ACQUIRE_RELEASE": int(self.device.acquire_release_std is not None)}
+
+    @property
     def prefetch_defines(self) -> dict:
         """PREFETCH=1 for kernels that ask for cache lines ahead with
         __builtin_prefetch (the CPU profile)."""
@@ -415,7 +449,8 @@ class Runtime:
         defines = {**self.variant.defines, **defines}
         folder = kernel_dir()
         source = (folder / filename).read_text()
-        options = ["-I", str(folder), "-cl-std=CL1.2"]
+        std = (self.device.acquire_release_std if defines.get("ACQUIRE_RELEASE") else None) or "CL1.2"
+        options = ["-I", str(folder), f"-cl-std={std}"]
         options += [f"-D{name}={_define_value(value)}" for name, value in sorted(defines.items())]
         try:
             return cl.Program(self.context, source).build(options=options)

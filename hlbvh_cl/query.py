@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import pyopencl as cl
 
-from . import layout
+from . import frame, layout
 from .device import Runtime
 from .profile import PACKET_SIZES
 from .results import ALIGNMENT as RESULT_ALIGNMENT
@@ -191,6 +191,7 @@ class RayQuery:
     def intersect(self, tree: DeviceTree, origins, directions, tmin=0.0, tmax=np.inf) -> Hits:
         """Closest hit of each ray (origins[i] + t * directions[i], tmin <= t <= tmax)."""
         origins, directions, tmin, tmax = _check_rays(origins, directions, tmin, tmax)
+        origins, directions = _into_frame(origins, directions, tree)
         count = len(origins)
         hits = Hits(**{name: self._results.empty((count, n) if n > 1 else count, dtype)
                        for name, (dtype, n) in HIT_FIELDS.items()})
@@ -214,6 +215,7 @@ class RayQuery:
     def occluded(self, tree: DeviceTree, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
         """bool (R,): whether anything is hit with tmin <= t <= tmax (stops at the first hit)."""
         origins, directions, tmin, tmax = _check_rays(origins, directions, tmin, tmax)
+        origins, directions = _into_frame(origins, directions, tree)
         count = len(origins)
         result = self._results.empty(count, np.uint8)
         if count and self._check_tree(tree):
@@ -496,6 +498,24 @@ def _raise_first_bad_ray(name: str, vectors: np.ndarray, given: np.ndarray,
                     else "is too short to invert (subnormal)")
             raise ValueError(f"{name}[{row}] = {vectors[row].tolist()} {what}; "
                              "a direction needs a component of magnitude >= 1.2e-38")
+
+
+def _into_frame(origins: np.ndarray, directions: np.ndarray, tree) -> tuple[np.ndarray, np.ndarray]:
+    """The (checked) rays in the frame of a tree built at a scale other than 1
+    (hlbvh_cl.frame): t stays the same.  A ray that the scale takes out of
+    float32 raises the ValueError that names it."""
+    scale = getattr(tree, "scale", 1.0)
+    if scale == 1.0:
+        return origins, directions
+    scaled = frame.to_frame(origins, scale), frame.to_frame(directions, scale)
+    if not _rays_are_valid(*scaled):
+        try:
+            _raise_first_bad_ray("origins", scaled[0], origins, directions=False)
+            _raise_first_bad_ray("directions", scaled[1], directions, directions=True)
+        except ValueError as error:
+            raise ValueError(f"{error} once multiplied by {frame.describe(scale)}, the scale "
+                             f"of this scene's frame (hlbvh_cl/frame.py)") from None
+    return scaled
 
 
 def _limits(name: str, value, count: int) -> np.ndarray:

@@ -74,13 +74,24 @@ def build_radix_tree(rt, keys: cl.Buffer, bits: int, vertices: cl.Buffer, faces:
                                      wait_for=wait_for)
     if n == 1:  # no internal node: the lone leaf is the root
         cl.enqueue_fill_buffer(rt.queue, metrics.collapsed, np.int32(0), 0, 4)
-    defines = dict(MORTON_BITS=bits, COLLAPSE_LEAVES=int(collapse_leaves))
+    defines = dict(MORTON_BITS=bits, COLLAPSE_LEAVES=int(collapse_leaves), **rt.handoff_defines)
+    ready = [cleared]
+    if not defines["ACQUIRE_RELEASE"]:
+        # The OpenCL 1.2 handoff stores with atomic_xchg (kernels/handoff.h),
+        # and Oclgrind's uninitialised-value check takes the old word for part
+        # of the new one (MemCheckUninitialized::SimpleOrAtomic), so the words
+        # handed on start defined: a fill these devices (GPUs, Oclgrind) make
+        # at memory speed.
+        handed_on = [(far_end, 8 * splits), (metrics.boxes, splits * layout.AABB.itemsize),
+                     (metrics.sah_cost, 4 * splits), (metrics.height, 4 * splits)]
+        ready += [cl.enqueue_fill_buffer(rt.queue, buffer, np.int32(0), 0, nbytes,
+                                         wait_for=wait_for) for buffer, nbytes in handed_on]
     leaves = rt.run(rt.kernel("radix_tree.cl", "lay_out_leaves", **defines), n, n, vertices,
                     faces, primitive_ids, mesh_first_face, mesh_count, triangles, refs,
                     vertex_ids, metrics.boxes, metrics.sah_cost, metrics.height,
-                    wait_for=[cleared])
+                    wait_for=ready)
     walk = rt.run(rt.kernel("radix_tree.cl", "build_radix_tree", **defines), n, keys, n,
                   far_end, visits, tree.left_child, tree.right_child, tree.parent,
                   tree.range_first, tree.range_last, metrics.boxes, metrics.sah_cost,
                   metrics.height, metrics.collapsed, wait_for=[leaves])
-    return [cleared, leaves, walk]
+    return [*ready, leaves, walk]

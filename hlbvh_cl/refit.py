@@ -25,7 +25,7 @@ def refit_flat_tree(rt, tree: DeviceTree, vertices: cl.Buffer, wait_for=None) ->
                          "it cannot be refit")
     wide = wide_tree(rt, tree)
     visits, cleared = _zeroed_ints(rt, tree.node_count, wait_for)
-    walk = rt.run(rt.kernel("refit.cl", "refit_flat_tree", COLLAPSE_LEAVES=0), tree.node_count,
+    walk = rt.run(rt.kernel("refit.cl", "refit_flat_tree", **rt.handoff_defines), tree.node_count,
                   tree.nodes, tree.parents, vertices, tree.vertex_ids, tree.triangles, visits,
                   tree.node_count, wide.nodes, wide.lane_of_slot, wait_for=[cleared])
     return [cleared, walk]

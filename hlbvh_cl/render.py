@@ -53,6 +53,7 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -278,6 +279,16 @@ class RenderSettings:
                    ao_samples=_integer("ao_samples", ao_samples, 1, MAX_AO_SAMPLES),
                    ao_distance=ao_distance)
 
+    def in_frame(self, scale: float) -> RenderSettings:
+        """These settings in a tree's frame (hlbvh_cl.frame): its positions
+        and lengths times ``scale``."""
+        if scale == 1.0:
+            return self
+        camera = dataclasses.replace(self.camera, eye=tuple(np.multiply(self.camera.eye, scale)),
+                                     target=tuple(np.multiply(self.camera.target, scale)))
+        distance = None if self.ao_distance is None else self.ao_distance * scale
+        return dataclasses.replace(self, camera=camera, ao_distance=distance)
+
 
 # -- scene-dependent parameters ---------------------------------------------------
 
@@ -396,7 +407,7 @@ class Renderer:
                progress: bool = False) -> np.ndarray:
         with self._lock:  # the buffers are shared
             try:
-                return self._render(tree, settings, colors, light, progress)
+                return self._render(tree, settings.in_frame(tree.scale), colors, light, progress)
             except BaseException:
                 # Ctrl-C: the steps in flight (at most two) end before the
                 # buffers serve another render.

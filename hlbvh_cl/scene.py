@@ -10,7 +10,7 @@ from collections.abc import Sequence
 import numpy as np
 import pyopencl as cl
 
-from . import layout
+from . import frame, layout
 from .build import BUILDERS, Geometry, build, check_fits
 from .build import STAGES as BVH_STAGES
 from .device import event_ms, runtime
@@ -75,7 +75,10 @@ class Scene:
         faces = np.concatenate([m.faces + np.int32(off) for m, off in
                                 zip(self.meshes, self._vertex_offsets[:-1])])
         vertices = np.concatenate([m.vertices for m in self.meshes])
-        self._geometry = Geometry.upload(self.runtime, vertices, faces, first_face)
+        self._largest = [frame.largest_magnitude(m.vertices) for m in self.meshes]
+        self._scale = frame.scale_for(max(self._largest))  # the tree's frame (hlbvh_cl.frame)
+        self._geometry = Geometry.upload(self.runtime, frame.to_frame(vertices, self._scale),
+                                         faces, first_face)
         # the runtime's pool keeps this scene's build scratch for its rebuilds; not beyond it
         weakref.finalize(self, self.runtime.pool.clear)
         self._query = None
@@ -123,6 +126,7 @@ class Scene:
             started = time.perf_counter()
             with rt.pool.build():
                 self._build = build(rt, self._geometry, self.builder, self.morton_bits)
+                self.tree.scale = self._scale
                 # the wide tree that traversal reads (stage 7), derived from the BVH2
                 self.tree.wide, events = widen(rt, self.tree)
             cl.wait_for_events(events)
@@ -134,7 +138,10 @@ class Scene:
 
     def update_vertices(self, geom_id: int, vertices) -> None:
         """Replace mesh ``geom_id``'s vertex positions (same count) and refit
-        the tree's boxes on the device; the topology is kept."""
+        the tree's boxes on the device; the topology is kept.  (Unless the
+        move takes the scene's largest coordinate across 2^24 or 2^-24 from
+        the frame it was built in: then it is rebuilt in a new frame,
+        hlbvh_cl.frame.)"""
         if isinstance(geom_id, bool) or not isinstance(geom_id, (int, np.integer)):
             raise TypeError(f"geom_id must be an int, got {type(geom_id).__name__}")
         if not 0 <= geom_id < len(self.meshes):
@@ -149,11 +156,22 @@ class Scene:
         rt = self.runtime
         started = time.perf_counter()
         with self._lock, rt.build_lock:  # not while a build on this runtime uses the pool
-            upload = cl.enqueue_copy(rt.queue, self._geometry.vertices, moved.vertices,
+            largest = list(self._largest)
+            largest[geom_id] = frame.largest_magnitude(moved.vertices)
+            if frame.scale_for(max(largest) * self._scale) != 1.0:  # out of this frame
+                self.meshes[geom_id], self._largest = moved, largest
+                self._scale = frame.scale_for(max(largest))
+                vertices = np.concatenate([m.vertices for m in self.meshes])
+                cl.enqueue_copy(rt.queue, self._geometry.vertices,
+                                frame.to_frame(vertices, self._scale))
+                self.rebuild()
+                return
+            upload = cl.enqueue_copy(rt.queue, self._geometry.vertices,
+                                     frame.to_frame(moved.vertices, self._scale),
                                      dst_offset=int(self._vertex_offsets[geom_id]) * 12,
                                      is_blocking=False)
             events = refit_flat_tree(rt, self.tree, self._geometry.vertices, wait_for=[upload])
-            self.meshes[geom_id] = moved
+            self.meshes[geom_id], self._largest = moved, largest
             root = _read_root(rt.queue, self.tree.nodes, events)
             lo = np.minimum(root["left_lo"], root["right_lo"])
             hi = np.maximum(root["left_hi"], root["right_hi"])

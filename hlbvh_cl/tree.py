@@ -39,6 +39,9 @@ class DeviceTree:
                on a tree that has none) and refit with it by update_vertices.
     released   set by :meth:`release`: the buffers went back to a pool (the
                Scene that owned the tree rebuilt it) and must not be read.
+    scale      the power of two the scene's coordinates were multiplied by to
+               give this tree's (hlbvh_cl.frame; 1 for most scenes): rays are
+               scaled alike on their way in, and bounds_lo/hi are in this frame.
     """
 
     nodes: cl.Buffer
@@ -54,6 +57,7 @@ class DeviceTree:
     wide: WideTree | None = None
     vertex_ids: cl.Buffer | None = None
     released: bool = False
+    scale: float = 1.0
 
     def release(self, pool) -> None:
         """Give this tree's device buffers (and its wide tree's) back to

@@ -31,6 +31,7 @@
  * and sets up the leaves the walkers start from.
  */
 #include "hlbvh.h"
+#include "handoff.h"
 
 /* Intel's CPU compiler runs these kernels 16 work-items to a vector, and a
  * vector of walkers climbs as long as its longest walk: lucy (100K
@@ -59,17 +60,6 @@ inline int is_left_child(__global const morton_t *keys, int n, int first, int la
     if (left_gap != right_gap)
         return right_gap < left_gap;
     return (uint)(last ^ (last + 1)) < (uint)((first - 1) ^ first);
-}
-
-/* Loads that must see another work-item's writes made before its atomic.
- * Each corner through a pointer to its own array: indexing past lo[2] into
- * hi reads beyond a declared array, even though it stays in the struct. */
-inline Aabb load_box_volatile(__global const Aabb *boxes, int index)
-{
-    volatile __global const float *lo = (volatile __global const float *)boxes[index].lo;
-    volatile __global const float *hi = (volatile __global const float *)boxes[index].hi;
-    Aabb box = {{lo[0], lo[1], lo[2]}, {hi[0], hi[1], hi[2]}};
-    return box;
 }
 
 /* The mesh a concatenated face belongs to: the last whose first face is <= face. */
@@ -123,7 +113,7 @@ void lay_out_leaves(int n, __global const float *vertices, __global const int *f
  * sibling's. */
 __kernel ONE_WORK_ITEM_AT_A_TIME
 void build_radix_tree(__global const morton_t *keys, int n, __global int *far_end,
-                      __global volatile int *visits, __global int *left_child,
+                      __global int *visits, __global int *left_child,
                       __global int *right_child, __global int *parent,
                       __global int *range_first, __global int *range_last,
                       __global Aabb *boxes, __global float *sah_cost, __global int *height,
@@ -142,33 +132,49 @@ void build_radix_tree(__global const morton_t *keys, int n, __global int *far_en
     while (!(first == 0 && last == n - 1)) {
         int split = left_side ? last : first - 1;
         int other;
+        Aabb sibling_box;
+        float sibling_cost;
+        int sibling_height;
         /* A sibling that is a leaf is ready (lay_out_leaves wrote it), so
          * there is nothing to wait for: a subtree's walker goes on alone, and
          * of two leaves the left one; a leaf beside a subtree stops.  Only
-         * two subtrees meet through the atomic count, about a third of the
-         * splits.  The right child of `split` is the leaf split + 1 when
-         * that leaf is a right child; the left one the leaf split when it
-         * is a left child. */
+         * two subtrees meet, through the handoff (handoff.h), at about a
+         * third of the splits.  The right child of `split` is the leaf
+         * split + 1 when that leaf is a right child; the left one the leaf
+         * split when it is a left child.  This walker's own node (unless a
+         * leaf) is stored here, once it is known whether a sibling's walker
+         * may read it. */
         int sibling_is_leaf = left_side ? !is_left_child(keys, n, split + 1, split + 1)
                                         : is_left_child(keys, n, split, split);
         if (sibling_is_leaf) {
             if (first == last && !left_side)
                 return;
+            if (first != last) {
+                boxes[node] = box;
+                sah_cost[node] = cost;
+                height[node] = subtree_height;
+            }
             other = left_side ? split + 1 : split;
+            int leaf = (n - 1) + other;
+            sibling_box = boxes[leaf];
+            sibling_cost = sah_cost[leaf];
+            sibling_height = 0;
         } else if (first == last) {
             return;
         } else {
-            far_end[2 * split + !left_side] = left_side ? first : last;
-            /* Release, then acquire: this node's writes happen before the
-             * count, which happens before the sibling reads them (store-only
-             * and load-only fences: full mem_fences measured 3.6x slower on
-             * Intel's CPU runtime; so did atomic_xchg, which it fences with
-             * mfence). */
-            write_mem_fence(CLK_GLOBAL_MEM_FENCE);
-            if (atomic_inc(&visits[split]) == 0)
+            handoff_store(far_end + 2 * split + !left_side, left_side ? first : last);
+            handoff_store_box(boxes[node].lo, boxes[node].hi, box);
+            handoff_store_float(sah_cost + node, cost);
+            handoff_store(height + node, subtree_height);
+            if (handoff_arrive(visits + split) == 0)
                 return; /* the sibling subtree is not done; its walker goes on */
-            read_mem_fence(CLK_GLOBAL_MEM_FENCE);
-            other = ((volatile __global const int *)far_end)[2 * split + left_side];
+            other = handoff_load(far_end + 2 * split + left_side);
+            /* the sibling subtree's root: named as below, from its range */
+            int sibling = left_side ? (other == split + 1 ? (n - 1) + other : split + 1)
+                                    : (other == split ? (n - 1) + other : split);
+            handoff_load_box(boxes[sibling].lo, boxes[sibling].hi, &sibling_box);
+            sibling_cost = handoff_load_float(sah_cost + sibling);
+            sibling_height = handoff_load(height + sibling);
         }
         if (left_side)
             last = other;
@@ -177,7 +183,6 @@ void build_radix_tree(__global const morton_t *keys, int n, __global int *far_en
 
         int left = first == split ? (n - 1) + split : split;
         int right = last == split + 1 ? (n - 1) + split + 1 : split + 1;
-        int sibling = left_side ? right : left;
         left_side = is_left_child(keys, n, first, last);
         /* Karras's number: the root 0, else the end it shares with its parent's split */
         node = first == 0 && last == n - 1 ? 0 : left_side ? last : first;
@@ -188,24 +193,22 @@ void build_radix_tree(__global const morton_t *keys, int n, __global int *far_en
         range_first[node] = first;
         range_last[node] = last;
 
-        box = aabb_union(box, load_box_volatile(boxes, sibling));
+        box = aabb_union(box, sibling_box);
         float area = aabb_area(box);
         int count = last - first + 1;
         /* The children's costs added first, as one commutative sum: which
          * walker arrives second (and adds the other's cost) varies from run
          * to run, and (a + b) + c need not equal (a + c) + b in float. */
-        float as_interior = SAH_TRAVERSAL_COST * area +
-                            (cost + ((volatile __global const float *)sah_cost)[sibling]);
+        float as_interior = SAH_TRAVERSAL_COST * area + (cost + sibling_cost);
         float as_leaf = SAH_INTERSECT_COST * (float)count * area;
         int make_leaf = COLLAPSE_LEAVES && count <= MAX_LEAF_SIZE &&
                         as_leaf <= COLLAPSE_COST_RATIO * as_interior;
         cost = make_leaf ? as_leaf : as_interior;
-        subtree_height = make_leaf ? 0 : 1 + max(subtree_height,
-                                                 ((volatile __global const int *)height)[sibling]);
-        boxes[node] = box;
-        sah_cost[node] = cost;
-        height[node] = subtree_height;
+        subtree_height = make_leaf ? 0 : 1 + max(subtree_height, sibling_height);
         collapsed[node] = make_leaf;
     }
-    parent[node] = -1; /* the root's walker */
+    boxes[node] = box; /* the root's walker */
+    sah_cost[node] = cost;
+    height[node] = subtree_height;
+    parent[node] = -1;
 }

@@ -6,6 +6,7 @@
  * (A build computes its boxes as it builds the radix tree: radix_tree.cl.)
  */
 #include "hlbvh.h"
+#include "handoff.h"
 
 /* The boxes of the two functions below come back through a pointer, not as
  * a return value: a returned struct is written through a noalias (sret)
@@ -34,18 +35,24 @@ inline int is_interior_slot(int index, uint count)
     return count == 0 && index != EMPTY_CHILD;
 }
 
-/* Store the box of child slot `right_slot` of flat node i, and into the wide
- * child that copies that slot if there is one (widen.cl's map_wide_lanes), so
- * that the wide tree needs no pass of its own. */
+/* Store the box of child slot `right_slot` of flat node i (through the
+ * handoff when another walker may read it), and into the wide child that
+ * copies that slot if there is one (widen.cl's map_wide_lanes), so that the
+ * wide tree needs no pass of its own. */
 inline void store_slot(__global FlatNode *nodes, int i, int right_slot, Aabb box,
-                       __global WideNode *wide, __global const int *lane_of_slot)
+                       __global WideNode *wide, __global const int *lane_of_slot,
+                       int handed_on)
 {
     __global FlatNode *node = nodes + i;
     __global float *lo = right_slot ? node->right_lo : node->left_lo;
     __global float *hi = right_slot ? node->right_hi : node->left_hi;
-    for (int k = 0; k < 3; ++k) {
-        lo[k] = box.lo[k];
-        hi[k] = box.hi[k];
+    if (handed_on) {
+        handoff_store_box(lo, hi, box);
+    } else {
+        for (int k = 0; k < 3; ++k) {
+            lo[k] = box.lo[k];
+            hi[k] = box.hi[k];
+        }
     }
     int lane = lane_of_slot[2 * i + right_slot];
     if (lane >= 0) {
@@ -60,12 +67,12 @@ inline void store_slot(__global FlatNode *nodes, int i, int right_slot, Aabb box
     }
 }
 
-inline void load_slot_volatile(__global const FlatNode *node, int right_slot, Aabb *box)
+/* An interior child's box, which this walker or (through the handoff) its
+ * sibling's stored. */
+inline void load_slot(__global FlatNode *node, int right_slot, Aabb *box)
 {
-    volatile __global const float *lo = right_slot ? node->right_lo : node->left_lo;
-    volatile __global const float *hi = right_slot ? node->right_hi : node->left_hi;
-    Aabb slot = {{lo[0], lo[1], lo[2]}, {hi[0], hi[1], hi[2]}};
-    *box = slot;
+    handoff_load_box(right_slot ? node->right_lo : node->left_lo,
+                     right_slot ? node->right_hi : node->left_hi, box);
 }
 
 /* Refit of the flat tree (and of its wide copy) after vertices moved: a walk
@@ -75,7 +82,7 @@ inline void load_slot_volatile(__global const FlatNode *node, int right_slot, Aa
 __kernel void refit_flat_tree(__global FlatNode *nodes, __global const int *parents,
                               __global const float *vertices, __global const int *vertex_ids,
                               __global Triangle *triangles,
-                              __global volatile int *visits, int node_count,
+                              __global int *visits, int node_count,
                               __global WideNode *wide, __global const int *lane_of_slot)
 {
     int i = get_global_id(0);
@@ -93,30 +100,27 @@ __kernel void refit_flat_tree(__global FlatNode *nodes, __global const int *pare
         if (left_count > 0)
             regather_leaf(vertices, vertex_ids, triangles, left, left_count, &left_box);
         else
-            load_slot_volatile(node, 0, &left_box);
+            load_slot(node, 0, &left_box);
         if (right_count > 0)
             regather_leaf(vertices, vertex_ids, triangles, right, right_count, &right_box);
         else
-            load_slot_volatile(node, 1, &right_box);
+            load_slot(node, 1, &right_box);
         if (left_count > 0)
-            store_slot(nodes, i, 0, left_box, wide, lane_of_slot);
+            store_slot(nodes, i, 0, left_box, wide, lane_of_slot, 0);
         if (right_count > 0)
-            store_slot(nodes, i, 1, right_box, wide, lane_of_slot);
+            store_slot(nodes, i, 1, right_box, wide, lane_of_slot, 0);
 
         int p = parents[i];
         if (p < 0)
             return;
         __global FlatNode *up = nodes + p;
-        store_slot(nodes, p, up->left_count == 0 && up->left == i ? 0 : 1,
-                   aabb_union(left_box, right_box), wide, lane_of_slot);
         /* A parent with one interior child (this one) needs no counter. */
-        if (is_interior_slot(up->left, up->left_count) &&
-            is_interior_slot(up->right, up->right_count)) {
-            write_mem_fence(CLK_GLOBAL_MEM_FENCE); /* release, then acquire */
-            if (atomic_inc(&visits[p]) == 0)
-                return; /* the sibling subtree is not done; its walker goes on */
-            read_mem_fence(CLK_GLOBAL_MEM_FENCE); /* acquire */
-        }
+        int meeting = is_interior_slot(up->left, up->left_count) &&
+                      is_interior_slot(up->right, up->right_count);
+        store_slot(nodes, p, up->left_count == 0 && up->left == i ? 0 : 1,
+                   aabb_union(left_box, right_box), wide, lane_of_slot, meeting);
+        if (meeting && handoff_arrive(visits + p) == 0)
+            return; /* the sibling subtree is not done; its walker goes on */
         i = p;
     }
 }

@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from hlbvh_cl import layout
+from hlbvh_cl.frame import to_frame
 
 
 def _tri_boxes(tris: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -40,7 +41,8 @@ def check_tree(scene, exact_boxes: bool = True) -> dict:
     assert np.array_equal(np.sort(global_face), np.arange(n)), "triangle refs are not a permutation"
     for g, mesh in enumerate(scene.meshes):
         sel = refs["geom_id"] == g
-        corners = mesh.vertices[mesh.faces[refs["prim_id"][sel]]]
+        # in the tree's frame: the scene's coordinates times tree.scale (hlbvh_cl.frame)
+        corners = to_frame(mesh.vertices, scene.tree.scale)[mesh.faces[refs["prim_id"][sel]]]
         for k, name in enumerate(("v0", "v1", "v2")):
             assert np.array_equal(tris[name][sel], corners[:, k]), f"triangle {name} != mesh {g}"
 

@@ -20,7 +20,8 @@ import hlbvh_cl
 #: Modules that check results against an oracle or invariants.
 CORRECTNESS = ["test_query.py", "test_oracle.py", "test_embree.py", "test_watertight.py",
                "test_packets.py", "test_build.py", "test_radix_tree.py", "test_split.py",
-               "test_sort.py", "test_scan.py", "test_widen.py", "test_render.py", "test_layout.py"]
+               "test_sort.py", "test_scan.py", "test_widen.py", "test_render.py", "test_layout.py",
+               "test_extreme_coordinates.py"]
 
 HERE = Path(__file__).resolve().parent
 

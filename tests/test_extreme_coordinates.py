@@ -1,0 +1,121 @@
+"""Finite coordinates of any magnitude (issue 22): a scene at 1e-30 or 1e30
+gives the hits a float64 brute force gives, never t = inf, a NaN normal or u, v
+outside [0, 1], and a tree as deep as the same scene at 1.  Scenes outside
+[2^-24, 2^24] are built in a frame scaled by a power of two
+(hlbvh_cl/frame.py), which is exact: at a power-of-two scale the hits are
+those of the unscaled scene, bit for bit."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+import hlbvh_cl
+from hlbvh_cl import frame
+from oracle import brute_force_intersect
+
+
+def sphere_and_ground():
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    ground = trimesh.creation.box(extents=(4.0, 0.2, 4.0))
+    ground.apply_translation((0.0, -1.2, 0.0))
+    return [(np.asarray(m.vertices, np.float64), np.asarray(m.faces)) for m in (sphere, ground)]
+
+
+def rays(count, rng):
+    """Rays from a shell around the scene towards points near it; most hit."""
+    origins = rng.normal(size=(count, 3))
+    origins *= 3.0 / np.linalg.norm(origins, axis=1, keepdims=True)
+    targets = rng.uniform(-1.3, 1.3, (count, 3))
+    return origins, targets - origins
+
+
+def scene_at(scale, **kwargs):
+    return hlbvh_cl.Scene([hlbvh_cl.Mesh(v * scale, f) for v, f in sphere_and_ground()], **kwargs)
+
+
+@pytest.mark.parametrize("scale", [1e-30, 1e-20, 1e-19, 1e-10, 1e10, 1e20, 1e30, 3e37])
+def test_hits_at_any_scale_match_float64(scale):
+    rng = np.random.default_rng(7)
+    scene = scene_at(scale)
+    origins, directions = rays(2000, rng)
+    origins = (origins * scale).astype(np.float32)
+    directions = (directions * scale).astype(np.float32)
+    hits = scene.intersect(origins, directions)
+    meshes = scene.meshes
+    vertices = np.concatenate([m.vertices for m in meshes])
+    faces = np.concatenate([meshes[0].faces, meshes[1].faces + meshes[0].vertex_count])
+    expected = brute_force_intersect(vertices, faces, origins, directions)
+    hit = hits.hit
+    assert hit.sum() > 1000
+    assert np.array_equal(hit, expected["t"] < np.inf)
+    assert np.all(np.isfinite(hits.t[hit])) and np.all(np.isfinite(hits.normal[hit]))
+    np.testing.assert_allclose(hits.t[hit], expected["t"][hit], rtol=1e-5)
+    assert np.all((hits.u[hit] >= 0) & (hits.u[hit] <= 1) & (hits.v[hit] >= 0) & (hits.v[hit] <= 1))
+    np.testing.assert_allclose(np.linalg.norm(hits.normal[hit], axis=1), 1.0, rtol=1e-5)
+    assert np.array_equal(scene.occluded(origins, directions), hit)
+
+
+@pytest.mark.parametrize("exponent", [-100, -60, 70, 100])
+def test_a_power_of_two_scale_changes_nothing(exponent):
+    """The same scene at 2^k: the same tree (depth, SAH cost) and the same
+    hits, bit for bit, t included (origins and directions scale alike)."""
+    rng = np.random.default_rng(8)
+    origins, directions = (a.astype(np.float32) for a in rays(3000, rng))
+    scale = 2.0 ** exponent
+    plain, scaled = scene_at(1.0), scene_at(scale)
+    assert scaled.tree.scale != 1.0 and plain.tree.scale == 1.0
+    for key in ("depth", "nodes", "leaves", "sah_cost"):
+        assert scaled.stats[key] == plain.stats[key], key
+    expected = plain.intersect(origins, directions)
+    got = scaled.intersect((origins.astype(np.float64) * scale).astype(np.float32),
+                           (directions.astype(np.float64) * scale).astype(np.float32))
+    for name in ("t", "prim_id", "geom_id", "u", "v", "normal"):
+        assert np.array_equal(getattr(got, name), getattr(expected, name)), name
+
+
+def test_renders_at_any_scale_are_the_same_image():
+    camera = hlbvh_cl.Camera((0.0, 1.0, 4.0), (0.0, -0.3, 0.0))
+    expected = scene_at(1.0).render(camera, 32, 24, shading="ao", ao_samples=2)
+    for scale in (2.0**-90, 2.0**90):
+        far = hlbvh_cl.Camera(tuple(np.multiply(camera.eye, scale)),
+                              tuple(np.multiply(camera.target, scale)))
+        image = scene_at(scale).render(far, 32, 24, shading="ao", ao_samples=2,
+                                       ao_distance=None)
+        assert np.array_equal(image, expected)
+
+
+def test_update_vertices_across_frames():
+    """Moving a mesh to 1e30 and back rebuilds in the frame each needs; the
+    hits follow the float64 brute force each time."""
+    rng = np.random.default_rng(9)
+    scene = scene_at(1.0)
+    (v, f), _ = sphere_and_ground()
+    for scale in (1e30, 1e-3, 1.0):
+        scene.update_vertices(0, v * scale + [0.0, 2.0 * scale, 0.0])
+        assert scene.tree.scale == frame.scale_for(
+            max(np.abs(m.vertices).max() for m in scene.meshes))
+        origins = np.tile([[0.0, 10.0 * scale, 0.0]], (50, 1)).astype(np.float32)
+        directions = np.tile([[0.0, -1.0, 0.0]], (50, 1)).astype(np.float32)
+        directions[:, 0] = rng.uniform(-0.04, 0.04, 50)
+        hits = scene.intersect(origins, directions)
+        expected = brute_force_intersect(scene.meshes[0].vertices, scene.meshes[0].faces,
+                                         origins, directions)
+        assert np.all(hits.geom_id == 0)
+        np.testing.assert_allclose(hits.t, expected["t"], rtol=1e-5)
+
+
+def test_a_ray_the_frame_cannot_hold_is_named():
+    scene = scene_at(1e-30)
+    origins = np.array([[0.0, 0.0, 3e-30], [3e30, 0.0, 0.0]], np.float32)
+    directions = np.array([[0.0, 0.0, -1e-30], [-1.0, 0.0, 0.0]], np.float32)
+    with pytest.raises(ValueError, match=r"origins\[1\] .*overflows float32 once multiplied by 2\^"):
+        scene.intersect(origins, directions)
+
+
+def test_the_frame_is_one_where_coordinates_are_ordinary():
+    assert frame.scale_for(0.0) == 1.0
+    assert frame.scale_for(1e-7) == 1.0 and frame.scale_for(1e7) == 1.0
+    for largest in (1e-30, 3e-8, 2.0**24 * 1.01, 1e30, 3.4e38):
+        scaled = largest * frame.scale_for(largest)
+        assert 0.5 <= scaled < 1.0
