@@ -16,9 +16,11 @@ def partial_count(rt, triangle_count: int) -> int:
 
 
 def scene_bounds(rt, vertices: cl.Buffer, faces: cl.Buffer, triangle_count: int,
-                 bounds: cl.Buffer, centroids: cl.Buffer, wait_for=None) -> list[cl.Event]:
+                 bounds: cl.Buffer, centroids: cl.Buffer, inverse_extent: cl.Buffer,
+                 wait_for=None) -> list[cl.Event]:
     """bounds[0] <- box of all triangles, bounds[1] <- box of their centroids;
-    centroids[i] <- triangle i's box centre (float4, w = 0)."""
+    centroids[i] <- triangle i's box centre (float4, w = 0); inverse_extent
+    (float4) <- 1 / the centroid box's extent per axis, correctly rounded."""
     partials = partial_count(rt, triangle_count)
     geometry = rt.pool.take(partials * layout.AABB.itemsize)
     centroid_boxes = rt.pool.take(partials * layout.AABB.itemsize)
@@ -28,5 +30,6 @@ def scene_bounds(rt, vertices: cl.Buffer, faces: cl.Buffer, triangle_count: int,
                     vertices, faces, triangle_count, geometry, centroid_boxes, centroids,
                     wait_for=wait_for)
     fold = rt.run(rt.kernel("bounds.cl", "fold_partial_bounds", STRIDED_SLICES=0), 1,
-                  geometry, centroid_boxes, partials, bounds, wait_for=[reduce], local_size=1)
+                  geometry, centroid_boxes, partials, bounds, inverse_extent, wait_for=[reduce],
+                  local_size=1)
     return [reduce, fold]

@@ -114,13 +114,14 @@ def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int) -> B
 
     buf = rt.pool.take
 
-    bounds, centroids = buf(2 * layout.AABB.itemsize), buf(n * 16)
+    bounds, centroids, inverse_extent = buf(2 * layout.AABB.itemsize), buf(n * 16), buf(16)
     stage_events["bounds"] = scene_bounds(rt, geometry.vertices, geometry.faces, n, bounds,
-                                          centroids)
+                                          centroids, inverse_extent)
 
     keys, primitive_ids = buf(n * dtype.itemsize), buf(n * 4)
-    stage_events["morton"] = morton_codes(rt, centroids, n, bounds, keys, primitive_ids,
-                                          morton_bits, wait_for=stage_events["bounds"][-1:])
+    stage_events["morton"] = morton_codes(rt, centroids, n, bounds, inverse_extent, keys,
+                                          primitive_ids, morton_bits,
+                                          wait_for=stage_events["bounds"][-1:])
 
     # The result may sit in the sorter's scratch, which the next build on this
     # runtime reuses: nothing sorted outlives this build (refits use refs).

@@ -14,11 +14,12 @@ def key_dtype(bits: int) -> np.dtype:
 
 
 def morton_codes(rt, centroids: cl.Buffer, triangle_count: int, bounds: cl.Buffer,
-                 keys: cl.Buffer, primitive_ids: cl.Buffer, bits: int,
-                 wait_for=None) -> list[cl.Event]:
+                 inverse_extent: cl.Buffer, keys: cl.Buffer, primitive_ids: cl.Buffer,
+                 bits: int, wait_for=None) -> list[cl.Event]:
     """keys[i] <- Morton code of centroids[i] (float4, from the bounds stage)
-    over the centroid box bounds[1]; primitive_ids[i] <- i."""
+    over the centroid box bounds[1], whose inverse extent the bounds stage
+    gives too; primitive_ids[i] <- i."""
     key_dtype(bits)
     kernel = rt.kernel("morton.cl", "morton_codes", MORTON_BITS=bits)
-    return [rt.run(kernel, triangle_count, centroids, triangle_count, bounds, keys,
-                   primitive_ids, wait_for=wait_for)]
+    return [rt.run(kernel, triangle_count, centroids, triangle_count, bounds, inverse_extent,
+                   keys, primitive_ids, wait_for=wait_for)]

@@ -47,10 +47,37 @@ __kernel void reduce_triangle_bounds(__global const float *vertices, __global co
     partial_centroids[gid] = centroid_box;
 }
 
-/* bounds[0] = scene box, bounds[1] = box of the triangle centroids. */
+/* a / b rounded to nearest, as a host divides, on any device: OpenCL C lets a
+ * float divide be 2.5 ulp off (sec. 7.4; NVIDIA's is) unless built with
+ * -cl-fp32-correctly-rounded-divide-sqrt, which is optional, and a compiler
+ * may turn a divide in double back into that one.  The nearest quotient
+ * leaves the smallest residual |a - q b|, which fma rounds once (exactly,
+ * near the quotient), so step to a neighbour while it leaves a smaller one
+ * (Markstein 1990). */
+inline float divide_nearest(float a, float b)
+{
+    float q = a / b;
+    for (int step = 0; step < 3; ++step) {
+        float up = nextafter(q, INFINITY), down = nextafter(q, -INFINITY);
+        float r = fabs(fma(-q, b, a));
+        float r_up = fabs(fma(-up, b, a)), r_down = fabs(fma(-down, b, a));
+        if (r_up < r && r_up <= r_down)
+            q = up;
+        else if (r_down < r)
+            q = down;
+        else
+            break;
+    }
+    return q;
+}
+
+/* bounds[0] = scene box, bounds[1] = box of the triangle centroids,
+ * inverse_extent[0] = 1 / that box's extent per axis, correctly rounded (0
+ * on a flat axis): one ulp of the Morton codes' scale moves many centroids
+ * across a cell of 2^21 per axis, so every device must agree on it. */
 __kernel void fold_partial_bounds(__global const Aabb *partial_geometry,
                                   __global const Aabb *partial_centroids, int partial_count,
-                                  __global Aabb *bounds)
+                                  __global Aabb *bounds, __global float4 *inverse_extent)
 {
     if (get_global_id(0) != 0)
         return;
@@ -62,4 +89,10 @@ __kernel void fold_partial_bounds(__global const Aabb *partial_geometry,
     }
     bounds[0] = geometry;
     bounds[1] = centroids;
+    float inverse[3];
+    for (int k = 0; k < 3; ++k) {
+        float extent = centroids.hi[k] - centroids.lo[k];
+        inverse[k] = extent > 0.0f ? divide_nearest(1.0f, extent) : 0.0f;
+    }
+    inverse_extent[0] = (float4)(inverse[0], inverse[1], inverse[2], 0.0f);
 }

@@ -82,12 +82,11 @@ inline void handoff_store_box(__global float *lo, __global float *hi, Aabb box)
     }
 }
 
-inline void handoff_load_box(__global float *lo, __global float *hi, Aabb *box)
+inline Aabb handoff_load_box(__global float *lo, __global float *hi)
 {
-    for (int k = 0; k < 3; ++k) {
-        box->lo[k] = handoff_load_float(lo + k);
-        box->hi[k] = handoff_load_float(hi + k);
-    }
+    Aabb box = {{handoff_load_float(lo), handoff_load_float(lo + 1), handoff_load_float(lo + 2)},
+                {handoff_load_float(hi), handoff_load_float(hi + 1), handoff_load_float(hi + 2)}};
+    return box;
 }
 
 #endif

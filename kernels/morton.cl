@@ -41,58 +41,23 @@ inline ulong4 spread_bits(uint4 x)
 }
 #endif
 
-/* a / b rounded to nearest, as a host computes it, on any device: OpenCL C
- * lets a float divide be 2.5 ulp off (sec. 7.4; NVIDIA's is) unless built with
- * -cl-fp32-correctly-rounded-divide-sqrt, which is optional, and one ulp of
- * the scale moves many centroids across a cell of 2^21 per axis.  A double
- * divide is correctly rounded, and rounding its quotient to float is too
- * (53 >= 2 * 24 + 2: Figueroa 1995).  Without doubles: the nearest quotient
- * leaves the smallest residual |a - q b|, which fma rounds once (exact near
- * the quotient), so step to a neighbour while it leaves a smaller one
- * (Markstein 1990).  (DIVIDE_BY_FMA=1 picks the latter anywhere: its test.) */
-#if defined(cl_khr_fp64) && !DIVIDE_BY_FMA
-#pragma OPENCL EXTENSION cl_khr_fp64 : enable
-inline float divide_nearest(float a, float b)
-{
-    return (float)((double)a / (double)b);
-}
-#else
-inline float divide_nearest(float a, float b)
-{
-    float q = a / b;
-    for (int step = 0; step < 3; ++step) {
-        float up = nextafter(q, INFINITY), down = nextafter(q, -INFINITY);
-        float r = fabs(fma(-q, b, a));
-        float r_up = fabs(fma(-up, b, a)), r_down = fabs(fma(-down, b, a));
-        if (r_up < r && r_up <= r_down)
-            q = up;
-        else if (r_down < r)
-            q = down;
-        else
-            break;
-    }
-    return q;
-}
-#endif
-
-/* centroids: the triangles' box centres, stored by the bounds stage. */
+/* centroids: the triangles' box centres, stored by the bounds stage, with
+ * inverse_extent: 1 / the centroid box's extent per axis, correctly rounded
+ * (0 on a flat axis), so that the scale AXIS_CELLS * inverse_extent is
+ * AXIS_CELLS / extent correctly rounded, as on a host (bounds.cl). */
 __kernel void morton_codes(__global const float4 *centroids, int triangle_count,
-                           __global const Aabb *bounds, __global morton_t *keys,
-                           __global uint *primitive_ids)
+                           __global const Aabb *bounds, __global const float4 *inverse_extent,
+                           __global morton_t *keys, __global uint *primitive_ids)
 {
     int face = get_global_id(0);
     if (face >= triangle_count)
         return;
     Aabb box = bounds[1];
     float4 lo = (float4)(box.lo[0], box.lo[1], box.lo[2], 0.0f);
-    float4 extent = (float4)(box.hi[0], box.hi[1], box.hi[2], 0.0f) - lo;
     /* A flat axis (all centroids equal) quantises to cell 0.  select and
      * clamp spelled with ?: (PoCL calls them out of line: see GROW_LO in
      * hlbvh.h); a NaN still goes to 0, as clamp's fmax sends it. */
-    float4 scale = (float4)(divide_nearest(AXIS_CELLS, extent.x),
-                            divide_nearest(AXIS_CELLS, extent.y),
-                            divide_nearest(AXIS_CELLS, extent.z), 0.0f);
-    scale = extent > 0.0f ? scale : (float4)(0.0f);
+    float4 scale = AXIS_CELLS * inverse_extent[0];
     float4 cell = (centroids[face] - lo) * scale;
     cell = cell > 0.0f ? cell : (float4)(0.0f);
     cell = cell < AXIS_CELLS - 1.0f ? cell : (float4)(AXIS_CELLS - 1.0f);

@@ -132,9 +132,7 @@ void build_radix_tree(__global const morton_t *keys, int n, __global int *far_en
     while (!(first == 0 && last == n - 1)) {
         int split = left_side ? last : first - 1;
         int other;
-        Aabb sibling_box;
-        float sibling_cost;
-        int sibling_height;
+        int meeting = 0;
         /* A sibling that is a leaf is ready (lay_out_leaves wrote it), so
          * there is nothing to wait for: a subtree's walker goes on alone, and
          * of two leaves the left one; a leaf beside a subtree stops.  Only
@@ -155,10 +153,6 @@ void build_radix_tree(__global const morton_t *keys, int n, __global int *far_en
                 height[node] = subtree_height;
             }
             other = left_side ? split + 1 : split;
-            int leaf = (n - 1) + other;
-            sibling_box = boxes[leaf];
-            sibling_cost = sah_cost[leaf];
-            sibling_height = 0;
         } else if (first == last) {
             return;
         } else {
@@ -169,12 +163,7 @@ void build_radix_tree(__global const morton_t *keys, int n, __global int *far_en
             if (handoff_arrive(visits + split) == 0)
                 return; /* the sibling subtree is not done; its walker goes on */
             other = handoff_load(far_end + 2 * split + left_side);
-            /* the sibling subtree's root: named as below, from its range */
-            int sibling = left_side ? (other == split + 1 ? (n - 1) + other : split + 1)
-                                    : (other == split ? (n - 1) + other : split);
-            handoff_load_box(boxes[sibling].lo, boxes[sibling].hi, &sibling_box);
-            sibling_cost = handoff_load_float(sah_cost + sibling);
-            sibling_height = handoff_load(height + sibling);
+            meeting = 1;
         }
         if (left_side)
             last = other;
@@ -183,6 +172,11 @@ void build_radix_tree(__global const morton_t *keys, int n, __global int *far_en
 
         int left = first == split ? (n - 1) + split : split;
         int right = last == split + 1 ? (n - 1) + split + 1 : split + 1;
+        int sibling = left_side ? right : left;
+        Aabb sibling_box = meeting ? handoff_load_box(boxes[sibling].lo, boxes[sibling].hi)
+                                   : boxes[sibling];
+        float sibling_cost = meeting ? handoff_load_float(sah_cost + sibling) : sah_cost[sibling];
+        int sibling_height = meeting ? handoff_load(height + sibling) : height[sibling];
         left_side = is_left_child(keys, n, first, last);
         /* Karras's number: the root 0, else the end it shares with its parent's split */
         node = first == 0 && last == n - 1 ? 0 : left_side ? last : first;

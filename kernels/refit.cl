@@ -71,8 +71,8 @@ inline void store_slot(__global FlatNode *nodes, int i, int right_slot, Aabb box
  * sibling's stored. */
 inline void load_slot(__global FlatNode *node, int right_slot, Aabb *box)
 {
-    handoff_load_box(right_slot ? node->right_lo : node->left_lo,
-                     right_slot ? node->right_hi : node->left_hi, box);
+    *box = handoff_load_box(right_slot ? node->right_lo : node->left_lo,
+                            right_slot ? node->right_hi : node->left_hi);
 }
 
 /* Refit of the flat tree (and of its wide copy) after vertices moved: a walk
