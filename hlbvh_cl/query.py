@@ -191,7 +191,8 @@ class RayQuery:
     def intersect(self, tree: DeviceTree, origins, directions, tmin=0.0, tmax=np.inf) -> Hits:
         """Closest hit of each ray (origins[i] + t * directions[i], tmin <= t <= tmax)."""
         origins, directions, tmin, tmax = _check_rays(origins, directions, tmin, tmax)
-        origins, directions = _into_frame(origins, directions, tree)
+        origins, directions, tmin, tmax, t_factor = _into_frame(origins, directions, tmin, tmax,
+                                                                tree)
         count = len(origins)
         hits = Hits(**{name: self._results.empty((count, n) if n > 1 else count, dtype)
                        for name, (dtype, n) in HIT_FIELDS.items()})
@@ -206,6 +207,8 @@ class RayQuery:
                                    local_size=self.work_group_size)
             self._run(count, origins, directions, tmin, tmax, launch,
                       {name: getattr(hits, name) for name in HIT_ARRAYS})
+            if t_factor is not None:  # back from the frame's t: exact, powers of two
+                hits.t[:] = hits.t * t_factor
         elif count:
             hits.t[:] = np.inf
             hits.geom_id[:] = hits.prim_id[:] = -1
@@ -215,7 +218,7 @@ class RayQuery:
     def occluded(self, tree: DeviceTree, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
         """bool (R,): whether anything is hit with tmin <= t <= tmax (stops at the first hit)."""
         origins, directions, tmin, tmax = _check_rays(origins, directions, tmin, tmax)
-        origins, directions = _into_frame(origins, directions, tree)
+        origins, directions, tmin, tmax, _ = _into_frame(origins, directions, tmin, tmax, tree)
         count = len(origins)
         result = self._results.empty(count, np.uint8)
         if count and self._check_tree(tree):
@@ -500,22 +503,31 @@ def _raise_first_bad_ray(name: str, vectors: np.ndarray, given: np.ndarray,
                              "a direction needs a component of magnitude >= 1.2e-38")
 
 
-def _into_frame(origins: np.ndarray, directions: np.ndarray, tree) -> tuple[np.ndarray, np.ndarray]:
+def _into_frame(origins, directions, tmin, tmax, tree):
     """The (checked) rays in the frame of a tree built at a scale other than 1
-    (hlbvh_cl.frame): t stays the same.  A ray that the scale takes out of
-    float32 raises the ValueError that names it."""
+    (hlbvh_cl.frame), and the factor per ray that turns the frame's t back
+    into the caller's (None at scale 1).  Origins take the tree's scale; each
+    direction a power of two of its own that brings its largest component to
+    [0.5, 1), so that no direction under- or overflows and t stays near the
+    frame's size; tmin and tmax follow.  An origin that the scale takes out of
+    float32 (far from a tiny scene) raises the ValueError that names it."""
     scale = getattr(tree, "scale", 1.0)
     if scale == 1.0:
-        return origins, directions
-    scaled = frame.to_frame(origins, scale), frame.to_frame(directions, scale)
-    if not _rays_are_valid(*scaled):
+        return origins, directions, tmin, tmax, None
+    framed = frame.to_frame(origins, scale)
+    if not _rays_are_valid(framed, np.ones_like(framed)):
         try:
-            _raise_first_bad_ray("origins", scaled[0], origins, directions=False)
-            _raise_first_bad_ray("directions", scaled[1], directions, directions=True)
+            _raise_first_bad_ray("origins", framed, origins, directions=False)
         except ValueError as error:
             raise ValueError(f"{error} once multiplied by {frame.describe(scale)}, the scale "
                              f"of this scene's frame (hlbvh_cl/frame.py)") from None
-    return scaled
+    _, exponent = np.frexp(np.abs(directions).max(axis=1))
+    per_ray = np.ldexp(1.0, -exponent)
+    directions = (directions * per_ray[:, None]).astype(np.float32)
+    t_factor = per_ray / scale  # the caller's t = the frame's t * t_factor
+    with np.errstate(over="ignore", under="ignore"):
+        tmin, tmax = ((limit / t_factor).astype(np.float32) for limit in (tmin, tmax))
+    return framed, directions, tmin, tmax, t_factor
 
 
 def _limits(name: str, value, count: int) -> np.ndarray:

@@ -40,8 +40,8 @@ class DeviceTree:
     released   set by :meth:`release`: the buffers went back to a pool (the
                Scene that owned the tree rebuilt it) and must not be read.
     scale      the power of two the scene's coordinates were multiplied by to
-               give this tree's (hlbvh_cl.frame; 1 for most scenes): rays are
-               scaled alike on their way in, and bounds_lo/hi are in this frame.
+               give this tree's (hlbvh_cl.frame; 1 for most scenes): ray origins
+               are scaled alike on their way in; bounds_lo/hi are in this frame.
     """
 
     nodes: cl.Buffer

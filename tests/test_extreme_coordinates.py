@@ -105,6 +105,31 @@ def test_update_vertices_across_frames():
         np.testing.assert_allclose(hits.t, expected["t"], rtol=1e-5)
 
 
+@pytest.mark.parametrize("scale, length", [(1e38 / 4, 1.0), (1e-30, 1e6), (1e-30, 1e-20),
+                                           (1e30, 1e-6), (1.0, 1e-30)])
+def test_directions_of_any_length_in_a_scene_of_any_scale(scale, length):
+    """Directions need not scale with the scene: unit directions in a scene
+    near float32's largest, long or short ones in tiny or huge scenes (so
+    long as t itself, about scale / length, is a normal float32)."""
+    rng = np.random.default_rng(10)
+    scene = scene_at(scale)
+    origins, directions = rays(1000, rng)
+    origins = (origins * scale).astype(np.float32)
+    directions = (directions / np.linalg.norm(directions, axis=1, keepdims=True)
+                  * length).astype(np.float32)
+    hits = scene.intersect(origins, directions, tmax=np.float32(3e38))
+    meshes = scene.meshes
+    vertices = np.concatenate([m.vertices for m in meshes])
+    faces = np.concatenate([meshes[0].faces, meshes[1].faces + meshes[0].vertex_count])
+    expected = brute_force_intersect(vertices, faces, origins, directions)
+    assert hits.hit.sum() > 400
+    assert np.array_equal(hits.hit, expected["t"] < np.inf)
+    np.testing.assert_allclose(hits.t[hits.hit], expected["t"][hits.hit], rtol=1e-5)
+    limit = expected["t"][hits.hit].max() * 0.5  # a tmax that cuts some hits off
+    assert np.array_equal(scene.occluded(origins, directions, tmax=limit),
+                          expected["t"] <= limit)
+
+
 def test_a_ray_the_frame_cannot_hold_is_named():
     scene = scene_at(1e-30)
     origins = np.array([[0.0, 0.0, 3e-30], [3e30, 0.0, 0.0]], np.float32)
