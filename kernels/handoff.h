@@ -6,9 +6,10 @@
  *
  * ACQUIRE_RELEASE=1 (the host sets it where the device compiles OpenCL C 2.0,
  * or 3.0 with acquire-release order at device scope, and builds the program
- * for that version): the count is an acquire-release atomic, so by the 2.0
- * memory model (sec. 3.3.6) plain stores before the first arrival's count
- * happen before plain loads after the second's.
+ * for that version): the count is a release fetch-add, and the second
+ * arrival follows it with an acquire fence, so by the 2.0 memory model
+ * (sec. 3.3.6, release operation and acquire fence) plain stores before the
+ * first arrival's count happen before plain loads after the second's.
  *
  * ACQUIRE_RELEASE=0 (OpenCL C 1.2): 1.2 orders nothing between work-groups
  * but atomics (sec. 3.3.1: plain memory is consistent only at a barrier,
