@@ -515,7 +515,7 @@ def _into_frame(origins, directions, tmin, tmax, tree):
     if scale == 1.0:
         return origins, directions, tmin, tmax, None
     framed = frame.to_frame(origins, scale)
-    if not _rays_are_valid(framed, np.ones_like(framed)):
+    if not np.isfinite(framed).all():
         try:
             _raise_first_bad_ray("origins", framed, origins, directions=False)
         except ValueError as error:
