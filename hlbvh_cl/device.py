@@ -113,7 +113,7 @@ class Device:
 
     @property
     def simulator(self) -> bool:
-        """A simulator (Oclgrind): correct but about 1000x slower than a CPU
+        """A simulator (Oclgrind): correct but orders of magnitude slower than a CPU
         runtime, so used only when named, never by default."""
         return "oclgrind" in self.platform.lower()
 

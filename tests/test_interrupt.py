@@ -30,7 +30,7 @@ one_job = {
 }[sys.argv[2]]
 print("ready", flush=True)
 try:
-    deadline = time.monotonic() + 120  # jobs one after another: a fast GPU ends one in < 1 s
+    deadline = time.monotonic() + 120  # one job may end before SIGINT on a fast device
     while time.monotonic() < deadline:
         one_job()
     print("finished", flush=True)
