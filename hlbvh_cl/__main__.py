@@ -1,3 +1,4 @@
+"""``python -m hlbvh_cl``: the hlbvh-cl command (hlbvh_cl.cli)."""
 import sys
 
 from .cli import main

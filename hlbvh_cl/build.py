@@ -1,12 +1,16 @@
 """The build pipeline: bounds -> Morton codes -> radix sort -> radix tree with
-its boxes (+ SAH collapse) -> SAH top over clusters -> flat tree.
+its boxes (+ SAH collapse) -> SAH top over clusters -> flat binary tree ->
+8-wide tree (Lauterbach et al. 2009 and Pantaleoni & Luebke 2010 for the
+HLBVH, Karras 2012 for the radix tree, Wald et al. 2008 for the wide nodes).
 
 Every stage runs on the device; this module only sequences them, sizes the
 buffers (failing before any allocation when the device is too small) and
-collects per-stage times from profiling events.
+collects per-stage times from profiling events.  Its one product is a Tree
+and its BuildStats: everything else, the binary tree included, is scratch.
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,7 +24,8 @@ from .morton import key_dtype, morton_codes
 from .radix_tree import RadixTree, RadixTreeMetrics, build_radix_tree
 from .sah_top import BYTES_PER_CLUSTER, build_top, max_clusters
 from .sort import RadixSorter
-from .tree import DeviceTree
+from .tree import Tree
+from .widen import widen
 
 BUILDERS = ("hlbvh", "lbvh")
 STAGES = ("bounds", "morton", "sort", "radix_tree", "sah_top", "flatten", "widen")
@@ -107,12 +112,6 @@ class BuildStats:
     refit_ms: dict | None = None
 
 
-@dataclass
-class BuildResult:
-    tree: DeviceTree
-    stats: dict
-
-
 _sorters: dict[tuple, RadixSorter] = {}
 
 
@@ -123,23 +122,29 @@ def _sorter(rt: Runtime, dtype) -> RadixSorter:
     return _sorters[key]
 
 
-def build(rt: Runtime, geometry: Geometry, builder: str = "hlbvh",
-          morton_bits: int = 30) -> BuildResult:
-    """Build a DeviceTree over ``geometry`` on the device.  Builds on one
-    runtime are serialised: they share the sorter's scratch buffers."""
-    with rt.build_lock, rt.pool.build():
-        return _build(rt, geometry, builder, morton_bits)
-
-
-def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int) -> BuildResult:
+def build(rt: Runtime, geometry: Geometry, builder: str = "hlbvh", morton_bits: int = 30,
+          scale: float = 1.0) -> tuple[Tree, BuildStats]:
+    """Build the Tree over ``geometry`` (its coordinates multiplied by
+    ``scale``, hlbvh_cl.frame) and its BuildStats.  Every stage's scratch,
+    the binary tree included, goes back to the runtime's pool when the
+    build ends.  Builds on one runtime are serialised: they share the
+    sorter's scratch buffers."""
     if builder not in BUILDERS:
         raise ValueError(f"builder must be one of {BUILDERS}, got {builder!r}")
+    started = time.perf_counter()
+    with rt.build_lock, rt.pool.build():
+        tree, stats, stage_events = _build(rt, geometry, builder, morton_bits, scale)
+    times = {name: event_ms(events) for name, events in stage_events.items()}
+    return tree, BuildStats(**stats, times_ms=times, device_ms=sum(times.values()),
+                            wall_ms=(time.perf_counter() - started) * 1e3)
+
+
+def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int, scale: float):
     dtype = key_dtype(morton_bits)
     n = geometry.triangle_count
     check_fits(rt, geometry.vertex_count, n, morton_bits)
     hlbvh = builder == "hlbvh"
     stage_events: dict[str, list] = {name: [] for name in STAGES}
-
     buf = rt.pool.take
 
     bounds, centroids, inverse_extent = buf(2 * layout.AABB.itemsize), buf(n * 16), buf(16)
@@ -156,41 +161,42 @@ def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int) -> B
     keys, primitive_ids, stage_events["sort"] = _sorter(rt, dtype).sort(
         keys, primitive_ids, n, morton_bits, wait_for=stage_events["morton"][-1:])
 
-    tree, metrics = RadixTree.allocate(rt, n), RadixTreeMetrics.allocate(rt, n)
+    radix, metrics = RadixTree.allocate(rt, n), RadixTreeMetrics.allocate(rt, n)
     triangles, refs = buf(n * layout.TRIANGLE.itemsize), buf(n * layout.TRIANGLE_REF.itemsize)
     vertex_ids = buf(n * 12)
+    rt.pool.keep(triangles, refs, vertex_ids)
     stage_events["radix_tree"] = build_radix_tree(
         rt, keys, morton_bits, geometry.vertices, geometry.faces, primitive_ids,
-        geometry.mesh_first_face, geometry.mesh_count, tree, metrics, triangles, refs, vertex_ids,
-        collapse_leaves=hlbvh, wait_for=stage_events["sort"][-1:])
+        geometry.mesh_first_face, geometry.mesh_count, radix, metrics, triangles, refs,
+        vertex_ids, collapse_leaves=hlbvh, wait_for=stage_events["sort"][-1:])
 
     top = None
     if hlbvh and n > 1:
-        top, stage_events["sah_top"] = build_top(rt, keys, morton_bits, tree, metrics,
+        top, stage_events["sah_top"] = build_top(rt, keys, morton_bits, radix, metrics,
                                                  wait_for=stage_events["radix_tree"][-1:])
 
     last = (stage_events["sah_top"] or stage_events["radix_tree"])[-1:]
-    nodes, parents, node_count, leaf_count, root_box, depth, cost, stage_events["flatten"] = \
-        flatten_nodes(
-        rt, keys, morton_bits, tree, metrics, top, use_clusters=hlbvh, wait_for=last)
+    # the binary tree: scratch, read only by widen
+    bvh2, _, bvh2_count, leaf_count, root_box, depth, cost, stage_events["flatten"] = \
+        flatten_nodes(rt, keys, morton_bits, radix, metrics, top, use_clusters=hlbvh,
+                      wait_for=last)
+    nodes, levels, stage_events["widen"] = widen(rt, bvh2, bvh2_count,
+                                                 wait_for=stage_events["flatten"][-1:])
 
     scene_box = np.empty(2, layout.AABB)
     cl.enqueue_copy(rt.queue, scene_box, bounds)
     rt.queue.finish()
 
-    rt.pool.keep(nodes, parents, triangles, refs, vertex_ids)
-    tree_out = DeviceTree(nodes=nodes, triangles=triangles, refs=refs, parents=parents,
-                          vertex_ids=vertex_ids,
-                          node_count=node_count, leaf_count=leaf_count, triangle_count=n,
-                          depth=depth, bounds_lo=scene_box[0]["lo"].copy(),
-                          bounds_hi=scene_box[0]["hi"].copy())
+    tree = Tree(nodes=nodes, triangles=triangles, refs=refs, vertex_ids=vertex_ids,
+                node_count=levels[-1][0] + levels[-1][1], levels=levels, triangle_count=n,
+                bounds_lo=scene_box[0]["lo"].copy(), bounds_hi=scene_box[0]["hi"].copy(),
+                scale=scale)
     root_area = box_area(root_box)
-    times = {name: event_ms(events) for name, events in stage_events.items()}
     stats = {
-        "builder": builder, "morton_bits": morton_bits, "triangles": n, "nodes": node_count,
+        "builder": builder, "morton_bits": morton_bits, "triangles": n, "nodes": bvh2_count,
         "leaves": leaf_count, "depth": depth,
         "sah_cost": cost / root_area if root_area > 0 else float(leaf_count),
-        "clusters": top.cluster_count if top else 1, "times_ms": times,
+        "clusters": top.cluster_count if top else 1, "wide_nodes": tree.node_count,
+        "wide_depth": tree.depth,
     }
-    return BuildResult(tree_out, stats)
-
+    return tree, stats, stage_events

@@ -321,7 +321,7 @@ class Runtime:
         #: device buffers the build stages take and recycle (hlbvh_cl.pool)
         #: whether allocate() asks for 2 MiB pages (hlbvh_cl.hugepages): on
         #: PoCL's CPU device, where it measured faster; Intel's CPU runtime
-        #: built fresh scenes slower with them (reference scene 0.37 -> 0.71 s)
+        #: built fresh scenes slower with them
         self.huge_pages = not profile.gpu and device.id.startswith("pocl")
         self._advice_queue: cl.CommandQueue | None = None  # see allocate
         self.pool = BufferPool(self.allocate)
@@ -397,7 +397,7 @@ class Runtime:
     @property
     def group_size(self) -> int:
         """Default work-group size.  256 rather than 64: PoCL pays a fixed
-        cost per work-group, and 64 measured ~3x slower on a plain copy."""
+        cost per work-group, and 64 measured much slower on a plain copy."""
         return min(256, self.device.cl_device.max_work_group_size)
 
     def run(self, kernel: cl.Kernel, work_items: int | tuple[int, int], *args, wait_for=None,

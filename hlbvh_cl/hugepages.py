@@ -5,11 +5,9 @@ tree's nodes and triangles at random, so a tree larger than what the TLB
 covers (a few MiB of 4 KiB pages) pays a page walk on many loads.  Linux backs
 memory with 2 MiB pages where the process asks for them (madvise
 MADV_HUGEPAGE; /sys/kernel/mm/transparent_hugepage/enabled set to "madvise",
-the common default).  Measured on this project's machine with PoCL
-(2.9M-triangle reference scene, 1M incoherent rays, two processes each way,
-alternating): 230-232 -> 206-208 ms; camera rays and rebuilds unchanged.
-The first write of a fresh 256 MiB buffer also took 12-21 ms instead of
-51-59 (one page fault per 2 MiB instead of per 4 KiB).
+the common default).  On PoCL this measured faster for incoherent rays on
+large trees, and a fresh buffer's first write costs one page fault per 2 MiB
+instead of per 4 KiB.
 
 The advice must come before the memory is first written, so it is given when
 a buffer is made: the buffer is mapped (on CPU devices the map returns the
@@ -19,13 +17,9 @@ buffer stays as it is: this only changes speed.
 
 Only PoCL's buffers are advised (Runtime.huge_pages).  The cost falls on a
 scene's first build, whose kernels fault the fresh pages in (rebuilds reuse
-the pool's buffers).  On PoCL the first build of the reference scene took
-0.97-0.99 s instead of 1.06-1.10 (scene file read included).  Intel's CPU
-runtime took 1.31 s instead of 1.10, its threads waiting on each other's
-faults (scattered writes of the fresh tree 2-3x slower), and `python -m
-bench` measured its Scene() of the reference scene at 0.71 s instead of 0.37
-with no gain on its incoherent rays; faulting the pages in from the host
-first cost it more still (about 2 ms per MiB on this VM).
+the pool's buffers); on PoCL that first build measured faster too.  Intel's
+CPU runtime built fresh scenes slower with the advice, its threads waiting
+on each other's faults, with no gain on its rays.
 """
 from __future__ import annotations
 

@@ -1,17 +1,15 @@
 """Device buffers recycled from one build to the next (one pool per Runtime).
 
 A fresh buffer costs a CPU device its first-touch page faults, and the first
-kernel that writes it pays them: about a fifth of a rebuild of the reference
-scene on PoCL (ad hoc A/B, 2.9M triangles: 378 -> 300 ms).  So the build
+kernel that writes it pays them: a sizeable part of a large rebuild on PoCL.
+So the build
 stages take their buffers from the pool.  When a build ends, its scratch
 buffers go back, and ``Scene.rebuild`` gives back the tree it replaces.
 
 Buffers match by exact size, since a rebuild of the same geometry asks for the
 same sizes.  Free buffers a build does not take stay, so that scenes rebuilt
-in turn each find their own sizes again: Lucy (100K triangles) and the
-reference scene rebuilt alternately on PoCL took 27-34 and 275-337 ms a
-rebuild when each build dropped the other's buffers, 17-20 and 235-250 ms so
-(A/B, three rounds).
+in turn each find their own sizes again (two scenes rebuilt alternately
+measured slower when each build dropped the other's buffers).
 At the end of each build, what the pool keeps free is cut to KEEP_BUILDS times
 the bytes of the largest build it has served, the buffers returned longest
 ago first.  A Scene that goes away empties the pool (its memory is given back;

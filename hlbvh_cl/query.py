@@ -1,7 +1,7 @@
-"""Ray queries on a DeviceTree: closest hit and any hit (kernels/traverse.cl).
-
-Traversal reads the tree's wide form (DeviceTree.wide, made by
-hlbvh_cl.widen when the tree has none yet) and the tree's triangles.
+"""Ray queries on a finished Tree: closest hit and any hit, as a stack-based
+walk of its 8-wide nodes (kernels/traverse.cl; Wald, Benthin & Boulos 2008,
+and the ray-triangle test of Moller & Trumbore 1997), one ray or one small
+packet of rays per work-item.  A query never builds or changes the tree.
 
 Conventions, shared with tests/oracle.py:
   - a ray hits at distance t when tmin <= t <= tmax, with t in units of the
@@ -26,8 +26,7 @@ from .device import Runtime
 from .profile import PACKET_SIZES
 from .results import ALIGNMENT as RESULT_ALIGNMENT
 from .results import ResultPool
-from .tree import DeviceTree
-from .widen import WideTree, wide_tree
+from .tree import Tree
 
 
 #: Rays per kernel launch at most: enough to fill any device, few enough that
@@ -80,10 +79,9 @@ def _zero_copy(rt: Runtime) -> bool:
     """Whether queries hand the kernels the numpy arrays themselves
     (CL_MEM_USE_HOST_PTR) instead of device copies.
 
-    Only on PoCL's CPU device, where a device copy is just two memcpys: on the
-    reference scene's 2048x1536 camera rays, intersect 126 -> 111 ms and
-    occluded 41 -> 36 ms (interleaved A/B).  Intel's CPU runtime measured the
-    other way (107 -> 136 ms and 37 -> 70 ms), and a GPU's memory is its own.
+    Only on PoCL's CPU device, where a device copy is just two memcpys and
+    zero copy measured faster.  Intel's CPU runtime measured the other way,
+    and a GPU's memory is its own.
     """
     return (not rt.profile.gpu and rt.device.id.startswith("pocl")
             and bool(rt.device.cl_device.host_unified_memory))
@@ -96,9 +94,8 @@ def _outputs_in_place(rt: Runtime) -> bool:
     runtime uses a host pointer in place only there).
 
     On Intel's CPU runtime, where the rays' own arrays measured slower in
-    place (a caller's arrays seldom start on a page, _zero_copy): 2048x1536
-    camera rays 58.8 -> 64.2 Mrays/s (bunny) and 36.0 -> 38.4 (reference
-    scene), same results (A/B in one process).
+    place (a caller's arrays seldom start on a page, _zero_copy) but the
+    results written in place measured faster, with the same results.
     """
     return rt.device.id.startswith("intel") and not rt.profile.gpu
 
@@ -106,12 +103,10 @@ def _outputs_in_place(rt: Runtime) -> bool:
 def _work_group_size(rt: Runtime) -> int:
     """Work-items per group for the traversal kernels.
 
-    Measured on the project's 2-core machine (bunny, camera and incoherent
-    rays): PoCL's speed hardly depends on it (8, 16 and 64 within noise);
-    Intel's CPU runtime runs 1, 4 and 8 alike.  At 16 and more Intel would
-    pack 16 rays into SIMD lanes (3-4x slower, divergence), which the kernels'
-    vec_type_hint now prevents, but 8 stays the safe choice.  GPUs want at
-    least a warp/wavefront.
+    PoCL's speed hardly depends on it, nor does Intel's CPU runtime's up to
+    8.  At 16 and more Intel would pack 16 rays into SIMD lanes (much slower:
+    divergence), which the kernels' vec_type_hint now prevents, but 8 stays
+    the safe choice.  GPUs want at least a warp/wavefront.
     """
     d = rt.device
     if rt.profile.gpu:
@@ -203,7 +198,7 @@ class RayQuery:
 
     # -- public queries ---------------------------------------------------
 
-    def intersect(self, tree: DeviceTree, origins, directions, tmin=0.0, tmax=np.inf) -> Hits:
+    def intersect(self, tree: Tree, origins, directions, tmin=0.0, tmax=np.inf) -> Hits:
         """Closest hit of each ray (origins[i] + t * directions[i], tmin <= t <= tmax)."""
         origins, directions, tmin, tmax = _check_rays(origins, directions, tmin, tmax)
         hits = Hits(**{name: self._results.empty((len(origins), n) if n > 1 else len(origins),
@@ -232,7 +227,7 @@ class RayQuery:
             hits.u[:] = hits.v[:] = hits.normal[:] = 0.0
         return hits
 
-    def occluded(self, tree: DeviceTree, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
+    def occluded(self, tree: Tree, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
         """bool (R,): whether anything is hit with tmin <= t <= tmax (stops at the first hit)."""
         origins, directions, tmin, tmax = _check_rays(origins, directions, tmin, tmax)
         origins, directions, tmin, tmax, _ = _into_frame(origins, directions, tmin, tmax, tree)
@@ -251,7 +246,7 @@ class RayQuery:
 
     # -- device-buffer entry points (the renderer's) ------------------------
 
-    def enqueue_intersect(self, tree: DeviceTree, rays: cl.Buffer, hits: cl.Buffer, count: int,
+    def enqueue_intersect(self, tree: Tree, rays: cl.Buffer, hits: cl.Buffer, count: int,
                           overflow: cl.Buffer, wait_for=None) -> cl.Event:
         """Enqueue intersect_closest over `count` Ray records already on the
         device; it writes `count` Hit records to `hits`.  Nothing is checked or
@@ -265,7 +260,7 @@ class RayQuery:
                            overflow, np.uint32(count), wait_for=wait_for,
                            local_size=self.work_group_size)
 
-    def enqueue_occluded(self, tree: DeviceTree, rays: cl.Buffer, occluded: cl.Buffer, count: int,
+    def enqueue_occluded(self, tree: Tree, rays: cl.Buffer, occluded: cl.Buffer, count: int,
                          overflow: cl.Buffer, wait_for=None) -> cl.Event:
         """As enqueue_intersect, with intersect_any: occluded[i] = 1 (uchar)
         where ray i hits anything."""
@@ -277,32 +272,29 @@ class RayQuery:
 
     # -- internals ----------------------------------------------------------
 
-    def _kernel(self, tree: DeviceTree, name: str,
+    def _kernel(self, tree: Tree, name: str,
                 count_packets: bool = False) -> tuple[cl.Kernel, cl.Buffer]:
-        """The traversal kernel `name` for `tree` and the node buffer it reads
-        (the tree's wide form, made on first use)."""
-        wide = wide_tree(self.rt, tree)
-        defines = {"STACK_SIZE": _stack_size(tree, wide), "PACKET_SIZE": self.packet_size,
+        """The traversal kernel `name` for `tree` and the node buffer it reads."""
+        defines = {"STACK_SIZE": _stack_size(tree), "PACKET_SIZE": self.packet_size,
                    **self.variant.defines, **self.rt.prefetch_defines}
         if count_packets:
             defines["COUNT_PACKETS"] = 1
-        return self.rt.kernel("traverse.cl", name, **defines), wide.nodes
+        return self.rt.kernel("traverse.cl", name, **defines), tree.nodes
 
     def _work_items(self, rays: int) -> int:
         """Work-items that trace `rays` rays, packet_size rays each."""
         return -(-rays // self.packet_size)
 
-    def _require_triangles(self, tree: DeviceTree) -> None:
+    def _require_triangles(self, tree: Tree) -> None:
         if not self._check_tree(tree):
             raise ValueError("the tree holds no triangle: there is nothing to trace rays against")
 
-    def _check_tree(self, tree: DeviceTree) -> bool:
+    def _check_tree(self, tree: Tree) -> bool:
         """Validates the tree; False when it holds no triangle (every ray misses)."""
-        if not isinstance(tree, DeviceTree):
-            raise TypeError(f"tree must be a hlbvh_cl.tree.DeviceTree, got {type(tree).__name__}")
+        if not isinstance(tree, Tree):
+            raise TypeError(f"tree must be a hlbvh_cl.tree.Tree, got {type(tree).__name__}")
         if tree.released:
-            raise ValueError("this DeviceTree was released when its Scene rebuilt: "
-                             "use the scene's current tree (scene.tree)")
+            raise ValueError("this Tree was released when its Scene rebuilt")
         if tree.triangle_count == 0:
             return False
         if tree.nodes.context != self.rt.context:
@@ -392,7 +384,7 @@ class RayQuery:
         self.last_kernel_ms = sum((e.profile.end - e.profile.start) * 1e-6 for e in events)
         self.last_packets = int(counters[1]) if self.count_packets else None
         if counters[0]:
-            raise RuntimeError("ray traversal overflowed its stack (sized from DeviceTree.depth): "
+            raise RuntimeError("ray traversal overflowed its stack (sized from Tree.depth): "
                                "the tree is deeper than its depth field says")
 
     def _wrap(self, array: np.ndarray, access) -> cl.Buffer:
@@ -400,17 +392,12 @@ class RayQuery:
         return cl.Buffer(self.rt.context, access | cl.mem_flags.USE_HOST_PTR, hostbuf=array)
 
 
-def _stack_size(tree: DeviceTree, wide: WideTree | None = None) -> int:
+def _stack_size(tree: Tree) -> int:
     """A stack that cannot overflow: a wide node pushes at most WIDE_ARITY - 1
     children, and only those of the nodes on the path to the current one stay
-    on the stack.  The wide tree (``wide``, by default ``tree.wide``) is never
-    deeper than the BVH2, as every wide level descends at least one BVH2
-    level, so the BVH2's depth bounds it before it is made; it caps it too, so
-    that a tree whose depth field is too small overflows (and raises) instead
-    of being trusted in part."""
-    wide = wide if wide is not None else tree.wide
-    depth = max(1, int(tree.depth) if wide is None else min(int(tree.depth), int(wide.depth)))
-    return _round_up((layout.WIDE_ARITY - 1) * depth, STACK_GRANULE)
+    on the stack.  Sized from the tree's depth, so that a tree whose depth is
+    wrong overflows (and raises) instead of being trusted in part."""
+    return _round_up((layout.WIDE_ARITY - 1) * max(1, int(tree.depth)), STACK_GRANULE)
 
 
 def _round_up(value: int, multiple: int) -> int:
@@ -432,7 +419,7 @@ def _numeric_array(name: str, value) -> np.ndarray:
 
 #: Rows per block of the input checks: a block's temporaries stay in cache and
 #: are reused, where whole-batch temporaries would cost a page fault per 4 KiB
-#: on every call (measured: 14 -> 8 ms of checks for 3.1M rays).
+#: on every call (this measured faster).
 CHECK_BLOCK = 1 << 16
 
 #: float32's smallest normal: a direction needs a component at least this
@@ -487,8 +474,7 @@ def _rows_are_valid(origins: np.ndarray, directions: np.ndarray, start: int, sto
 
 def _rays_are_valid(origins: np.ndarray, directions: np.ndarray) -> bool:
     """_rows_are_valid over every ray, a run of blocks per thread for large
-    batches.  Measured on a 2-core Intel Xeon, 3.1M rays: the whole of
-    _check_rays 16.3 -> 6.8 ms (the fused pass alone, on one thread: 10.6)."""
+    batches (threads measured faster on millions of rays)."""
     count = len(origins)
     blocks = -(-count // CHECK_BLOCK)
     parts = min(os.cpu_count() or 1, blocks)

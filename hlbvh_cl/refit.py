@@ -1,31 +1,24 @@
-"""Refit host side (kernels/refit.cl): refit_flat_tree refits a finished
-DeviceTree after its vertices moved.  (A build computes its boxes as it
-builds the radix tree: radix_tree.py.)"""
+"""Refit host side (kernels/refit.cl): new boxes for a finished Tree after
+its vertices moved, the topology kept.  One launch per level of wide nodes,
+from the deepest up, so that no node waits on another (a build computes its
+boxes as it makes the radix tree instead: Karras 2012, radix_tree.py)."""
 from __future__ import annotations
 
-import numpy as np
 import pyopencl as cl
 
-from .tree import DeviceTree
-from .widen import wide_tree
+from .device import Runtime
+from .tree import Tree
 
 
-def _zeroed_ints(rt, count: int, wait_for=None) -> tuple[cl.Buffer, cl.Event]:
-    buf = rt.pool.take(count * 4)
-    return buf, cl.enqueue_fill_buffer(rt.queue, buf, np.int32(0), 0, max(1, count) * 4,
-                                       wait_for=wait_for)
-
-
-def refit_flat_tree(rt, tree: DeviceTree, vertices: cl.Buffer, wait_for=None) -> list[cl.Event]:
-    """Re-read ``tree``'s triangles from moved vertices and refit every box,
-    those of its wide tree (made first if it has none) included; the
-    topology is kept."""
+def refit(rt: Runtime, tree: Tree, vertices: cl.Buffer, wait_for=None) -> list[cl.Event]:
+    """Re-read ``tree``'s triangles from ``vertices`` (the scene's, moved)
+    and recompute every box of its wide nodes; returns the launches' events."""
     if tree.vertex_ids is None:
         raise ValueError("this tree has no vertex ids (it was not made by a build): "
                          "it cannot be refit")
-    wide = wide_tree(rt, tree)
-    visits, cleared = _zeroed_ints(rt, tree.node_count, wait_for)
-    walk = rt.run(rt.kernel("refit.cl", "refit_flat_tree", **rt.handoff_defines), tree.node_count,
-                  tree.nodes, tree.parents, vertices, tree.vertex_ids, tree.triangles, visits,
-                  tree.node_count, wide.nodes, wide.lane_of_slot, wait_for=[cleared])
-    return [cleared, walk]
+    kernel = rt.kernel("refit.cl", "refit_wide_level")
+    events: list[cl.Event] = []
+    for first, count in reversed(tree.levels):
+        events.append(rt.run(kernel, count, first, count, tree.nodes, vertices, tree.vertex_ids,
+                             tree.triangles, wait_for=events[-1:] or wait_for))
+    return events

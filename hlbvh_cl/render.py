@@ -63,7 +63,7 @@ from . import layout
 from .device import Runtime, event_ms
 from .query import RayQuery
 from .scene import Scene
-from .tree import DeviceTree
+from .tree import Tree
 
 SHADINGS = ("diffuse", "normals", "depth", "ao")
 
@@ -88,12 +88,10 @@ AO_DISTANCE_SCALE = 0.05
 AO_SAMPLES = 16
 
 #: Pixels per pass at most (whole rows): enough work-items for any device,
-#: and buffers (133 bytes a pixel) small enough to stay warm between passes:
-#: on PoCL a 2048 x 1536 render in one 3.1M-pixel pass spent ~110 ms more
-#: touching fresh memory on first use than in 512K-pixel passes.  128K
-#: rather than 512K: a pass's rays then cover a narrower band of the image,
-#: so fewer of a large tree's nodes compete for the cache (reference scene,
-#: 1280 x 720, PoCL: 74-75 -> 62 ms; the Stanford meshes unchanged).
+#: and buffers (133 bytes a pixel) small enough to stay warm between passes
+#: rather than touching fresh memory.  128K rather than more: a pass's rays
+#: then cover a narrower band of the image, so fewer of a large tree's nodes
+#: compete for the cache (measured faster on large scenes).
 PIXELS_PER_PASS = 1 << 17
 
 #: Colours of meshes 0, 1, 2, ... of a Scene that was given none (cycled).
@@ -420,7 +418,7 @@ class _Pipeline:
             rows -= rows % layout.TILE_ROWS
         return rows
 
-    def render(self, tree: DeviceTree, settings: RenderSettings, colors: np.ndarray, light: Light,
+    def render(self, tree: Tree, settings: RenderSettings, colors: np.ndarray, light: Light,
                progress: bool = False) -> np.ndarray:
         with self._lock:  # the buffers are shared
             try:

@@ -2,9 +2,8 @@
 
 Each ``intersect`` returns fresh arrays: 32 bytes per ray, 100 MB for 3.1M
 rays.  Memory new to the process costs a page fault per page on first write,
-and on this project's machine (a VM whose host backs guest memory lazily) that
-first write measured anywhere from 4 to 90 ms for 38 MB: a 3.1M-ray query took
-125 or 210 ms at random.  So each result array is lent from a block of memory
+and on a VM whose host backs guest memory lazily that first write can cost
+as much as the query itself, at random.  So each result array is lent from a block of memory
 that this pool keeps, and the block comes back once that array and every view
 of it are gone.  A loop such as ``hits = scene.intersect(...)`` then
 alternates between two sets of blocks.

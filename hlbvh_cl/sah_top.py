@@ -81,7 +81,7 @@ def build_top(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: RadixTre
     # build their whole subtrees, so nothing is left after them.  Level L has
     # at most 2^L tasks (each task queues at most two), so the launches are
     # sized without reading the counts back: a read-back per level cost each
-    # build a round trip to the device (~0.1 ms on PoCL).  The parallel
+    # build a round trip to the device.  The parallel
     # levels stop where there are enough subtrees to fill the device with
     # work (about 64 clusters each).
     serial_depth = _serial_depth(clusters, rt.device.compute_units, rt.profile.gpu)

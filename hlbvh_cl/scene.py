@@ -13,13 +13,13 @@ from collections.abc import Sequence
 import numpy as np
 import pyopencl as cl
 
-from . import frame, layout
+from . import frame
 from .build import BUILDERS, BuildStats, Geometry, build, check_fits
 from .device import event_ms, runtime
 from .mesh import Mesh, _validate_vertices
 from .morton import key_dtype
-from .refit import refit_flat_tree
-from .widen import widen
+from .query import RayQuery
+from .refit import refit
 
 
 def _as_meshes(meshes) -> list[Mesh]:
@@ -99,22 +99,8 @@ class Scene:
             old, self._tree = self._tree, None
             if old is not None:
                 old.release(rt.pool)
-            started = time.perf_counter()
-            with rt.pool.build():
-                result = build(rt, self._geometry, self.builder, self.morton_bits)
-                tree = result.tree
-                tree.scale = self._scale
-                # the wide tree that traversal reads (stage 7), derived from the BVH2
-                tree.wide, events = widen(rt, tree)
-            cl.wait_for_events(events)
-            self._tree = tree
-            stats = dict(result.stats)
-            times = stats.pop("times_ms")
-            times["widen"] = event_ms(events)
-            self._stats = BuildStats(
-                **stats, wide_nodes=tree.wide.node_count, wide_depth=tree.wide.depth,
-                times_ms=times, device_ms=sum(times.values()),
-                wall_ms=(time.perf_counter() - started) * 1e3)
+            self._tree, self._stats = build(rt, self._geometry, self.builder, self.morton_bits,
+                                            self._scale)
 
     def update_vertices(self, geom_id: int, vertices) -> None:
         """Replace mesh ``geom_id``'s vertex positions (same count) and refit
@@ -151,11 +137,9 @@ class Scene:
                                      dst_offset=int(self._vertex_offsets[geom_id]) * 12,
                                      is_blocking=False)
             tree = self._tree
-            events = refit_flat_tree(rt, tree, self._geometry.vertices, wait_for=[upload])
+            events = refit(rt, tree, self._geometry.vertices, wait_for=[upload])
             self.meshes[geom_id], self._largest = moved, largest
-            root = _read_root(rt.queue, tree.nodes, events)
-            tree.bounds_lo = np.minimum(root["left_lo"], root["right_lo"])
-            tree.bounds_hi = np.maximum(root["left_hi"], root["right_hi"])
+            tree.bounds_lo, tree.bounds_hi = tree.read_root_box(rt.queue, wait_for=events[-1:])
             self._stats = dataclasses.replace(self._stats, refit_ms={
                 "upload": event_ms([upload]), "refit": event_ms(events),
                 "wall": (time.perf_counter() - started) * 1e3})
@@ -173,7 +157,6 @@ class Scene:
 
     def _ray_query(self):
         if self._query is None:
-            from .query import RayQuery
             self._query = RayQuery(self._runtime)
         return self._query
 
@@ -181,8 +164,3 @@ class Scene:
         return (f"Scene({len(self.meshes)} mesh(es), {self.stats.triangles:,} triangles, "
                 f"builder={self.builder!r}, device={self.device.id!r})")
 
-
-def _read_root(queue, nodes, wait_for):
-    out = np.empty(1, layout.FLAT_NODE)
-    cl.enqueue_copy(queue, out, nodes, wait_for=wait_for)
-    return out[0]

@@ -1,10 +1,11 @@
-/* Stage 6: the flat tree that traversal reads.
+/* Stage 6: the flat binary tree, which widen.cl then collapses into the
+ * 8-wide tree that traversal reads (the flat tree is the build's scratch).
  *
  * Interior nodes that survive (not inside a collapsed leaf, and, for the
  * HLBVH, not above the clusters) are compacted by a scan and written after
  * the top_count SAH top nodes, each holding both children's boxes.  A leaf
  * slot points at a run of triangles in sorted (Morton) order, the order in
- * which refit.cl laid them out.
+ * which radix_tree.cl stored them.
  */
 #include "hlbvh.h"
 

@@ -76,8 +76,9 @@ typedef struct {
     float hi[3];
 } Aabb;
 
-/* One node of the flat tree that traversal reads: both children's boxes
- * live in the parent so one fetch tests both (Aila & Laine 2009). 64 bytes. */
+/* One node of the flat binary tree, the build's scratch that widen.cl
+ * collapses into WideNodes: both children's boxes live in the parent, so one
+ * read gives both (Aila & Laine 2009). 64 bytes. */
 typedef struct {
     float left_lo[3];
     float left_hi[3];

@@ -1,17 +1,19 @@
-/* Refit of a finished tree after its vertices moved (Scene.update_vertices):
- * the topology is kept, and every box is recomputed bottom-up with atomic
- * visit counters (Karras 2012, sec. 4): one walk starts at every node whose
- * children are all leaves; at every node the first arrival stops and the
- * last, which sees all children finished, computes the node and goes on.
- * (A build computes its boxes as it builds the radix tree: radix_tree.cl.)
+/* Refit of the wide tree after its vertices moved (Scene.update_vertices):
+ * the topology is kept and every box is recomputed bottom-up, one launch per
+ * level of wide nodes from the deepest up.  widen.cl emits the nodes level
+ * by level (breadth-first), so when a level runs every child it reads is
+ * final: no atomics and no handoff between walkers (Karras 2012, sec. 4,
+ * refits a binary tree with visit counters instead).  A leaf lane re-reads
+ * its triangles from the moved vertices; an interior lane is the union of
+ * its child's lanes.  Boxes are min/max of the same floats as a build's, so
+ * a refit of unmoved vertices gives back the built tree bit for bit.
  */
 #include "hlbvh.h"
-#include "handoff.h"
 
-/* The boxes of the two functions below come back through a pointer, not as
- * a return value: a returned struct is written through a noalias (sret)
- * pointer, and inlining such a function leaves calls to
- * llvm.experimental.noalias.scope.decl, which Oclgrind cannot run. */
+/* The boxes below come back through a pointer, not as a return value: a
+ * returned struct is written through a noalias (sret) pointer, and inlining
+ * such a function leaves calls to llvm.experimental.noalias.scope.decl,
+ * which Oclgrind cannot run. */
 
 /* Re-read the triangles [first, first + count) of a leaf from the (moved)
  * vertices through their vertex ids (stored in leaf order by the build, so
@@ -30,98 +32,58 @@ inline void regather_leaf(__global const float *vertices, __global const int *ve
     *box = leaf;
 }
 
-inline int is_interior_slot(int index, uint count)
+/* One of a WideNode's six planes (WIDE_ARITY floats each): the lower
+ * (high = 0) or upper bound of every lane along `axis`. */
+inline __global float *plane(__global WideNode *node, int axis, int high)
 {
-    return count == 0 && index != EMPTY_CHILD;
+    switch (2 * axis + high) {
+    case 0: return node->lo_x;
+    case 1: return node->hi_x;
+    case 2: return node->lo_y;
+    case 3: return node->hi_y;
+    case 4: return node->lo_z;
+    default: return node->hi_z;
+    }
 }
 
-/* Store the box of child slot `right_slot` of flat node i (through the
- * handoff when another walker may read it), and into the wide child that
- * copies that slot if there is one (widen.cl's map_wide_lanes), so that the
- * wide tree needs no pass of its own. */
-inline void store_slot(__global FlatNode *nodes, int i, int right_slot, Aabb box,
-                       __global WideNode *wide, __global const int *lane_of_slot,
-                       int handed_on)
+/* The union of a wide node's lanes (unused lanes hold an empty box). */
+inline void node_box(__global WideNode *node, Aabb *box)
 {
-    __global FlatNode *node = nodes + i;
-    __global float *lo = right_slot ? node->right_lo : node->left_lo;
-    __global float *hi = right_slot ? node->right_hi : node->left_hi;
-    if (handed_on) {
-        handoff_store_box(lo, hi, box);
-    } else {
-        for (int k = 0; k < 3; ++k) {
-            lo[k] = box.lo[k];
-            hi[k] = box.hi[k];
+    Aabb out = aabb_empty();
+    for (int k = 0; k < WIDE_ARITY; ++k) {
+        Aabb lane;
+        for (int axis = 0; axis < 3; ++axis) {
+            lane.lo[axis] = plane(node, axis, 0)[k];
+            lane.hi[axis] = plane(node, axis, 1)[k];
         }
+        out = aabb_union(out, lane);
     }
-    int lane = lane_of_slot[2 * i + right_slot];
-    if (lane >= 0) {
-        __global WideNode *w = wide + lane / WIDE_ARITY;
-        int k = lane % WIDE_ARITY;
-        w->lo_x[k] = box.lo[0];
-        w->hi_x[k] = box.hi[0];
-        w->lo_y[k] = box.lo[1];
-        w->hi_y[k] = box.hi[1];
-        w->lo_z[k] = box.lo[2];
-        w->hi_z[k] = box.hi[2];
-    }
+    *box = out;
 }
 
-/* An interior child's box, which this walker or (through the handoff) its
- * sibling's stored. */
-inline void load_slot(__global FlatNode *node, int right_slot, Aabb *box)
-{
-    *box = handoff_load_box(right_slot ? node->right_lo : node->left_lo,
-                            right_slot ? node->right_hi : node->left_hi);
-}
-
-/* Refit of the flat tree (and of its wide copy) after vertices moved: a walk
- * starts at every node whose children are all leaves; a node with k interior children waits for k
- * arrivals.  Each leaf's triangles are re-read on the way (one pass over the
- * triangle data, not a gather pass and then a refit pass). */
-__kernel void refit_flat_tree(__global FlatNode *nodes, __global const int *parents,
-                              __global const float *vertices, __global const int *vertex_ids,
-                              __global Triangle *triangles,
-                              __global int *visits, int node_count,
-                              __global WideNode *wide, __global const int *lane_of_slot)
+/* Every lane of the wide nodes [level_first, level_first + level_count),
+ * whose children (the next level down) are already refit. */
+__kernel void refit_wide_level(int level_first, int level_count, __global WideNode *nodes,
+                               __global const float *vertices, __global const int *vertex_ids,
+                               __global Triangle *triangles)
 {
     int i = get_global_id(0);
-    if (i >= node_count)
+    if (i >= level_count)
         return;
-    if (is_interior_slot(nodes[i].left, nodes[i].left_count) ||
-        is_interior_slot(nodes[i].right, nodes[i].right_count))
-        return;
-
-    while (1) {
-        __global FlatNode *node = nodes + i;
-        int left = node->left, right = node->right;
-        uint left_count = node->left_count, right_count = node->right_count;
-        Aabb left_box, right_box;
-        if (left_count > 0)
-            regather_leaf(vertices, vertex_ids, triangles, left, left_count, &left_box);
+    __global WideNode *node = nodes + level_first + i;
+    for (int k = 0; k < WIDE_ARITY; ++k) {
+        int child = node->child[k];
+        uint count = node->count[k];
+        Aabb box;
+        if (count > 0)
+            regather_leaf(vertices, vertex_ids, triangles, child, count, &box);
+        else if (child != EMPTY_CHILD)
+            node_box(nodes + child, &box);
         else
-            load_slot(node, 0, &left_box);
-        if (right_count > 0)
-            regather_leaf(vertices, vertex_ids, triangles, right, right_count, &right_box);
-        else
-            load_slot(node, 1, &right_box);
-        if (left_count > 0)
-            store_slot(nodes, i, 0, left_box, wide, lane_of_slot, 0);
-        if (right_count > 0)
-            store_slot(nodes, i, 1, right_box, wide, lane_of_slot, 0);
-
-        int p = parents[i];
-        if (p < 0)
-            return;
-        __global FlatNode *up = nodes + p;
-        /* A parent with one interior child (this one) needs no counter. */
-        int meeting = is_interior_slot(up->left, up->left_count) &&
-                      is_interior_slot(up->right, up->right_count);
-        store_slot(nodes, p, up->left_count == 0 && up->left == i ? 0 : 1,
-                   aabb_union(left_box, right_box), wide, lane_of_slot, meeting);
-        if (meeting && handoff_arrive(visits + p) == 0)
-            return; /* the sibling subtree is not done; its walker goes on */
-        i = p;
+            continue;
+        for (int axis = 0; axis < 3; ++axis) {
+            plane(node, axis, 0)[k] = box.lo[axis];
+            plane(node, axis, 1)[k] = box.hi[axis];
+        }
     }
 }
-

@@ -1,4 +1,5 @@
-/* Stage 7: the wide tree that traversal reads, collapsed from the flat BVH2.
+/* Stage 7, the build's last: the 8-wide tree that traversal reads, collapsed
+ * from the binary tree (the build's scratch, freed when it ends).
  *
  * Each wide node stands for one interior node b of the BVH2.  Its children
  * are found by opening, starting from b's two child slots, the interior slot
@@ -13,8 +14,8 @@
  *   (exclusive scan of those counts)
  *   link_wide_children  the next level's BVH2 nodes, and where each node's children start
  * then write_wide_nodes writes every wide node at once from the chosen slots.
- * The choice is kept (slots, first_child), so a refit of the BVH2 only runs
- * write_wide_nodes again: same topology, new boxes.
+ * The nodes come out breadth-first, level after level, which is the order
+ * the refit (refit.cl) walks back up.
  *
  * A slot is named by the BVH2 child slot it copies: 2 * node + side (side 0
  * left, 1 right), or NO_SLOT.
@@ -186,24 +187,7 @@ __kernel void link_wide_children(int level_first, int level_count, int next_firs
     }
 }
 
-/* lane_of_slot[slot] = WIDE_ARITY * w + k where wide node w's child k copies
- * BVH2 slot `slot` (the buffer holds -1 beforehand): the refit of the BVH2
- * (refit.cl) then writes each new box into the wide node too, in the same
- * pass. */
-__kernel void map_wide_lanes(int wide_count, __global const uint *slots,
-                             __global int *lane_of_slot)
-{
-    int w = get_global_id(0);
-    if (w >= wide_count)
-        return;
-    for (int k = 0; k < WIDE_ARITY; ++k) {
-        uint slot = slots[WIDE_ARITY * w + k];
-        if (slot != NO_SLOT)
-            lane_of_slot[slot] = WIDE_ARITY * w + k;
-    }
-}
-
-/* Every wide node from its chosen slots and the BVH2's current boxes. */
+/* Every wide node from its chosen slots and the BVH2's boxes. */
 __kernel void write_wide_nodes(int wide_count, __global const uint *slots,
                                __global const int *first_child, __global const FlatNode *nodes,
                                __global WideNode *wide)

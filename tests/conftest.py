@@ -1,5 +1,6 @@
-"""The suite runs on PoCL's CPU device unless HLBVH_CL_DEVICE says otherwise,
-and every tree any test builds or refits gets its invariants checked."""
+"""The suite runs on PoCL's CPU device unless HLBVH_CL_DEVICE says otherwise.
+Tree invariants are checked where trees are made: tests/invariants.py's
+check_tree, which the build tests call."""
 import os
 
 import pytest
@@ -23,23 +24,3 @@ def suite_device():
     it through this, never a vendor of their own)."""
     from hlbvh_cl.device import select_device
     return select_device(os.environ["HLBVH_CL_DEVICE"])
-
-
-@pytest.fixture(autouse=True)
-def check_every_tree(monkeypatch):
-    from invariants import check_tree
-
-    from hlbvh_cl.scene import Scene
-
-    rebuild, update_vertices = Scene.rebuild, Scene.update_vertices
-
-    def checked_rebuild(self):
-        rebuild(self)
-        check_tree(self)
-
-    def checked_update_vertices(self, geom_id, vertices):
-        update_vertices(self, geom_id, vertices)
-        check_tree(self)
-
-    monkeypatch.setattr(Scene, "rebuild", checked_rebuild)
-    monkeypatch.setattr(Scene, "update_vertices", checked_update_vertices)

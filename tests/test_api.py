@@ -80,3 +80,35 @@ def test_scene_files_load_through_the_package():
     assert renderer.light == loaded.light and list(renderer.colors) == list(loaded.colors)
     image = renderer.render(loaded.camera, 16, 9)
     assert image.shape == (9, 16, 3)
+
+
+def test_no_module_imports_another_in_a_cycle():
+    """The package's modules, linked by their relative imports (``from .x
+    import``, ``from . import x``), form no cycle."""
+    import ast
+    package = ROOT / "hlbvh_cl"
+    graph = {}
+    for path in package.glob("*.py"):
+        imports = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.level == 1:
+                if node.module:
+                    imports.add(node.module.split(".")[0])
+                else:
+                    imports.update(alias.name for alias in node.names)
+        graph[path.stem] = {name for name in imports if (package / f"{name}.py").is_file()}
+    done, path = set(), []
+
+    def visit(module):
+        assert module not in path, f"import cycle: {' -> '.join(path[path.index(module):])} -> {module}"
+        if module in done:
+            return
+        path.append(module)
+        for imported in sorted(graph[module]):
+            visit(imported)
+        path.pop()
+        done.add(module)
+
+    for module in sorted(graph):
+        visit(module)
+    assert graph["tree"] <= {"layout"} and "tree" in graph["widen"] | graph["build"]

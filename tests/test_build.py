@@ -157,7 +157,7 @@ def test_refit_matches_fresh_build(meshes, builder):
     scene.update_vertices(1, moved)
     derived = check_tree(scene)  # every box is again exactly its triangles' box
     nodes_after = derived["nodes"]
-    for field in ("left", "right", "left_count", "right_count"):
+    for field in ("child", "count"):
         assert np.array_equal(nodes_before[field], nodes_after[field]), "refit changed topology"
     fresh = Scene([parts[0], Mesh(moved, parts[1].faces)], builder=builder)
     fresh_derived = check_tree(fresh)

@@ -91,11 +91,11 @@ def test_rebuild_reuses_the_old_tree_and_answers_as_a_fresh_scene():
     mesh = Mesh.load(MESH_DIR / "bunny_small.ply")
     scene = Scene([mesh])
     old = scene._tree
-    old_buffers = {old.nodes.int_ptr, old.triangles.int_ptr, old.wide.nodes.int_ptr}
+    old_buffers = {old.nodes.int_ptr, old.triangles.int_ptr, old.refs.int_ptr}
     scene.rebuild()
     new = scene._tree
     assert old.released and not new.released
-    assert {new.nodes.int_ptr, new.triangles.int_ptr, new.wide.nodes.int_ptr} == old_buffers
+    assert {new.nodes.int_ptr, new.triangles.int_ptr, new.refs.int_ptr} == old_buffers
 
     rng = np.random.default_rng(5)
     center = 0.5 * (mesh.vertices.min(axis=0) + mesh.vertices.max(axis=0))

@@ -8,6 +8,7 @@ exceptions are recomputed in float64 here, never assumed.
 """
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +18,8 @@ import hlbvh_cl
 from hlbvh_cl import query as query_module
 from hlbvh_cl.query import Hits, RayQuery
 from hlbvh_cl.results import MIN_POOLED_BYTES
-from hlbvh_cl.tree import DeviceTree
+from hlbvh_cl.tree import Tree
+from hlbvh_cl.widen import widen
 from oracle import brute_force_intersect, brute_force_occluded
 from shapes import grid_mesh
 
@@ -614,20 +616,21 @@ def test_stack_is_sized_from_the_tree_depth_and_overflow_raises(packet_size):
     def upload(array):
         return cl.Buffer(rt.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=array)
 
-    def tree(depth):
-        return DeviceTree(nodes=upload(nodes), triangles=upload(tris), refs=upload(refs),
-                          parents=upload(np.full(len(nodes), -1, np.int32)), node_count=len(nodes),
-                          leaf_count=levels, triangle_count=levels, depth=depth,
-                          bounds_lo=np.array([-1, -1, 1], np.float32),
-                          bounds_hi=np.array([3, 3, levels], np.float32))
+    wide, wide_levels, _ = widen(rt, upload(nodes), len(nodes))
+    tree = Tree(nodes=wide, triangles=upload(tris), refs=upload(refs),
+                node_count=sum(count for _, count in wide_levels), levels=wide_levels,
+                triangle_count=levels, bounds_lo=np.array([-1, -1, 1], np.float32),
+                bounds_hi=np.array([3, 3, levels], np.float32))
+    assert tree.depth > 3
 
     q = RayQuery(rt, packet_size=packet_size)
     origins, directions = [[0.0, 0.0, 0.0]], [[0.0, 0.0, 1.0]]
-    hits = q.intersect(tree(levels), origins, directions)
+    hits = q.intersect(tree, origins, directions)
     assert hits.prim_id[0] == 0 and hits.t[0] == 1.0
-    assert q.occluded(tree(levels), origins, directions)[0]
+    assert q.occluded(tree, origins, directions)[0]
+    lying = dataclasses.replace(tree, levels=wide_levels[:1])  # depth 1
     with pytest.raises(RuntimeError, match="stack"):
-        q.intersect(tree(1), origins, directions)
+        q.intersect(lying, origins, directions)
 
 
 # -- bad input --------------------------------------------------------------------
@@ -732,7 +735,7 @@ def test_bad_rows_are_named_in_every_part_of_a_large_batch(monkeypatch, which, r
 def test_bad_tree_and_chunk_size():
     case = scene_case("cube")
     q = RayQuery(case.scene._runtime)
-    with pytest.raises(TypeError, match="tree must be a hlbvh_cl.tree.DeviceTree"):
+    with pytest.raises(TypeError, match="tree must be a hlbvh_cl.tree.Tree"):
         q.intersect("tree", GOOD_O, GOOD_D)
     with pytest.raises(ValueError, match="max_rays_per_launch must be >= 1"):
         RayQuery(case.scene._runtime, max_rays_per_launch=0)
