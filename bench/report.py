@@ -89,8 +89,8 @@ def highlights(suite: dict) -> list[str]:
                  (w["ratios"][best] if best else {}).items() if r["intersect"] is not None]
         if parts:
             out.append(f"**Peers**, {scene['name']} {w['name']}, closest hit on {best}: "
-                       f"{w['results'][best]['intersect_mrays']['median']:.1f} Mrays/s, "
-                       + ", ".join(parts) + " the peer's speed")
+                       f"{w['results'][best]['intersect_mrays']['median']:.1f} Mrays/s; our "
+                       f"speed over the peer's: " + ", ".join(parts))
     for device_id, rows in list(suite["tree_quality"].items())[:1]:
         for row in (r for r in rows if "vs_lbvh" in r):
             v = row["vs_lbvh"]

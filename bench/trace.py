@@ -354,6 +354,11 @@ def bench_scaling(config: Config, participants: list, bar=None) -> dict:
 
 # ---------------------------------------------------------------- the command
 
+def _ratio(workload: dict, device: str, peer: str) -> str | None:
+    value = workload["ratios"].get(device, {}).get(peer, {}).get("intersect")
+    return None if value is None else f"{value:.2f}"
+
+
 def format_results(results: dict) -> str:
     names = [n for n, p in results["participants"].items() if p["available"]]
     out = [f"peer {n} is missing: {p['problem']}" for n, p in results["participants"].items()
@@ -368,8 +373,7 @@ def format_results(results: dict) -> str:
             title=f"{title}, Mrays/s: median (min-max), numpy in and out"))
     pairs = sorted({(d, p) for _, w in rows for d in w["ratios"] for p in w["ratios"][d]})
     out.append(table(["scene", "workload", *[f"{d}/{p}" for d, p in pairs]],
-                     [[s["name"], w["name"], *[w["ratios"].get(d, {}).get(p, {}).get("intersect")
-                                               for d, p in pairs]] for s, w in rows],
+                     [[s["name"], w["name"], *[_ratio(w, d, p) for d, p in pairs]] for s, w in rows],
                      title="closest hit, our speed / the peer's (> 1: ours is faster)"))
     out.append(table(["scene", "workload", "hits", *names],
                      [[s["name"], w["name"], w["results"][w["reference"]]["hits"],
