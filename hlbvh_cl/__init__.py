@@ -5,14 +5,18 @@
     hits = scene.intersect(origins, directions)       # closest hit
     blocked = scene.occluded(origins, directions)     # any hit
     scene.update_vertices(0, moved_vertices)          # refit on the device
-    image = scene.render(hlbvh_cl.Camera(eye, target), 640, 480)   # (480, 640, 3) uint8
+    camera = hlbvh_cl.Camera(eye, target)
+    image = hlbvh_cl.Renderer(scene).render(camera, 640, 480)   # (480, 640, 3) uint8
+    loaded = hlbvh_cl.scenefile.load("scenes/reference.toml")   # a scene file, built
 """
+from . import scenefile
+from .build import BuildStats
 from .device import Device, DeviceMemoryError, KernelBuildError, devices
 from .mesh import Mesh
 from .query import Hits
-from .render import Camera, Light
+from .render import Camera, Light, Renderer
 from .scene import Scene
 
-__all__ = ["Camera", "Device", "DeviceMemoryError", "Hits", "KernelBuildError", "Light", "Mesh",
-           "Scene", "devices"]
+__all__ = ["BuildStats", "Camera", "Device", "DeviceMemoryError", "Hits", "KernelBuildError",
+           "Light", "Mesh", "Renderer", "Scene", "devices", "scenefile"]
 __version__ = "0.1.0"

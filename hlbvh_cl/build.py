@@ -7,7 +7,6 @@ collects per-stage times from profiling events.
 """
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,7 +23,7 @@ from .sort import RadixSorter
 from .tree import DeviceTree
 
 BUILDERS = ("hlbvh", "lbvh")
-STAGES = ("bounds", "morton", "sort", "radix_tree", "sah_top", "flatten")
+STAGES = ("bounds", "morton", "sort", "radix_tree", "sah_top", "flatten", "widen")
 MAX_TRIANGLES = 2**30  # node indices are int32 (2n - 1 of them must fit)
 
 
@@ -78,6 +77,36 @@ def check_fits(rt: Runtime, vertex_count: int, triangle_count: int, morton_bits:
                         build_memory(vertex_count, triangle_count, morton_bits))
 
 
+@dataclass(frozen=True)
+class BuildStats:
+    """What one build made and what it took; a refit replaces only refit_ms.
+
+    nodes, leaves, depth and sah_cost (C_t = C_i = 1, relative to the root's
+    area) describe the binary tree as built; a refit keeps its topology and
+    these fields, though the boxes move.  clusters is the SAH top's input
+    (1 for lbvh).  wide_nodes and wide_depth describe the 8-wide tree that
+    traversal reads.  times_ms holds the device milliseconds of each stage
+    (STAGES), device_ms their sum and wall_ms the host's whole build.
+    refit_ms is None, or after update_vertices the device milliseconds of
+    its upload and refit and its wall time: {"upload", "refit", "wall"}.
+    """
+
+    builder: str
+    morton_bits: int
+    triangles: int
+    nodes: int
+    leaves: int
+    depth: int
+    sah_cost: float
+    clusters: int
+    wide_nodes: int
+    wide_depth: int
+    times_ms: dict
+    device_ms: float
+    wall_ms: float
+    refit_ms: dict | None = None
+
+
 @dataclass
 class BuildResult:
     tree: DeviceTree
@@ -109,7 +138,6 @@ def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int) -> B
     n = geometry.triangle_count
     check_fits(rt, geometry.vertex_count, n, morton_bits)
     hlbvh = builder == "hlbvh"
-    started = time.perf_counter()
     stage_events: dict[str, list] = {name: [] for name in STAGES}
 
     buf = rt.pool.take
@@ -149,7 +177,6 @@ def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int) -> B
     scene_box = np.empty(2, layout.AABB)
     cl.enqueue_copy(rt.queue, scene_box, bounds)
     rt.queue.finish()
-    wall_ms = (time.perf_counter() - started) * 1e3
 
     rt.pool.keep(nodes, parents, triangles, refs, vertex_ids)
     tree_out = DeviceTree(nodes=nodes, triangles=triangles, refs=refs, parents=parents,
@@ -159,8 +186,6 @@ def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int) -> B
                           bounds_hi=scene_box[0]["hi"].copy())
     root_area = box_area(root_box)
     times = {name: event_ms(events) for name, events in stage_events.items()}
-    times["total"] = sum(times.values())
-    times["wall"] = wall_ms
     stats = {
         "builder": builder, "morton_bits": morton_bits, "triangles": n, "nodes": node_count,
         "leaves": leaf_count, "depth": depth,

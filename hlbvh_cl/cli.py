@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pyopencl as cl
 
-from . import Camera, Light, Scene, devices
+from . import devices, scenefile
 from .device import DeviceMemoryError, KernelBuildError, select_device, unregistered
 from .render import AO_SAMPLES, MAX_AO_SAMPLES, MAX_IMAGE_SIDE, MAX_SPP, SHADINGS
 
@@ -65,38 +65,24 @@ def _cmd_devices(args) -> int:
     return 0
 
 
-def load_scene(path, device=None, builder: str = "hlbvh", morton_bits: int = 30):
-    """Read a scene file and build its Scene: (scene, description, load_seconds).
-    The scene's colors and light are the file's."""
-    from .scenefile import load_scene_file
-    started = time.perf_counter()
-    description = load_scene_file(path)
-    loaded = time.perf_counter() - started
-    geometries = description.geometries()
-    scene = Scene([mesh for mesh, _ in geometries], device=device, builder=builder,
-                  morton_bits=morton_bits)
-    scene.colors = [color for _, color in geometries]
-    light = description.light
-    scene.light = Light(light.direction, light.intensity, light.ambient)
-    return scene, description, loaded
-
-
 def _cmd_info(args) -> int:
-    scene, description, loaded = load_scene(args.scene, args.device, args.builder, args.morton_bits)
+    loaded = scenefile.load(args.scene, args.device, args.builder, args.morton_bits)
+    scene = loaded.scene
     if args.repeat > 1:  # the first build pays for kernel compilation
         for _ in range(args.repeat - 1):
             scene.rebuild()
     s = scene.stats
-    print(f"scene      {description.path}  ({len(scene.meshes)} meshes, loaded in {loaded:.2f} s)")
+    print(f"scene      {loaded.path}  ({len(scene.meshes)} meshes, loaded in "
+          f"{loaded.load_seconds:.2f} s)")
     print(f"device     {scene.device}")
-    print(f"builder    {s['builder']} ({s['morton_bits']}-bit Morton codes, {s['clusters']} clusters)")
-    print(f"triangles  {s['triangles']:,}")
-    print(f"nodes      {s['nodes']:,}   leaves {s['leaves']:,}   depth {s['depth']}")
-    print(f"SAH cost   {s['sah_cost']:.2f}  (C_t = C_i = 1, relative to the root's area)")
-    times = s["times_ms"]
-    stages = "  ".join(f"{k} {v:.1f}" for k, v in times.items() if k not in ("total", "wall"))
+    print(f"builder    {s.builder} ({s.morton_bits}-bit Morton codes, {s.clusters} clusters)")
+    print(f"triangles  {s.triangles:,}")
+    print(f"nodes      {s.nodes:,}   leaves {s.leaves:,}   depth {s.depth}   "
+          f"(8-wide: {s.wide_nodes:,} nodes, depth {s.wide_depth})")
+    print(f"SAH cost   {s.sah_cost:.2f}  (C_t = C_i = 1, relative to the root's area)")
+    stages = "  ".join(f"{k} {v:.1f}" for k, v in s.times_ms.items())
     print(f"build ms   {stages}")
-    print(f"           device total {times['total']:.1f}, wall {times['wall']:.1f}")
+    print(f"           device total {s.device_ms:.1f}, wall {s.wall_ms:.1f}")
     return 0
 
 
@@ -109,28 +95,27 @@ def _cmd_render(args) -> int:
         raise ValueError(f"cannot write {output}: folder {output.parent} does not exist")
     select_device(args.device)  # an unknown device fails before the scene loads
     started = time.perf_counter()
-    scene, description, loaded = load_scene(args.scene, args.device)
-    build_wall = time.perf_counter() - started - loaded
-    camera = Camera(description.camera.eye, description.camera.target, description.camera.up,
-                    description.camera.fov_deg)
-    width = args.width or description.width
-    height = args.height or description.height
+    loaded = scenefile.load(args.scene, args.device)
+    scene, renderer = loaded.scene, loaded.renderer()
+    build_wall = loaded.build_seconds
+    width = args.width or loaded.width
+    height = args.height or loaded.height
     options = dict(shading=args.shading, shadows=not args.no_shadows, spp=args.spp,
                    ao_samples=args.ao_samples)
     # A one-pixel render first: it compiles (or loads from the cache) every
     # kernel the render uses, so the real render's times are its own.
     warm_started = time.perf_counter()
-    scene.render(camera, 1, 1, **options)
+    renderer.render(loaded.camera, 1, 1, **options)
     render_compile = time.perf_counter() - warm_started
-    image = scene.render(camera, width, height, progress=sys.stderr.isatty(), **options)
+    image = renderer.render(loaded.camera, width, height, progress=sys.stderr.isatty(), **options)
     written_started = time.perf_counter()
     _write_image(output, image)
     written = time.perf_counter() - written_started
 
-    build_ms = scene.stats["times_ms"]["total"]
-    widen_ms = scene.stats["times_ms"]["widen"]  # the wide tree traversal reads
+    build_ms = scene.stats.device_ms
+    widen_ms = scene.stats.times_ms["widen"]  # the wide tree traversal reads
     bvh_ms = build_ms - widen_ms
-    rendered = scene.render_stats
+    rendered = renderer.stats
     times = rendered["times_ms"]
     # Build kernels compile during the first build: its wall time beyond the
     # device time is that compilation (or cache loading) and host work.
@@ -141,10 +126,10 @@ def _cmd_render(args) -> int:
     if rendered["secondary_rays"]:
         kind = "AO" if args.shading == "ao" else "shadow"
         rays += f" + {_count(rendered['secondary_rays'])} {kind} rays"
-    print(f"scene        {description.path}: {len(scene.meshes)} meshes, "
-          f"{scene.stats['triangles']:,} triangles")
+    print(f"scene        {loaded.path}: {len(scene.meshes)} meshes, "
+          f"{scene.stats.triangles:,} triangles")
     print(f"device       {scene.device}")
-    print(f"load         {loaded:7.2f} s   read, split and transform the meshes")
+    print(f"load         {loaded.load_seconds:7.2f} s   read, split and transform the meshes")
     print(f"build        {build_ms:7.1f} ms  device: BVH {bvh_ms:.1f} + wide tree {widen_ms:.1f} "
           f"(wall {build_wall * 1e3:.0f} ms)")
     print(f"trace+shade  {times['total']:7.1f} ms  device (wall {times['wall']:.0f} ms): "

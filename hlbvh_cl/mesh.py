@@ -130,6 +130,7 @@ class Mesh:
     def triangle_count(self) -> int:
         return int(self._faces.shape[0])
 
+    @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """(lo, hi) float64 corners of the box around the vertices the faces use."""
         if self._bounds is None:

@@ -255,7 +255,7 @@ def _probe_variant(rt) -> dict:
     import trimesh
 
     from .mesh import Mesh
-    from .render import Camera
+    from .render import Camera, Renderer
     from .scene import Scene
 
     sphere = trimesh.creation.icosphere(subdivisions=2)
@@ -309,8 +309,8 @@ def _probe_variant(rt) -> dict:
     if problem:
         return {"ok": False, "reason": problem}
     for shading in ("diffuse", "ao"):
-        image = scene.render(Camera((0.5, 3.0, 2.0), (0, 0, 0)), 12, 8, shading=shading,
-                             ao_samples=2)
+        image = Renderer(scene).render(Camera((0.5, 3.0, 2.0), (0, 0, 0)), 12, 8,
+                                       shading=shading, ao_samples=2)
         if image.shape != (8, 12, 3) or not image.any():
             return {"ok": False, "reason": f"the {shading} render came back empty"}
 

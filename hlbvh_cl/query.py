@@ -16,7 +16,7 @@ from __future__ import annotations
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pyopencl as cl
@@ -59,6 +59,21 @@ class Hits:
     def hit(self) -> np.ndarray:
         """bool (R,): which rays hit something."""
         return self.geom_id >= 0
+
+    #: the rays' origins and directions (float32), for ``points``
+    _origins: np.ndarray | None = field(default=None, repr=False, compare=False)
+    _directions: np.ndarray | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def points(self) -> np.ndarray:
+        """float32 (R, 3): origin + t * direction in the caller's coordinates,
+        NaN where the ray missed.  Computed when read, from the rays as they
+        were checked (float32; the caller's own arrays when they were
+        float32 already, so read it before changing those)."""
+        with np.errstate(invalid="ignore", over="ignore"):
+            out = self._origins + self.t[:, None] * self._directions
+        out[~self.hit] = np.nan
+        return out
 
 
 def _zero_copy(rt: Runtime) -> bool:
@@ -191,11 +206,13 @@ class RayQuery:
     def intersect(self, tree: DeviceTree, origins, directions, tmin=0.0, tmax=np.inf) -> Hits:
         """Closest hit of each ray (origins[i] + t * directions[i], tmin <= t <= tmax)."""
         origins, directions, tmin, tmax = _check_rays(origins, directions, tmin, tmax)
+        hits = Hits(**{name: self._results.empty((len(origins), n) if n > 1 else len(origins),
+                                                 dtype)
+                       for name, (dtype, n) in HIT_FIELDS.items()},
+                    _origins=origins, _directions=directions)
         origins, directions, tmin, tmax, t_factor = _into_frame(origins, directions, tmin, tmax,
                                                                 tree)
         count = len(origins)
-        hits = Hits(**{name: self._results.empty((count, n) if n > 1 else count, dtype)
-                       for name, (dtype, n) in HIT_FIELDS.items()})
         if count and self._check_tree(tree):
             kernel, nodes = self._kernel(tree, "intersect_closest_arrays", self.count_packets)
 

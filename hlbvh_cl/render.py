@@ -62,6 +62,7 @@ import pyopencl as cl
 from . import layout
 from .device import Runtime, event_ms
 from .query import RayQuery
+from .scene import Scene
 from .tree import DeviceTree
 
 SHADINGS = ("diffuse", "normals", "depth", "ao")
@@ -191,6 +192,22 @@ class Camera:
         record["up"] = true_up * half_height
         return record
 
+    def rays(self, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+        """The primary rays of a width x height image, as a render with spp=1
+        traces them: float32 (H*W, 3) origins and directions through the pixel
+        centres, row-major from the top-left pixel, in camera.cl's float32
+        arithmetic."""
+        width = _integer("width", width, 1, MAX_IMAGE_SIDE)
+        height = _integer("height", height, 1, MAX_IMAGE_SIDE)
+        record = self.pinhole(width, height)
+        f32 = np.float32
+        ys, xs = np.mgrid[0:height, 0:width].astype(f32)
+        sx = (f32(2) * (xs + f32(0.5)) / f32(width) - f32(1)).reshape(-1, 1)
+        sy = (f32(1) - f32(2) * (ys + f32(0.5)) / f32(height)).reshape(-1, 1)
+        directions = record["forward"] + sx * record["right"] + sy * record["up"]
+        origins = np.broadcast_to(record["eye"], directions.shape).copy()
+        return origins, np.ascontiguousarray(directions, f32)
+
 
 # -- argument checks ------------------------------------------------------------
 
@@ -216,32 +233,32 @@ def _number(name: str, value, low: float, high: float | None = None,
 
 
 def check_colors(colors, geometry_count: int) -> np.ndarray:
-    """scene.colors -> float32 (G, 3), each channel in [0, 1]."""
+    """Renderer.colors -> float32 (G, 3), each channel in [0, 1]."""
     if isinstance(colors, (str, bytes)) or not isinstance(colors, (Sequence, np.ndarray)):
-        raise TypeError(f"scene.colors must be a list of RGB triples, got {type(colors).__name__}")
+        raise TypeError(f"colors must be a list of RGB triples, got {type(colors).__name__}")
     if len(colors) != geometry_count:
-        raise ValueError(f"scene.colors has {len(colors)} entries but the scene has "
+        raise ValueError(f"colors has {len(colors)} entries but the scene has "
                          f"{geometry_count} meshes: one RGB colour per mesh")
     out = np.empty((geometry_count, 3), np.float32)
     for i, color in enumerate(colors):
         try:
             rgb = np.asarray(color, dtype=np.float64)
         except (ValueError, TypeError):
-            raise TypeError(f"scene.colors[{i}] = {color!r} is not 3 numbers") from None
+            raise TypeError(f"colors[{i}] = {color!r} is not 3 numbers") from None
         if rgb.shape != (3,) or not (np.isfinite(rgb).all() and (rgb >= 0).all()
                                      and (rgb <= 1).all()):
-            raise ValueError(f"scene.colors[{i}] = {color!r}: expected 3 numbers in 0..1 (RGB)")
+            raise ValueError(f"colors[{i}] = {color!r}: expected 3 numbers in 0..1 (RGB)")
         out[i] = rgb
     return out
 
 
 def check_light(light) -> Light:
-    """scene.light as a Light; anything with the same three fields (such as a
-    scene file's light) is converted and checked."""
+    """Renderer.light as a Light; anything with the same three fields is
+    converted and checked."""
     if isinstance(light, Light):
         return light
     if not all(hasattr(light, f) for f in ("direction", "intensity", "ambient")):
-        raise TypeError(f"scene.light must be a hlbvh_cl.Light(direction, intensity, ambient), "
+        raise TypeError(f"light must be a hlbvh_cl.Light(direction, intensity, ambient), "
                         f"got {type(light).__name__}")
     return Light(light.direction, light.intensity, light.ambient)
 
@@ -367,7 +384,7 @@ class _Buffers:
             self.image_capacity = image_pixels
 
 
-class Renderer:
+class _Pipeline:
     """The render pipeline on one device: kernels and reusable buffers.
 
     ``last_stats`` describes the last render: image size and options,
@@ -510,6 +527,51 @@ class Renderer:
                            "primary_rays": pixels, "secondary_rays": pixels * secondary_passes,
                            "times_ms": times}
         return image
+
+
+class Renderer:
+    """Renders a Scene through a Camera.
+
+    ``colors`` holds one RGB triple (0..1) per mesh (by default PALETTE,
+    cycled) and ``light`` a Light; both may be reassigned between renders.
+    ``stats`` describes the last render ({} before one): image size and
+    options, primary_rays and secondary_rays (shadow or AO rays launched,
+    one per pixel and pass), and device milliseconds per stage ("camera",
+    "closest", "shade", "occluded", "resolve", "encode", "total") plus
+    "wall" and "setup" (building or loading camera.cl and shade.cl,
+    allocating buffers).  The first render compiles kernels: render once,
+    small, to keep that out of a measurement.
+    """
+
+    def __init__(self, scene, colors=None, light: Light | None = None):
+        if not isinstance(scene, Scene):
+            raise TypeError(f"scene must be a hlbvh_cl.Scene, got {type(scene).__name__}")
+        self.scene = scene
+        self.colors = default_colors(len(scene.meshes)) if colors is None else colors
+        self.light = Light() if light is None else light
+        self._pipeline: _Pipeline | None = None
+
+    @property
+    def stats(self) -> dict:
+        return self._pipeline.last_stats if self._pipeline is not None else {}
+
+    def render(self, camera: Camera, width: int, height: int, shading: str = "diffuse",
+               shadows: bool = True, spp: int = 1, ao_samples: int = AO_SAMPLES,
+               ao_distance: float | None = None, progress: bool = False) -> np.ndarray:
+        """A (height, width, 3) uint8 RGB image.  shading is "diffuse",
+        "normals", "depth" or "ao"; spp samples per pixel; ao_samples AO rays
+        per sample, reaching ao_distance (default 5% of the scene's
+        diagonal).  progress shows a tqdm bar on stderr for renders longer
+        than a second.  The formulas are in this module's docstring."""
+        settings = RenderSettings.check(camera, width, height, shading, shadows, spp,
+                                        ao_samples, ao_distance)
+        colors = check_colors(self.colors, len(self.scene.meshes))
+        light = check_light(self.light)
+        scene = self.scene
+        with scene._lock:  # no rebuild or refit while the tree is read
+            if self._pipeline is None:
+                self._pipeline = _Pipeline(scene._runtime)  # its own queries and buffers
+            return self._pipeline.render(scene._tree, settings, colors, light, progress=progress)
 
 
 def _progress_bar(enabled: bool, total: int):

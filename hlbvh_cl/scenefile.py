@@ -1,7 +1,8 @@
 """TOML scene files: meshes with colours and transforms, a ground, a camera, a light.
 
-``load_scene_file(path)`` reads one with tomllib and returns a
-SceneDescription whose meshes are already loaded, split and transformed.
+``read(path)`` parses one with tomllib into a SceneDescription whose meshes
+are already loaded, split and transformed; ``load(path)`` also builds its
+Scene and returns a LoadedScene (scene, camera, light, colours, image size).
 
 Schema (every table and key is listed here; any other key is an error)::
 
@@ -58,6 +59,7 @@ from __future__ import annotations
 import math
 import os
 import sys
+import time
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -65,6 +67,8 @@ from pathlib import Path
 import numpy as np
 
 from .mesh import Mesh
+from .render import Camera, Light, Renderer
+from .scene import Scene
 from .split import split_edges
 
 Color = tuple[float, float, float]
@@ -76,21 +80,6 @@ _MAX_IMAGE_SIDE = 16384
 
 class SceneFileError(ValueError):
     """A scene file that cannot be read; the message names the file and the key."""
-
-
-@dataclass(frozen=True)
-class Camera:
-    eye: Vec3
-    target: Vec3
-    up: Vec3
-    fov_deg: float  # vertical
-
-
-@dataclass(frozen=True)
-class Light:
-    direction: Vec3  # unit vector from the surface towards the light
-    intensity: float
-    ambient: float
 
 
 @dataclass(frozen=True)
@@ -225,7 +214,44 @@ class _MeshSpec:
     place_on_ground: bool
 
 
-def load_scene_file(path) -> SceneDescription:
+@dataclass(frozen=True)
+class LoadedScene:
+    """A scene file's Scene, built, with what the file says about rendering
+    it.  load_seconds is the time spent reading, splitting and transforming
+    the meshes; build_seconds the Scene's construction (kernel compilation
+    included on a first build)."""
+
+    scene: Scene
+    camera: Camera
+    light: Light
+    colors: tuple[Color, ...]  # one per mesh of scene.meshes (the ground last)
+    width: int
+    height: int
+    path: Path
+    load_seconds: float
+    build_seconds: float
+
+    def renderer(self) -> Renderer:
+        """A Renderer of the scene with the file's colours and light."""
+        return Renderer(self.scene, colors=list(self.colors), light=self.light)
+
+
+def load(path, device=None, builder: str = "hlbvh", morton_bits: int = 30) -> LoadedScene:
+    """Read a scene file (``read``) and build its Scene on ``device``."""
+    started = time.perf_counter()
+    description = read(path)
+    loaded = time.perf_counter()
+    geometries = description.geometries()
+    scene = Scene([mesh for mesh, _ in geometries], device=device, builder=builder,
+                  morton_bits=morton_bits)
+    return LoadedScene(scene=scene, camera=description.camera, light=description.light,
+                       colors=tuple(color for _, color in geometries), width=description.width,
+                       height=description.height, path=description.path,
+                       load_seconds=loaded - started,
+                       build_seconds=time.perf_counter() - loaded)
+
+
+def read(path) -> SceneDescription:
     """Read a TOML scene file (schema in this module's docstring).
 
     Raises FileNotFoundError if the scene file itself is missing and
@@ -414,8 +440,8 @@ def _load_mesh(reader: _Reader, spec: _MeshSpec, ground_y: float, step) -> MeshE
 
 
 def _make_ground(spec: dict, meshes: list[Mesh]) -> Ground:
-    lo = np.min([m.bounds()[0] for m in meshes], axis=0)
-    hi = np.max([m.bounds()[1] for m in meshes], axis=0)
+    lo = np.min([m.bounds[0] for m in meshes], axis=0)
+    hi = np.max([m.bounds[1] for m in meshes], axis=0)
     y = float(lo[1]) if spec["y"] is None else spec["y"]
     size = spec["size"]
     if size is None:

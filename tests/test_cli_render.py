@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from hlbvh_cl.cli import main
-from hlbvh_cl.scenefile import load_scene_file
+from hlbvh_cl import scenefile
 
 SCENES = Path(__file__).resolve().parent.parent / "scenes"
 BUNNY = str(SCENES / "bunny_small.toml")
@@ -28,7 +28,7 @@ def test_render_writes_the_image_and_prints_the_times(tmp_path, capsys):
 
 
 def test_render_takes_the_scene_file_size_and_the_options(tmp_path, capsys, suite_device):
-    description = load_scene_file(BUNNY)
+    description = scenefile.read(BUNNY)
     out = tmp_path / "normals.png"
     assert main(["render", BUNNY, "-o", str(out), "--shading", "normals", "--spp", "2",
                  "--height", "30"]) == 0

@@ -27,7 +27,7 @@ class Pair:
         self.scene = hlbvh_cl.Scene([self.mesh])
         self.embree = rtcs.EmbreeScene()
         TriangleMesh(self.embree, self.mesh.vertices, self.mesh.faces)
-        self.lo, self.hi = (b.astype(np.float64) for b in self.mesh.bounds())
+        self.lo, self.hi = (b.astype(np.float64) for b in self.mesh.bounds)
 
 
 @pytest.fixture(scope="module", params=["bunny", "armadillo", "lucy"])

@@ -16,16 +16,17 @@ import numpy as np
 import hlbvh_cl
 mesh = hlbvh_cl.Mesh.load(sys.argv[1])
 scene = hlbvh_cl.Scene([mesh])
-lo, hi = scene.tree.bounds_lo, scene.tree.bounds_hi
+renderer = hlbvh_cl.Renderer(scene)
+lo, hi = scene._tree.bounds_lo, scene._tree.bounds_hi
 camera = hlbvh_cl.Camera((lo + hi) / 2 + (hi - lo) * [0.3, 0.5, 1.6], (lo + hi) / 2)
 rng = np.random.default_rng(0)
 count = 8_000_000
 origins = ((lo + hi) / 2 + rng.uniform(-0.5, 0.5, (count, 3)) * (hi - lo)).astype(np.float32)
 directions = rng.normal(size=(count, 3)).astype(np.float32)
-small = scene.render(camera, 32, 24)  # compiles every kernel first
+small = renderer.render(camera, 32, 24)  # compiles every kernel first
 reference = scene.intersect(origins[:1000], directions[:1000])
 one_job = {
-    "render": lambda: scene.render(camera, 2048, 1536, shading="ao", ao_samples=64, spp=4),
+    "render": lambda: renderer.render(camera, 2048, 1536, shading="ao", ao_samples=64, spp=4),
     "intersect": lambda: scene.intersect(origins, directions),
 }[sys.argv[2]]
 print("ready", flush=True)
@@ -38,7 +39,7 @@ except KeyboardInterrupt:
     interrupted = time.monotonic()
     print("interrupted", flush=True)
     started = time.monotonic()
-    again = scene.render(camera, 32, 24)
+    again = renderer.render(camera, 32, 24)
     hits = scene.intersect(origins[:1000], directions[:1000])
     assert np.array_equal(again, small) and np.array_equal(hits.t, reference.t)
     print(f"again {time.monotonic() - started:.3f}", flush=True)

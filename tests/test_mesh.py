@@ -45,7 +45,7 @@ def test_degenerate_triangles_are_accepted():
 
 def test_bounds_cover_the_vertices_the_faces_use():
     vertices = np.vstack([QUAD, [[100.0, -100.0, 5.0]]])  # an unused vertex
-    lo, hi = Mesh(vertices, QUAD_FACES).bounds()
+    lo, hi = Mesh(vertices, QUAD_FACES).bounds
     assert lo.dtype == np.float64
     np.testing.assert_array_equal(lo, QUAD.min(axis=0))
     np.testing.assert_array_equal(hi, QUAD.max(axis=0))

@@ -74,7 +74,8 @@ WIDTH, HEIGHT = 8, 6
 
 
 def render(scene, name: str) -> np.ndarray:
-    return scene.render(camera(), WIDTH, HEIGHT, **RENDERS[name])
+    import hlbvh_cl
+    return hlbvh_cl.Renderer(scene).render(camera(), WIDTH, HEIGHT, **RENDERS[name])
 
 
 #: Rays per coherent block: a 16 x 4 fan from one origin, whose directions
@@ -152,14 +153,14 @@ def case_packets(uninitialized: bool) -> dict:
     from hlbvh_cl.query import RayQuery
     scene = hlbvh_cl.Scene(tiny_meshes())
     for packet_size in (1, 8) if uninitialized else (1, 8, 16):
-        query = RayQuery(scene.runtime, packet_size=packet_size)
+        query = RayQuery(scene._runtime, packet_size=packet_size)
         # a variant the runtime found wrong on this device gives way to a
         # smaller packet: that would leave this size untested
         assert query.packet_size == packet_size, \
             f"packets of {packet_size} gave way to {query.packet_size} on Oclgrind"
         query.count_packets = True
-        check_queries(functools.partial(query.intersect, scene.tree),
-                      functools.partial(query.occluded, scene.tree), Oracle(scene),
+        check_queries(functools.partial(query.intersect, scene._tree),
+                      functools.partial(query.occluded, scene._tree), Oracle(scene),
                       f"packets of {packet_size}")
         if packet_size > 1:  # the coherent blocks went as packets (with tmax, by occluded)
             assert query.last_packets >= len(COHERENT_BLOCKS) * BLOCK // packet_size

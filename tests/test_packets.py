@@ -43,7 +43,7 @@ def expected_packets(directions: np.ndarray, packet_size: int) -> int:
 def traced(q: RayQuery, query: str, case, origins, directions, **limits):
     """q's query, checking that the kernel formed exactly the packets expected."""
     q.count_packets = True
-    result = getattr(q, query)(case.scene.tree, origins, directions, **limits)
+    result = getattr(q, query)(case.scene._tree, origins, directions, **limits)
     expected = expected_packets(directions, q.packet_size) if q.packet_size > 1 else 0
     assert q.last_packets == expected
     return result
@@ -66,7 +66,7 @@ def camera_rays(case, width: int, height: int):
 
 
 def query(case, packet_size: int) -> RayQuery:
-    return RayQuery(case.scene.runtime, packet_size=packet_size)
+    return RayQuery(case.scene._runtime, packet_size=packet_size)
 
 
 @pytest.mark.parametrize("packet_size", PACKET_SIZES)
@@ -125,7 +125,7 @@ def test_rays_from_inside_in_packets_always_hit(name, packet_size):
     they form packets."""
     mesh = hlbvh_cl.Mesh.load(MESHES / f"{name}.ply")
     scene = hlbvh_cl.Scene([mesh])
-    q = RayQuery(scene.runtime, packet_size=packet_size)
+    q = RayQuery(scene._runtime, packet_size=packet_size)
     vertices = mesh.vertices.astype(np.float64)
     edges = _unique_edges(mesh.faces)
     midpoints = (vertices[edges[:, 0]] + vertices[edges[:, 1]]) / 2
@@ -137,22 +137,22 @@ def test_rays_from_inside_in_packets_always_hit(name, packet_size):
             assert coherent_fraction(directions, packet_size) > 0.6
             origins = np.repeat(origin[None].astype(np.float32), len(directions), 0)
             q.count_packets = True
-            hits = q.intersect(scene.tree, origins, directions)
+            hits = q.intersect(scene._tree, origins, directions)
             assert q.last_packets == expected_packets(directions, packet_size)
             missed = np.flatnonzero(~hits.hit)
             assert len(missed) == 0, (f"{name}: {len(missed)} of {len(directions)} rays from "
                                       f"inside aimed at {what} escaped (first: directions "
                                       f"{directions[missed[:3]].tolist()})")
-            assert q.occluded(scene.tree, origins, directions).all()
+            assert q.occluded(scene._tree, origins, directions).all()
 
 
 def test_packet_size_is_checked():
     case = scene_case("cube")
     with pytest.raises(ValueError, match="packet_size"):
-        RayQuery(case.scene.runtime, packet_size=4)
+        RayQuery(case.scene._runtime, packet_size=4)
     for wrong in (True, 8.0, "8"):
         with pytest.raises(TypeError, match="packet_size"):
-            RayQuery(case.scene.runtime, packet_size=wrong)
+            RayQuery(case.scene._runtime, packet_size=wrong)
 
 
 @pytest.mark.parametrize("zero", [0.0, -0.0], ids=["+0", "-0"])

@@ -90,10 +90,10 @@ def test_scratch_comes_back_after_an_error(pool):
 def test_rebuild_reuses_the_old_tree_and_answers_as_a_fresh_scene():
     mesh = Mesh.load(MESH_DIR / "bunny_small.ply")
     scene = Scene([mesh])
-    old = scene.tree
+    old = scene._tree
     old_buffers = {old.nodes.int_ptr, old.triangles.int_ptr, old.wide.nodes.int_ptr}
     scene.rebuild()
-    new = scene.tree
+    new = scene._tree
     assert old.released and not new.released
     assert {new.nodes.int_ptr, new.triangles.int_ptr, new.wide.nodes.int_ptr} == old_buffers
 
@@ -112,7 +112,7 @@ def test_rebuild_reuses_the_old_tree_and_answers_as_a_fresh_scene():
 
 def test_a_released_tree_cannot_be_queried():
     scene = Scene([Mesh.load(MESH_DIR / "knight.ply")])
-    old = scene.tree
+    old = scene._tree
     scene.rebuild()
     query = scene._ray_query()
     with pytest.raises(ValueError, match="released when its Scene rebuilt"):
@@ -122,7 +122,7 @@ def test_a_released_tree_cannot_be_queried():
 def test_a_scene_that_goes_away_takes_its_scratch_with_it():
     import gc
     scene = Scene([Mesh.load(MESH_DIR / "knight.ply")])
-    pool = scene.runtime.pool
+    pool = scene._runtime.pool
     scene.rebuild()
     assert pool.free_bytes > 0  # the last build's scratch, kept for the next rebuild
     del scene

@@ -31,8 +31,8 @@ def plane_t(v0, v1, v2, origins, directions):
 
 def trace(mesh, origins, directions, packet_size):
     scene = hlbvh_cl.Scene([mesh])
-    q = RayQuery(scene.runtime, packet_size=packet_size)
-    return q.intersect(scene.tree, np.asarray(origins, np.float32),
+    q = RayQuery(scene._runtime, packet_size=packet_size)
+    return q.intersect(scene._tree, np.asarray(origins, np.float32),
                        np.asarray(directions, np.float32))
 
 

@@ -147,7 +147,7 @@ def test_every_profile_gives_the_same_hits(monkeypatch, suite_device):
     for name in ("cpu", "gpu"):
         monkeypatch.setenv("HLBVH_CL_PROFILE", name)
         scene = hlbvh_cl.Scene([mesh], device=suite_device)
-        assert scene.runtime.profile.name == name
+        assert scene._runtime.profile.name == name
         results[name] = scene.intersect(origins, directions)
     assert results["gpu"].hit.any()
     for field in ("t", "prim_id", "geom_id", "u", "v", "normal"):

@@ -108,11 +108,11 @@ def several():
     knight = hlbvh_cl.Mesh.load(MESHES / "knight.ply")
     teapot = hlbvh_cl.Mesh.load(MESHES / "teapot.ply")
     bunny = hlbvh_cl.Mesh.load(MESHES / "bunny_small.ply")
-    k_lo, k_hi = knight.bounds()
+    k_lo, k_hi = knight.bounds
     size = float(np.max(k_hi - k_lo))
 
     def fit(mesh, shift):
-        lo, hi = mesh.bounds()
+        lo, hi = mesh.bounds
         scale = 0.6 * size / float(np.max(hi - lo))
         centre = (lo + hi) / 2
         moved = (mesh.vertices - centre) * scale + (k_lo + k_hi) / 2 + np.asarray(shift) * size
@@ -223,6 +223,22 @@ def assert_matches_oracle(case: SceneCase, hits: Hits, origins, directions, tmin
 
 
 # -- closest hit and any hit ----------------------------------------------------
+
+def test_hit_points_match_the_oracle():
+    """hits.points = origin + t * direction in the caller's coordinates,
+    NaN on a miss; within float32 rounding of the float64 oracle's point."""
+    case = scene_case("teapot")
+    origins, directions = random_rays(case, 3000, 11)
+    hits = case.scene.intersect(origins.astype(np.float64), directions)
+    expected = brute_force_intersect(case.vertices, case.faces, origins, directions)
+    points = hits.points
+    assert points.dtype == np.float32 and points.shape == (len(origins), 3)
+    assert np.array_equal(np.isnan(points).any(axis=1), ~hits.hit)
+    hit = hits.hit & np.isfinite(expected["t"])
+    assert hit.sum() > 500
+    oracle = origins[hit].astype(np.float64) + expected["t"][hit, None] * directions[hit]
+    np.testing.assert_allclose(points[hit], oracle, atol=1e-4 * case.scale)
+
 
 @pytest.mark.parametrize("name", list(MESH_MAKERS))
 def test_random_rays_match_oracle(name):
@@ -434,16 +450,16 @@ def test_batches_split_into_chunks_equal_one_launch(zero_copy):
     rng = np.random.default_rng(12)
     tmin = rng.uniform(0, 0.2, len(origins))
     tmax = tmin + rng.uniform(0.5, 3, len(origins))
-    whole = RayQuery(case.scene.runtime)
-    chunked = RayQuery(case.scene.runtime, max_rays_per_launch=777)
+    whole = RayQuery(case.scene._runtime)
+    chunked = RayQuery(case.scene._runtime, max_rays_per_launch=777)
     chunked.zero_copy = zero_copy
     assert chunked.max_rays_per_launch == 777 and whole.max_rays_per_launch >= 5000
-    a = whole.intersect(case.scene.tree, origins, directions, tmin, tmax)
-    b = chunked.intersect(case.scene.tree, origins, directions, tmin, tmax)
+    a = whole.intersect(case.scene._tree, origins, directions, tmin, tmax)
+    b = chunked.intersect(case.scene._tree, origins, directions, tmin, tmax)
     for field in ("t", "prim_id", "geom_id", "u", "v", "normal"):
         np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
-    np.testing.assert_array_equal(whole.occluded(case.scene.tree, origins, directions, tmin, tmax),
-                                  chunked.occluded(case.scene.tree, origins, directions, tmin, tmax))
+    np.testing.assert_array_equal(whole.occluded(case.scene._tree, origins, directions, tmin, tmax),
+                                  chunked.occluded(case.scene._tree, origins, directions, tmin, tmax))
     assert 0 < a.hit.mean() < 1
 
 
@@ -456,32 +472,32 @@ def test_results_written_in_place_equal_read_back_results(chunk):
     case = scene_case("knight")
     count = MIN_POOLED_BYTES // 4 + 1000
     origins, directions = random_rays(case, count, seed=16)
-    copied = RayQuery(case.scene.runtime)
+    copied = RayQuery(case.scene._runtime)
     copied.zero_copy, copied.outputs_in_place = False, False
-    written = RayQuery(case.scene.runtime, max_rays_per_launch=chunk)
+    written = RayQuery(case.scene._runtime, max_rays_per_launch=chunk)
     written.zero_copy, written.outputs_in_place = False, True
-    expected = copied.intersect(case.scene.tree, origins, directions)
-    got = written.intersect(case.scene.tree, origins, directions)
+    expected = copied.intersect(case.scene._tree, origins, directions)
+    got = written.intersect(case.scene._tree, origins, directions)
     for field in ("t", "prim_id", "geom_id", "u", "v", "normal"):
         assert getattr(got, field).ctypes.data % query_module.RESULT_ALIGNMENT == 0
         np.testing.assert_array_equal(getattr(got, field), getattr(expected, field))
     assert 0 < got.hit.mean() < 1
-    np.testing.assert_array_equal(written.occluded(case.scene.tree, origins, directions),
-                                  copied.occluded(case.scene.tree, origins, directions))
+    np.testing.assert_array_equal(written.occluded(case.scene._tree, origins, directions),
+                                  copied.occluded(case.scene._tree, origins, directions))
 
 
 def test_buffers_are_reused_and_only_grow():
     """Where the kernels cannot use the numpy arrays in place (GPUs)."""
     case = scene_case("cube")
-    q = RayQuery(case.scene.runtime)
+    q = RayQuery(case.scene._runtime)
     q.zero_copy = False
     origins, directions = random_rays(case, 300, seed=13)
-    q.intersect(case.scene.tree, origins, directions)
+    q.intersect(case.scene._tree, origins, directions)
     buffers = dict(q._buffers)
-    q.intersect(case.scene.tree, origins[:100], directions[:100])
-    q.occluded(case.scene.tree, origins[:200], directions[:200])
+    q.intersect(case.scene._tree, origins[:100], directions[:100])
+    q.occluded(case.scene._tree, origins[:200], directions[:200])
     assert q._buffers == buffers
-    q.intersect(case.scene.tree, np.repeat(origins, 4, 0), np.repeat(directions, 4, 0))
+    q.intersect(case.scene._tree, np.repeat(origins, 4, 0), np.repeat(directions, 4, 0))
     assert q._buffers["origins"] is not buffers["origins"]
 
 
@@ -492,26 +508,26 @@ def test_in_place_queries_take_any_array_layout():
     case = scene_case("knight")
     count = MIN_POOLED_BYTES // 4 + 1000
     origins, directions = random_rays(case, count, seed=15)
-    in_place = RayQuery(case.scene.runtime)
+    in_place = RayQuery(case.scene._runtime)
     in_place.zero_copy = True
-    copied = RayQuery(case.scene.runtime)
+    copied = RayQuery(case.scene._runtime)
     copied.zero_copy = False
-    expected = copied.intersect(case.scene.tree, origins, directions)
+    expected = copied.intersect(case.scene._tree, origins, directions)
     raw = np.zeros(origins.nbytes + 5, np.uint8)
     unaligned = raw[1:1 + origins.nbytes].view(np.float32).reshape(origins.shape)  # 1-byte offset
     unaligned[:] = origins
     frozen = directions.copy()
     frozen.flags.writeable = False
-    got = in_place.intersect(case.scene.tree, unaligned, frozen)
-    in_place.intersect(case.scene.tree, origins[::-1].copy(), directions[::-1].copy())
+    got = in_place.intersect(case.scene._tree, unaligned, frozen)
+    in_place.intersect(case.scene._tree, origins[::-1].copy(), directions[::-1].copy())
     for field in ("t", "prim_id", "geom_id", "u", "v", "normal"):
         np.testing.assert_array_equal(getattr(got, field), getattr(expected, field))
     # one array as both origins and directions, and two overlapping views
     points = np.ascontiguousarray(origins[:500])
-    np.testing.assert_array_equal(in_place.intersect(case.scene.tree, points, points).t,
-                                  copied.intersect(case.scene.tree, points, points.copy()).t)
+    np.testing.assert_array_equal(in_place.intersect(case.scene._tree, points, points).t,
+                                  copied.intersect(case.scene._tree, points, points.copy()).t)
     rows = np.ascontiguousarray(origins[:750])
-    overlapping = in_place.intersect(case.scene.tree, rows[:500], rows[250:])
+    overlapping = in_place.intersect(case.scene._tree, rows[:500], rows[250:])
     assert_matches_oracle(case, overlapping, rows[:500].copy(), rows[250:].copy())
 
 
@@ -533,17 +549,17 @@ def test_a_tree_deeper_than_64_traces_within_its_stack(packet_size):
     """Every profile sizes its private stack from the tree's depth: a built
     tree of depth > 64 neither overflows nor loses a hit."""
     case = _scene_cache.setdefault("chain", SceneCase([morton_chain_mesh()], "lbvh", 63))
-    assert case.scene.stats["depth"] > 64
+    assert case.scene.stats.depth > 64
     centres = case.vertices[case.faces].mean(axis=1)
     chain = centres[:63]  # one ray down onto each triangle of the chain, then some at random
     rng = np.random.default_rng(5)
     origins = np.concatenate([chain + [0, 0, 1], rng.uniform(0, 1, (200, 3)) + [0, 0, 1]])
     directions = np.concatenate([np.tile([0.0, 0, -1], (63, 1)), rng.normal(size=(200, 3))])
-    q = RayQuery(case.scene.runtime, packet_size=packet_size)
-    hits = q.intersect(case.scene.tree, origins, directions)  # raises if the stack overflows
+    q = RayQuery(case.scene._runtime, packet_size=packet_size)
+    hits = q.intersect(case.scene._tree, origins, directions)  # raises if the stack overflows
     assert hits.hit[:63].all()
     assert_matches_oracle(case, hits, origins, directions)
-    np.testing.assert_array_equal(q.occluded(case.scene.tree, origins, directions), hits.hit)
+    np.testing.assert_array_equal(q.occluded(case.scene._tree, origins, directions), hits.hit)
 
 
 @pytest.mark.parametrize("packet_size", [1, 8])
@@ -555,7 +571,7 @@ def test_stack_is_sized_from_the_tree_depth_and_overflow_raises(packet_size):
     import pyopencl as cl
     from hlbvh_cl import layout
 
-    rt = scene_case("cube").scene.runtime
+    rt = scene_case("cube").scene._runtime
     levels = 40
     z = np.arange(1, levels + 1, dtype=np.float32)  # triangle k at z = k + 1
     tris = np.zeros(levels, layout.TRIANGLE)
@@ -715,19 +731,19 @@ def test_bad_rows_are_named_in_every_part_of_a_large_batch(monkeypatch, which, r
 
 def test_bad_tree_and_chunk_size():
     case = scene_case("cube")
-    q = RayQuery(case.scene.runtime)
+    q = RayQuery(case.scene._runtime)
     with pytest.raises(TypeError, match="tree must be a hlbvh_cl.tree.DeviceTree"):
         q.intersect("tree", GOOD_O, GOOD_D)
     with pytest.raises(ValueError, match="max_rays_per_launch must be >= 1"):
-        RayQuery(case.scene.runtime, max_rays_per_launch=0)
+        RayQuery(case.scene._runtime, max_rays_per_launch=0)
     with pytest.raises(TypeError, match="max_rays_per_launch must be an int"):
-        RayQuery(case.scene.runtime, max_rays_per_launch=2.5)
+        RayQuery(case.scene._runtime, max_rays_per_launch=2.5)
 
 
 def test_chunk_size_follows_device_memory():
     case = scene_case("cube")
-    q = RayQuery(case.scene.runtime)
-    d = case.scene.runtime.device
+    q = RayQuery(case.scene._runtime)
+    d = case.scene._runtime.device
     buffers = {**query_module.RAY_ARRAYS, **query_module.HIT_ARRAYS,
                **query_module.OCCLUDED_ARRAYS}
     assert q.max_rays_per_launch <= query_module.MAX_RAYS_PER_LAUNCH

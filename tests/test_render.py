@@ -50,10 +50,12 @@ COLORS = [(0.85, 0.6, 0.5), (0.55, 0.7, 0.85), (0.9, 0.85, 0.7)]
 
 @pytest.fixture(scope="module")
 def scene():
-    built = hlbvh_cl.Scene(_scene_meshes())
-    built.colors = COLORS
-    built.light = LIGHT
-    return built
+    return hlbvh_cl.Scene(_scene_meshes())
+
+
+@pytest.fixture(scope="module")
+def renderer(scene):
+    return hlbvh_cl.Renderer(scene, colors=COLORS, light=LIGHT)
 
 
 @pytest.fixture(scope="module")
@@ -168,21 +170,21 @@ def assert_images_match(rendered, expected, levels=LEVELS, max_different=MAX_DIF
 
 # -- images against the oracle ---------------------------------------------------------
 
-def test_diffuse_with_shadows_matches_the_oracle(scene, geometry):
+def test_diffuse_with_shadows_matches_the_oracle(scene, renderer, geometry):
     expected, h, visible = diffuse_reference(geometry, shadows=True)
     # the view must hold what the test is about: every mesh, sky, and shadows
     assert set(np.unique(h["geom"])) == {-1, 0, 1, 2}
     assert np.count_nonzero(visible == 0) > 50
-    rendered = scene.render(CAMERA, WIDTH, HEIGHT)
+    rendered = renderer.render(CAMERA, WIDTH, HEIGHT)
     assert_images_match(rendered, expected)
 
 
-def test_diffuse_without_shadows_matches_the_oracle(scene, geometry):
+def test_diffuse_without_shadows_matches_the_oracle(scene, renderer, geometry):
     expected, _, _ = diffuse_reference(geometry, shadows=False)
     with_shadows, _, _ = diffuse_reference(geometry, shadows=True)
-    rendered = scene.render(CAMERA, WIDTH, HEIGHT, shadows=False)
+    rendered = renderer.render(CAMERA, WIDTH, HEIGHT, shadows=False)
     assert_images_match(rendered, expected)
-    assert not np.array_equal(rendered, scene.render(CAMERA, WIDTH, HEIGHT, shadows=True))
+    assert not np.array_equal(rendered, renderer.render(CAMERA, WIDTH, HEIGHT, shadows=True))
     assert not np.array_equal(expected, with_shadows)
 
 
@@ -191,15 +193,15 @@ def test_diffuse_without_shadows_matches_the_oracle(scene, geometry):
 # last columns of 1, 2 and 3), as well as one that is.
 @pytest.mark.parametrize("width, height", [(WIDTH, HEIGHT), (50, 37), (33, 17), (3, 5), (21, 19),
                                            (13, 30)])
-def test_normals_match_the_oracle(scene, geometry, width, height):
+def test_normals_match_the_oracle(scene, renderer, geometry, width, height):
     eye, directions = camera_rays(CAMERA, width, height)
     h = primary_hits(geometry, eye, directions)
     colour = np.where(h["hit"][:, None], (h["normal"] + 1) / 2, 0.0)
-    rendered = scene.render(CAMERA, width, height, shading="normals")
+    rendered = renderer.render(CAMERA, width, height, shading="normals")
     assert_images_match(rendered, encode(colour, gamma=False, width=width, height=height))
 
 
-def test_depth_matches_the_oracle_and_falls_with_distance(scene, geometry):
+def test_depth_matches_the_oracle_and_falls_with_distance(scene, renderer, geometry):
     eye, directions = camera_rays(CAMERA, WIDTH, HEIGHT)
     h = primary_hits(geometry, eye, directions)
     lo, hi = scene_box(geometry)
@@ -207,7 +209,7 @@ def test_depth_matches_the_oracle_and_falls_with_distance(scene, geometry):
     far = np.linalg.norm(np.maximum(np.abs(eye - lo), np.abs(eye - hi)))
     distance = np.where(h["hit"], h["t"] * np.linalg.norm(directions, axis=1), np.inf)
     value = np.where(h["hit"], np.clip((far - distance) / (far - near), 0, 1), 0.0)
-    rendered = scene.render(CAMERA, WIDTH, HEIGHT, shading="depth")
+    rendered = renderer.render(CAMERA, WIDTH, HEIGHT, shading="depth")
     assert_images_match(rendered, encode(np.repeat(value[:, None], 3, axis=1), gamma=False))
     # grey, and darker the farther: sorted by distance, never brighter by more
     # than rounding (pixels the oracle and the device disagree on left out)
@@ -219,7 +221,7 @@ def test_depth_matches_the_oracle_and_falls_with_distance(scene, geometry):
     assert grey[agree].max() - grey[agree].min() > 100  # a real range of depths
 
 
-def test_ambient_occlusion_matches_the_oracle(scene, geometry):
+def test_ambient_occlusion_matches_the_oracle(scene, renderer, geometry):
     vertices, faces, _ = geometry
     samples = 6
     eye, directions = camera_rays(CAMERA, WIDTH, HEIGHT)
@@ -244,42 +246,42 @@ def test_ambient_occlusion_matches_the_oracle(scene, geometry):
     colour = sky(directions, CAMERA)
     colour[pixels] = np.asarray(COLORS)[h["geom"][pixels]] * (free / samples)[:, None]
     assert 0 < np.count_nonzero(free < samples) < len(pixels)  # some occlusion, not all
-    rendered = scene.render(CAMERA, WIDTH, HEIGHT, shading="ao", ao_samples=samples)
+    rendered = renderer.render(CAMERA, WIDTH, HEIGHT, shading="ao", ao_samples=samples)
     assert_images_match(rendered, encode(colour, gamma=True))
 
 
-def test_samples_per_pixel_average_jittered_samples(scene, geometry):
+def test_samples_per_pixel_average_jittered_samples(scene, renderer, geometry):
     spp = 3
     total = np.zeros((WIDTH * HEIGHT, 3))
     for sample in range(spp):
         eye, directions = camera_rays(CAMERA, WIDTH, HEIGHT, sample=sample)
         h = primary_hits(geometry, eye, directions)
         total += np.where(h["hit"][:, None], (h["normal"] + 1) / 2, 0.0)
-    rendered = scene.render(CAMERA, WIDTH, HEIGHT, shading="normals", spp=spp)
+    rendered = renderer.render(CAMERA, WIDTH, HEIGHT, shading="normals", spp=spp)
     assert_images_match(rendered, encode(total / spp, gamma=False))
     # antialiased: some edge pixels are blends, unlike the one-sample image
-    assert not np.array_equal(rendered, scene.render(CAMERA, WIDTH, HEIGHT, shading="normals"))
+    assert not np.array_equal(rendered, renderer.render(CAMERA, WIDTH, HEIGHT, shading="normals"))
 
 
 # -- determinism, chunks, reuse -----------------------------------------------------------
 
 @pytest.mark.parametrize("options", [{}, {"spp": 4}, {"shading": "ao", "ao_samples": 4, "spp": 2}])
-def test_renders_are_deterministic(scene, options):
-    first = scene.render(CAMERA, 40, 30, **options)
-    second = scene.render(CAMERA, 40, 30, **options)
+def test_renders_are_deterministic(scene, renderer, options):
+    first = renderer.render(CAMERA, 40, 30, **options)
+    second = renderer.render(CAMERA, 40, 30, **options)
     assert np.array_equal(first, second)
 
 
 @pytest.mark.parametrize("options", [{"spp": 2}, {"shading": "ao", "ao_samples": 3}])
-def test_rendering_in_row_chunks_gives_the_same_image(scene, options):
-    whole = scene.render(CAMERA, 50, 37, **options)
+def test_rendering_in_row_chunks_gives_the_same_image(scene, renderer, options):
+    whole = renderer.render(CAMERA, 50, 37, **options)
     # at most 3 rows of 50 pixels per launch: 13 chunks, the last one short
-    small = render_module.Renderer(scene.runtime, RayQuery(scene.runtime, max_rays_per_launch=170))
+    small = render_module._Pipeline(scene._runtime, RayQuery(scene._runtime, max_rays_per_launch=170))
     assert small.chunk_rows(50, 37) == 3
     settings = render_module.RenderSettings.check(CAMERA, 50, 37, options.get("shading", "diffuse"),
                                                   True, options.get("spp", 1),
                                                   options.get("ao_samples", 16), None)
-    chunked = small.render(scene.tree, settings, np.asarray(COLORS, np.float32), LIGHT)
+    chunked = small.render(scene._tree, settings, np.asarray(COLORS, np.float32), LIGHT)
     assert np.array_equal(chunked, whole)
 
 
@@ -291,27 +293,27 @@ def test_every_packet_size_renders_the_same_image(scene, options):
                                                   True, 1, options.get("ao_samples", 16), None)
     images = {}
     for size in PACKET_SIZES:
-        renderer = render_module.Renderer(scene.runtime, RayQuery(scene.runtime, packet_size=size))
-        images[size] = renderer.render(scene.tree, settings, np.asarray(COLORS, np.float32), LIGHT)
+        renderer = render_module._Pipeline(scene._runtime, RayQuery(scene._runtime, packet_size=size))
+        images[size] = renderer.render(scene._tree, settings, np.asarray(COLORS, np.float32), LIGHT)
     assert images[1].shape == (37, 50, 3) and images[1].std() > 0
     for size, image in images.items():
         assert np.array_equal(image, images[1]), f"packet size {size} renders another image"
 
 
-def test_every_mode_gives_an_image_of_the_asked_size(scene):
+def test_every_mode_gives_an_image_of_the_asked_size(scene, renderer):
     for shading in render_module.SHADINGS:
-        image = scene.render(CAMERA, 33, 17, shading=shading, ao_samples=2)
+        image = renderer.render(CAMERA, 33, 17, shading=shading, ao_samples=2)
         assert image.shape == (17, 33, 3) and image.dtype == np.uint8
         assert len(np.unique(image.reshape(-1, 3), axis=0)) >= 5
-        stats = scene.render_stats
+        stats = renderer.stats
         assert stats["shading"] == shading and stats["primary_rays"] == 33 * 17
         assert stats["times_ms"]["total"] > 0
-    assert scene.render(CAMERA, 1, 1).shape == (1, 1, 3)
+    assert renderer.render(CAMERA, 1, 1).shape == (1, 1, 3)
 
 
 def test_default_colors_and_light():
     meshes = _scene_meshes()
-    plain = hlbvh_cl.Scene(meshes)
+    plain = hlbvh_cl.Renderer(hlbvh_cl.Scene(meshes))
     assert plain.colors == [render_module.PALETTE[i] for i in range(len(meshes))]
     assert np.allclose(np.linalg.norm(plain.light.direction), 1.0)
     image = plain.render(CAMERA, 20, 15)
@@ -336,26 +338,26 @@ def test_default_colors_and_light():
     ({"ao_distance": float("nan")}, ValueError, "ao_distance"),
     ({"shadows": "yes"}, TypeError, "shadows"),
 ])
-def test_bad_render_arguments_are_named(scene, kwargs, error, words):
+def test_bad_render_arguments_are_named(scene, renderer, kwargs, error, words):
     arguments = {"camera": CAMERA, "width": 8, "height": 6, **kwargs}
     with pytest.raises(error, match=words):
-        scene.render(**arguments)
+        renderer.render(**arguments)
 
 
-def test_bad_colors_and_light_are_named(scene):
+def test_bad_colors_and_light_are_named(scene, renderer):
     try:
-        scene.colors = COLORS[:2]
-        with pytest.raises(ValueError, match="scene.colors has 2 entries"):
-            scene.render(CAMERA, 8, 6)
-        scene.colors = [COLORS[0], (0.5, 1.5, 0.5), COLORS[2]]
-        with pytest.raises(ValueError, match=r"scene.colors\[1\]"):
-            scene.render(CAMERA, 8, 6)
-        scene.colors = COLORS
-        scene.light = "sun"
-        with pytest.raises(TypeError, match="scene.light"):
-            scene.render(CAMERA, 8, 6)
+        renderer.colors = COLORS[:2]
+        with pytest.raises(ValueError, match="colors has 2 entries"):
+            renderer.render(CAMERA, 8, 6)
+        renderer.colors = [COLORS[0], (0.5, 1.5, 0.5), COLORS[2]]
+        with pytest.raises(ValueError, match=r"colors\[1\]"):
+            renderer.render(CAMERA, 8, 6)
+        renderer.colors = COLORS
+        renderer.light = "sun"
+        with pytest.raises(TypeError, match="light"):
+            renderer.render(CAMERA, 8, 6)
     finally:
-        scene.colors, scene.light = COLORS, LIGHT
+        renderer.colors, renderer.light = COLORS, LIGHT
 
 
 @pytest.mark.parametrize("kwargs, words", [

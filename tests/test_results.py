@@ -79,7 +79,7 @@ def test_small_results_are_plain_arrays():
 
 def test_held_hits_survive_later_queries():
     scene = hlbvh_cl.Scene([grid_mesh()])
-    lo, hi = scene.tree.bounds_lo, scene.tree.bounds_hi
+    lo, hi = scene._tree.bounds_lo, scene._tree.bounds_hi
     count = MIN_POOLED_BYTES // 4 + 10
 
     def rays(seed):

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from hlbvh_cl.scenefile import SceneFileError, load_scene_file
+from hlbvh_cl.scenefile import SceneFileError, read
 
 SCENES = Path(__file__).resolve().parent.parent / "scenes"
 SCENE_FILES = sorted(SCENES.glob("*.toml"))
@@ -21,7 +21,7 @@ def loaded():
 
     def load(path):
         if path not in cache:
-            cache[path] = load_scene_file(path)
+            cache[path] = read(path)
         return cache[path]
     return load
 
@@ -75,7 +75,7 @@ def test_camera_frames_the_meshes(loaded, path):
     scene = loaded(path)
     corners = []
     for entry in scene.meshes:
-        lo, hi = entry.mesh.bounds()
+        lo, hi = entry.mesh.bounds
         corners += [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
     px, py, depth = project(scene.camera, scene.width, scene.height, np.array(corners))
     assert (depth > 0).all()
@@ -86,7 +86,7 @@ def test_camera_frames_the_meshes(loaded, path):
     assert max(np.ptp(px) / scene.width, np.ptp(py) / scene.height) >= 0.75
     # The ground, if any, is below the meshes' lowest point or at it.
     if scene.ground is not None:
-        lowest = min(e.mesh.bounds()[0][1] for e in scene.meshes)
+        lowest = min(e.mesh.bounds[0][1] for e in scene.meshes)
         assert scene.ground.y <= lowest + 1e-6 * max(1.0, abs(lowest))
 
 
@@ -131,7 +131,7 @@ fit_height = 1.5
 translate = [1.0, 2.0, 3.0]
 place_on_ground = true
 """)
-    scene = load_scene_file(path)
+    scene = read(path)
     entry = scene.meshes[0]
     assert entry.color == (1.0, 0.5, 0.0) and entry.path == tmp_path / "knight.ply"
     # Independent: trimesh's static-frame XYZ Euler matrix applied to the scaled points.
@@ -142,7 +142,7 @@ place_on_ground = true
     points[:, 1] += -0.25 - points[:, 1].min()
     np.testing.assert_allclose(entry.mesh.vertices, points, atol=1e-5)
     np.testing.assert_array_equal(entry.mesh.faces, knight.faces)
-    lo, hi = entry.mesh.bounds()
+    lo, hi = entry.mesh.bounds
     assert hi[1] - lo[1] == pytest.approx(1.5, rel=1e-5) and lo[1] == pytest.approx(-0.25)
 
     ground = scene.ground
@@ -151,7 +151,7 @@ place_on_ground = true
     normals = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
     assert (normals[:, 1] > 0).all() and not normals[:, [0, 2]].any()  # facing +y
     assert (ground.mesh.vertices[:, 1] == np.float32(-0.25)).all()
-    g_lo, g_hi = ground.mesh.bounds()
+    g_lo, g_hi = ground.mesh.bounds
     np.testing.assert_allclose(g_hi[[0, 2]] - g_lo[[0, 2]], [3.0, 3.0], rtol=1e-6)
     np.testing.assert_allclose((g_lo + g_hi)[[0, 2]] / 2, ((lo + hi) / 2)[[0, 2]], atol=1e-5)
     assert 0.5 * np.linalg.norm(normals, axis=1).sum() == pytest.approx(9.0, rel=1e-6)
@@ -166,10 +166,10 @@ path = "{KNIGHT}"
 split = 3
 translate = [0.0, -7.0, 0.0]
 """)
-    scene = load_scene_file(path)
+    scene = read(path)
     mesh = scene.meshes[0].mesh
     assert mesh.triangle_count == 9 * len(knight.faces) and scene.meshes[0].split == 3
-    np.testing.assert_allclose(mesh.bounds()[0], knight.bounds[0] + [0, -7, 0], atol=1e-6)
+    np.testing.assert_allclose(mesh.bounds[0], knight.bounds[0] + [0, -7, 0], atol=1e-6)
     assert scene.ground.y == pytest.approx(knight.bounds[0][1] - 7.0)  # "auto" is the default
     assert scene.meshes[0].color == (0.8, 0.8, 0.8)
     assert scene.camera.up == (0.0, 1.0, 0.0) and scene.camera.fov_deg == 45.0
@@ -189,9 +189,9 @@ path = "{KNIGHT}"
 scale = 10.0
 place_on_ground = true
 """)
-    scene = load_scene_file(path)
+    scene = read(path)
     assert scene.ground is None
-    assert scene.meshes[0].mesh.bounds()[0][1] == pytest.approx(0.0, abs=1e-6)
+    assert scene.meshes[0].mesh.bounds[0][1] == pytest.approx(0.0, abs=1e-6)
     assert scene.light.direction == pytest.approx((0.0, 0.6, 0.8))
     assert (scene.light.intensity, scene.light.ambient) == (2.0, 0.0)
 
@@ -243,7 +243,7 @@ MESH = f'\n[[mesh]]\npath = "{KNIGHT}"\n'
 def test_errors_name_the_file_and_the_key(tmp_path, text, key, words):
     path = write(tmp_path, text, name="broken_scene.toml")
     with pytest.raises(SceneFileError) as caught:
-        load_scene_file(path)
+        read(path)
     message = str(caught.value)
     assert "broken_scene.toml" in message
     assert f": {key}: " in message
@@ -255,19 +255,19 @@ def test_toml_syntax_error_gives_the_line(tmp_path):
     line = text.splitlines().index("path = meshes/knight.ply") + 1
     path = write(tmp_path, text, name="syntax.toml")
     with pytest.raises(SceneFileError, match=rf"syntax\.toml: TOML syntax error: .*line {line}\b"):
-        load_scene_file(path)
+        read(path)
 
 
 def test_unreadable_mesh_file(tmp_path):
     (tmp_path / "bad.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 3\nend_header\n1 2\n")
     path = write(tmp_path, BASE + '[[mesh]]\npath = "bad.ply"\n', name="bad_mesh.toml")
     with pytest.raises(SceneFileError, match=r"bad_mesh\.toml: mesh\[0\]\.path: .*bad\.ply"):
-        load_scene_file(path)
+        read(path)
 
 
 def test_missing_scene_file(tmp_path):
     with pytest.raises(FileNotFoundError):
-        load_scene_file(tmp_path / "nowhere.toml")
+        read(tmp_path / "nowhere.toml")
 
 
 def test_scene_file_error_is_a_value_error():

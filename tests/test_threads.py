@@ -17,7 +17,7 @@ SECONDS = 20.0
 
 def _rays(scene, count, seed):
     rng = np.random.default_rng(seed)
-    lo, hi = scene.tree.bounds_lo, scene.tree.bounds_hi
+    lo, hi = scene._tree.bounds_lo, scene._tree.bounds_hi
     centre, size = (lo + hi) / 2, float(np.max(hi - lo))
     origins = centre + rng.normal(size=(count, 3)) * size
     targets = centre + rng.normal(size=(count, 3)) * size * 0.2
@@ -36,13 +36,14 @@ def scenes():
 def _calls(scene, k):
     """The calls the threads make on a scene, each with a fixed input."""
     origins, directions = _rays(scene, 20000, k)
-    lo, hi = scene.tree.bounds_lo, scene.tree.bounds_hi
+    lo, hi = scene._tree.bounds_lo, scene._tree.bounds_hi
     eye = (lo + hi) / 2 + (hi - lo) * [0.2, 0.9, 1.4]
     camera = hlbvh_cl.Camera(eye, (lo + hi) / 2)
+    renderer = hlbvh_cl.Renderer(scene)
     return {
         "intersect": lambda: scene.intersect(origins, directions),
         "occluded": lambda: scene.occluded(origins, directions),
-        "render": lambda: scene.render(camera, 48, 32, shading="diffuse"),
+        "render": lambda: renderer.render(camera, 48, 32, shading="diffuse"),
     }
 
 

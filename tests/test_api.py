@@ -1,0 +1,82 @@
+"""The public surface: its names, the one Camera's rays, scene files through
+the package, and an import that touches nothing."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+import hlbvh_cl
+from hlbvh_cl import scenefile
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_public_names():
+    assert sorted(hlbvh_cl.__all__) == sorted([
+        "Scene", "Mesh", "Hits", "BuildStats", "Renderer", "Camera", "Light", "Device",
+        "devices", "DeviceMemoryError", "KernelBuildError", "scenefile"])
+    scene = hlbvh_cl.Scene([hlbvh_cl.Mesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]])])
+    public = {name for name in dir(scene) if not name.startswith("_")}
+    assert public == {"intersect", "occluded", "update_vertices", "rebuild", "stats", "device",
+                      "meshes", "builder", "morton_bits"}
+    assert isinstance(scene.stats, hlbvh_cl.BuildStats)
+    assert isinstance(scene.device, hlbvh_cl.Device)
+
+
+def test_import_has_no_side_effects(tmp_path):
+    """A fresh interpreter imports the package: no file is written under
+    HOME or XDG_CACHE_HOME and os.environ is unchanged."""
+    home, cache = tmp_path / "home", tmp_path / "cache"
+    home.mkdir(), cache.mkdir()
+    env = {**os.environ, "HOME": str(home), "XDG_CACHE_HOME": str(cache)}
+    env.pop("OCL_ICD_VENDORS", None)
+    script = ("import json, os; before = dict(os.environ); import hlbvh_cl; "
+              "print(json.dumps(dict(os.environ) == before))")
+    out = subprocess.run([sys.executable, "-c", script], env=env, cwd=ROOT, check=True,
+                         capture_output=True, text=True).stdout
+    assert json.loads(out.strip().splitlines()[-1]) is True
+    assert not any(home.rglob("*")) and not any(cache.rglob("*"))
+
+
+def test_camera_rays_are_the_renderers_primary_rays():
+    """Camera.rays gives the rays a one-sample render traces: the normals
+    image computed from their hits is the rendered one, pixel for pixel."""
+    meshes = [hlbvh_cl.Mesh.load(ROOT / "scenes/meshes/teapot.ply")]
+    scene = hlbvh_cl.Scene(meshes)
+    lo, hi = scene._tree.bounds_lo, scene._tree.bounds_hi
+    camera = hlbvh_cl.Camera((lo + hi) / 2 + (hi - lo) * [0.4, 0.6, 1.8], (lo + hi) / 2,
+                             fov_deg=35)
+    width, height = 37, 23
+    origins, directions = camera.rays(width, height)
+    assert origins.shape == directions.shape == (width * height, 3)
+    assert origins.dtype == directions.dtype == np.float32
+    hits = scene.intersect(origins, directions)
+    assert 0.1 < hits.hit.mean() < 0.9
+    normal = hits.normal.astype(np.float64)
+    facing = np.where((normal * directions).sum(axis=1, keepdims=True) > 0, -normal, normal)
+    expected = np.where(hits.hit[:, None], np.rint(255 * (facing + 1) / 2), 0)
+    image = hlbvh_cl.Renderer(scene).render(camera, width, height, shading="normals")
+    got = image.reshape(-1, 3).astype(np.float64)
+    assert np.array_equal(got != 0, expected != 0)  # the same pixels hit
+    assert np.abs(got - expected).max() <= 1  # float32 rounding of (n + 1) / 2 aside
+
+
+def test_scene_files_load_through_the_package():
+    path = ROOT / "scenes/bunny_small.toml"
+    description = scenefile.read(path)
+    loaded = scenefile.load(path)
+    assert isinstance(loaded.scene, hlbvh_cl.Scene)
+    assert isinstance(loaded.camera, hlbvh_cl.Camera) and isinstance(loaded.light, hlbvh_cl.Light)
+    assert loaded.camera == description.camera and loaded.light == description.light
+    assert (loaded.width, loaded.height) == (description.width, description.height)
+    assert list(loaded.colors) == [color for _, color in description.geometries()]
+    assert loaded.load_seconds > 0 and loaded.build_seconds > 0
+    renderer = loaded.renderer()
+    assert renderer.light == loaded.light and list(renderer.colors) == list(loaded.colors)
+    image = renderer.render(loaded.camera, 16, 9)
+    assert image.shape == (9, 16, 3)
