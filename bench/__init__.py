@@ -1,10 +1,13 @@
-"""hlbvh_cl's benchmarks.
+"""hlbvh_cl's benchmarks, run from the repository root.
 
-    python -m bench [--quick] [--devices pocl,intel]   the whole suite -> bench/RESULTS.md
+    python -m bench [--quick] [--devices pocl,intel] [--docs]   the suite -> RESULTS.md
 
-The suite (bench/__main__.py) runs the pieces below, which also run alone:
-    bench/build.py   build times per stage, tree quality, refit, sort peers
-    bench/trace.py   ray throughput against Embree, Open3D, Mitsuba 3, trimesh
-    bench/render.py  build + render timings of scene files (the report's table)
-    bench/report.py  RESULTS.md and the plots, from the suite's JSON
+The suite (bench/__main__.py) runs the pieces below; the first three also run alone:
+    python -m bench.build    build times per stage, tree quality, refit
+    python -m bench.trace    ray throughput against the peers (bench/peers.py)
+    python -m bench.large    a 10M-triangle build and its memory
+    bench/render.py          build + render timings of scene files
+    bench/report.py          RESULTS.md; bench/plots.py its figures
+Each writes its JSON and plot into bench/results/ (not committed); --docs
+also writes the committed copies: bench/RESULTS.md and docs/bench_*.png.
 """

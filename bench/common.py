@@ -1,13 +1,15 @@
-"""Helpers shared by the benchmarks (build.py, large.py, trace.py): device
-choice, timing summaries, progress bars, plain-text tables, JSON and plots.
+"""What the benchmarks share: device choice, the command line, timing
+summaries, a test surface of any size, plain-text tables and JSON.
 
-Timings on this project's machines are noisy (2 shared cores), so every
-figure is summarised by its median, with min and max beside it, and ratios
-are always taken between figures of the same run.
+Timings on a shared machine are noisy, so every figure is summarised by its
+median with min and max beside it, and ratios are taken between figures of
+the same run.
 """
 from __future__ import annotations
 
+import argparse
 import json
+import math
 import os
 import platform
 import resource
@@ -16,52 +18,78 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
+import hlbvh_cl
+
 REPO = Path(__file__).resolve().parent.parent
+BENCH = REPO / "bench"
 MESHES = REPO / "scenes" / "meshes"
 SCENES = REPO / "scenes"
-
-try:
-    import hlbvh_cl  # noqa: F401
-except ImportError:  # run from a checkout without installing
-    sys.path.insert(0, str(REPO))
-
-import numpy as np  # noqa: E402
-
-import hlbvh_cl  # noqa: E402
-from hlbvh_cl.device import Device, select_device  # noqa: E402
+DOCS = REPO / "docs"
+RESULTS = BENCH / "results"
 
 
-def pick_devices(spec: str | None = None) -> tuple[list[Device], list[dict]]:
+# ---------------------------------------------------------------- the command line
+
+def arguments(description: str, argv, *extra) -> argparse.Namespace:
+    """The options every bench takes (--quick, --devices, --out, --docs,
+    --no-progress) and ``extra`` ones, each (flags, keyword arguments)."""
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--quick", action="store_true",
+                        help="a small configuration that runs in seconds")
+    parser.add_argument("--devices", default=None,
+                        help="comma-separated device ids or names (default: every working device)")
+    parser.add_argument("--out", type=Path, default=RESULTS,
+                        help="folder of the JSON and the plot (default: bench/results)")
+    parser.add_argument("--docs", action="store_true",
+                        help="also write this bench's plot under docs/ (the committed copy)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars on stderr")
+    for flags, options in extra:
+        parser.add_argument(*flags, **options)
+    return parser.parse_args(argv)
+
+
+def pick_devices(spec: str | None = None) -> tuple[list, list[dict]]:
     """The devices to benchmark and the ones skipped, as (working, skipped).
 
-    ``spec`` is a comma-separated list of device ids, indices or name
-    substrings ("pocl,intel"); None means every device present.  A skipped
-    entry is {"device": id or spec, "problem": why}.
+    ``spec`` is a comma-separated list of device ids or substrings of id,
+    name or platform ("pocl,intel"), each naming its first working match;
+    None means every working device but simulators.  A skipped entry is
+    {"device": id or spec, "problem": why}.
     """
-    working: list[Device] = []
-    skipped: list[dict] = []
+    every = hlbvh_cl.devices()
     if spec is None:
-        candidates = hlbvh_cl.devices()
+        parts = [[d] for d in every if not d.simulator]
     else:
-        candidates = []
-        for part in (p.strip() for p in spec.split(",")):
-            if not part:
-                continue
-            try:
-                candidates.append(select_device(part))
-            except (ValueError, TypeError, RuntimeError) as error:
-                skipped.append({"device": part, "problem": str(error)})
-            # list the broken devices the name also matches ("pocl": PyPI's PoCL)
-            text = part.lower()
-            candidates += [d for d in hlbvh_cl.devices() if d.problem is not None and
-                           (text in d.id or text in d.name.lower() or text in d.platform.lower())]
-    for device in candidates:
-        if device.problem is not None:
-            if all(device.id != s["device"] for s in skipped):
-                skipped.append({"device": device.id, "problem": device.problem})
-        elif all(device.id != d.id for d in working):
-            working.append(device)
+        parts = []
+        for text in (p.strip().lower() for p in spec.split(",") if p.strip()):
+            exact = [d for d in every if d.id == text]
+            parts.append(exact or [d for d in every if text in d.id
+                                   or text in d.name.lower() or text in d.platform.lower()])
+            if not parts[-1]:
+                parts[-1] = [text]
+    working, skipped = [], []
+    for matches in parts:
+        if isinstance(matches[0], str):
+            skipped.append({"device": matches[0], "problem": "no OpenCL device matches this name"})
+            continue
+        good = [d for d in matches if d.problem is None]
+        working += [d for d in good[:1] if all(d.id != w.id for w in working)]
+        skipped += [{"device": d.id, "problem": d.problem} for d in matches
+                    if d.problem is not None and all(d.id != s["device"] for s in skipped)]
     return working, skipped
+
+
+def devices_or_exit(spec: str | None) -> list:
+    """pick_devices, saying what it skipped; exits when no device is left."""
+    quiet_compiler_warnings()
+    chosen, skipped = pick_devices(spec)
+    for s in skipped:
+        say(f"skipping {s['device']}: {s['problem']}")
+    if not chosen:
+        raise SystemExit("no working OpenCL device to benchmark")
+    return chosen
 
 
 def quiet_compiler_warnings() -> None:
@@ -72,23 +100,11 @@ def quiet_compiler_warnings() -> None:
     warnings.filterwarnings("ignore", category=pyopencl.CompilerWarning)
 
 
-def summary(values) -> dict:
-    """median, min and max of a non-empty sequence of numbers."""
-    values = [float(v) for v in values]
-    if not values:
-        raise ValueError("summary() needs at least one value")
-    return {"median": statistics.median(values), "min": min(values), "max": max(values)}
-
-
-def ratio(numerator: float, denominator: float) -> float | None:
-    """numerator / denominator, or None when the denominator is not positive."""
-    return numerator / denominator if denominator > 0 else None
-
-
-def stopwatch():
-    """A function returning the seconds elapsed since stopwatch() was called."""
-    started = time.perf_counter()
-    return lambda: time.perf_counter() - started
+def say(text: str) -> None:
+    """A line on stdout that does not break the progress bars on stderr."""
+    from tqdm import tqdm
+    tqdm.write(text, file=sys.stdout)
+    sys.stdout.flush()
 
 
 def progress(total: int, description: str, enabled: bool = True):
@@ -98,11 +114,54 @@ def progress(total: int, description: str, enabled: bool = True):
                 dynamic_ncols=True, leave=False)
 
 
+# ---------------------------------------------------------------- figures
+
+def summary(values) -> dict:
+    """median, min and max of a non-empty sequence of numbers."""
+    values = [float(v) for v in values]
+    if not values:
+        raise ValueError("summary() needs at least one value")
+    return {"median": statistics.median(values), "min": min(values), "max": max(values)}
+
+
+def rates(count: int, seconds) -> dict:
+    """Millions per second {median, min, max} from a list of seconds."""
+    s = summary(seconds)
+    return {"median": count / s["median"] / 1e6, "min": count / s["max"] / 1e6,
+            "max": count / s["min"] / 1e6}
+
+
+def stage_times(stats: list) -> dict:
+    """{stage, "device", "wall": {median, min, max}} ms over builds' BuildStats."""
+    out = {stage: summary([s.times_ms[stage] for s in stats]) for stage in stats[0].times_ms}
+    out["device"] = summary([s.device_ms for s in stats])
+    out["wall"] = summary([s.wall_ms for s in stats])
+    return out
+
+
+def ratio(numerator: float, denominator: float) -> float | None:
+    """numerator / denominator, or None when the denominator is not positive."""
+    return numerator / denominator if denominator > 0 else None
+
+
+def fit_exponent(sizes, seconds) -> float | None:
+    """alpha of seconds ~ c * sizes^alpha, least squares in log-log; None
+    with fewer than two distinct sizes."""
+    x, y = np.log(np.asarray(sizes, float)), np.log(np.asarray(seconds, float))
+    if len(x) < 2 or np.ptp(x) == 0:
+        return None
+    return float(np.polyfit(x, y, 1)[0])
+
+
+def stopwatch():
+    """A function returning the seconds elapsed since stopwatch() was called."""
+    started = time.perf_counter()
+    return lambda: time.perf_counter() - started
+
+
 def cpu_seconds() -> float:
-    """User + system CPU time of this process, all threads (a CPU OpenCL
-    device's worker threads included).  Over a stretch of wall time, their
-    ratio is how many cores the work actually got: on a 2-core machine shared
-    with others, a value near 1 for a large build means it lost a core."""
+    """User + system CPU time of this process, a CPU device's threads included:
+    over a stretch of wall time, their ratio is how many cores the work got."""
     usage = resource.getrusage(resource.RUSAGE_SELF)
     return usage.ru_utime + usage.ru_stime
 
@@ -113,16 +172,34 @@ def peak_rss_bytes() -> int:
     return int(peak if sys.platform == "darwin" else peak * 1024)
 
 
-def current_rss_bytes() -> int | None:
-    """The process's resident memory now (Linux /proc), or None elsewhere."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return None
+# ---------------------------------------------------------------- geometry
 
+def surface(triangles: int, name: str | None = None) -> hlbvh_cl.Mesh:
+    """A closed bumpy torus of about ``triangles`` triangles (2 per grid cell,
+    the ring 3 cells for each around the tube).  Every size samples the same
+    surface, so a camera on it sees the same picture at any size."""
+    tube = max(3, round(math.sqrt(max(triangles, 18) / 6)))
+    ring = max(3, round(triangles / (2 * tube)))
+    u = np.linspace(0, 2 * np.pi, ring, endpoint=False)[:, None]
+    v = np.linspace(0, 2 * np.pi, tube, endpoint=False)[None, :]
+    r = 1 + 0.15 * np.sin(5 * u) * np.sin(3 * v)
+    x, z, y = (3 + r * np.cos(v)) * np.cos(u), (3 + r * np.cos(v)) * np.sin(u), r * np.sin(v)
+    vertices = np.stack([x, y, z], axis=-1).reshape(-1, 3).astype(np.float32)
+    i, j = np.meshgrid(np.arange(ring), np.arange(tube), indexing="ij")
+    a, b = i * tube + j, (i + 1) % ring * tube + j
+    c, d = i * tube + (j + 1) % tube, (i + 1) % ring * tube + (j + 1) % tube
+    faces = np.concatenate([np.stack([a, d, b], -1), np.stack([a, c, d], -1)]).reshape(-1, 3)
+    return hlbvh_cl.Mesh(vertices, faces.astype(np.int32),
+                         name=name or f"torus {2 * ring * tube:,}")
+
+
+def bounds(meshes) -> tuple[np.ndarray, np.ndarray]:
+    """The box around the meshes' vertices: (lo, hi)."""
+    return (np.min([m.vertices.min(axis=0) for m in meshes], axis=0),
+            np.max([m.vertices.max(axis=0) for m in meshes], axis=0))
+
+
+# ---------------------------------------------------------------- output
 
 def table(headers: list[str], rows: list[list], title: str | None = None) -> str:
     """Rows as a plain-text table: the first column left-aligned, the others
@@ -148,6 +225,28 @@ def table(headers: list[str], rows: list[list], title: str | None = None) -> str
     return "\n".join(out)
 
 
+def spread(times: dict | None, scale: float = 1.0, digits: int = 1) -> str:
+    """A {median, min, max} as "median (min-max)"; "-" for None."""
+    if not times:
+        return "-"
+    return (f"{times['median'] * scale:,.{digits}f} "
+            f"({times['min'] * scale:,.{digits}f}-{times['max'] * scale:,.{digits}f})")
+
+
+def finish(results: dict, name: str, args, elapsed, plot=None) -> dict:
+    """Writes a bench's results to <out>/<name>.json and, given a ``plot``
+    function, <out>/<name>.png (with --docs, docs/bench_<name>.png too)."""
+    results["peak_rss_bytes"] = peak_rss_bytes()
+    results["elapsed_s"] = elapsed()
+    written = [write_json(args.out / f"{name}.json", results)]
+    if plot is not None:
+        written.append(plot(results, args.out / f"{name}.png"))
+        if args.docs:
+            written.append(plot(results, DOCS / f"bench_{name}.png"))
+    print(f"\nwrote {', '.join(map(str, written))} in {results['elapsed_s']:.0f} s")
+    return results
+
+
 def machine_info() -> dict:
     """What the figures were measured on."""
     import pyopencl
@@ -158,11 +257,10 @@ def machine_info() -> dict:
         "hlbvh_cl": hlbvh_cl.__version__,
         "devices": [{"id": d.id, "name": d.name, "platform": d.platform,
                      "driver": d.driver_version, "compute_units": d.compute_units,
-                     "global_mem_size": d.global_mem_size,
-                     "max_mem_alloc_size": d.max_mem_alloc_size, "problem": d.problem}
+                     "global_mem_size": d.global_mem_size, "problem": d.problem}
                     for d in hlbvh_cl.devices()],
-        "date": time.strftime("%Y-%m-%d %H:%M:%S %z"),
-        "loadavg": os.getloadavg() if hasattr(os, "getloadavg") else None,
+        "date": time.strftime("%Y-%m-%d %H:%M %Z"),
+        "loadavg": list(os.getloadavg()),
     }
 
 
@@ -192,20 +290,3 @@ def _json_default(value):
     if isinstance(value, Path):
         return str(value)
     raise TypeError(f"cannot write {type(value).__name__} to JSON")
-
-
-def pyplot():
-    """matplotlib.pyplot on the Agg backend (no display needed)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    return plt
-
-
-def save_figure(figure, path, dpi: int = 110):
-    """Lay out, write and close a matplotlib figure; returns the path."""
-    figure.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=dpi)
-    pyplot().close(figure)
-    return path

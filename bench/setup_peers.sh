@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
-# The system libraries bench/trace.py's peers need, installed with apt-get
+# The system libraries bench/peers.py's peers need, installed with apt-get
 # when an import shows them missing (the Python packages come with the
 # `bench` extra): Open3D loads libusb-1.0 when imported, and Mitsuba's
 # llvm_ad_rgb variant loads libLLVM at run time.  Safe to run again; a peer
-# that still cannot load is reported as missing by bench/trace.py.
+# that still cannot load is reported as missing by bench/peers.py.
 set -uo pipefail
 PY=${PYTHON:-python3}
 SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"

@@ -1,146 +1,91 @@
-"""bench/build.py in --quick mode: the JSON it writes is complete and sane.
-
-Never asserts speed: only that the figures exist, are finite and positive,
-and agree with what the scenes must give (triangle counts from trimesh and
-the scene file, binary-tree shape, SAH ratios of the reported costs).
-"""
+"""The bench commands a user runs, in their --quick form: what each prints
+and writes, the devices they pick, and the helpers whose figures they
+derive (surface sizes, fits, rates).  Never asserts speed."""
 import json
 import math
-from pathlib import Path
+import subprocess
+import sys
 
 import numpy as np
 import pytest
-from bench_support import json_numbers, load_bench
-import trimesh
+from bench_support import ROOT, check_json
 
 pytest.importorskip("matplotlib")
-pytest.importorskip("mako")  # pyopencl's RadixSort, the sort peer
 
-ROOT = Path(__file__).resolve().parent.parent
+from bench import build, common, large  # noqa: E402
 
-
-
-
-@pytest.fixture(scope="module")
-def build_bench():
-    return load_bench("build")
+PNG = b"\x89PNG\r\n\x1a\n"
 
 
-@pytest.fixture(scope="module")
-def quick_run(build_bench, suite_device, tmp_path_factory):
-    out = tmp_path_factory.mktemp("bench")
-    returned = build_bench.main(["--quick", "--devices", suite_device.id, "--out", str(out),
-                                 "--no-progress"])
-    return returned, out
+def test_every_bench_is_a_module_of_the_package():
+    for name in ("bench", "bench.build", "bench.trace", "bench.large"):
+        done = subprocess.run([sys.executable, "-m", name, "--help"], cwd=ROOT,
+                              capture_output=True, text=True, timeout=120)
+        assert done.returncode == 0 and "--quick" in done.stdout, (name, done.stderr)
 
 
-
-
-def _check_spread(times, where):
-    assert set(times) == {"median", "min", "max"}, where
-    assert 0 <= times["min"] <= times["median"] <= times["max"], (where, times)
-
-
-def test_quick_json_is_complete_and_sane(build_bench, quick_run, suite_device):
-    returned, out = quick_run
-    written = json.loads((out / "build.json").read_text())
-    assert written["quick"] is True and list(written["devices"]) == [suite_device.id]
-    for where, number in json_numbers(written):
-        assert math.isfinite(number), where
-
-    config = build_bench.QUICK
-    source = trimesh.load(ROOT / "scenes" / "meshes" / config.scaling_mesh, process=False)
-    expected = {f"{Path(config.scaling_mesh).stem} part {n:,}": n for n in config.sizes}
-    for name in config.meshes:
-        expected[name] = len(trimesh.load(ROOT / "scenes" / "meshes" / name, process=False).faces)
-    from hlbvh_cl.scenefile import load_scene_file
-    expected[config.scene] = load_scene_file(ROOT / "scenes" / config.scene).triangle_count
-    assert max(config.sizes) > len(source.faces)  # the series does exercise the split
-
+def test_build_quick_writes_its_figures(suite_device, tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(common, "DOCS", tmp_path / "docs")
+    returned = build.main(["--quick", "--devices", suite_device.id, "--out", str(tmp_path),
+                           "--no-progress", "--docs"])
+    written = json.loads((tmp_path / "build.json").read_text())
+    assert written["devices"].keys() == returned["devices"].keys() == {suite_device.id}
+    check_json(written)
     device = written["devices"][suite_device.id]
     assert device["errors"] == []
-    cases = device["cases"]
-    assert sorted((c["case"], c["builder"]) for c in cases) == sorted(
-        (name, builder) for name in expected for builder in ("hlbvh", "lbvh"))
-    for case in cases:
-        where = f"{case['case']} {case['builder']}"
-        assert case["triangles"] == expected[case["case"]], where
-        assert case["sah_cost"] > 0, where
-        # a binary tree: one interior node fewer than leaves, no deeper than needed
-        assert case["nodes"] == case["leaves"] - 1, where
-        assert 1 <= case["leaves"] <= case["triangles"], where
-        assert case["depth"] >= math.ceil(math.log2(case["leaves"])), where
-        assert case["first_build_ms"]["wall"] > 0, where
-        for key in ("total", "wall"):
-            _check_spread(case["times_ms"][key], where)
-            assert case["times_ms"][key]["median"] > 0, where
-        for stage in build_bench.STAGES:
-            _check_spread(case["times_ms"][stage], where)
-        refit = case["refit"]
-        for key in ("upload", "refit", "wall"):
-            _check_spread(refit["ms"][key], where)
-        assert refit["ms"]["wall"]["median"] > 0 and refit["wall_vs_rebuild"] > 0, where
+    config = build.QUICK
+    names = [common.surface(n).name for n in config.sizes] + list(config.meshes) + [config.scene]
+    assert sorted((c["case"], c["builder"]) for c in device["cases"]) == sorted(
+        (n, b) for n in names for b in build.BUILDERS)
+    for case in device["cases"]:
+        assert case["deterministic"] and case["sah_cost"] > 0 and case["triangles"] > 0
+        assert set(case["times_ms"]) >= {"sort", "device", "wall"}
         # the last refit moves the vertices back: the boxes are the built ones again
-        assert refit["sah_cost_after"] == pytest.approx(case["sah_cost"], rel=1e-3), where
-
-    by_case = {}
-    for case in cases:
-        by_case.setdefault(case["case"], {})[case["builder"]] = case["sah_cost"]
-    assert device["sah_ratios"] == pytest.approx(
-        {name: costs["hlbvh"] / costs["lbvh"] for name, costs in by_case.items()})
-
-    sort = device["sort"]
-    assert sort["n"] == config.sort_n and set(sort["cases"]) == {"uint32 30-bit", "uint64 63-bit"}
-    for name, result in sort["cases"].items():
-        assert result["correct"] is True, name
-        assert result["speedup_vs_numpy"] > 0, name
-        _check_spread(result["ours"], name)
-    assert sort["cases"]["uint32 30-bit"]["speedup_vs_pyopencl"] > 0
-
-    assert (out / "build.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert returned["devices"].keys() == written["devices"].keys()
+        assert case["refit"]["sah_cost_after"] == pytest.approx(case["sah_cost"], rel=1e-3)
+    costs = {(c["case"], c["builder"]): c["sah_cost"] for c in device["cases"]}
+    for name, value in device["sah_ratios"].items():
+        assert value == pytest.approx(costs[name, "hlbvh"] / costs[name, "lbvh"])
+    for png in (tmp_path / "build.png", tmp_path / "docs" / "bench_build.png"):
+        assert png.read_bytes()[:8] == PNG
+    out = capsys.readouterr().out
+    assert f"=== {suite_device.id} ===" in out and "tree quality" in out
 
 
-def test_broken_device_spec_is_listed_as_skipped(build_bench, suite_device):
-    # a real device's name and a name that matches none: the bench runs on the
-    # first, and lists the second and every device the first names that cannot
-    # compile as skipped ("pocl": PyPI's PoCL on a CPU newer than its LLVM)
-    import hlbvh_cl
-    name = suite_device.id.split(":")[0]
-    chosen, skipped = build_bench.pick_devices(f"{name},no-such-device")
-    named = [d for d in hlbvh_cl.devices() if name in f"{d.id} {d.name} {d.platform}".lower()]
-    assert len(chosen) == 1 and chosen[0] in named
-    broken = [d.id for d in named if d.problem is not None]
-    assert sorted(s["device"] for s in skipped) == sorted(broken + ["no-such-device"])
+def test_large_quick_reports_its_build_and_memory(suite_device, tmp_path, capsys):
+    result = large.main(["--quick", "--devices", suite_device.id, "--out", str(tmp_path)])
+    assert json.loads((tmp_path / "large.json").read_text())["triangles"] == result["triangles"]
+    assert result["tree"]["leaves"] >= 1 and result["times_ms"]["wall"]["median"] > 0
+    memory = result["rss_bytes"]
+    assert 0 < memory["before"] <= memory["first_build"] <= memory["rebuilds"]
+    assert "peak RSS" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("triangles", [1, 700, 2_000, 7_999, 17_995])
-def test_mesh_part_is_a_piece_of_the_split_surface(build_bench, triangles):
-    from hlbvh_cl import Mesh
-    source = Mesh.load(ROOT / "scenes" / "meshes" / "lucy_small.ply")  # 2,000 triangles
-    part = build_bench.mesh_part(source, triangles)
-    assert part.triangle_count == triangles
-    assert np.unique(part.faces).size == part.vertex_count  # no unused vertices
+def test_devices_are_picked_by_name_and_the_rest_listed_as_skipped(suite_device):
+    chosen, skipped = common.pick_devices(f"{suite_device.id},no-such-device")
+    assert [d.id for d in chosen] == [suite_device.id]
+    assert skipped == [{"device": "no-such-device", "problem": "no OpenCL device matches "
+                                                               "this name"}]
+    with pytest.raises(SystemExit, match="no working OpenCL device"):
+        common.devices_or_exit("no-such-device")
 
-    # Child i of the split lies in input face i // k**2 (split.py's order):
-    # its centroid's barycentric coordinates there are in [0, 1].
-    k = math.ceil(math.sqrt(triangles / source.triangle_count))
-    child = np.asarray(part.vertices, np.float64)[part.faces]
-    parent = np.asarray(source.vertices, np.float64)[source.faces[np.arange(triangles) // (k * k)]]
-    a, e1, e2 = parent[:, 0], parent[:, 1] - parent[:, 0], parent[:, 2] - parent[:, 0]
-    d = child.mean(axis=1) - a
-    g11, g12, g22 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
-    r1, r2 = (d * e1).sum(1), (d * e2).sum(1)
-    det = g11 * g22 - g12 * g12
-    u, v = (g22 * r1 - g12 * r2) / det, (g11 * r2 - g12 * r1) / det
-    residual = np.linalg.norm(d - u[:, None] * e1 - v[:, None] * e2, axis=1)
-    scale = np.sqrt(np.maximum(g11, g22))
-    assert (u > -1e-4).all() and (v > -1e-4).all() and (u + v < 1 + 1e-4).all()
-    assert (residual < 1e-4 * scale).all()
 
-    # and the children of a whole input face cover it: same total area
-    def areas(p):
-        return 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
-    whole = triangles // (k * k) * (k * k)
-    assert areas(child[:whole]).sum() == pytest.approx(areas(parent[:whole]).sum() / (k * k),
-                                                       rel=1e-5)
+@pytest.mark.parametrize("triangles", [1_000, 50_000])
+def test_surface_is_one_closed_surface_of_about_the_size_asked(triangles):
+    trimesh = pytest.importorskip("trimesh")
+    mesh = common.surface(triangles)
+    assert abs(mesh.triangle_count - triangles) <= 0.1 * triangles + 20
+    shape = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+    assert shape.is_watertight and shape.volume > 0  # closed, wound outwards
+    lo, hi = common.bounds([mesh])  # the same box at every size, to a few per cent
+    np.testing.assert_allclose(hi - lo, [8.0, 2.0, 8.0], atol=0.35)
+
+
+def test_fits_rates_and_ratios():
+    sizes = np.array([1e3, 1e4, 1e5, 3e6])
+    assert common.fit_exponent(sizes, 0.02 * sizes**0.37) == pytest.approx(0.37)
+    assert common.fit_exponent(sizes, np.full(4, 5.0)) == pytest.approx(0.0, abs=1e-12)
+    assert common.fit_exponent([1000], [1.0]) is None
+    assert common.rates(2_000_000, [1.0, 2.0, 4.0]) == {"median": 1.0, "min": 0.5, "max": 2.0}
+    assert common.summary([3, 1, 2]) == {"median": 2, "min": 1, "max": 3}
+    assert common.ratio(3.0, 2.0) == 1.5 and common.ratio(1.0, 0.0) is None
+    assert math.isclose(common.fit_exponent([1, 10], [1, 100]), 2.0)
