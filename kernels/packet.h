@@ -66,63 +66,47 @@ typedef struct {
     float tmin_lo;
 } Packet;
 
-/* The least / greatest lane of a packet whose lanes are never NaN (entry
- * distances, limits): GROW_LO / GROW_HI, without fmin / fmax's NaN tests. */
-TRAVERSAL_INLINE float packet_min(float_packet v)
-{
+/* Folds a packet's lanes to one with f: the halves first, then theirs.
+ * GROW_LO / GROW_HI give the least / greatest lane of lanes that are never
+ * NaN (entry distances, limits), without fmin / fmax's NaN tests; OR / AND
+ * fold lane flags (-1 or 0) with one test, where PoCL's any() tests lane by
+ * lane, a branch each, which mispredicted in the child loop of camera-ray
+ * packets. */
 #if PACKET_SIZE == 16
-    float8 a = GROW_LO(v.lo, v.hi);
+#define HALVES(v, f) f((v).lo, (v).hi)
 #else
-    float8 a = v;
+#define HALVES(v, f) (v)
 #endif
-    float4 b = GROW_LO(a.lo, a.hi);
-    float2 c = GROW_LO(b.lo, b.hi);
-    return GROW_LO(c.x, c.y);
-}
+#define OR(a, b) ((a) | (b))
+#define AND(a, b) ((a) & (b))
+#define FOLD_LANES(type, v, f)   \
+    type##8 a = HALVES(v, f);    \
+    type##4 b = f(a.lo, a.hi);   \
+    type##2 c = f(b.lo, b.hi);   \
+    return f(c.x, c.y)
 
-TRAVERSAL_INLINE float packet_max(float_packet v)
-{
-#if PACKET_SIZE == 16
-    float8 a = GROW_HI(v.lo, v.hi);
-#else
-    float8 a = v;
-#endif
-    float4 b = GROW_HI(a.lo, a.hi);
-    float2 c = GROW_HI(b.lo, b.hi);
-    return GROW_HI(c.x, c.y);
-}
+TRAVERSAL_INLINE float packet_min(float_packet v) { FOLD_LANES(float, v, GROW_LO); }
+TRAVERSAL_INLINE float packet_max(float_packet v) { FOLD_LANES(float, v, GROW_HI); }
+TRAVERSAL_INLINE int packet_or(int_packet v) { FOLD_LANES(int, v, OR); }
+TRAVERSAL_INLINE int packet_and(int_packet v) { FOLD_LANES(int, v, AND); }
 
-/* any() / all() of a packet's lane flags (-1 or 0) as one test: the halves
- * are folded first, then one movmskps where there is one (measured faster),
- * else folded down to one lane.  (PoCL's any() tests lane by lane, a branch
- * each, which mispredicted in the child loop of camera-ray packets.) */
-#if PACKET_SIZE == 16
-#define FOLD_HALVES(v, op) ((v).lo op (v).hi)
-#else
-#define FOLD_HALVES(v, op) (v)
-#endif
-
+/* Whether some / every lane flag is set: after the halves, one movmskps
+ * where there is one (measured faster). */
 TRAVERSAL_INLINE bool some_packet(int_packet v)
 {
-    int8 a = FOLD_HALVES(v, |);
 #ifdef HAVE_MOVMSKPS256
-    return __builtin_ia32_movmskps256(as_float8(a)) != 0;
+    return __builtin_ia32_movmskps256(as_float8(HALVES(v, OR))) != 0;
 #else
-    int4 b = a.lo | a.hi;
-    int2 c = b.lo | b.hi;
-    return (c.x | c.y) < 0;
+    return packet_or(v) < 0;
 #endif
 }
 
 TRAVERSAL_INLINE bool every_packet(int_packet v)
 {
-    int8 a = FOLD_HALVES(v, &);
 #ifdef HAVE_MOVMSKPS256
-    return __builtin_ia32_movmskps256(as_float8(a)) == 0xff;
+    return __builtin_ia32_movmskps256(as_float8(HALVES(v, AND))) == 0xff;
 #else
-    int4 b = a.lo & a.hi;
-    int2 c = b.lo & b.hi;
-    return (c.x & c.y) < 0;
+    return packet_and(v) < 0;
 #endif
 }
 

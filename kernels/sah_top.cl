@@ -42,7 +42,7 @@ __kernel void gather_cluster_starts(__global const uint *scan, int n, __global i
 /* What the split loop reads of a cluster: its box corners as float4s, so a
  * union is one vector min and max and one vector expression bins all three
  * axes (the Aabb struct of float[3]s compiled to scalar code and stack
- * copies: 3-4x slower).  lo.w carries the cluster's triangle count, hi.w its
+ * copies: measured much slower).  lo.w carries the cluster's triangle count, hi.w its
  * index as a float (exact: clusters <= 2^CLUSTER_BITS <= 2^24).  The
  * partition moves whole records, so every pass reads a node's clusters in
  * sequence rather than through an index array. */
@@ -282,10 +282,10 @@ inline int split_clusters(__global const ClusterRecord *records, __global Cluste
         }
     }
     /* Half as many bins as clusters (at least 2), up to TOP_SAH_BINS: a
-     * node's cost stays proportional to its clusters (3 x 32 bins per node
-     * measured ~3 us, which dominated the deep levels' many small nodes), and
-     * half rather than all of them cut the deep levels' time by a sixth for
-     * an SAH cost 0.01-0.03% higher (bunny, armadillo, Lucy). */
+     * node's cost stays proportional to its clusters (a fixed 3 x 32 bins per
+     * node dominated the deep levels' many small nodes), and half rather than
+     * all of them measured faster on the deep levels for a barely higher SAH
+     * cost. */
     *box_lo = lo_corner;
     *box_hi = hi_corner;
     int bins = min(max((end - begin) / 2, 2), TOP_SAH_BINS);
@@ -417,8 +417,8 @@ inline void split_task(TopTask task, int level, int serial_depth, __global TopTa
     int serial = (task.side_and_depth >> 1) >= serial_depth;
     int base = task.begin, top = base;
     /* The deepest path seen, published with one atomic_max at the end: one
-     * per cluster made both cores fight over info[0]'s cache line (lucy's
-     * serial level: ~0.4 ms of ~4.5, A/B). */
+     * per cluster made both cores fight over info[0]'s cache line (measured
+     * slower on the serial level). */
     int tree_depth = 0;
     while (1) {
         int depth = task.side_and_depth >> 1;
@@ -467,7 +467,7 @@ inline void split_task(TopTask task, int level, int serial_depth, __global TopTa
  * [i * count / items, (i + 1) * count / items), so that the tasks spread
  * over all the work-items: PoCL hands each core a block of consecutive
  * work-groups, and the first `count` work-items would all be on one core
- * (measured: the serial level took twice as long). */
+ * (measured: the serial level took much longer). */
 __kernel void split_top_level(__global const TopTask *tasks, int level, int serial_depth,
                               __global TopTask *next_tasks, __global volatile int *task_counts,
                               __global TopTask *stack, __global ClusterRecord *records,

@@ -36,6 +36,7 @@
 #else
 #include "ray.h"
 #endif
+#include "work_item.h"
 
 /* A closest hit's ids (refs[i]) are read when the traversal ends, a cache
  * miss of their own: start loading them when the hit is found. */
@@ -75,45 +76,8 @@ TRAVERSAL_INLINE void prefetch_hit_ids(__global const TriangleRef* refs, uint i)
  * size allows). */
 #define TRAVERSAL_KERNEL __kernel __attribute__((LANES_HINT))
 
-/* sqrt as one instruction where the compiler is a Clang (PoCL calls sqrt). */
-#if HAS_BUILTIN(__builtin_sqrtf)
-#define SQUARE_ROOT __builtin_sqrtf
-#else
-#define SQUARE_ROOT sqrt
-#endif
-
-/* One ray's closest hit as a Hit record (a miss: t = INFINITY, ids -1, the
- * rest 0) from the tree-order index of the triangle hit (-1: none).  The
- * unit geometric normal is scaled by its largest component first so that
- * tiny or huge triangles neither underflow nor overflow the squared length. */
-TRAVERSAL_INLINE void make_hit(Hit* out, int index, float t, float u, float v,
-                               __global const Triangle* triangles,
-                               __global const TriangleRef* refs)
-{
-    bool found = index >= 0;
-    float3 normal = (float3)(0.0f);
-    if (found) {
-        float nx, ny, nz;
-        geometric_normal(triangles + index, &nx, &ny, &nz);
-        float largest = GROW_HI(GROW_HI(ABS_FLOAT(nx), ABS_FLOAT(ny)), ABS_FLOAT(nz));
-        float3 n = (float3)(nx, ny, nz) * (1.0f / largest);
-        normal = n * (1.0f / SQUARE_ROOT(n.x * n.x + n.y * n.y + n.z * n.z));
-    }
-    Hit hit;
-    hit.t = found ? t : INFINITY;
-    hit.geom_id = found ? refs[index].geom_id : -1;
-    hit.prim_id = found ? refs[index].prim_id : -1;
-    hit.u = found ? u : 0.0f;
-    hit.v = found ? v : 0.0f;
-    hit.normal[0] = normal.x;
-    hit.normal[1] = normal.y;
-    hit.normal[2] = normal.z;
-    *out = hit;
-}
-
-/* The two queries for the rays lanes[0, used) of a work-item (trace_*, in
- * walk.h), shared by the record and the array kernels: closest hits as Hit
- * records, and any hit as 0 or 1.  The hits' ids and normals are read once
+/* Closest hits of the rays lanes[0, used) of a work-item as Hit records
+ * (trace_intersect, in walk.h).  The hits' ids and normals are read once
  * every lane is traced: their cache misses then overlap instead of ending
  * each ray (measured faster). */
 TRAVERSAL_INLINE void closest_hits(const RayLanes* lanes, uint used,
@@ -129,49 +93,28 @@ TRAVERSAL_INLINE void closest_hits(const RayLanes* lanes, uint used,
         make_hit(hits + l, index[l], t[l], u[l], v[l], triangles, refs);
 }
 
+/* Occlusion of the rays lanes[0, used): occluded[l] = 1 if anything is hit. */
 TRAVERSAL_INLINE void any_hits(const RayLanes* lanes, uint used, __global const WideNode* nodes,
                                __global const Triangle* triangles, __global int* overflow,
-                               uchar* occluded)
+                               __global uchar* occluded)
 {
     int index[PACKET_SIZE];
-    float t[PACKET_SIZE], u[PACKET_SIZE], v[PACKET_SIZE];  /* unused: any hit */
-    trace_occluded(lanes, used, nodes, triangles, overflow, index, t, u, v);
+    trace_occluded(lanes, used, nodes, triangles, overflow, index, 0, 0, 0);
     for (uint l = 0; l < used; ++l)
         occluded[l] = index[l] >= 0 ? 1 : 0;
 }
-/* Work-item i traces rays [i * PACKET_SIZE, ...) : how many of them exist
- * (0 for the items past the end), and the first one. */
-TRAVERSAL_INLINE uint packet_rays(uint ray_count, uint* first)
-{
-    *first = get_global_id(0) * PACKET_SIZE;
-    return *first < ray_count ? LESSER((uint)PACKET_SIZE, ray_count - *first) : 0;
-}
 
-TRAVERSAL_INLINE void load_lanes_records(__global const Ray* rays, uint first, uint used,
-                                         RayLanes* lanes)
-{
-    for (uint l = 0; l < PACKET_SIZE; ++l) {
-        __global const Ray* ray = rays + first + LESSER(l, used - 1);
-        set_lane(lanes, l, LOAD_XYZ(ray->origin), LOAD_XYZ(ray->direction), ray->tmin,
-                 ray->tmax);
-    }
-}
-
-/* Closest hit of rays[0, ray_count) -> hits (the renderer's records). */
+/* Closest hit of rays[0, ray_count) -> hits. */
 TRAVERSAL_KERNEL void intersect_closest(__global const WideNode* nodes,
-                                        __global const Triangle* triangles,
-                                        __global const TriangleRef* refs,
-                                        __global const Ray* rays,
-                                        __global Hit* hits,
-                                        __global int* overflow,
-                                        const uint ray_count)
+        __global const Triangle* triangles, __global const TriangleRef* refs,
+        __global const Ray* rays, __global Hit* hits, __global int* overflow, const uint ray_count)
 {
+    RayLanes lanes;
+    Hit found[PACKET_SIZE];
     uint first, used = packet_rays(ray_count, &first);
     if (used == 0)
         return;
-    RayLanes lanes;
-    load_lanes_records(rays, first, used, &lanes);
-    Hit found[PACKET_SIZE];
+    load_records(rays, first, used, &lanes);
     closest_hits(&lanes, used, nodes, triangles, refs, overflow, found);
     for (uint l = 0; l < used; ++l)
         hits[first + l] = found[l];
@@ -179,71 +122,30 @@ TRAVERSAL_KERNEL void intersect_closest(__global const WideNode* nodes,
 
 /* Occlusion of rays[0, ray_count): occluded[i] = 1 if anything is hit. */
 TRAVERSAL_KERNEL void intersect_any(__global const WideNode* nodes,
-                                    __global const Triangle* triangles,
-                                    __global const Ray* rays,
-                                    __global uchar* occluded,
-                                    __global int* overflow,
-                                    const uint ray_count)
+        __global const Triangle* triangles, __global const Ray* rays, __global uchar* occluded,
+        __global int* overflow, const uint ray_count)
 {
     uint first, used = packet_rays(ray_count, &first);
-    if (used == 0)
-        return;
     RayLanes lanes;
-    load_lanes_records(rays, first, used, &lanes);
-    uchar found[PACKET_SIZE];
-    any_hits(&lanes, used, nodes, triangles, overflow, found);
-    for (uint l = 0; l < used; ++l)
-        occluded[first + l] = found[l];
-}
-
-/* The same two queries on the arrays numpy users hand in and get back
- * (query.py): origins and directions packed (x, y, z) per ray, and one
- * array per result field, so that the host neither packs records nor picks
- * fields out of them (measured: that repacking took as long as tracing
- * camera rays).  tmin[i * tmin_step], tmax[i * tmax_step]: step 0 gives
- * every ray the same limit.  Lanes past `used` repeat the last ray. */
-TRAVERSAL_INLINE void load_lanes_arrays(uint first, uint used, __global const float* origins,
-                                        __global const float* directions,
-                                        __global const float* tmin, uint tmin_step,
-                                        __global const float* tmax, uint tmax_step,
-                                        RayLanes* lanes)
-{
-#ifdef PREFETCH
-    /* The next work-item's rays (CPUs run a group's items in order): between
-     * two work-items' loads lie thousands of random reads, and the hardware
-     * prefetcher loses the stream (A/B on PoCL, incoherent rays 1.01-1.02x).
-     * Past the last ray this asks for memory the kernel never reads, which
-     * a prefetch may: it never faults. */
-    for (uint offset = 0; offset < 3 * PACKET_SIZE * sizeof(float); offset += 64) {
-        __builtin_prefetch((__global const char*)(origins + 3 * (first + PACKET_SIZE)) + offset);
-        __builtin_prefetch((__global const char*)(directions + 3 * (first + PACKET_SIZE)) + offset);
-    }
-#endif
-    for (uint l = 0; l < PACKET_SIZE; ++l) {
-        uint i = first + LESSER(l, used - 1);
-        set_lane(lanes, l, LOAD_XYZ(origins + 3 * i), LOAD_XYZ(directions + 3 * i),
-                 tmin[i * tmin_step], tmax[i * tmax_step]);
+    if (used != 0) {
+        load_records(rays, first, used, &lanes);
+        any_hits(&lanes, used, nodes, triangles, overflow, occluded + first);
     }
 }
 
 TRAVERSAL_KERNEL void intersect_closest_arrays(__global const WideNode* nodes,
-                                               __global const Triangle* triangles,
-                                               __global const TriangleRef* refs,
-                                               __global const float* origins,
-                                               __global const float* directions,
-                                               __global const float* tmin, const uint tmin_step,
-                                               __global const float* tmax, const uint tmax_step,
-                                               __global float* t_out, __global int* geom_out,
-                                               __global int* prim_out, __global float* u_out,
-                                               __global float* v_out, __global float* normal_out,
-                                               __global int* overflow, const uint ray_count)
+        __global const Triangle* triangles, __global const TriangleRef* refs,
+        __global const float* origins, __global const float* directions,
+        __global const float* tmin, const uint tmin_step, __global const float* tmax,
+        const uint tmax_step, __global float* t_out, __global int* geom_out,
+        __global int* prim_out, __global float* u_out, __global float* v_out,
+        __global float* normal_out, __global int* overflow, const uint ray_count)
 {
     uint first, used = packet_rays(ray_count, &first);
     if (used == 0)
         return;
     RayLanes lanes;
-    load_lanes_arrays(first, used, origins, directions, tmin, tmin_step, tmax, tmax_step,
-                      &lanes);
+    load_arrays(first, used, origins, directions, tmin, tmin_step, tmax, tmax_step, &lanes);
     Hit found[PACKET_SIZE];
     closest_hits(&lanes, used, nodes, triangles, refs, overflow, found);
     for (uint l = 0; l < used; ++l) {
@@ -259,22 +161,15 @@ TRAVERSAL_KERNEL void intersect_closest_arrays(__global const WideNode* nodes,
 }
 
 TRAVERSAL_KERNEL void intersect_any_arrays(__global const WideNode* nodes,
-                                           __global const Triangle* triangles,
-                                           __global const float* origins,
-                                           __global const float* directions,
-                                           __global const float* tmin, const uint tmin_step,
-                                           __global const float* tmax, const uint tmax_step,
-                                           __global uchar* occluded, __global int* overflow,
-                                           const uint ray_count)
+        __global const Triangle* triangles, __global const float* origins,
+        __global const float* directions, __global const float* tmin, const uint tmin_step,
+        __global const float* tmax, const uint tmax_step, __global uchar* occluded,
+        __global int* overflow, const uint ray_count)
 {
     uint first, used = packet_rays(ray_count, &first);
-    if (used == 0)
-        return;
     RayLanes lanes;
-    load_lanes_arrays(first, used, origins, directions, tmin, tmin_step, tmax, tmax_step,
-                      &lanes);
-    uchar found[PACKET_SIZE];
-    any_hits(&lanes, used, nodes, triangles, overflow, found);
-    for (uint l = 0; l < used; ++l)
-        occluded[first + l] = found[l];
+    if (used != 0) {
+        load_arrays(first, used, origins, directions, tmin, tmin_step, tmax, tmax_step, &lanes);
+        any_hits(&lanes, used, nodes, triangles, overflow, occluded + first);
+    }
 }

@@ -31,7 +31,9 @@
 /* The query for the rays lanes[0, used) of a work-item: as one packet when
  * prepare_packet accepts them (overflow[1] counts those under
  * COUNT_PACKETS), else one by one.  Per lane: the hit's tree-order index
- * (-1: none), t, u, v.  overflow[0] is set to 1 if a walk ran out of stack. */
+ * (-1: none), and t, u, v unless t is 0 (a constant 0 compiles their stores
+ * away: PoCL calls vstore out of line, which would keep them).  overflow[0]
+ * is set to 1 if a walk ran out of stack. */
 #define QUERY_WALK(path) CONCAT(CONCAT(walk_, QUERY), path)
 TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
                                             __global const WideNode* nodes,
@@ -50,9 +52,11 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
                           (float_packet)(0.0f), p.tmax, packet_max(p.tmax)};
         out_of_stack = QUERY_WALK(_packet)(&p, nodes, triangles, &s QUERY_ARGS);
         vstore_packet(s.index, 0, index);
-        vstore_packet(s.t, 0, t);
-        vstore_packet(s.u, 0, u);
-        vstore_packet(s.v, 0, v);
+        if (t) {
+            vstore_packet(s.t, 0, t);
+            vstore_packet(s.u, 0, u);
+            vstore_packet(s.v, 0, v);
+        }
     } else
 #endif
     {
@@ -62,9 +66,11 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
             Found_ray s = {-1, INFINITY, 0.0f, 0.0f, r.tmax};
             out_of_stack |= QUERY_WALK(_ray)(&r, nodes, triangles, &s QUERY_ARGS);
             index[l] = s.index;
-            t[l] = s.t;
-            u[l] = s.u;
-            v[l] = s.v;
+            if (t) {
+                t[l] = s.t;
+                u[l] = s.u;
+                v[l] = s.v;
+            }
         }
     }
     if (out_of_stack)
