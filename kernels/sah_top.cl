@@ -320,18 +320,16 @@ inline int split_clusters(__global const ClusterRecord *records, __global Cluste
 
     /* Both sweeps run the three axes side by side, lane a for axis a: the
      * per-bin work is a few vector ops instead of three scalar passes. */
+#define GROW_BY_BIN(b)                                                                    \
+    (lo0 = grow_lo(lo0, bin_lo[0][b]), hi0 = grow_hi(hi0, bin_hi[0][b]),                  \
+     lo1 = grow_lo(lo1, bin_lo[1][b]), hi1 = grow_hi(hi1, bin_hi[1][b]),                  \
+     lo2 = grow_lo(lo2, bin_lo[2][b]), hi2 = grow_hi(hi2, bin_hi[2][b]), size += bin_size[b])
     float4 right_area[TOP_SAH_BINS], right_size[TOP_SAH_BINS];
     float4 lo0 = (float4)(INFINITY), lo1 = lo0, lo2 = lo0;
     float4 hi0 = (float4)(-INFINITY), hi1 = hi0, hi2 = hi0;
     float4 size = (float4)(0.0f);
     for (int b = bins - 1; b > 0; --b) {
-        lo0 = grow_lo(lo0, bin_lo[0][b]);
-        hi0 = grow_hi(hi0, bin_hi[0][b]);
-        lo1 = grow_lo(lo1, bin_lo[1][b]);
-        hi1 = grow_hi(hi1, bin_hi[1][b]);
-        lo2 = grow_lo(lo2, bin_lo[2][b]);
-        hi2 = grow_hi(hi2, bin_hi[2][b]);
-        size += bin_size[b];
+        GROW_BY_BIN(b);
         right_area[b] = areas_of(hi0 - lo0, hi1 - lo1, hi2 - lo2);
         right_size[b] = size;
     }
@@ -343,13 +341,7 @@ inline int split_clusters(__global const ClusterRecord *records, __global Cluste
     hi0 = hi1 = hi2 = (float4)(-INFINITY);
     size = (float4)(0.0f);
     for (int b = 0; b < bins - 1; ++b) {
-        lo0 = grow_lo(lo0, bin_lo[0][b]);
-        hi0 = grow_hi(hi0, bin_hi[0][b]);
-        lo1 = grow_lo(lo1, bin_lo[1][b]);
-        hi1 = grow_hi(hi1, bin_hi[1][b]);
-        lo2 = grow_lo(lo2, bin_lo[2][b]);
-        hi2 = grow_hi(hi2, bin_hi[2][b]);
-        size += bin_size[b];
+        GROW_BY_BIN(b);
         float4 cost = size * areas_of(hi0 - lo0, hi1 - lo1, hi2 - lo2) +
                       right_size[b + 1] * right_area[b + 1];
         /* Strict <: per axis the first bin of least cost, as a scalar scan. */
@@ -405,6 +397,7 @@ inline int split_clusters(__global const ClusterRecord *records, __global Cluste
     }
     return middle;
 }
+#undef GROW_BY_BIN
 
 /* One task of split_top_level, and its whole subtree if it is serial. */
 inline void split_task(TopTask task, int level, int serial_depth, __global TopTask *next_tasks,

@@ -185,14 +185,9 @@ inline void orthonormal_basis(float3 n, float3* b1, float3* b2)
  * a uniform point on the unit disc, lifted to the hemisphere; pbrt-v4
  * SampleCosineHemisphere) from random_unit(pixel, sample, 2 + 2k) and
  * (..., 3 + 2k), reaching ao_distance.  Misses get an empty ray. */
-__kernel void ao_rays(__global const Ray* rays,
-                      __global const Hit* hits,
-                      const ShadeParams params,
-                      const uint width,
-                      const uint first_row,
-                      const uint rows,
-                      const uint sample,
-                      const uint ao_index,
+__kernel void ao_rays(__global const Ray* rays, __global const Hit* hits,
+                      const ShadeParams params, const uint width, const uint first_row,
+                      const uint rows, const uint sample, const uint ao_index,
                       __global Ray* secondary)
 {
     uint gid;
