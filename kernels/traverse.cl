@@ -65,7 +65,7 @@ TRAVERSAL_INLINE void prefetch_hit_ids(__global const TriangleRef* refs, uint i)
 #define QUERY occluded
 #define QUERY_HIT(s, i, hit, t, u, v) \
     (PATH(take_hit)(s, i, hit, t, u, v, -INFINITY), PATH(every)((s)->index >= 0))
-#define QUERY_NODE(s, r, n, mask) CONCAT(leaves_first_occluded, PATH_SUFFIX)(s, r, n, mask, triangles)
+#define QUERY_NODE(s, r, n, mask) WALK_NAME(leaves_first)(s, r, n, mask, triangles)
 #define QUERY_PARAMS
 #define QUERY_ARGS
 #include "walk.h"

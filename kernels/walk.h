@@ -4,17 +4,24 @@
  * nodes until it holds a leaf, then the leaf's triangles (Aila & Laine
  * 2009's "while-while"), as madmann91's bvh v2 traverse_top_down does.  A
  * query is a visitor, given as macros before including this header:
- *   QUERY                       its name: the walk is walk_QUERY_ray and walk_QUERY_packet
+ *   QUERY                       its name: the walks are walk_QUERY_ray and
+ *                               walk_QUERY_packet, run by trace_QUERY
  *   QUERY_HIT(s, i, hit, t, u, v)  triangle i is hit in the lanes `hit`: record
  *                               it in s (take_hit, which sets the limit) and
  *                               say whether the walk ends
  *   QUERY_NODE(s, r, n, mask)   before the walk orders node n's met children
- *                               (*mask): may visit some first (leaves_first)
- *                               and say whether the walk ends; or false
+ *                               (*mask): may visit some first (with
+ *                               WALK_NAME(leaves_first)) and say whether the
+ *                               walk ends; or false
  *   QUERY_PARAMS, QUERY_ARGS    extra walk parameters the hooks use (or empty)
- * The header instantiates itself for each path (PATH_SUFFIX), then
- * undefines the hooks.  Hooks are macros so that the walk compiles as if
- * written for the query: no flag is tested at run time. */
+ *   QUERY_CHILDREN(r, n, s, entry)  optional: the node test, giving the child
+ *                               mask and entry distances (default: the path's
+ *                               slab test; a closest-point query would
+ *                               measure box distances instead)
+ * Hooks may use the walk's `nodes` and `triangles`.  The header instantiates
+ * itself for each path (PATH_SUFFIX), then undefines the hooks.  Hooks are
+ * macros so that the walk compiles as if written for the query: no flag is
+ * tested at run time. */
 #ifndef PATH_SUFFIX
 
 #include "stack.h"
@@ -83,10 +90,16 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
 #undef QUERY_NODE
 #undef QUERY_PARAMS
 #undef QUERY_ARGS
+#undef QUERY_CHILDREN
 
 #else /* one path */
 
 #define WALK_NAME(name) CONCAT(CONCAT(name, CONCAT(_, QUERY)), PATH_SUFFIX)
+#ifdef QUERY_CHILDREN
+#define WALK_CHILDREN QUERY_CHILDREN
+#else
+#define WALK_CHILDREN PATH(children)
+#endif
 
 /* The leaf's triangles [first, first + count) against every lane: each hit
  * goes to QUERY_HIT; true when it ends the walk.  A lane takes a hit at
@@ -139,7 +152,7 @@ TRAVERSAL_INLINE bool WALK_NAME(walk)(const PATH(Rays)* r, __global const WideNo
         while (!done && count == 0) {
             __global const WideNode* n = nodes + index;
             ChildEntries entry;
-            uint mask = PATH(children)(r, n, s, &entry);
+            uint mask = WALK_CHILDREN(r, n, s, &entry);
             if (QUERY_NODE(s, r, n, &mask))
                 return false;
             int next = next_item(n, mask, &entry, nodes, triangles, stack, &sp,
@@ -158,5 +171,6 @@ TRAVERSAL_INLINE bool WALK_NAME(walk)(const PATH(Rays)* r, __global const WideNo
 }
 
 #undef WALK_NAME
+#undef WALK_CHILDREN
 
 #endif /* PATH_SUFFIX */
