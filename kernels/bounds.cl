@@ -8,7 +8,7 @@
  * work-item then folds the partials.  No local memory and no barriers:
  * simple to run correctly on PoCL's CPU device, and the second level touches
  * only a few thousand boxes.  Slices are contiguous on CPUs (a grid-stride
- * loop measured ~50x slower on PoCL) and interleaved on GPUs (coalescing):
+ * loop measured far slower on PoCL) and interleaved on GPUs (coalescing):
  * STRIDED_SLICES selects.
  */
 #include "hlbvh.h"

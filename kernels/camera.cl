@@ -20,14 +20,9 @@
  */
 #include "hlbvh.h"
 
-__kernel void primary_rays(const PinholeCamera camera,
-                           const uint width,
-                           const uint height,
-                           const uint first_row,
-                           const uint rows,
-                           const uint sample,
-                           const int jitter,
-                           __global Ray* rays)
+__kernel void primary_rays(const PinholeCamera camera, const uint width, const uint height,
+                           const uint first_row, const uint rows, const uint sample,
+                           const int jitter, __global Ray* rays)
 {
     uint gid;
     uint2 at;

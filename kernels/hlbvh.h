@@ -27,17 +27,17 @@
 
 /* HLBVH clusters are the runs of primitives that share the top CLUSTER_BITS
  * bits of their Morton code.  pbrt-v3's HLBVHBuild uses 12; 21 (7 per axis)
- * puts the SAH deep enough to lower the SAH cost of the Stanford meshes to
- * 0.74-0.85x the plain LBVH's (12 bits: 0.86-0.92x; bench/build.py). */
+ * puts the SAH deep enough to lower the SAH cost of the Stanford meshes
+ * well below the plain LBVH's, more than 12 bits do (bench/build.py). */
 #define CLUSTER_BITS 21
 
 /* A subtree of at most MAX_LEAF_SIZE triangles collapses into one leaf when
  * the leaf's SAH cost is at most COLLAPSE_COST_RATIO times the subtree's
  * (HLBVH builder only).  A ratio of 1 is the plain SAH decision; 1.5 keeps
- * more small subtrees whole, for fewer nodes to flatten and widen.  Measured
- * on the reference scene (PoCL): 1.81M -> 0.69M nodes, flatten + widen
- * 205 -> 80 ms, SAH cost +4%, render time +5%; the HLBVH/LBVH SAH ratios of
- * the Stanford meshes stay below 0.85 (bench/build.py). */
+ * more small subtrees whole, for fewer nodes to flatten and widen: on the
+ * reference scene it measured far fewer nodes and a faster build for a
+ * slightly higher SAH cost and render time, and the Stanford meshes keep
+ * their SAH gain over the LBVH (bench/build.py). */
 #define MAX_LEAF_SIZE 8
 #define COLLAPSE_COST_RATIO 1.5f
 
@@ -48,7 +48,7 @@
 
 /* Bins per axis of the binned SAH that builds the top of the HLBVH over the
  * clusters (Wald 2007, "On fast construction of SAH-based BVHs").  64 rather
- * than 32 lowers the bunny's SAH cost by 0.4% for ~0.5 ms more. */
+ * than 32 lowers the bunny's SAH cost slightly for a slightly longer build. */
 #define TOP_SAH_BINS 64
 
 /* A child slot with count 0 is an interior node (index = node), with count
@@ -90,9 +90,9 @@ typedef struct {
     uint right_count;
 } FlatNode;
 
-/* Children per node of the wide tree that traversal reads (widen.cl): 4 or
- * 8.  8 measured faster than 4 on both CPU devices (PoCL and Intel, AVX-512):
- * 1.05-1.13x on camera rays, 1.2-1.3x on incoherent ones. */
+/* Children per node of the wide tree that traversal reads (widen.cl).  8
+ * measured faster than 4 on both CPU devices (PoCL and Intel), on camera
+ * and incoherent rays; traversal (node.h) reads 8-wide nodes only. */
 #define WIDE_ARITY 8
 
 /* One node of the wide tree (hlbvh_cl/widen.py collapses the flat BVH2 into
@@ -174,9 +174,8 @@ typedef struct {
 /* Helpers several stages share. */
 
 /* The three floats from p[0] on, in any address space: vload3 spelled out,
- * as PoCL 3.0 calls vload3 out of line (see GROW_LO; perf: about half of the
- * bounds pass's time and a third of lay_out_leaves' went to vload3 and
- * vstore3). */
+ * as PoCL 3.0 calls vload3 out of line (see GROW_LO; perf showed much of
+ * the bounds pass's and lay_out_leaves' time in vload3 and vstore3). */
 #define LOAD_XYZ(p) ((float3)((p)[0], (p)[1], (p)[2]))
 
 /* min(a, b) for scalars, spelled with ?: for the same reason. */
@@ -193,8 +192,8 @@ inline float3 load_vertex(__global const float *vertices, int index)
  * unchanged, as fmin/fmax would.  Spelled with ?: (on vectors it selects
  * per lane by the condition's sign bit, as select does) rather than
  * select(): PoCL 3.0's CPU device calls select, min, vload8 and other
- * builtins out of line instead of inlining them (perf, incoherent rays: 40%
- * of the kernel's time in such calls). */
+ * builtins out of line instead of inlining them (perf showed much of the
+ * incoherent-ray kernel's time in such calls). */
 #define GROW_LO(acc, value) ((value) < (acc) ? (value) : (acc))
 #define GROW_HI(acc, value) ((value) > (acc) ? (value) : (acc))
 
@@ -258,16 +257,14 @@ inline void store_triangle(__global Triangle *triangles, int j, float3 a, float3
  * to right, each tile row-major; a band's last width % TILE_COLUMNS columns,
  * and a last band of fewer rows, stay row-major.  A CPU ray packet
  * (traverse.cl: 16 or 8 rays, query.py's default_packet_size) then covers a
- * tile or half of one rather than a strip of a row.  Measured on PoCL
- * at 1280x720, closest-hit and shadow-ray kernels: 4x2 tiles with packets of
- * 8 took 0.90-0.93x the time of row-major order (70-100K-triangle meshes);
- * 4x4 tiles with packets of 16 then 0.85x (closest) and 0.89-0.95x (shadows)
- * of that, on Lucy's 100K and 2K triangles alike.
+ * tile or half of one rather than a strip of a row, which measured faster
+ * than row-major order for closest-hit and shadow rays, and 4x4 tiles with
+ * packets of 16 faster than 4x2 with packets of 8.
  *
  * The kernels that map rays to pixels run over a 2D range
  * (TILE_ROWS * width, bands): work-item (k, band) is the pass's ray
  * band * TILE_ROWS * width + k, and its pixel takes no integer division
- * (CPU devices run those one lane at a time: 0.3 ms per 1M rays on PoCL). */
+ * (CPU devices run those one lane at a time, measured slow on PoCL). */
 #define TILE_COLUMNS 4
 #define TILE_ROWS 4
 

@@ -8,7 +8,7 @@
 #include "hlbvh.h"
 
 /* The kernel works on the three axes at once in vector lanes (x, y, z, and
- * an unused w): PoCL runs it as written, so this is ~3x fewer instructions
+ * an unused w): PoCL runs it as written, so this is fewer instructions
  * than a loop over the axes. */
 #if MORTON_BITS == 30
 #define AXIS_CELLS 1024.0f

@@ -40,16 +40,20 @@ inline uint digit_of(KEY_TYPE key, uint shift, uint digit_mask)
 }
 
 /* counts[d * SORT_GROUP_SIZE + lid] = how many keys of this work-item's
- * sub-tile have digit d.  Digit-major with the work-item fastest keeps a
- * GPU's work-items on distinct banks. */
-inline void count_digits(const __global KEY_TYPE *keys, uint begin, uint end, uint shift,
-                         uint digit_mask, __local uint *counts)
+ * sub-tile [*begin, *end) have digit d, for the whole group once it returns
+ * (it holds a barrier: every work-item of the group must call it).
+ * Digit-major with the work-item fastest keeps a GPU's work-items on
+ * distinct banks. */
+inline void count_digits(const __global KEY_TYPE *keys, uint n, uint per_item, uint shift,
+                         uint digit_mask, __local uint *counts, uint *begin, uint *end)
 {
     const uint lid = get_local_id(0);
+    sub_tile(get_global_id(0), per_item, n, begin, end);
     for (uint d = 0; d < RADIX; ++d)
         counts[d * SORT_GROUP_SIZE + lid] = 0;
-    for (uint i = begin; i < end; ++i)
+    for (uint i = *begin; i < *end; ++i)
         ++counts[digit_of(keys[i], shift, digit_mask) * SORT_GROUP_SIZE + lid];
+    barrier(CLK_LOCAL_MEM_FENCE);
 }
 
 /* histogram[d * groups + g] = how many keys of group g's tile have digit d. */
@@ -58,16 +62,11 @@ void radix_histogram(const __global KEY_TYPE *keys, uint n, uint per_item, uint 
                      uint digit_mask, __global uint *histogram)
 {
     __local uint counts[RADIX * SORT_GROUP_SIZE];
-    const uint lid = get_local_id(0);
-    const uint group = get_group_id(0);
-    const uint groups = get_num_groups(0);
     uint begin, end;
-    sub_tile(get_global_id(0), per_item, n, &begin, &end);
+    count_digits(keys, n, per_item, shift, digit_mask, counts, &begin, &end);
 
-    count_digits(keys, begin, end, shift, digit_mask, counts);
-    barrier(CLK_LOCAL_MEM_FENCE);
-
-    for (uint d = lid; d < RADIX; d += SORT_GROUP_SIZE) {
+    const uint group = get_group_id(0), groups = get_num_groups(0);
+    for (uint d = get_local_id(0); d < RADIX; d += SORT_GROUP_SIZE) {
         uint sum = 0;
         for (uint w = 0; w < SORT_GROUP_SIZE; ++w)
             sum += counts[d * SORT_GROUP_SIZE + w];
@@ -84,15 +83,11 @@ void radix_scatter(const __global KEY_TYPE *keys_in, const __global uint *values
                    __global KEY_TYPE *keys_out, __global uint *values_out)
 {
     __local uint counts[RADIX * SORT_GROUP_SIZE];
-    const uint lid = get_local_id(0);
-    const uint group = get_group_id(0);
-    const uint groups = get_num_groups(0);
     uint begin, end;
-    sub_tile(get_global_id(0), per_item, n, &begin, &end);
+    count_digits(keys_in, n, per_item, shift, digit_mask, counts, &begin, &end);
 
-    count_digits(keys_in, begin, end, shift, digit_mask, counts);
-    barrier(CLK_LOCAL_MEM_FENCE);
-
+    const uint lid = get_local_id(0);
+    const uint group = get_group_id(0), groups = get_num_groups(0);
     /* Turn each digit's row of counts into output slots: the group's offset
      * for the digit plus an exclusive scan over the earlier work-items. */
     for (uint d = lid; d < RADIX; d += SORT_GROUP_SIZE) {

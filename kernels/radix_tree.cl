@@ -34,10 +34,9 @@
 #include "handoff.h"
 
 /* Intel's CPU compiler runs these kernels 16 work-items to a vector, and a
- * vector of walkers climbs as long as its longest walk: lucy (100K
- * triangles) took 12 ms so, 2.5-3.1 ms one work-item at a time; the leaves'
- * gathers too ran faster one at a time (1.26 -> 0.90 ms).  (PoCL does not
- * vectorize them.) */
+ * vector of walkers climbs as long as its longest walk: one work-item at a
+ * time measured much faster, and the leaves' gathers too ran faster one at
+ * a time.  (PoCL does not vectorize them.) */
 #ifdef cl_intel_vec_len_hint
 #define ONE_WORK_ITEM_AT_A_TIME __attribute__((intel_vec_len_hint(1)))
 #else

@@ -42,7 +42,7 @@ __kernel void gather_cluster_starts(__global const uint *scan, int n, __global i
 /* What the split loop reads of a cluster: its box corners as float4s, so a
  * union is one vector min and max and one vector expression bins all three
  * axes (the Aabb struct of float[3]s compiled to scalar code and stack
- * copies: 3-4x slower).  lo.w carries the cluster's triangle count, hi.w its
+ * copies: measured much slower).  lo.w carries the cluster's triangle count, hi.w its
  * index as a float (exact: clusters <= 2^CLUSTER_BITS <= 2^24).  The
  * partition moves whole records, so every pass reads a node's clusters in
  * sequence rather than through an index array. */
@@ -282,10 +282,10 @@ inline int split_clusters(__global const ClusterRecord *records, __global Cluste
         }
     }
     /* Half as many bins as clusters (at least 2), up to TOP_SAH_BINS: a
-     * node's cost stays proportional to its clusters (3 x 32 bins per node
-     * measured ~3 us, which dominated the deep levels' many small nodes), and
-     * half rather than all of them cut the deep levels' time by a sixth for
-     * an SAH cost 0.01-0.03% higher (bunny, armadillo, Lucy). */
+     * node's cost stays proportional to its clusters (a fixed 3 x 32 bins per
+     * node dominated the deep levels' many small nodes), and half rather than
+     * all of them measured faster on the deep levels for a barely higher SAH
+     * cost. */
     *box_lo = lo_corner;
     *box_hi = hi_corner;
     int bins = min(max((end - begin) / 2, 2), TOP_SAH_BINS);
@@ -320,18 +320,16 @@ inline int split_clusters(__global const ClusterRecord *records, __global Cluste
 
     /* Both sweeps run the three axes side by side, lane a for axis a: the
      * per-bin work is a few vector ops instead of three scalar passes. */
+#define GROW_BY_BIN(b)                                                                    \
+    (lo0 = grow_lo(lo0, bin_lo[0][b]), hi0 = grow_hi(hi0, bin_hi[0][b]),                  \
+     lo1 = grow_lo(lo1, bin_lo[1][b]), hi1 = grow_hi(hi1, bin_hi[1][b]),                  \
+     lo2 = grow_lo(lo2, bin_lo[2][b]), hi2 = grow_hi(hi2, bin_hi[2][b]), size += bin_size[b])
     float4 right_area[TOP_SAH_BINS], right_size[TOP_SAH_BINS];
     float4 lo0 = (float4)(INFINITY), lo1 = lo0, lo2 = lo0;
     float4 hi0 = (float4)(-INFINITY), hi1 = hi0, hi2 = hi0;
     float4 size = (float4)(0.0f);
     for (int b = bins - 1; b > 0; --b) {
-        lo0 = grow_lo(lo0, bin_lo[0][b]);
-        hi0 = grow_hi(hi0, bin_hi[0][b]);
-        lo1 = grow_lo(lo1, bin_lo[1][b]);
-        hi1 = grow_hi(hi1, bin_hi[1][b]);
-        lo2 = grow_lo(lo2, bin_lo[2][b]);
-        hi2 = grow_hi(hi2, bin_hi[2][b]);
-        size += bin_size[b];
+        GROW_BY_BIN(b);
         right_area[b] = areas_of(hi0 - lo0, hi1 - lo1, hi2 - lo2);
         right_size[b] = size;
     }
@@ -343,13 +341,7 @@ inline int split_clusters(__global const ClusterRecord *records, __global Cluste
     hi0 = hi1 = hi2 = (float4)(-INFINITY);
     size = (float4)(0.0f);
     for (int b = 0; b < bins - 1; ++b) {
-        lo0 = grow_lo(lo0, bin_lo[0][b]);
-        hi0 = grow_hi(hi0, bin_hi[0][b]);
-        lo1 = grow_lo(lo1, bin_lo[1][b]);
-        hi1 = grow_hi(hi1, bin_hi[1][b]);
-        lo2 = grow_lo(lo2, bin_lo[2][b]);
-        hi2 = grow_hi(hi2, bin_hi[2][b]);
-        size += bin_size[b];
+        GROW_BY_BIN(b);
         float4 cost = size * areas_of(hi0 - lo0, hi1 - lo1, hi2 - lo2) +
                       right_size[b + 1] * right_area[b + 1];
         /* Strict <: per axis the first bin of least cost, as a scalar scan. */
@@ -405,6 +397,7 @@ inline int split_clusters(__global const ClusterRecord *records, __global Cluste
     }
     return middle;
 }
+#undef GROW_BY_BIN
 
 /* One task of split_top_level, and its whole subtree if it is serial. */
 inline void split_task(TopTask task, int level, int serial_depth, __global TopTask *next_tasks,
@@ -417,8 +410,8 @@ inline void split_task(TopTask task, int level, int serial_depth, __global TopTa
     int serial = (task.side_and_depth >> 1) >= serial_depth;
     int base = task.begin, top = base;
     /* The deepest path seen, published with one atomic_max at the end: one
-     * per cluster made both cores fight over info[0]'s cache line (lucy's
-     * serial level: ~0.4 ms of ~4.5, A/B). */
+     * per cluster made both cores fight over info[0]'s cache line (measured
+     * slower on the serial level). */
     int tree_depth = 0;
     while (1) {
         int depth = task.side_and_depth >> 1;
@@ -467,7 +460,7 @@ inline void split_task(TopTask task, int level, int serial_depth, __global TopTa
  * [i * count / items, (i + 1) * count / items), so that the tasks spread
  * over all the work-items: PoCL hands each core a block of consecutive
  * work-groups, and the first `count` work-items would all be on one core
- * (measured: the serial level took twice as long). */
+ * (measured: the serial level took much longer). */
 __kernel void split_top_level(__global const TopTask *tasks, int level, int serial_depth,
                               __global TopTask *next_tasks, __global volatile int *task_counts,
                               __global TopTask *stack, __global ClusterRecord *records,

@@ -25,6 +25,16 @@ inline void sub_tile(uint item, uint per_item, uint n, uint *begin, uint *end)
     *end = min(*begin + per_item, n);
 }
 
+/* The sum of this work-item's sub-tile of data, which it sets. */
+inline uint item_sum(const __global uint *data, uint n, uint per_item, uint *begin, uint *end)
+{
+    sub_tile(get_global_id(0), per_item, n, begin, end);
+    uint sum = 0;
+    for (uint i = *begin; i < *end; ++i)
+        sum += data[i];
+    return sum;
+}
+
 /* Scans the sub-tiles of one work-group starting from tile_offset, and lets
  * the work-item whose sub-tile ends the input write the total to data[n].
  * Every work-item of the group must call it (it holds two barriers). */
@@ -34,12 +44,7 @@ inline void scan_tile(__global uint *data, uint n, uint per_item, uint tile_offs
     const uint lid = get_local_id(0);
     const uint item = get_global_id(0);
     uint begin, end;
-    sub_tile(item, per_item, n, &begin, &end);
-
-    uint sum = 0;
-    for (uint i = begin; i < end; ++i)
-        sum += data[i];
-    item_offsets[lid] = sum;
+    item_offsets[lid] = item_sum(data, n, per_item, &begin, &end);
     barrier(CLK_LOCAL_MEM_FENCE);
 
     /* The group is small, so one work-item scans its sums serially. */
@@ -75,12 +80,7 @@ void scan_reduce_tiles(const __global uint *data, uint n, uint per_item,
     __local uint item_sums[SCAN_GROUP_SIZE];
     const uint lid = get_local_id(0);
     uint begin, end;
-    sub_tile(get_global_id(0), per_item, n, &begin, &end);
-
-    uint sum = 0;
-    for (uint i = begin; i < end; ++i)
-        sum += data[i];
-    item_sums[lid] = sum;
+    item_sums[lid] = item_sum(data, n, per_item, &begin, &end);
     barrier(CLK_LOCAL_MEM_FENCE);
 
     if (lid == 0) {

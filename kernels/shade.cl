@@ -41,7 +41,7 @@
 #define ENCODE_GAMMA (SHADING == SHADING_DIFFUSE || SHADING == SHADING_AO)
 
 /* PoCL 3.0 calls vload3, vstore3, dot, fmax and other builtins out of line
- * (see GROW_LO in hlbvh.h; perf, diffuse: 70% of shade_hits' time in such
+ * (see GROW_LO in hlbvh.h; perf showed most of shade_hits' time in such
  * calls), so most are spelled out (LOAD_XYZ, store3, dot3).  dot3 adds the
  * products in dot's order, and apart from them, which in one expression
  * could fuse into fmas. */
@@ -185,14 +185,9 @@ inline void orthonormal_basis(float3 n, float3* b1, float3* b2)
  * a uniform point on the unit disc, lifted to the hemisphere; pbrt-v4
  * SampleCosineHemisphere) from random_unit(pixel, sample, 2 + 2k) and
  * (..., 3 + 2k), reaching ao_distance.  Misses get an empty ray. */
-__kernel void ao_rays(__global const Ray* rays,
-                      __global const Hit* hits,
-                      const ShadeParams params,
-                      const uint width,
-                      const uint first_row,
-                      const uint rows,
-                      const uint sample,
-                      const uint ao_index,
+__kernel void ao_rays(__global const Ray* rays, __global const Hit* hits,
+                      const ShadeParams params, const uint width, const uint first_row,
+                      const uint rows, const uint sample, const uint ao_index,
                       __global Ray* secondary)
 {
     uint gid;
@@ -214,7 +209,7 @@ __kernel void ao_rays(__global const Ray* rays,
     float3 b1, b2;
     orthonormal_basis(n, &b1, &b2);
     /* One call for both (PoCL: the same bits as sin and cos at every angle
-     * u2 can give, in 0.63x the time) */
+     * u2 can give, and measured faster) */
     float cosine, sine = sincos(angle, &cosine);
     float3 direction = radius * cosine * b1 + radius * sine * b2
                        + sqrt(1.0f - u1) * n;  /* u1 < 1, so never tangent */
@@ -253,7 +248,7 @@ __kernel void encode_image(__global const float4* accum,
     value = value > 0.0f ? value : (float3)(0.0f);
     value = value < 1.0f ? value : (float3)(1.0f);
 #if ENCODE_GAMMA
-    value = sqrt(value);  /* gamma 2: looks as 2.2 does, and pow costs 60x more on PoCL */
+    value = sqrt(value);  /* gamma 2: looks as 2.2 does, and pow measured far slower on PoCL */
 #endif
     uchar3 rgb = convert_uchar3(value * 255.0f + 0.5f);
     __global uchar* pixel = image + 3 * (size_t)((first_row + at.y) * width + at.x);

@@ -1,0 +1,276 @@
+/* Ray packets: one work-item traces PACKET_SIZE coherent rays together, one
+ * vector lane per ray, so that the node walk, the stack and the child sort
+ * are paid once per packet and each box and triangle is tested against all
+ * the rays at once (Wald, Slusallek, Benthin & Wagner 2001, "Interactive
+ * Rendering with Coherent Ray Tracing"; on BVHs Wald, Boulos & Shirley
+ * 2007).  A packet is traced so only when its rays share the signs of their
+ * direction components and the axis the watertight test projects along
+ * (kz): then every plane offset and vertex permutation is the same for all
+ * lanes and stays scalar.  Nodes are first culled with the packet as one
+ * interval ray (Boulos et al. 2007, "Geometric and Arithmetic Culling
+ * Methods for Entire Ray Packets").  This header is the packet path's
+ * vocabulary (suffix _packet) for the generic triangle test and walk. */
+#ifndef PACKET_H
+#define PACKET_H
+
+#include "ray.h"
+
+#if PACKET_SIZE == 16
+typedef float16 float_packet;
+typedef int16 int_packet;
+#define vload_packet vload16
+#define vstore_packet vstore16
+#define as_int_packet as_int16
+#define as_float_packet as_float16
+#ifdef cl_khr_fp64
+#define to_double_packet convert_double16
+#define to_float_packet convert_float16
+typedef double16 wide_packet;
+#endif
+#elif PACKET_SIZE == 8
+typedef float8 float_packet;
+typedef int8 int_packet;
+#define vload_packet vload8
+#define vstore_packet vstore8
+#define as_int_packet as_int8
+#define as_float_packet as_float8
+#ifdef cl_khr_fp64
+#define to_double_packet convert_double8
+#define to_float_packet convert_float8
+typedef double8 wide_packet;
+#endif
+#else
+#error "PACKET_SIZE must be 1, 8 or 16"
+#endif
+
+/* RayData of PACKET_SIZE rays, one lane each, with the fields the packet
+ * shares kept scalar. */
+typedef struct {
+    float_packet ox, oy, oz;
+#ifdef cl_khr_fp64
+    float_packet dx, dy, dz;  /* direction, for the refined t */
+#endif
+    float_packet inv_x, inv_y, inv_z;
+    float_packet tmin, tmax;
+    float_packet sx, sy, sz;
+    float_packet okx, oky, okz;
+    int kx, ky, kz;
+    int near_x, near_y, near_z;
+    /* The packet as one interval ray, for culling a node's children with
+     * interval arithmetic before the per-lane tests (children_interval):
+     * per axis the lanes' least and greatest inverse direction, and the
+     * origin component that bounds the entry (near_o) and the exit (far_o)
+     * distances from below and above; the least tmin. */
+    float inv_lo_x, inv_lo_y, inv_lo_z, inv_hi_x, inv_hi_y, inv_hi_z;
+    float near_ox, near_oy, near_oz, far_ox, far_oy, far_oz;
+    float tmin_lo;
+} Packet;
+
+/* Folds a packet's lanes to one with f: the halves first, then theirs.
+ * GROW_LO / GROW_HI give the least / greatest lane of lanes that are never
+ * NaN (entry distances, limits), without fmin / fmax's NaN tests; OR / AND
+ * fold lane flags (-1 or 0) with one test, where PoCL's any() tests lane by
+ * lane, a branch each, which mispredicted in the child loop of camera-ray
+ * packets. */
+#if PACKET_SIZE == 16
+#define HALVES(v, f) f((v).lo, (v).hi)
+#else
+#define HALVES(v, f) (v)
+#endif
+#define OR(a, b) ((a) | (b))
+#define AND(a, b) ((a) & (b))
+#define FOLD_LANES(type, v, f)   \
+    type##8 a = HALVES(v, f);    \
+    type##4 b = f(a.lo, a.hi);   \
+    type##2 c = f(b.lo, b.hi);   \
+    return f(c.x, c.y)
+
+TRAVERSAL_INLINE float packet_min(float_packet v) { FOLD_LANES(float, v, GROW_LO); }
+TRAVERSAL_INLINE float packet_max(float_packet v) { FOLD_LANES(float, v, GROW_HI); }
+TRAVERSAL_INLINE int packet_or(int_packet v) { FOLD_LANES(int, v, OR); }
+TRAVERSAL_INLINE int packet_and(int_packet v) { FOLD_LANES(int, v, AND); }
+
+/* Whether some / every lane flag is set: after the halves, one movmskps
+ * where there is one (measured faster). */
+TRAVERSAL_INLINE bool some_packet(int_packet v)
+{
+#ifdef HAVE_MOVMSKPS256
+    return __builtin_ia32_movmskps256(as_float8(HALVES(v, OR))) != 0;
+#else
+    return packet_or(v) < 0;
+#endif
+}
+
+TRAVERSAL_INLINE bool every_packet(int_packet v)
+{
+#ifdef HAVE_MOVMSKPS256
+    return __builtin_ia32_movmskps256(as_float8(HALVES(v, AND))) == 0xff;
+#else
+    return packet_and(v) < 0;
+#endif
+}
+
+/* prepare_ray for every lane, in vector arithmetic; false when the lanes do
+ * not share direction signs and kz (then they are traced one by one). */
+TRAVERSAL_INLINE bool prepare_packet(const RayLanes* in, Packet* p)
+{
+    float_packet o[3], d[3];
+    for (int k = 0; k < 3; ++k) {
+        o[k] = vload_packet(0, in->origin[k]);
+        d[k] = vload_packet(0, in->direction[k]);
+    }
+    /* fabs, signbit and select by bits and ?: (PoCL: see LOAD_ROW) */
+    int_packet magnitude = (int_packet)(0x7fffffff);
+    float_packet ax = as_float_packet(as_int_packet(d[0]) & magnitude),
+                 ay = as_float_packet(as_int_packet(d[1]) & magnitude),
+                 az = as_float_packet(as_int_packet(d[2]) & magnitude);
+    /* Each lane's kz, as prepare_ray picks it, held in floats: LLVM makes
+     * ?: between integer constants a zext of the compare lanes, which
+     * Oclgrind gets wrong (its vector compares give -1 per true lane). */
+    float_packet kz = ((ax >= ay) & (ax >= az)) ? (float_packet)(0.0f)
+                      : (ay >= az ? (float_packet)(1.0f) : (float_packet)(2.0f));
+    int_packet neg_x = as_int_packet(d[0]) < 0, neg_y = as_int_packet(d[1]) < 0,
+               neg_z = as_int_packet(d[2]) < 0;
+    if (some_packet((kz != (float_packet)(kz.s0)) | (neg_x != (int_packet)(neg_x.s0))
+            | (neg_y != (int_packet)(neg_y.s0)) | (neg_z != (int_packet)(neg_z.s0))))
+        return false;
+    p->kz = (int)kz.s0;
+    p->kx = p->kz == 2 ? 0 : p->kz + 1;
+    p->ky = p->kx == 2 ? 0 : p->kx + 1;
+    p->ox = o[0];
+    p->oy = o[1];
+    p->oz = o[2];
+#ifdef cl_khr_fp64
+    p->dx = d[0];
+    p->dy = d[1];
+    p->dz = d[2];
+#endif
+    p->inv_x = 1.0f / d[0];
+    p->inv_y = 1.0f / d[1];
+    p->inv_z = 1.0f / d[2];
+    p->tmin = vload_packet(0, in->tmin);
+    p->tmax = vload_packet(0, in->tmax);
+    float_packet dkz = d[p->kz];
+    p->sx = d[p->kx] / dkz;
+    p->sy = d[p->ky] / dkz;
+    p->sz = 1.0f / dkz;
+    p->okx = o[p->kx];
+    p->oky = o[p->ky];
+    p->okz = o[p->kz];
+    p->near_x = LO_X_ROW + (neg_x.s0 ? ROW_BYTES : 0);
+    p->near_y = LO_Y_ROW + (neg_y.s0 ? ROW_BYTES : 0);
+    p->near_z = LO_Z_ROW + (neg_z.s0 ? ROW_BYTES : 0);
+    p->inv_lo_x = packet_min(p->inv_x);
+    p->inv_lo_y = packet_min(p->inv_y);
+    p->inv_lo_z = packet_min(p->inv_z);
+    p->inv_hi_x = packet_max(p->inv_x);
+    p->inv_hi_y = packet_max(p->inv_y);
+    p->inv_hi_z = packet_max(p->inv_z);
+    /* (plane - o) * inv over the lanes: the least entry comes from the
+     * greatest origin when the direction is positive, the least when it is
+     * negative; the greatest exit the other way round. */
+    float o_lo_x = packet_min(o[0]), o_lo_y = packet_min(o[1]), o_lo_z = packet_min(o[2]);
+    float o_hi_x = packet_max(o[0]), o_hi_y = packet_max(o[1]), o_hi_z = packet_max(o[2]);
+    p->near_ox = neg_x.s0 ? o_lo_x : o_hi_x;
+    p->near_oy = neg_y.s0 ? o_lo_y : o_hi_y;
+    p->near_oz = neg_z.s0 ? o_lo_z : o_hi_z;
+    p->far_ox = neg_x.s0 ? o_hi_x : o_lo_x;
+    p->far_oy = neg_y.s0 ? o_hi_y : o_lo_y;
+    p->far_oz = neg_z.s0 ? o_hi_z : o_lo_z;
+    p->tmin_lo = packet_min(p->tmin);
+    return true;
+}
+
+/* ---- the packet path's vocabulary (see walk.h): one lane per ray */
+typedef Packet Rays_packet;
+typedef float_packet real_packet;
+typedef int_packet flags_packet;  /* a vector compare: -1 or 0 per lane */
+#define bits_packet as_int_packet
+
+/* What a walk keeps for its query, per lane (see Found_ray), and the
+ * farthest any lane still looks. */
+typedef struct {
+    int_packet index;
+    float_packet t, u, v, limit;
+    float reach;
+} Found_packet;
+#define reach_packet(s) ((s)->reach)
+#define update_reach_packet(s) ((s)->reach = packet_max((s)->limit))
+
+/* inside_ray's test, written as the lanes where all three are >= 0 or all
+ * are <= 0.  It differs from inside_ray only in a lane with a NaN.
+ * (Negating the straddle test became an xor of the compare lanes with an i1
+ * true vector, which Oclgrind gets wrong: its vector compares give -1 per
+ * true lane.) */
+TRAVERSAL_INLINE int_packet inside_packet(float_packet e_u, float_packet e_v, float_packet e_w)
+{
+    return ((e_u >= 0.0f) & (e_v >= 0.0f) & (e_w >= 0.0f))
+           | ((e_u <= 0.0f) & (e_v <= 0.0f) & (e_w <= 0.0f));
+}
+
+/* A bound, from below (entry) or above (exit), of (plane - o) * inv over
+ * the packet's lanes for each child: `offset` (plane - o) is the bounding
+ * origin's, and the factor is the end of [inv_lo, inv_hi] that makes the
+ * product least (entry: inv_lo where the offset is >= 0, else inv_hi) or
+ * greatest (exit: the other end).  Both signs of the direction follow the
+ * same rule (prepare_packet picks the origin). */
+TRAVERSAL_INLINE float_lanes entry_bound(float_lanes offset, float inv_lo, float inv_hi)
+{
+    return offset * (offset >= 0.0f ? (float_lanes)(inv_lo) : (float_lanes)(inv_hi));
+}
+
+TRAVERSAL_INLINE float_lanes exit_bound(float_lanes offset, float inv_lo, float inv_hi)
+{
+    return offset * (offset >= 0.0f ? (float_lanes)(inv_hi) : (float_lanes)(inv_lo));
+}
+
+/* The children of a node that some lane may meet within `reach`, as a bit
+ * mask, from one slab test of the interval ray (Boulos et al. 2007).  Float
+ * rounding is monotone, so each bound is as far out as the per-lane results
+ * computed the same way: a child left out here fails the per-lane test for
+ * every lane, and the culling changes no result.  A NaN (0 * inf) bound is
+ * ignored, as in SLABS_MEET, which only widens the interval. */
+#define NODE_ROW(offset) LOAD_ROW(float_lanes, plane_row(node, offset))
+TRAVERSAL_INLINE uint children_interval(const Packet* p, __global const WideNode* node,
+                                        float reach)
+{
+    float_lanes entry;
+    return lane_mask(SLABS_MEET(
+        float_lanes,
+        entry_bound(NODE_ROW(p->near_x) - p->near_ox, p->inv_lo_x, p->inv_hi_x),
+        entry_bound(NODE_ROW(p->near_y) - p->near_oy, p->inv_lo_y, p->inv_hi_y),
+        entry_bound(NODE_ROW(p->near_z) - p->near_oz, p->inv_lo_z, p->inv_hi_z),
+        exit_bound(NODE_ROW(p->near_x ^ ROW_BYTES) - p->far_ox, p->inv_lo_x, p->inv_hi_x),
+        exit_bound(NODE_ROW(p->near_y ^ ROW_BYTES) - p->far_oy, p->inv_lo_y, p->inv_hi_y),
+        exit_bound(NODE_ROW(p->near_z ^ ROW_BYTES) - p->far_oz, p->inv_lo_z, p->inv_hi_z),
+        (float_lanes)(p->tmin_lo), (float_lanes)(reach), entry));
+}
+#undef NODE_ROW
+
+/* The children that some lane meets within its limit, as a bit mask, and
+ * the nearest entry over those lanes for each (children no lane meets stay
+ * +inf: the stack's sort compares whole vectors). */
+#define CHILD_PLANE(offset) (plane_row(node, offset)[c])
+TRAVERSAL_INLINE uint children_packet(const Packet* p, __global const WideNode* node,
+                                      const Found_packet* s, ChildEntries* entry)
+{
+    entry->lanes = (float_lanes)(INFINITY);
+    uint mask = 0;
+    for (uint rest = children_interval(p, node, s->reach); rest != 0; rest &= rest - 1u) {
+        int c = lowest_slot(rest);
+        float_packet t_entry;
+        int_packet hit = SLAB_TEST(float_packet, CHILD_PLANE, p, p->tmin, s->limit, t_entry);
+        if (some_packet(hit)) {
+            entry->slot[c] = packet_min(hit ? t_entry : (float_packet)(INFINITY));
+            mask |= 1u << c;
+        }
+    }
+    return mask;
+}
+#undef CHILD_PLANE
+
+#define PATH_SUFFIX _packet
+#include "triangle.h"
+#undef PATH_SUFFIX
+
+#endif /* PACKET_H */

@@ -1,0 +1,95 @@
+/* What one work-item of a ray query reads and writes: which rays it traces
+ * (PACKET_SIZE consecutive ones), loaded into RayLanes from Ray records or
+ * from numpy-shaped arrays, and a closest hit as a Hit record with its unit
+ * geometric normal. */
+#ifndef WORK_ITEM_H
+#define WORK_ITEM_H
+
+#include "ray.h"
+#include "triangle.h"
+
+/* Work-item i traces rays [i * PACKET_SIZE, ...) : how many of them exist
+ * (0 for the items past the end), and the first one. */
+TRAVERSAL_INLINE uint packet_rays(uint ray_count, uint* first)
+{
+    *first = get_global_id(0) * PACKET_SIZE;
+    return *first < ray_count ? LESSER((uint)PACKET_SIZE, ray_count - *first) : 0;
+}
+
+/* The rays as Ray records (the renderer's); lanes past `used` repeat the
+ * last ray. */
+TRAVERSAL_INLINE void load_records(__global const Ray* rays, uint first, uint used,
+                                   RayLanes* lanes)
+{
+    for (uint l = 0; l < PACKET_SIZE; ++l) {
+        __global const Ray* ray = rays + first + LESSER(l, used - 1);
+        set_lane(lanes, l, LOAD_XYZ(ray->origin), LOAD_XYZ(ray->direction), ray->tmin,
+                 ray->tmax);
+    }
+}
+
+/* The rays as the arrays numpy users hand in (query.py): origins and
+ * directions packed (x, y, z) per ray, tmin[i * tmin_step], tmax[i *
+ * tmax_step] (step 0: every ray the same limit).  Results go to one array
+ * per field, so that the host neither packs records nor picks fields out of
+ * them (measured: that repacking took as long as tracing camera rays). */
+TRAVERSAL_INLINE void load_arrays(uint first, uint used, __global const float* origins,
+                                  __global const float* directions, __global const float* tmin,
+                                  uint tmin_step, __global const float* tmax, uint tmax_step,
+                                  RayLanes* lanes)
+{
+#ifdef PREFETCH
+    /* The next work-item's rays (CPUs run a group's items in order): between
+     * two work-items' loads lie thousands of random reads, and the hardware
+     * prefetcher loses the stream (measured faster).  Past the last ray this
+     * asks for memory the kernel never reads, which a prefetch may: it never
+     * faults. */
+    for (uint offset = 0; offset < 3 * PACKET_SIZE * sizeof(float); offset += 64) {
+        __builtin_prefetch((__global const char*)(origins + 3 * (first + PACKET_SIZE)) + offset);
+        __builtin_prefetch((__global const char*)(directions + 3 * (first + PACKET_SIZE)) + offset);
+    }
+#endif
+    for (uint l = 0; l < PACKET_SIZE; ++l) {
+        uint i = first + LESSER(l, used - 1);
+        set_lane(lanes, l, LOAD_XYZ(origins + 3 * i), LOAD_XYZ(directions + 3 * i),
+                 tmin[i * tmin_step], tmax[i * tmax_step]);
+    }
+}
+
+/* sqrt as one instruction where the compiler is a Clang (PoCL calls sqrt). */
+#if HAS_BUILTIN(__builtin_sqrtf)
+#define SQUARE_ROOT __builtin_sqrtf
+#else
+#define SQUARE_ROOT sqrt
+#endif
+
+/* One ray's closest hit as a Hit record (a miss: t = INFINITY, ids -1, the
+ * rest 0) from the tree-order index of the triangle hit (-1: none).  The
+ * unit geometric normal is scaled by its largest component first so that
+ * tiny or huge triangles neither underflow nor overflow the squared length. */
+TRAVERSAL_INLINE void make_hit(Hit* out, int index, float t, float u, float v,
+                               __global const Triangle* triangles,
+                               __global const TriangleRef* refs)
+{
+    bool found = index >= 0;
+    float3 normal = (float3)(0.0f);
+    if (found) {
+        float nx, ny, nz;
+        geometric_normal(triangles + index, &nx, &ny, &nz);
+        float largest = GROW_HI(GROW_HI(ABS_FLOAT(nx), ABS_FLOAT(ny)), ABS_FLOAT(nz));
+        float3 n = (float3)(nx, ny, nz) * (1.0f / largest);
+        normal = n * (1.0f / SQUARE_ROOT(n.x * n.x + n.y * n.y + n.z * n.z));
+    }
+    Hit hit;
+    hit.t = found ? t : INFINITY;
+    hit.geom_id = found ? refs[index].geom_id : -1;
+    hit.prim_id = found ? refs[index].prim_id : -1;
+    hit.u = found ? u : 0.0f;
+    hit.v = found ? v : 0.0f;
+    hit.normal[0] = normal.x;
+    hit.normal[1] = normal.y;
+    hit.normal[2] = normal.z;
+    *out = hit;
+}
+
+#endif /* WORK_ITEM_H */
