@@ -1,7 +1,7 @@
 """numpy mirror of kernels/hlbvh.h: the one place Python restates its structs.
 
 The constants are parsed from the header itself, so they exist once.
-tests/test_layout.py compiles a probe kernel that reports sizeof/offsetof on
+tests/test_devices.py compiles a probe kernel that reports sizeof/offsetof on
 the device and checks them against these dtypes.
 """
 from __future__ import annotations

@@ -2,10 +2,13 @@
 Tree invariants are checked where trees are made: tests/invariants.py's
 check_tree, which the build tests call."""
 import os
+from pathlib import Path
 
 import pytest
 
 os.environ.setdefault("HLBVH_CL_DEVICE", "pocl")
+
+MESH_DIR = Path(__file__).resolve().parent.parent / "scenes" / "meshes"
 
 
 def pytest_report_header(config):
@@ -24,3 +27,17 @@ def suite_device():
     it through this, never a vendor of their own)."""
     from hlbvh_cl.device import select_device
     return select_device(os.environ["HLBVH_CL_DEVICE"])
+
+
+@pytest.fixture(scope="module")
+def meshes():
+    """The project's meshes by name (scenes/meshes/NAME.ply), each loaded the
+    first time a test asks for it."""
+    from hlbvh_cl import Mesh
+
+    class Loaded(dict):
+        def __missing__(self, name):
+            self[name] = mesh = Mesh.load(MESH_DIR / f"{name}.ply")
+            return mesh
+
+    return Loaded()

@@ -3,6 +3,10 @@ import numpy as np
 
 import hlbvh_cl
 
+#: Two triangles over the unit square in z = 0, as plain arrays.
+QUAD = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
+QUAD_FACES = np.array([[0, 1, 2], [0, 2, 3]])
+
 
 def grid_mesh(n: int = 4) -> hlbvh_cl.Mesh:
     """An n x n grid of unit squares in the plane z = 0, two triangles each."""

@@ -92,15 +92,15 @@ COHERENT_BLOCKS = [
 
 
 def Oracle(scene):
-    """What tests/test_query.py's assert_matches_oracle reads, for a scene
+    """What tests/ray_cases.py's assert_matches_oracle reads, for a scene
     already built (on Oclgrind) over its current vertices."""
-    from test_query import SceneCase
+    from ray_cases import SceneCase
     return SceneCase(scene.meshes, scene=scene)
 
 
 def rays(oracle):
-    """The coherent blocks, then random rays (tests/test_query.py's)."""
-    from test_query import random_rays
+    """The coherent blocks, then random rays (tests/ray_cases.py's)."""
+    from ray_cases import random_rays
     u, v = (grid.ravel() for grid in np.meshgrid(np.linspace(0, 1, 16), np.linspace(0, 1, 4)))
     origins = [np.tile(origin, (BLOCK, 1)) for origin, _ in COHERENT_BLOCKS]
     directions = [np.stack(np.broadcast_arrays(*towards(u, v)), axis=1)
@@ -116,7 +116,7 @@ def check_queries(intersect, occluded, oracle, what: str) -> None:
     """intersect(origins, directions, tmax=...) against the oracle, and
     occluded(...) against intersect, with and without a tmax that cuts some
     hits off."""
-    from test_query import assert_matches_oracle
+    from ray_cases import assert_matches_oracle
     origins, directions = rays(oracle)
     hits = intersect(origins, directions)
     assert_matches_oracle(oracle, hits, origins, directions)

@@ -12,8 +12,8 @@ import pytest
 
 import hlbvh_cl
 from hlbvh_cl.query import PACKET_SIZES, RayQuery
-from test_query import MESHES, assert_matches_oracle, random_rays, scene_case
-from test_watertight import _interior_points, _unique_edges
+from ray_cases import (MESHES, _interior_points, _unique_edges, assert_matches_oracle, random_rays,
+                       scene_case)
 
 
 def packet_keys(directions: np.ndarray) -> np.ndarray:
@@ -144,15 +144,6 @@ def test_rays_from_inside_in_packets_always_hit(name, packet_size):
                                       f"inside aimed at {what} escaped (first: directions "
                                       f"{directions[missed[:3]].tolist()})")
             assert q.occluded(scene._tree, origins, directions).all()
-
-
-def test_packet_size_is_checked():
-    case = scene_case("cube")
-    with pytest.raises(ValueError, match="packet_size"):
-        RayQuery(case.scene._runtime, packet_size=4)
-    for wrong in (True, 8.0, "8"):
-        with pytest.raises(TypeError, match="packet_size"):
-            RayQuery(case.scene._runtime, packet_size=wrong)
 
 
 @pytest.mark.parametrize("zero", [0.0, -0.0], ids=["+0", "-0"])

@@ -1,7 +1,7 @@
 """The renderer (hlbvh_cl/render.py, kernels/camera.cl, kernels/shade.cl)
 against images rebuilt here from the documented definitions (render.py's
 docstring, scenefile.py's camera convention) with the float64 brute-force
-oracle (tests/oracle.py) in place of the BVH.
+oracle (tests/oracle.py) in place of the BVH.  Bad arguments: test_validation.py.
 
 The device works in float32 and the oracle in float64, so a pixel whose ray
 grazes a triangle's edge, or whose shadow / AO ray grazes one, may go either
@@ -10,7 +10,6 @@ level of 8 bits.
 """
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,49 +18,19 @@ import hlbvh_cl
 from hlbvh_cl import render as render_module
 from hlbvh_cl.query import PACKET_SIZES, RayQuery
 from oracle import brute_force_intersect, brute_force_occluded
-
-MESHES = Path(__file__).resolve().parent.parent / "scenes" / "meshes"
+from render_scene import CAMERA, COLORS, LIGHT, render_meshes, renderer, scene  # noqa: F401
 
 WIDTH, HEIGHT = 64, 48
 LEVELS = 1                # 8-bit levels a matching pixel may be off by
 MAX_DIFFERENT = 0.01      # fraction of pixels that may differ by more
 
 
-# -- the scene: a knight and a small teapot on a ground ------------------------------
-
-GROUND_Y = 0.0513135  # the knight's lowest point
-
-
-def _scene_meshes() -> list[hlbvh_cl.Mesh]:
-    knight = hlbvh_cl.Mesh.load(MESHES / "knight.ply")
-    teapot = hlbvh_cl.Mesh.load(MESHES / "teapot.ply")
-    pot = teapot.vertices.astype(np.float64) * 0.02
-    pot += np.array([1.25, GROUND_Y, 0.45]) - [0.0, pot[:, 1].min(), 0.0]
-    y = GROUND_Y
-    ground = hlbvh_cl.Mesh([[-1.5, y, -1.0], [2.5, y, -1.0], [2.5, y, 2.0], [-1.5, y, 2.0]],
-                           [[0, 2, 1], [0, 3, 2]], name="ground")
-    return [knight, hlbvh_cl.Mesh(pot, teapot.faces, name="teapot"), ground]
-
-
-CAMERA = hlbvh_cl.Camera(eye=(0.3, 1.0, 2.6), target=(0.8, 0.4, 0.5), fov_deg=40.0)
-LIGHT = hlbvh_cl.Light(direction=(-0.6, 1.0, 0.7), intensity=0.85, ambient=0.15)
-COLORS = [(0.85, 0.6, 0.5), (0.55, 0.7, 0.85), (0.9, 0.85, 0.7)]
-
-
-@pytest.fixture(scope="module")
-def scene():
-    return hlbvh_cl.Scene(_scene_meshes())
-
-
-@pytest.fixture(scope="module")
-def renderer(scene):
-    return hlbvh_cl.Renderer(scene, colors=COLORS, light=LIGHT)
-
+# -- the scene (tests/render_scene.py) as float64 arrays -----------------------------
 
 @pytest.fixture(scope="module")
 def geometry():
     """Concatenated float64 vertices, faces, and the mesh of every face."""
-    meshes = _scene_meshes()
+    meshes = render_meshes()
     offsets = np.cumsum([0] + [m.vertex_count for m in meshes])
     vertices = np.concatenate([m.vertices.astype(np.float64) for m in meshes])
     faces = np.concatenate([m.faces + off for m, off in zip(meshes, offsets)])
@@ -312,73 +281,9 @@ def test_every_mode_gives_an_image_of_the_asked_size(scene, renderer):
 
 
 def test_default_colors_and_light():
-    meshes = _scene_meshes()
+    meshes = render_meshes()
     plain = hlbvh_cl.Renderer(hlbvh_cl.Scene(meshes))
     assert plain.colors == [render_module.PALETTE[i] for i in range(len(meshes))]
     assert np.allclose(np.linalg.norm(plain.light.direction), 1.0)
     image = plain.render(CAMERA, 20, 15)
     assert image.shape == (15, 20, 3)
-
-
-# -- bad arguments ----------------------------------------------------------------------------
-
-@pytest.mark.parametrize("kwargs, error, words", [
-    ({"camera": "front"}, TypeError, "camera"),
-    ({"width": 0}, ValueError, "width"),
-    ({"height": -3}, ValueError, "height"),
-    ({"width": 100_000}, ValueError, "width"),
-    ({"width": 12.5}, TypeError, "width"),
-    ({"width": True}, TypeError, "width"),
-    ({"shading": "phong"}, ValueError, "shading"),
-    ({"shading": None}, TypeError, "shading"),
-    ({"spp": 0}, ValueError, "spp"),
-    ({"spp": 2.0}, TypeError, "spp"),
-    ({"ao_samples": 0}, ValueError, "ao_samples"),
-    ({"ao_distance": -1.0}, ValueError, "ao_distance"),
-    ({"ao_distance": float("nan")}, ValueError, "ao_distance"),
-    ({"shadows": "yes"}, TypeError, "shadows"),
-])
-def test_bad_render_arguments_are_named(scene, renderer, kwargs, error, words):
-    arguments = {"camera": CAMERA, "width": 8, "height": 6, **kwargs}
-    with pytest.raises(error, match=words):
-        renderer.render(**arguments)
-
-
-def test_bad_colors_and_light_are_named(scene, renderer):
-    try:
-        renderer.colors = COLORS[:2]
-        with pytest.raises(ValueError, match="colors has 2 entries"):
-            renderer.render(CAMERA, 8, 6)
-        renderer.colors = [COLORS[0], (0.5, 1.5, 0.5), COLORS[2]]
-        with pytest.raises(ValueError, match=r"colors\[1\]"):
-            renderer.render(CAMERA, 8, 6)
-        renderer.colors = COLORS
-        renderer.light = "sun"
-        with pytest.raises(TypeError, match="light"):
-            renderer.render(CAMERA, 8, 6)
-    finally:
-        renderer.colors, renderer.light = COLORS, LIGHT
-
-
-@pytest.mark.parametrize("kwargs, words", [
-    ({"eye": (0, 0, 0), "target": (0, 0, 0)}, "equals eye"),
-    ({"eye": (0, 0, 0), "target": (0, 1, 0)}, "parallel"),
-    ({"eye": (0, 0, 0), "target": (0, 0, 1), "up": (0, 0, 0)}, "zero or parallel"),
-    ({"eye": (0, 0, np.nan), "target": (0, 0, 1)}, "eye"),
-    ({"eye": (0, 0), "target": (0, 0, 1)}, "eye"),
-    ({"eye": (0, 0, 0), "target": (0, 0, 1), "fov_deg": 180}, "fov_deg"),
-    ({"eye": (0, 0, 0), "target": (0, 0, 1), "fov_deg": 0}, "fov_deg"),
-])
-def test_bad_cameras_are_named(kwargs, words):
-    with pytest.raises(ValueError, match=words):
-        hlbvh_cl.Camera(**kwargs)
-
-
-@pytest.mark.parametrize("kwargs, words", [
-    ({"direction": (0, 0, 0)}, "zero vector"),
-    ({"intensity": -1}, "intensity"),
-    ({"ambient": 2}, "ambient"),
-])
-def test_bad_lights_are_named(kwargs, words):
-    with pytest.raises(ValueError, match=words):
-        hlbvh_cl.Light(**kwargs)

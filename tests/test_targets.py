@@ -17,11 +17,15 @@ import pytest
 
 import hlbvh_cl
 
-#: Modules that check results against an oracle or invariants.
-CORRECTNESS = ["test_query.py", "test_oracle.py", "test_embree.py", "test_watertight.py",
-               "test_packets.py", "test_build.py", "test_radix_tree.py", "test_split.py",
-               "test_sort.py", "test_scan.py", "test_widen.py", "test_render.py", "test_layout.py",
-               "test_extreme_coordinates.py"]
+#: Modules (or single tests) that check results against an oracle or
+#: invariants: ray semantics, the bad input and memory reuse of ray queries,
+#: the pipeline stages, rendering, and the struct layout.
+CORRECTNESS = ["test_rays.py", "test_validation.py", "test_memory.py", "test_oracle.py",
+               "test_embree.py", "test_watertight.py", "test_packets.py",
+               "test_build.py", "test_radix_tree.py", "test_split.py", "test_sort.py", "test_scan.py",
+               "test_widen.py", "test_render.py", "test_extreme_coordinates.py",
+               "test_devices.py::test_struct_layout_matches_device",
+               "test_devices.py::test_constants_come_from_the_header"]
 
 HERE = Path(__file__).resolve().parent
 

@@ -1,0 +1,309 @@
+"""Devices: listing and selection, program caching and build errors; the
+profiles and kernel variants that the probe chooses in a child process
+(hlbvh_cl.profile, hlbvh_cl.probe); and hlbvh_cl/layout.py against
+kernels/hlbvh.h on every device.  test_targets.py reruns the correctness
+modules on every other device and profile."""
+import os
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pyopencl as cl
+import pytest
+
+import hlbvh_cl
+from hlbvh_cl import device as device_module
+from hlbvh_cl import layout, probe
+from hlbvh_cl.device import KernelBuildError, Runtime, devices, runtime, select_device
+from hlbvh_cl.paths import kernel_dir
+from hlbvh_cl.profile import SAFEST, Profile, Variant, candidates, profile_name, vector_width
+
+
+# -- listing, selection, programs ---------------------------------------------------
+
+def test_devices_have_stable_short_ids(suite_device):
+    found = hlbvh_cl.devices()
+    assert found, "the suite needs an OpenCL device"
+    ids = [d.id for d in found]
+    assert len(set(ids)) == len(ids)
+    for i, d in enumerate(found):
+        vendor, k = d.id.split(":")
+        assert vendor.isalnum() and vendor == vendor.lower() and int(k) >= 0
+        assert d.index == i and d.type in ("cpu", "gpu", "accelerator", "other")
+        assert d.platform and d.name
+    assert suite_device in found and suite_device.problem is None
+
+
+def test_selection_by_id_index_substring_and_environment(monkeypatch, suite_device):
+    found = hlbvh_cl.devices()
+    first = found[0]
+    assert select_device(first.id) == first
+    assert select_device(0) == first
+    assert select_device(str(0)) == first
+    vendor = suite_device.id.split(":")[0]
+    named = select_device(vendor.upper())  # case-insensitive substring, first that works
+    assert vendor in f"{named.id} {named.name} {named.platform}".lower() and named.problem is None
+    monkeypatch.setenv("HLBVH_CL_DEVICE", named.id)
+    assert select_device() == named
+    assert select_device(first.id) == first  # the argument wins over the environment
+    monkeypatch.setenv("HLBVH_CL_DEVICE", "nothing-like-this")
+    with pytest.raises(ValueError, match="HLBVH_CL_DEVICE='nothing-like-this' matches no"):
+        select_device()
+
+
+def test_bad_device_arguments():
+    with pytest.raises(ValueError, match="out of range"):
+        select_device(999)
+    with pytest.raises(TypeError, match="device must be"):
+        select_device(1.5)
+    with pytest.raises(ValueError, match="matches no OpenCL device"):
+        select_device("no-such-gpu")
+
+
+def test_no_platform_says_how_to_install(monkeypatch):
+    monkeypatch.setattr(device_module, "_devices_cache", [])
+    with pytest.raises(RuntimeError, match="pip install pocl-binary-distribution"):
+        select_device()
+
+
+@pytest.mark.skipif(not (Path(sys.prefix) / "lib" / "libintelocl.so").is_file(),
+                    reason="intel-opencl-rt is not installed")
+def test_intel_cpu_runtime_is_found_without_user_icd_files():
+    if "OCL_ICD_VENDORS" in os.environ and "hlbvh_cl" not in os.environ["OCL_ICD_VENDORS"]:
+        pytest.skip("the user's own OCL_ICD_VENDORS is in force")
+    assert any(d.id.startswith("intel:") for d in hlbvh_cl.devices())
+
+
+def test_programs_are_built_once_and_cached():
+    rt = runtime()
+    assert rt.program("bounds.cl", STRIDED_SLICES=0) is rt.program("bounds.cl", STRIDED_SLICES=0)
+    assert rt.kernel("morton.cl", "morton_codes", MORTON_BITS=30) is \
+        rt.kernel("morton.cl", "morton_codes", MORTON_BITS=30)
+
+
+def test_compile_error_shows_the_build_log(tmp_path, monkeypatch):
+    (tmp_path / "hlbvh.h").write_text("")
+    (tmp_path / "broken.cl").write_text("__kernel void f(__global int *x) { x[0] = nope; }\n")
+    monkeypatch.setattr(device_module, "kernel_dir", lambda: tmp_path)
+    rt = Runtime(select_device())
+    with pytest.raises(KernelBuildError, match="broken.cl failed to build") as info:
+        rt.program("broken.cl")
+    assert "nope" in str(info.value)  # the compiler's own message is in the log
+
+
+@pytest.mark.skipif(not (Path(sys.prefix) / "lib" / "libintelocl.so").is_file(),
+                    reason="intel-opencl-rt is not installed")
+def test_a_runtime_that_cannot_be_registered_says_why(tmp_path):
+    """A user's OCL_ICD_VENDORS folder without Intel's .icd hides the runtime:
+    devices() warns and the error for device='intel' names the reason."""
+    import subprocess
+    child = ("import warnings, hlbvh_cl\n"
+             "from hlbvh_cl.device import select_device\n"
+             "with warnings.catch_warnings(record=True) as caught:\n"
+             "    warnings.simplefilter('always')\n"
+             "    hlbvh_cl.devices()\n"
+             "print([str(w.message) for w in caught])\n"
+             "try:\n"
+             "    select_device('intel')\n"
+             "except ValueError as error:\n"
+             "    print(error)\n")
+    env = {**os.environ, "OCL_ICD_VENDORS": str(tmp_path)}
+    env.pop("HLBVH_CL_DEVICE", None)
+    done = subprocess.run([sys.executable, "-c", child], env=env, capture_output=True, text=True,
+                          timeout=120)
+    warned, error = done.stdout.strip().splitlines()[-2:]
+    assert "Intel's CPU runtime" in warned and f"OCL_ICD_VENDORS={tmp_path}" in warned
+    assert "matches no OpenCL device" in error and "not registered: Intel's CPU runtime" in error
+
+
+def test_importing_changes_nothing_outside_the_package():
+    import subprocess
+    child = ("import os; before = dict(os.environ); import pyopencl; before = dict(os.environ)\n"
+             "import hlbvh_cl; print(dict(os.environ) == before)")
+    env = {k: v for k, v in os.environ.items() if k != "OCL_ICD_VENDORS"}
+    done = subprocess.run([sys.executable, "-c", child], env=env, capture_output=True, text=True,
+                          timeout=120)
+    assert done.stdout.strip() == "True", done.stderr
+
+
+# -- profiles and variants -------------------------------------------------------------
+
+CPU, GPU = Profile("cpu"), Profile("gpu")
+
+
+def names(variants):
+    return [v.name for v in variants]
+
+
+@pytest.mark.parametrize("target, expected", [
+    # PyPI's PoCL 3.0 on a Zen 4: 16-wide vectors reported, znver3 (AVX2) compiled
+    ({"x86": True, "avx": True, "avx512": False, "reported_width": 16},
+     ["packet8", "packet1", "packet1-plain"]),
+    ({"x86": True, "avx": True, "avx512": True, "reported_width": 16},
+     ["packet16", "packet8", "packet1", "packet1-plain"]),
+    ({"x86": True, "avx": False, "avx512": False, "reported_width": 4}, ["packet1", "packet1-plain"]),
+    # a SPIR front end (Intel's CPU runtime) reveals no target: its report counts
+    ({"x86": False, "avx": False, "avx512": False, "reported_width": 8},
+     ["packet8", "packet1", "packet1-plain"]),
+    ({"x86": False, "avx": False, "avx512": False, "reported_width": 16},
+     ["packet16", "packet8", "packet1", "packet1-plain"]),
+])
+def test_cpu_candidates_follow_the_compilers_real_target(target, expected):
+    assert names(candidates(CPU, target)) == expected
+    assert vector_width(target) >= max(v.packet_size for v in candidates(CPU, target))
+
+
+def test_gpu_profile_traces_one_ray_per_work_item():
+    wide = {"x86": True, "avx": True, "avx512": True, "reported_width": 16}
+    assert names(candidates(GPU, wide)) == ["packet1", "packet1-plain"]
+    assert candidates(GPU, wide)[-1] == SAFEST == Variant.parse("packet1-plain")
+    assert Variant.parse("packet8") == Variant(8) and SAFEST.defines == {"PLAIN_OPENCL": 1}
+    with pytest.raises(ValueError, match="not a kernel variant"):
+        Variant.parse("packet8-fast")
+
+
+def test_profile_comes_from_the_device_type_or_the_environment(monkeypatch):
+    monkeypatch.delenv("HLBVH_CL_PROFILE", raising=False)
+    assert profile_name("cpu") == "cpu"
+    assert profile_name("gpu") == profile_name("accelerator") == "gpu"
+    monkeypatch.setenv("HLBVH_CL_PROFILE", "GPU")
+    assert profile_name("cpu") == "gpu"
+    monkeypatch.setenv("HLBVH_CL_PROFILE", "fpga")
+    with pytest.raises(ValueError, match="HLBVH_CL_PROFILE='fpga' is not a profile"):
+        profile_name("cpu")
+
+
+def test_default_device_is_never_a_simulator_and_always_works(monkeypatch):
+    monkeypatch.delenv("HLBVH_CL_DEVICE", raising=False)
+    chosen = select_device()
+    assert not chosen.simulator and chosen.problem is None
+    usable = [d for d in hlbvh_cl.devices() if d.skipped_because is None]
+    gpus = [d for d in usable if d.type == "gpu"]
+    if gpus:
+        assert chosen.type == "gpu"
+    else:  # the CPU runtime that traced fastest in its probe
+        cpus = [d for d in usable if d.type == "cpu"]
+        assert chosen.verdict.mrays_per_s == max(d.verdict.mrays_per_s for d in cpus)
+    for d in hlbvh_cl.devices():
+        if d.simulator:
+            assert "simulator" in d.skipped_because
+
+
+@pytest.fixture
+def fresh_probes(tmp_path, monkeypatch, suite_device):
+    """The suite's device, its verdicts in an empty folder of this test's own
+    (compiled programs stay in the usual caches)."""
+    monkeypatch.setattr(probe, "cache_root", lambda: tmp_path)
+    monkeypatch.setattr(probe, "_memory", {})
+    monkeypatch.setattr(probe, "_warned", set())
+    return suite_device
+
+
+def test_a_variant_that_crashes_the_compiler_falls_back_with_one_warning(fresh_probes,
+                                                                         monkeypatch):
+    device = fresh_probes
+    best = device.verdict.chosen  # probed in a child, cached in tmp_path
+    assert best is not None and list(probe.cache_root().glob("probes/*.json"))
+    monkeypatch.setattr(probe, "_memory", {})
+    for path in probe.cache_root().glob("probes/*.json"):
+        path.unlink()
+    monkeypatch.setenv("HLBVH_CL_PROBE_FAULT", f"{best.name}:abort")
+    verdict = device.verdict  # the child aborts as LLVM does; this process goes on
+    assert verdict.chosen is not None and verdict.chosen != best
+    (failed, reason), = verdict.failures
+    assert failed == best and "injected" in reason and "signal 6" in reason
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        rt = Runtime(device)
+    assert rt.variant == verdict.chosen
+    messages = [str(w.message) for w in caught if "hlbvh_cl" in str(w.message)]
+    assert len(messages) == 1 and f"cannot run kernel variant {best.name}" in messages[0]
+    assert "\n" not in messages[0]
+
+
+def test_a_hanging_variant_times_out(fresh_probes, monkeypatch):
+    monkeypatch.setenv("HLBVH_CL_PROBE_FAULT", "packet8:hang")
+    monkeypatch.setenv("HLBVH_CL_PROBE_TIMEOUT", "5")
+    reason = probe.usable(fresh_probes, CPU, Variant(8))
+    assert reason == "timed out after 5 s"
+
+
+def test_a_device_where_no_variant_runs_raises_kernel_build_error(fresh_probes, monkeypatch):
+    monkeypatch.setenv("HLBVH_CL_PROBE_FAULT", "*:abort")
+    device = fresh_probes
+    assert device.problem is not None and "packet1-plain" in device.problem
+    with pytest.raises(KernelBuildError, match=f"no kernel variant runs on {device.id}"):
+        Runtime(device)
+    with pytest.raises(RuntimeError, match="no OpenCL device here can run"):
+        monkeypatch.setattr(device_module, "_devices_cache", [device])
+        monkeypatch.delenv("HLBVH_CL_DEVICE", raising=False)
+        select_device()
+
+
+def test_a_requested_packet_the_device_cannot_run_gives_way(fresh_probes, monkeypatch):
+    from hlbvh_cl.query import RayQuery
+    device = fresh_probes
+    rt = Runtime(device)
+    monkeypatch.setenv("HLBVH_CL_PROBE_FAULT", "packet16:abort")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        query = RayQuery(rt, packet_size=16)
+    assert query.packet_size < 16
+    assert any("cannot run kernel variant packet16" in str(w.message) for w in caught)
+
+
+def test_every_profile_gives_the_same_hits(monkeypatch, suite_device):
+    """Each profile forced on the suite's device traces what the other does
+    (the GPU profile: one ray per work-item, device copies, GPU group sizes)."""
+    from shapes import grid_mesh
+    mesh = grid_mesh(6)
+    rng = np.random.default_rng(3)
+    origins = rng.uniform(-1, 7, (500, 3)) + [0, 0, 3]
+    directions = rng.normal(size=(500, 3)) + [0, 0, -2]
+    results = {}
+    for name in ("cpu", "gpu"):
+        monkeypatch.setenv("HLBVH_CL_PROFILE", name)
+        scene = hlbvh_cl.Scene([mesh], device=suite_device)
+        assert scene._runtime.profile.name == name
+        results[name] = scene.intersect(origins, directions)
+    assert results["gpu"].hit.any()
+    for field in ("t", "prim_id", "geom_id", "u", "v", "normal"):
+        np.testing.assert_array_equal(getattr(results["cpu"], field), getattr(results["gpu"], field))
+
+
+# -- struct layout on every device -----------------------------------------------------
+
+#: Every struct of layout.STRUCTS and each of its fields: (struct, None) is its size.
+FIELDS = [(name, field) for name, dtype in layout.STRUCTS.items()
+          for field in (None, *dtype.names)]
+
+#: The probe kernel, written from FIELDS so that it covers every field the
+#: numpy mirror names (OpenCL C has no offsetof: measure from a real, never
+#: dereferenced, pointer).
+PROBE = "#include \"hlbvh.h\"\n__kernel void struct_layout(__global int *out)\n{\n" + "".join(
+    f"    out[{i}] = (int)sizeof({name});\n" if field is None else
+    f"    out[{i}] = (int)((__global char *)&((__global {name} *)out)->{field}"
+    f" - (__global char *)out);\n"
+    for i, (name, field) in enumerate(FIELDS)) + "}\n"
+
+
+@pytest.mark.parametrize("device", [d.id for d in devices() if d.problem is None])
+def test_struct_layout_matches_device(device):
+    rt = runtime(device)
+    out = np.full(len(FIELDS), -1, np.int32)
+    buf = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, out.nbytes)
+    program = cl.Program(rt.context, PROBE).build(options=["-I", str(kernel_dir())])
+    rt.run(program.struct_layout, 1, buf, local_size=1)
+    cl.enqueue_copy(rt.queue, out, buf)
+    expected = [layout.STRUCTS[s].itemsize if f is None else layout.STRUCTS[s].fields[f][1]
+                for s, f in FIELDS]
+    assert out.tolist() == expected
+
+
+def test_constants_come_from_the_header():
+    text = layout.HEADER.read_text()
+    assert f"#define CLUSTER_BITS {layout.CLUSTER_BITS}" in text
+    assert f"#define MAX_LEAF_SIZE {layout.MAX_LEAF_SIZE}" in text
+    assert layout.EMPTY_CHILD == -1 and "#define EMPTY_CHILD (-1)" in text
+    assert f"#define WIDE_ARITY {layout.WIDE_ARITY}" in text

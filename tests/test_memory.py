@@ -1,0 +1,374 @@
+"""Memory reuse: the buffer pool that recycles scratch and trees between
+builds (hlbvh_cl.pool), the result pool that lends result arrays
+(hlbvh_cl.results), huge-page advice for large buffers (hlbvh_cl.hugepages),
+and the ray query's own buffers: reused, grown, sized from device memory,
+used in place or written in place.
+"""
+from __future__ import annotations
+
+import gc
+import sys
+from pathlib import Path
+
+import numpy as np
+import pyopencl as cl
+import pytest
+
+import hlbvh_cl
+from hlbvh_cl import Mesh, Scene
+from hlbvh_cl import query as query_module
+from hlbvh_cl.device import runtime
+from hlbvh_cl.hugepages import HUGE_PAGE, MIN_ADVISED_BYTES, advise_huge_pages
+from hlbvh_cl.pool import KEEP_BUILDS, BufferPool
+from hlbvh_cl.query import RayQuery
+from hlbvh_cl.results import MIN_POOLED_BYTES, ResultPool
+from ray_cases import assert_matches_oracle, random_rays, scene_case
+from shapes import grid_mesh
+
+
+# -- the buffer pool: scratch and trees between builds ----------------------------
+
+MESH_DIR = Path(__file__).resolve().parent.parent / "scenes" / "meshes"
+
+
+@pytest.fixture
+def pool():
+    return BufferPool(runtime().allocate)
+
+
+def test_take_reuses_a_given_buffer_of_the_same_size_only(pool):
+    a = pool.take(1000)
+    pool.give(a)
+    assert pool.take(1000) is a
+    pool.give(a)
+    b = pool.take(1004)
+    assert b is not a and b.size == 1004
+    assert pool.take(0).size == 4  # never an empty buffer
+
+
+def test_a_build_returns_its_scratch_and_keeps_its_results(pool):
+    stale = pool.take(48)
+    pool.give(stale)
+    with pool.build():
+        scratch, result = pool.take(64), pool.take(128)
+        with pool.build():  # nested scopes join the outer one
+            inner = pool.take(256)
+        assert pool.free_bytes == 48  # nothing comes back before the outer scope ends
+        pool.keep(result)
+    # the scratch came back, and the unused 48 stay: 48 + 64 + 256 is within
+    # the budget (KEEP_BUILDS x the 448 bytes this build took)
+    assert pool.free_bytes == 48 + 64 + 256
+    assert pool.take(64) is scratch and pool.take(256) is inner and pool.take(48) is stale
+    assert pool.take(128) is not result
+
+
+def _build(pool, sizes):
+    with pool.build():
+        return [pool.take(size) for size in sizes]
+
+
+def test_scenes_rebuilt_in_turn_each_find_their_buffers(pool):
+    first_a, first_b = _build(pool, [1000, 3000]), _build(pool, [2000, 500])
+    for _ in range(3):
+        again_a, again_b = _build(pool, [1000, 3000]), _build(pool, [2000, 500])
+        assert all(x is y for x, y in zip(again_a, first_a))
+        assert all(x is y for x, y in zip(again_b, first_b))
+
+
+def test_free_bytes_stay_within_budget_oldest_dropped_first(pool):
+    big = _build(pool, [1000])[0]  # budget: KEEP_BUILDS x 1000 bytes
+    assert KEEP_BUILDS * 1000 < 1000 + 700 + 600
+    old, new = pool.take(700), pool.take(600)
+    pool.give(old)
+    pool.give(new)
+    _build(pool, [])  # the end of a build evicts: 1000 + 700 + 600 is over the budget
+    assert pool.free_bytes <= KEEP_BUILDS * 1000
+    assert pool.take(600) is new  # the most recently returned stays
+    assert pool.take(1000) is not big  # the one returned longest ago went first
+
+
+def test_a_buffer_given_twice_is_free_once(pool):
+    a = pool.take(64)
+    pool.give(a)
+    pool.give(a)
+    assert pool.free_bytes == 64
+    assert pool.take(64) is a
+    assert pool.take(64) is not a
+
+
+def test_scratch_comes_back_after_an_error(pool):
+    with pytest.raises(RuntimeError):
+        with pool.build():
+            taken = pool.take(512)
+            raise RuntimeError("a stage failed")
+    assert pool.take(512) is taken
+
+
+def test_rebuild_reuses_the_old_tree_and_answers_as_a_fresh_scene():
+    mesh = Mesh.load(MESH_DIR / "bunny_small.ply")
+    scene = Scene([mesh])
+    old = scene._tree
+    old_buffers = {old.nodes.int_ptr, old.triangles.int_ptr, old.refs.int_ptr}
+    scene.rebuild()
+    new = scene._tree
+    assert old.released and not new.released
+    assert {new.nodes.int_ptr, new.triangles.int_ptr, new.refs.int_ptr} == old_buffers
+
+    rng = np.random.default_rng(5)
+    center = 0.5 * (mesh.vertices.min(axis=0) + mesh.vertices.max(axis=0))
+    origins = center + rng.normal(size=(2000, 3)).astype(np.float32) * 0.3
+    directions = rng.normal(size=(2000, 3)).astype(np.float32)
+    fresh = Scene([mesh])
+    a, b = scene.intersect(origins, directions), fresh.intersect(origins, directions)
+    for field in ("t", "prim_id", "geom_id", "u", "v", "normal"):
+        np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+    assert 0 < a.hit.mean() < 1
+    np.testing.assert_array_equal(scene.occluded(origins, directions),
+                                  fresh.occluded(origins, directions))
+
+
+def test_a_released_tree_cannot_be_queried():
+    scene = Scene([Mesh.load(MESH_DIR / "knight.ply")])
+    old = scene._tree
+    scene.rebuild()
+    query = scene._ray_query()
+    with pytest.raises(ValueError, match="released when its Scene rebuilt"):
+        query.intersect(old, np.zeros((1, 3)), np.ones((1, 3)))
+
+
+def test_a_scene_that_goes_away_takes_its_scratch_with_it():
+    import gc
+    scene = Scene([Mesh.load(MESH_DIR / "knight.ply")])
+    pool = scene._runtime.pool
+    scene.rebuild()
+    assert pool.free_bytes > 0  # the last build's scratch, kept for the next rebuild
+    del scene
+    gc.collect()
+    assert pool.free_bytes == 0
+
+
+# -- the result pool: result arrays lent and lent again ---------------------------
+
+BIG = MIN_POOLED_BYTES // 4  # float32 elements that make a pooled request
+
+
+def test_lent_arrays_are_aligned_and_apart():
+    pool = ResultPool()
+    a, b = pool.empty(BIG, np.float32), pool.empty((BIG, 3), np.int32)
+    assert a.shape == (BIG,) and a.dtype == np.float32
+    assert b.shape == (BIG, 3) and b.dtype == np.int32
+    assert a.ctypes.data % 64 == 0 and b.ctypes.data % 64 == 0
+    a[:] = 1.5
+    b[:] = -7
+    assert np.all(a == 1.5) and np.all(b == -7)  # no overlap
+
+
+def test_a_block_is_lent_again_only_once_dropped():
+    pool = ResultPool()
+    first = pool.empty(BIG, np.float32)
+    first[:] = 1.0
+    second = pool.empty(BIG, np.float32)
+    assert not np.shares_memory(first, second)
+    second[:] = 2.0
+    assert np.all(first == 1.0)
+    address = first.ctypes.data
+    del first
+    gc.collect()
+    assert pool.empty(BIG, np.float32).ctypes.data == address  # recycled
+
+
+def test_a_kept_view_keeps_its_block():
+    pool = ResultPool()
+    kept = pool.empty((BIG, 3), np.int32)[10:20]  # a slice only
+    kept[:] = 42
+    others = [pool.empty((BIG, 3), np.int32) for _ in range(4)]
+    for array in others:
+        array[:] = 0
+        assert not np.shares_memory(array, kept)
+    del others
+    gc.collect()
+    for _ in range(3):  # the others' blocks come back; kept's never does
+        again = pool.empty((BIG, 3), np.int32)
+        assert not np.shares_memory(again, kept)
+        again[:] = 0
+    assert np.all(kept == 42)
+
+
+def test_blocks_of_several_sizes_and_held_results():
+    """Requests of two pooled sizes, the older results of each held a while."""
+    pool = ResultPool(keep=3)
+    shapes = [((BIG,), np.float32), ((BIG, 3), np.float32)]
+    held = []
+    for k in range(12):
+        shape, dtype = shapes[k % 2]
+        array = pool.empty(shape, dtype)
+        array[...] = k
+        held.append((k, array))
+        if len(held) > 3:
+            held.pop(0)
+        for value, older in held:
+            assert np.all(older == value)
+    assert len(pool._free) <= pool.keep
+
+
+def test_small_results_are_plain_arrays():
+    assert ResultPool().empty(16, np.float32).flags.owndata
+
+
+def test_held_hits_survive_later_queries():
+    scene = hlbvh_cl.Scene([grid_mesh()])
+    lo, hi = scene._tree.bounds_lo, scene._tree.bounds_hi
+    count = MIN_POOLED_BYTES // 4 + 10
+
+    def rays(seed):
+        r = np.random.default_rng(seed)
+        targets = lo + r.random((count, 3)) * (hi - lo)
+        origins = targets + np.array([0.0, 0.0, 2.0]) * float(np.max(hi - lo)) + 0.01
+        return origins.astype(np.float32), (targets - origins).astype(np.float32)
+
+    held = scene.intersect(*rays(1))
+    held_occluded = scene.occluded(*rays(1))
+    copy = {name: getattr(held, name).copy() for name in ("t", "prim_id", "normal")}
+    for seed in range(2, 6):
+        scene.intersect(*rays(seed))
+        scene.occluded(*rays(seed))
+    for name, values in copy.items():
+        np.testing.assert_array_equal(getattr(held, name), values)
+    np.testing.assert_array_equal(held_occluded, held.hit)
+    assert held.hit.mean() > 0.5
+
+
+# -- huge pages ---------------------------------------------------------------------
+
+THP_MODE = Path("/sys/kernel/mm/transparent_hugepage/enabled")
+
+
+def _thp_on_request() -> bool:
+    """THP set to "always" or "madvise" (the active mode is in brackets)."""
+    try:
+        text = THP_MODE.read_text()
+    except OSError:
+        return False
+    return "[always]" in text or "[madvise]" in text
+
+
+def _huge_kib_at(address: int) -> int:
+    """AnonHugePages of the mapping of this process that holds `address`."""
+    inside = False
+    for line in Path("/proc/self/smaps").read_text().splitlines():
+        fields = line.split()
+        if "-" in fields[0] and len(fields) >= 5:
+            low, high = (int(x, 16) for x in fields[0].split("-"))
+            inside = low <= address < high
+        elif inside and fields[0] == "AnonHugePages:":
+            return int(fields[1])
+    return 0
+
+
+def test_small_buffers_are_left_alone():
+    rt = runtime()
+    buffer = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, MIN_ADVISED_BYTES - 4)
+    assert advise_huge_pages(rt.queue, buffer) is False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux") or not _thp_on_request(),
+                    reason="needs Linux with transparent huge pages on request")
+def test_an_advised_buffer_is_backed_by_huge_pages_and_keeps_its_data():
+    rt = runtime()
+    if not rt.huge_pages:
+        pytest.skip(f"{rt.device.id} buffers are not advised (Runtime.huge_pages)")
+    n = 4 * MIN_ADVISED_BYTES
+    buffer = rt.allocate(n)  # advised on creation
+    values = np.arange(n // 4, dtype=np.uint32) * np.uint32(2654435761)
+    cl.enqueue_copy(rt.queue, buffer, values)
+    back = np.empty_like(values)
+    cl.enqueue_copy(rt.queue, back, buffer)
+    assert np.array_equal(back, values)
+    mapped, _ = cl.enqueue_map_buffer(rt.queue, buffer, cl.map_flags.READ, 0, (n,), np.uint8,
+                                      is_blocking=True)
+    try:
+        inside = -(-mapped.ctypes.data // HUGE_PAGE) * HUGE_PAGE
+        assert _huge_kib_at(inside) >= HUGE_PAGE // 1024
+    finally:
+        mapped.base.release(rt.queue)
+
+
+# -- the ray query's buffers ---------------------------------------------------------
+
+def test_buffers_are_reused_and_only_grow():
+    """Where the kernels cannot use the numpy arrays in place (GPUs)."""
+    case = scene_case("cube")
+    q = RayQuery(case.scene._runtime)
+    q.zero_copy = False
+    origins, directions = random_rays(case, 300, seed=13)
+    q.intersect(case.scene._tree, origins, directions)
+    buffers = dict(q._buffers)
+    q.intersect(case.scene._tree, origins[:100], directions[:100])
+    q.occluded(case.scene._tree, origins[:200], directions[:200])
+    assert q._buffers == buffers
+    q.intersect(case.scene._tree, np.repeat(origins, 4, 0), np.repeat(directions, 4, 0))
+    assert q._buffers["origins"] is not buffers["origins"]
+
+
+def test_chunk_size_follows_device_memory():
+    case = scene_case("cube")
+    q = RayQuery(case.scene._runtime)
+    d = case.scene._runtime.device
+    buffers = {**query_module.RAY_ARRAYS, **query_module.HIT_ARRAYS,
+               **query_module.OCCLUDED_ARRAYS}
+    assert q.max_rays_per_launch <= query_module.MAX_RAYS_PER_LAUNCH
+    assert q.max_rays_per_launch * max(buffers.values()) <= d.max_mem_alloc_size
+    assert q.max_rays_per_launch * sum(buffers.values()) <= d.global_mem_size
+
+
+@pytest.mark.parametrize("chunk", [None, 1 << 16, 777], ids=["one-launch", "page-chunks", "odd-chunks"])
+def test_results_written_in_place_equal_read_back_results(chunk):
+    """With device copies of the rays, the kernels may write the results
+    straight into the pool's page-aligned result arrays (Intel's CPU runtime
+    does by default): the same results as reading them back, also when a
+    batch splits into chunks, some of which do not start on a page."""
+    case = scene_case("knight")
+    count = MIN_POOLED_BYTES // 4 + 1000
+    origins, directions = random_rays(case, count, seed=16)
+    copied = RayQuery(case.scene._runtime)
+    copied.zero_copy, copied.outputs_in_place = False, False
+    written = RayQuery(case.scene._runtime, max_rays_per_launch=chunk)
+    written.zero_copy, written.outputs_in_place = False, True
+    expected = copied.intersect(case.scene._tree, origins, directions)
+    got = written.intersect(case.scene._tree, origins, directions)
+    for field in ("t", "prim_id", "geom_id", "u", "v", "normal"):
+        assert getattr(got, field).ctypes.data % query_module.RESULT_ALIGNMENT == 0
+        np.testing.assert_array_equal(getattr(got, field), getattr(expected, field))
+    assert 0 < got.hit.mean() < 1
+    np.testing.assert_array_equal(written.occluded(case.scene._tree, origins, directions),
+                                  copied.occluded(case.scene._tree, origins, directions))
+
+
+def test_in_place_queries_take_any_array_layout():
+    """Read-only, unaligned and shared rays in place give what device copies
+    give; results large enough to come from the ResultPool survive a later
+    query."""
+    case = scene_case("knight")
+    count = MIN_POOLED_BYTES // 4 + 1000
+    origins, directions = random_rays(case, count, seed=15)
+    in_place = RayQuery(case.scene._runtime)
+    in_place.zero_copy = True
+    copied = RayQuery(case.scene._runtime)
+    copied.zero_copy = False
+    expected = copied.intersect(case.scene._tree, origins, directions)
+    raw = np.zeros(origins.nbytes + 5, np.uint8)
+    unaligned = raw[1:1 + origins.nbytes].view(np.float32).reshape(origins.shape)  # 1-byte offset
+    unaligned[:] = origins
+    frozen = directions.copy()
+    frozen.flags.writeable = False
+    got = in_place.intersect(case.scene._tree, unaligned, frozen)
+    in_place.intersect(case.scene._tree, origins[::-1].copy(), directions[::-1].copy())
+    for field in ("t", "prim_id", "geom_id", "u", "v", "normal"):
+        np.testing.assert_array_equal(getattr(got, field), getattr(expected, field))
+    # one array as both origins and directions, and two overlapping views
+    points = np.ascontiguousarray(origins[:500])
+    np.testing.assert_array_equal(in_place.intersect(case.scene._tree, points, points).t,
+                                  copied.intersect(case.scene._tree, points, points.copy()).t)
+    rows = np.ascontiguousarray(origins[:750])
+    overlapping = in_place.intersect(case.scene._tree, rows[:500], rows[250:])
+    assert_matches_oracle(case, overlapping, rows[:500].copy(), rows[250:].copy())

@@ -1,0 +1,383 @@
+"""Ray semantics (hlbvh_cl.query, kernels/traverse.cl): closest hit and any
+hit against the float64 brute-force oracle (tests/ray_cases.py), tmin/tmax,
+misses, hits.points, several meshes, refit, input forms and chunks, and
+trees deeper than the stack.  Packets, watertightness and precision have
+their own modules (test_packets, test_watertight, test_precision); bad input
+is in test_validation, buffer and result reuse in test_memory.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+import hlbvh_cl
+from hlbvh_cl.query import RayQuery
+from hlbvh_cl.tree import Tree
+from hlbvh_cl.widen import widen
+from oracle import brute_force_intersect, brute_force_occluded
+from ray_cases import (MESH_MAKERS, MESHES, T_RTOL, SceneCase, _near_edge_or_limit, _scene_cache,
+                       assert_matches_oracle, random_rays, scene_case)
+
+
+@pytest.fixture(scope="module")
+def several():
+    """Three overlapping meshes: geom_id matters."""
+    knight = hlbvh_cl.Mesh.load(MESHES / "knight.ply")
+    teapot = hlbvh_cl.Mesh.load(MESHES / "teapot.ply")
+    bunny = hlbvh_cl.Mesh.load(MESHES / "bunny_small.ply")
+    k_lo, k_hi = knight.bounds
+    size = float(np.max(k_hi - k_lo))
+
+    def fit(mesh, shift):
+        lo, hi = mesh.bounds
+        scale = 0.6 * size / float(np.max(hi - lo))
+        centre = (lo + hi) / 2
+        moved = (mesh.vertices - centre) * scale + (k_lo + k_hi) / 2 + np.asarray(shift) * size
+        return hlbvh_cl.Mesh(moved, mesh.faces, name=mesh.name)
+
+    return SceneCase([knight, fit(teapot, [0.25, 0.1, 0.0]), fit(bunny, [-0.2, 0.0, 0.15])])
+
+
+# -- closest hit and any hit ----------------------------------------------------
+
+def test_hit_points_match_the_oracle():
+    """hits.points = origin + t * direction in the caller's coordinates,
+    NaN on a miss; within float32 rounding of the float64 oracle's point."""
+    case = scene_case("teapot")
+    origins, directions = random_rays(case, 3000, 11)
+    hits = case.scene.intersect(origins.astype(np.float64), directions)
+    expected = brute_force_intersect(case.vertices, case.faces, origins, directions)
+    points = hits.points
+    assert points.dtype == np.float32 and points.shape == (len(origins), 3)
+    assert np.array_equal(np.isnan(points).any(axis=1), ~hits.hit)
+    hit = hits.hit & np.isfinite(expected["t"])
+    assert hit.sum() > 500
+    oracle = origins[hit].astype(np.float64) + expected["t"][hit, None] * directions[hit]
+    np.testing.assert_allclose(points[hit], oracle, atol=1e-4 * case.scale)
+
+
+@pytest.mark.parametrize("name", list(MESH_MAKERS))
+def test_random_rays_match_oracle(name):
+    case = scene_case(name)
+    origins, directions = random_rays(case, 1500, seed=1)
+    hits = case.scene.intersect(origins, directions)
+    assert_matches_oracle(case, hits, origins, directions)
+    if name != "degenerate":
+        assert 0.1 < hits.hit.mean(), "the rays should mostly hit the scene"
+    # occluded agrees with intersect (and so with the oracle, checked above)
+    np.testing.assert_array_equal(case.scene.occluded(origins, directions), hits.hit)
+
+
+@pytest.mark.parametrize("builder", ["hlbvh", "lbvh"])
+def test_every_builders_tree_traverses(builder):
+    case = SceneCase([MESH_MAKERS["bunny_small"](), MESH_MAKERS["knight"]()], builder=builder)
+    origins, directions = random_rays(case, 1500, seed=14)
+    hits = case.scene.intersect(origins, directions)
+    assert_matches_oracle(case, hits, origins, directions)
+    np.testing.assert_array_equal(case.scene.occluded(origins, directions), hits.hit)
+
+
+def test_degenerate_triangles_are_never_hit():
+    case = scene_case("degenerate")
+    rng = np.random.default_rng(5)
+    # aim at points of the zero-area triangles themselves
+    targets = np.concatenate([case.vertices[[3, 4, 5, 6, 7]],
+                              case.vertices[3] + rng.random((200, 1)) * (case.vertices[6] - case.vertices[3])])
+    origins = targets + rng.normal(size=targets.shape)
+    hits = case.scene.intersect(origins.astype(np.float32), (targets - origins).astype(np.float32))
+    assert set(hits.prim_id[hits.hit].tolist()) <= {0, 1}
+
+
+@pytest.mark.parametrize("name", ["knight", "teapot", "bunny_small", "cube"])
+def test_occluded_with_tmax_matches_oracle(name):
+    case = scene_case(name)
+    origins, directions = random_rays(case, 1500, seed=2)
+    hits = case.scene.intersect(origins, directions)
+    rng = np.random.default_rng(3)
+    # per-ray tmax around the first hit: about half of the hits get cut off
+    tmax = np.where(hits.hit, hits.t * rng.uniform(0.5, 1.5, len(hits)), rng.uniform(0, 10, len(hits)))
+    occluded = case.scene.occluded(origins, directions, tmax=tmax)
+    ref = brute_force_occluded(case.vertices, case.faces, origins, directions, 0.0, tmax.astype(np.float32))
+    for i in np.flatnonzero(occluded != ref):
+        assert _near_edge_or_limit(case, origins[i], directions[i], 0.0, float(np.float32(tmax[i])))
+    cut = case.scene.intersect(origins, directions, tmax=tmax)
+    np.testing.assert_array_equal(occluded, cut.hit)
+    assert np.all(cut.t[cut.hit] <= tmax.astype(np.float32)[cut.hit])
+    assert 0 < np.count_nonzero(hits.hit & ~cut.hit), "some hits should have been cut off"
+
+
+@pytest.mark.parametrize("name", ["knight", "bunny_small", "teapot"])
+def test_tmax_cuts_off_hits(name):
+    case = scene_case(name)
+    origins, directions = random_rays(case, 1000, seed=4)
+    first = case.scene.intersect(origins, directions)
+    assert first.hit.sum() > 100
+    # just short of the first hit: nothing is left to hit
+    short = np.where(first.hit, first.t * 0.999, np.inf).astype(np.float32)
+    hits = case.scene.intersect(origins, directions, tmax=short)
+    assert_matches_oracle(case, hits, origins, directions, tmax=short)
+    assert not np.any(hits.hit & first.hit)
+    # just beyond it: the same hits
+    beyond = np.where(first.hit, first.t * 1.001, 1.0).astype(np.float32)
+    hits = case.scene.intersect(origins, directions, tmax=beyond)
+    assert_matches_oracle(case, hits, origins, directions, tmax=beyond)
+    np.testing.assert_array_equal(hits.t[first.hit], first.t[first.hit])
+
+
+@pytest.mark.parametrize("name", ["knight", "bunny_small", "teapot", "cube"])
+def test_rays_from_the_surface_with_tmin(name):
+    case = scene_case(name)
+    rng = np.random.default_rng(6)
+    count = 1000
+    faces = rng.integers(0, len(case.faces), count)
+    weights = rng.dirichlet([1, 1, 1], count)
+    points = np.einsum("rk,rkj->rj", weights, case.vertices[case.faces[faces]])
+    directions = rng.normal(size=(count, 3))
+    tmin = 1e-4 * case.extent / np.linalg.norm(directions, axis=1)
+    origins, directions = points.astype(np.float32), directions.astype(np.float32)
+    hits = case.scene.intersect(origins, directions, tmin=tmin)
+    assert_matches_oracle(case, hits, origins, directions, tmin=tmin.astype(np.float32))
+    assert np.all(hits.t[hits.hit] >= tmin.astype(np.float32)[hits.hit])
+    # with tmin = 0 each ray may hit its own triangle at t ~ 0
+    at_zero = case.scene.intersect(origins, directions)
+    assert np.count_nonzero(at_zero.hit) >= np.count_nonzero(hits.hit)
+
+
+@pytest.mark.parametrize("name", ["cube", "grid", "knight"])
+def test_axis_parallel_rays(name):
+    """Zero direction components (+0 and -0), origins on the box planes and
+    on the meshes' own vertex coordinates."""
+    case = scene_case(name)
+    rng = np.random.default_rng(7)
+    lo, hi = case.lo, case.hi
+    levels = [np.unique(np.concatenate([[lo[k], hi[k], (lo[k] + hi[k]) / 2],
+                                        rng.choice(case.vertices[:, k], 6),
+                                        lo[k] + rng.random(6) * (hi[k] - lo[k])]))
+              for k in range(3)]
+    origins, directions = [], []
+    for axis in range(3):
+        a, b = [k for k in range(3) if k != axis]
+        for sign in (1.0, -1.0):
+            for zero in (0.0, -0.0):
+                for x in levels[a]:
+                    for y in levels[b]:
+                        origin = np.empty(3)
+                        origin[axis] = lo[axis] - 1 if sign > 0 else hi[axis] + 1
+                        origin[a], origin[b] = x, y
+                        direction = np.full(3, zero)
+                        direction[axis] = sign
+                        origins.append(origin)
+                        directions.append(direction)
+    origins = np.array(origins, np.float32)
+    directions = np.array(directions, np.float32)
+    assert np.any(np.signbit(directions) & (directions == 0)), "-0 components are tested"
+    hits = case.scene.intersect(origins, directions)
+    assert_matches_oracle(case, hits, origins, directions)
+    assert hits.hit.any()
+    np.testing.assert_array_equal(case.scene.occluded(origins, directions), hits.hit)
+
+
+def test_axis_parallel_rays_in_a_face_plane_hit_its_edges():
+    """A ray lying in the plane x = 0 of the cube's face (direction x = +0 or
+    -0) must still enter the boxes and hit the faces it crosses at their edge."""
+    case = scene_case("cube")
+    origins = np.array([[0, 0.5, -1], [0, 0.5, -1], [1, 0.25, 2], [0.5, 0, -3], [0, 0, -1]], np.float32)
+    directions = np.array([[0, 0, 1], [-0.0, 0, 1], [-0.0, -0.0, -1], [0, -0.0, 1], [0, 0, 1]],
+                          np.float32)
+    hits = case.scene.intersect(origins, directions)
+    ref = assert_matches_oracle(case, hits, origins, directions)
+    assert np.all(ref["prim"] >= 0) and hits.hit.all()
+    np.testing.assert_allclose(hits.t, [1, 1, 1, 3, 1])
+
+
+def test_several_meshes_geom_id(several):
+    case = several
+    origins, directions = random_rays(case, 3000, seed=8)
+    hits = case.scene.intersect(origins, directions)
+    assert_matches_oracle(case, hits, origins, directions)
+    assert set(np.unique(hits.geom_id[hits.hit])) == {0, 1, 2}
+    for geom_id, mesh in enumerate(case.meshes):
+        mine = hits.geom_id == geom_id
+        assert np.all(hits.prim_id[mine] < mesh.triangle_count)
+    np.testing.assert_array_equal(case.scene.occluded(origins, directions), hits.hit)
+
+
+def test_results_after_update_vertices_equal_a_fresh_scene():
+    knight = hlbvh_cl.Mesh.load(MESHES / "knight.ply")
+    teapot = hlbvh_cl.Mesh.load(MESHES / "teapot.ply")
+    scene = hlbvh_cl.Scene([knight, teapot])
+    v = knight.vertices.astype(np.float64)
+    moved = v * 1.2 + 0.05 * np.sin(7 * v[:, [1, 2, 0]]) * np.ptp(v, axis=0)
+    scene.update_vertices(0, moved)
+    fresh = SceneCase([hlbvh_cl.Mesh(moved, knight.faces), teapot])
+    origins, directions = random_rays(fresh, 2000, seed=9)
+    updated = scene.intersect(origins, directions)
+    rebuilt = fresh.scene.intersect(origins, directions)
+    assert_matches_oracle(fresh, updated, origins, directions)
+    np.testing.assert_array_equal(updated.hit, rebuilt.hit)
+    same = (updated.geom_id == rebuilt.geom_id) & (updated.prim_id == rebuilt.prim_id)
+    # same triangle -> bit-identical answers; a different one only at a tie
+    np.testing.assert_array_equal(updated.t[same], rebuilt.t[same])
+    np.testing.assert_array_equal(updated.u[same], rebuilt.u[same])
+    np.testing.assert_array_equal(updated.normal[same], rebuilt.normal[same])
+    np.testing.assert_allclose(updated.t[~same], rebuilt.t[~same], rtol=T_RTOL)
+
+
+# -- input forms, empty batches, chunks -------------------------------------------
+
+def test_input_forms_give_the_same_answer():
+    case = scene_case("knight")
+    origins, directions = random_rays(case, 200, seed=10)
+    reference = case.scene.intersect(origins, directions)
+    for o, d in [(origins.astype(np.float64), directions.astype(np.float64)),
+                 (origins.tolist(), directions.tolist()),
+                 (np.asfortranarray(origins), np.repeat(directions, 2, 0)[::2])]:
+        hits = case.scene.intersect(o, d, tmin=np.zeros(len(origins)), tmax=np.full(len(origins), np.inf))
+        for field in ("t", "prim_id", "geom_id", "u", "v", "normal"):
+            np.testing.assert_array_equal(getattr(hits, field), getattr(reference, field))
+
+
+def test_hits_fields():
+    case = scene_case("cube")
+    hits = case.scene.intersect([[0.5, 0.5, -1], [5, 5, 5]], [[0, 0, 1], [1, 0, 0]])
+    assert len(hits) == 2
+    np.testing.assert_array_equal(hits.hit, [True, False])
+    assert hits.t.dtype == np.float32 and hits.u.dtype == np.float32 and hits.v.dtype == np.float32
+    assert hits.prim_id.dtype == np.int32 and hits.geom_id.dtype == np.int32
+    assert hits.normal.shape == (2, 3) and hits.normal.dtype == np.float32
+    assert hits.t[0] == 1.0 and abs(hits.normal[0, 2]) == 1.0
+
+
+def test_empty_batch():
+    case = scene_case("cube")
+    hits = case.scene.intersect(np.zeros((0, 3)), np.zeros((0, 3)))
+    assert len(hits) == 0 and hits.normal.shape == (0, 3) and hits.hit.shape == (0,)
+    assert hits.t.dtype == np.float32 and hits.prim_id.dtype == np.int32
+    occluded = case.scene.occluded(np.zeros((0, 3)), np.zeros((0, 3)))
+    assert occluded.shape == (0,) and occluded.dtype == bool
+
+
+@pytest.mark.parametrize("zero_copy", [True, False], ids=["in-place", "device-copies"])
+def test_batches_split_into_chunks_equal_one_launch(zero_copy):
+    """Also: the kernels on the numpy arrays in place (CPUs) and through device
+    buffers (GPUs) give the same results."""
+    case = scene_case("bunny_small")
+    origins, directions = random_rays(case, 5000, seed=11)
+    rng = np.random.default_rng(12)
+    tmin = rng.uniform(0, 0.2, len(origins))
+    tmax = tmin + rng.uniform(0.5, 3, len(origins))
+    whole = RayQuery(case.scene._runtime)
+    chunked = RayQuery(case.scene._runtime, max_rays_per_launch=777)
+    chunked.zero_copy = zero_copy
+    assert chunked.max_rays_per_launch == 777 and whole.max_rays_per_launch >= 5000
+    a = whole.intersect(case.scene._tree, origins, directions, tmin, tmax)
+    b = chunked.intersect(case.scene._tree, origins, directions, tmin, tmax)
+    for field in ("t", "prim_id", "geom_id", "u", "v", "normal"):
+        np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+    np.testing.assert_array_equal(whole.occluded(case.scene._tree, origins, directions, tmin, tmax),
+                                  chunked.occluded(case.scene._tree, origins, directions, tmin, tmax))
+    assert 0 < a.hit.mean() < 1
+
+
+# -- deep trees and the traversal stack -------------------------------------------
+
+def morton_chain_mesh(duplicates: int = 16384) -> hlbvh_cl.Mesh:
+    """Small triangles whose 63-bit Morton codes are 1 << j for j = 0..62 (one
+    coordinate bit set each), many more at code 0 and one at the far corner:
+    the Karras tree is a chain that splits off one triangle per bit, and the
+    LBVH is deeper than 64."""
+    centres = [np.eye(3)[axis] * 2.0 ** (a - 21) for a in range(21) for axis in range(3)]
+    centres = np.array(centres + [np.zeros(3)] * duplicates + [np.ones(3)])
+    sizes = 1e-3 * np.maximum(np.abs(centres).max(axis=1), 2.0 ** -21)[:, None, None]
+    corners = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]]) - [1 / 3, 1 / 3, 0]
+    vertices = (centres[:, None, :] + sizes * corners).reshape(-1, 3)
+    return hlbvh_cl.Mesh(vertices, np.arange(len(vertices)).reshape(-1, 3), name="chain")
+
+
+@pytest.mark.parametrize("packet_size", [1, 8, 16])
+def test_a_tree_deeper_than_64_traces_within_its_stack(packet_size):
+    """Every profile sizes its private stack from the tree's depth: a built
+    tree of depth > 64 neither overflows nor loses a hit."""
+    case = _scene_cache.setdefault("chain", SceneCase([morton_chain_mesh()], "lbvh", 63))
+    assert case.scene.stats.depth > 64
+    centres = case.vertices[case.faces].mean(axis=1)
+    chain = centres[:63]  # one ray down onto each triangle of the chain, then some at random
+    rng = np.random.default_rng(5)
+    origins = np.concatenate([chain + [0, 0, 1], rng.uniform(0, 1, (200, 3)) + [0, 0, 1]])
+    directions = np.concatenate([np.tile([0.0, 0, -1], (63, 1)), rng.normal(size=(200, 3))])
+    q = RayQuery(case.scene._runtime, packet_size=packet_size)
+    hits = q.intersect(case.scene._tree, origins, directions)  # raises if the stack overflows
+    assert hits.hit[:63].all()
+    assert_matches_oracle(case, hits, origins, directions)
+    np.testing.assert_array_equal(q.occluded(case.scene._tree, origins, directions), hits.hit)
+
+
+@pytest.mark.parametrize("packet_size", [1, 8])
+def test_stack_is_sized_from_the_tree_depth_and_overflow_raises(packet_size):
+    """A hand-made chain tree that pushes one subtree per level: with its true
+    depth the nearest hit is found; with a depth that lies, the query raises.
+    (With packets of 8 the one ray fills a packet: the packet traversal's
+    stack; with 1, the single-ray traversal's.)"""
+    import pyopencl as cl
+    from hlbvh_cl import layout
+
+    rt = scene_case("cube").scene._runtime
+    levels = 40
+    z = np.arange(1, levels + 1, dtype=np.float32)  # triangle k at z = k + 1
+    tris = np.zeros(levels, layout.TRIANGLE)
+    tris["v0"] = np.stack([np.full(levels, -1), np.full(levels, -1), z], 1)
+    tris["v1"] = np.stack([np.full(levels, 3), np.full(levels, -1), z], 1)
+    tris["v2"] = np.stack([np.full(levels, -1), np.full(levels, 3), z], 1)
+    refs = np.zeros(levels, layout.TRIANGLE_REF)
+    refs["prim_id"] = np.arange(levels)
+
+    def box(k0, k1):  # triangles [k0, k1)
+        return [-1, -1, z[k0]], [3, 3, z[k1 - 1]]
+
+    # chain node j covers triangles [0, levels - j): its near child is the next
+    # chain node, its far child a node holding only the farthest triangle.
+    nodes = []
+    chain = list(range(levels - 1))
+    holder = list(range(levels - 1, 2 * levels - 2))
+    for j in range(levels - 1):
+        n = np.zeros((), layout.FLAT_NODE)
+        remaining = levels - j
+        if remaining - 1 > 1:
+            n["left"], n["left_count"] = chain[j + 1], 0
+        else:
+            n["left"], n["left_count"] = 0, 1
+        n["left_lo"], n["left_hi"] = box(0, remaining - 1)
+        n["right"], n["right_count"] = holder[j], 0
+        n["right_lo"], n["right_hi"] = box(remaining - 1, remaining)
+        nodes.append(n)
+    for j in range(levels - 1):
+        n = np.zeros((), layout.FLAT_NODE)
+        k = levels - 1 - j
+        n["left"], n["left_count"] = k, 1
+        n["left_lo"], n["left_hi"] = box(k, k + 1)
+        n["right"], n["right_count"] = layout.EMPTY_CHILD, 0
+        n["right_lo"], n["right_hi"] = np.inf, -np.inf
+        nodes.append(n)
+    nodes = np.array(nodes, layout.FLAT_NODE)
+    mf = cl.mem_flags
+
+    def upload(array):
+        return cl.Buffer(rt.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=array)
+
+    wide, wide_levels, _ = widen(rt, upload(nodes), len(nodes))
+    tree = Tree(nodes=wide, triangles=upload(tris), refs=upload(refs),
+                node_count=sum(count for _, count in wide_levels), levels=wide_levels,
+                triangle_count=levels, bounds_lo=np.array([-1, -1, 1], np.float32),
+                bounds_hi=np.array([3, 3, levels], np.float32))
+    assert tree.depth > 3
+
+    q = RayQuery(rt, packet_size=packet_size)
+    origins, directions = [[0.0, 0.0, 0.0]], [[0.0, 0.0, 1.0]]
+    hits = q.intersect(tree, origins, directions)
+    assert hits.prim_id[0] == 0 and hits.t[0] == 1.0
+    assert q.occluded(tree, origins, directions)[0]
+    lying = dataclasses.replace(tree, levels=wide_levels[:1])  # depth 1
+    with pytest.raises(RuntimeError, match="stack"):
+        q.intersect(lying, origins, directions)

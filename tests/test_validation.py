@@ -1,0 +1,373 @@
+"""Input validation: every bad argument is refused before any kernel runs or
+any buffer is allocated, with an error that names the array, the row and
+what is wrong: rays and their limits, ray-query settings, meshes (arrays and
+files), scenes and update_vertices, scenes too large for the device, and
+the renderer's, cameras' and lights' arguments.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pyopencl as cl
+import pytest
+import trimesh
+
+import hlbvh_cl
+from hlbvh_cl import DeviceMemoryError, Scene
+from hlbvh_cl import query as query_module
+from hlbvh_cl.build import Geometry, build
+from hlbvh_cl.device import Runtime, runtime
+from hlbvh_cl.mesh import Mesh
+from hlbvh_cl.query import RayQuery
+from invariants import check_tree
+from ray_cases import scene_case
+from render_scene import CAMERA, COLORS, LIGHT, renderer, scene  # noqa: F401 (fixtures)
+from shapes import QUAD, QUAD_FACES
+
+
+# -- rays and their limits -------------------------------------------------------
+
+GOOD_O = np.zeros((3, 3))
+GOOD_D = np.array([[0, 0, 1.0]] * 3)
+
+
+def _with_row(array, row, value):
+    array = np.array(array, dtype=np.float64)
+    array[row] = value
+    return array
+
+
+BAD_INPUTS = [
+    # (origins, directions, tmin, tmax, exception, message fragment)
+    (np.zeros((3, 2)), GOOD_D, 0.0, np.inf, ValueError, r"origins must have shape \(R, 3\)"),
+    (np.zeros(3), GOOD_D, 0.0, np.inf, ValueError, r"origins must have shape"),
+    (GOOD_O, np.zeros((3, 3, 1)), 0.0, np.inf, ValueError, r"directions must have shape"),
+    (np.zeros((4, 3)), GOOD_D, 0.0, np.inf, ValueError, r"origins has 4 rows but directions has 3"),
+    (_with_row(GOOD_O, 1, [0, np.nan, 0]), GOOD_D, 0.0, np.inf, ValueError, r"origins\[1\].*not finite"),
+    (_with_row(GOOD_O, 2, [np.inf, 0, 0]), GOOD_D, 0.0, np.inf, ValueError, r"origins\[2\].*not finite"),
+    (_with_row(GOOD_O, 0, [1e39, 0, 0]), GOOD_D, 0.0, np.inf, ValueError, r"origins\[0\].*overflows float32"),
+    (GOOD_O, _with_row(GOOD_D, 2, [0, -np.inf, 1]), 0.0, np.inf, ValueError, r"directions\[2\].*not finite"),
+    (GOOD_O, _with_row(GOOD_D, 1, [0, 0, 0]), 0.0, np.inf, ValueError, r"directions\[1\].*zero length"),
+    (GOOD_O, _with_row(GOOD_D, 1, [-0.0, 0, 0]), 0.0, np.inf, ValueError, r"directions\[1\].*zero length"),
+    (GOOD_O, _with_row(GOOD_D, 0, [1e-40, 0, 0]), 0.0, np.inf, ValueError, r"directions\[0\].*too short"),
+    (GOOD_O, _with_row(GOOD_D, 2, [1e-50, 0, 0]), 0.0, np.inf, ValueError, r"directions\[2\].*zero length"),
+    (GOOD_O, GOOD_D, -1.0, np.inf, ValueError, r"tmin = -1.0 must be finite and >= 0"),
+    (GOOD_O, GOOD_D, [0.0, -0.5, 0.0], np.inf, ValueError, r"tmin\[1\] = -0.5"),
+    (GOOD_O, GOOD_D, np.nan, np.inf, ValueError, r"tmin is NaN"),
+    (GOOD_O, GOOD_D, np.inf, np.inf, ValueError, r"tmin = inf must be finite"),
+    (GOOD_O, GOOD_D, 0.0, [1.0, np.nan, 1.0], ValueError, r"tmax\[1\] is NaN"),
+    (GOOD_O, GOOD_D, 2.0, 1.0, ValueError, r"tmin = 2.0 is greater than tmax = 1.0"),
+    (GOOD_O, GOOD_D, [0.0, 0.0, 5.0], [1.0, 1.0, 4.0], ValueError, r"ray 2: tmin\[2\] = 5.0 is greater than tmax\[2\] = 4.0"),
+    (GOOD_O, GOOD_D, 0.0, -1.0, ValueError, r"tmin = 0.0 is greater than tmax = -1.0"),
+    (GOOD_O, GOOD_D, [0.0, 0.0], np.inf, ValueError, r"tmin has 2 entries but there are 3 rays"),
+    (GOOD_O, GOOD_D, 0.0, np.ones((3, 1)), ValueError, r"tmax must be a scalar or have shape \(R,\)"),
+    (GOOD_O.astype(complex), GOOD_D, 0.0, np.inf, TypeError, r"origins must hold real numbers"),
+    (GOOD_O, GOOD_D.astype(bool), 0.0, np.inf, TypeError, r"directions must hold real numbers"),
+    (GOOD_O, [["a", "b", "c"]] * 3, 0.0, np.inf, TypeError, r"directions must hold real numbers"),
+    ([[0, 0, 0], [0, 0]], GOOD_D[:2], 0.0, np.inf, ValueError, r"origins is not a rectangular"),
+    (GOOD_O, GOOD_D, "0", np.inf, TypeError, r"tmin must hold real numbers"),
+]
+
+
+@pytest.mark.parametrize("origins, directions, tmin, tmax, error, message", BAD_INPUTS,
+                         ids=[f"{i}:{case[-1][:30]}" for i, case in enumerate(BAD_INPUTS)])
+def test_bad_input_raises_before_any_kernel(monkeypatch, origins, directions, tmin, tmax, error, message):
+    case = scene_case("cube")
+
+    def no_launch(*args, **kwargs):
+        raise AssertionError("a kernel was launched for bad input")
+
+    monkeypatch.setattr(RayQuery, "_run", no_launch)
+    with pytest.raises(error, match=message):
+        case.scene.intersect(origins, directions, tmin, tmax)
+    with pytest.raises(error, match=message):
+        case.scene.occluded(origins, directions, tmin, tmax)
+
+
+def test_short_directions_are_found_in_any_block_of_a_large_batch(monkeypatch):
+    """The direction check goes block by block and only looks at rows in the
+    blocks that hold a tiny component: a short row is found (and named) past
+    the first block, while tiny components in a row that is long enough pass."""
+    case = scene_case("cube")
+    monkeypatch.setattr(RayQuery, "_run", lambda *a, **k: pytest.fail("a kernel ran"))
+    count = 3 * query_module.CHECK_BLOCK + 17
+    origins = np.zeros((count, 3), np.float32)
+    directions = np.tile(np.float32([0.3, -0.5, 0.8]), (count, 1))
+    directions[5] = [0.0, 1e-40, 1.0]          # tiny components, long enough
+    directions[count - 3] = [-0.0, 1e-39, 0.0]  # the last block
+    directions[count - 1] = [0.0, 0.0, 0.0]
+    for query in (case.scene.intersect, case.scene.occluded):
+        with pytest.raises(ValueError, match=rf"directions\[{count - 3}\].*too short"):
+            query(origins, directions)
+    directions[count - 3] = [1e-30, 0.0, 0.0]
+    with pytest.raises(ValueError, match=rf"directions\[{count - 1}\].*zero length"):
+        case.scene.intersect(origins, directions)
+
+
+@pytest.mark.parametrize("which, row, value, message", [
+    ("origins", "last", [0.0, np.nan, 0.0], "not finite"),
+    ("origins", "middle", [1e39, 0.0, 0.0], "overflows float32"),
+    ("directions", "middle", [0.0, -np.inf, 1.0], "not finite"),
+    ("directions", "first", [0.0, 0.0, 0.0], "zero length"),
+])
+def test_bad_rows_are_named_in_every_part_of_a_large_batch(monkeypatch, which, row, value, message):
+    """Large batches are checked a run of blocks per thread: a bad row is
+    named by its index wherever it lies, and no kernel runs."""
+    case = scene_case("cube")
+    monkeypatch.setattr(RayQuery, "_run", lambda *a, **k: pytest.fail("a kernel ran"))
+    count = 4 * query_module.CHECK_BLOCK + 5
+    index = {"first": 3, "middle": 2 * query_module.CHECK_BLOCK + 1, "last": count - 2}[row]
+    rays = {"origins": np.zeros((count, 3)), "directions": np.tile([0.3, -0.5, 0.8], (count, 1))}
+    rays[which][index] = value
+    for query in (case.scene.intersect, case.scene.occluded):
+        with pytest.raises(ValueError, match=rf"{which}\[{index}\] = .*{message}"):
+            query(rays["origins"], rays["directions"])
+
+
+# -- ray-query settings -----------------------------------------------------------
+
+def test_bad_tree_and_chunk_size():
+    case = scene_case("cube")
+    q = RayQuery(case.scene._runtime)
+    with pytest.raises(TypeError, match="tree must be a hlbvh_cl.tree.Tree"):
+        q.intersect("tree", GOOD_O, GOOD_D)
+    with pytest.raises(ValueError, match="max_rays_per_launch must be >= 1"):
+        RayQuery(case.scene._runtime, max_rays_per_launch=0)
+    with pytest.raises(TypeError, match="max_rays_per_launch must be an int"):
+        RayQuery(case.scene._runtime, max_rays_per_launch=2.5)
+
+
+def test_packet_size_is_checked():
+    case = scene_case("cube")
+    with pytest.raises(ValueError, match="packet_size"):
+        RayQuery(case.scene._runtime, packet_size=4)
+    for wrong in (True, 8.0, "8"):
+        with pytest.raises(TypeError, match="packet_size"):
+            RayQuery(case.scene._runtime, packet_size=wrong)
+
+
+# -- meshes: arrays ---------------------------------------------------------------
+
+@pytest.mark.parametrize("vertices, error, words", [
+    (np.zeros((4, 2)), ValueError, ["vertices", "(4, 2)", "(N, 3)"]),
+    (np.zeros((4, 3, 1)), ValueError, ["vertices", "(N, 3)"]),
+    (np.zeros((0, 3)), ValueError, ["vertices", "empty"]),
+    ([], ValueError, ["vertices", "empty"]),
+    (np.ones((4, 3), dtype=bool), TypeError, ["vertices", "bool"]),
+    (np.ones((4, 3), dtype=complex), TypeError, ["vertices", "complex"]),
+    (np.full((4, 3), "x"), TypeError, ["vertices", "<U1"]),
+    (np.array([[0, 0, None]] * 4), TypeError, ["vertices", "object"]),
+    ([[0, 0, 0], [1, 0], [1, 1, 0], [0, 1, 0]], ValueError, ["vertices"]),
+])
+def test_bad_vertices(vertices, error, words):
+    with pytest.raises(error) as caught:
+        Mesh(vertices, QUAD_FACES)
+    for word in words:
+        assert word in str(caught.value)
+
+
+@pytest.mark.parametrize("value, words", [
+    (np.nan, ["vertices[2]", "not finite"]),
+    (-np.inf, ["vertices[2]", "not finite"]),
+    (1e39, ["vertices[2]", "overflows float32"]),
+])
+def test_vertices_must_be_finite_in_float32(value, words):
+    vertices = QUAD.copy()
+    vertices[2, 1] = value
+    vertices = np.vstack([vertices, vertices])
+    vertices[5, 0] = value  # a later bad row: the first one is named
+    with pytest.raises(ValueError) as caught:
+        Mesh(vertices, QUAD_FACES)
+    for word in words:
+        assert word in str(caught.value)
+
+
+@pytest.mark.parametrize("faces, error, words", [
+    (np.zeros((2, 4), dtype=int), ValueError, ["faces", "(2, 4)", "(M, 3)"]),
+    (np.zeros((0, 3), dtype=int), ValueError, ["faces", "empty"]),
+    (np.array([[0, 1, 2], [0, 2, 3]], dtype=float), TypeError, ["faces", "float64", "integers"]),
+    (np.ones((2, 3), dtype=bool), TypeError, ["faces", "bool"]),
+    ([[0, 1, 2], [0, -2, 3], [-1, 0, 0]], ValueError, ["faces[1]", "-2", "negative"]),
+    ([[0, 1, 2], [0, 2, 3], [4, 0, 9]], ValueError, ["faces[2]", "4", "4 vertices"]),
+    (np.array([[0, 1, 2], [0, 2**31, 3]], dtype=np.uint64), ValueError, ["faces[1]", "2147483648",
+                                                                          "int32"]),
+])
+def test_bad_faces(faces, error, words):
+    with pytest.raises(error) as caught:
+        Mesh(QUAD, faces)
+    for word in words:
+        assert word in str(caught.value)
+
+
+# -- meshes: files ----------------------------------------------------------------
+
+def test_missing_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nothing.ply"):
+        Mesh.load(tmp_path / "nothing.ply")
+
+
+@pytest.mark.parametrize("name", ["mesh.xyz", "mesh", "mesh.gz", "mesh.xyz.gz"])
+def test_unknown_extension(tmp_path, name):
+    (tmp_path / name).write_bytes(b"0 0 0\n")
+    with pytest.raises(ValueError, match="unknown mesh file extension") as caught:
+        Mesh.load(tmp_path / name)
+    assert name in str(caught.value)
+
+
+@pytest.mark.parametrize("name, content", [
+    ("broken.ply", b"ply\nformat binary_little_endian 1.0\nelement vertex 10\nproperty float x\n"
+                   b"element face 3\nproperty list uchar int vertex_indices\nend_header\n\x01\x02"),
+    ("broken.glb", b"glTF\x02\x00\x00\x00garbage"),
+    ("broken.ply.gz", b"this is not gzip data"),
+])
+def test_corrupt_file(tmp_path, name, content):
+    (tmp_path / name).write_bytes(content)
+    with pytest.raises(ValueError) as caught:
+        Mesh.load(tmp_path / name)
+    assert name in str(caught.value)
+
+
+def test_file_without_triangles(tmp_path):
+    path = tmp_path / "points.ply"
+    trimesh.PointCloud(QUAD).export(path)
+    with pytest.raises(ValueError, match="no triangles") as caught:
+        Mesh.load(path)
+    assert "points.ply" in str(caught.value)
+
+
+def test_bad_data_in_a_file_names_the_file(tmp_path):
+    path = tmp_path / "nan.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv nan 1 0\nf 1 2 3\n")
+    with pytest.raises(ValueError) as caught:
+        Mesh.load(path)
+    assert "nan.obj" in str(caught.value) and "vertices[2]" in str(caught.value)
+
+
+# -- scenes -----------------------------------------------------------------------
+
+def test_scene_rejects_bad_arguments(meshes):
+    with pytest.raises(ValueError, match="meshes is empty"):
+        Scene([])
+    with pytest.raises(TypeError, match=r"meshes\[1\]"):
+        Scene([meshes["knight"], "teapot.ply"])
+    with pytest.raises(TypeError, match="meshes must be"):
+        Scene("knight.ply")
+    with pytest.raises(ValueError, match="builder"):
+        Scene([meshes["knight"]], builder="sah")
+    with pytest.raises(ValueError, match="morton_bits"):
+        Scene([meshes["knight"]], morton_bits=32)
+    with pytest.raises(ValueError, match="matches no OpenCL device"):
+        Scene([meshes["knight"]], device="no-such-device")
+
+
+def test_update_vertices_rejects_bad_input(meshes):
+    knight = meshes["knight"]
+    scene = Scene([knight])
+    with pytest.raises(ValueError, match="geom_id 1 is out of range"):
+        scene.update_vertices(1, knight.vertices)
+    with pytest.raises(TypeError, match="geom_id"):
+        scene.update_vertices("0", knight.vertices)
+    with pytest.raises(ValueError, match="rows but mesh 0 has"):
+        scene.update_vertices(0, knight.vertices[:-1])
+    bad = knight.vertices.copy()
+    bad[17, 1] = np.nan
+    with pytest.raises(ValueError, match="17"):
+        scene.update_vertices(0, bad)
+    with pytest.raises(ValueError, match="shape"):
+        scene.update_vertices(0, knight.vertices[:, :2])
+    check_tree(scene)  # nothing was touched
+
+
+def test_too_large_for_the_device_fails_before_allocating(meshes, monkeypatch):
+    rt = runtime()
+    small = dataclasses.replace(rt.device, max_mem_alloc_size=1 << 20, global_mem_size=1 << 22)
+    tiny_rt = Runtime(small)
+    mesh = meshes["bunny"]
+    geometry = Geometry.upload(tiny_rt, mesh.vertices, mesh.faces, np.zeros(1, np.int32))
+    allocations = []
+    real_buffer = cl.Buffer
+
+    def counting_buffer(*args, **kwargs):
+        allocations.append(args)
+        return real_buffer(*args, **kwargs)
+
+    monkeypatch.setattr(cl, "Buffer", counting_buffer)
+    with pytest.raises(DeviceMemoryError, match="MiB"):
+        build(tiny_rt, geometry)
+    assert allocations == []
+
+
+def test_scene_too_large_is_refused_before_upload(monkeypatch, meshes):
+    from hlbvh_cl import scene as scene_module
+    uploads = []
+    monkeypatch.setattr(scene_module.Geometry, "upload", lambda *a: uploads.append(a))
+    rt = runtime()
+    monkeypatch.setattr(rt, "device", dataclasses.replace(rt.device, global_mem_size=1 << 20))
+    with pytest.raises(DeviceMemoryError, match="building a BVH over 69,451 triangles"):
+        Scene([meshes["bunny"]])
+    assert uploads == []
+
+
+# -- renderer, cameras, lights -------------------------------------------------------
+
+@pytest.mark.parametrize("kwargs, error, words", [
+    ({"camera": "front"}, TypeError, "camera"),
+    ({"width": 0}, ValueError, "width"),
+    ({"height": -3}, ValueError, "height"),
+    ({"width": 100_000}, ValueError, "width"),
+    ({"width": 12.5}, TypeError, "width"),
+    ({"width": True}, TypeError, "width"),
+    ({"shading": "phong"}, ValueError, "shading"),
+    ({"shading": None}, TypeError, "shading"),
+    ({"spp": 0}, ValueError, "spp"),
+    ({"spp": 2.0}, TypeError, "spp"),
+    ({"ao_samples": 0}, ValueError, "ao_samples"),
+    ({"ao_distance": -1.0}, ValueError, "ao_distance"),
+    ({"ao_distance": float("nan")}, ValueError, "ao_distance"),
+    ({"shadows": "yes"}, TypeError, "shadows"),
+])
+def test_bad_render_arguments_are_named(scene, renderer, kwargs, error, words):
+    arguments = {"camera": CAMERA, "width": 8, "height": 6, **kwargs}
+    with pytest.raises(error, match=words):
+        renderer.render(**arguments)
+
+
+def test_bad_colors_and_light_are_named(scene, renderer):
+    try:
+        renderer.colors = COLORS[:2]
+        with pytest.raises(ValueError, match="colors has 2 entries"):
+            renderer.render(CAMERA, 8, 6)
+        renderer.colors = [COLORS[0], (0.5, 1.5, 0.5), COLORS[2]]
+        with pytest.raises(ValueError, match=r"colors\[1\]"):
+            renderer.render(CAMERA, 8, 6)
+        renderer.colors = COLORS
+        renderer.light = "sun"
+        with pytest.raises(TypeError, match="light"):
+            renderer.render(CAMERA, 8, 6)
+    finally:
+        renderer.colors, renderer.light = COLORS, LIGHT
+
+
+@pytest.mark.parametrize("kwargs, words", [
+    ({"eye": (0, 0, 0), "target": (0, 0, 0)}, "equals eye"),
+    ({"eye": (0, 0, 0), "target": (0, 1, 0)}, "parallel"),
+    ({"eye": (0, 0, 0), "target": (0, 0, 1), "up": (0, 0, 0)}, "zero or parallel"),
+    ({"eye": (0, 0, np.nan), "target": (0, 0, 1)}, "eye"),
+    ({"eye": (0, 0), "target": (0, 0, 1)}, "eye"),
+    ({"eye": (0, 0, 0), "target": (0, 0, 1), "fov_deg": 180}, "fov_deg"),
+    ({"eye": (0, 0, 0), "target": (0, 0, 1), "fov_deg": 0}, "fov_deg"),
+])
+def test_bad_cameras_are_named(kwargs, words):
+    with pytest.raises(ValueError, match=words):
+        hlbvh_cl.Camera(**kwargs)
+
+
+@pytest.mark.parametrize("kwargs, words", [
+    ({"direction": (0, 0, 0)}, "zero vector"),
+    ({"intensity": -1}, "intensity"),
+    ({"ambient": 2}, "ambient"),
+])
+def test_bad_lights_are_named(kwargs, words):
+    with pytest.raises(ValueError, match=words):
+        hlbvh_cl.Light(**kwargs)
