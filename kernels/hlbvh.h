@@ -3,7 +3,7 @@
  * Mirrored once in Python by hlbvh_cl/layout.py (numpy dtypes); the constants
  * below are read from this file by that module, never restated.  Keep every
  * struct made of 4-byte scalars so that the OpenCL and numpy layouts agree
- * without padding rules (tests/test_layout.py checks sizeof/offsetof on the
+ * without padding rules (tests/test_devices.py checks sizeof/offsetof on the
  * device).
  */
 #ifndef HLBVH_H
