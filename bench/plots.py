@@ -58,7 +58,8 @@ def _throughput(axes, groups: list, names: list[str]) -> None:
         axes.bar(np.array(x) + (i - (len(names) - 1) / 2) * width, median, width,
                  yerr=[median - [s["min"] for s in speeds], [s["max"] for s in speeds] - median],
                  label=name, capsize=1.5)
-    axes.set_xticks(range(len(groups)), [g for g, _ in groups], fontsize=7)
+    axes.set_xticks(range(len(groups)), [g for g, _ in groups], fontsize=7, rotation=30,
+                    ha="right", rotation_mode="anchor")
     axes.set(ylabel="closest hit, Mrays/s (median, min-max)", yscale="log",
              title="ray throughput, the same rays for all (numpy in, numpy out)")
     _plain_log(axes)

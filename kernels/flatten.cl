@@ -117,7 +117,7 @@ inline void top_child(int ref, int parent, int n, int top_count, int top_root,
         *box = top_boxes[ref];
     } else {
         /* the cluster's box from the compact copy, not boxes[root]: a
-         * random read into the radix tree's boxes took 60% of the time */
+         * random read into the radix tree's boxes dominated this kernel */
         child_slot(cluster_roots[~ref], n, top_count, live_scan, range_first, range_last,
                    collapsed, index, count);
         *box = cluster_boxes[~ref];
