@@ -16,7 +16,7 @@ from __future__ import annotations
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import pyopencl as cl
@@ -42,7 +42,8 @@ STACK_GRANULE = 16
 
 @dataclass
 class Hits:
-    """Closest hits of R rays; misses have t = inf, ids -1, u = v = 0, normal 0."""
+    """Closest hits of R rays; misses have t = inf, ids -1, u = v = 0, normal 0
+    and points NaN."""
 
     t: np.ndarray        # float32 (R,)
     prim_id: np.ndarray  # int32 (R,) face index within its own mesh
@@ -50,6 +51,7 @@ class Hits:
     u: np.ndarray        # float32 (R,)
     v: np.ndarray        # float32 (R,)
     normal: np.ndarray   # float32 (R, 3) unit geometric normal
+    points: np.ndarray   # float32 (R, 3) origin + t * direction, in the caller's coordinates
 
     def __len__(self) -> int:
         return len(self.t)
@@ -58,21 +60,6 @@ class Hits:
     def hit(self) -> np.ndarray:
         """bool (R,): which rays hit something."""
         return self.geom_id >= 0
-
-    #: the rays' origins and directions (float32), for ``points``
-    _origins: np.ndarray | None = field(default=None, repr=False, compare=False)
-    _directions: np.ndarray | None = field(default=None, repr=False, compare=False)
-
-    @property
-    def points(self) -> np.ndarray:
-        """float32 (R, 3): origin + t * direction in the caller's coordinates,
-        NaN where the ray missed.  Computed when read, from the rays as they
-        were checked (float32; the caller's own arrays when they were
-        float32 already, so read it before changing those)."""
-        with np.errstate(invalid="ignore", over="ignore"):
-            out = self._origins + self.t[:, None] * self._directions
-        out[~self.hit] = np.nan
-        return out
 
 
 def _zero_copy(rt: Runtime) -> bool:
@@ -123,7 +110,8 @@ def _work_group_size(rt: Runtime) -> int:
 RAY_ARRAYS = {"origins": 12, "directions": 12, "tmin": 4, "tmax": 4}
 #: Hits' fields: dtype and values per ray.
 HIT_FIELDS = {"t": (np.float32, 1), "geom_id": (np.int32, 1), "prim_id": (np.int32, 1),
-              "u": (np.float32, 1), "v": (np.float32, 1), "normal": (np.float32, 3)}
+              "u": (np.float32, 1), "v": (np.float32, 1), "normal": (np.float32, 3),
+              "points": (np.float32, 3)}
 HIT_ARRAYS = {name: np.dtype(dtype).itemsize * n for name, (dtype, n) in HIT_FIELDS.items()}
 OCCLUDED_ARRAYS = {"occluded": 1}
 
@@ -203,8 +191,7 @@ class RayQuery:
         origins, directions, tmin, tmax = _check_rays(origins, directions, tmin, tmax)
         hits = Hits(**{name: self._results.empty((len(origins), n) if n > 1 else len(origins),
                                                  dtype)
-                       for name, (dtype, n) in HIT_FIELDS.items()},
-                    _origins=origins, _directions=directions)
+                       for name, (dtype, n) in HIT_FIELDS.items()})
         origins, directions, tmin, tmax, t_factor = _into_frame(origins, directions, tmin, tmax,
                                                                 tree)
         count = len(origins)
@@ -215,16 +202,19 @@ class RayQuery:
                 return self.rt.run(kernel, self._work_items(n), nodes, tree.triangles,
                                    tree.refs, b["origins"],
                                    b["directions"], *limits, b["t"], b["geom_id"], b["prim_id"],
-                                   b["u"], b["v"], b["normal"], self._counters, np.uint32(n),
+                                   b["u"], b["v"], b["normal"], b["points"], self._counters,
+                                   np.uint32(n),
                                    local_size=self.work_group_size)
             self._run(count, origins, directions, tmin, tmax, launch,
                       {name: getattr(hits, name) for name in HIT_ARRAYS})
-            if t_factor is not None:  # back from the frame's t: exact, powers of two
+            if t_factor is not None:  # back from the frame: exact, powers of two
                 hits.t[:] = hits.t * t_factor
+                hits.points[:] = frame.to_frame(hits.points, 1.0 / tree.scale)
         elif count:
             hits.t[:] = np.inf
             hits.geom_id[:] = hits.prim_id[:] = -1
             hits.u[:] = hits.v[:] = hits.normal[:] = 0.0
+            hits.points[:] = np.nan
         return hits
 
     def occluded(self, tree: Tree, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:

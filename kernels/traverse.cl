@@ -139,7 +139,8 @@ TRAVERSAL_KERNEL void intersect_closest_arrays(__global const WideNode* nodes,
         __global const float* tmin, const uint tmin_step, __global const float* tmax,
         const uint tmax_step, __global float* t_out, __global int* geom_out,
         __global int* prim_out, __global float* u_out, __global float* v_out,
-        __global float* normal_out, __global int* overflow, const uint ray_count)
+        __global float* normal_out, __global float* points_out, __global int* overflow,
+        const uint ray_count)
 {
     uint first, used = packet_rays(ray_count, &first);
     if (used == 0)
@@ -155,8 +156,14 @@ TRAVERSAL_KERNEL void intersect_closest_arrays(__global const WideNode* nodes,
         prim_out[i] = found[l].prim_id;
         u_out[i] = found[l].u;
         v_out[i] = found[l].v;
-        for (uint k = 0; k < 3; ++k)
+        /* The hit point origin + t * direction, rounded as numpy would
+         * (FP_CONTRACT is off), NaN on a miss: written here, where the ray
+         * is at hand, rather than kept for the host to compute later. */
+        for (uint k = 0; k < 3; ++k) {
             normal_out[3 * i + k] = found[l].normal[k];
+            points_out[3 * i + k] = found[l].geom_id >= 0
+                ? lanes.origin[k][l] + found[l].t * lanes.direction[k][l] : NAN;
+        }
     }
 }
 

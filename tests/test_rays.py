@@ -58,6 +58,29 @@ def test_hit_points_match_the_oracle():
     np.testing.assert_allclose(points[hit], oracle, atol=1e-4 * case.scale)
 
 
+@pytest.mark.parametrize("scale", [1.0, 1e-30, 1e30])
+def test_hit_points_are_the_rays_own_and_outlive_them(scale):
+    """points are origin + t * direction rounded as float32 numpy rounds them
+    (also in a scene built in a rescaled frame, hlbvh_cl.frame), and they are
+    the query's: writing into the ray arrays afterwards changes nothing."""
+    case = scene_case("teapot")
+    scene = case.scene if scale == 1.0 else hlbvh_cl.Scene(
+        [hlbvh_cl.Mesh(m.vertices * np.float32(scale), m.faces) for m in case.scene.meshes],
+        device=case.scene.device.id)
+    origins, directions = random_rays(case, 2000, 12)
+    origins = (origins * scale).astype(np.float32)
+    directions = directions.astype(np.float32)
+    hits = scene.intersect(origins, directions)
+    expected = origins + hits.t[:, None] * directions  # float32 arithmetic, as the kernel's
+    assert hits.hit.sum() > 300
+    assert np.array_equal(hits.points[hits.hit], expected[hits.hit])
+    assert np.isnan(hits.points[~hits.hit]).all()
+    kept = hits.points.copy()
+    origins[:] = 0.0
+    directions[:] = 1.0
+    assert np.array_equal(hits.points, kept, equal_nan=True)
+
+
 @pytest.mark.parametrize("name", list(MESH_MAKERS))
 def test_random_rays_match_oracle(name):
     case = scene_case(name)
