@@ -23,9 +23,9 @@ brute-force oracle):
   when spp = 1; with spp > 1, sample s takes jx = random_unit(pixel, s, 0),
   jy = random_unit(pixel, s, 1).  A pixel's colour is the mean of its samples.
 - n is the unit geometric normal of the hit triangle, cross(v1 - v0, v2 - v0),
-  turned to face the ray (n.d < 0); a is the mesh's colour, scene.colors[geom_id].
+  turned to face the ray (n.d < 0); a is the mesh's colour, Renderer.colors[geom_id].
 - "diffuse" (Lambert): a * (ambient + intensity * max(n.l, 0) * V), with
-  Scene.light = (l, intensity, ambient).  V = 0 when the shadow ray from
+  Renderer.light = (l, intensity, ambient).  V = 0 when the shadow ray from
   p + offset * n along l hits anything (t in [0, inf)), else 1; V = 1 when
   shadows=False.  p = origin + t * direction, offset = max(1e-4 * D,
   2^-16 * M), D the diagonal of the scene's bounding box and M its largest
@@ -569,7 +569,7 @@ class Renderer:
         with scene._lock:  # no rebuild or refit while the tree is read
             if self._pipeline is None:
                 self._pipeline = _Pipeline(scene._runtime)  # its own queries and buffers
-            return self._pipeline.render(scene._tree, settings, colors, light, progress=progress)
+            return self._pipeline.render(scene._built_tree(), settings, colors, light, progress=progress)
 
 
 def _progress_bar(enabled: bool, total: int):

@@ -121,11 +121,14 @@ class Scene:
         moved = Mesh(positions, old.faces, name=old.name)
         rt = self._runtime
         started = time.perf_counter()
-        with self._lock, rt.build_lock:  # not while a build on this runtime uses the pool
+        with self._lock:
             largest = list(self._largest)
             largest[geom_id] = frame.largest_magnitude(moved.vertices)
-            if frame.scale_for(max(largest) * self._scale) != 1.0:  # out of this frame
-                self.meshes[geom_id], self._largest = moved, largest
+            # the meshes follow the device's vertices from here on, whatever fails below
+            self.meshes[geom_id], self._largest = moved, largest
+            tree = self._tree
+            if tree is None or frame.scale_for(max(largest) * self._scale) != 1.0:
+                # out of this frame (or no tree since a failed rebuild): build anew
                 self._scale = frame.scale_for(max(largest))
                 vertices = np.concatenate([m.vertices for m in self.meshes])
                 cl.enqueue_copy(rt.queue, self._geometry.vertices,
@@ -136,9 +139,7 @@ class Scene:
                                      frame.to_frame(moved.vertices, self._scale),
                                      dst_offset=int(self._vertex_offsets[geom_id]) * 12,
                                      is_blocking=False)
-            tree = self._tree
             events = refit(rt, tree, self._geometry.vertices, wait_for=[upload])
-            self.meshes[geom_id], self._largest = moved, largest
             tree.bounds_lo, tree.bounds_hi = tree.read_root_box(rt.queue, wait_for=events[-1:])
             self._stats = dataclasses.replace(self._stats, refit_ms={
                 "upload": event_ms([upload]), "refit": event_ms(events),
@@ -148,12 +149,22 @@ class Scene:
         """Closest hit of each ray: a Hits with t, prim_id, geom_id, u, v,
         normal and points."""
         with self._lock:
-            return self._ray_query().intersect(self._tree, origins, directions, tmin, tmax)
+            return self._ray_query().intersect(self._built_tree(), origins, directions, tmin,
+                                               tmax)
 
     def occluded(self, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
         """Whether each ray hits anything in [tmin, tmax] (any-hit, stops early)."""
         with self._lock:
-            return self._ray_query().occluded(self._tree, origins, directions, tmin, tmax)
+            return self._ray_query().occluded(self._built_tree(), origins, directions, tmin,
+                                              tmax)
+
+    def _built_tree(self):
+        """The current tree; a clear error when the last rebuild failed (the
+        old tree was released before it) and none has been built since."""
+        if self._tree is None:
+            raise RuntimeError("this Scene has no tree: its last rebuild failed; call "
+                               "scene.rebuild() (or update_vertices) to build one")
+        return self._tree
 
     def _ray_query(self):
         if self._query is None:

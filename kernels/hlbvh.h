@@ -256,7 +256,7 @@ inline void store_triangle(__global Triangle *triangles, int j, float3 a, float3
  * TILE_ROWS rows are cut into tiles of TILE_COLUMNS x TILE_ROWS pixels, left
  * to right, each tile row-major; a band's last width % TILE_COLUMNS columns,
  * and a last band of fewer rows, stay row-major.  A CPU ray packet
- * (traverse.cl: 16 or 8 rays, query.py's default_packet_size) then covers a
+ * (traverse.cl: 16 or 8 rays, the kernel variant's packet size) then covers a
  * tile or half of one rather than a strip of a row, which measured faster
  * than row-major order for closest-hit and shadow rays, and 4x4 tiles with
  * packets of 16 faster than 4x2 with packets of 8.

@@ -112,3 +112,48 @@ def test_no_module_imports_another_in_a_cycle():
     for module in sorted(graph):
         visit(module)
     assert graph["tree"] <= {"layout"} and "tree" in graph["widen"] | graph["build"]
+
+
+def test_a_failed_rebuild_or_refit_leaves_a_scene_that_says_so_and_recovers(monkeypatch):
+    """A build that raises leaves no half-made tree: queries and renders say
+    to rebuild, and update_vertices builds anew.  A refit that raises leaves
+    the meshes as the device has them, so the next rebuild matches them."""
+    import pytest
+
+    import hlbvh_cl.scene as scene_module
+    from shapes import grid_mesh
+
+    grid = grid_mesh(8)
+    vertices, faces = grid.vertices, grid.faces
+    scene = hlbvh_cl.Scene([grid])
+    origins = np.float32([[0.3 + k, 0.4 + 2 * k, -3.0] for k in range(4)])
+    directions = np.tile(np.float32([[0.0, 0.0, 1.0]]), (4, 1))
+    before = scene.intersect(origins, directions)
+    assert before.hit.all()
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("injected")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(scene_module, "build", fail)
+        with pytest.raises(RuntimeError, match="injected"):
+            scene.rebuild()
+    for call in (lambda: scene.intersect(origins, directions),
+                 lambda: scene.occluded(origins, directions),
+                 lambda: hlbvh_cl.Renderer(scene).render(
+                     hlbvh_cl.Camera((4, 4, -3), (4, 4, 0)), 4, 4)):
+        with pytest.raises(RuntimeError, match="last rebuild failed"):
+            call()
+    scene.update_vertices(0, vertices)  # builds anew
+    assert np.array_equal(scene.intersect(origins, directions).t, before.t)
+
+    moved = (vertices * np.float32(2.0)).astype(np.float32)
+    with monkeypatch.context() as patch:
+        patch.setattr(scene_module, "refit", fail)
+        with pytest.raises(RuntimeError, match="injected"):
+            scene.update_vertices(0, moved)
+    assert np.array_equal(scene.meshes[0].vertices, moved)
+    scene.rebuild()
+    fresh = hlbvh_cl.Scene([hlbvh_cl.Mesh(moved, faces)])
+    assert np.array_equal(scene.intersect(origins, directions).t,
+                          fresh.intersect(origins, directions).t)
