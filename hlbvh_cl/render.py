@@ -151,7 +151,7 @@ class Camera:
     eye: tuple[float, float, float]
     target: tuple[float, float, float]
     up: tuple[float, float, float] = (0.0, 1.0, 0.0)
-    fov_deg: float = 40.0
+    fov_deg: float = 45.0  # a scene file's default too (scenefile.py)
 
     def __post_init__(self):
         eye, target, up = (_vector3(name, getattr(self, name)) for name in ("eye", "target", "up"))

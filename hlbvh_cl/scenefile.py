@@ -299,7 +299,7 @@ def _read_camera(reader: _Reader, value) -> Camera:
     eye = reader.vector3(table["eye"], "camera.eye")
     target = reader.vector3(table["target"], "camera.target")
     up = reader.vector3(table.get("up", [0.0, 1.0, 0.0]), "camera.up")
-    fov = reader.number(table.get("fov_deg", 45.0), "camera.fov_deg", 0.0, 180.0,
+    fov = reader.number(table.get("fov_deg", Camera.fov_deg), "camera.fov_deg", 0.0, 180.0,
                         low_open=True, high_open=True)
     forward = np.subtract(target, eye)
     if not np.any(forward):
