@@ -67,7 +67,7 @@ def build_memory(vertex_count: int, triangle_count: int, morton_bits: int) -> di
         "radix tree boxes": (2 * n - 1) * layout.AABB.itemsize,
         "radix tree costs, heights, flags": (2 * n - 1) * 8 + 2 * n * 4,
         "scans": 2 * (n + 1) * 4,
-        "flat nodes": max(1, n - 1) * layout.FLAT_NODE.itemsize, "flat parents": n * 4,
+        "flat nodes": max(1, n - 1) * layout.FLAT_NODE.itemsize,
         "triangles": n * layout.TRIANGLE.itemsize, "triangle refs": n * layout.TRIANGLE_REF.itemsize,
         "triangle vertex ids": n * 12,
         "SAH top (clusters)": max_clusters(n) * BYTES_PER_CLUSTER,
@@ -177,7 +177,7 @@ def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int, scal
 
     last = (stage_events["sah_top"] or stage_events["radix_tree"])[-1:]
     # the binary tree: scratch, read only by widen
-    bvh2, _, bvh2_count, leaf_count, root_box, depth, cost, stage_events["flatten"] = \
+    bvh2, bvh2_count, leaf_count, root_box, depth, cost, stage_events["flatten"] = \
         flatten_nodes(rt, keys, morton_bits, radix, metrics, top, use_clusters=hlbvh,
                       wait_for=last)
     nodes, levels, stage_events["widen"] = widen(rt, bvh2, bvh2_count,

@@ -21,21 +21,21 @@ def _read_scalar(q, buf, dtype, index=0, wait_for=None):
 
 def flatten_nodes(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: RadixTreeMetrics,
                   top: TopTree | None, use_clusters: bool, wait_for=None):
-    """Returns (nodes, parents, node_count, leaf_count, root_box, depth,
+    """Returns (nodes, node_count, leaf_count, root_box, depth,
     sah_cost_unnormalised, events)."""
     n, q = tree.n, rt.queue
     defines = dict(MORTON_BITS=bits, USE_CLUSTERS=int(use_clusters))
     root_is_leaf = n == 1 or (top is None and _read_scalar(q, metrics.collapsed, np.int32,
                                                           wait_for=wait_for) != 0)
     if root_is_leaf:
-        nodes, parents = rt.pool.take(layout.FLAT_NODE.itemsize), rt.pool.take(4)
+        nodes = rt.pool.take(layout.FLAT_NODE.itemsize)
         event = rt.run(rt.kernel("flatten.cl", "write_leaf_root", **defines), 1, n, metrics.boxes,
-                       nodes, parents, wait_for=wait_for, local_size=1)
+                       nodes, wait_for=wait_for, local_size=1)
         root_box = np.empty(1, layout.AABB)
         cl.enqueue_copy(q, root_box, metrics.boxes, wait_for=[event])
         area = _area(root_box[0])
         # the root node (C_t A) over one leaf of n triangles (C_i n A)
-        return nodes, parents, 1, 1, root_box[0], 1, area * (1.0 + n), [event]
+        return nodes, 1, 1, root_box[0], 1, area * (1.0 + n), [event]
 
     live = rt.pool.take(n * 4)
     events = [rt.run(rt.kernel("flatten.cl", "mark_live_nodes", **defines), n - 1, keys, n,
@@ -47,27 +47,26 @@ def flatten_nodes(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: Radi
     node_count = top_count + live_count
     rt.check_allocation("flat tree", {"nodes": node_count * layout.FLAT_NODE.itemsize})
     nodes = rt.pool.take(node_count * layout.FLAT_NODE.itemsize)
-    parents = rt.pool.take(node_count * 4)
     events.append(rt.run(rt.kernel("flatten.cl", "write_flat_nodes", **defines), n - 1, n,
                          top_count, live, tree.left_child, tree.right_child, tree.range_first,
-                         tree.range_last, metrics.collapsed, metrics.boxes, nodes, parents,
+                         tree.range_last, metrics.collapsed, metrics.boxes, nodes,
                          wait_for=events[-1:]))
     if top:
         events.append(rt.run(rt.kernel("flatten.cl", "write_top_nodes", **defines), top_count, n,
                              top_count, top.root, live, top.top_left, top.top_right, top.top_boxes,
                              top.cluster_roots, top.cluster_boxes, tree.range_first,
-                             tree.range_last, metrics.collapsed, nodes, parents,
+                             tree.range_last, metrics.collapsed, nodes,
                              wait_for=events[-1:]))
         root_box = np.empty(1, layout.AABB)
         cl.enqueue_copy(q, root_box, top.top_boxes, src_offset=top.root * layout.AABB.itemsize,
                         wait_for=events[-1:])
-        return nodes, parents, node_count, node_count + 1, root_box[0], top.depth, top.sah_cost, events
+        return nodes, node_count, node_count + 1, root_box[0], top.depth, top.sah_cost, events
 
     root_box = np.empty(1, layout.AABB)
     cl.enqueue_copy(q, root_box, metrics.boxes, wait_for=events[-1:])
     depth = int(_read_scalar(q, metrics.height, np.int32))
     cost = float(_read_scalar(q, metrics.sah_cost, np.float32))
-    return nodes, parents, node_count, node_count + 1, root_box[0], depth, cost, events
+    return nodes, node_count, node_count + 1, root_box[0], depth, cost, events
 
 
 def _area(box) -> float:

@@ -196,10 +196,10 @@ class RayQuery:
                                                                 tree)
         count = len(origins)
         if count and self._check_tree(tree):
-            kernel, nodes = self._kernel(tree, "intersect_closest_arrays", self.count_packets)
+            kernel = self._kernel(tree, "intersect_closest_arrays", self.count_packets)
 
             def launch(n, b, limits):
-                return self.rt.run(kernel, self._work_items(n), nodes, tree.triangles,
+                return self.rt.run(kernel, self._work_items(n), tree.nodes, tree.triangles,
                                    tree.refs, b["origins"],
                                    b["directions"], *limits, b["t"], b["geom_id"], b["prim_id"],
                                    b["u"], b["v"], b["normal"], b["points"], self._counters,
@@ -224,10 +224,10 @@ class RayQuery:
         count = len(origins)
         result = self._results.empty(count, np.uint8)
         if count and self._check_tree(tree):
-            kernel, nodes = self._kernel(tree, "intersect_any_arrays", self.count_packets)
+            kernel = self._kernel(tree, "intersect_any_arrays", self.count_packets)
 
             def launch(n, b, limits):
-                return self.rt.run(kernel, self._work_items(n), nodes, tree.triangles,
+                return self.rt.run(kernel, self._work_items(n), tree.nodes, tree.triangles,
                                    b["origins"],
                                    b["directions"], *limits, b["occluded"], self._counters,
                                    np.uint32(n), local_size=self.work_group_size)
@@ -244,8 +244,8 @@ class RayQuery:
         tmin > tmax hits nothing), and the caller clears the int32 `overflow`
         flag beforehand and raises if a traversal set it."""
         self._require_triangles(tree)
-        kernel, nodes = self._kernel(tree, "intersect_closest")
-        return self.rt.run(kernel, self._work_items(count), nodes, tree.triangles, tree.refs,
+        kernel = self._kernel(tree, "intersect_closest")
+        return self.rt.run(kernel, self._work_items(count), tree.nodes, tree.triangles, tree.refs,
                            rays, hits,
                            overflow, np.uint32(count), wait_for=wait_for,
                            local_size=self.work_group_size)
@@ -255,21 +255,21 @@ class RayQuery:
         """As enqueue_intersect, with intersect_any: occluded[i] = 1 (uchar)
         where ray i hits anything."""
         self._require_triangles(tree)
-        kernel, nodes = self._kernel(tree, "intersect_any")
-        return self.rt.run(kernel, self._work_items(count), nodes, tree.triangles, rays,
+        kernel = self._kernel(tree, "intersect_any")
+        return self.rt.run(kernel, self._work_items(count), tree.nodes, tree.triangles, rays,
                            occluded, overflow,
                            np.uint32(count), wait_for=wait_for, local_size=self.work_group_size)
 
     # -- internals ----------------------------------------------------------
 
     def _kernel(self, tree: Tree, name: str,
-                count_packets: bool = False) -> tuple[cl.Kernel, cl.Buffer]:
-        """The traversal kernel `name` for `tree` and the node buffer it reads."""
+                count_packets: bool = False) -> cl.Kernel:
+        """The traversal kernel `name` for `tree`."""
         defines = {"STACK_SIZE": _stack_size(tree), "PACKET_SIZE": self.packet_size,
                    **self.variant.defines, **self.rt.prefetch_defines}
         if count_packets:
             defines["COUNT_PACKETS"] = 1
-        return self.rt.kernel("traverse.cl", name, **defines), tree.nodes
+        return self.rt.kernel("traverse.cl", name, **defines)
 
     def _work_items(self, rays: int) -> int:
         """Work-items that trace `rays` rays, packet_size rays each."""

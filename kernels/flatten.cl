@@ -74,7 +74,7 @@ __kernel void write_flat_nodes(int n, int top_count, __global const uint *live_s
                                __global const int *left_child, __global const int *right_child,
                                __global const int *range_first, __global const int *range_last,
                                __global const int *collapsed, __global const Aabb *boxes,
-                               __global FlatNode *nodes, __global int *parents)
+                               __global FlatNode *nodes)
 {
     int i = get_global_id(0);
     if (i >= n - 1 || live_scan[i] == live_scan[i + 1])
@@ -88,12 +88,6 @@ __kernel void write_flat_nodes(int n, int top_count, __global const uint *live_s
                &right_count);
     write_node(nodes + self, boxes[left_child[i]], boxes[right_child[i]], left, left_count, right,
                right_count);
-    if (left_count == 0)
-        parents[left] = self;
-    if (right_count == 0)
-        parents[right] = self;
-    if (i == 0)
-        parents[self] = -1; /* the radix tree's root is the flat root */
 }
 
 /* Top node t goes to flat slot t, but the root must be slot 0: swap the two. */
@@ -103,13 +97,12 @@ inline int top_slot(int t, int top_root)
 }
 
 /* Where child `ref` of a top node (>= 0 a top node, < 0 the cluster ~ref)
- * lands in its parent's slot, and its box; `parent` is the parent's slot. */
-inline void top_child(int ref, int parent, int n, int top_count, int top_root,
+ * lands in its parent's slot, and its box. */
+inline void top_child(int ref, int n, int top_count, int top_root,
                       __global const uint *live_scan, __global const Aabb *top_boxes,
                       __global const int *cluster_roots, __global const Aabb *cluster_boxes,
                       __global const int *range_first, __global const int *range_last,
-                      __global const int *collapsed, __global int *parents, int *index,
-                      uint *count, Aabb *box)
+                      __global const int *collapsed, int *index, uint *count, Aabb *box)
 {
     if (ref >= 0) {
         *index = top_slot(ref, top_root);
@@ -122,8 +115,6 @@ inline void top_child(int ref, int parent, int n, int top_count, int top_root,
                    collapsed, index, count);
         *box = cluster_boxes[~ref];
     }
-    if (*count == 0)
-        parents[*index] = parent;
 }
 
 /* Two calls to top_child rather than a loop over the sides: PoCL keeps a
@@ -134,7 +125,7 @@ __kernel void write_top_nodes(int n, int top_count, int top_root, __global const
                               __global const Aabb *top_boxes, __global const int *cluster_roots,
                               __global const Aabb *cluster_boxes, __global const int *range_first,
                               __global const int *range_last, __global const int *collapsed,
-                              __global FlatNode *nodes, __global int *parents)
+                              __global FlatNode *nodes)
 {
     int t = get_global_id(0);
     if (t >= top_count)
@@ -143,24 +134,20 @@ __kernel void write_top_nodes(int n, int top_count, int top_root, __global const
     int left, right;
     uint left_count, right_count;
     Aabb left_box, right_box;
-    top_child(top_left[t], self, n, top_count, top_root, live_scan, top_boxes, cluster_roots,
-              cluster_boxes, range_first, range_last, collapsed, parents, &left, &left_count,
+    top_child(top_left[t], n, top_count, top_root, live_scan, top_boxes, cluster_roots,
+              cluster_boxes, range_first, range_last, collapsed, &left, &left_count,
               &left_box);
-    top_child(top_right[t], self, n, top_count, top_root, live_scan, top_boxes, cluster_roots,
-              cluster_boxes, range_first, range_last, collapsed, parents, &right, &right_count,
+    top_child(top_right[t], n, top_count, top_root, live_scan, top_boxes, cluster_roots,
+              cluster_boxes, range_first, range_last, collapsed, &right, &right_count,
               &right_box);
     write_node(nodes + self, left_box, right_box, left, left_count, right, right_count);
-    if (t == top_root)
-        parents[0] = -1;
 }
 
 /* A tree whose root is itself a leaf (one triangle, or a few that the SAH
  * keeps together): one node whose left slot holds all n triangles. */
-__kernel void write_leaf_root(int n, __global const Aabb *boxes, __global FlatNode *nodes,
-                              __global int *parents)
+__kernel void write_leaf_root(int n, __global const Aabb *boxes, __global FlatNode *nodes)
 {
     if (get_global_id(0) != 0)
         return;
     write_node(nodes, boxes[0], aabb_empty(), 0, (uint)n, EMPTY_CHILD, 0);
-    parents[0] = -1;
 }
