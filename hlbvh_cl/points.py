@@ -13,13 +13,16 @@ Conventions, shared with tests/point_oracle.py:
     (Jacobson, Kavan & Sorkine-Hornung 2013, "Robust Inside-Outside
     Segmentation using Generalized Winding Numbers"), with the far field of
     Barill et al. 2018 ("Fast Winding Numbers for Soups and Clouds"): 1
-    inside and 0 outside a closed, outward-oriented surface (as trimesh
-    orients them), whatever the tree;
-  - inside means w >= 0.5.  On an open mesh (holes, a missing cap) or a
-    triangle soup w takes fractional values near the openings, and w >= 0.5
-    closes each hole "minimally", as the surface of least area spanning it
-    would; a mesh oriented inward reads as inside-out.  Self-intersections
-    and small holes move w little, so the sign stays robust;
+    inside a closed outward-oriented surface, -1 inside an inward-oriented
+    one, 0 outside;
+  - inside means |w| >= 0.5, so that a closed mesh's inside is found
+    whichever way its faces turn (scanned meshes such as the Stanford bunny
+    come oriented inward), as parity ray casting finds it.  On an open mesh
+    (holes, a missing cap) or a triangle soup w takes fractional values near
+    the openings, and |w| >= 0.5 closes each hole "minimally", as the surface
+    of least area spanning it would.  Self-intersections and small holes
+    move w little, so the sign stays robust.  Where shells of opposite
+    orientation overlap, their windings cancel;
   - signed distance: the closest distance, negative inside.
 """
 from __future__ import annotations
@@ -30,9 +33,9 @@ from dataclasses import dataclass
 import numpy as np
 import pyopencl as cl
 
-from . import frame, layout
+from . import frame, inputs, layout
 from .device import Runtime
-from .query import RayQuery, _numeric_array, _stack_size, _work_group_size, _zero_copy
+from .query import _stack_size, _work_group_size, _zero_copy, check_tree
 from .tree import Tree
 
 #: Points per kernel launch at most (as query.MAX_RAYS_PER_LAUNCH: a launch
@@ -73,24 +76,8 @@ class ClosestPoints:
         return self.geom_id >= 0
 
 
-def check_points(points) -> np.ndarray:
-    """(N, 3) float32, C-contiguous and aligned (the kernels may read it in
-    place), every row finite; a ValueError naming the first bad row."""
-    array = _numeric_array("points", points)
-    if array.ndim != 2 or array.shape[1] != 3:
-        raise ValueError(f"points must have shape (N, 3), got {array.shape}")
-    with np.errstate(over="ignore", invalid="ignore"):
-        out = np.require(array, np.float32, ["C_CONTIGUOUS", "ALIGNED"])
-    finite = np.isfinite(out).all(axis=1)
-    if not finite.all():
-        row = int(np.argmin(finite))
-        why = "is not finite" if not np.isfinite(array[row]).all() else "overflows float32"
-        raise ValueError(f"points[{row}] = {array[row].tolist()} {why}")
-    return out
-
-
 def check_max_distance(value) -> float:
-    array = _numeric_array("max_distance", value)
+    array = inputs.numeric_array("max_distance", value)
     if array.ndim != 0:
         raise ValueError(f"max_distance must be a scalar, got shape {array.shape}")
     distance = float(array)
@@ -121,14 +108,15 @@ class PointQuery:
     # -- public queries ---------------------------------------------------
 
     def closest_points(self, tree: Tree, points, max_distance=np.inf) -> ClosestPoints:
-        """The nearest surface point of each point within max_distance."""
-        points = check_points(points)
+        """The nearest surface point of each point within max_distance, in
+        the points' leading shape."""
+        points, shape = inputs.points(points)
         max_distance = check_max_distance(max_distance)
         count = len(points)
         out = {name: np.empty((count, n) if n > 1 else count, dtype)
                for name, (dtype, n) in CLOSEST_FIELDS.items()}
         if count and self._usable(tree):
-            framed = self._into_frame(points, tree)
+            framed = self._into_frame(points, shape, tree)
             with np.errstate(over="ignore"):
                 max_d2 = np.float32((max_distance * tree.scale) ** 2)
             kernel = self._kernel(tree, "closest_points")
@@ -147,14 +135,16 @@ class PointQuery:
             out["geom_id"][:] = out["prim_id"][:] = -1
             out["u"][:] = out["v"][:] = out["normal"][:] = 0.0
             out["points"][:] = np.nan
-        return ClosestPoints(**out)
+        return ClosestPoints(**{name: array.reshape(shape + array.shape[1:])
+                                for name, array in out.items()})
 
     def winding_numbers(self, tree: Tree, points) -> np.ndarray:
-        """float32 (N,): the generalized winding number of each point."""
-        points = check_points(points)
+        """float32: the generalized winding number of each point, in the
+        points' leading shape."""
+        points, shape = inputs.points(points)
         out = {"winding": np.zeros(len(points), np.float32)}
         if len(points) and self._usable(tree):
-            framed = self._into_frame(points, tree)
+            framed = self._into_frame(points, shape, tree)
             dipoles = self._dipoles(tree)
             kernel = self._kernel(tree, "winding_numbers")
 
@@ -163,16 +153,16 @@ class PointQuery:
                                    b["winding"], self._overflow, np.uint32(n),
                                    local_size=self.work_group_size)
             self._run(framed, launch, out)
-        return out["winding"]
+        return out["winding"].reshape(shape)
 
     def signed_distance(self, tree: Tree, points) -> np.ndarray:
-        """float32 (N,): the distance to the surface, negative inside
-        (winding number >= 0.5)."""
-        points = check_points(points)
+        """float32: the distance to the surface, negative inside (|winding
+        number| >= 0.5), in the points' leading shape."""
+        points, shape = inputs.points(points)
         out = {"distance": np.full(len(points), np.inf, np.float32),
                "winding": np.zeros(len(points), np.float32)}
         if len(points) and self._usable(tree):
-            framed = self._into_frame(points, tree)
+            framed = self._into_frame(points, shape, tree)
             dipoles = self._dipoles(tree)
             kernel = self._kernel(tree, "signed_distances")
 
@@ -183,16 +173,16 @@ class PointQuery:
             self._run(framed, launch, out)
             if tree.scale != 1.0:
                 out["distance"][:] = frame.to_frame(out["distance"], 1.0 / tree.scale)
-        return out["distance"]
+        return out["distance"].reshape(shape)
 
     # -- internals ----------------------------------------------------------
 
     def _usable(self, tree: Tree) -> bool:
         """Validates the tree as ray queries do; False when it holds no triangle."""
-        return RayQuery._check_tree(self, tree)  # reads only self.rt
+        return check_tree(self.rt, tree)
 
     @staticmethod
-    def _into_frame(points: np.ndarray, tree: Tree) -> np.ndarray:
+    def _into_frame(points: np.ndarray, shape: tuple, tree: Tree) -> np.ndarray:
         """The points in the tree's frame (hlbvh_cl.frame), each within
         POINT_RANGE there, else a ValueError naming the first that is not."""
         framed = frame.to_frame(points, tree.scale)
@@ -202,7 +192,7 @@ class PointQuery:
             row = int(np.argmax(far))
             where = (f" once multiplied by {frame.describe(tree.scale)}, the scale of this "
                      f"scene's frame (hlbvh_cl/frame.py)" if tree.scale != 1.0 else "")
-            raise ValueError(f"points[{row}] = {points[row].tolist()} is too far from the "
+            raise ValueError(f"{inputs.row_name('points', row, shape)} = {points[row].tolist()} is too far from the "
                              f"origin{where}: point queries take coordinates up to "
                              f"{POINT_RANGE:.3g}, where squared distances stay finite in "
                              "float32")

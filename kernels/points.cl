@@ -9,7 +9,7 @@
  *   winding_numbers   w = (sum of solid angles) / 4 pi, with Barill et al.
  *                     2018's far field (dipoles from dipoles.cl)
  *   signed_distances  the distance to the closest point, negative where
- *                     w >= 0.5
+ *                     |w| >= 0.5 (inside, whichever way the faces turn)
  *
  * Compile-time parameters (-D): STACK_SIZE and PREFETCH as traverse.cl's.
  */
@@ -126,7 +126,8 @@ POINT_KERNEL void winding_numbers(__global const WideNode* nodes,
     winding_out[i] = WINDING(s);
 }
 
-/* The signed distance of points[0, count) (in the frame's units), and
+/* The signed distance of points[0, count) (in the frame's units; negative
+ * where |w| >= 0.5), and
  * their winding numbers. */
 POINT_KERNEL void signed_distances(__global const WideNode* nodes,
         __global const Triangle* triangles, __global const WideDipoles* dipoles,
@@ -144,6 +145,6 @@ POINT_KERNEL void signed_distances(__global const WideNode* nodes,
     float w = WINDING(s);
     if (out_of_stack)
         overflow[0] = 1;
-    distance_out[i] = w >= 0.5f ? -distance : distance;
+    distance_out[i] = fabs(w) >= 0.5f ? -distance : distance;
     winding_out[i] = w;
 }

@@ -234,9 +234,9 @@ def test_sign_is_right_1e_6_off_the_surface(name, meshes, suite_device):
 def test_bunny_agrees_with_open3d_and_libigl(meshes, suite_device):
     o3d = pytest.importorskip("open3d")
     igl = pytest.importorskip("igl")
-    # the bunny's faces wind inward (negative volume): turned outward here,
-    # as point queries expect (hlbvh_cl/points.py)
-    mesh = hlbvh_cl.Mesh(meshes["bunny"].vertices, meshes["bunny"].faces[:, ::-1])
+    # the bunny's faces wind inward (negative volume), so its winding numbers
+    # are near -1 inside: inside is |w| >= 0.5 (hlbvh_cl/points.py)
+    mesh = meshes["bunny"]
     scene = hlbvh_cl.Scene([mesh], device=suite_device)
     lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
     centre, half = (lo + hi) / 2, (hi - lo) / 2 * 1.4
@@ -261,9 +261,28 @@ def test_bunny_agrees_with_open3d_and_libigl(meshes, suite_device):
     winding = scene.winding_number(points)
     error = np.abs(winding - expected)
     assert error.max() < 0.1 and np.median(error) < 0.005  # Barill's order-1 far field
-    decided = np.abs(expected - 0.5) > 0.1
-    assert np.array_equal((scene.signed_distance(points) < 0)[decided], (expected >= 0.5)[decided])
-    assert 200 < (expected >= 0.5).sum() < 2800
+    decided = np.abs(np.abs(expected) - 0.5) > 0.1
+    inside = np.abs(expected) >= 0.5
+    assert np.array_equal((scene.signed_distance(points) < 0)[decided], inside[decided])
+    assert np.array_equal(scene.contains(points)[decided], inside[decided])
+    assert 200 < inside.sum() < 2800 and (expected < -0.5).sum() == inside.sum()
+
+
+def test_inside_does_not_depend_on_the_winding_order(suite_device):
+    """A closed mesh oriented inward has w = -1 inside: the same inside, the
+    same signed distances, and opposite winding numbers."""
+    vertices, faces = icosphere(2)
+    outward = hlbvh_cl.Scene([hlbvh_cl.Mesh(vertices, faces)], device=suite_device)
+    inward = hlbvh_cl.Scene([hlbvh_cl.Mesh(vertices, faces[:, ::-1])], device=suite_device)
+    points = np.random.default_rng(12).uniform(-1.3, 1.3, (2000, 3)).astype(np.float32)
+    np.testing.assert_allclose(inward.winding_number(points), -outward.winding_number(points),
+                               atol=1e-5)
+    inward_sdf, outward_sdf = inward.signed_distance(points), outward.signed_distance(points)
+    # the same distances up to the rounding of the vertices' other order
+    np.testing.assert_allclose(inward_sdf, outward_sdf, atol=1e-6)
+    np.testing.assert_array_equal(np.sign(inward_sdf), np.sign(outward_sdf))
+    radius = np.linalg.norm(points, axis=1)
+    assert np.all(inward.contains(points)[radius < 0.95]) and not inward.contains(points)[radius > 1.05].any()
 
 
 @pytest.mark.parametrize("scale", [1e-30, 1e30])
@@ -305,7 +324,7 @@ def test_bad_input_is_named(sphere_scene):
         sphere_scene.signed_distance(np.array([[np.inf, 0, 0]]))
     with pytest.raises(ValueError, match=r"points\[0\].*overflows"):
         sphere_scene.contains(np.array([[1e39, 0, 0]]))
-    with pytest.raises(ValueError, match=r"shape \(N, 3\)"):
+    with pytest.raises(ValueError, match=r"shape \(\.\.\., 3\)"):
         sphere_scene.closest_points(np.zeros((4, 2)))
     with pytest.raises(ValueError, match="max_distance"):
         sphere_scene.closest_points(np.zeros((1, 3)), max_distance=-1.0)
@@ -340,3 +359,20 @@ def test_chunks_give_the_same_answers(sphere_scene):
         np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
     np.testing.assert_array_equal(whole.signed_distance(tree, points),
                                   small.signed_distance(tree, points))
+
+
+def test_points_keep_their_leading_shape(sphere_scene):
+    """(H, W, 3) points give (H, W) answers, equal to the flat query's."""
+    points = np.random.default_rng(13).uniform(-2, 2, (4, 5, 3)).astype(np.float32)
+    flat = sphere_scene.closest_points(points.reshape(-1, 3))
+    grid = sphere_scene.closest_points(points)
+    for name in ("points", "distance", "prim_id", "geom_id", "u", "v", "normal"):
+        want = getattr(flat, name)
+        got = getattr(grid, name)
+        assert got.shape == (4, 5) + want.shape[1:], name
+        np.testing.assert_array_equal(got.reshape(want.shape), want, err_msg=name)
+    for query in (sphere_scene.signed_distance, sphere_scene.winding_number,
+                  sphere_scene.contains):
+        np.testing.assert_array_equal(query(points).reshape(-1), query(points.reshape(-1, 3)))
+    with pytest.raises(ValueError, match=r"points\[1, 2\] = .*not finite"):
+        sphere_scene.contains(np.where(np.arange(20).reshape(4, 5, 1) == 7, np.nan, points))
