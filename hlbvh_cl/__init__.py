@@ -4,12 +4,14 @@
     scene = hlbvh_cl.Scene([hlbvh_cl.Mesh.load("bunny.ply")], device="pocl")
     hits = scene.intersect(origins, directions)       # closest hit
     blocked = scene.occluded(origins, directions)     # any hit
+    every = scene.intersect_all(origins, directions)  # all hits, sorted by t (AllHits)
     scene.update_vertices(0, moved_vertices)          # refit on the device
     camera = hlbvh_cl.Camera(eye, target)
     image = hlbvh_cl.Renderer(scene).render(camera, 640, 480)   # (480, 640, 3) uint8
     loaded = hlbvh_cl.scenefile.load("scenes/reference.toml")   # a scene file, built
 """
 from . import scenefile
+from .all_hits import AllHits
 from .build import BuildStats
 from .device import Device, DeviceMemoryError, KernelBuildError, devices
 from .mesh import Mesh
@@ -17,6 +19,6 @@ from .query import Hits
 from .render import Camera, Light, Renderer
 from .scene import Scene
 
-__all__ = ["BuildStats", "Camera", "Device", "DeviceMemoryError", "Hits", "KernelBuildError",
+__all__ = ["AllHits", "BuildStats", "Camera", "Device", "DeviceMemoryError", "Hits", "KernelBuildError",
            "Light", "Mesh", "Renderer", "Scene", "devices", "scenefile"]
 __version__ = "0.1.0"

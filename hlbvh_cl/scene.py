@@ -158,6 +158,28 @@ class Scene:
             return self._ray_query().occluded(self._built_tree(), origins, directions, tmin,
                                               tmax)
 
+    def intersect_all(self, origins, directions, tmin=0.0, tmax=np.inf, max_hits=None):
+        """Every hit of each ray in [tmin, tmax], sorted by t, as an AllHits
+        (flat arrays, ray r's hits at [offsets[r], offsets[r + 1])); with
+        max_hits=k only the k nearest of each ray.  A crossing through a
+        shared edge or vertex counts once."""
+        with self._lock:
+            return self._all_hits_query().intersect_all(self._built_tree(), origins, directions,
+                                                        tmin, tmax, max_hits)
+
+    def count_intersections(self, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
+        """int32 (R,): how many hits each ray has in [tmin, tmax] (as
+        intersect_all counts them)."""
+        with self._lock:
+            return self._all_hits_query().count(self._built_tree(), origins, directions, tmin,
+                                                tmax)
+
+    def _all_hits_query(self):
+        if getattr(self, "_all_hits", None) is None:
+            from .all_hits import AllHitsQuery
+            self._all_hits = AllHitsQuery(self._ray_query())
+        return self._all_hits
+
     def _built_tree(self):
         """The current tree; a clear error when the last rebuild failed (the
         old tree was released before it) and none has been built since."""
