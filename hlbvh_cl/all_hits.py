@@ -27,7 +27,14 @@ from .tree import Tree
 
 #: Hits one fill launch writes at most (one ray with more still goes alone):
 #: bounds the device buffers where results are copied back.
-HITS_PER_LAUNCH = 1 << 21
+HITS_PER_LAUNCH = 1 << 18
+
+#: Rays per launch where the rays are copied to the device (not PoCL): bounds
+#: those copies, 32 bytes a ray, two launches in flight.
+COPIED_RAYS_PER_LAUNCH = 1 << 16
+
+#: Rays per block of _ray_index.
+RAY_INDEX_BLOCK = 1 << 16
 
 #: Output arrays of the fill pass: dtype per hit.
 HIT_FIELDS = {"t": np.float32, "u": np.float32, "v": np.float32, "prim_id": np.int32,
@@ -74,9 +81,9 @@ def _rays(origins, directions, tmin, tmax, tree):
 
 
 class AllHitsQuery:
-    """count_intersections and intersect_all on one device, built on a
-    RayQuery: its chunked launches for the count pass, its device choices
-    (zero copy, work-group size, kernel variant) for both."""
+    """count_intersections and intersect_all on one device, with a RayQuery's
+    device choices (zero copy, work-group size, kernel variant, rays per
+    launch) and its result pool."""
 
     def __init__(self, query: RayQuery):
         self.query = query
@@ -92,33 +99,30 @@ class AllHitsQuery:
 
     def count(self, tree: Tree, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
         """int32 (R,): the number of hits of each ray with tmin <= t <= tmax."""
-        origins, directions, tmin, tmax, _ = _rays(origins, directions, tmin, tmax, tree)
-        return self._count(tree, origins, directions, tmin, tmax)
+        rays = _rays(origins, directions, tmin, tmax, tree)[:4]
+        with self._lock:
+            return self._count(tree, *rays)
 
     def intersect_all(self, tree: Tree, origins, directions, tmin=0.0, tmax=np.inf,
                       max_hits=None) -> AllHits:
         """Every hit of each ray with tmin <= t <= tmax, sorted by t; with
         max_hits=k only the k nearest of each ray."""
         max_hits = _check_max_hits(max_hits)
-        origins, directions, tmin, tmax, t_factor = _rays(origins, directions, tmin, tmax, tree)
-        kept = self._count(tree, origins, directions, tmin, tmax)
-        if max_hits is not None:
-            np.minimum(kept, max_hits, out=kept)
-        offsets = np.empty(len(kept) + 1, np.int64)
-        offsets[0] = 0
-        np.cumsum(kept, out=offsets[1:])
-        total = int(offsets[-1])
-        pool = self.query._results
-        fields = {name: pool.empty(total, dtype) for name, dtype in HIT_FIELDS.items()}
-        if total:
-            with self._lock:
-                try:
-                    self._fill(tree, origins, directions, tmin, tmax, offsets, fields, t_factor)
-                except BaseException:  # launches in flight may still write: let them end
-                    self.rt.queue.finish()
-                    raise
-        ray_index = np.repeat(np.arange(len(kept), dtype=np.int64), kept)
-        return AllHits(offsets=offsets, ray_index=ray_index, **fields)
+        *rays, t_factor = _rays(origins, directions, tmin, tmax, tree)
+        with self._lock:
+            kept = self._count(tree, *rays, empty=np.empty)  # a temporary: not pooled
+            if max_hits is not None:
+                np.minimum(kept, max_hits, out=kept)
+            offsets = np.empty(len(kept) + 1, np.int64)
+            offsets[0] = 0
+            np.cumsum(kept, out=offsets[1:])
+            del kept  # before the output is allocated: peak memory
+            total = int(offsets[-1])
+            fields = {name: self.query._results.empty(total, dtype)
+                      for name, dtype in HIT_FIELDS.items()}
+            if total:
+                self._fill(tree, *rays, offsets, fields, t_factor)
+        return AllHits(offsets=offsets, ray_index=_ray_index(offsets), **fields)
 
     # -- internals ----------------------------------------------------------
 
@@ -129,104 +133,144 @@ class AllHitsQuery:
                    **self.query.variant.defines, **self.rt.prefetch_defines}
         return self.rt.kernel("all_hits.cl", name, **defines)
 
-    def _count(self, tree, origins, directions, tmin, tmax) -> np.ndarray:
-        query = self.query
+    def _count(self, tree, origins, directions, tmin, tmax, empty=None) -> np.ndarray:
         count = len(origins)
-        counts = query._results.empty(count, np.int32)
-        if not (count and query._check_tree(tree)):
+        counts = (empty or self.query._results.empty)(count, np.int32)
+        if not (count and self.query._check_tree(tree)):
             counts[:] = 0
             return counts
         kernel = self._kernel(tree, "count_hits_arrays")
-
-        def launch(n, b, limits):
-            return self.rt.run(kernel, n, tree.nodes, tree.triangles, b["origins"],
-                               b["directions"], *limits, b["prim_id"], self._counters,
-                               np.uint32(n), local_size=query.work_group_size)
-        # RayQuery's chunked launches; the counts travel in its per-ray int32
-        # buffer (named prim_id for the closest-hit query)
-        query._run(count, origins, directions, tmin, tmax, launch, {"prim_id": counts})
+        self._launches(tree, kernel, (origins, directions, tmin, tmax), None,
+                       {"counts": counts}, lambda start, stop: [])
         return counts
 
-    def _reserve(self, hits: int) -> None:
-        """Grow-only device buffers for the fill pass's results."""
-        if hits <= self._capacity:
-            return
-        capacity = max(hits, min(HITS_PER_LAUNCH, 2 * self._capacity))
-        sizes = {name: capacity * np.dtype(dtype).itemsize for name, dtype in HIT_FIELDS.items()}
-        self._outputs = {}
-        self.rt.check_allocation("all-hits buffers", sizes)
-        self._outputs = {name: cl.Buffer(self.rt.context, cl.mem_flags.READ_WRITE, size)
-                         for name, size in sizes.items()}
-        self._capacity = capacity
-
     def _fill(self, tree, origins, directions, tmin, tmax, offsets, fields, t_factor) -> None:
-        query, rt, queue = self.query, self.rt, self.rt.queue
         kernel = self._kernel(tree, "fill_hits_arrays")
+
+        def segments(start, stop):  # the rays' segments, from the chunk's first hit
+            segment = np.empty(stop - start + 1, np.uint32)
+            np.subtract(offsets[start:stop + 1], offsets[start], out=segment, casting="unsafe")
+            return [segment]
+        self._launches(tree, kernel, (origins, directions, tmin, tmax), offsets, fields,
+                       segments, refs=True)
+        if t_factor is not None:  # back from the frame: exact, powers of two
+            for start, stop in _chunks(offsets, self.query.max_rays_per_launch, len(origins)):
+                part = slice(int(offsets[start]), int(offsets[stop]))
+                fields["t"][part] = fields["t"][part] * np.repeat(
+                    t_factor[start:stop], np.diff(offsets[start:stop + 1]))
+
+    def _launches(self, tree, kernel, rays, offsets, outputs, extra, refs=False) -> None:
+        """Runs `kernel` over chunks of rays (_chunks of `offsets`, the prefix
+        sum of each ray's output slots; None: one slot per ray): its arguments are the tree, the
+        chunk's rays, extra(start, stop) (host arrays), the chunk's slots of
+        `outputs`, the counters and the ray count.  On PoCL the kernels read
+        and write the arrays themselves (zero copy); elsewhere the rays go up
+        per chunk and the results come back through buffers reused between
+        chunks."""
+        query, rt, queue = self.query, self.rt, self.rt.queue
         context, flags = rt.context, cl.mem_flags
         cl.enqueue_copy(queue, self._counters, np.zeros(2, np.int32))
 
         def wrap(array, access):  # the array's own memory (zero copy) or a copy of it
-            if query.zero_copy:
-                return cl.Buffer(context, access | flags.USE_HOST_PTR, hostbuf=array)
-            return cl.Buffer(context, access | flags.COPY_HOST_PTR, hostbuf=array)
-
-        limits = [(tmin, "tmin"), (tmax, "tmax")]
-        scalars = [wrap(np.full(1, value, np.float32), flags.READ_ONLY)
-                   for value, _ in limits if value.ndim == 0]
+            host = flags.USE_HOST_PTR if query.zero_copy else flags.COPY_HOST_PTR
+            return cl.Buffer(context, access | host, hostbuf=array)
+        origins, directions, *limits = rays
+        scalars = {id(value): wrap(np.full(1, value, np.float32), flags.READ_ONLY)
+                   for value in limits if value.ndim == 0}
+        # at most two launches in flight (Ctrl-C waits for few), and chunks small
+        # enough off PoCL that the rays' copies stay small
+        rays_per_launch = query.max_rays_per_launch if query.zero_copy else \
+            min(query.max_rays_per_launch, COPIED_RAYS_PER_LAUNCH)
         events, kept = [], []  # kept: what the launches in flight read or write
-        for start, stop in _chunks(offsets, query.max_rays_per_launch):
-            if len(events) >= 2:  # at most two launches in flight: Ctrl-C waits for few
-                rt.wait(events[-2:-1])
-            first, last = int(offsets[start]), int(offsets[stop])
-            segment = (offsets[start:stop + 1] - first).astype(np.uint32)
-            kept.append(segment)
-            args = [wrap(origins[start:stop], flags.READ_ONLY),
-                    wrap(directions[start:stop], flags.READ_ONLY)]
-            scalar = iter(scalars)
-            for value, _ in limits:
-                args += [wrap(value[start:stop], flags.READ_ONLY), np.uint32(1)] if value.ndim \
-                    else [next(scalar), np.uint32(0)]
-            args.append(wrap(segment, flags.READ_ONLY))
-            parts = {name: array[first:last] for name, array in fields.items()}
-            if query.zero_copy:
-                outputs = {name: wrap(part, flags.WRITE_ONLY) for name, part in parts.items()}
-            else:
-                self._reserve(last - first)
-                outputs = self._outputs
-            events.append(rt.run(kernel, stop - start, tree.nodes, tree.triangles, tree.refs,
-                                 *args, *(outputs[name] for name in
-                                          ("t", "u", "v", "prim_id", "geom_id")),
-                                 self._counters, np.uint32(stop - start),
-                                 local_size=query.work_group_size))
-            for name, part in parts.items():
-                if query.zero_copy:  # the results are there once the buffer is mapped
-                    array, _ = cl.enqueue_map_buffer(queue, outputs[name], cl.map_flags.READ, 0,
-                                                     part.shape, part.dtype, is_blocking=False)
-                    array.base.release(queue)
+        try:
+            for start, stop in _chunks(offsets, rays_per_launch, len(origins)):
+                if len(events) >= 2:
+                    rt.wait(events[-2:-1])
+                    del kept[:-1]
+                first, last = (start, stop) if offsets is None else \
+                    (int(offsets[start]), int(offsets[stop]))
+                args = [wrap(origins[start:stop], flags.READ_ONLY),
+                        wrap(directions[start:stop], flags.READ_ONLY)]
+                for value in limits:
+                    args += [wrap(value[start:stop], flags.READ_ONLY), np.uint32(1)] \
+                        if value.ndim else [scalars[id(value)], np.uint32(0)]
+                held = extra(start, stop)
+                args += [wrap(array, flags.READ_ONLY) for array in held]
+                parts = {name: array[first:last] for name, array in outputs.items()}
+                if query.zero_copy:
+                    buffers = {name: wrap(part, flags.WRITE_ONLY) for name, part in parts.items()}
                 else:
-                    kept.append(cl.enqueue_copy(queue, part, outputs[name], is_blocking=False))
-        counters = np.zeros(2, np.int32)
-        rt.wait([cl.enqueue_copy(queue, counters, self._counters, is_blocking=False)])
+                    buffers = self._reserve(outputs, last - first)
+                tree_args = (tree.nodes, tree.triangles) + ((tree.refs,) if refs else ())
+                events.append(rt.run(kernel, stop - start, *tree_args, *args,
+                                     *buffers.values(), self._counters, np.uint32(stop - start),
+                                     local_size=query.work_group_size))
+                copies = []
+                for name, part in parts.items():
+                    if query.zero_copy:  # the results are there once the buffer is mapped
+                        array, _ = cl.enqueue_map_buffer(queue, buffers[name], cl.map_flags.READ,
+                                                         0, part.shape, part.dtype,
+                                                         is_blocking=False)
+                        array.base.release(queue)
+                    else:
+                        copies.append(cl.enqueue_copy(queue, part, buffers[name],
+                                                      is_blocking=False))
+                kept.append((args, held, buffers, copies))
+            counters = np.zeros(2, np.int32)
+            rt.wait([cl.enqueue_copy(queue, counters, self._counters, is_blocking=False)])
+        except BaseException:  # launches in flight may still write: let them end
+            queue.finish()
+            raise
         if counters[0]:
             raise RuntimeError("ray traversal overflowed its stack (sized from Tree.depth): "
                                "the tree is deeper than its depth field says")
         if counters[1]:
             raise RuntimeError("hlbvh_cl internal error: intersect_all's fill pass found fewer "
                                "hits than its count pass")
-        if t_factor is not None:  # back from the frame: exact, powers of two
-            for start, stop in _chunks(offsets, query.max_rays_per_launch):
-                part = slice(int(offsets[start]), int(offsets[stop]))
-                fields["t"][part] = fields["t"][part] * np.repeat(
-                    t_factor[start:stop], np.diff(offsets[start:stop + 1]))
+
+    def _reserve(self, outputs: dict, slots: int) -> dict[str, cl.Buffer]:
+        """Grow-only device buffers for `slots` results of each output
+        (copied back after each launch)."""
+        if slots > self._capacity or any(name not in self._outputs for name in outputs):
+            capacity = max(slots, min(HITS_PER_LAUNCH, 2 * self._capacity), self._capacity)
+            sizes = {name: capacity * 4 for name in {*self._outputs, *outputs}}  # 4-byte fields
+            self._outputs = {}
+            self.rt.check_allocation("all-hits buffers", sizes)
+            self._outputs = {name: cl.Buffer(self.rt.context, cl.mem_flags.READ_WRITE, size)
+                             for name, size in sizes.items()}
+            self._capacity = capacity
+        return {name: self._outputs[name] for name in outputs}
 
 
-def _chunks(offsets: np.ndarray, max_rays: int):
-    """(start, stop) runs of rays with at most max_rays rays and (unless one
-    ray has more) HITS_PER_LAUNCH hits; runs without hits are skipped."""
-    count, start = len(offsets) - 1, 0
+def _ray_index(offsets: np.ndarray) -> np.ndarray:
+    """int64 (H,): the ray of each hit.  Each ray's first slot gets the step
+    from the previous ray with hits, then a running sum; block by block, so
+    that no temporary is as large as a per-ray array (np.repeat over
+    np.arange(R) would make two)."""
+    index = np.zeros(int(offsets[-1]), np.int64)
+    previous = 0
+    for start in range(0, len(offsets) - 1, RAY_INDEX_BLOCK):
+        rays = np.flatnonzero(np.diff(offsets[start:start + RAY_INDEX_BLOCK + 1])) + start
+        if len(rays):
+            index[offsets[rays]] = np.diff(rays, prepend=previous)
+            previous = rays[-1]
+    return np.cumsum(index, out=index)
+
+
+def _chunks(offsets: np.ndarray | None, max_rays: int, count: int):
+    """(start, stop) runs of the `count` rays with at most max_rays rays and
+    (unless one ray has more) HITS_PER_LAUNCH slots, where ray r has slots
+    [offsets[r], offsets[r + 1]) (None: one each); runs without slots are
+    skipped."""
+    start = 0
     while start < count:
-        bound = int(np.searchsorted(offsets, offsets[start] + HITS_PER_LAUNCH, "right")) - 1
-        stop = min(start + max_rays, count, max(bound, start + 1))
-        if offsets[stop] > offsets[start]:
-            yield start, stop
+        if offsets is None:
+            stop = min(start + max_rays, start + HITS_PER_LAUNCH, count)
+        else:
+            bound = int(np.searchsorted(offsets, offsets[start] + HITS_PER_LAUNCH, "right")) - 1
+            stop = min(start + max_rays, count, max(bound, start + 1))
+            if offsets[stop] == offsets[start]:
+                start = stop
+                continue
+        yield start, stop
         start = stop

@@ -336,3 +336,25 @@ def test_bunny_agrees_with_open3d(meshes):
         mine_r = slice(every.offsets[r], every.offsets[r + 1])
         np.testing.assert_allclose(every.t[mine_r], t_theirs[theirs_r][order], rtol=1e-4)
         assert set(every.prim_id[mine_r]) == set(prim_theirs[theirs_r])
+
+
+def test_small_chunks_give_the_same_hits(tiny, monkeypatch):
+    """Launches cut into chunks of few rays and few hits (a ray with more
+    hits than a chunk holds goes alone) give what one launch gives."""
+    from hlbvh_cl import all_hits
+    origins, directions = random_rays(tiny, 300, seed=11)
+    tmax = np.random.default_rng(12).uniform(0.5, 3, len(origins)).astype(np.float32)
+    whole = tiny.scene.intersect_all(origins, directions, tmax=tmax)
+    counts = tiny.scene.count_intersections(origins, directions, tmax=tmax)
+    assert whole.counts.max() >= 3
+    monkeypatch.setattr(all_hits, "HITS_PER_LAUNCH", 2)
+    monkeypatch.setattr(all_hits, "COPIED_RAYS_PER_LAUNCH", 5)
+    monkeypatch.setattr(all_hits, "RAY_INDEX_BLOCK", 3)
+    monkeypatch.setattr(tiny.scene._ray_query(), "max_rays_per_launch", 7)
+    chunked = tiny.scene.intersect_all(origins, directions, tmax=tmax)
+    for name in ("offsets", "ray_index", "t", "u", "v", "prim_id", "geom_id"):
+        np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name), name)
+    np.testing.assert_array_equal(tiny.scene.count_intersections(origins, directions, tmax=tmax),
+                                  counts)
+    first = tiny.scene.intersect_all(origins, directions, tmax=tmax, max_hits=2)
+    np.testing.assert_array_equal(first.counts, np.minimum(counts, 2))
