@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import hlbvh_cl
 from oracle import brute_force_all_hits
@@ -358,3 +360,23 @@ def test_small_chunks_give_the_same_hits(tiny, monkeypatch):
                                   counts)
     first = tiny.scene.intersect_all(origins, directions, tmax=tmax, max_hits=2)
     np.testing.assert_array_equal(first.counts, np.minimum(counts, 2))
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), k=st.integers(1, 4),
+       window=st.tuples(st.floats(0, 2), st.floats(0, 3)))
+def test_properties(tiny, seed, k, window):
+    """Any rays and window: counts agree with intersect_all, each ray's hits
+    are sorted and inside [tmin, tmax], and max_hits=k is their prefix."""
+    origins, directions = random_rays(tiny, 64, seed=seed)
+    tmin, tmax = window[0], window[0] + window[1]
+    every = tiny.scene.intersect_all(origins, directions, tmin, tmax)
+    np.testing.assert_array_equal(every.counts,
+                                  tiny.scene.count_intersections(origins, directions, tmin, tmax))
+    same = every.ray_index[1:] == every.ray_index[:-1]
+    assert (every.t[1:][same] >= every.t[:-1][same]).all()
+    assert ((every.t >= np.float32(tmin)) & (every.t <= np.float32(tmax))).all()
+    first = tiny.scene.intersect_all(origins, directions, tmin, tmax, max_hits=k)
+    rank = np.arange(len(every)) - every.offsets[every.ray_index]
+    np.testing.assert_array_equal(first.t, every.t[rank < k])
+    np.testing.assert_array_equal(first.prim_id, every.prim_id[rank < k])
