@@ -70,7 +70,8 @@ def _check_max_hits(max_hits) -> int | None:
         raise TypeError(f"max_hits must be an int or None, got {type(max_hits).__name__}")
     if max_hits < 1:
         raise ValueError(f"max_hits must be >= 1 (or None for every hit), got {max_hits}")
-    return int(max_hits)
+    # no ray has more hits than a count holds (int32): a larger k keeps them all
+    return min(int(max_hits), np.iinfo(np.int32).max)
 
 
 def _rays(origins, directions, tmin, tmax, tree):

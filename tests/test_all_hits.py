@@ -147,6 +147,8 @@ def test_bad_input_is_named(tiny):
     for bad, error in ((0, ValueError), (-3, ValueError), (1.5, TypeError), (True, TypeError)):
         with pytest.raises(error, match="max_hits"):
             tiny.scene.intersect_all(o, d, max_hits=bad)
+    huge = tiny.scene.intersect_all(o, d, max_hits=2**40)  # more than any ray has
+    np.testing.assert_array_equal(huge.counts, tiny.scene.count_intersections(o, d))
     d[1] = 0
     with pytest.raises(ValueError, match=r"directions\[1\]"):
         tiny.scene.intersect_all(o, d)
