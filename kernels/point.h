@@ -79,7 +79,13 @@ TRAVERSAL_INLINE uint children_winding(const PointData* q, __global const WideNo
     entry->lanes = (float_lanes)(0.0f);
     int_lanes used = (LOAD_ROW(int_lanes, node->count) != (int_lanes)(0))
                      | (LOAD_ROW(int_lanes, node->child) != (int_lanes)(EMPTY_CHILD));
-    return lane_mask((far == (int_lanes)(0)) & used);
+    /* the near lanes by a compare of their own, not as far == 0: Clang
+     * makes that an xor of the compare's <8 x i1> with true (1), which
+     * Oclgrind runs wrong (its vector compares set i1 lanes to all ones,
+     * and 0xff ^ 1 is nonzero: every lane stays true), so there every used
+     * child was counted by its dipole and descended too.  d2 is never NaN
+     * (finite points and dipoles): <= is exactly not-far. */
+    return lane_mask((d2 <= near * near) & used);
 }
 #undef DIPOLE_ROW
 #undef NODE_ROW

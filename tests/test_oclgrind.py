@@ -457,11 +457,6 @@ def run_child(mode: str, group: str, out: Path) -> subprocess.CompletedProcess:
 @pytest.mark.parametrize("group", list(GROUPS))
 def test_kernels_are_clean_under_oclgrind(group, mode, tmp_path, warm_kernel_variants,
                                           expected_images):
-    if (group, mode) == ("points", "optimised"):
-        # Open: Oclgrind's optimised (-Oz) build gives winding numbers far
-        # off (2.9 for 1.02 at the sphere's centre) while the closest points
-        # and the unoptimised build are right and clean; not yet understood.
-        pytest.xfail("winding numbers wrong under Oclgrind's optimised build (open)")
     out = tmp_path / "results.npz"
     done = run_child(mode, group, out)
     found = reports(done.stderr)
