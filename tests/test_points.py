@@ -376,3 +376,33 @@ def test_points_keep_their_leading_shape(sphere_scene):
         np.testing.assert_array_equal(query(points).reshape(-1), query(points.reshape(-1, 3)))
     with pytest.raises(ValueError, match=r"points\[1, 2\] = .*not finite"):
         sphere_scene.contains(np.where(np.arange(20).reshape(4, 5, 1) == 7, np.nan, points))
+
+
+def test_big_batches_answer_in_place(sphere_scene):
+    """Batches of COHERENT_MIN_POINTS and more run in Morton order (points.
+    coherent_order) and in chunks: each point's answer is the one it gets
+    alone in a small batch, in its own row, also with a flat axis (all z
+    equal), repeated points and extents down to a denormal."""
+    from hlbvh_cl.points import COHERENT_MIN_POINTS, coherent_order
+    rng = np.random.default_rng(21)
+    count = 3 * COHERENT_MIN_POINTS
+    points = rng.uniform(-2, 2, (count, 3)).astype(np.float32)
+    points[:, 2] = 0.25
+    points[::7] = points[3]
+    small = sphere_scene._point_query().max_points_per_launch
+    sphere_scene._point_query().max_points_per_launch = 1000
+    try:
+        whole = sphere_scene.closest_points(points)
+        sdf = sphere_scene.signed_distance(points)
+    finally:
+        sphere_scene._point_query().max_points_per_launch = small
+    pieces = [sphere_scene.closest_points(points[i:i + 500]) for i in range(0, count, 500)]
+    for name in ("distance", "prim_id", "geom_id", "u", "v", "normal", "points"):
+        assert np.array_equal(getattr(whole, name),
+                              np.concatenate([getattr(p, name) for p in pieces]))
+    assert np.array_equal(sdf, np.concatenate([sphere_scene.signed_distance(points[i:i + 500])
+                                               for i in range(0, count, 500)]))
+    for block in (points, np.full((5, 3), 1.0, np.float32),
+                  np.array([[0, 0, 0], [1e-44, 0, 0], [0, 1e-44, 3e38]], np.float32)):
+        order = coherent_order(block)
+        assert np.array_equal(np.sort(order), np.arange(len(block)))
