@@ -23,6 +23,7 @@ import numpy as np
 import pyopencl as cl
 
 from . import inputs
+from .order import COHERENT_MIN, coherent_order, take_rows
 from .query import RayQuery, _into_frame, _stack_size
 from .tree import Tree
 
@@ -148,8 +149,16 @@ class AllHitsQuery:
             counts[:] = 0
             return counts
         kernel = self._kernel(tree, "count_hits_arrays")
-        self._launches(tree, kernel, (origins, directions, tmin, tmax), None,
-                       {"counts": counts}, lambda start, stop: [])
+        rays, out = (origins, directions, tmin, tmax), counts
+        # big batches in Morton order of their origins (hlbvh_cl.order)
+        order = coherent_order(origins) if count >= COHERENT_MIN else None
+        if order is not None:
+            rays = (take_rows(origins, order), take_rows(directions, order),
+                    *(limit[order] if limit.ndim else limit for limit in (tmin, tmax)))
+            out = np.empty(count, np.int32)
+        self._launches(tree, kernel, rays, None, {"counts": out}, lambda start, stop: [])
+        if order is not None:
+            counts[order] = out
         return counts
 
     def _fill(self, tree, origins, directions, tmin, tmax, offsets, fields, t_factor) -> None:

@@ -34,6 +34,7 @@ import numpy as np
 import pyopencl as cl
 
 from . import frame, inputs, layout
+from .order import COHERENT_MIN, coherent_order, take_rows
 from .device import Runtime
 from .query import _stack_size, _work_group_size, _zero_copy, check_tree
 from .tree import Tree
@@ -41,14 +42,6 @@ from .tree import Tree
 #: Points per kernel launch at most (as query.MAX_RAYS_PER_LAUNCH: a launch
 #: ends soon, so that Ctrl-C is answered quickly).
 MAX_POINTS_PER_LAUNCH = 1 << 18
-
-#: Batches of at least this many points are queried in Morton order
-#: (coherent_order); smaller ones as given.
-COHERENT_MIN_POINTS = 1024
-
-#: Bits per axis of the Morton codes that order the points: a 16-bit key,
-#: which numpy's stable argsort sorts by radix (5 to 10 bits walked alike).
-ORDER_BITS = 5
 
 #: Largest coordinate magnitude of a query point in the tree's frame: the
 #: kernels square distances in float32, which stay finite below 2^127.
@@ -92,40 +85,6 @@ def check_max_distance(value) -> float:
     if np.isnan(distance) or distance < 0:
         raise ValueError(f"max_distance = {distance} must be >= 0 (inf for no limit)")
     return distance
-
-
-def _spread_bits(cells: np.ndarray) -> np.ndarray:
-    """uint16 cells < 2^5 with two zero bits after each bit (the Morton
-    interleave, by the usual shifts and masks)."""
-    x = (cells | (cells << 4)) & 0x30C3
-    return (x | (x << 2)) & 0x9249
-
-
-def _take_rows(points: np.ndarray, order: np.ndarray) -> np.ndarray:
-    """points[order] for float32 (N, 3) points, gathering each row as one
-    12-byte item (fancy indexing of an (N, 3) array measured four times slower)."""
-    rows = np.ascontiguousarray(points).view(np.dtype((np.void, 12))).reshape(-1)
-    return np.take(rows, order).view(np.float32).reshape(-1, 3)
-
-
-def coherent_order(points: np.ndarray) -> np.ndarray:
-    """The indices of float32 (N, 3) points in Morton order of their cells
-    in a 2^ORDER_BITS grid over their box: consecutive work-items then walk
-    much the same nodes and triangles, which stay in cache (points come in
-    any order, often uniformly random).  A column at a time: numpy reduces
-    one much faster than an (N, 3) array along its first axis."""
-    key = np.zeros(len(points), np.uint16)
-    top = (1 << ORDER_BITS) - 1
-    for axis in range(3):
-        column = points[:, axis]
-        lo, hi = column.min(), column.max()
-        # capped: a denormal extent would make it inf, and 0 * inf NaN
-        scale = np.float32(min(top / (float(hi) - float(lo)), 2.0**100)) if hi > lo else \
-            np.float32(0)
-        cells = ((column - lo) * scale).astype(np.uint16)
-        np.minimum(cells, top, out=cells)
-        key |= _spread_bits(cells) << axis
-    return np.argsort(key, kind="stable")
 
 
 class PointQuery:
@@ -275,12 +234,12 @@ class PointQuery:
         points (buffers["input"]: the chunk's points); the results land in
         the arrays of ``outputs``.  Raises if a walk ran out of stack.  Big
         batches run in coherent_order, their results put back in place."""
-        order = coherent_order(points) if len(points) >= COHERENT_MIN_POINTS else None
+        order = coherent_order(points) if len(points) >= COHERENT_MIN else None
         results = outputs if order is None else {name: np.empty_like(array)
                                                  for name, array in outputs.items()}
         with self._lock:
             try:
-                self._run_locked(points if order is None else _take_rows(points, order), launch,
+                self._run_locked(points if order is None else take_rows(points, order), launch,
                                   results)
             except BaseException:
                 self.rt.queue.finish()  # launches in flight may still write the arrays

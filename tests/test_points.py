@@ -379,13 +379,13 @@ def test_points_keep_their_leading_shape(sphere_scene):
 
 
 def test_big_batches_answer_in_place(sphere_scene):
-    """Batches of COHERENT_MIN_POINTS and more run in Morton order (points.
+    """Batches of COHERENT_MIN and more run in Morton order (order.
     coherent_order) and in chunks: each point's answer is the one it gets
     alone in a small batch, in its own row, also with a flat axis (all z
     equal), repeated points and extents down to a denormal."""
-    from hlbvh_cl.points import COHERENT_MIN_POINTS, coherent_order
+    from hlbvh_cl.order import COHERENT_MIN, coherent_order
     rng = np.random.default_rng(21)
-    count = 3 * COHERENT_MIN_POINTS
+    count = 3 * COHERENT_MIN
     points = rng.uniform(-2, 2, (count, 3)).astype(np.float32)
     points[:, 2] = 0.25
     points[::7] = points[3]
