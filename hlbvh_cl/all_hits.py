@@ -109,8 +109,12 @@ class AllHitsQuery:
         """int32, in the rays' leading shape: the number of hits of each ray
         with tmin <= t <= tmax."""
         rays, _, shape = _rays(origins, directions, tmin, tmax, tree)
+        order, rays, _ = _coherent(rays, None)
         with self._lock:
-            return self._count(tree, *rays).reshape(shape)
+            counts = self._count(tree, *rays)
+        if order is not None:
+            counts[order] = counts.copy()
+        return counts.reshape(shape)
 
     def intersect_all(self, tree: Tree, origins, directions=None, tmin=0.0, tmax=np.inf,
                       max_hits=None) -> AllHits:
@@ -118,6 +122,7 @@ class AllHitsQuery:
         max_hits=k only the k nearest of each ray."""
         max_hits = _check_max_hits(max_hits)
         rays, t_factor, shape = _rays(origins, directions, tmin, tmax, tree)
+        order, rays, t_factor = _coherent(rays, t_factor)
         with self._lock:
             kept = self._count(tree, *rays, empty=np.empty)  # a temporary: not pooled
             if max_hits is not None:
@@ -131,6 +136,8 @@ class AllHitsQuery:
                       for name, dtype in HIT_FIELDS.items()}
             if total:
                 self._fill(tree, *rays, offsets, fields, t_factor)
+        if order is not None:
+            offsets = _to_caller_order(fields, offsets, order, self.query._results)
         return AllHits(offsets=offsets, ray_index=_ray_index(offsets), **fields, shape=shape)
 
     # -- internals ----------------------------------------------------------
@@ -149,16 +156,8 @@ class AllHitsQuery:
             counts[:] = 0
             return counts
         kernel = self._kernel(tree, "count_hits_arrays")
-        rays, out = (origins, directions, tmin, tmax), counts
-        # big batches in Morton order of their origins (hlbvh_cl.order)
-        order = coherent_order(origins) if count >= COHERENT_MIN else None
-        if order is not None:
-            rays = (take_rows(origins, order), take_rows(directions, order),
-                    *(limit[order] if limit.ndim else limit for limit in (tmin, tmax)))
-            out = np.empty(count, np.int32)
-        self._launches(tree, kernel, rays, None, {"counts": out}, lambda start, stop: [])
-        if order is not None:
-            counts[order] = out
+        self._launches(tree, kernel, (origins, directions, tmin, tmax), None,
+                       {"counts": counts}, lambda start, stop: [])
         return counts
 
     def _fill(self, tree, origins, directions, tmin, tmax, offsets, fields, t_factor) -> None:
@@ -257,6 +256,42 @@ class AllHitsQuery:
                              for name, size in sizes.items()}
             self._capacity = capacity
         return {name: self._outputs[name] for name in outputs}
+
+
+def _coherent(rays: tuple, t_factor):
+    """Big batches in Morton order of their origins (hlbvh_cl.order): the
+    order (None: as given), the rays and the per-ray t factor in it."""
+    origins, directions, tmin, tmax = rays
+    if len(origins) < COHERENT_MIN:
+        return None, rays, t_factor
+    order = coherent_order(origins)
+    rays = (take_rows(origins, order), take_rows(directions, order),
+            *(limit[order] if limit.ndim else limit for limit in (tmin, tmax)))
+    return order, rays, None if t_factor is None else t_factor[order]
+
+
+def _to_caller_order(fields: dict, offsets: np.ndarray, order: np.ndarray, pool) -> np.ndarray:
+    """Moves the hits of rays traced in ``order`` (CSR ``offsets`` in that
+    order) to the caller's ray order, one field at a time and a block of rays
+    at a time, so that the move needs one field's copy more, not the whole
+    output's; returns the caller's offsets."""
+    counts = np.empty(len(order), np.int64)
+    counts[order] = np.diff(offsets)
+    caller = np.zeros(len(order) + 1, np.int64)
+    np.cumsum(counts, out=caller[1:])
+    shift = np.empty(len(order), np.int64)  # a ray's first hit: traced at caller + shift
+    shift[order] = offsets[:-1]
+    shift -= caller[:-1]
+    for name, values in fields.items():
+        moved = pool.empty(len(values), values.dtype)
+        for start in range(0, len(order), RAY_INDEX_BLOCK):
+            stop = min(start + RAY_INDEX_BLOCK, len(order))
+            first, last = int(caller[start]), int(caller[stop])
+            source = np.repeat(shift[start:stop], counts[start:stop])
+            source += np.arange(first, last)
+            np.take(values, source, out=moved[first:last])
+        fields[name] = moved
+    return caller
 
 
 def _ray_index(offsets: np.ndarray) -> np.ndarray:

@@ -364,6 +364,36 @@ def test_small_chunks_give_the_same_hits(tiny, monkeypatch):
     np.testing.assert_array_equal(first.counts, np.minimum(counts, 2))
 
 
+def test_big_batches_traced_in_morton_order_answer_in_the_callers_order(tiny, monkeypatch):
+    """A batch of COHERENT_MIN rays and more is traced in Morton order of its
+    origins (hlbvh_cl.order) and its hits moved back: each ray's hits, counts
+    and t (with per-ray limits) are those it gets in small batches, which run
+    as given; also in small blocks of the move."""
+    from hlbvh_cl import all_hits, order
+    from hlbvh_cl.order import COHERENT_MIN
+    traced = []  # the orders the big batches were traced in
+    monkeypatch.setattr(all_hits, "coherent_order",
+                        lambda points: traced.append(order.coherent_order(points)) or traced[-1])
+    count = 2 * COHERENT_MIN + 37
+    origins, directions = random_rays(tiny, count, seed=31)
+    tmax = np.random.default_rng(32).uniform(0.5, 3, count).astype(np.float32)
+    monkeypatch.setattr(all_hits, "RAY_INDEX_BLOCK", 100)
+    for max_hits in (None, 2):
+        whole = tiny.scene.intersect_all(origins, directions, tmax=tmax, max_hits=max_hits)
+        parts = [tiny.scene.intersect_all(origins[i:i + 500], directions[i:i + 500],
+                                          tmax=tmax[i:i + 500], max_hits=max_hits)
+                 for i in range(0, count, 500)]
+        assert whole.counts.max() >= 3 - (max_hits == 2)
+        np.testing.assert_array_equal(whole.counts, np.concatenate([p.counts for p in parts]))
+        for name in ("t", "u", "v", "prim_id", "geom_id"):
+            np.testing.assert_array_equal(getattr(whole, name),
+                                          np.concatenate([getattr(p, name) for p in parts]), name)
+        np.testing.assert_array_equal(whole.ray_index, np.repeat(np.arange(count), whole.counts))
+    np.testing.assert_array_equal(tiny.scene.count_intersections(origins, directions, tmax=tmax),
+                                  tiny.scene.intersect_all(origins, directions, tmax=tmax).counts)
+    assert len(traced) == 4 and all((o != np.arange(count)).any() for o in traced)
+
+
 @settings(max_examples=15, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), k=st.integers(1, 4),
        window=st.tuples(st.floats(0, 2), st.floats(0, 3)))
