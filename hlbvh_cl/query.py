@@ -13,15 +13,14 @@ Conventions, shared with tests/oracle.py:
 """
 from __future__ import annotations
 
-import os
+import dataclasses
 import threading
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 import pyopencl as cl
 
-from . import frame, layout
+from . import frame, inputs, layout
 from .device import Runtime
 from .profile import PACKET_SIZES
 from .results import ALIGNMENT as RESULT_ALIGNMENT
@@ -186,15 +185,14 @@ class RayQuery:
 
     # -- public queries ---------------------------------------------------
 
-    def intersect(self, tree: Tree, origins, directions, tmin=0.0, tmax=np.inf) -> Hits:
-        """Closest hit of each ray (origins[i] + t * directions[i], tmin <= t <= tmax)."""
-        origins, directions, tmin, tmax = _check_rays(origins, directions, tmin, tmax)
-        hits = Hits(**{name: self._results.empty((len(origins), n) if n > 1 else len(origins),
-                                                 dtype)
+    def intersect(self, tree: Tree, origins, directions=None, tmin=0.0, tmax=np.inf) -> Hits:
+        """Closest hit of each ray (origins[i] + t * directions[i], tmin <= t <= tmax),
+        in the rays' leading shape (hlbvh_cl.inputs)."""
+        batch = inputs.rays(origins, directions, tmin, tmax)
+        count = len(batch)
+        hits = Hits(**{name: self._results.empty((count, n) if n > 1 else count, dtype)
                        for name, (dtype, n) in HIT_FIELDS.items()})
-        origins, directions, tmin, tmax, t_factor = _into_frame(origins, directions, tmin, tmax,
-                                                                tree)
-        count = len(origins)
+        batch, t_factor = _into_frame(batch, tree)
         if count and self._check_tree(tree):
             kernel = self._kernel(tree, "intersect_closest_arrays", self.count_packets)
 
@@ -205,8 +203,7 @@ class RayQuery:
                                    b["u"], b["v"], b["normal"], b["points"], self._counters,
                                    np.uint32(n),
                                    local_size=self.work_group_size)
-            self._run(count, origins, directions, tmin, tmax, launch,
-                      {name: getattr(hits, name) for name in HIT_ARRAYS})
+            self._run(batch, launch, {name: getattr(hits, name) for name in HIT_ARRAYS})
             if t_factor is not None:  # back from the frame: exact, powers of two
                 hits.t[:] = hits.t * t_factor
                 hits.points[:] = frame.to_frame(hits.points, 1.0 / tree.scale)
@@ -215,13 +212,15 @@ class RayQuery:
             hits.geom_id[:] = hits.prim_id[:] = -1
             hits.u[:] = hits.v[:] = hits.normal[:] = 0.0
             hits.points[:] = np.nan
-        return hits
+        return Hits(**{name: field.reshape(batch.shape + field.shape[1:])
+                       for name, field in vars(hits).items()})
 
-    def occluded(self, tree: Tree, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
-        """bool (R,): whether anything is hit with tmin <= t <= tmax (stops at the first hit)."""
-        origins, directions, tmin, tmax = _check_rays(origins, directions, tmin, tmax)
-        origins, directions, tmin, tmax, _ = _into_frame(origins, directions, tmin, tmax, tree)
-        count = len(origins)
+    def occluded(self, tree: Tree, origins, directions=None, tmin=0.0,
+                 tmax=np.inf) -> np.ndarray:
+        """bool in the rays' leading shape: whether anything is hit with
+        tmin <= t <= tmax (stops at the first hit)."""
+        batch, _ = _into_frame(inputs.rays(origins, directions, tmin, tmax), tree)
+        count = len(batch)
         result = self._results.empty(count, np.uint8)
         if count and self._check_tree(tree):
             kernel = self._kernel(tree, "intersect_any_arrays", self.count_packets)
@@ -231,8 +230,8 @@ class RayQuery:
                                    b["origins"],
                                    b["directions"], *limits, b["occluded"], self._counters,
                                    np.uint32(n), local_size=self.work_group_size)
-            self._run(count, origins, directions, tmin, tmax, launch, {"occluded": result})
-        return result.view(bool)  # the kernel writes 0 or 1
+            self._run(batch, launch, {"occluded": result})
+        return result.view(bool).reshape(batch.shape)  # the kernel writes 0 or 1
 
     # -- device-buffer entry points (the renderer's) ------------------------
 
@@ -307,13 +306,13 @@ class RayQuery:
                                          capacity * size) for name, size in sizes.items()}
         self._capacity = capacity
 
-    def _run(self, count, origins, directions, tmin, tmax, launch, outputs) -> None:
+    def _run(self, batch: inputs.Rays, launch, outputs) -> None:
         """Runs ``launch(n, buffers, limits)`` over chunks of at most
         max_rays_per_launch rays; the results land in the arrays of
         ``outputs`` (in place, or read back from the device buffers)."""
         with self._lock:  # one query at a time: the buffers are shared
             try:
-                self._run_locked(count, origins, directions, tmin, tmax, launch, outputs)
+                self._run_locked(batch, launch, outputs)
             except BaseException:
                 # Ctrl-C, or an error: the launches in flight (at most two)
                 # may still write into the caller's arrays (zero copy) and the
@@ -321,17 +320,18 @@ class RayQuery:
                 self.rt.queue.finish()
                 raise
 
-    def _run_locked(self, count, origins, directions, tmin, tmax, launch, outputs) -> None:
+    def _run_locked(self, batch: inputs.Rays, launch, outputs) -> None:
         queue, chunk = self.rt.queue, self.max_rays_per_launch
+        count = len(batch)
         if not self.zero_copy:
             self._reserve(min(count, chunk))
         cl.enqueue_copy(queue, self._counters, np.zeros(2, np.int32))
         # per-ray arrays go chunk by chunk; a scalar limit is one value, step 0
-        inputs = {"origins": origins, "directions": directions}
+        arrays = {"origins": batch.origins, "directions": batch.directions}
         limits = {}
-        for name, limit in (("tmin", tmin), ("tmax", tmax)):
+        for name, limit in (("tmin", batch.tmin), ("tmax", batch.tmax)):
             if limit.ndim:
-                inputs[name] = limit
+                arrays[name] = limit
             else:
                 cl.enqueue_copy(queue, self._scalars[name], np.full(1, limit, np.float32))
                 limits[name] = self._scalars[name]
@@ -345,11 +345,11 @@ class RayQuery:
             part = slice(start, min(start + chunk, count))
             if self.zero_copy:
                 buffers = {name: self._wrap(array[part], cl.mem_flags.READ_ONLY)
-                           for name, array in inputs.items()}
+                           for name, array in arrays.items()}
             else:
                 buffers = dict(self._buffers)
                 transfers += [cl.enqueue_copy(queue, buffers[name], array[part], is_blocking=False)
-                              for name, array in inputs.items()]
+                              for name, array in arrays.items()]
             in_place = self.zero_copy or (self.outputs_in_place and all(
                 array[part].ctypes.data % RESULT_ALIGNMENT == 0 for array in outputs.values()))
             if in_place:
@@ -358,7 +358,7 @@ class RayQuery:
             steps = []
             for name in ("tmin", "tmax"):
                 steps += [limits[name] if name in limits else buffers[name],
-                          np.uint32(name in inputs)]
+                          np.uint32(name in arrays)]
             events.append(launch(part.stop - part.start, buffers, steps))
             for name, array in outputs.items():
                 if in_place:  # the results are there once the buffer is mapped
@@ -394,109 +394,7 @@ def _round_up(value: int, multiple: int) -> int:
     return (value + multiple - 1) // multiple * multiple
 
 
-# -- input checks -------------------------------------------------------------
-
-def _numeric_array(name: str, value) -> np.ndarray:
-    try:
-        array = np.asarray(value)
-    except (ValueError, TypeError) as error:
-        raise ValueError(f"{name} is not a rectangular numeric array: {error}") from None
-    if array.dtype == np.bool_ or not (np.issubdtype(array.dtype, np.floating)
-                                       or np.issubdtype(array.dtype, np.integer)):
-        raise TypeError(f"{name} must hold real numbers (float32/float64), got dtype {array.dtype}")
-    return array
-
-
-#: Rows per block of the input checks: a block's temporaries stay in cache and
-#: are reused, where whole-batch temporaries would cost a page fault per 4 KiB
-#: on every call (this measured faster).
-CHECK_BLOCK = 1 << 16
-
-#: float32's smallest normal: a direction needs a component at least this
-#: large, or its inverse overflows.
-_TINY = np.finfo(np.float32).tiny
-
-_check_pool: ThreadPoolExecutor | None = None
-_check_pool_lock = threading.Lock()
-
-
-def _check_threads() -> ThreadPoolExecutor:
-    """The threads the ray checks of large batches are split over (one per
-    CPU; numpy releases the GIL inside its reductions)."""
-    global _check_pool
-    with _check_pool_lock:
-        if _check_pool is None:
-            _check_pool = ThreadPoolExecutor(max_workers=os.cpu_count() or 1,
-                                             thread_name_prefix="hlbvh_cl-checks")
-        return _check_pool
-
-
-def _vectors(name: str, value) -> tuple[np.ndarray, np.ndarray]:
-    """(R, 3) float32 (C-contiguous, aligned) and the array as given, whose
-    values are checked later (_rays_are_valid)."""
-    array = _numeric_array(name, value)
-    if array.ndim != 2 or array.shape[1] != 3:
-        raise ValueError(f"{name} must have shape (R, 3), got {array.shape}")
-    with np.errstate(over="ignore", invalid="ignore"):  # reported by row, later
-        # aligned too: the kernels may read the array itself (zero copy)
-        return np.require(array, np.float32, ["C_CONTIGUOUS", "ALIGNED"]), array
-
-
-def _rows_are_valid(origins: np.ndarray, directions: np.ndarray, start: int, stop: int) -> bool:
-    """Whether the rays [start, stop) have finite origins and finite
-    directions with a component of magnitude >= _TINY: one pass, block by
-    block.  min() and max() propagate NaN, so they test finiteness without a
-    temporary; a direction's magnitudes serve both of its tests, and only a
-    block that holds a tiny component looks at its rows."""
-    magnitudes = np.empty((min(CHECK_BLOCK, stop - start), 3), np.float32)
-    for first in range(start, stop, CHECK_BLOCK):
-        last = min(first + CHECK_BLOCK, stop)
-        block = origins[first:last]
-        if not (np.isfinite(block.min()) and np.isfinite(block.max())):
-            return False
-        size = np.abs(directions[first:last], out=magnitudes[:last - first])
-        if not np.isfinite(size.max()):
-            return False
-        if size.min() < _TINY and (size.max(axis=1) < _TINY).any():
-            return False
-    return True
-
-
-def _rays_are_valid(origins: np.ndarray, directions: np.ndarray) -> bool:
-    """_rows_are_valid over every ray, a run of blocks per thread for large
-    batches (threads measured faster on millions of rays)."""
-    count = len(origins)
-    blocks = -(-count // CHECK_BLOCK)
-    parts = min(os.cpu_count() or 1, blocks)
-    if parts <= 1:
-        return _rows_are_valid(origins, directions, 0, count)
-    step = -(-blocks // parts) * CHECK_BLOCK
-    bounds = [(first, min(first + step, count)) for first in range(0, count, step)]
-    rest = [_check_threads().submit(_rows_are_valid, origins, directions, *b) for b in bounds[1:]]
-    valid = _rows_are_valid(origins, directions, *bounds[0])
-    return all([future.result() for future in rest]) and valid
-
-
-def _raise_first_bad_ray(name: str, vectors: np.ndarray, given: np.ndarray,
-                         directions: bool) -> None:
-    """Raises the ValueError naming the first bad row of ``vectors`` (as
-    float32; ``given`` as the caller gave it), if it has one."""
-    finite = np.isfinite(vectors).all(axis=1)
-    if not finite.all():
-        row = int(np.argmin(finite))
-        why = "is not finite" if not np.isfinite(given[row]).all() else "overflows float32"
-        raise ValueError(f"{name}[{row}] = {given[row].tolist()} {why}")
-    if directions:
-        short = np.flatnonzero(np.abs(vectors).max(axis=1) < _TINY)
-        if len(short):
-            row = int(short[0])
-            what = ("has zero length" if not vectors[row].any()
-                    else "is too short to invert (subnormal)")
-            raise ValueError(f"{name}[{row}] = {vectors[row].tolist()} {what}; "
-                             "a direction needs a component of magnitude >= 1.2e-38")
-
-
-def _into_frame(origins, directions, tmin, tmax, tree):
+def _into_frame(batch: inputs.Rays, tree) -> tuple[inputs.Rays, np.ndarray | None]:
     """The (checked) rays in the frame of a tree built at a scale other than 1
     (hlbvh_cl.frame), and the factor per ray that turns the frame's t back
     into the caller's (None at scale 1).  Origins take the tree's scale; each
@@ -506,63 +404,18 @@ def _into_frame(origins, directions, tmin, tmax, tree):
     float32 (far from a tiny scene) raises the ValueError that names it."""
     scale = getattr(tree, "scale", 1.0)
     if scale == 1.0:
-        return origins, directions, tmin, tmax, None
-    framed = frame.to_frame(origins, scale)
-    if not np.isfinite(framed).all():
-        try:
-            _raise_first_bad_ray("origins", framed, origins, directions=False)
-        except ValueError as error:
-            raise ValueError(f"{error} once multiplied by {frame.describe(scale)}, the scale "
-                             f"of this scene's frame (hlbvh_cl/frame.py)") from None
-    _, exponent = np.frexp(np.abs(directions).max(axis=1))
+        return batch, None
+    framed = frame.to_frame(batch.origins, scale)
+    finite = np.isfinite(framed).all(axis=1)
+    if not finite.all():
+        raise ValueError(f"{batch.name_origin(int(np.argmin(finite)))} overflows float32 once "
+                         f"multiplied by {frame.describe(scale)}, the scale of this scene's "
+                         "frame (hlbvh_cl/frame.py)")
+    _, exponent = np.frexp(np.abs(batch.directions).max(axis=1))
     per_ray = np.ldexp(1.0, -exponent)
-    directions = (directions * per_ray[:, None]).astype(np.float32)
+    directions = (batch.directions * per_ray[:, None]).astype(np.float32)
     t_factor = per_ray / scale  # the caller's t = the frame's t * t_factor
     with np.errstate(over="ignore", under="ignore"):
-        tmin, tmax = ((limit / t_factor).astype(np.float32) for limit in (tmin, tmax))
-    return framed, directions, tmin, tmax, t_factor
-
-
-def _limits(name: str, value, count: int) -> np.ndarray:
-    """A float64 scalar (0-d) or (R,) array with no NaN."""
-    array = _numeric_array(name, value).astype(np.float64, copy=False)
-    if array.ndim == 1 and len(array) != count:
-        raise ValueError(f"{name} has {len(array)} entries but there are {count} rays")
-    if array.ndim > 1:
-        raise ValueError(f"{name} must be a scalar or have shape (R,), got {array.shape}")
-    nan = np.isnan(array)
-    if nan.any():
-        row = int(np.argmax(nan.reshape(-1)))
-        where = f"{name}[{row}]" if array.ndim else name
-        raise ValueError(f"{where} is NaN")
-    return array
-
-
-def _check_rays(origins, directions, tmin, tmax):
-    origins, given_origins = _vectors("origins", origins)
-    directions, given_directions = _vectors("directions", directions)
-    if np.may_share_memory(origins, directions):  # two host-pointer buffers must not overlap
-        directions = directions.copy()
-    if len(origins) != len(directions):
-        raise ValueError(f"origins has {len(origins)} rows but directions has {len(directions)}")
-    count = len(origins)
-    if not _rays_are_valid(origins, directions):
-        _raise_first_bad_ray("origins", origins, given_origins, directions=False)
-        _raise_first_bad_ray("directions", directions, given_directions, directions=True)
-        raise RuntimeError("hlbvh_cl internal error: a block of rays failed its check but no row did")
-    tmin = _limits("tmin", tmin, count)
-    tmax = _limits("tmax", tmax, count)
-    bad = (tmin < 0) | ~np.isfinite(tmin)
-    if bad.any():
-        row = int(np.argmax(bad.reshape(-1)))
-        where = f"tmin[{row}]" if tmin.ndim else "tmin"
-        raise ValueError(f"{where} = {tmin.reshape(-1)[row]} must be finite and >= 0")
-    inverted = tmin > tmax
-    if inverted.ndim == 0 and inverted:
-        raise ValueError(f"tmin = {float(tmin)} is greater than tmax = {float(tmax)}")
-    if inverted.any():
-        row = int(np.argmax(inverted))
-        low = float(np.broadcast_to(tmin, (count,))[row])
-        high = float(np.broadcast_to(tmax, (count,))[row])
-        raise ValueError(f"ray {row}: tmin[{row}] = {low} is greater than tmax[{row}] = {high}")
-    return origins, directions, tmin.astype(np.float32), tmax.astype(np.float32)
+        tmin, tmax = ((limit / t_factor).astype(np.float32) for limit in (batch.tmin, batch.tmax))
+    return dataclasses.replace(batch, origins=framed, directions=directions, tmin=tmin,
+                               tmax=tmax), t_factor

@@ -145,15 +145,19 @@ class Scene:
                 "upload": event_ms([upload]), "refit": event_ms(events),
                 "wall": (time.perf_counter() - started) * 1e3})
 
-    def intersect(self, origins, directions, tmin=0.0, tmax=np.inf):
+    def intersect(self, origins, directions=None, tmin=0.0, tmax=np.inf):
         """Closest hit of each ray: a Hits with t, prim_id, geom_id, u, v,
-        normal and points."""
+        normal and points, in the rays' leading shape.  Rays are origins and
+        directions (..., 3), which broadcast (one origin (3,) for many
+        directions), or packed (..., 6) in ``origins`` alone; tmin and tmax
+        are scalars or broadcast to the rays (hlbvh_cl.inputs)."""
         with self._lock:
             return self._ray_query().intersect(self._built_tree(), origins, directions, tmin,
                                                tmax)
 
-    def occluded(self, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
-        """Whether each ray hits anything in [tmin, tmax] (any-hit, stops early)."""
+    def occluded(self, origins, directions=None, tmin=0.0, tmax=np.inf) -> np.ndarray:
+        """Whether each ray hits anything in [tmin, tmax] (any-hit, stops
+        early), in the rays' leading shape; rays as intersect takes them."""
         with self._lock:
             return self._ray_query().occluded(self._built_tree(), origins, directions, tmin,
                                               tmax)

@@ -15,7 +15,7 @@ import trimesh
 
 import hlbvh_cl
 from hlbvh_cl import DeviceMemoryError, Scene
-from hlbvh_cl import query as query_module
+from hlbvh_cl import inputs as inputs_module
 from hlbvh_cl.build import Geometry, build
 from hlbvh_cl.device import Runtime, runtime
 from hlbvh_cl.mesh import Mesh
@@ -40,10 +40,11 @@ def _with_row(array, row, value):
 
 BAD_INPUTS = [
     # (origins, directions, tmin, tmax, exception, message fragment)
-    (np.zeros((3, 2)), GOOD_D, 0.0, np.inf, ValueError, r"origins must have shape \(R, 3\)"),
-    (np.zeros(3), GOOD_D, 0.0, np.inf, ValueError, r"origins must have shape"),
+    (np.zeros((3, 2)), GOOD_D, 0.0, np.inf, ValueError, r"origins must have shape \(\.\.\., 3\)"),
+    (np.zeros(()), GOOD_D, 0.0, np.inf, ValueError, r"origins must have shape"),
+    (np.zeros((3, 7)), None, 0.0, np.inf, ValueError, r"rays must have shape \(\.\.\., 6\)"),
     (GOOD_O, np.zeros((3, 3, 1)), 0.0, np.inf, ValueError, r"directions must have shape"),
-    (np.zeros((4, 3)), GOOD_D, 0.0, np.inf, ValueError, r"origins has 4 rows but directions has 3"),
+    (np.zeros((4, 3)), GOOD_D, 0.0, np.inf, ValueError, r"origins of shape \(4, 3\) and directions of shape \(3, 3\) do not broadcast"),
     (_with_row(GOOD_O, 1, [0, np.nan, 0]), GOOD_D, 0.0, np.inf, ValueError, r"origins\[1\].*not finite"),
     (_with_row(GOOD_O, 2, [np.inf, 0, 0]), GOOD_D, 0.0, np.inf, ValueError, r"origins\[2\].*not finite"),
     (_with_row(GOOD_O, 0, [1e39, 0, 0]), GOOD_D, 0.0, np.inf, ValueError, r"origins\[0\].*overflows float32"),
@@ -60,8 +61,8 @@ BAD_INPUTS = [
     (GOOD_O, GOOD_D, 2.0, 1.0, ValueError, r"tmin = 2.0 is greater than tmax = 1.0"),
     (GOOD_O, GOOD_D, [0.0, 0.0, 5.0], [1.0, 1.0, 4.0], ValueError, r"ray 2: tmin\[2\] = 5.0 is greater than tmax\[2\] = 4.0"),
     (GOOD_O, GOOD_D, 0.0, -1.0, ValueError, r"tmin = 0.0 is greater than tmax = -1.0"),
-    (GOOD_O, GOOD_D, [0.0, 0.0], np.inf, ValueError, r"tmin has 2 entries but there are 3 rays"),
-    (GOOD_O, GOOD_D, 0.0, np.ones((3, 1)), ValueError, r"tmax must be a scalar or have shape \(R,\)"),
+    (GOOD_O, GOOD_D, [0.0, 0.0], np.inf, ValueError, r"tmin has shape \(2,\), which does not broadcast to the rays' shape \(3,\)"),
+    (GOOD_O, GOOD_D, 0.0, np.ones((3, 1)), ValueError, r"tmax has shape \(3, 1\), which does not broadcast"),
     (GOOD_O.astype(complex), GOOD_D, 0.0, np.inf, TypeError, r"origins must hold real numbers"),
     (GOOD_O, GOOD_D.astype(bool), 0.0, np.inf, TypeError, r"directions must hold real numbers"),
     (GOOD_O, [["a", "b", "c"]] * 3, 0.0, np.inf, TypeError, r"directions must hold real numbers"),
@@ -91,7 +92,7 @@ def test_short_directions_are_found_in_any_block_of_a_large_batch(monkeypatch):
     the first block, while tiny components in a row that is long enough pass."""
     case = scene_case("cube")
     monkeypatch.setattr(RayQuery, "_run", lambda *a, **k: pytest.fail("a kernel ran"))
-    count = 3 * query_module.CHECK_BLOCK + 17
+    count = 3 * inputs_module.CHECK_BLOCK + 17
     origins = np.zeros((count, 3), np.float32)
     directions = np.tile(np.float32([0.3, -0.5, 0.8]), (count, 1))
     directions[5] = [0.0, 1e-40, 1.0]          # tiny components, long enough
@@ -116,8 +117,8 @@ def test_bad_rows_are_named_in_every_part_of_a_large_batch(monkeypatch, which, r
     named by its index wherever it lies, and no kernel runs."""
     case = scene_case("cube")
     monkeypatch.setattr(RayQuery, "_run", lambda *a, **k: pytest.fail("a kernel ran"))
-    count = 4 * query_module.CHECK_BLOCK + 5
-    index = {"first": 3, "middle": 2 * query_module.CHECK_BLOCK + 1, "last": count - 2}[row]
+    count = 4 * inputs_module.CHECK_BLOCK + 5
+    index = {"first": 3, "middle": 2 * inputs_module.CHECK_BLOCK + 1, "last": count - 2}[row]
     rays = {"origins": np.zeros((count, 3)), "directions": np.tile([0.3, -0.5, 0.8], (count, 1))}
     rays[which][index] = value
     for query in (case.scene.intersect, case.scene.occluded):

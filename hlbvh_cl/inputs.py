@@ -1,0 +1,263 @@
+"""The shapes every query accepts, checked once, before any kernel runs.
+
+Rays come as ``origins`` and ``directions`` of shape (..., 3) whose leading
+dimensions broadcast together as numpy's do: one origin (3,) for a sensor's
+many directions (LiDAR), an image's (H, W, 3) rays, or plain (R, 3) rows.
+Or packed as Open3D's RaycastingScene takes them: one (..., 6) array of
+origin then direction, with ``directions`` left out.  ``tmin`` and ``tmax``
+are scalars or arrays that broadcast to the rays' leading shape.  Points for
+the point queries are (..., 3).  Any numeric array-like is taken (lists,
+float64, non-contiguous, read-only): the kernels get C-contiguous float32
+rows, and the results come back in the leading shape.
+
+A bad value is named by its index in the array the caller gave, with the
+reason (not finite, overflows float32, a direction too short to invert).
+"""
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Rows per block of the value checks: a block's temporaries stay in cache
+#: and are reused, where whole-batch temporaries would cost a page fault per
+#: 4 KiB on every call.
+CHECK_BLOCK = 1 << 16
+
+#: float32's smallest normal: a direction needs a component at least this
+#: large, or its inverse overflows.
+_TINY = np.finfo(np.float32).tiny
+
+
+@dataclass
+class Rays:
+    """Checked rays: (R, 3) float32 C-contiguous rows, limits as float32
+    scalars (0-d) or (R,), and the leading shape the results take."""
+
+    origins: np.ndarray
+    directions: np.ndarray
+    tmin: np.ndarray
+    tmax: np.ndarray
+    shape: tuple
+    origin_source: "_Vectors | None" = None
+
+    def __len__(self) -> int:
+        return len(self.origins)
+
+    def name_origin(self, row: int) -> str:
+        """The caller's name for the origin of flat row ``row``, and its value."""
+        source = self.origin_source or _Vectors("origins", self.origins)
+        index = source.index_of(row, self.shape)
+        return f"{source.label(index)} = {source.values(index)}"
+
+
+def numeric_array(name: str, value) -> np.ndarray:
+    """``value`` as a numpy array of real numbers, or the error naming ``name``."""
+    try:
+        array = np.asarray(value)
+    except (ValueError, TypeError) as error:
+        raise ValueError(f"{name} is not a rectangular numeric array: {error}") from None
+    if array.dtype == np.bool_ or not (np.issubdtype(array.dtype, np.floating)
+                                       or np.issubdtype(array.dtype, np.integer)):
+        raise TypeError(f"{name} must hold real numbers (float32/float64), got dtype {array.dtype}")
+    return array
+
+
+class _Vectors:
+    """One (..., 3) input: as the caller gave it (for messages) and its name.
+    ``part`` picks the columns of a packed (..., 6) array."""
+
+    def __init__(self, name: str, given: np.ndarray, part: slice | None = None):
+        self.name, self.given, self.part = name, given, part
+        self.lead = given.shape[:-1]
+
+    def values(self, index: tuple):
+        row = self.given[index]
+        return (row[self.part] if self.part is not None else row).tolist()
+
+    def label(self, index: tuple) -> str:
+        where = ", ".join(str(i) for i in index)
+        suffix = "" if self.part is None else f"[{self.part.start or 0}:{self.part.stop or ''}]"
+        return f"{self.name}[{where}]{suffix}" if index else f"{self.name}{suffix}"
+
+    def index_of(self, row: int, shape: tuple) -> tuple:
+        """The index into the given array of flat row ``row`` of the
+        broadcast rows of leading shape ``shape``."""
+        full = np.unravel_index(row, shape) if shape else ()
+        own = full[len(full) - len(self.lead):] if self.lead else ()
+        return tuple(0 if size == 1 else int(i) for i, size in zip(own, self.lead))
+
+
+def _vectors(name: str, value, width: int = 3) -> np.ndarray:
+    array = numeric_array(name, value)
+    if array.ndim < 1 or array.shape[-1] != width:
+        shape = "(..., 3)" if width == 3 else "(..., 6): origin then direction"
+        raise ValueError(f"{name} must have shape {shape}, got {array.shape}")
+    return array
+
+
+def _as_rows(array: np.ndarray, shape: tuple) -> np.ndarray:
+    """(prod(shape), 3) float32 C-contiguous and aligned (the kernels may read
+    it in place), broadcast from ``array``; values are checked later."""
+    with np.errstate(over="ignore", invalid="ignore"):  # reported by row, later
+        rows = np.broadcast_to(array, shape + (3,)).reshape(-1, 3)
+        return np.require(rows, np.float32, ["C_CONTIGUOUS", "ALIGNED"])
+
+
+def rays(origins, directions=None, tmin=0.0, tmax=np.inf) -> Rays:
+    """Checks and flattens a batch of rays (see the module's docstring)."""
+    if directions is None:
+        packed = _vectors("rays", origins, width=6)
+        sources = [_Vectors("rays", packed, slice(0, 3)), _Vectors("rays", packed, slice(3, 6))]
+        o, d = packed[..., :3], packed[..., 3:]
+    else:
+        o, d = _vectors("origins", origins), _vectors("directions", directions)
+        sources = [_Vectors("origins", o), _Vectors("directions", d)]
+    try:
+        shape = np.broadcast_shapes(o.shape[:-1], d.shape[:-1])
+    except ValueError:
+        raise ValueError(f"origins of shape {o.shape} and directions of shape {d.shape} do not "
+                         "broadcast together (give one origin (3,) for all, or one per "
+                         "direction)") from None
+    o_rows, d_rows = _as_rows(o, shape), _as_rows(d, shape)
+    if np.may_share_memory(o_rows, d_rows):  # two host-pointer buffers must not overlap
+        d_rows = d_rows.copy()
+    if not _rays_are_valid(o_rows, d_rows):
+        _raise_first_bad_row(sources[0], o_rows, shape, directions=False)
+        _raise_first_bad_row(sources[1], d_rows, shape, directions=True)
+        raise RuntimeError("hlbvh_cl internal error: a block of rays failed its check but no "
+                           "row did")
+    low, high = _limits("tmin", tmin, shape), _limits("tmax", tmax, shape)
+    _check_limits(low, high, shape)
+    return Rays(o_rows, d_rows, low.astype(np.float32), high.astype(np.float32), shape,
+                sources[0])
+
+
+def points(value, name: str = "points") -> tuple[np.ndarray, tuple]:
+    """Query points (..., 3) as (N, 3) float32 C-contiguous rows, and their
+    leading shape; a point that is not finite in float32 is named."""
+    array = _vectors(name, value)
+    shape = array.shape[:-1]
+    rows = _as_rows(array, shape)
+    finite = np.isfinite(rows).all(axis=1)
+    if not finite.all():
+        source = _Vectors(name, array)
+        _raise_first_bad_row(source, rows, shape, directions=False)
+    return rows, shape
+
+
+def _rows_are_valid(origins: np.ndarray, directions: np.ndarray, start: int, stop: int) -> bool:
+    """Whether the rays [start, stop) have finite origins and finite
+    directions with a component of magnitude >= _TINY: one pass, block by
+    block.  min() and max() propagate NaN, so they test finiteness without a
+    temporary; a direction's magnitudes serve both of its tests, and only a
+    block that holds a tiny component looks at its rows."""
+    magnitudes = np.empty((min(CHECK_BLOCK, stop - start), 3), np.float32)
+    for first in range(start, stop, CHECK_BLOCK):
+        last = min(first + CHECK_BLOCK, stop)
+        block = origins[first:last]
+        if not (np.isfinite(block.min()) and np.isfinite(block.max())):
+            return False
+        size = np.abs(directions[first:last], out=magnitudes[:last - first])
+        if not np.isfinite(size.max()):
+            return False
+        if size.min() < _TINY and (size.max(axis=1) < _TINY).any():
+            return False
+    return True
+
+
+_check_pool: ThreadPoolExecutor | None = None
+_check_pool_lock = threading.Lock()
+
+
+def _check_threads() -> ThreadPoolExecutor:
+    """The threads the checks of large batches are split over (one per CPU;
+    numpy releases the GIL inside its reductions)."""
+    global _check_pool
+    with _check_pool_lock:
+        if _check_pool is None:
+            _check_pool = ThreadPoolExecutor(max_workers=os.cpu_count() or 1,
+                                             thread_name_prefix="hlbvh_cl-checks")
+        return _check_pool
+
+
+def _rays_are_valid(origins: np.ndarray, directions: np.ndarray) -> bool:
+    """_rows_are_valid over every ray, a run of blocks per thread for large
+    batches."""
+    count = len(origins)
+    blocks = -(-count // CHECK_BLOCK)
+    parts = min(os.cpu_count() or 1, blocks)
+    if parts <= 1:
+        return _rows_are_valid(origins, directions, 0, count)
+    step = -(-blocks // parts) * CHECK_BLOCK
+    bounds = [(first, min(first + step, count)) for first in range(0, count, step)]
+    rest = [_check_threads().submit(_rows_are_valid, origins, directions, *b) for b in bounds[1:]]
+    valid = _rows_are_valid(origins, directions, *bounds[0])
+    return all([future.result() for future in rest]) and valid
+
+
+def _raise_first_bad_row(source: _Vectors, rows: np.ndarray, shape: tuple,
+                         directions: bool) -> None:
+    """Raises the ValueError naming the first bad row of ``rows`` (float32,
+    flat) by its index in the array the caller gave, if it has one."""
+    finite = np.isfinite(rows).all(axis=1)
+    if not finite.all():
+        index = source.index_of(int(np.argmin(finite)), shape)
+        given = np.asarray(source.values(index), dtype=np.float64)
+        why = "is not finite" if not np.isfinite(given).all() else "overflows float32"
+        raise ValueError(f"{source.label(index)} = {source.values(index)} {why}")
+    if directions:
+        short = np.flatnonzero(np.abs(rows).max(axis=1) < _TINY)
+        if len(short):
+            row = int(short[0])
+            what = ("has zero length" if not rows[row].any()
+                    else "is too short to invert (subnormal)")
+            index = source.index_of(row, shape)
+            raise ValueError(f"{source.label(index)} = {rows[row].tolist()} {what}; "
+                             "a direction needs a component of magnitude >= 1.2e-38")
+
+
+def _limits(name: str, value, shape: tuple) -> np.ndarray:
+    """A float64 scalar (0-d), or the rays' (R,) values broadcast from an
+    array of a shape that broadcasts to theirs; no NaN."""
+    array = numeric_array(name, value).astype(np.float64, copy=False)
+    nan = np.isnan(array)
+    if nan.any():
+        index = np.unravel_index(int(np.argmax(nan.reshape(-1))), array.shape)
+        where = f"{name}[{', '.join(str(int(i)) for i in index)}]" if array.ndim else name
+        raise ValueError(f"{where} is NaN")
+    if array.ndim == 0:
+        return array
+    try:
+        if np.broadcast_shapes(array.shape, shape) != shape:
+            raise ValueError
+    except ValueError:
+        raise ValueError(f"{name} has shape {array.shape}, which does not broadcast to the "
+                         f"rays' shape {shape}") from None
+    return np.broadcast_to(array, shape).reshape(-1)
+
+
+def _row_name(name: str, row: int, shape: tuple) -> str:
+    index = np.unravel_index(row, shape) if len(shape) > 1 else (row,)
+    return f"{name}[{', '.join(str(int(i)) for i in index)}]"
+
+
+def _check_limits(tmin: np.ndarray, tmax: np.ndarray, shape: tuple) -> None:
+    bad = (tmin < 0) | ~np.isfinite(tmin)
+    if bad.any():
+        row = int(np.argmax(bad.reshape(-1)))
+        where = _row_name("tmin", row, shape) if tmin.ndim else "tmin"
+        raise ValueError(f"{where} = {tmin.reshape(-1)[row]} must be finite and >= 0")
+    inverted = tmin > tmax
+    if inverted.ndim == 0 and inverted:
+        raise ValueError(f"tmin = {float(tmin)} is greater than tmax = {float(tmax)}")
+    if inverted.any():
+        row = int(np.argmax(inverted))
+        count = len(inverted)
+        low = float(np.broadcast_to(tmin, (count,))[row])
+        high = float(np.broadcast_to(tmax, (count,))[row])
+        ray = _row_name("", row, shape)[1:-1]
+        raise ValueError(f"ray {ray}: tmin[{ray}] = {low} is greater than tmax[{ray}] = {high}")
