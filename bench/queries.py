@@ -399,8 +399,11 @@ def bench_case(name: str, devices: list, peer_list: list, config: Config, bar=No
     errors: dict = {}
     built, build_seconds = trace.build_all(case, participants, errors)
     scale = float(np.linalg.norm(np.subtract(*case.box)))
+    corners = [m.vertices[m.faces].astype(np.float64) for m in case.meshes]
     out = {"name": name, "triangles": case.triangles, "meshes": len(case.meshes),
-           "diagonal": scale, "build_s": build_seconds, "errors": errors, "runs": []}
+           "diagonal": scale, "signed_volume": float(sum(  # < 0: the faces point inward
+               np.einsum("fk,fk->f", c[:, 0], np.cross(c[:, 1], c[:, 2])).sum() / 6
+               for c in corners)), "build_s": build_seconds, "errors": errors, "runs": []}
     try:
         for query, works in workloads(case, config).items():
             for work in works:
@@ -511,9 +514,10 @@ def format_results(results: dict, markdown: bool = False) -> str:
               *[spread(r["results"][n]["mrate"], digits=3) if n in r["results"] else None
                 for n in names], *[_ratio_text(r, d) for d in devices]] for c, r in rows]
     speed_headers = ["case", "query", "workload", *names, *[f"{d} / target peer" for d in devices]]
+    others = [n for n in names if n not in devices[:1]]  # the first device is the reference
     gaps = [[c["name"], r["query"], r["workload"],
              *[", ".join(f"{k} {v:.1e}" for k, v in r["results"][n]["vs_ours"].items())
-               if "vs_ours" in r["results"].get(n, {}) else None for n in names]]
+               if "vs_ours" in r["results"].get(n, {}) else None for n in others]]
             for c, r in rows]
     memory = results.get("memory")
     memory_rows = [[n, r["rays"], r["peak_growth_bytes"] / 2**20, r["output_bytes"] / 2**20,
@@ -527,7 +531,7 @@ def format_results(results: dict, markdown: bool = False) -> str:
     if not markdown:
         return "\n\n".join(missing + [
             table(speed_headers, speed, "M items/s: median (min-max), numpy in and out"),
-            table(["case", "query", "workload", *names], gaps,
+            table(["case", "query", "workload", *others], gaps,
                   "each answer against ours (distances and t relative to the box diagonal)"),
             table(memory_headers, memory_rows,
                   f"intersect_all memory, {memory['case'] if memory else '-'}")] + failed)
@@ -545,8 +549,13 @@ def format_results(results: dict, markdown: bool = False) -> str:
                       "over the fastest peer (or Open3D for the ray queries).", "",
                       _md_table(speed_headers, speed, left=3), "",
                       "Agreement with ours on the same items (distances and t over the box "
-                      "diagonal; signs where both are more than 1e-3 of it from the surface):",
-                      "", _md_table(["case", "query", "workload", *names], gaps, left=3), "",
+                      "diagonal; signs where both are more than 1e-3 of it from the surface). "
+                      "Open3D signs by counting a ray's crossings, libigl (pseudonormal) and "
+                      "Warp by the faces' orientation: on a case whose faces point inward "
+                      "(signed volume " + ", ".join(f"{c['name']} {c['signed_volume']:.3g}"
+                                                    for c in results["cases"])
+                      + ") or that is not closed, their signs differ by design.",
+                      "", _md_table(["case", "query", "workload", *others], gaps, left=3), "",
                       f"intersect_all memory on {memory['case'] if memory else '-'}, child "
                       f"process, peak RSS growth over the output's nbytes (target < "
                       f"{MEMORY_TARGET:g}x):", "", _md_table(memory_headers, memory_rows), "",
