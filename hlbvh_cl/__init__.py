@@ -4,6 +4,8 @@
     scene = hlbvh_cl.Scene([hlbvh_cl.Mesh.load("bunny.ply")], device="pocl")
     hits = scene.intersect(origins, directions)       # closest hit
     blocked = scene.occluded(origins, directions)     # any hit
+    nearest = scene.closest_points(points)            # closest surface points
+    sdf = scene.signed_distance(points)               # negative inside
     scene.update_vertices(0, moved_vertices)          # refit on the device
     camera = hlbvh_cl.Camera(eye, target)
     image = hlbvh_cl.Renderer(scene).render(camera, 640, 480)   # (480, 640, 3) uint8
@@ -13,10 +15,11 @@ from . import scenefile
 from .build import BuildStats
 from .device import Device, DeviceMemoryError, KernelBuildError, devices
 from .mesh import Mesh
+from .points import ClosestPoints
 from .query import Hits
 from .render import Camera, Light, Renderer
 from .scene import Scene
 
-__all__ = ["BuildStats", "Camera", "Device", "DeviceMemoryError", "Hits", "KernelBuildError",
-           "Light", "Mesh", "Renderer", "Scene", "devices", "scenefile"]
+__all__ = ["BuildStats", "Camera", "ClosestPoints", "Device", "DeviceMemoryError", "Hits",
+           "KernelBuildError", "Light", "Mesh", "Renderer", "Scene", "devices", "scenefile"]
 __version__ = "0.1.0"

@@ -240,7 +240,8 @@ def _limits(name: str, value, shape: tuple) -> np.ndarray:
     return np.broadcast_to(array, shape).reshape(-1)
 
 
-def _row_name(name: str, row: int, shape: tuple) -> str:
+def row_name(name: str, row: int, shape: tuple) -> str:
+    """``name`` indexed at flat row ``row`` of leading shape ``shape``."""
     index = np.unravel_index(row, shape) if len(shape) > 1 else (row,)
     return f"{name}[{', '.join(str(int(i)) for i in index)}]"
 
@@ -249,7 +250,7 @@ def _check_limits(tmin: np.ndarray, tmax: np.ndarray, shape: tuple) -> None:
     bad = (tmin < 0) | ~np.isfinite(tmin)
     if bad.any():
         row = int(np.argmax(bad.reshape(-1)))
-        where = _row_name("tmin", row, shape) if tmin.ndim else "tmin"
+        where = row_name("tmin", row, shape) if tmin.ndim else "tmin"
         raise ValueError(f"{where} = {tmin.reshape(-1)[row]} must be finite and >= 0")
     inverted = tmin > tmax
     if inverted.ndim == 0 and inverted:
@@ -259,5 +260,5 @@ def _check_limits(tmin: np.ndarray, tmax: np.ndarray, shape: tuple) -> None:
         count = len(inverted)
         low = float(np.broadcast_to(tmin, (count,))[row])
         high = float(np.broadcast_to(tmax, (count,))[row])
-        ray = _row_name("", row, shape)[1:-1]
+        ray = row_name("", row, shape)[1:-1]
         raise ValueError(f"ray {ray}: tmin[{ray}] = {low} is greater than tmax[{ray}] = {high}")

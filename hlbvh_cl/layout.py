@@ -50,6 +50,9 @@ WIDE_NODE = np.dtype([
     ("child", np.int32, WIDE_ARITY), ("count", np.uint32, WIDE_ARITY),
 ])
 
+WIDE_DIPOLES = np.dtype([(name, *_wide) for name in
+                         ("p_x", "p_y", "p_z", "a_x", "a_y", "a_z", "area", "radius")])
+
 TRIANGLE = np.dtype([("v0", *_f3), ("v1", *_f3), ("v2", *_f3)])
 
 TRIANGLE_REF = np.dtype([("geom_id", np.int32), ("prim_id", np.int32)])
@@ -69,6 +72,7 @@ SHADE_PARAMS = np.dtype([
 ])
 
 #: name in hlbvh.h -> dtype, for the layout test
-STRUCTS = {"Aabb": AABB, "FlatNode": FLAT_NODE, "WideNode": WIDE_NODE, "Triangle": TRIANGLE,
+STRUCTS = {"Aabb": AABB, "FlatNode": FLAT_NODE, "WideNode": WIDE_NODE,
+           "WideDipoles": WIDE_DIPOLES, "Triangle": TRIANGLE,
            "TriangleRef": TRIANGLE_REF, "Ray": RAY, "Hit": HIT, "PinholeCamera": PINHOLE_CAMERA,
            "ShadeParams": SHADE_PARAMS}

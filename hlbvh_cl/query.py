@@ -279,19 +279,7 @@ class RayQuery:
             raise ValueError("the tree holds no triangle: there is nothing to trace rays against")
 
     def _check_tree(self, tree: Tree) -> bool:
-        """Validates the tree; False when it holds no triangle (every ray misses)."""
-        if not isinstance(tree, Tree):
-            raise TypeError(f"tree must be a hlbvh_cl.tree.Tree, got {type(tree).__name__}")
-        if tree.released:
-            raise ValueError("this Tree was released when its Scene rebuilt")
-        if tree.triangle_count == 0:
-            return False
-        if tree.nodes.context != self.rt.context:
-            raise ValueError(f"tree lives on another OpenCL context than this RayQuery "
-                             f"({self.rt.device.id}); build it with the same runtime")
-        if tree.depth < 1 or tree.node_count < 1:
-            raise ValueError(f"tree is malformed: depth={tree.depth}, node_count={tree.node_count}")
-        return True
+        return check_tree(self.rt, tree)
 
     def _reserve(self, count: int) -> None:
         """Grow-only device buffers for `count` rays per launch."""
@@ -380,6 +368,23 @@ class RayQuery:
     def _wrap(self, array: np.ndarray, access) -> cl.Buffer:
         """A buffer over the array's own memory (CL_MEM_USE_HOST_PTR)."""
         return cl.Buffer(self.rt.context, access | cl.mem_flags.USE_HOST_PTR, hostbuf=array)
+
+
+def check_tree(rt: Runtime, tree: Tree) -> bool:
+    """Validates a tree for a query on ``rt``; False when it holds no
+    triangle (every query misses)."""
+    if not isinstance(tree, Tree):
+        raise TypeError(f"tree must be a hlbvh_cl.tree.Tree, got {type(tree).__name__}")
+    if tree.released:
+        raise ValueError("this Tree was released when its Scene rebuilt")
+    if tree.triangle_count == 0:
+        return False
+    if tree.nodes.context != rt.context:
+        raise ValueError(f"tree lives on another OpenCL context than this query "
+                         f"({rt.device.id}); build it with the same runtime")
+    if tree.depth < 1 or tree.node_count < 1:
+        raise ValueError(f"tree is malformed: depth={tree.depth}, node_count={tree.node_count}")
+    return True
 
 
 def _stack_size(tree: Tree) -> int:

@@ -16,6 +16,7 @@ def refit(rt: Runtime, tree: Tree, vertices: cl.Buffer, wait_for=None) -> list[c
     if tree.vertex_ids is None:
         raise ValueError("this tree has no vertex ids (it was not made by a build): "
                          "it cannot be refit")
+    tree.drop_dipoles(rt.pool)  # made anew from the moved triangles when next asked for
     kernel = rt.kernel("refit.cl", "refit_wide_level")
     events: list[cl.Event] = []
     for first, count in reversed(tree.levels):

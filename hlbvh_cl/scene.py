@@ -18,6 +18,7 @@ from .build import BUILDERS, BuildStats, Geometry, build, check_fits
 from .device import event_ms, runtime
 from .mesh import Mesh, _validate_vertices
 from .morton import key_dtype
+from .points import PointQuery
 from .query import RayQuery
 from .refit import refit
 
@@ -73,6 +74,7 @@ class Scene:
         # the runtime's pool keeps this scene's build scratch for its rebuilds; not beyond it
         weakref.finalize(self, rt.pool.clear)
         self._query = None
+        self._points = None
         self._tree = None
         self.rebuild()
 
@@ -161,6 +163,37 @@ class Scene:
         with self._lock:
             return self._ray_query().occluded(self._built_tree(), origins, directions, tmin,
                                               tmax)
+
+    def closest_points(self, points, max_distance=np.inf):
+        """The nearest surface point of each of the (..., 3) ``points`` within
+        ``max_distance``: a ClosestPoints with points, distance, prim_id,
+        geom_id, u, v and normal in the points' leading shape (distance inf
+        and ids -1 beyond it)."""
+        with self._lock:
+            return self._point_query().closest_points(self._built_tree(), points, max_distance)
+
+    def winding_number(self, points) -> np.ndarray:
+        """float32: the generalized winding number of each point (1 inside a
+        closed outward-oriented surface, -1 inside an inward-oriented one, 0
+        outside, fractional near the holes of an open one; hlbvh_cl.points)."""
+        with self._lock:
+            return self._point_query().winding_numbers(self._built_tree(), points)
+
+    def signed_distance(self, points) -> np.ndarray:
+        """float32: the distance to the surface, negative inside, i.e. where
+        |winding number| >= 0.5, whichever way the faces turn (on an open mesh
+        that closes each hole minimally; see hlbvh_cl.points)."""
+        with self._lock:
+            return self._point_query().signed_distance(self._built_tree(), points)
+
+    def contains(self, points) -> np.ndarray:
+        """bool: whether each point is inside (|winding number| >= 0.5)."""
+        return np.abs(self.winding_number(points)) >= 0.5
+
+    def _point_query(self):
+        if self._points is None:
+            self._points = PointQuery(self._runtime)
+        return self._points
 
     def _built_tree(self):
         """The current tree; a clear error when the last rebuild failed (the

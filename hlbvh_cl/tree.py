@@ -35,6 +35,9 @@ class Tree:
     scale      the power of two the scene's coordinates were multiplied by to
                give this tree's (hlbvh_cl.frame; 1 for most scenes): ray
                origins are scaled alike on their way in.
+    dipoles    WideDipoles[node_count] (layout.WIDE_DIPOLES) for winding
+               numbers, made on the first query that needs them
+               (hlbvh_cl.points) and dropped by a refit (stale) or release.
     released   set by :meth:`release`: the buffers went back to a pool (the
                Scene that owned the tree rebuilt it) and must not be read.
     """
@@ -49,6 +52,7 @@ class Tree:
     bounds_hi: np.ndarray
     vertex_ids: cl.Buffer | None = None
     scale: float = 1.0
+    dipoles: cl.Buffer | None = None
     released: bool = False
 
     @property
@@ -61,7 +65,14 @@ class Tree:
         build to reuse; the tree is unusable after."""
         pool.give(self.nodes, self.triangles, self.refs, self.vertex_ids)
         self.nodes = self.triangles = self.refs = self.vertex_ids = None
+        self.drop_dipoles(pool)
         self.released = True
+
+    def drop_dipoles(self, pool) -> None:
+        """Give the winding-number dipoles back to ``pool``: they describe
+        the triangles as they were (a refit calls this)."""
+        pool.give(self.dipoles)
+        self.dipoles = None
 
     def read_nodes(self, queue: cl.CommandQueue, wait_for=None) -> np.ndarray:
         out = np.empty(self.node_count, layout.WIDE_NODE)

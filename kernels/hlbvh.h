@@ -112,6 +112,26 @@ typedef struct {
     uint count[WIDE_ARITY];
 } WideNode;
 
+/* The order-1 dipole of each child of a wide node (WideNode's lanes; Barill
+ * et al. 2018, "Fast Winding Numbers for Soups and Clouds", sec. 3.2),
+ * which the winding-number walk takes in place of the child when the query
+ * point is far from it: the area-weighted centroid p, the sum a of the
+ * triangles' area vectors 0.5 * cross(v1 - v0, v2 - v0), their total area
+ * (to merge lanes up the tree) and the radius around p that holds every
+ * vertex.  One row of WIDE_ARITY floats per field, as WideNode's, so the
+ * far-field test is one vector operation; an unused slot holds zeros.
+ * Computed on the device by kernels/dipoles.cl.  32 * WIDE_ARITY bytes. */
+typedef struct {
+    float p_x[WIDE_ARITY];
+    float p_y[WIDE_ARITY];
+    float p_z[WIDE_ARITY];
+    float a_x[WIDE_ARITY];
+    float a_y[WIDE_ARITY];
+    float a_z[WIDE_ARITY];
+    float area[WIDE_ARITY];
+    float radius[WIDE_ARITY];
+} WideDipoles;
+
 /* A triangle's vertices in tree order, as the ray-triangle test reads them. */
 typedef struct {
     float v0[3];

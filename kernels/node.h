@@ -53,6 +53,13 @@ TRAVERSAL_INLINE __global const float* plane_row(__global const WideNode* node, 
 #define LO_Y_ROW (2 * ROW_BYTES)
 #define LO_Z_ROW (4 * ROW_BYTES)
 
+/* sqrt as one instruction where the compiler is a Clang (PoCL calls sqrt). */
+#if HAS_BUILTIN(__builtin_sqrtf)
+#define SQUARE_ROOT __builtin_sqrtf
+#else
+#define SQUARE_ROOT sqrt
+#endif
+
 /* Sign bit and absolute value by their bits (PoCL: see LOAD_ROW). */
 #define SIGN_BIT(x) (as_uint(x) >> 31)
 #define ABS_FLOAT(x) as_float(as_uint(x) & 0x7fffffffu)

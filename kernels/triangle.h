@@ -25,6 +25,19 @@ TRAVERSAL_INLINE void geometric_normal(__global const Triangle* tri, float* nx, 
     *nz = e1x * e2y - e1y * e2x;
 }
 
+/* The unit geometric normal, scaled by its largest component first so that
+ * tiny or huge triangles neither underflow nor overflow the squared length
+ * (a degenerate triangle gives NaN: callers take only triangles hit or
+ * found). */
+TRAVERSAL_INLINE float3 unit_normal(__global const Triangle* tri)
+{
+    float nx, ny, nz;
+    geometric_normal(tri, &nx, &ny, &nz);
+    float largest = GROW_HI(GROW_HI(ABS_FLOAT(nx), ABS_FLOAT(ny)), ABS_FLOAT(nz));
+    float3 n = (float3)(nx, ny, nz) * (1.0f / largest);
+    return n * (1.0f / SQUARE_ROOT(n.x * n.x + n.y * n.y + n.z * n.z));
+}
+
 #ifdef cl_khr_fp64
 /* Woop's t = (e_u*Az + e_v*Bz + e_w*Cz)/det is float arithmetic on the
  * sheared vertices: when the triangle is large compared with the hit

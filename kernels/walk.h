@@ -16,8 +16,16 @@
  *   QUERY_PARAMS, QUERY_ARGS    extra walk parameters the hooks use (or empty)
  *   QUERY_CHILDREN(r, n, s, entry)  optional: the node test, giving the child
  *                               mask and entry distances (default: the path's
- *                               slab test; a closest-point query would
- *                               measure box distances instead)
+ *                               slab test; point queries measure box
+ *                               distances instead, point.h)
+ *   QUERY_LEAF(s, r, first, count)  optional: the leaf's triangles [first,
+ *                               first + count) for queries that are not ray
+ *                               hits (point queries); says whether the walk
+ *                               ends.  Default: the path's hit_triangle on
+ *                               each, then QUERY_HIT
+ *   QUERY_PATH                  optional: the one path to instantiate (e.g.
+ *                               _point, point.h); without it, _ray and
+ *                               _packet and the ray wrapper trace_QUERY
  * Hooks may use the walk's `nodes` and `triangles`.  The header instantiates
  * itself for each path (PATH_SUFFIX), then undefines the hooks.  Hooks are
  * macros so that the walk compiles as if written for the query: no flag is
@@ -25,6 +33,12 @@
 #ifndef PATH_SUFFIX
 
 #include "stack.h"
+
+#ifdef QUERY_PATH
+#define PATH_SUFFIX QUERY_PATH
+#include "walk.h"
+#undef PATH_SUFFIX
+#else /* the ray paths */
 
 #define PATH_SUFFIX _ray
 #include "walk.h"
@@ -84,6 +98,7 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
         overflow[0] = 1;
 }
 #undef QUERY_WALK
+#endif /* QUERY_PATH */
 
 #undef QUERY
 #undef QUERY_HIT
@@ -91,6 +106,8 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
 #undef QUERY_PARAMS
 #undef QUERY_ARGS
 #undef QUERY_CHILDREN
+#undef QUERY_LEAF
+#undef QUERY_PATH
 
 #else /* one path */
 
@@ -103,10 +120,14 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
 
 /* The leaf's triangles [first, first + count) against every lane: each hit
  * goes to QUERY_HIT; true when it ends the walk.  A lane takes a hit at
- * t == limit only while it has none (hit_triangle's `strict`). */
+ * t == limit only while it has none (hit_triangle's `strict`).  Or the
+ * query's own QUERY_LEAF. */
 TRAVERSAL_INLINE bool WALK_NAME(leaf)(const PATH(Rays)* r, __global const Triangle* triangles,
                                       int first, uint count, PATH(Found)* s QUERY_PARAMS)
 {
+#ifdef QUERY_LEAF
+    return QUERY_LEAF(s, r, first, count);
+#else
     for (uint i = (uint)first; i < (uint)first + count; ++i) {
         PATH(real) t, u, v;
         PATH(flags) hit = PATH(hit_triangle)(r, triangles + i, s->limit, s->index >= 0, &t, &u,
@@ -115,6 +136,7 @@ TRAVERSAL_INLINE bool WALK_NAME(leaf)(const PATH(Rays)* r, __global const Triang
             return true;
     }
     return false;
+#endif
 }
 
 /* A node visitor for queries that end at a hit (shadow rays): the leaves

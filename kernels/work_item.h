@@ -56,30 +56,14 @@ TRAVERSAL_INLINE void load_arrays(uint first, uint used, __global const float* o
     }
 }
 
-/* sqrt as one instruction where the compiler is a Clang (PoCL calls sqrt). */
-#if HAS_BUILTIN(__builtin_sqrtf)
-#define SQUARE_ROOT __builtin_sqrtf
-#else
-#define SQUARE_ROOT sqrt
-#endif
-
 /* One ray's closest hit as a Hit record (a miss: t = INFINITY, ids -1, the
- * rest 0) from the tree-order index of the triangle hit (-1: none).  The
- * unit geometric normal is scaled by its largest component first so that
- * tiny or huge triangles neither underflow nor overflow the squared length. */
+ * rest 0) from the tree-order index of the triangle hit (-1: none). */
 TRAVERSAL_INLINE void make_hit(Hit* out, int index, float t, float u, float v,
                                __global const Triangle* triangles,
                                __global const TriangleRef* refs)
 {
     bool found = index >= 0;
-    float3 normal = (float3)(0.0f);
-    if (found) {
-        float nx, ny, nz;
-        geometric_normal(triangles + index, &nx, &ny, &nz);
-        float largest = GROW_HI(GROW_HI(ABS_FLOAT(nx), ABS_FLOAT(ny)), ABS_FLOAT(nz));
-        float3 n = (float3)(nx, ny, nz) * (1.0f / largest);
-        normal = n * (1.0f / SQUARE_ROOT(n.x * n.x + n.y * n.y + n.z * n.z));
-    }
+    float3 normal = found ? unit_normal(triangles + index) : (float3)(0.0f);
     Hit hit;
     hit.t = found ? t : INFINITY;
     hit.geom_id = found ? refs[index].geom_id : -1;

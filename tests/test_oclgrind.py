@@ -38,6 +38,7 @@ CHILD_TIMEOUT_S = 600
 GROUPS = {
     "build": ("builds_and_refits", "sort", "scan"),
     "trace": ("packets", "render"),
+    "points": ("points",),
 }
 
 MODES = ("optimised", "uninitialized")
@@ -175,6 +176,37 @@ def case_render(uninitialized: bool) -> dict:
     scene = hlbvh_cl.Scene(tiny_meshes())
     names = ("diffuse",) if uninitialized else tuple(RENDERS)
     return {f"image_{name}": render(scene, name) for name in names}
+
+
+def case_points(uninitialized: bool) -> dict:
+    """Closest points (with and without max_distance), winding numbers and
+    signed distances on the tiny scene, against the float64 brute force
+    (tests/point_oracle.py); then the same after a refit, whose dipoles are
+    made anew."""
+    import hlbvh_cl
+    from point_oracle import brute_force_closest, brute_force_winding
+    scene = hlbvh_cl.Scene(tiny_meshes())
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-1.6, 1.6, (60, 3)).astype(np.float32)
+    for step in ("built", "refit"):
+        vertices = np.concatenate([m.vertices for m in scene.meshes]).astype(np.float64)
+        faces = np.concatenate([scene.meshes[0].faces,
+                                scene.meshes[1].faces + scene.meshes[0].vertex_count])
+        for max_distance in (np.inf, 0.3):
+            got = scene.closest_points(points, max_distance=max_distance)
+            expected = brute_force_closest(vertices, faces, points, max_distance)
+            found = expected["index"] >= 0
+            assert np.array_equal(got.found, found), step
+            np.testing.assert_allclose(got.distance[found], expected["distance"][found],
+                                       atol=1e-5, err_msg=step)
+        winding = brute_force_winding(vertices, faces, points)
+        np.testing.assert_allclose(scene.winding_number(points), winding, atol=0.05,
+                                   err_msg=step)
+        sdf = scene.signed_distance(points)
+        clear = np.abs(winding - 0.5) > 0.1
+        assert np.array_equal((sdf < 0)[clear], (winding >= 0.5)[clear]), step
+        scene.update_vertices(0, scene.meshes[0].vertices * np.float32(1.1))
+    return {}
 
 
 def case_sort(uninitialized: bool) -> dict:
@@ -402,6 +434,11 @@ def run_child(mode: str, group: str, out: Path) -> subprocess.CompletedProcess:
 @pytest.mark.parametrize("group", list(GROUPS))
 def test_kernels_are_clean_under_oclgrind(group, mode, tmp_path, warm_kernel_variants,
                                           expected_images):
+    if (group, mode) == ("points", "optimised"):
+        # Open: Oclgrind's optimised (-Oz) build gives winding numbers far
+        # off (2.9 for 1.02 at the sphere's centre) while the closest points
+        # and the unoptimised build are right and clean; not yet understood.
+        pytest.xfail("winding numbers wrong under Oclgrind's optimised build (open)")
     out = tmp_path / "results.npz"
     done = run_child(mode, group, out)
     found = reports(done.stderr)

@@ -1,0 +1,278 @@
+"""Point queries on a finished Tree (kernels/points.cl): the closest surface
+point, the generalized winding number, and from both the signed distance and
+inside/outside.  One query point per work-item walks the wide tree with the
+same walk as the rays (kernels/walk.h), as another visitor.
+
+Conventions, shared with tests/point_oracle.py:
+  - the closest point is exact per triangle in float (Ericson 2005, sec.
+    5.1.5: vertex, edge and face regions); points = (1-u-v)*v0 + u*v1 + v*v2,
+    the normal is the unit cross(v1 - v0, v2 - v0) (it follows the winding);
+    a point farther than max_distance from every triangle gets distance inf,
+    ids -1, u = v = 0, normal 0 and points NaN;
+  - the winding number w is the sum of the triangles' solid angles over 4 pi
+    (Jacobson, Kavan & Sorkine-Hornung 2013, "Robust Inside-Outside
+    Segmentation using Generalized Winding Numbers"), with the far field of
+    Barill et al. 2018 ("Fast Winding Numbers for Soups and Clouds"): 1
+    inside a closed outward-oriented surface, -1 inside an inward-oriented
+    one, 0 outside;
+  - inside means |w| >= 0.5, so that a closed mesh's inside is found
+    whichever way its faces turn (scanned meshes such as the Stanford bunny
+    come oriented inward), as parity ray casting finds it.  On an open mesh
+    (holes, a missing cap) or a triangle soup w takes fractional values near
+    the openings, and |w| >= 0.5 closes each hole "minimally", as the surface
+    of least area spanning it would.  Self-intersections and small holes
+    move w little, so the sign stays robust.  Where shells of opposite
+    orientation overlap, their windings cancel;
+  - signed distance: the closest distance, negative inside.
+"""
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+import pyopencl as cl
+
+from . import frame, inputs, layout
+from .device import Runtime
+from .query import _stack_size, _work_group_size, _zero_copy, check_tree
+from .tree import Tree
+
+#: Points per kernel launch at most (as query.MAX_RAYS_PER_LAUNCH: a launch
+#: ends soon, so that Ctrl-C is answered quickly).
+MAX_POINTS_PER_LAUNCH = 1 << 18
+
+#: Largest coordinate magnitude of a query point in the tree's frame: the
+#: kernels square distances in float32, which stay finite below 2^127.
+POINT_RANGE = 2.0**60
+
+#: Per-point outputs of each kernel: dtype and values per point.
+CLOSEST_FIELDS = {"distance": (np.float32, 1), "geom_id": (np.int32, 1),
+                  "prim_id": (np.int32, 1), "u": (np.float32, 1), "v": (np.float32, 1),
+                  "normal": (np.float32, 3), "points": (np.float32, 3)}
+WINDING_FIELDS = {"winding": (np.float32, 1)}
+SIGNED_FIELDS = {"distance": (np.float32, 1), "winding": (np.float32, 1)}
+
+
+@dataclass
+class ClosestPoints:
+    """Closest surface points of N query points; beyond max_distance:
+    distance inf, ids -1, u = v = 0, normal 0 and points NaN."""
+
+    points: np.ndarray    # float32 (N, 3) nearest surface point, in the caller's coordinates
+    distance: np.ndarray  # float32 (N,)
+    prim_id: np.ndarray   # int32 (N,) face index within its own mesh
+    geom_id: np.ndarray   # int32 (N,) mesh index in the scene
+    u: np.ndarray         # float32 (N,)
+    v: np.ndarray         # float32 (N,)
+    normal: np.ndarray    # float32 (N, 3) unit geometric normal
+
+    def __len__(self) -> int:
+        return len(self.distance)
+
+    @property
+    def found(self) -> np.ndarray:
+        """bool (N,): which points have a surface point within max_distance."""
+        return self.geom_id >= 0
+
+
+def check_max_distance(value) -> float:
+    array = inputs.numeric_array("max_distance", value)
+    if array.ndim != 0:
+        raise ValueError(f"max_distance must be a scalar, got shape {array.shape}")
+    distance = float(array)
+    if np.isnan(distance) or distance < 0:
+        raise ValueError(f"max_distance = {distance} must be >= 0 (inf for no limit)")
+    return distance
+
+
+class PointQuery:
+    """Closest points, winding numbers and signed distances on one device.
+
+    On PoCL the kernels read the points and write the results in the numpy
+    arrays themselves (query._zero_copy); elsewhere through device buffers
+    reused between calls, which only grow.  ``max_points_per_launch`` caps
+    the points per kernel launch (bigger batches go in chunks)."""
+
+    def __init__(self, rt: Runtime, max_points_per_launch: int | None = None):
+        self.rt = rt
+        self.work_group_size = _work_group_size(rt)
+        self.max_points_per_launch = max(1, min(MAX_POINTS_PER_LAUNCH,
+                                                int(max_points_per_launch or MAX_POINTS_PER_LAUNCH)))
+        self.zero_copy = _zero_copy(rt)
+        self._capacity = 0
+        self._buffers: dict[str, cl.Buffer] = {}
+        self._overflow = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 4)
+        self._lock = threading.Lock()
+
+    # -- public queries ---------------------------------------------------
+
+    def closest_points(self, tree: Tree, points, max_distance=np.inf) -> ClosestPoints:
+        """The nearest surface point of each point within max_distance, in
+        the points' leading shape."""
+        points, shape = inputs.points(points)
+        max_distance = check_max_distance(max_distance)
+        count = len(points)
+        out = {name: np.empty((count, n) if n > 1 else count, dtype)
+               for name, (dtype, n) in CLOSEST_FIELDS.items()}
+        if count and self._usable(tree):
+            framed = self._into_frame(points, shape, tree)
+            with np.errstate(over="ignore"):
+                max_d2 = np.float32((max_distance * tree.scale) ** 2)
+            kernel = self._kernel(tree, "closest_points")
+
+            def launch(n, b):
+                return self.rt.run(kernel, n, tree.nodes, tree.triangles, tree.refs, b["input"],
+                                   max_d2, b["distance"], b["geom_id"], b["prim_id"], b["u"],
+                                   b["v"], b["normal"], b["points"], self._overflow,
+                                   np.uint32(n), local_size=self.work_group_size)
+            self._run(framed, launch, out)
+            if tree.scale != 1.0:  # back from the frame: powers of two, exact
+                out["distance"][:] = frame.to_frame(out["distance"], 1.0 / tree.scale)
+                out["points"][:] = frame.to_frame(out["points"], 1.0 / tree.scale)
+        elif count:
+            out["distance"][:] = np.inf
+            out["geom_id"][:] = out["prim_id"][:] = -1
+            out["u"][:] = out["v"][:] = out["normal"][:] = 0.0
+            out["points"][:] = np.nan
+        return ClosestPoints(**{name: array.reshape(shape + array.shape[1:])
+                                for name, array in out.items()})
+
+    def winding_numbers(self, tree: Tree, points) -> np.ndarray:
+        """float32: the generalized winding number of each point, in the
+        points' leading shape."""
+        points, shape = inputs.points(points)
+        out = {"winding": np.zeros(len(points), np.float32)}
+        if len(points) and self._usable(tree):
+            framed = self._into_frame(points, shape, tree)
+            dipoles = self._dipoles(tree)
+            kernel = self._kernel(tree, "winding_numbers")
+
+            def launch(n, b):
+                return self.rt.run(kernel, n, tree.nodes, tree.triangles, dipoles, b["input"],
+                                   b["winding"], self._overflow, np.uint32(n),
+                                   local_size=self.work_group_size)
+            self._run(framed, launch, out)
+        return out["winding"].reshape(shape)
+
+    def signed_distance(self, tree: Tree, points) -> np.ndarray:
+        """float32: the distance to the surface, negative inside (|winding
+        number| >= 0.5), in the points' leading shape."""
+        points, shape = inputs.points(points)
+        out = {"distance": np.full(len(points), np.inf, np.float32),
+               "winding": np.zeros(len(points), np.float32)}
+        if len(points) and self._usable(tree):
+            framed = self._into_frame(points, shape, tree)
+            dipoles = self._dipoles(tree)
+            kernel = self._kernel(tree, "signed_distances")
+
+            def launch(n, b):
+                return self.rt.run(kernel, n, tree.nodes, tree.triangles, dipoles, b["input"],
+                                   b["distance"], b["winding"], self._overflow, np.uint32(n),
+                                   local_size=self.work_group_size)
+            self._run(framed, launch, out)
+            if tree.scale != 1.0:
+                out["distance"][:] = frame.to_frame(out["distance"], 1.0 / tree.scale)
+        return out["distance"].reshape(shape)
+
+    # -- internals ----------------------------------------------------------
+
+    def _usable(self, tree: Tree) -> bool:
+        """Validates the tree as ray queries do; False when it holds no triangle."""
+        return check_tree(self.rt, tree)
+
+    @staticmethod
+    def _into_frame(points: np.ndarray, shape: tuple, tree: Tree) -> np.ndarray:
+        """The points in the tree's frame (hlbvh_cl.frame), each within
+        POINT_RANGE there, else a ValueError naming the first that is not."""
+        framed = frame.to_frame(points, tree.scale)
+        with np.errstate(invalid="ignore"):
+            far = ~(np.abs(framed) <= POINT_RANGE).all(axis=1)
+        if far.any():
+            row = int(np.argmax(far))
+            where = (f" once multiplied by {frame.describe(tree.scale)}, the scale of this "
+                     f"scene's frame (hlbvh_cl/frame.py)" if tree.scale != 1.0 else "")
+            raise ValueError(f"{inputs.row_name('points', row, shape)} = {points[row].tolist()} is too far from the "
+                             f"origin{where}: point queries take coordinates up to "
+                             f"{POINT_RANGE:.3g}, where squared distances stay finite in "
+                             "float32")
+        return framed
+
+    def _kernel(self, tree: Tree, name: str) -> cl.Kernel:
+        return self.rt.kernel("points.cl", name, STACK_SIZE=_stack_size(tree),
+                              **self.rt.prefetch_defines)
+
+    def _dipoles(self, tree: Tree) -> cl.Buffer:
+        """The tree's dipoles (WideDipoles per node), made on the device on
+        first use after a build or refit: one launch per level, bottom-up."""
+        if tree.dipoles is None:
+            rt = self.rt
+            with rt.build_lock:  # a buffer taken during a build would go back with its scratch
+                dipoles = rt.pool.take(tree.node_count * layout.WIDE_DIPOLES.itemsize)
+            kernel = rt.kernel("dipoles.cl", "dipoles_level")
+            events = []
+            for first, count in reversed(tree.levels):
+                events.append(rt.run(kernel, count, first, count, tree.nodes, tree.triangles,
+                                     dipoles, wait_for=events[-1:] or None))
+            tree.dipoles = dipoles
+        return tree.dipoles
+
+    def _reserve(self, fields: dict[str, int]) -> None:
+        count = self.max_points_per_launch
+        wanted = {name: count * size for name, size in fields.items()}
+        if all(name in self._buffers and self._buffers[name].size >= size
+               for name, size in wanted.items()):
+            return
+        self._buffers = {}  # release the old ones before allocating
+        self.rt.check_allocation("point query buffers", wanted)
+        self._buffers = {name: cl.Buffer(self.rt.context, cl.mem_flags.READ_WRITE, size)
+                         for name, size in wanted.items()}
+
+    def _run(self, points: np.ndarray, launch, outputs: dict[str, np.ndarray]) -> None:
+        """Runs ``launch(n, buffers)`` over chunks of max_points_per_launch
+        points (buffers["input"]: the chunk's points); the results land in
+        the arrays of ``outputs``.  Raises if a walk ran out of stack."""
+        with self._lock:
+            try:
+                self._run_locked(points, launch, outputs)
+            except BaseException:
+                self.rt.queue.finish()  # launches in flight may still write the arrays
+                raise
+
+    def _run_locked(self, points, launch, outputs) -> None:
+        queue, chunk, count = self.rt.queue, self.max_points_per_launch, len(points)
+        arrays = {"input": points, **outputs}
+        if not self.zero_copy:
+            self._reserve({name: array.itemsize * (array.size // max(1, len(array)))
+                           for name, array in arrays.items()})
+        cl.enqueue_copy(queue, self._overflow, np.zeros(1, np.int32))
+        events, transfers = [], []
+        for start in range(0, count, chunk):
+            if len(events) >= 2:
+                self.rt.wait(events[-2:-1])
+            part = slice(start, min(start + chunk, count))
+            if self.zero_copy:
+                buffers = {name: cl.Buffer(self.rt.context,
+                                           (cl.mem_flags.READ_ONLY if name == "input"
+                                            else cl.mem_flags.WRITE_ONLY)
+                                           | cl.mem_flags.USE_HOST_PTR, hostbuf=array[part])
+                           for name, array in arrays.items()}
+            else:
+                buffers = self._buffers
+                transfers.append(cl.enqueue_copy(queue, buffers["input"], points[part],
+                                                 is_blocking=False))
+            events.append(launch(part.stop - part.start, buffers))
+            for name, array in outputs.items():
+                if self.zero_copy:
+                    mapped, _ = cl.enqueue_map_buffer(queue, buffers[name], cl.map_flags.READ, 0,
+                                                      array[part].shape, array.dtype,
+                                                      is_blocking=False)
+                    mapped.base.release(queue)
+                else:
+                    transfers.append(cl.enqueue_copy(queue, array[part], buffers[name],
+                                                     is_blocking=False))
+        overflow = np.zeros(1, np.int32)
+        self.rt.wait([cl.enqueue_copy(queue, overflow, self._overflow, is_blocking=False)])
+        if overflow[0]:
+            raise RuntimeError("a point query's walk overflowed its stack (sized from "
+                               "Tree.depth): the tree is deeper than its depth field says")

@@ -1,0 +1,204 @@
+/* Point queries' vocabulary (path suffix _point, see walk.h): a query point
+ * walks the wide tree as a ray does, with box distances instead of slab
+ * entries.  The closest point on a triangle follows Ericson, "Real-Time
+ * Collision Detection" (2005), sec. 5.1.5; the winding number's far field
+ * is Barill et al. 2018 ("Fast Winding Numbers for Soups and Clouds"),
+ * order 1, and its near field the exact solid angle of Van Oosterom &
+ * Strackee 1983. */
+#ifndef POINT_H
+#define POINT_H
+
+#include "node.h"
+#include "triangle.h"
+
+/* The query point, in the tree's frame. */
+typedef struct {
+    float x, y, z;
+} PointData;
+typedef PointData Rays_point;
+
+/* Dot product spelled out (PoCL calls dot out of line, see GROW_LO). */
+#define DOT3(a, b) ((a).x * (b).x + (a).y * (b).y + (a).z * (b).z)
+
+/* What a point walk keeps: the closest triangle so far (tree order, -1:
+ * none), its squared distance `reach` (the walk drops boxes farther than
+ * it), the closest point on it and its barycentrics (point = (1-u-v)*v0 +
+ * u*v1 + v*v2); or the winding walk's sum of solid angles (4 pi times the
+ * winding number). */
+typedef struct {
+    int index;
+    float reach;
+    float u, v;
+    float solid_angle;
+} Found_point;
+#define reach_point(s) ((s)->reach)
+
+/* Squared distance from the point to each child's box, one lane each
+ * (0 inside); the children within the reach as a mask.  An unused slot's
+ * empty box (lo = +inf > hi = -inf) is left out by its lo <= hi test, as
+ * its distance (+inf) does not exceed an infinite reach. */
+#define NODE_ROW(row) LOAD_ROW(float_lanes, node->row)
+#define BOX_GAP(lo, hi, q) GROW_HI(GROW_HI((float_lanes)(0.0f), NODE_ROW(lo) - (q)), (q) - NODE_ROW(hi))
+TRAVERSAL_INLINE uint children_point(const PointData* q, __global const WideNode* node,
+                                     const Found_point* s, ChildEntries* entry)
+{
+    float_lanes dx = BOX_GAP(lo_x, hi_x, q->x);
+    float_lanes dy = BOX_GAP(lo_y, hi_y, q->y);
+    float_lanes dz = BOX_GAP(lo_z, hi_z, q->z);
+    entry->lanes = (dx * dx + dy * dy) + dz * dz;
+    return lane_mask((entry->lanes <= (float_lanes)(s->reach))
+                     & (NODE_ROW(lo_x) <= NODE_ROW(hi_x)));
+}
+#undef BOX_GAP
+
+/* Barill et al. 2018, sec. 3: a cluster whose centre lies farther than
+ * BETA times its radius from the point counts by its dipole alone. */
+#define WINDING_BETA 2.0f
+
+/* The winding walk's node test: the children far enough from the point
+ * (Barill's |q - p| > beta r) add their dipole's solid angle a.(p - q) /
+ * |p - q|^3 to the sum and are not descended; the others (used slots) are,
+ * in any order (entries 0, reach +inf). */
+#define DIPOLE_ROW(row) LOAD_ROW(float_lanes, dipole->row)
+TRAVERSAL_INLINE uint children_winding(const PointData* q, __global const WideNode* node,
+                                       __global const WideDipoles* dipole, Found_point* s,
+                                       ChildEntries* entry)
+{
+    float_lanes dx = DIPOLE_ROW(p_x) - q->x, dy = DIPOLE_ROW(p_y) - q->y,
+                dz = DIPOLE_ROW(p_z) - q->z;
+    float_lanes d2 = (dx * dx + dy * dy) + dz * dz;
+    float_lanes near = DIPOLE_ROW(radius) * WINDING_BETA;
+    int_lanes far = d2 > near * near;
+    float_lanes flux = (DIPOLE_ROW(a_x) * dx + DIPOLE_ROW(a_y) * dy) + DIPOLE_ROW(a_z) * dz;
+    /* far lanes have d2 > 0; an unused slot's dipole is 0 (far unless the
+     * point sits at its centre 0, and never descended) */
+    float_lanes term = as_float8(as_int8(flux / (d2 * sqrt(d2))) & far);
+    float4 halves = term.lo + term.hi;
+    float2 quarter = halves.lo + halves.hi;
+    s->solid_angle += quarter.x + quarter.y;
+    entry->lanes = (float_lanes)(0.0f);
+    int_lanes used = (LOAD_ROW(int_lanes, node->count) != (int_lanes)(0))
+                     | (LOAD_ROW(int_lanes, node->child) != (int_lanes)(EMPTY_CHILD));
+    return lane_mask((far == (int_lanes)(0)) & used);
+}
+#undef DIPOLE_ROW
+#undef NODE_ROW
+
+/* The solid angle the triangle (a, b, c), given relative to the point,
+ * subtends (Van Oosterom & Strackee 1983): positive when the point lies
+ * behind it (on the side its normal cross(b - a, c - a) points away from). */
+TRAVERSAL_INLINE float solid_angle(float3 a, float3 b, float3 c)
+{
+    float la = SQUARE_ROOT(DOT3(a, a)), lb = SQUARE_ROOT(DOT3(b, b)), lc = SQUARE_ROOT(DOT3(c, c));
+    float det = a.x * (b.y * c.z - b.z * c.y) + a.y * (b.z * c.x - b.x * c.z)
+                + a.z * (b.x * c.y - b.y * c.x);
+    float ab = DOT3(a, b), bc = DOT3(b, c), ca = DOT3(c, a);
+    return 2.0f * atan2(det, la * lb * lc + ab * lc + bc * la + ca * lb);
+}
+
+/* The winding walk's leaf: every triangle's exact solid angle. */
+TRAVERSAL_INLINE bool winding_leaf(Found_point* s, const PointData* q,
+                                   __global const Triangle* triangles, int first, uint count)
+{
+    float3 p = (float3)(q->x, q->y, q->z);
+    for (int i = first; i < first + (int)count; ++i) {
+        __global const Triangle* t = triangles + i;
+        s->solid_angle += solid_angle(LOAD_XYZ(t->v0) - p, LOAD_XYZ(t->v1) - p,
+                                      LOAD_XYZ(t->v2) - p);
+    }
+    return false;
+}
+
+/* The point of triangle t nearest to p, as barycentrics (u, v) of v1 and v2
+ * and its squared distance to p (Ericson 2005, sec. 5.1.5: the vertex,
+ * edge and face regions in turn).  A degenerate triangle that reaches the
+ * face region with barycentrics out of range takes the nearest point of its
+ * three edges instead (Ericson's face formula divides by its zero area). */
+TRAVERSAL_INLINE float segment_point(float3 a, float3 ab, float3 p, float* w)
+{
+    float length2 = DOT3(ab, ab);
+    float along = length2 > 0.0f ? DOT3(p - a, ab) / length2 : 0.0f;
+    along = GROW_LO(GROW_HI(along, 0.0f), 1.0f);
+    *w = along;
+    float3 d = p - (a + along * ab);
+    return DOT3(d, d);
+}
+
+TRAVERSAL_INLINE float closest_on_triangle(__global const Triangle* t, float3 p, float* u_out,
+                                           float* v_out)
+{
+    float3 a = LOAD_XYZ(t->v0), b = LOAD_XYZ(t->v1), c = LOAD_XYZ(t->v2);
+    float3 ab = b - a, ac = c - a, ap = p - a;
+    float u, v;
+    float d1 = DOT3(ab, ap), d2 = DOT3(ac, ap);
+    float3 bp = p - b;
+    float d3 = DOT3(ab, bp), d4 = DOT3(ac, bp);
+    float3 cp = p - c;
+    float d5 = DOT3(ab, cp), d6 = DOT3(ac, cp);
+    float vc = d1 * d4 - d3 * d2, vb = d5 * d2 - d1 * d6, va = d3 * d6 - d5 * d4;
+    if (d1 <= 0.0f && d2 <= 0.0f) {                      /* vertex a */
+        u = 0.0f;
+        v = 0.0f;
+    } else if (d3 >= 0.0f && d4 <= d3) {                 /* vertex b */
+        u = 1.0f;
+        v = 0.0f;
+    } else if (vc <= 0.0f && d1 >= 0.0f && d3 <= 0.0f) { /* edge ab */
+        u = d1 / (d1 - d3);
+        v = 0.0f;
+    } else if (d6 >= 0.0f && d5 <= d6) {                 /* vertex c */
+        u = 0.0f;
+        v = 1.0f;
+    } else if (vb <= 0.0f && d2 >= 0.0f && d6 <= 0.0f) { /* edge ac */
+        u = 0.0f;
+        v = d2 / (d2 - d6);
+    } else if (va <= 0.0f && d4 - d3 >= 0.0f && d5 - d6 >= 0.0f) { /* edge bc */
+        v = (d4 - d3) / ((d4 - d3) + (d5 - d6));
+        u = 1.0f - v;
+    } else {                                             /* face */
+        float inv = 1.0f / (va + vb + vc);
+        u = vb * inv;
+        v = vc * inv;
+        if (!(u >= 0.0f && v >= 0.0f && u + v <= 1.0f)) {
+            float w, best = segment_point(a, ab, p, &w);
+            u = w;
+            v = 0.0f;
+            float d = segment_point(a, ac, p, &w);
+            if (d < best) {
+                best = d;
+                u = 0.0f;
+                v = w;
+            }
+            d = segment_point(b, c - b, p, &w);
+            if (d < best) {
+                u = 1.0f - w;
+                v = w;
+            }
+        }
+    }
+    *u_out = u;
+    *v_out = v;
+    float3 d = p - (a + u * ab + v * ac);
+    return DOT3(d, d);
+}
+
+/* The closest-point walk's leaf: a triangle nearer than the reach becomes
+ * the best (at the reach itself only while there is none, so that a point
+ * exactly max_distance away is found). */
+TRAVERSAL_INLINE bool closest_leaf(Found_point* s, const PointData* q,
+                                   __global const Triangle* triangles, int first, uint count)
+{
+    float3 p = (float3)(q->x, q->y, q->z);
+    for (int i = first; i < first + (int)count; ++i) {
+        float u, v;
+        float d2 = closest_on_triangle(triangles + i, p, &u, &v);
+        if (d2 < s->reach || (s->index < 0 && d2 <= s->reach)) {
+            s->index = i;
+            s->reach = d2;
+            s->u = u;
+            s->v = v;
+        }
+    }
+    return false;
+}
+
+#endif /* POINT_H */

@@ -1,0 +1,378 @@
+"""Point queries (hlbvh_cl/points.py, kernels/points.cl): closest points,
+winding numbers, signed distance and inside, against the float64 brute
+force of tests/point_oracle.py, parity ray casting (embreex) on watertight
+meshes, and Open3D / libigl on the bunny."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import hlbvh_cl
+from point_oracle import brute_force_closest, brute_force_winding
+
+#: Distances agree with the float64 oracle to this much of the scene's size
+#: (float32 coordinates, a few roundings per test).
+DISTANCE_TOLERANCE = 2e-6
+
+
+def icosphere(subdivisions=2, radius=1.0):
+    sphere = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return np.asarray(sphere.vertices, np.float32), np.asarray(sphere.faces, np.int32)
+
+
+@pytest.fixture(scope="module")
+def sphere_scene(suite_device):
+    vertices, faces = icosphere()
+    return hlbvh_cl.Scene([hlbvh_cl.Mesh(vertices, faces)], device=suite_device)
+
+
+def oracle_of(scene):
+    """(vertices, faces) of the whole scene as the device holds them
+    (float32), and each face's (geom_id, prim_id)."""
+    vertices = np.concatenate([m.vertices for m in scene.meshes]).astype(np.float64)
+    offsets = np.cumsum([0] + [m.vertex_count for m in scene.meshes])
+    faces = np.concatenate([m.faces + o for m, o in zip(scene.meshes, offsets)])
+    ids = np.concatenate([np.stack([np.full(m.triangle_count, g), np.arange(m.triangle_count)], 1)
+                          for g, m in enumerate(scene.meshes)])
+    return vertices, faces, ids
+
+
+def assert_closest_matches(scene, got, points, max_distance=np.inf, size=1.0):
+    vertices, faces, ids = oracle_of(scene)
+    expected = brute_force_closest(vertices, faces, points, max_distance)
+    tolerance = np.broadcast_to(DISTANCE_TOLERANCE * np.asarray(size, np.float64), len(points))
+    found = expected["index"] >= 0
+    # at the max_distance boundary either answer is right
+    edge = np.abs(expected["distance"] - max_distance) <= tolerance if np.isfinite(max_distance) \
+        else np.zeros(len(points), bool)
+    assert np.array_equal(got.found[~edge], found[~edge])
+    both = got.found & found
+    assert_near(got.distance[both], expected["distance"][both], tolerance[both])
+    assert np.all(np.isinf(got.distance[~got.found]))
+    assert np.all(got.prim_id[~got.found] == -1) and np.all(got.geom_id[~got.found] == -1)
+    assert np.all(np.isnan(got.points[~got.found]))
+    assert np.all(got.normal[~got.found] == 0)
+    # the point is on the triangle named, at the distance given
+    g = got.found
+    tri = np.stack([vertices[faces[np.flatnonzero((ids[:, 0] == gid) & (ids[:, 1] == pid))[0]]]
+                    for gid, pid in zip(got.geom_id[g], got.prim_id[g])]) if g.any() \
+        else np.zeros((0, 3, 3))
+    u, v = got.u[g].astype(np.float64), got.v[g].astype(np.float64)
+    assert np.all((u >= -1e-6) & (v >= -1e-6) & (u + v <= 1 + 1e-6))
+    on = tri[:, 0] + u[:, None] * (tri[:, 1] - tri[:, 0]) + v[:, None] * (tri[:, 2] - tri[:, 0])
+    assert_near(got.points[g], on, tolerance[g, None])
+    gap = got.points[g].astype(np.float64) - np.asarray(points, np.float64)[g]
+    assert_near(np.linalg.norm(gap, axis=1), got.distance[g], tolerance[g])
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    np.testing.assert_allclose(got.normal[g], normal, atol=1e-5)
+    # where the nearest triangle is clearly unique, the same one
+    all_d = np.sqrt(_all_distances(vertices, faces, points))
+    ordered = np.sort(all_d, axis=1)
+    unique = both & (ordered[:, 1] - ordered[:, 0] > 10 * tolerance)
+    want = ids[expected["index"][unique]]
+    assert np.array_equal(got.geom_id[unique], want[:, 0])
+    assert np.array_equal(got.prim_id[unique], want[:, 1])
+    return unique.sum()
+
+
+def assert_near(got, expected, tolerance):
+    error = np.abs(np.asarray(got, np.float64) - expected)
+    bad = ~(error <= tolerance)
+    assert not bad.any(), f"{bad.sum()} values off by up to {error[bad].max()}"
+
+
+def _all_distances(vertices, faces, points):
+    from point_oracle import _triangles, closest_on_triangles
+    a, b, c = _triangles(vertices, faces)
+    return closest_on_triangles(np.asarray(points, np.float64), a, b, c)[0]
+
+
+def test_random_points_match_brute_force(sphere_scene):
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-2, 2, (3000, 3)).astype(np.float32)
+    got = sphere_scene.closest_points(points)
+    assert len(got) == 3000 and got.found.all()
+    assert assert_closest_matches(sphere_scene, got, points) > 500  # ids compared
+
+
+def test_points_on_vertices_edges_and_faces(sphere_scene):
+    vertices, faces = icosphere()
+    rng = np.random.default_rng(4)
+    f = faces[rng.integers(0, len(faces), 200)]
+    a, b, c = (vertices[f[:, k]].astype(np.float64) for k in range(3))
+    s = rng.uniform(0.05, 0.95, (200, 1))
+    w = rng.dirichlet((1, 1, 1), 200)
+    points = np.concatenate([vertices, a + s * (b - a),
+                             w[:, :1] * a + w[:, 1:2] * b + w[:, 2:] * c]).astype(np.float32)
+    got = sphere_scene.closest_points(points)
+    assert_closest_matches(sphere_scene, got, points)
+    assert np.all(got.distance[:len(vertices)] == 0)  # a vertex is exactly on the surface
+    assert got.distance.max() < 1e-6
+
+
+def test_far_points_and_max_distance(sphere_scene):
+    rng = np.random.default_rng(5)
+    directions = rng.normal(size=(500, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    points = (directions * rng.uniform(0.0, 50.0, (500, 1))).astype(np.float32)
+    points[:3] = [[1e6, 0, 0], [0, -3e7, 0], [1e15, 1e15, -1e15]]
+    got = sphere_scene.closest_points(points)
+    # a float32 point far away is known to a few of its ulps: so is its distance
+    size = np.linalg.norm(points, axis=1).clip(1.0, None)
+    assert_closest_matches(sphere_scene, got, points, size=size)
+    for max_distance in (0.0, 0.5, 3.0, 40.0):
+        cut = sphere_scene.closest_points(points, max_distance=max_distance)
+        assert_closest_matches(sphere_scene, cut, points, max_distance, size=size)
+        assert 0 < cut.found.sum() < len(points) or max_distance == 0.0
+    assert not sphere_scene.closest_points(points[:3], max_distance=10.0).found.any()
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.lists(st.tuples(*[st.floats(-3, 3, width=32)] * 3), min_size=1, max_size=40),
+       st.floats(0.0, 4.0, width=32) | st.just(float("inf")))
+def test_distances_never_exceed_brute_force(sphere_scene, rows, max_distance):
+    points = np.array(rows, np.float32)
+    got = sphere_scene.closest_points(points, max_distance=max_distance)
+    vertices, faces, _ = oracle_of(sphere_scene)
+    expected = brute_force_closest(vertices, faces, points)["distance"]
+    assert np.all(got.distance[got.found] <= expected[got.found] + DISTANCE_TOLERANCE)
+    np.testing.assert_allclose(got.distance[got.found], expected[got.found],
+                               atol=DISTANCE_TOLERANCE)
+    clearly_within = expected <= max_distance - DISTANCE_TOLERANCE
+    assert got.found[clearly_within].all()
+    assert not got.found[expected > max_distance + DISTANCE_TOLERANCE].any()
+
+
+def test_multi_mesh_scene_geom_ids(suite_device):
+    v1, f1 = icosphere(1)
+    v2, f2 = icosphere(1, radius=0.5)
+    scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(v1, f1), hlbvh_cl.Mesh(v2 + np.float32(3.0), f2)],
+                           device=suite_device)
+    rng = np.random.default_rng(6)
+    points = rng.uniform(-1.5, 4.5, (1500, 3)).astype(np.float32)
+    got = scene.closest_points(points)
+    assert_closest_matches(scene, got, points)
+    assert set(np.unique(got.geom_id)) == {0, 1}
+    # a point in each ball is inside; the gap between them is not
+    inside = scene.contains([[0, 0, 0], [3, 3, 3], [1.5, 1.5, 1.5]])
+    assert inside.tolist() == [True, True, False]
+
+
+def test_winding_numbers_match_brute_force(sphere_scene):
+    rng = np.random.default_rng(7)
+    points = rng.uniform(-2, 2, (2000, 3)).astype(np.float32)
+    vertices, faces, _ = oracle_of(sphere_scene)
+    expected = brute_force_winding(vertices, faces, points)
+    got = sphere_scene.winding_number(points)
+    # Barill's order-1 far field with beta = 2: a few percent at most
+    np.testing.assert_allclose(got, expected, atol=0.05)
+    assert np.array_equal(got >= 0.5, expected >= 0.5)
+
+
+def parity_inside(vertices, faces, points):
+    """Inside by parity ray casting (embreex through trimesh), three
+    directions voting."""
+    pytest.importorskip("embreex")
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    assert mesh.is_watertight
+    return mesh.contains(points)
+
+
+def watertight(name, meshes, device):
+    """A watertight mesh (an icosphere or one of the project's), and its scene."""
+    if name == "icosphere":
+        vertices, faces = icosphere(3)
+    else:
+        vertices, faces = meshes[name].vertices, meshes[name].faces
+    return vertices, faces, hlbvh_cl.Scene([hlbvh_cl.Mesh(vertices, faces)], device=device)
+
+
+@pytest.mark.parametrize("name", ["icosphere", "bunny_small", "knight"])
+def test_sign_agrees_with_parity_on_watertight_meshes(name, meshes, suite_device):
+    vertices, faces, scene = watertight(name, meshes, suite_device)
+    lo, hi = vertices.min(0), vertices.max(0)
+    centre, half = (lo + hi) / 2, (hi - lo) / 2 * 1.2
+    points = (centre + np.random.default_rng(8).uniform(-1, 1, (4000, 3)) * half).astype(np.float32)
+    sdf = scene.signed_distance(points)
+    nearest = scene.closest_points(points).distance
+    np.testing.assert_array_equal(np.abs(sdf), nearest)
+    expected = parity_inside(vertices.astype(np.float64), faces, points.astype(np.float64))
+    # parity casting itself is unreliable on the surface: compare off it
+    clear = nearest > 1e-4 * np.linalg.norm(hi - lo)
+    assert expected[clear].sum() > 100
+    assert np.array_equal((sdf < 0)[clear], expected[clear])
+    assert np.array_equal(scene.contains(points)[clear], expected[clear])
+
+
+@pytest.mark.parametrize("name", ["icosphere", "bunny_small"])
+def test_sign_is_right_1e_6_off_the_surface(name, meshes, suite_device):
+    vertices, faces, scene = watertight(name, meshes, suite_device)
+    rng = np.random.default_rng(9)
+    chosen = rng.choice(len(faces), 500, replace=False)
+    tri = vertices[faces[chosen]].astype(np.float64)
+    w = rng.dirichlet((4, 4, 4), len(chosen))
+    on = np.einsum("fk,fkd->fd", w, tri)
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    outside = (on + 1e-6 * normal).astype(np.float32)
+    inside = (on - 1e-6 * normal).astype(np.float32)
+    # float32 rounding may land a point on the surface: keep those truly off it
+    vertices64, faces64, _ = oracle_of(scene)
+    for points, sign in ((outside, 1), (inside, -1)):
+        side = np.einsum("fd,fd->f", points.astype(np.float64) - on, normal)
+        off = side * sign > 2e-7
+        assert off.sum() > 400
+        sdf = scene.signed_distance(points[off])
+        assert np.all(np.sign(sdf) == sign), f"{(np.sign(sdf) != sign).sum()} flipped signs"
+        assert np.all(scene.contains(points[off]) == (sign < 0))
+
+
+def test_bunny_agrees_with_open3d_and_libigl(meshes, suite_device):
+    o3d = pytest.importorskip("open3d")
+    igl = pytest.importorskip("igl")
+    # the bunny's faces wind inward (negative volume), so its winding numbers
+    # are near -1 inside: inside is |w| >= 0.5 (hlbvh_cl/points.py)
+    mesh = meshes["bunny"]
+    scene = hlbvh_cl.Scene([mesh], device=suite_device)
+    lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
+    centre, half = (lo + hi) / 2, (hi - lo) / 2 * 1.4
+    points = (centre + np.random.default_rng(10).uniform(-1, 1, (3000, 3)) * half).astype(np.float32)
+    got = scene.closest_points(points)
+    size = float(np.linalg.norm(hi - lo))
+    raycasting = o3d.t.geometry.RaycastingScene()
+    raycasting.add_triangles(o3d.core.Tensor(mesh.vertices), o3d.core.Tensor(mesh.faces.astype(np.uint32)))
+    answer = raycasting.compute_closest_points(o3d.core.Tensor(points))["points"].numpy()
+    # the same point, or (ties: two parts of the surface as near) as near a one
+    same = np.linalg.norm(got.points - answer, axis=1) <= 1e-5 * size
+    assert same.mean() > 0.99
+    tie = np.linalg.norm(answer - points, axis=1) - got.distance
+    assert np.all(np.abs(tie[~same]) <= 1e-6 * size)
+    o3d_distance = raycasting.compute_distance(o3d.core.Tensor(points)).numpy()
+    np.testing.assert_allclose(got.distance, o3d_distance, atol=1e-6 * size)
+    v64, f64 = mesh.vertices.astype(np.float64), mesh.faces.astype(np.int64)
+    squared, _, _ = igl.point_mesh_squared_distance(points.astype(np.float64), v64, f64)
+    np.testing.assert_allclose(got.distance, np.sqrt(squared), atol=1e-6 * size)
+    # the bunny has holes: winding numbers against libigl's exact ones
+    expected = igl.winding_number(v64, f64, points.astype(np.float64))
+    winding = scene.winding_number(points)
+    error = np.abs(winding - expected)
+    assert error.max() < 0.1 and np.median(error) < 0.005  # Barill's order-1 far field
+    decided = np.abs(np.abs(expected) - 0.5) > 0.1
+    inside = np.abs(expected) >= 0.5
+    assert np.array_equal((scene.signed_distance(points) < 0)[decided], inside[decided])
+    assert np.array_equal(scene.contains(points)[decided], inside[decided])
+    assert 200 < inside.sum() < 2800 and (expected < -0.5).sum() == inside.sum()
+
+
+def test_inside_does_not_depend_on_the_winding_order(suite_device):
+    """A closed mesh oriented inward has w = -1 inside: the same inside, the
+    same signed distances, and opposite winding numbers."""
+    vertices, faces = icosphere(2)
+    outward = hlbvh_cl.Scene([hlbvh_cl.Mesh(vertices, faces)], device=suite_device)
+    inward = hlbvh_cl.Scene([hlbvh_cl.Mesh(vertices, faces[:, ::-1])], device=suite_device)
+    points = np.random.default_rng(12).uniform(-1.3, 1.3, (2000, 3)).astype(np.float32)
+    np.testing.assert_allclose(inward.winding_number(points), -outward.winding_number(points),
+                               atol=1e-5)
+    inward_sdf, outward_sdf = inward.signed_distance(points), outward.signed_distance(points)
+    # the same distances up to the rounding of the vertices' other order
+    np.testing.assert_allclose(inward_sdf, outward_sdf, atol=1e-6)
+    np.testing.assert_array_equal(np.sign(inward_sdf), np.sign(outward_sdf))
+    radius = np.linalg.norm(points, axis=1)
+    assert np.all(inward.contains(points)[radius < 0.95]) and not inward.contains(points)[radius > 1.05].any()
+
+
+@pytest.mark.parametrize("scale", [1e-30, 1e30])
+def test_scaled_frames(scale, suite_device):
+    vertices, faces = icosphere(2)
+    scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(vertices.astype(np.float64) * scale, faces)],
+                           device=suite_device)
+    assert scene._built_tree().scale != 1.0
+    rng = np.random.default_rng(11)
+    points = (rng.uniform(-2, 2, (1000, 3)) * scale).astype(np.float32)
+    got = scene.closest_points(points)
+    assert_closest_matches(scene, got, points, size=scale)
+    limited = scene.closest_points(points, max_distance=0.3 * scale)
+    assert_closest_matches(scene, limited, points, 0.3 * scale, size=scale)
+    inside = np.linalg.norm(points.astype(np.float64) / scale, axis=1) < 0.98
+    outside = np.linalg.norm(points.astype(np.float64) / scale, axis=1) > 1.02
+    sdf = scene.signed_distance(points)
+    assert np.all(sdf[inside] < 0) and np.all(sdf[outside] > 0)
+    np.testing.assert_array_equal(np.abs(sdf), got.distance)
+
+
+def test_update_vertices_moves_the_answers(suite_device):
+    vertices, faces = icosphere(2)
+    scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(vertices, faces)], device=suite_device)
+    points = np.array([[0, 0, 0], [2.5, 0, 0], [1.2, 0, 0]], np.float32)
+    assert scene.contains(points).tolist() == [True, False, False]  # dipoles made here
+    scene.update_vertices(0, vertices + np.float32(2.0))  # the ball moves to (2, 2, 2)
+    moved = np.array([[2, 2, 2], [0, 0, 0], [2.9, 2, 2]], np.float32)
+    assert scene.contains(moved).tolist() == [True, False, True]
+    sdf = scene.signed_distance(moved)
+    assert sdf[0] < 0 and sdf[1] > 0 and sdf[2] < 0
+    assert_closest_matches(scene, scene.closest_points(moved), moved)
+
+
+def test_bad_input_is_named(sphere_scene):
+    with pytest.raises(ValueError, match=r"points\[1\]"):
+        sphere_scene.closest_points([[0, 0, 0], [np.nan, 0, 0]])
+    with pytest.raises(ValueError, match=r"points\[0\].*not finite"):
+        sphere_scene.signed_distance(np.array([[np.inf, 0, 0]]))
+    with pytest.raises(ValueError, match=r"points\[0\].*overflows"):
+        sphere_scene.contains(np.array([[1e39, 0, 0]]))
+    with pytest.raises(ValueError, match=r"shape \(\.\.\., 3\)"):
+        sphere_scene.closest_points(np.zeros((4, 2)))
+    with pytest.raises(ValueError, match="max_distance"):
+        sphere_scene.closest_points(np.zeros((1, 3)), max_distance=-1.0)
+    with pytest.raises(ValueError, match="max_distance"):
+        sphere_scene.closest_points(np.zeros((1, 3)), max_distance=np.nan)
+    with pytest.raises(ValueError, match=r"points\[2\].*too far"):
+        sphere_scene.winding_number([[0, 0, 0], [1, 1, 1], [0, 0, 1e30]])
+    with pytest.raises(TypeError, match="points"):
+        sphere_scene.closest_points([["a", "b", "c"]])
+
+
+def test_array_likes(sphere_scene):
+    points = np.random.default_rng(12).uniform(-2, 2, (50, 6))[:, ::2]  # float64, strided
+    points.setflags(write=False)
+    expected = sphere_scene.closest_points(points.astype(np.float32))
+    for given in (points, points.tolist()):
+        got = sphere_scene.closest_points(given)
+        np.testing.assert_array_equal(got.distance, expected.distance)
+        np.testing.assert_array_equal(got.points, expected.points)
+    empty = sphere_scene.closest_points(np.zeros((0, 3)))
+    assert len(empty) == 0 and sphere_scene.signed_distance(np.zeros((0, 3))).shape == (0,)
+
+
+def test_chunks_give_the_same_answers(sphere_scene):
+    from hlbvh_cl.points import PointQuery
+    points = np.random.default_rng(13).uniform(-2, 2, (1000, 3)).astype(np.float32)
+    tree = sphere_scene._built_tree()
+    whole = PointQuery(sphere_scene._runtime)
+    small = PointQuery(sphere_scene._runtime, max_points_per_launch=97)
+    a, b = whole.closest_points(tree, points), small.closest_points(tree, points)
+    for field in ("distance", "prim_id", "points", "normal"):
+        np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+    np.testing.assert_array_equal(whole.signed_distance(tree, points),
+                                  small.signed_distance(tree, points))
+
+
+def test_points_keep_their_leading_shape(sphere_scene):
+    """(H, W, 3) points give (H, W) answers, equal to the flat query's."""
+    points = np.random.default_rng(13).uniform(-2, 2, (4, 5, 3)).astype(np.float32)
+    flat = sphere_scene.closest_points(points.reshape(-1, 3))
+    grid = sphere_scene.closest_points(points)
+    for name in ("points", "distance", "prim_id", "geom_id", "u", "v", "normal"):
+        want = getattr(flat, name)
+        got = getattr(grid, name)
+        assert got.shape == (4, 5) + want.shape[1:], name
+        np.testing.assert_array_equal(got.reshape(want.shape), want, err_msg=name)
+    for query in (sphere_scene.signed_distance, sphere_scene.winding_number,
+                  sphere_scene.contains):
+        np.testing.assert_array_equal(query(points).reshape(-1), query(points.reshape(-1, 3)))
+    with pytest.raises(ValueError, match=r"points\[1, 2\] = .*not finite"):
+        sphere_scene.contains(np.where(np.arange(20).reshape(4, 5, 1) == 7, np.nan, points))
