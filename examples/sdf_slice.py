@@ -20,9 +20,13 @@ from pathlib import Path
 
 import numpy as np
 
-import hlbvh_cl
+ROOT = Path(__file__).resolve().parent.parent
+if (ROOT / "hlbvh_cl" / "__init__.py").is_file():  # run from a checkout: use its hlbvh_cl
+    sys.path.insert(0, str(ROOT))
 
-MESH = Path(__file__).resolve().parent.parent / "scenes" / "meshes" / "bunny.ply"
+import hlbvh_cl  # noqa: E402
+
+MESH = ROOT / "scenes" / "meshes" / "bunny.ply"
 AXES = "xyz"
 #: the plane covers the box's sides grown by this fraction on each end
 MARGIN = 0.15
