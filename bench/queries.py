@@ -392,7 +392,8 @@ def _first(query: str, answer, count: int):
     return counts[:count], t[:counts[:count].sum()]
 
 
-def bench_case(name: str, devices: list, peer_list: list, config: Config, bar=None) -> dict:
+def bench_case(name: str, devices: list, peer_list: list, config: Config, bar=None,
+               chosen: tuple[str, ...] = QUERIES) -> dict:
     case = load_case(name, devices[0].id)
     ours = [OurQueries(d) for d in devices]
     participants = ours + peer_list
@@ -406,7 +407,7 @@ def bench_case(name: str, devices: list, peer_list: list, config: Config, bar=No
                for c in corners)), "build_s": build_seconds, "errors": errors, "runs": []}
     try:
         for query, works in workloads(case, config).items():
-            for work in works:
+            for work in works if query in chosen else ():
                 if bar is not None:
                     bar.set_postfix_str(f"{name}: {query} {work.kind}")
                 run = bench_query(query, work, built, [o.name for o in ours], config, scale)
@@ -615,9 +616,15 @@ def main(argv=None) -> dict:
     args = arguments(__doc__.splitlines()[0], argv,
                      (["--peers"], {"default": ",".join(PEERS),
                                     "help": f"comma-separated peers (default: {','.join(PEERS)})"}),
+                     (["--queries"], {"default": ",".join(QUERIES),
+                                      "help": f"comma-separated (default: {','.join(QUERIES)})"}),
                      (["--no-memory"], {"action": "store_true",
                                         "help": "skip the intersect_all memory measurement"}))
     config = QUICK if args.quick else FULL
+    chosen_queries = tuple(q.strip() for q in args.queries.split(",") if q.strip())
+    unknown = set(chosen_queries) - set(QUERIES)
+    if unknown:
+        raise SystemExit(f"unknown --queries {', '.join(sorted(unknown))}; known: {', '.join(QUERIES)}")
     elapsed = stopwatch()
     chosen = devices_or_exit(args.devices)
     available, missing = peers.load_peers([p.strip() for p in args.peers.split(",")
@@ -631,11 +638,12 @@ def main(argv=None) -> dict:
                "participants": {**{d.id: OurQueries(d).describe() for d in chosen},
                                 **{p.name: p.describe() for p in available + missing}},
                "cases": []}
-    steps = len(config.cases) * 7
+    steps = len(config.cases) * sum(2 if q in POINT_QUERIES else 1 for q in chosen_queries)
     with progress(steps, "queries bench", enabled=not args.no_progress) as bar:
         for name in config.cases:
-            results["cases"].append(bench_case(name, chosen, available, config, bar))
-    if not args.no_memory:
+            results["cases"].append(bench_case(name, chosen, available, config, bar,
+                                               chosen_queries))
+    if not args.no_memory and "intersect_all" in chosen_queries:
         say("intersect_all memory ...")
         results["memory"] = bench_memory(config, chosen[0].id,
                                          [p.name for p in available if "intersect_all" in p.queries
