@@ -6,12 +6,14 @@
     blocked = scene.occluded(origins, directions)     # any hit
     nearest = scene.closest_points(points)            # closest surface points
     sdf = scene.signed_distance(points)               # negative inside
+    every = scene.intersect_all(origins, directions)  # all hits, sorted by t (AllHits)
     scene.update_vertices(0, moved_vertices)          # refit on the device
     camera = hlbvh_cl.Camera(eye, target)
     image = hlbvh_cl.Renderer(scene).render(camera, 640, 480)   # (480, 640, 3) uint8
     loaded = hlbvh_cl.scenefile.load("scenes/reference.toml")   # a scene file, built
 """
 from . import scenefile
+from .all_hits import AllHits
 from .build import BuildStats
 from .device import Device, DeviceMemoryError, KernelBuildError, devices
 from .mesh import Mesh
@@ -20,6 +22,6 @@ from .query import Hits
 from .render import Camera, Light, Renderer
 from .scene import Scene
 
-__all__ = ["BuildStats", "Camera", "ClosestPoints", "Device", "DeviceMemoryError", "Hits",
-           "KernelBuildError", "Light", "Mesh", "Renderer", "Scene", "devices", "scenefile"]
+__all__ = ["AllHits", "BuildStats", "Camera", "ClosestPoints", "Device", "DeviceMemoryError",
+           "Hits", "KernelBuildError", "Light", "Mesh", "Renderer", "Scene", "devices", "scenefile"]
 __version__ = "0.1.0"

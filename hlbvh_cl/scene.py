@@ -18,6 +18,7 @@ from .build import BUILDERS, BuildStats, Geometry, build, check_fits
 from .device import event_ms, runtime
 from .mesh import Mesh, _validate_vertices
 from .morton import key_dtype
+from .all_hits import AllHitsQuery
 from .points import PointQuery
 from .query import RayQuery
 from .refit import refit
@@ -75,6 +76,7 @@ class Scene:
         weakref.finalize(self, rt.pool.clear)
         self._query = None
         self._points = None
+        self._all_hits = None
         self._tree = None
         self.rebuild()
 
@@ -163,6 +165,29 @@ class Scene:
         with self._lock:
             return self._ray_query().occluded(self._built_tree(), origins, directions, tmin,
                                               tmax)
+
+    def intersect_all(self, origins, directions=None, tmin=0.0, tmax=np.inf, max_hits=None):
+        """Every hit of each ray in [tmin, tmax], sorted by t, as an AllHits
+        (flat arrays, ray r's hits at [offsets[r], offsets[r + 1]), rays as
+        intersect takes them, numbered in C order); with max_hits=k only the
+        k nearest of each ray.  A crossing through a shared edge or vertex
+        counts once."""
+        with self._lock:
+            return self._all_hits_query().intersect_all(self._built_tree(), origins, directions,
+                                                        tmin, tmax, max_hits)
+
+    def count_intersections(self, origins, directions=None, tmin=0.0,
+                            tmax=np.inf) -> np.ndarray:
+        """int32, in the rays' leading shape: how many hits each ray has in
+        [tmin, tmax] (as intersect_all counts them)."""
+        with self._lock:
+            return self._all_hits_query().count(self._built_tree(), origins, directions, tmin,
+                                                tmax)
+
+    def _all_hits_query(self):
+        if self._all_hits is None:
+            self._all_hits = AllHitsQuery(self._ray_query())
+        return self._all_hits
 
     def closest_points(self, points, max_distance=np.inf):
         """The nearest surface point of each of the (..., 3) ``points`` within

@@ -70,6 +70,18 @@ TRAVERSAL_INLINE void plane_double(__global const Triangle* tri, double* v0, dou
 }
 #endif
 
+#ifdef OWN_EDGES
+/* Whether the edge with edge function e and 2-D direction (dx, dy) holds the
+ * ray: e != 0 (the inside test decides), or an exact 0 on an edge that owns
+ * the ray (see hit_triangle).  A triangle with det < 0 has its interior on
+ * the left of its edges; one with det > 0 on their right, where the
+ * direction is negated.  Scalars and vectors alike (comparisons and ?:). */
+#define OWNS_EDGE(e, dx, dy, det)                                                       \
+    (((e) != 0.0f)                                                                     \
+     | ((det) < 0.0f ? ((dy) > 0.0f) | (((dy) == 0.0f) & ((dx) < 0.0f))                 \
+                     : ((dy) < 0.0f) | (((dy) == 0.0f) & ((dx) > 0.0f))))
+#endif
+
 #endif /* TRIANGLE_H */
 
 #ifdef PATH_SUFFIX
@@ -116,6 +128,24 @@ TRAVERSAL_INLINE PATH(flags) PATH(hit_triangle)(const PATH(Rays)* r,
     /* No culling: inside when the three have the same sign (0 on an edge). */
     PATH(real) det = e_u + e_v + e_w;
     PATH(flags) hit = PATH(inside)(e_u, e_v, e_w) & (det != 0.0f);
+#ifdef OWN_EDGES
+    /* A ray through an edge or a vertex hits exactly one of the triangles
+     * that meet there from opposite sides (all-hits queries count each
+     * crossing once).  The edge functions of a shared edge are exactly
+     * negated between its two triangles (same products, opposite
+     * subtraction), so an exact 0 here is the same 0 for both.  It counts as
+     * inside only for an edge that owns it, by the rasterisation top-left
+     * rule: the edge's 2-D direction, oriented with the interior on its left
+     * (sign of det), points up, or left when horizontal.  This is the
+     * symbolic perturbation of the ray by (-eps, -eps^2) in the sheared frame
+     * (Edelsbrunner & Muecke 1990, "Simulation of Simplicity"): every ray
+     * then counts as a nearby generic one, so a vertex's fan has one owner
+     * and a silhouette edge two or none.  Edges pair as e_u: v1->v2,
+     * e_v: v2->v0, e_w: v0->v1. */
+    if (PATH(some)(hit & ((e_u == 0.0f) | (e_v == 0.0f) | (e_w == 0.0f))))
+        hit &= OWNS_EDGE(e_u, cx - bx, cy - by, det) & OWNS_EDGE(e_v, ax - cx, ay - cy, det)
+               & OWNS_EDGE(e_w, bx - ax, by - ay, det);
+#endif
     if (!PATH(some)(hit))
         return hit;
     PATH(real) inv_det = 1.0f / det;

@@ -108,3 +108,43 @@ def brute_force_occluded(vertices, faces, origins, directions, tmin=0.0, tmax=np
                                    valid[tris], tmin[rays], tmax[rays])
         occluded[rays] |= hit.any(axis=1)
     return occluded
+
+
+def brute_force_all_hits(vertices, faces, origins, directions, tmin=0.0, tmax=np.inf) -> dict:
+    """Every hit of every ray, sorted by t (ties by triangle index), as flat
+    arrays: ray r's hits are [offsets[r], offsets[r + 1]) of t, prim, u, v.
+    Also per ray ``margin``: the smallest barycentric distance to a triangle's
+    boundary, min(|u|, |v|, |1-u-v|), over every triangle whose plane the ray
+    meets within [tmin, tmax] (hit or not), and ``gap``: the smallest
+    relative difference between consecutive hits' t.  Rays with a small
+    margin may go either way in float32; with a small gap may swap order."""
+    o, d, tmin, tmax, v0, edge1, edge2, _, valid = _prepare(
+        vertices, faces, origins, directions, tmin, tmax)
+    count = len(o)
+    rays, prims, ts, us, vs = [], [], [], [], []
+    margin = np.full(count, np.inf)
+    for rows, tris in _chunks(count, len(v0)):
+        t, u, v, hit = _moller_trumbore(o[rows], d[rows], v0[tris], edge1[tris], edge2[tris],
+                                        valid[tris], tmin[rows], tmax[rows])
+        with np.errstate(invalid="ignore"):
+            crossed = np.isfinite(t) & (t >= tmin[rows, None]) & (t <= tmax[rows, None])
+            distance = np.minimum(np.minimum(np.abs(u), np.abs(v)), np.abs(1 - u - v))
+        distance = np.where(crossed & valid[tris][None, :], distance, np.inf)
+        margin[rows] = np.minimum(margin[rows], distance.min(axis=1))
+        r, f = np.nonzero(hit)
+        rays.append(r + rows.start)
+        prims.append(f + tris.start)
+        ts.append(t[r, f])
+        us.append(u[r, f])
+        vs.append(v[r, f])
+    ray, prim, t, u, v = (np.concatenate(a) for a in (rays, prims, ts, us, vs))
+    order = np.lexsort((prim, t, ray))
+    ray, prim, t, u, v = ray[order], prim[order], t[order], u[order], v[order]
+    offsets = np.concatenate([[0], np.cumsum(np.bincount(ray, minlength=count))])
+    gap = np.full(count, np.inf)
+    same = ray[1:] == ray[:-1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        relative = (t[1:] - t[:-1]) / np.maximum(np.abs(t[1:]), 1e-30)
+    np.minimum.at(gap, ray[1:][same], relative[same])
+    return {"offsets": offsets, "ray": ray, "t": t, "prim": prim, "u": u, "v": v,
+            "margin": margin, "gap": gap}

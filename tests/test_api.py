@@ -18,13 +18,14 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def test_public_names():
     assert sorted(hlbvh_cl.__all__) == sorted([
-        "Scene", "Mesh", "Hits", "ClosestPoints", "BuildStats", "Renderer", "Camera", "Light", "Device",
-        "devices", "DeviceMemoryError", "KernelBuildError", "scenefile"])
+        "Scene", "Mesh", "Hits", "AllHits", "ClosestPoints", "BuildStats", "Renderer", "Camera",
+        "Light", "Device", "devices", "DeviceMemoryError", "KernelBuildError", "scenefile"])
     scene = hlbvh_cl.Scene([hlbvh_cl.Mesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]])])
     public = {name for name in dir(scene) if not name.startswith("_")}
-    assert public == {"intersect", "occluded", "closest_points", "signed_distance", "contains",
-                      "winding_number", "update_vertices", "rebuild", "stats", "device",
-                      "meshes", "builder", "morton_bits"}
+    assert public == {"intersect", "occluded", "intersect_all", "count_intersections",
+                      "closest_points", "signed_distance", "contains", "winding_number",
+                      "update_vertices", "rebuild", "stats", "device", "meshes", "builder",
+                      "morton_bits"}
     assert isinstance(scene.stats, hlbvh_cl.BuildStats)
     assert isinstance(scene.device, hlbvh_cl.Device)
 

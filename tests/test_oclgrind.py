@@ -39,6 +39,7 @@ GROUPS = {
     "build": ("builds_and_refits", "sort", "scan"),
     "trace": ("packets", "render"),
     "points": ("points",),
+    "all_hits": ("all_hits",),
 }
 
 MODES = ("optimised", "uninitialized")
@@ -206,6 +207,28 @@ def case_points(uninitialized: bool) -> dict:
         clear = np.abs(winding - 0.5) > 0.1
         assert np.array_equal((sdf < 0)[clear], (winding >= 0.5)[clear]), step
         scene.update_vertices(0, scene.meshes[0].vertices * np.float32(1.1))
+    return {}
+
+
+def case_all_hits(uninitialized: bool) -> dict:
+    """intersect_all (both passes, with and without max_hits) and
+    count_intersections on an 80-triangle icosphere: random rays against the
+    float64 brute force, and rays through its vertices, which cross twice."""
+    import trimesh
+
+    import hlbvh_cl
+    from ray_cases import SceneCase, random_rays
+    from test_all_hits import assert_matches_brute_force
+    sphere = trimesh.creation.icosphere(subdivisions=1)
+    case = SceneCase([hlbvh_cl.Mesh(sphere.vertices, sphere.faces, name="sphere")])
+    origins, directions = random_rays(case, 40, seed=3)
+    compared, got = assert_matches_brute_force(case, origins, directions)
+    assert compared > 30 and (got.counts == 2).sum() > 10, "the rays should cross the sphere"
+    assert_matches_brute_force(case, origins, directions, max_hits=1)
+    targets = sphere.vertices[:12]
+    origins = (targets * 2.5 + 0.1).astype(np.float32)
+    counts = case.scene.count_intersections(origins, (targets - origins).astype(np.float32))
+    assert counts.tolist() == [2] * len(targets), counts
     return {}
 
 

@@ -150,3 +150,24 @@ def test_points_keep_their_shape_and_name_bad_rows():
         inputs.points(bad)
     with pytest.raises(ValueError, match=r"points must have shape \(\.\.\., 3\)"):
         inputs.points(np.zeros((4, 2)))
+
+
+def test_all_hits_and_counts_take_the_same_shapes(case):
+    """intersect_all numbers (H, W) rays in C order and keeps the shape in
+    counts; count_intersections answers in the leading shape; a packed
+    (..., 6) array and a broadcast origin give the same hits."""
+    origins, directions = _grid_rays(case, seed=21)
+    flat = case.scene.intersect_all(origins.reshape(-1, 3), directions.reshape(-1, 3))
+    grid = case.scene.intersect_all(origins, directions)
+    assert grid.shape == (6, 5) and grid.counts.shape == (6, 5)
+    for name in ("offsets", "ray_index", "t", "prim_id", "geom_id", "u", "v"):
+        np.testing.assert_array_equal(getattr(grid, name), getattr(flat, name), err_msg=name)
+    counts = case.scene.count_intersections(np.concatenate([origins, directions], axis=-1))
+    assert counts.shape == (6, 5) and counts.dtype == np.int32
+    np.testing.assert_array_equal(counts, grid.counts)
+    assert counts.max() >= 2
+    origin = origins[0, 0]
+    one = case.scene.intersect_all(origin, directions)
+    tiled = case.scene.intersect_all(np.broadcast_to(origin, directions.shape), directions)
+    np.testing.assert_array_equal(one.t, tiled.t)
+    np.testing.assert_array_equal(one.counts, case.scene.count_intersections(origin, directions))

@@ -1,0 +1,284 @@
+"""Every hit along each ray, and hit counts (kernels/all_hits.cl): two
+visitors of the one walk of the wide tree.
+
+intersect_all runs two passes over the rays.  The count pass gives each ray's
+number of hits; a prefix sum of min(count, max_hits) gives each ray its
+segment of the output (CSR); the fill pass then walks again and stores each
+ray's hits sorted by t in its segment.  The fill pass goes in chunks of rays
+whose hits stay under HITS_PER_LAUNCH, into device buffers reused between
+chunks (or, on PoCL, straight into the result arrays, as query.py's zero
+copy), so memory stays near the output's own size whatever the counts.
+
+A ray through an edge or a vertex shared by triangles on opposite sides
+counts that crossing once (triangle.h, OWN_EDGES), so the parity of a count
+tells inside from outside on a closed mesh.  Conventions otherwise as
+hlbvh_cl.query (tmin <= t <= tmax, no culling, t in units of |direction|).
+"""
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+import pyopencl as cl
+
+from . import inputs
+from .query import RayQuery, _into_frame, _stack_size
+from .tree import Tree
+
+#: Hits one fill launch writes at most (one ray with more still goes alone):
+#: bounds the device buffers where results are copied back.
+HITS_PER_LAUNCH = 1 << 18
+
+#: Rays per launch where the rays are copied to the device (not PoCL): bounds
+#: those copies, 32 bytes a ray, two launches in flight.
+COPIED_RAYS_PER_LAUNCH = 1 << 16
+
+#: Rays per block of _ray_index.
+RAY_INDEX_BLOCK = 1 << 16
+
+#: Output arrays of the fill pass: dtype per hit.
+HIT_FIELDS = {"t": np.float32, "u": np.float32, "v": np.float32, "prim_id": np.int32,
+              "geom_id": np.int32}
+
+
+@dataclass
+class AllHits:
+    """Every hit of R rays, H in all, as flat arrays: ray r's hits are
+    [offsets[r], offsets[r + 1]), sorted by t (ties in a fixed order).  Rays
+    given with leading dimensions (e.g. (H, W, 3)) are numbered in C order,
+    and ``shape`` keeps those dimensions (``counts`` has them)."""
+
+    offsets: np.ndarray    # int64 (R + 1,)
+    ray_index: np.ndarray  # int64 (H,) the ray of each hit
+    t: np.ndarray          # float32 (H,)
+    prim_id: np.ndarray    # int32 (H,) face index within its own mesh
+    geom_id: np.ndarray    # int32 (H,) mesh index in the scene
+    u: np.ndarray          # float32 (H,) hit = (1-u-v)*v0 + u*v1 + v*v2
+    v: np.ndarray          # float32 (H,)
+    shape: tuple           # the rays' leading shape, prod(shape) = R
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    @property
+    def counts(self) -> np.ndarray:
+        """int64, in the rays' leading shape: hits returned per ray."""
+        return np.diff(self.offsets).reshape(self.shape)
+
+
+def _check_max_hits(max_hits) -> int | None:
+    if max_hits is None:
+        return None
+    if isinstance(max_hits, bool) or not isinstance(max_hits, (int, np.integer)):
+        raise TypeError(f"max_hits must be an int or None, got {type(max_hits).__name__}")
+    if max_hits < 1:
+        raise ValueError(f"max_hits must be >= 1 (or None for every hit), got {max_hits}")
+    # no ray has more hits than a count holds (int32): a larger k keeps them all
+    return min(int(max_hits), np.iinfo(np.int32).max)
+
+
+def _rays(origins, directions, tmin, tmax, tree):
+    """The checked rays (hlbvh_cl.inputs) in the tree's frame: their four
+    arrays, the per-ray t factor back (query._into_frame) and their leading
+    shape.  The one place that reads the caller's ray arrays."""
+    batch, t_factor = _into_frame(inputs.rays(origins, directions, tmin, tmax), tree)
+    return (batch.origins, batch.directions, batch.tmin, batch.tmax), t_factor, batch.shape
+
+
+class AllHitsQuery:
+    """count_intersections and intersect_all on one device, with a RayQuery's
+    device choices (zero copy, work-group size, kernel variant, rays per
+    launch) and its result pool."""
+
+    def __init__(self, query: RayQuery):
+        self.query = query
+        self.rt = query.rt
+        self._lock = threading.Lock()
+        self._outputs: dict[str, cl.Buffer] = {}
+        self._capacity = 0
+        # int32 [0]: a walk overflowed its stack; [1]: the fill pass found
+        # fewer hits than the count pass
+        self._counters = cl.Buffer(self.rt.context, cl.mem_flags.READ_WRITE, 8)
+
+    # -- public queries ---------------------------------------------------
+
+    def count(self, tree: Tree, origins, directions=None, tmin=0.0,
+              tmax=np.inf) -> np.ndarray:
+        """int32, in the rays' leading shape: the number of hits of each ray
+        with tmin <= t <= tmax."""
+        rays, _, shape = _rays(origins, directions, tmin, tmax, tree)
+        with self._lock:
+            return self._count(tree, *rays).reshape(shape)
+
+    def intersect_all(self, tree: Tree, origins, directions=None, tmin=0.0, tmax=np.inf,
+                      max_hits=None) -> AllHits:
+        """Every hit of each ray with tmin <= t <= tmax, sorted by t; with
+        max_hits=k only the k nearest of each ray."""
+        max_hits = _check_max_hits(max_hits)
+        rays, t_factor, shape = _rays(origins, directions, tmin, tmax, tree)
+        with self._lock:
+            kept = self._count(tree, *rays, empty=np.empty)  # a temporary: not pooled
+            if max_hits is not None:
+                np.minimum(kept, max_hits, out=kept)
+            offsets = np.empty(len(kept) + 1, np.int64)
+            offsets[0] = 0
+            np.cumsum(kept, out=offsets[1:])
+            del kept  # before the output is allocated: peak memory
+            total = int(offsets[-1])
+            fields = {name: self.query._results.empty(total, dtype)
+                      for name, dtype in HIT_FIELDS.items()}
+            if total:
+                self._fill(tree, *rays, offsets, fields, t_factor)
+        return AllHits(offsets=offsets, ray_index=_ray_index(offsets), **fields, shape=shape)
+
+    # -- internals ----------------------------------------------------------
+
+    def _kernel(self, tree: Tree, name: str) -> cl.Kernel:
+        """all_hits.cl's kernel `name` for `tree`, compiled as RayQuery._kernel
+        compiles traverse.cl but one ray per work-item."""
+        defines = {"STACK_SIZE": _stack_size(tree), "PACKET_SIZE": 1,
+                   **self.query.variant.defines, **self.rt.prefetch_defines}
+        return self.rt.kernel("all_hits.cl", name, **defines)
+
+    def _count(self, tree, origins, directions, tmin, tmax, empty=None) -> np.ndarray:
+        count = len(origins)
+        counts = (empty or self.query._results.empty)(count, np.int32)
+        if not (count and self.query._check_tree(tree)):
+            counts[:] = 0
+            return counts
+        kernel = self._kernel(tree, "count_hits_arrays")
+        self._launches(tree, kernel, (origins, directions, tmin, tmax), None,
+                       {"counts": counts}, lambda start, stop: [])
+        return counts
+
+    def _fill(self, tree, origins, directions, tmin, tmax, offsets, fields, t_factor) -> None:
+        kernel = self._kernel(tree, "fill_hits_arrays")
+
+        def segments(start, stop):  # the rays' segments, from the chunk's first hit
+            segment = np.empty(stop - start + 1, np.uint32)
+            np.subtract(offsets[start:stop + 1], offsets[start], out=segment, casting="unsafe")
+            return [segment]
+        self._launches(tree, kernel, (origins, directions, tmin, tmax), offsets, fields,
+                       segments, refs=True)
+        if t_factor is not None:  # back from the frame: exact, powers of two
+            for start, stop in _chunks(offsets, self.query.max_rays_per_launch, len(origins)):
+                part = slice(int(offsets[start]), int(offsets[stop]))
+                fields["t"][part] = fields["t"][part] * np.repeat(
+                    t_factor[start:stop], np.diff(offsets[start:stop + 1]))
+
+    def _launches(self, tree, kernel, rays, offsets, outputs, extra, refs=False) -> None:
+        """Runs `kernel` over chunks of rays (_chunks of `offsets`, the prefix
+        sum of each ray's output slots; None: one slot per ray): its arguments are the tree, the
+        chunk's rays, extra(start, stop) (host arrays), the chunk's slots of
+        `outputs`, the counters and the ray count.  On PoCL the kernels read
+        and write the arrays themselves (zero copy); elsewhere the rays go up
+        per chunk and the results come back through buffers reused between
+        chunks."""
+        query, rt, queue = self.query, self.rt, self.rt.queue
+        context, flags = rt.context, cl.mem_flags
+        cl.enqueue_copy(queue, self._counters, np.zeros(2, np.int32))
+
+        def wrap(array, access):  # the array's own memory (zero copy) or a copy of it
+            host = flags.USE_HOST_PTR if query.zero_copy else flags.COPY_HOST_PTR
+            return cl.Buffer(context, access | host, hostbuf=array)
+        origins, directions, *limits = rays
+        scalars = {id(value): wrap(np.full(1, value, np.float32), flags.READ_ONLY)
+                   for value in limits if value.ndim == 0}
+        # at most two launches in flight (Ctrl-C waits for few), and chunks small
+        # enough off PoCL that the rays' copies stay small
+        rays_per_launch = query.max_rays_per_launch if query.zero_copy else \
+            min(query.max_rays_per_launch, COPIED_RAYS_PER_LAUNCH)
+        events, kept = [], []  # kept: what the launches in flight read or write
+        try:
+            for start, stop in _chunks(offsets, rays_per_launch, len(origins)):
+                if len(events) >= 2:
+                    rt.wait(events[-2:-1])
+                    del kept[:-1]
+                first, last = (start, stop) if offsets is None else \
+                    (int(offsets[start]), int(offsets[stop]))
+                args = [wrap(origins[start:stop], flags.READ_ONLY),
+                        wrap(directions[start:stop], flags.READ_ONLY)]
+                for value in limits:
+                    args += [wrap(value[start:stop], flags.READ_ONLY), np.uint32(1)] \
+                        if value.ndim else [scalars[id(value)], np.uint32(0)]
+                held = extra(start, stop)
+                args += [wrap(array, flags.READ_ONLY) for array in held]
+                parts = {name: array[first:last] for name, array in outputs.items()}
+                if query.zero_copy:
+                    buffers = {name: wrap(part, flags.WRITE_ONLY) for name, part in parts.items()}
+                else:
+                    buffers = self._reserve(outputs, last - first)
+                tree_args = (tree.nodes, tree.triangles) + ((tree.refs,) if refs else ())
+                events.append(rt.run(kernel, stop - start, *tree_args, *args,
+                                     *buffers.values(), self._counters, np.uint32(stop - start),
+                                     local_size=query.work_group_size))
+                copies = []
+                for name, part in parts.items():
+                    if query.zero_copy:  # the results are there once the buffer is mapped
+                        array, _ = cl.enqueue_map_buffer(queue, buffers[name], cl.map_flags.READ,
+                                                         0, part.shape, part.dtype,
+                                                         is_blocking=False)
+                        array.base.release(queue)
+                    else:
+                        copies.append(cl.enqueue_copy(queue, part, buffers[name],
+                                                      is_blocking=False))
+                kept.append((args, held, buffers, copies))
+            counters = np.zeros(2, np.int32)
+            rt.wait([cl.enqueue_copy(queue, counters, self._counters, is_blocking=False)])
+        except BaseException:  # launches in flight may still write: let them end
+            queue.finish()
+            raise
+        if counters[0]:
+            raise RuntimeError("ray traversal overflowed its stack (sized from Tree.depth): "
+                               "the tree is deeper than its depth field says")
+        if counters[1]:
+            raise RuntimeError("hlbvh_cl internal error: intersect_all's fill pass found fewer "
+                               "hits than its count pass")
+
+    def _reserve(self, outputs: dict, slots: int) -> dict[str, cl.Buffer]:
+        """Grow-only device buffers for `slots` results of each output
+        (copied back after each launch)."""
+        if slots > self._capacity or any(name not in self._outputs for name in outputs):
+            capacity = max(slots, min(HITS_PER_LAUNCH, 2 * self._capacity), self._capacity)
+            sizes = {name: capacity * 4 for name in {*self._outputs, *outputs}}  # 4-byte fields
+            self._outputs = {}
+            self.rt.check_allocation("all-hits buffers", sizes)
+            self._outputs = {name: cl.Buffer(self.rt.context, cl.mem_flags.READ_WRITE, size)
+                             for name, size in sizes.items()}
+            self._capacity = capacity
+        return {name: self._outputs[name] for name in outputs}
+
+
+def _ray_index(offsets: np.ndarray) -> np.ndarray:
+    """int64 (H,): the ray of each hit.  Each ray's first slot gets the step
+    from the previous ray with hits, then a running sum; block by block, so
+    that no temporary is as large as a per-ray array (np.repeat over
+    np.arange(R) would make two)."""
+    index = np.zeros(int(offsets[-1]), np.int64)
+    previous = 0
+    for start in range(0, len(offsets) - 1, RAY_INDEX_BLOCK):
+        rays = np.flatnonzero(np.diff(offsets[start:start + RAY_INDEX_BLOCK + 1])) + start
+        if len(rays):
+            index[offsets[rays]] = np.diff(rays, prepend=previous)
+            previous = rays[-1]
+    return np.cumsum(index, out=index)
+
+
+def _chunks(offsets: np.ndarray | None, max_rays: int, count: int):
+    """(start, stop) runs of the `count` rays with at most max_rays rays and
+    (unless one ray has more) HITS_PER_LAUNCH slots, where ray r has slots
+    [offsets[r], offsets[r + 1]) (None: one each); runs without slots are
+    skipped."""
+    start = 0
+    while start < count:
+        if offsets is None:
+            stop = min(start + max_rays, start + HITS_PER_LAUNCH, count)
+        else:
+            bound = int(np.searchsorted(offsets, offsets[start] + HITS_PER_LAUNCH, "right")) - 1
+            stop = min(start + max_rays, count, max(bound, start + 1))
+            if offsets[stop] == offsets[start]:
+                start = stop
+                continue
+        yield start, stop
+        start = stop
