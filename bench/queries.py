@@ -618,9 +618,15 @@ def main(argv=None) -> dict:
                                     "help": f"comma-separated peers (default: {','.join(PEERS)})"}),
                      (["--queries"], {"default": ",".join(QUERIES),
                                       "help": f"comma-separated (default: {','.join(QUERIES)})"}),
+                     (["--repeats"], {"type": int, "default": None,
+                                      "help": "timed calls after the warm-up (default: the mode's)"}),
                      (["--no-memory"], {"action": "store_true",
                                         "help": "skip the intersect_all memory measurement"}))
     config = QUICK if args.quick else FULL
+    if args.repeats is not None:
+        if args.repeats < 1:
+            raise SystemExit(f"--repeats must be at least 1, got {args.repeats}")
+        config = replace(config, repeats=args.repeats)
     chosen_queries = tuple(q.strip() for q in args.queries.split(",") if q.strip())
     unknown = set(chosen_queries) - set(QUERIES)
     if unknown:

@@ -175,7 +175,7 @@ def test_quick_run_writes_agreeing_answers_and_ratios(suite_device, tmp_path, ca
     assert [c["name"] for c in written["cases"]] == list(queries.QUICK.cases)
     ours = suite_device.id
     for case in written["cases"]:
-        assert case["errors"] == {} and len(case["runs"]) == 7
+        assert case["errors"] == {} and len(case["runs"]) == 6  # 2 point sets x 2, 1 ray set x 2
         for run in case["runs"]:
             results = run["results"]
             assert run["errors"] == {} and run["reference"] == ours
