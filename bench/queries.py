@@ -435,7 +435,14 @@ def _status_bytes(key: str) -> int | None:
 
 
 def _reset_peak() -> bool:
-    """Linux: writing 5 to clear_refs resets VmHWM to the current RSS."""
+    """Linux: writing 5 to clear_refs resets VmHWM to the current RSS.  Freed
+    heap memory is handed back first (glibc's malloc_trim): still resident,
+    the call could reuse it unseen and the growth would read low."""
+    try:
+        import ctypes
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
     try:
         Path("/proc/self/clear_refs").write_text("5")
         return True
