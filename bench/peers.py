@@ -205,12 +205,13 @@ PEERS = {peer.name: peer for peer in (EmbreexPeer, Open3DPeer, MitsubaPeer, Trim
 REFERENCE = "embreex"
 
 
-def load_peers(names) -> tuple[list[Peer], list[Peer]]:
-    """(available, missing) peers among ``names`` (keys of PEERS)."""
+def load_peers(names, known: dict | None = None) -> tuple[list[Peer], list[Peer]]:
+    """(available, missing) peers among ``names``, keys of ``known`` (default PEERS)."""
+    known = PEERS if known is None else known
     available, missing = [], []
     for name in names:
-        if name not in PEERS:
-            raise ValueError(f"unknown peer {name!r}; known: {', '.join(PEERS)}")
-        peer = PEERS[name]()
+        if name not in known:
+            raise ValueError(f"unknown peer {name!r}; known: {', '.join(known)}")
+        peer = known[name]()
         (available if peer.load() else missing).append(peer)
     return available, missing

@@ -329,6 +329,15 @@ def markdown(suite: dict, links: dict) -> str:
     return "\n".join(line for part in parts for line in part) + "\n"
 
 
+def _kept_sections(path: Path) -> str:
+    """The sections other benches write into RESULTS.md (bench/queries.py),
+    each between "<!-- begin NAME -->" and "<!-- end NAME -->": kept as they are."""
+    import re
+    old = path.read_text() if path.exists() else ""
+    return "".join(f"\n{m.group(0)}\n" for m in
+                   re.finditer(r"<!-- begin (\S+) -->.*?<!-- end \1 -->", old, re.S))
+
+
 def write_all(suite: dict, json_path: Path | None, plot_path: Path,
               markdown_path: Path) -> list[Path]:
     """The suite's JSON (unless None), its plot and RESULTS.md; returns the paths."""
@@ -346,5 +355,5 @@ def write_all(suite: dict, json_path: Path | None, plot_path: Path,
     links = {"plot": link(plot_path),
              "json": f"[`{link(json_path)}`]({link(json_path)})" if json_path else
              "`bench/results/suite.json`, written by each run (not committed)"}
-    markdown_path.write_text(markdown(suite, links))
+    markdown_path.write_text(markdown(suite, links) + _kept_sections(markdown_path))
     return written + [markdown_path]

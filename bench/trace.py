@@ -226,14 +226,16 @@ def _failed(errors: dict, participant, error: Exception) -> None:
     errors[participant.name] = f"{type(error).__name__}: {error}"
 
 
-def time_round_robin(participants: list, call, repeats: int, errors: dict) -> dict:
-    """``call(participant)`` once per participant to warm up, then ``repeats``
-    rounds of one timed call each.  A participant that raises is dropped and
-    named in ``errors``.  Returns {name: (last result, wall seconds)}."""
+def time_round_robin(participants: list, call, repeats: int, errors: dict,
+                     warm_up=None) -> dict:
+    """``warm_up(participant)`` (default ``call``) once per participant, then
+    ``repeats`` rounds of one timed ``call`` each.  A participant that raises
+    is dropped and named in ``errors``.  Returns {name: (last result, wall
+    seconds)}; with repeats 0, the warm-up's result and no seconds."""
     alive, last = [], {}
     for participant in participants:
         try:
-            last[participant.name] = call(participant)
+            last[participant.name] = (warm_up or call)(participant)
             alive.append(participant)
         except Exception as error:  # a broken peer must not end the run
             _failed(errors, participant, error)
