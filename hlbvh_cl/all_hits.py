@@ -24,7 +24,7 @@ import pyopencl as cl
 
 from . import inputs
 from .order import COHERENT_MIN, coherent_order, take_rows
-from .query import RayQuery, _into_frame, _stack_size
+from .query import RayQuery, _into_frame, _stack_size, collect
 from .tree import Tree
 
 #: Hits one fill launch writes at most (one ray with more still goes alone):
@@ -221,16 +221,8 @@ class AllHitsQuery:
                 events.append(rt.run(kernel, stop - start, *tree_args, *args,
                                      *buffers.values(), self._counters, np.uint32(stop - start),
                                      local_size=query.work_group_size))
-                copies = []
-                for name, part in parts.items():
-                    if query.zero_copy:  # the results are there once the buffer is mapped
-                        array, _ = cl.enqueue_map_buffer(queue, buffers[name], cl.map_flags.READ,
-                                                         0, part.shape, part.dtype,
-                                                         is_blocking=False)
-                        array.base.release(queue)
-                    else:
-                        copies.append(cl.enqueue_copy(queue, part, buffers[name],
-                                                      is_blocking=False))
+                copies = [collect(queue, buffers[name], part, query.zero_copy)
+                          for name, part in parts.items()]
                 kept.append((args, held, buffers, copies))
             counters = np.zeros(2, np.int32)
             rt.wait([cl.enqueue_copy(queue, counters, self._counters, is_blocking=False)])

@@ -36,7 +36,7 @@ import pyopencl as cl
 from . import frame, inputs, layout
 from .order import COHERENT_MIN, coherent_order, take_rows
 from .device import Runtime
-from .query import _stack_size, _work_group_size, _zero_copy, check_tree
+from .query import _stack_size, _work_group_size, _zero_copy, check_tree, collect
 from .tree import Tree
 
 #: Points per kernel launch at most (as query.MAX_RAYS_PER_LAUNCH: a launch
@@ -271,15 +271,8 @@ class PointQuery:
                 transfers.append(cl.enqueue_copy(queue, buffers["input"], points[part],
                                                  is_blocking=False))
             events.append(launch(part.stop - part.start, buffers))
-            for name, array in outputs.items():
-                if self.zero_copy:
-                    mapped, _ = cl.enqueue_map_buffer(queue, buffers[name], cl.map_flags.READ, 0,
-                                                      array[part].shape, array.dtype,
-                                                      is_blocking=False)
-                    mapped.base.release(queue)
-                else:
-                    transfers.append(cl.enqueue_copy(queue, array[part], buffers[name],
-                                                     is_blocking=False))
+            transfers += [collect(queue, buffers[name], array[part], self.zero_copy)
+                          for name, array in outputs.items()]
         overflow = np.zeros(1, np.int32)
         self.rt.wait([cl.enqueue_copy(queue, overflow, self._overflow, is_blocking=False)])
         if overflow[0]:

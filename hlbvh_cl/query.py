@@ -348,15 +348,8 @@ class RayQuery:
                 steps += [limits[name] if name in limits else buffers[name],
                           np.uint32(name in arrays)]
             events.append(launch(part.stop - part.start, buffers, steps))
-            for name, array in outputs.items():
-                if in_place:  # the results are there once the buffer is mapped
-                    mapped, _ = cl.enqueue_map_buffer(queue, buffers[name], cl.map_flags.READ, 0,
-                                                      array[part].shape, array.dtype,
-                                                      is_blocking=False)
-                    mapped.base.release(queue)
-                else:
-                    transfers.append(cl.enqueue_copy(queue, array[part], buffers[name],
-                                                     is_blocking=False))
+            transfers += [collect(queue, buffers[name], array[part], in_place)
+                          for name, array in outputs.items()]
         counters = np.zeros(2, np.int32)
         self.rt.wait([cl.enqueue_copy(queue, counters, self._counters, is_blocking=False)])
         self.last_kernel_ms = sum((e.profile.end - e.profile.start) * 1e-6 for e in events)
@@ -368,6 +361,21 @@ class RayQuery:
     def _wrap(self, array: np.ndarray, access) -> cl.Buffer:
         """A buffer over the array's own memory (CL_MEM_USE_HOST_PTR)."""
         return cl.Buffer(self.rt.context, access | cl.mem_flags.USE_HOST_PTR, hostbuf=array)
+
+
+def collect(queue: cl.CommandQueue, buffer: cl.Buffer, array: np.ndarray,
+            in_place: bool) -> cl.Event:
+    """Enqueues what brings a launch's results from ``buffer`` into ``array``:
+    where the kernel wrote the array itself (a USE_HOST_PTR buffer over it),
+    a map of the buffer, which makes them visible without a copy; else a
+    copy back.  The caller keeps the event: pyopencl's events of non-blocking
+    copies wait when they are dropped."""
+    if in_place:
+        mapped, event = cl.enqueue_map_buffer(queue, buffer, cl.map_flags.READ, 0, array.shape,
+                                              array.dtype, is_blocking=False)
+        mapped.base.release(queue)
+        return event
+    return cl.enqueue_copy(queue, array, buffer, is_blocking=False)
 
 
 def check_tree(rt: Runtime, tree: Tree) -> bool:
