@@ -136,6 +136,7 @@ class AllHitsQuery:
                       for name, dtype in HIT_FIELDS.items()}
             if total:
                 self._fill(tree, *rays, offsets, fields, t_factor)
+        del rays  # the traced copies (ordered rays), before the hits move: peak memory
         if order is not None:
             offsets = _to_caller_order(fields, offsets, order, self.query._results)
         return AllHits(offsets=offsets, ray_index=_ray_index(offsets), **fields, shape=shape)

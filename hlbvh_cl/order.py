@@ -27,7 +27,8 @@ def _spread_bits(cells: np.ndarray) -> np.ndarray:
 
 def take_rows(points: np.ndarray, order: np.ndarray) -> np.ndarray:
     """points[order] for float32 (N, 3) points, gathering each row as one
-    12-byte item (fancy indexing of an (N, 3) array measured four times slower)."""
+    12-byte item rather than three floats (numpy's fancy indexing of an
+    (N, 3) array goes element by element)."""
     rows = np.ascontiguousarray(points).view(np.dtype((np.void, 12))).reshape(-1)
     return np.take(rows, order).view(np.float32).reshape(-1, 3)
 
@@ -36,8 +37,9 @@ def coherent_order(points: np.ndarray) -> np.ndarray:
     """The indices of float32 (N, 3) points in Morton order of their cells
     in a 2^ORDER_BITS grid over their box: consecutive work-items then walk
     much the same nodes and triangles, which stay in cache (points come in
-    any order, often uniformly random).  A column at a time: numpy reduces
-    one much faster than an (N, 3) array along its first axis."""
+    any order, often uniformly random).  A column at a time: numpy reduces a
+    contiguous column in one pass, an (N, 3) array along its first axis with
+    a stride."""
     key = np.zeros(len(points), np.uint16)
     top = (1 << ORDER_BITS) - 1
     for axis in range(3):

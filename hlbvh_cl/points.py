@@ -47,12 +47,10 @@ MAX_POINTS_PER_LAUNCH = 1 << 18
 #: kernels square distances in float32, which stay finite below 2^127.
 POINT_RANGE = 2.0**60
 
-#: Per-point outputs of each kernel: dtype and values per point.
+#: Per-point outputs of the closest_points kernel: dtype and values per point.
 CLOSEST_FIELDS = {"distance": (np.float32, 1), "geom_id": (np.int32, 1),
                   "prim_id": (np.int32, 1), "u": (np.float32, 1), "v": (np.float32, 1),
                   "normal": (np.float32, 3), "points": (np.float32, 3)}
-WINDING_FIELDS = {"winding": (np.float32, 1)}
-SIGNED_FIELDS = {"distance": (np.float32, 1), "winding": (np.float32, 1)}
 
 
 @dataclass
@@ -101,7 +99,6 @@ class PointQuery:
         self.max_points_per_launch = max(1, min(MAX_POINTS_PER_LAUNCH,
                                                 int(max_points_per_launch or MAX_POINTS_PER_LAUNCH)))
         self.zero_copy = _zero_copy(rt)
-        self._capacity = 0
         self._buffers: dict[str, cl.Buffer] = {}
         self._overflow = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 4)
         self._lock = threading.Lock()
