@@ -6,64 +6,79 @@
  * query state: the ray is mapped, not renormalised, so t, the limit and
  * every hit found so far mean the same in both frames.  This header holds
  * the map; the visitors live with their queries (traverse.cl, all_hits.cl).
- * One ray per work-item (PACKET_SIZE 1): a packet's rays would need mapping
- * per instance as well. */
+ * A packet of rays is mapped lane by lane and walks the mesh's tree as a
+ * packet when its mapped rays still share their direction signs
+ * (prepare_packet), else one ray at a time. */
 #ifndef INSTANCE_H
 #define INSTANCE_H
 
 #include "ray.h"
 #include "triangle.h"
 
-#if PACKET_SIZE != 1
-#error "instanced scenes are traced one ray per work-item (PACKET_SIZE 1)"
-#endif
-
-/* The ray as the caller gave it (in the top tree's frame) with its mask:
- * what each instance maps. */
-typedef struct {
-    float origin[3];
-    float direction[3];
-    uint mask;
-} WorldRay;
-
-TRAVERSAL_INLINE void world_ray(WorldRay* w, const RayLanes* lanes, uint mask)
-{
-    for (int k = 0; k < 3; ++k) {
-        w->origin[k] = lanes->origin[k][0];
-        w->direction[k] = lanes->direction[k][0];
-    }
-    w->mask = mask;
-}
-
-/* Whether the ray sees the instance ((ray mask & instance mask) != 0, as
- * Embree), and if so the ray in the instance's mesh frame, prepared for its
- * tree (*out): origin
- * by the whole map, direction by its linear part, row by row in a fixed
- * order (FP_CONTRACT is off in triangle.h), so every device maps alike.  In
- * double where the device has it: then only the final rounding to float
- * stands between the mapped ray and the exact one. */
 #ifdef cl_khr_fp64
 typedef double map_real;
 #else
 typedef float map_real;
 #endif
-TRAVERSAL_INLINE bool instance_ray(RayData* out, __global const Instance* in, const WorldRay* w,
-                                   float tmin, float tmax)
+
+/* Component `row` of the instance's map applied to a point (with the
+ * offset) or a direction (without): in a fixed order (FP_CONTRACT is off
+ * in triangle.h), so every device maps alike, and in double where the
+ * device has it, so only the final rounding to float stands between the
+ * mapped ray and the exact one. */
+#define MAP_POINT(m, x, y, z) \
+    (((map_real)(m)[0] * (x) + (map_real)(m)[1] * (y)) + (map_real)(m)[2] * (z) + (map_real)(m)[3])
+#define MAP_DIRECTION(m, x, y, z) \
+    (((map_real)(m)[0] * (x) + (map_real)(m)[1] * (y)) + (map_real)(m)[2] * (z))
+
+/* Whether the ray sees the instance ((ray mask & instance mask) != 0, as
+ * Embree), and if so the ray in the instance's mesh frame, prepared for its
+ * tree (*out). */
+TRAVERSAL_INLINE bool instance_ray(RayData* out, __global const Instance* in, const RayData* r)
 {
-    if ((in->mask & w->mask) == 0)
+    if ((in->mask & r->mask) == 0)
         return false;
     float o[3], d[3];
     for (int row = 0; row < 3; ++row) {
         __global const float* m = in->to_mesh + 4 * row;
-        map_real m0 = m[0], m1 = m[1], m2 = m[2];
-        o[row] = (float)(((m0 * w->origin[0] + m1 * w->origin[1]) + m2 * w->origin[2])
-                         + (map_real)m[3]);
-        d[row] = (float)((m0 * w->direction[0] + m1 * w->direction[1])
-                         + m2 * w->direction[2]);
+        o[row] = (float)MAP_POINT(m, r->ox, r->oy, r->oz);
+        d[row] = (float)MAP_DIRECTION(m, r->dx, r->dy, r->dz);
     }
-    prepare_ray(out, (float3)(o[0], o[1], o[2]), (float3)(d[0], d[1], d[2]), tmin, tmax);
+    prepare_ray(out, (float3)(o[0], o[1], o[2]), (float3)(d[0], d[1], d[2]), r->tmin, r->tmax);
     return true;
 }
+
+#if PACKET_SIZE > 1
+/* A packet's rays in the instance's mesh frame, as lanes for prepare_packet
+ * (or for one-by-one walks where it turns them down); the lanes whose mask
+ * hides the instance get tmin = inf, which no box or triangle meets.  False
+ * when the instance is hidden from every lane. */
+TRAVERSAL_INLINE bool instance_lanes(RayLanes* out, __global const Instance* in, const Packet* p)
+{
+    int_packet seen = (p->mask & (int_packet)((int)in->mask)) != (int_packet)(0);
+    if (!some_packet(seen))
+        return false;
+    for (int row = 0; row < 3; ++row) {
+        __global const float* m = in->to_mesh + 4 * row;
+#ifdef cl_khr_fp64
+        vstore_packet(to_float_packet(MAP_POINT(m, to_double_packet(p->ox),
+                                                to_double_packet(p->oy),
+                                                to_double_packet(p->oz))), 0, out->origin[row]);
+        vstore_packet(to_float_packet(MAP_DIRECTION(m, to_double_packet(p->dx),
+                                                    to_double_packet(p->dy),
+                                                    to_double_packet(p->dz))), 0,
+                      out->direction[row]);
+#else
+        vstore_packet(MAP_POINT(m, p->ox, p->oy, p->oz), 0, out->origin[row]);
+        vstore_packet(MAP_DIRECTION(m, p->dx, p->dy, p->dz), 0, out->direction[row]);
+#endif
+    }
+    vstore_packet(seen ? p->tmin : (float_packet)(INFINITY), 0, out->tmin);
+    vstore_packet(p->tmax, 0, out->tmax);
+    vstore_packet(as_float_packet(p->mask), 0, (float*)out->mask);
+    return true;
+}
+#endif
 
 /* A mesh-frame normal in the world: the inverse transpose of the
  * instance's map (the transpose of to_mesh's linear part), turned by the

@@ -118,6 +118,41 @@ def test_mirrored_scaled_rotated_overlapping_instances_match_the_brute_force(sma
     assert len(set(hits.instance_id[hits.hit].tolist())) == 12  # every instance was hit
 
 
+def test_coherent_rays_trace_as_packets_through_rotated_instances(small, suite_device):
+    """Camera rays: packets at the top, mapped per instance into packets or,
+    where a rotation splits their direction signs, one ray at a time; the
+    same hits as the brute force either way."""
+    rng = np.random.default_rng(31)
+    maps = _transforms(rng, 10, spread=2.0)
+    instance_meshes = np.arange(10) % 2
+    scene = hlbvh_cl.Scene(small, device=suite_device,
+                           instances=[(int(m), a) for m, a in zip(instance_meshes, maps)])
+    side = np.linspace(-0.45, 0.45, 72)
+    directions = np.stack(np.broadcast_arrays(side[:, None], side[None, :], -1.0), axis=-1)
+    directions = directions.reshape(-1, 3).astype(np.float32)
+    origins = np.array([0.3, -0.2, 9.0], np.float32)
+    query = scene._ray_query()
+    query.count_packets = True
+    try:
+        hits = scene.intersect(origins, directions)
+        packets = query.last_packets
+    finally:
+        query.count_packets = False
+    vertices, faces, owner, prim = _flattened(small, instance_meshes, maps)
+    want = brute_force_intersect(vertices, faces, np.broadcast_to(origins, directions.shape),
+                                 directions)
+    found = want["prim"] >= 0
+    assert found.mean() > 0.3
+    np.testing.assert_array_equal(hits.hit, found)
+    np.testing.assert_array_equal(hits.instance_id[found], owner[want["prim"][found]])
+    np.testing.assert_array_equal(hits.prim_id[found], prim[want["prim"][found]])
+    steep = _steep(directions[found], want["normal"][found])
+    np.testing.assert_allclose(hits.t[found][steep], want["t"][found][steep], rtol=1e-5)
+    np.testing.assert_array_equal(scene.occluded(origins, directions), found)
+    if query.packet_size > 1:
+        assert packets > 0, "no work-item traced its rays as a packet"
+
+
 def test_4x4_transforms_and_set_transforms(small, suite_device):
     rng = np.random.default_rng(7)
     maps = _transforms(rng, 6)
