@@ -15,6 +15,7 @@
 #include "ray.h"
 #include "triangle.h"
 
+#ifdef INSTANCES
 #ifdef cl_khr_fp64
 typedef double map_real;
 #else
@@ -94,5 +95,52 @@ TRAVERSAL_INLINE float3 instance_normal(__global const Instance* in, float3 n)
     w = w * (1.0f / largest);
     return w * (1.0f / SQUARE_ROOT(w.x * w.x + w.y * w.y + w.z * w.z));
 }
+
+#endif /* INSTANCES (the map) */
+
+/* The scene a ray kernel traces, as its first parameters (SCENE_PARAMS;
+ * SCENE_ARGS passes them on; hlbvh_cl/query.py's scene_args gives them). */
+#ifndef INSTANCES
+/* A flat scene: one tree over every mesh's triangles. */
+#define SCENE_PARAMS                                                                    \
+    __global const WideNode *nodes, __global const Triangle *triangles,                  \
+        __global const TriangleRef *refs
+#define SCENE_ARGS nodes, triangles, refs
+#else
+/* A two-level scene: the top tree over the instances, the instances, the
+ * rays' masks (ray_masks[i * mask_step]: step 0, one mask for all) and the
+ * meshes' trees one after another. */
+#define SCENE_PARAMS                                                                    \
+    __global const WideNode *top_nodes, __global const Triangle *top_triangles,          \
+        __global const TriangleRef *top_refs, __global const Instance *instances,        \
+        __global const uint *ray_masks, const uint mask_step,                             \
+        __global const WideNode *nodes, __global const Triangle *triangles,              \
+        __global const TriangleRef *refs
+#define SCENE_ARGS top_nodes, top_triangles, top_refs, instances, ray_masks, mask_step, nodes, \
+                   triangles, refs
+
+/* What the top tree's leaf visitors use besides the walk's own: top_refs[i]
+ * .prim_id is the instance in leaf slot i; *mesh_overflow is set when a
+ * mesh's walk runs out of stack. */
+#define INSTANCE_PARAMS                                                                 \
+    , __global const TriangleRef *top_refs, __global const Instance *instances,          \
+        __global const WideNode *mesh_nodes, __global const Triangle *mesh_triangles,    \
+        __global const TriangleRef *mesh_refs, bool *mesh_overflow
+#define INSTANCE_ARGS , top_refs, instances, mesh_nodes, mesh_triangles, mesh_refs, mesh_overflow
+/* The top walk's arguments from a kernel's SCENE_PARAMS. */
+#define TOP_ARGS(overflow_flag) top_refs, instances, nodes, triangles, refs, overflow_flag
+
+/* Leaf slot i's instance, and its mesh's tree (nodes, triangles). */
+#define INSTANCE_AT(i) __global const Instance* in = instances + top_refs[i].prim_id
+#define MESH_TREE(in) mesh_nodes + (in)->node_base, mesh_triangles + (in)->triangle_base
+
+/* The rays' masks into the lanes (lanes past `used` repeat the last). */
+TRAVERSAL_INLINE void load_masks(RayLanes* lanes, uint first, uint used,
+                                 __global const uint* ray_masks, uint mask_step)
+{
+    for (uint l = 0; l < PACKET_SIZE; ++l)
+        lanes->mask[l] = ray_masks[(first + LESSER(l, used - 1)) * mask_step];
+}
+#endif /* INSTANCES */
 
 #endif /* INSTANCE_H */

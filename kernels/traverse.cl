@@ -37,6 +37,7 @@
 #include "ray.h"
 #endif
 #include "work_item.h"
+#include "instance.h"
 
 /* A closest hit's ids (refs[i]) are read when the traversal ends, a cache
  * miss of their own: start loading them when the hit is found. */
@@ -77,12 +78,6 @@ TRAVERSAL_INLINE void prefetch_hit_ids(__global const TriangleRef* refs, uint i)
 #define TRAVERSAL_KERNEL __kernel __attribute__((LANES_HINT))
 
 #ifndef INSTANCES
-/* A flat scene: one tree over every mesh's triangles. */
-#define SCENE_PARAMS                                                                    \
-    __global const WideNode *nodes, __global const Triangle *triangles,                  \
-        __global const TriangleRef *refs
-#define SCENE_ARGS nodes, triangles, refs
-
 /* Closest hits of the rays lanes[0, used) of a work-item as Hit records
  * (trace_intersect, in walk.h), and their instances (none: -1).  The hits'
  * ids and normals are read once every lane is traced: their cache misses
@@ -111,31 +106,6 @@ TRAVERSAL_INLINE void any_hits(RayLanes* lanes, uint used, uint first, SCENE_PAR
 }
 
 #else /* INSTANCES */
-#include "instance.h"
-
-/* A two-level scene (instance.h): the top tree over the instances, the
- * instances, the meshes' trees one after another, and the rays' masks
- * (ray_masks[i * mask_step]: step 0, one mask for all). */
-#define SCENE_PARAMS                                                                    \
-    __global const WideNode *top_nodes, __global const Triangle *top_triangles,          \
-        __global const TriangleRef *top_refs, __global const Instance *instances,        \
-        __global const uint *ray_masks, const uint mask_step,                             \
-        __global const WideNode *nodes, __global const Triangle *triangles,              \
-        __global const TriangleRef *refs
-#define SCENE_ARGS top_nodes, top_triangles, top_refs, instances, ray_masks, mask_step, nodes, \
-                   triangles, refs
-
-/* What the top tree's leaf visitors use besides the walk's own: top_refs[i]
- * .prim_id is the instance in leaf slot i. */
-#define INSTANCE_PARAMS                                                                 \
-    , __global const TriangleRef *top_refs, __global const Instance *instances,          \
-        __global const WideNode *mesh_nodes, __global const Triangle *mesh_triangles,    \
-        __global const TriangleRef *mesh_refs, bool *mesh_overflow
-#define INSTANCE_ARGS , top_refs, instances, mesh_nodes, mesh_triangles, mesh_refs, mesh_overflow
-
-/* Leaf slot i's instance, and its mesh's tree (nodes, triangles, refs). */
-#define INSTANCE_AT(i) __global const Instance* in = instances + top_refs[i].prim_id
-#define MESH_TREE(in) mesh_nodes + (in)->node_base, mesh_triangles + (in)->triangle_base
 
 /* Closest hit, one ray: each visible instance of the leaf in turn, its mesh
  * walked by the flat visitor with the walk's state, so the limit found so
@@ -273,14 +243,6 @@ TRAVERSAL_INLINE bool instances_occluded_packet(Found_packet* s, const Packet* r
 #define QUERY_ARGS INSTANCE_ARGS
 #include "walk.h"
 
-/* The rays' masks into the lanes (lanes past `used` repeat the last). */
-TRAVERSAL_INLINE void load_masks(RayLanes* lanes, uint first, uint used,
-                                 __global const uint* ray_masks, uint mask_step)
-{
-    for (uint l = 0; l < PACKET_SIZE; ++l)
-        lanes->mask[l] = ray_masks[(first + LESSER(l, used - 1)) * mask_step];
-}
-
 /* Closest hits of the rays lanes[0, used) walked from the top, as Hit
  * records with their instances; the hit's mesh-frame normal goes to the
  * world by its instance (instance_normal). */
@@ -292,7 +254,7 @@ TRAVERSAL_INLINE void closest_hits(RayLanes* lanes, uint used, uint first, SCENE
     float t[PACKET_SIZE], u[PACKET_SIZE], v[PACKET_SIZE];
     bool out_of_stack = false;
     trace_intersect_top(lanes, used, top_nodes, top_triangles, overflow, index, t, u, v,
-                        instance, top_refs, instances, nodes, triangles, refs, &out_of_stack);
+                        instance, TOP_ARGS(&out_of_stack));
     if (out_of_stack)
         overflow[0] = 1;
     for (uint l = 0; l < used; ++l) {
@@ -323,7 +285,7 @@ TRAVERSAL_INLINE void any_hits(RayLanes* lanes, uint used, uint first, SCENE_PAR
     int index[PACKET_SIZE], instance[PACKET_SIZE];
     bool out_of_stack = false;
     trace_occluded_top(lanes, used, top_nodes, top_triangles, overflow, index, 0, 0, 0,
-                       instance, top_refs, instances, nodes, triangles, refs, &out_of_stack);
+                       instance, TOP_ARGS(&out_of_stack));
     if (out_of_stack)
         overflow[0] = 1;
     for (uint l = 0; l < used; ++l)

@@ -13,7 +13,7 @@ import trimesh
 
 import hlbvh_cl
 from invariants import check_tree
-from oracle import brute_force_intersect, brute_force_occluded
+from oracle import brute_force_all_hits, brute_force_intersect, brute_force_occluded
 
 
 def _rotation(rng) -> np.ndarray:
@@ -303,6 +303,46 @@ def test_both_levels_hold_their_invariants(small, suite_device):
                                scale=trees.scales[m])
         check_tree(SimpleNamespace(_runtime=scene._runtime, _tree=view, meshes=[mesh],
                                    stats=trees.stats[m], builder=scene.builder))
+
+
+def test_every_hit_and_counts_through_instances(small, suite_device):
+    """intersect_all and count_intersections on mirrored, scaled, overlapping
+    instances with masks, against the brute force of the flattened scene:
+    the same hits per ray as sets of (instance, face), t to 1e-5 where well
+    conditioned; max_hits keeps the nearest."""
+    rng = np.random.default_rng(17)
+    maps = _transforms(rng, 8, spread=1.5)
+    instance_meshes = np.arange(8) % 2
+    masks = np.array([1, 1, 2, 1, 3, 1, 2, 1], np.uint32)
+    scene = hlbvh_cl.Scene(small, device=suite_device, masks=masks,
+                           instances=[(int(m), a) for m, a in zip(instance_meshes, maps)])
+    vertices, faces, owner, prim = _flattened(small, instance_meshes, maps)
+    origins, directions = _rays_at_centroids(rng, vertices, faces, 1500)
+    keep = ((masks & 1) != 0)[owner]
+    index = np.flatnonzero(keep)
+    want = brute_force_all_hits(vertices, faces[keep], origins, directions)
+    clean = want["margin"] > 1e-4  # rays that pass no edge within rounding
+    got = scene.intersect_all(origins, directions, mask=1)
+    counts = scene.count_intersections(origins, directions, mask=1)
+    np.testing.assert_array_equal(counts[clean], np.diff(want["offsets"])[clean])
+    np.testing.assert_array_equal(got.counts, counts)
+    assert clean.mean() > 0.95 and counts.sum() > 2 * len(origins)
+    for r in np.flatnonzero(clean)[:400]:
+        mine = slice(got.offsets[r], got.offsets[r + 1])
+        theirs = slice(want["offsets"][r], want["offsets"][r + 1])
+        k = index[want["prim"][theirs]]
+        assert sorted(zip(got.instance_id[mine], got.prim_id[mine])) == \
+            sorted(zip(owner[k], prim[k]))
+        np.testing.assert_array_equal(got.geom_id[mine], instance_meshes[got.instance_id[mine]])
+        np.testing.assert_allclose(got.t[mine], want["t"][theirs], rtol=1e-4)
+    nearest = scene.intersect_all(origins, directions, mask=1, max_hits=1)
+    closest = scene.intersect(origins, directions, mask=1)
+    hit = closest.hit & clean
+    np.testing.assert_array_equal(nearest.counts[hit], 1)
+    np.testing.assert_array_equal(nearest.t[nearest.offsets[:-1][hit]], closest.t[hit])
+    np.testing.assert_array_equal(nearest.instance_id[nearest.offsets[:-1][hit]],
+                                  closest.instance_id[hit])
+    assert (scene.count_intersections(origins, directions, mask=0) == 0).all()
 
 
 @pytest.mark.parametrize("instances, message", [
