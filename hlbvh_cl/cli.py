@@ -65,6 +65,15 @@ def _cmd_devices(args) -> int:
     return 0
 
 
+def _instances(scene) -> str:
+    """An instanced scene in a few words: its instances, the triangles its
+    meshes' trees hold and the triangles its instances place."""
+    stored = sum(m.triangle_count for m in scene.meshes)
+    placed = sum(scene.meshes[m].triangle_count for m in scene._two_level.instance_meshes)
+    return (f"{len(scene.transforms):,} instances, {stored:,} triangles stored, "
+            f"{placed:,} placed")
+
+
 def _cmd_info(args) -> int:
     loaded = scenefile.load(args.scene, args.device, args.builder, args.morton_bits)
     scene = loaded.scene
@@ -74,6 +83,9 @@ def _cmd_info(args) -> int:
     s = scene.stats
     print(f"scene      {loaded.path}  ({len(scene.meshes)} meshes, loaded in "
           f"{loaded.load_seconds:.2f} s)")
+    if scene.transforms is not None:
+        print(f"instances  {_instances(scene)}; the stats below are the top tree's, "
+              "over the instances")
     print(f"device     {scene.device}")
     print(f"builder    {s.builder} ({s.morton_bits}-bit Morton codes, {s.clusters} clusters)")
     print(f"triangles  {s.triangles:,}")
@@ -126,8 +138,12 @@ def _cmd_render(args) -> int:
     if rendered["secondary_rays"]:
         kind = "AO" if args.shading == "ao" else "shadow"
         rays += f" + {_count(rendered['secondary_rays'])} {kind} rays"
-    print(f"scene        {loaded.path}: {len(scene.meshes)} meshes, "
-          f"{scene.stats.triangles:,} triangles")
+    if scene.transforms is not None:
+        print(f"scene        {loaded.path}: {len(scene.meshes)} meshes, {_instances(scene)} "
+              "(build: the top tree's)")
+    else:
+        print(f"scene        {loaded.path}: {len(scene.meshes)} meshes, "
+              f"{scene.stats.triangles:,} triangles")
     print(f"device       {scene.device}")
     print(f"load         {loaded.load_seconds:7.2f} s   read, split and transform the meshes")
     print(f"build        {build_ms:7.1f} ms  device: BVH {bvh_ms:.1f} + wide tree {widen_ms:.1f} "

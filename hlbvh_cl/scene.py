@@ -337,6 +337,10 @@ class Scene:
         return self._query
 
     def __repr__(self) -> str:
-        return (f"Scene({len(self.meshes)} mesh(es), {self.stats.triangles:,} triangles, "
-                f"builder={self.builder!r}, device={self.device.id!r})")
+        if self._instanced:
+            held = f"{len(self._two_level.transforms):,} instances"
+        else:
+            held = f"{sum(m.triangle_count for m in self.meshes):,} triangles"
+        return (f"Scene({len(self.meshes)} mesh(es), {held}, builder={self.builder!r}, "
+                f"device={self.device.id!r})")
 
