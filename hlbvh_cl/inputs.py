@@ -15,6 +15,7 @@ reason (not finite, overflows float32, a direction too short to invert).
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -26,6 +27,10 @@ import numpy as np
 #: and are reused, where whole-batch temporaries would cost a page fault per
 #: 4 KiB on every call.
 CHECK_BLOCK = 1 << 16
+
+#: The mask of a ray (or an instance) that gives none: every bit, so it
+#: sees (is seen by) everything.
+ALL_BITS = 0xFFFFFFFF
 
 #: float32's smallest normal: a direction needs a component at least this
 #: large, or its inverse overflows.
@@ -43,6 +48,8 @@ class Rays:
     tmax: np.ndarray
     shape: tuple
     origin_source: "_Vectors | None" = None
+    #: uint32 0-d (one mask for all) or (R,): the rays' masks (ray_masks)
+    mask: np.ndarray = dataclasses.field(default_factory=lambda: np.array(ALL_BITS, np.uint32))
 
     def __len__(self) -> int:
         return len(self.origins)
@@ -231,6 +238,12 @@ def _limits(name: str, value, shape: tuple) -> np.ndarray:
         raise ValueError(f"{where} is NaN")
     if array.ndim == 0:
         return array
+    return _per_ray(name, array, shape)
+
+
+def _per_ray(name: str, array: np.ndarray, shape: tuple) -> np.ndarray:
+    """``array`` broadcast to the rays' leading shape, flat (R,), or the
+    error naming ``name``."""
     try:
         if np.broadcast_shapes(array.shape, shape) != shape:
             raise ValueError
@@ -238,6 +251,22 @@ def _limits(name: str, value, shape: tuple) -> np.ndarray:
         raise ValueError(f"{name} has shape {array.shape}, which does not broadcast to the "
                          f"rays' shape {shape}") from None
     return np.broadcast_to(array, shape).reshape(-1)
+
+
+def ray_masks(value, shape: tuple) -> np.ndarray:
+    """uint32 masks for rays of leading shape ``shape``: one for all (0-d)
+    or one per ray (R,), broadcast from an array of integers in [0, 2^32)."""
+    array = np.asarray(value)
+    if array.dtype == np.bool_ or not np.issubdtype(array.dtype, np.integer):
+        raise TypeError(f"mask must hold integers (32-bit masks), got dtype {array.dtype}")
+    outside = (array < 0) | (array > ALL_BITS)
+    if outside.any():
+        index = np.unravel_index(int(np.argmax(outside.reshape(-1))), array.shape)
+        where = f"mask[{', '.join(str(int(i)) for i in index)}]" if array.ndim else "mask"
+        raise ValueError(f"{where} = {int(array[index])} does not fit 32 bits")
+    if array.ndim == 0:
+        return array.astype(np.uint32)
+    return np.ascontiguousarray(_per_ray("mask", array, shape), np.uint32)
 
 
 def row_name(name: str, row: int, shape: tuple) -> str:

@@ -57,6 +57,10 @@ TRIANGLE = np.dtype([("v0", *_f3), ("v1", *_f3), ("v2", *_f3)])
 
 TRIANGLE_REF = np.dtype([("geom_id", np.int32), ("prim_id", np.int32)])
 
+INSTANCE = np.dtype([("to_mesh", np.float32, 12), ("normal_sign", np.float32),
+                     ("mask", np.uint32), ("mesh", np.int32), ("node_base", np.int32),
+                     ("triangle_base", np.int32)])
+
 RAY = np.dtype([("origin", *_f3), ("tmin", np.float32), ("direction", *_f3), ("tmax", np.float32)])
 
 HIT = np.dtype([("t", np.float32), ("geom_id", np.int32), ("prim_id", np.int32),
@@ -74,5 +78,5 @@ SHADE_PARAMS = np.dtype([
 #: name in hlbvh.h -> dtype, for the layout test
 STRUCTS = {"Aabb": AABB, "FlatNode": FLAT_NODE, "WideNode": WIDE_NODE,
            "WideDipoles": WIDE_DIPOLES, "Triangle": TRIANGLE,
-           "TriangleRef": TRIANGLE_REF, "Ray": RAY, "Hit": HIT, "PinholeCamera": PINHOLE_CAMERA,
+           "TriangleRef": TRIANGLE_REF, "Instance": INSTANCE, "Ray": RAY, "Hit": HIT, "PinholeCamera": PINHOLE_CAMERA,
            "ShadeParams": SHADE_PARAMS}

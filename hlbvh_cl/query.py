@@ -25,6 +25,8 @@ from .device import Runtime
 from .profile import PACKET_SIZES
 from .results import ALIGNMENT as RESULT_ALIGNMENT
 from .results import ResultPool
+from .inputs import ALL_BITS
+from .instances import InstancedTree
 from .tree import Tree
 
 
@@ -49,8 +51,9 @@ class Hits:
     geom_id: np.ndarray  # int32 (R,) mesh index in the scene
     u: np.ndarray        # float32 (R,)
     v: np.ndarray        # float32 (R,)
-    normal: np.ndarray   # float32 (R, 3) unit geometric normal
+    normal: np.ndarray   # float32 (R, 3) unit geometric normal, in world space
     points: np.ndarray   # float32 (R, 3) origin + t * direction, in the caller's coordinates
+    instance_id: np.ndarray  # int32 (R,) instance hit in an instanced scene; else -1
 
     def __len__(self) -> int:
         return len(self.t)
@@ -106,11 +109,11 @@ def _work_group_size(rt: Runtime) -> int:
 
 #: Device buffers of the numpy-facing queries, bytes per ray: the inputs, then
 #: one buffer per field of the results (kernels/traverse.cl's *_arrays kernels).
-RAY_ARRAYS = {"origins": 12, "directions": 12, "tmin": 4, "tmax": 4}
+RAY_ARRAYS = {"origins": 12, "directions": 12, "tmin": 4, "tmax": 4, "mask": 4}
 #: Hits' fields: dtype and values per ray.
 HIT_FIELDS = {"t": (np.float32, 1), "geom_id": (np.int32, 1), "prim_id": (np.int32, 1),
               "u": (np.float32, 1), "v": (np.float32, 1), "normal": (np.float32, 3),
-              "points": (np.float32, 3)}
+              "points": (np.float32, 3), "instance_id": (np.int32, 1)}
 HIT_ARRAYS = {name: np.dtype(dtype).itemsize * n for name, (dtype, n) in HIT_FIELDS.items()}
 OCCLUDED_ARRAYS = {"occluded": 1}
 
@@ -152,7 +155,8 @@ class RayQuery:
         # packets (only counted with count_packets)
         self._counters = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 8)
         self._scalars = {name: cl.Buffer(rt.context, cl.mem_flags.READ_ONLY, 4)
-                         for name in ("tmin", "tmax")}
+                         for name in ("tmin", "tmax", "mask")}
+        cl.enqueue_copy(rt.queue, self._scalars["mask"], np.full(1, ALL_BITS, np.uint32))
         #: whether the kernels read the rays and write the results in the
         #: numpy arrays themselves (_zero_copy); else the rays go up and the
         #: results come back through device buffers reused between calls
@@ -185,10 +189,12 @@ class RayQuery:
 
     # -- public queries ---------------------------------------------------
 
-    def intersect(self, tree: Tree, origins, directions=None, tmin=0.0, tmax=np.inf) -> Hits:
+    def intersect(self, tree: Tree, origins, directions=None, tmin=0.0, tmax=np.inf,
+                  mask=None) -> Hits:
         """Closest hit of each ray (origins[i] + t * directions[i], tmin <= t <= tmax),
-        in the rays' leading shape (hlbvh_cl.inputs)."""
-        batch = inputs.rays(origins, directions, tmin, tmax)
+        in the rays' leading shape (hlbvh_cl.inputs); a ray skips geometry
+        whose mask shares no bit with its own (``mask``: scalar or per ray)."""
+        batch = _masked(inputs.rays(origins, directions, tmin, tmax), mask, tree)
         count = len(batch)
         hits = Hits(**{name: self._results.empty((count, n) if n > 1 else count, dtype)
                        for name, (dtype, n) in HIT_FIELDS.items()})
@@ -196,12 +202,12 @@ class RayQuery:
         if count and self._check_tree(tree):
             kernel = self._kernel(tree, "intersect_closest_arrays", self.count_packets)
 
-            def launch(n, b, limits):
-                return self.rt.run(kernel, self._work_items(n), tree.nodes, tree.triangles,
-                                   tree.refs, b["origins"],
-                                   b["directions"], *limits, b["t"], b["geom_id"], b["prim_id"],
-                                   b["u"], b["v"], b["normal"], b["points"], self._counters,
-                                   np.uint32(n),
+            def launch(n, b, steps):
+                return self.rt.run(kernel, self._work_items(n, tree),
+                                   *scene_args(tree, *steps["mask"]), b["origins"],
+                                   b["directions"], *steps["tmin"], *steps["tmax"], b["t"],
+                                   b["geom_id"], b["prim_id"], b["u"], b["v"], b["normal"],
+                                   b["points"], b["instance_id"], self._counters, np.uint32(n),
                                    local_size=self.work_group_size)
             self._run(batch, launch, {name: getattr(hits, name) for name in HIT_ARRAYS})
             if t_factor is not None:  # back from the frame: exact, powers of two
@@ -209,27 +215,29 @@ class RayQuery:
                 hits.points[:] = frame.to_frame(hits.points, 1.0 / tree.scale)
         elif count:
             hits.t[:] = np.inf
-            hits.geom_id[:] = hits.prim_id[:] = -1
+            hits.geom_id[:] = hits.prim_id[:] = hits.instance_id[:] = -1
             hits.u[:] = hits.v[:] = hits.normal[:] = 0.0
             hits.points[:] = np.nan
         return Hits(**{name: field.reshape(batch.shape + field.shape[1:])
                        for name, field in vars(hits).items()})
 
     def occluded(self, tree: Tree, origins, directions=None, tmin=0.0,
-                 tmax=np.inf) -> np.ndarray:
+                 tmax=np.inf, mask=None) -> np.ndarray:
         """bool in the rays' leading shape: whether anything is hit with
-        tmin <= t <= tmax (stops at the first hit)."""
-        batch, _ = _into_frame(inputs.rays(origins, directions, tmin, tmax), tree)
+        tmin <= t <= tmax (stops at the first hit); ``mask`` as intersect."""
+        batch, _ = _into_frame(_masked(inputs.rays(origins, directions, tmin, tmax), mask, tree),
+                               tree)
         count = len(batch)
         result = self._results.empty(count, np.uint8)
         if count and self._check_tree(tree):
             kernel = self._kernel(tree, "intersect_any_arrays", self.count_packets)
 
-            def launch(n, b, limits):
-                return self.rt.run(kernel, self._work_items(n), tree.nodes, tree.triangles,
-                                   b["origins"],
-                                   b["directions"], *limits, b["occluded"], self._counters,
-                                   np.uint32(n), local_size=self.work_group_size)
+            def launch(n, b, steps):
+                return self.rt.run(kernel, self._work_items(n, tree),
+                                   *scene_args(tree, *steps["mask"]), b["origins"],
+                                   b["directions"], *steps["tmin"], *steps["tmax"],
+                                   b["occluded"], self._counters, np.uint32(n),
+                                   local_size=self.work_group_size)
             self._run(batch, launch, {"occluded": result})
         return result.view(bool).reshape(batch.shape)  # the kernel writes 0 or 1
 
@@ -244,10 +252,9 @@ class RayQuery:
         flag beforehand and raises if a traversal set it."""
         self._require_triangles(tree)
         kernel = self._kernel(tree, "intersect_closest")
-        return self.rt.run(kernel, self._work_items(count), tree.nodes, tree.triangles, tree.refs,
-                           rays, hits,
-                           overflow, np.uint32(count), wait_for=wait_for,
-                           local_size=self.work_group_size)
+        return self.rt.run(kernel, self._work_items(count, tree),
+                           *scene_args(tree, self._scalars["mask"], 0), rays, hits, overflow,
+                           np.uint32(count), wait_for=wait_for, local_size=self.work_group_size)
 
     def enqueue_occluded(self, tree: Tree, rays: cl.Buffer, occluded: cl.Buffer, count: int,
                          overflow: cl.Buffer, wait_for=None) -> cl.Event:
@@ -255,24 +262,27 @@ class RayQuery:
         where ray i hits anything."""
         self._require_triangles(tree)
         kernel = self._kernel(tree, "intersect_any")
-        return self.rt.run(kernel, self._work_items(count), tree.nodes, tree.triangles, rays,
-                           occluded, overflow,
+        return self.rt.run(kernel, self._work_items(count, tree),
+                           *scene_args(tree, self._scalars["mask"], 0), rays, occluded, overflow,
                            np.uint32(count), wait_for=wait_for, local_size=self.work_group_size)
 
     # -- internals ----------------------------------------------------------
 
     def _kernel(self, tree: Tree, name: str,
                 count_packets: bool = False) -> cl.Kernel:
-        """The traversal kernel `name` for `tree`."""
-        defines = {"STACK_SIZE": _stack_size(tree), "PACKET_SIZE": self.packet_size,
+        """The traversal kernel `name` for `tree` (an instanced one: one ray
+        per work-item, kernels/instance.h)."""
+        defines = {"STACK_SIZE": _stack_size(tree), "PACKET_SIZE": _packet_size(self, tree),
                    **self.variant.defines, **self.rt.prefetch_defines}
+        if isinstance(tree, InstancedTree):
+            defines["INSTANCES"] = 1
         if count_packets:
             defines["COUNT_PACKETS"] = 1
         return self.rt.kernel("traverse.cl", name, **defines)
 
-    def _work_items(self, rays: int) -> int:
-        """Work-items that trace `rays` rays, packet_size rays each."""
-        return -(-rays // self.packet_size)
+    def _work_items(self, rays: int, tree) -> int:
+        """Work-items that trace `rays` rays through `tree`."""
+        return -(-rays // _packet_size(self, tree))
 
     def _require_triangles(self, tree: Tree) -> None:
         if not self._check_tree(tree):
@@ -317,11 +327,11 @@ class RayQuery:
         # per-ray arrays go chunk by chunk; a scalar limit is one value, step 0
         arrays = {"origins": batch.origins, "directions": batch.directions}
         limits = {}
-        for name, limit in (("tmin", batch.tmin), ("tmax", batch.tmax)):
+        for name, limit in (("tmin", batch.tmin), ("tmax", batch.tmax), ("mask", batch.mask)):
             if limit.ndim:
                 arrays[name] = limit
             else:
-                cl.enqueue_copy(queue, self._scalars[name], np.full(1, limit, np.float32))
+                cl.enqueue_copy(queue, self._scalars[name], np.full(1, limit, limit.dtype))
                 limits[name] = self._scalars[name]
         # The queue runs in order, so each chunk's inputs wait for the last
         # chunk's results; only the final read blocks.  (pyopencl's events of
@@ -343,10 +353,8 @@ class RayQuery:
             if in_place:
                 buffers.update({name: self._wrap(array[part], cl.mem_flags.WRITE_ONLY)
                                 for name, array in outputs.items()})
-            steps = []
-            for name in ("tmin", "tmax"):
-                steps += [limits[name] if name in limits else buffers[name],
-                          np.uint32(name in arrays)]
+            steps = {name: (limits[name] if name in limits else buffers[name],
+                            np.uint32(name in arrays)) for name in ("tmin", "tmax", "mask")}
             events.append(launch(part.stop - part.start, buffers, steps))
             transfers += [collect(queue, buffers[name], array[part], in_place)
                           for name, array in outputs.items()]
@@ -381,7 +389,7 @@ def collect(queue: cl.CommandQueue, buffer: cl.Buffer, array: np.ndarray,
 def check_tree(rt: Runtime, tree: Tree) -> bool:
     """Validates a tree for a query on ``rt``; False when it holds no
     triangle (every query misses)."""
-    if not isinstance(tree, Tree):
+    if not isinstance(tree, (Tree, InstancedTree)):
         raise TypeError(f"tree must be a hlbvh_cl.tree.Tree, got {type(tree).__name__}")
     if tree.released:
         raise ValueError("this Tree was released when its Scene rebuilt")
@@ -393,6 +401,38 @@ def check_tree(rt: Runtime, tree: Tree) -> bool:
     if tree.depth < 1 or tree.node_count < 1:
         raise ValueError(f"tree is malformed: depth={tree.depth}, node_count={tree.node_count}")
     return True
+
+
+def scene_args(tree, masks: cl.Buffer, mask_step) -> tuple:
+    """A traversal kernel's SCENE_PARAMS (traverse.cl) for ``tree``: a flat
+    tree's nodes, triangles and refs (rays' masks are applied before, by
+    _masked); an instanced one's levels, instances and the rays' masks."""
+    if isinstance(tree, InstancedTree):
+        return tree.scene_args(masks, mask_step)
+    return tree.nodes, tree.triangles, tree.refs
+
+
+def _packet_size(query: "RayQuery", tree) -> int:
+    """Rays per work-item: one through instanced trees (kernels/instance.h)."""
+    return 1 if isinstance(tree, InstancedTree) else query.packet_size
+
+
+def _masked(batch: inputs.Rays, mask, tree) -> inputs.Rays:
+    """The rays with their masks (hlbvh_cl.inputs.ray_masks).  A flat tree's
+    meshes all have every mask bit (a Scene with other masks is instanced),
+    so there a ray sees everything unless its mask is 0: such rays get tmax
+    -inf, which no box or triangle meets, and the kernels need no mask."""
+    if mask is None:
+        return batch
+    masks = inputs.ray_masks(mask, batch.shape)
+    if isinstance(tree, InstancedTree):
+        return dataclasses.replace(batch, mask=masks)
+    blind = masks == 0
+    if not blind.any():
+        return batch
+    tmax = np.array(np.broadcast_to(batch.tmax, (len(batch),)), np.float32)
+    tmax[np.broadcast_to(blind, (len(batch),))] = -np.inf
+    return dataclasses.replace(batch, tmax=tmax)
 
 
 def _stack_size(tree: Tree) -> int:

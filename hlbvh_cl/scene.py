@@ -19,6 +19,8 @@ from .device import event_ms, runtime
 from .mesh import Mesh, _validate_vertices
 from .morton import key_dtype
 from .all_hits import AllHitsQuery
+from .inputs import ALL_BITS
+from .instances import TwoLevel, check_instances, check_masks, check_transforms
 from .points import PointQuery
 from .query import RayQuery
 from .refit import refit
@@ -39,10 +41,23 @@ def _as_meshes(meshes) -> list[Mesh]:
 
 
 class Scene:
-    """One BVH over a list of meshes on an OpenCL device.
+    """One BVH over a list of meshes on an OpenCL device, or, with
+    ``instances``, a two-level scene of those meshes placed by affine maps.
 
     ``geom_id`` of a triangle is the index of its mesh in ``meshes``;
     ``prim_id`` its face index within that mesh.
+
+    ``instances``: (mesh_index, transform) pairs, each transform a (3, 4) or
+    (4, 4) affine map from the mesh's coordinates to the world's (mirrors and
+    non-uniform scales included).  Only the instances are in the scene then;
+    each mesh gets its own tree, shared by all its instances, under a top
+    tree over the instances (hlbvh_cl.instances), and hits carry
+    ``instance_id``.  ``masks``: a 32-bit mask per instance (per mesh
+    without instances), default all bits; a ray query's ``mask`` skips the
+    geometry whose mask shares no bit with the ray's, as in Embree.  A
+    scene without instances whose masks all have every bit stays one flat
+    tree over all the triangles (the faster walk); with other masks it is
+    traced as one instance per mesh under the identity.
 
     Every method may be called from any thread: each takes the scene's lock,
     so concurrent calls run in some serial order and no call sees a tree
@@ -50,7 +65,8 @@ class Scene:
     queue, in order, and its kernels (Runtime.run).
     """
 
-    def __init__(self, meshes, device=None, builder: str = "hlbvh", morton_bits: int = 30):
+    def __init__(self, meshes, device=None, builder: str = "hlbvh", morton_bits: int = 30, *,
+                 instances=None, masks=None):
         self.meshes = _as_meshes(meshes)
         if builder not in BUILDERS:
             raise ValueError(f"builder must be one of {BUILDERS}, got {builder!r}")
@@ -59,6 +75,25 @@ class Scene:
         self.morton_bits = morton_bits
         self._lock = threading.RLock()
         self._runtime = rt = runtime(device)
+        self._instanced = instances is not None
+        if self._instanced:
+            instance_meshes, transforms = check_instances(instances, len(self.meshes))
+            self._masks = check_masks(masks, len(instance_meshes), "instance")
+        else:
+            self._masks = check_masks(masks, len(self.meshes), "mesh")
+            instance_meshes = np.arange(len(self.meshes), dtype=np.int32)
+            transforms = np.tile(np.eye(3, 4), (len(self.meshes), 1, 1))
+        self._query = None
+        self._points = None
+        self._all_hits = None
+        self._tree = None
+        self._two_level = None
+        if self._instanced or (self._masks != ALL_BITS).any():
+            weakref.finalize(self, rt.pool.clear)
+            self._two_level = TwoLevel(rt, self.meshes, instance_meshes, transforms,
+                                       self._masks, builder, morton_bits)
+            self._build()
+            return
         vertex_counts = [m.vertex_count for m in self.meshes]
         face_counts = [m.triangle_count for m in self.meshes]
         # fail on size before anything is uploaded
@@ -74,11 +109,7 @@ class Scene:
                                          faces, first_face)
         # the runtime's pool keeps this scene's build scratch for its rebuilds; not beyond it
         weakref.finalize(self, rt.pool.clear)
-        self._query = None
-        self._points = None
-        self._all_hits = None
-        self._tree = None
-        self.rebuild()
+        self._build()
 
     @property
     def device(self):
@@ -98,13 +129,62 @@ class Scene:
         memory than the first build (which check_fits accounted for), and
         the new one reuses its buffers and the last build's scratch
         (hlbvh_cl.pool)."""
+        with self._lock:
+            if self._two_level is not None:
+                self._two_level.rebuild_meshes(self.meshes)
+            self._build()
+
+    def _build(self) -> None:
+        """The tree over what the scene holds now (an instanced scene's top
+        tree only: its meshes' trees stand)."""
         rt = self._runtime
         with self._lock, rt.build_lock:
             old, self._tree = self._tree, None
             if old is not None:
                 old.release(rt.pool)
-            self._tree, self._stats = build(rt, self._geometry, self.builder, self.morton_bits,
-                                            self._scale)
+            if self._two_level is not None:
+                self._tree, self._stats = self._two_level.build_top()
+            else:
+                self._tree, self._stats = build(rt, self._geometry, self.builder,
+                                                self.morton_bits, self._scale)
+
+    @property
+    def transforms(self) -> np.ndarray | None:
+        """float64 (K, 3, 4): each instance's map (a copy); None without instances."""
+        return self._two_level.transforms.copy() if self._instanced else None
+
+    @property
+    def masks(self) -> np.ndarray:
+        """uint32: the mask of each instance (each mesh without instances), a copy."""
+        return self._masks.copy()
+
+    def set_transforms(self, instance_ids, transforms) -> None:
+        """Move instances: ``transforms`` (K, 3, 4) or (K, 4, 4) for the K
+        ``instance_ids`` (one id and one (3, 4) / (4, 4) map work too).  Only
+        the top tree is rebuilt, on the device; the meshes' trees stand."""
+        if not self._instanced:
+            raise ValueError("set_transforms needs an instanced Scene: Scene(meshes, "
+                             "instances=[(mesh_index, transform), ...])")
+        ids = np.asarray(instance_ids)
+        if ids.dtype == np.bool_ or not np.issubdtype(ids.dtype, np.integer):
+            raise TypeError(f"instance_ids must be integers, got dtype {ids.dtype}")
+        array = np.asarray(transforms)
+        if ids.ndim == 0:
+            ids, array = ids[None], array[None]
+        if ids.ndim != 1:
+            raise ValueError(f"instance_ids has shape {ids.shape}, expected (K,)")
+        count = len(self._two_level.instance_meshes)
+        outside = (ids < 0) | (ids >= count)
+        if outside.any():
+            k = int(np.flatnonzero(outside)[0])
+            raise ValueError(f"instance_ids[{k}] = {int(ids[k])} is out of range: the scene has "
+                             f"{count} instance(s)")
+        maps = check_transforms(array, lambda k: f"transforms[{k}]")
+        if len(maps) != len(ids):
+            raise ValueError(f"transforms has {len(maps)} maps for {len(ids)} instance_ids")
+        with self._lock:
+            self._two_level.transforms[ids] = maps
+            self._build()
 
     def update_vertices(self, geom_id: int, vertices) -> None:
         """Replace mesh ``geom_id``'s vertex positions (same count) and refit
@@ -125,6 +205,11 @@ class Scene:
         moved = Mesh(positions, old.faces, name=old.name)
         rt = self._runtime
         started = time.perf_counter()
+        if self._two_level is not None:
+            with self._lock:  # the mesh's own tree is built anew, then the top
+                self.meshes[geom_id] = moved
+                self.rebuild()
+            return
         with self._lock:
             largest = list(self._largest)
             largest[geom_id] = frame.largest_magnitude(moved.vertices)
@@ -149,22 +234,29 @@ class Scene:
                 "upload": event_ms([upload]), "refit": event_ms(events),
                 "wall": (time.perf_counter() - started) * 1e3})
 
-    def intersect(self, origins, directions=None, tmin=0.0, tmax=np.inf):
-        """Closest hit of each ray: a Hits with t, prim_id, geom_id, u, v,
-        normal and points, in the rays' leading shape.  Rays are origins and
-        directions (..., 3), which broadcast (one origin (3,) for many
-        directions), or packed (..., 6) in ``origins`` alone; tmin and tmax
-        are scalars or broadcast to the rays (hlbvh_cl.inputs)."""
+    def intersect(self, origins, directions=None, tmin=0.0, tmax=np.inf, mask=None):
+        """Closest hit of each ray: a Hits with t, prim_id, geom_id,
+        instance_id, u, v, normal (world space) and points, in the rays'
+        leading shape.  Rays are origins and directions (..., 3), which
+        broadcast (one origin (3,) for many directions), or packed (..., 6)
+        in ``origins`` alone; tmin and tmax are scalars or broadcast to the
+        rays (hlbvh_cl.inputs); ``mask``, a 32-bit integer or one per ray,
+        skips the geometry whose mask shares no bit with it."""
         with self._lock:
-            return self._ray_query().intersect(self._built_tree(), origins, directions, tmin,
-                                               tmax)
+            hits = self._ray_query().intersect(self._built_tree(), origins, directions, tmin,
+                                               tmax, mask)
+            if self._two_level is not None and not self._instanced:
+                hits.instance_id[...] = -1  # instances of the masks' making, not the caller's
+            return hits
 
-    def occluded(self, origins, directions=None, tmin=0.0, tmax=np.inf) -> np.ndarray:
+    def occluded(self, origins, directions=None, tmin=0.0, tmax=np.inf,
+                 mask=None) -> np.ndarray:
         """Whether each ray hits anything in [tmin, tmax] (any-hit, stops
-        early), in the rays' leading shape; rays as intersect takes them."""
+        early), in the rays' leading shape; rays and mask as intersect takes
+        them."""
         with self._lock:
             return self._ray_query().occluded(self._built_tree(), origins, directions, tmin,
-                                              tmax)
+                                              tmax, mask)
 
     def intersect_all(self, origins, directions=None, tmin=0.0, tmax=np.inf, max_hits=None):
         """Every hit of each ray in [tmin, tmax], sorted by t, as an AllHits
@@ -173,7 +265,8 @@ class Scene:
         k nearest of each ray.  A crossing through a shared edge or vertex
         counts once."""
         with self._lock:
-            return self._all_hits_query().intersect_all(self._built_tree(), origins, directions,
+            return self._all_hits_query().intersect_all(self._flat_tree("intersect_all"),
+                                                        origins, directions,
                                                         tmin, tmax, max_hits)
 
     def count_intersections(self, origins, directions=None, tmin=0.0,
@@ -181,7 +274,8 @@ class Scene:
         """int32, in the rays' leading shape: how many hits each ray has in
         [tmin, tmax] (as intersect_all counts them)."""
         with self._lock:
-            return self._all_hits_query().count(self._built_tree(), origins, directions, tmin,
+            return self._all_hits_query().count(self._flat_tree("count_intersections"),
+                                                origins, directions, tmin,
                                                 tmax)
 
     def _all_hits_query(self):
@@ -195,21 +289,22 @@ class Scene:
         geom_id, u, v and normal in the points' leading shape (distance inf
         and ids -1 beyond it)."""
         with self._lock:
-            return self._point_query().closest_points(self._built_tree(), points, max_distance)
+            return self._point_query().closest_points(self._flat_tree("closest_points"), points,
+                                                      max_distance)
 
     def winding_number(self, points) -> np.ndarray:
         """float32: the generalized winding number of each point (1 inside a
         closed outward-oriented surface, -1 inside an inward-oriented one, 0
         outside, fractional near the holes of an open one; hlbvh_cl.points)."""
         with self._lock:
-            return self._point_query().winding_numbers(self._built_tree(), points)
+            return self._point_query().winding_numbers(self._flat_tree("winding_number"), points)
 
     def signed_distance(self, points) -> np.ndarray:
         """float32: the distance to the surface, negative inside, i.e. where
         |winding number| >= 0.5, whichever way the faces turn (on an open mesh
         that closes each hole minimally; see hlbvh_cl.points)."""
         with self._lock:
-            return self._point_query().signed_distance(self._built_tree(), points)
+            return self._point_query().signed_distance(self._flat_tree("signed_distance"), points)
 
     def contains(self, points) -> np.ndarray:
         """bool: whether each point is inside (|winding number| >= 0.5)."""
@@ -227,6 +322,12 @@ class Scene:
             raise RuntimeError("this Scene has no tree: its last rebuild failed; call "
                                "scene.rebuild() (or update_vertices) to build one")
         return self._tree
+
+    def _flat_tree(self, verb: str):
+        """The current tree for a query that instanced scenes do not run yet."""
+        if self._two_level is not None:
+            raise NotImplementedError(f"{verb} on an instanced or masked Scene is not built yet")
+        return self._built_tree()
 
     def _ray_query(self):
         if self._query is None:

@@ -145,6 +145,19 @@ typedef struct {
     int prim_id;
 } TriangleRef;
 
+/* One instance of a two-level scene (hlbvh_cl/instances.py): where its
+ * mesh's tree lies among the meshes' trees, the map from the top tree's
+ * frame to that mesh's frame, and its mask.  Rays are mapped, not
+ * renormalised, so t is the same in both frames. */
+typedef struct {
+    float to_mesh[12];  /* 3x4 row-major affine map: top frame -> mesh frame */
+    float normal_sign;  /* sign of the map's determinant (mirroring flips normals) */
+    uint mask;          /* a ray skips the instance when (ray mask & mask) == 0 */
+    int mesh;           /* index of its mesh (the hits' geom_id) */
+    int node_base;      /* its mesh tree's root among the meshes' wide nodes */
+    int triangle_base;  /* its mesh tree's first triangle among the meshes' triangles */
+} Instance;
+
 /* A ray as the traversal kernels read it (query.py fills these). */
 typedef struct {
     float origin[3];

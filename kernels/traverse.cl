@@ -76,27 +76,33 @@ TRAVERSAL_INLINE void prefetch_hit_ids(__global const TriangleRef* refs, uint i)
  * size allows). */
 #define TRAVERSAL_KERNEL __kernel __attribute__((LANES_HINT))
 
+#ifndef INSTANCES
+/* A flat scene: one tree over every mesh's triangles. */
+#define SCENE_PARAMS                                                                    \
+    __global const WideNode *nodes, __global const Triangle *triangles,                  \
+        __global const TriangleRef *refs
+#define SCENE_ARGS nodes, triangles, refs
+
 /* Closest hits of the rays lanes[0, used) of a work-item as Hit records
- * (trace_intersect, in walk.h).  The hits' ids and normals are read once
- * every lane is traced: their cache misses then overlap instead of ending
- * each ray (measured faster). */
-TRAVERSAL_INLINE void closest_hits(const RayLanes* lanes, uint used,
-                                   __global const WideNode* nodes,
-                                   __global const Triangle* triangles,
-                                   __global const TriangleRef* refs, __global int* overflow,
-                                   Hit* hits)
+ * (trace_intersect, in walk.h), and their instances (none: -1).  The hits'
+ * ids and normals are read once every lane is traced: their cache misses
+ * then overlap instead of ending each ray (measured faster).  `first` (the
+ * first ray's index) is the instanced version's. */
+TRAVERSAL_INLINE void closest_hits(const RayLanes* lanes, uint used, uint first, SCENE_PARAMS,
+                                   __global int* overflow, Hit* hits, int* instance)
 {
     int index[PACKET_SIZE];
     float t[PACKET_SIZE], u[PACKET_SIZE], v[PACKET_SIZE];
     trace_intersect(lanes, used, nodes, triangles, overflow, index, t, u, v, refs);
-    for (uint l = 0; l < used; ++l)
+    for (uint l = 0; l < used; ++l) {
         make_hit(hits + l, index[l], t[l], u[l], v[l], triangles, refs);
+        instance[l] = -1;
+    }
 }
 
 /* Occlusion of the rays lanes[0, used): occluded[l] = 1 if anything is hit. */
-TRAVERSAL_INLINE void any_hits(const RayLanes* lanes, uint used, __global const WideNode* nodes,
-                               __global const Triangle* triangles, __global int* overflow,
-                               __global uchar* occluded)
+TRAVERSAL_INLINE void any_hits(const RayLanes* lanes, uint used, uint first, SCENE_PARAMS,
+                               __global int* overflow, __global uchar* occluded)
 {
     int index[PACKET_SIZE];
     trace_occluded(lanes, used, nodes, triangles, overflow, index, 0, 0, 0);
@@ -104,10 +110,143 @@ TRAVERSAL_INLINE void any_hits(const RayLanes* lanes, uint used, __global const 
         occluded[l] = index[l] >= 0 ? 1 : 0;
 }
 
+#else /* INSTANCES */
+#include "instance.h"
+
+/* A two-level scene (instance.h): the top tree over the instances, the
+ * instances, the meshes' trees one after another, and the rays' masks
+ * (ray_masks[i * mask_step]: step 0, one mask for all). */
+#define SCENE_PARAMS                                                                    \
+    __global const WideNode *top_nodes, __global const Triangle *top_triangles,          \
+        __global const TriangleRef *top_refs, __global const Instance *instances,        \
+        __global const uint *ray_masks, const uint mask_step,                             \
+        __global const WideNode *nodes, __global const Triangle *triangles,              \
+        __global const TriangleRef *refs
+#define SCENE_ARGS top_nodes, top_triangles, top_refs, instances, ray_masks, mask_step, nodes, \
+                   triangles, refs
+
+/* What the top tree's leaf visitors use besides the walk's own: top_refs[i]
+ * .prim_id is the instance in leaf slot i. */
+#define INSTANCE_PARAMS                                                                 \
+    , __global const TriangleRef *top_refs, __global const Instance *instances,          \
+        __global const WideNode *mesh_nodes, __global const Triangle *mesh_triangles,    \
+        __global const TriangleRef *mesh_refs, const WorldRay *world, int *instance,     \
+        bool *out_of_stack
+#define INSTANCE_ARGS , top_refs, instances, mesh_nodes, mesh_triangles, mesh_refs, world, \
+                      instance, out_of_stack
+
+/* Closest hit: each visible instance of the leaf in turn, its mesh walked
+ * by the flat visitor with the walk's state, so the limit found so far
+ * prunes it; the instance whose walk lowered t holds the hit. */
+TRAVERSAL_INLINE bool instances_intersect(Found_ray* s, const RayData* r, int first,
+                                          uint count INSTANCE_PARAMS)
+{
+    for (uint i = (uint)first; i < (uint)first + count; ++i) {
+        int id = top_refs[i].prim_id;
+        __global const Instance* in = instances + id;
+        RayData mapped;
+        if (!instance_ray(&mapped, in, world, r->tmin, r->tmax))
+            continue;
+        float before = s->t;
+        *out_of_stack |= walk_intersect_ray(&mapped, mesh_nodes + in->node_base,
+                                            mesh_triangles + in->triangle_base, s,
+                                            mesh_refs + in->triangle_base);
+        if (s->t != before)
+            *instance = id;
+    }
+    return false;
+}
+
+/* Any hit: the first instance with a hit ends the walk. */
+TRAVERSAL_INLINE bool instances_occluded(Found_ray* s, const RayData* r, int first,
+                                         uint count INSTANCE_PARAMS)
+{
+    for (uint i = (uint)first; i < (uint)first + count; ++i) {
+        int id = top_refs[i].prim_id;
+        __global const Instance* in = instances + id;
+        RayData mapped;
+        if (!instance_ray(&mapped, in, world, r->tmin, r->tmax))
+            continue;
+        *out_of_stack |= walk_occluded_ray(&mapped, mesh_nodes + in->node_base,
+                                           mesh_triangles + in->triangle_base, s);
+        if (s->index >= 0) {
+            *instance = id;
+            return true;
+        }
+    }
+    return false;
+}
+
+#define QUERY intersect_top
+#define QUERY_PATH _ray
+#define QUERY_LEAF(s, r, first, count) instances_intersect(s, r, first, count INSTANCE_ARGS)
+#define QUERY_NODE(s, r, n, mask) false
+#define QUERY_PARAMS INSTANCE_PARAMS
+#define QUERY_ARGS INSTANCE_ARGS
+#include "walk.h"
+
+#define QUERY occluded_top
+#define QUERY_PATH _ray
+#define QUERY_LEAF(s, r, first, count) instances_occluded(s, r, first, count INSTANCE_ARGS)
+#define QUERY_NODE(s, r, n, mask) WALK_NAME(leaves_first)(s, r, n, mask, triangles INSTANCE_ARGS)
+#define QUERY_PARAMS INSTANCE_PARAMS
+#define QUERY_ARGS INSTANCE_ARGS
+#include "walk.h"
+
+/* The work-item's one ray (PACKET_SIZE 1) walked from the top: its state
+ * in *s and its instance in *instance (-1: none). */
+#define TRACE_TOP(walk, lanes, first, s, instance)                                      \
+    do {                                                                                 \
+        RayData r;                                                                       \
+        prepare_lane(&r, lanes, 0);                                                      \
+        WorldRay w;                                                                      \
+        world_ray(&w, lanes, ray_masks[(first) * mask_step]);                            \
+        Found_ray start = {-1, INFINITY, 0.0f, 0.0f, r.tmax};                            \
+        *(s) = start;                                                                    \
+        *(instance) = -1;                                                                \
+        bool out_of_stack = false;                                                       \
+        out_of_stack |= walk(&r, top_nodes, top_triangles, s, top_refs, instances, nodes, \
+                             triangles, refs, &w, instance, &out_of_stack);              \
+        if (out_of_stack)                                                                \
+            overflow[0] = 1;                                                             \
+    } while (0)
+
+TRAVERSAL_INLINE void closest_hits(const RayLanes* lanes, uint used, uint first, SCENE_PARAMS,
+                                   __global int* overflow, Hit* hits, int* instance)
+{
+    Found_ray s;
+    TRACE_TOP(walk_intersect_top_ray, lanes, first, &s, instance);
+    if (s.index < 0) {
+        make_hit(hits, -1, 0.0f, 0.0f, 0.0f, triangles, refs);
+        return;
+    }
+    __global const Instance* in = instances + *instance;
+    int i = in->triangle_base + s.index;
+    Hit hit;
+    hit.t = s.t;
+    hit.geom_id = in->mesh;
+    hit.prim_id = refs[i].prim_id;
+    hit.u = s.u;
+    hit.v = s.v;
+    float3 n = instance_normal(in, unit_normal(triangles + i));
+    hit.normal[0] = n.x;
+    hit.normal[1] = n.y;
+    hit.normal[2] = n.z;
+    *hits = hit;
+}
+
+TRAVERSAL_INLINE void any_hits(const RayLanes* lanes, uint used, uint first, SCENE_PARAMS,
+                               __global int* overflow, __global uchar* occluded)
+{
+    Found_ray s;
+    int instance;
+    TRACE_TOP(walk_occluded_top_ray, lanes, first, &s, &instance);
+    occluded[0] = s.index >= 0 ? 1 : 0;
+}
+#endif /* INSTANCES */
+
 /* Closest hit of rays[0, ray_count) -> hits. */
-TRAVERSAL_KERNEL void intersect_closest(__global const WideNode* nodes,
-        __global const Triangle* triangles, __global const TriangleRef* refs,
-        __global const Ray* rays, __global Hit* hits, __global int* overflow, const uint ray_count)
+TRAVERSAL_KERNEL void intersect_closest(SCENE_PARAMS, __global const Ray* rays, __global Hit* hits, __global int* overflow, const uint ray_count)
 {
     RayLanes lanes;
     Hit found[PACKET_SIZE];
@@ -115,31 +254,31 @@ TRAVERSAL_KERNEL void intersect_closest(__global const WideNode* nodes,
     if (used == 0)
         return;
     load_records(rays, first, used, &lanes);
-    closest_hits(&lanes, used, nodes, triangles, refs, overflow, found);
+    int instance[PACKET_SIZE];
+    closest_hits(&lanes, used, first, SCENE_ARGS, overflow, found, instance);
     for (uint l = 0; l < used; ++l)
         hits[first + l] = found[l];
 }
 
 /* Occlusion of rays[0, ray_count): occluded[i] = 1 if anything is hit. */
-TRAVERSAL_KERNEL void intersect_any(__global const WideNode* nodes,
-        __global const Triangle* triangles, __global const Ray* rays, __global uchar* occluded,
+TRAVERSAL_KERNEL void intersect_any(SCENE_PARAMS, __global const Ray* rays,
+        __global uchar* occluded,
         __global int* overflow, const uint ray_count)
 {
     uint first, used = packet_rays(ray_count, &first);
     RayLanes lanes;
     if (used != 0) {
         load_records(rays, first, used, &lanes);
-        any_hits(&lanes, used, nodes, triangles, overflow, occluded + first);
+        any_hits(&lanes, used, first, SCENE_ARGS, overflow, occluded + first);
     }
 }
 
-TRAVERSAL_KERNEL void intersect_closest_arrays(__global const WideNode* nodes,
-        __global const Triangle* triangles, __global const TriangleRef* refs,
-        __global const float* origins, __global const float* directions,
+TRAVERSAL_KERNEL void intersect_closest_arrays(SCENE_PARAMS, __global const float* origins, __global const float* directions,
         __global const float* tmin, const uint tmin_step, __global const float* tmax,
         const uint tmax_step, __global float* t_out, __global int* geom_out,
         __global int* prim_out, __global float* u_out, __global float* v_out,
-        __global float* normal_out, __global float* points_out, __global int* overflow,
+        __global float* normal_out, __global float* points_out, __global int* instance_out,
+        __global int* overflow,
         const uint ray_count)
 {
     uint first, used = packet_rays(ray_count, &first);
@@ -148,9 +287,11 @@ TRAVERSAL_KERNEL void intersect_closest_arrays(__global const WideNode* nodes,
     RayLanes lanes;
     load_arrays(first, used, origins, directions, tmin, tmin_step, tmax, tmax_step, &lanes);
     Hit found[PACKET_SIZE];
-    closest_hits(&lanes, used, nodes, triangles, refs, overflow, found);
+    int instance[PACKET_SIZE];
+    closest_hits(&lanes, used, first, SCENE_ARGS, overflow, found, instance);
     for (uint l = 0; l < used; ++l) {
         uint i = first + l;
+        instance_out[i] = instance[l];
         t_out[i] = found[l].t;
         geom_out[i] = found[l].geom_id;
         prim_out[i] = found[l].prim_id;
@@ -167,8 +308,7 @@ TRAVERSAL_KERNEL void intersect_closest_arrays(__global const WideNode* nodes,
     }
 }
 
-TRAVERSAL_KERNEL void intersect_any_arrays(__global const WideNode* nodes,
-        __global const Triangle* triangles, __global const float* origins,
+TRAVERSAL_KERNEL void intersect_any_arrays(SCENE_PARAMS, __global const float* origins,
         __global const float* directions, __global const float* tmin, const uint tmin_step,
         __global const float* tmax, const uint tmax_step, __global uchar* occluded,
         __global int* overflow, const uint ray_count)
@@ -177,6 +317,6 @@ TRAVERSAL_KERNEL void intersect_any_arrays(__global const WideNode* nodes,
     RayLanes lanes;
     if (used != 0) {
         load_arrays(first, used, origins, directions, tmin, tmin_step, tmax, tmax_step, &lanes);
-        any_hits(&lanes, used, nodes, triangles, overflow, occluded + first);
+        any_hits(&lanes, used, first, SCENE_ARGS, overflow, occluded + first);
     }
 }

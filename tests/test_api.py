@@ -25,7 +25,7 @@ def test_public_names():
     assert public == {"intersect", "occluded", "intersect_all", "count_intersections",
                       "closest_points", "signed_distance", "contains", "winding_number",
                       "update_vertices", "rebuild", "stats", "device", "meshes", "builder",
-                      "morton_bits"}
+                      "morton_bits", "set_transforms", "transforms", "masks"}
     assert isinstance(scene.stats, hlbvh_cl.BuildStats)
     assert isinstance(scene.device, hlbvh_cl.Device)
 

@@ -11,7 +11,7 @@ import pytest
 from hlbvh_cl import inputs
 from ray_cases import scene_case
 
-HIT_FIELDS = ("t", "prim_id", "geom_id", "u", "v", "normal", "points")
+HIT_FIELDS = ("t", "prim_id", "geom_id", "u", "v", "normal", "points", "instance_id")
 
 
 @pytest.fixture(scope="module")

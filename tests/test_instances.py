@@ -1,0 +1,304 @@
+"""Instanced scenes (hlbvh_cl.instances, kernels/instance.h) against the same
+scene flattened with its transforms baked in: a float64 numpy brute force on
+small meshes, Embree on the bunny; masks against a filtered brute force;
+invariants of both levels; and the errors bad instances get."""
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pyopencl as cl
+import pytest
+import trimesh
+
+import hlbvh_cl
+from invariants import check_tree
+from oracle import brute_force_intersect, brute_force_occluded
+
+
+def _rotation(rng) -> np.ndarray:
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    return q * np.sign(np.diag(r))
+
+
+def _transforms(rng, count: int, spread: float = 4.0) -> np.ndarray:
+    """(count, 3, 4) maps: rotated, non-uniformly scaled, every third one
+    mirrored, some overlapping (spread is about two mesh sizes)."""
+    maps = np.empty((count, 3, 4))
+    for k in range(count):
+        linear = _rotation(rng) @ np.diag(rng.uniform(0.5, 2.0, 3))
+        if k % 3 == 0:
+            linear[:, 0] *= -1
+        maps[k, :, :3] = linear
+        maps[k, :, 3] = rng.uniform(-spread, spread, 3)
+    return maps
+
+
+def _flattened(meshes, instance_meshes, maps):
+    """float64 vertices and faces of every instance, concatenated, with the
+    (instance, face) of each flattened triangle."""
+    vertices, faces, owner, prim, offset = [], [], [], [], 0
+    for k, (m, a) in enumerate(zip(instance_meshes, maps)):
+        mesh = meshes[m]
+        vertices.append(mesh.vertices.astype(np.float64) @ a[:, :3].T + a[:, 3])
+        faces.append(mesh.faces + offset)
+        owner.append(np.full(mesh.triangle_count, k))
+        prim.append(np.arange(mesh.triangle_count))
+        offset += mesh.vertex_count
+    return (np.concatenate(vertices), np.concatenate(faces), np.concatenate(owner),
+            np.concatenate(prim))
+
+
+def _rays_at_centroids(rng, vertices, faces, count: int, reach: float = 15.0):
+    """Rays from random points on a sphere of radius ``reach`` (outside the
+    instances, so t is not tiny: a float32 origin is only good to a relative
+    2^-24 of its coordinates) towards random triangles' centroids (well
+    inside them, so no ray grazes an edge where rounding picks a side)."""
+    chosen = rng.integers(0, len(faces), count)
+    target = vertices[faces[chosen]].mean(axis=1)
+    origins = rng.normal(size=(count, 3))
+    origins *= reach / np.linalg.norm(origins, axis=1, keepdims=True)
+    return origins.astype(np.float32), (target - origins).astype(np.float32)
+
+
+def _steep(directions, normals) -> np.ndarray:
+    """Rays that meet their triangle at more than a grazing angle: where t is
+    well conditioned (at a grazing angle the float32 rounding of any
+    position becomes a large error along the ray)."""
+    cosine = (directions * normals).sum(axis=1) / (
+        np.linalg.norm(directions, axis=1) * np.linalg.norm(normals, axis=1))
+    return np.abs(cosine) > 0.2
+
+
+def _small_meshes():
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    box = trimesh.creation.box(extents=(1.0, 0.5, 2.0))
+    return [hlbvh_cl.Mesh(sphere.vertices, sphere.faces, name="sphere"),
+            hlbvh_cl.Mesh(box.vertices, box.faces, name="box")]
+
+
+def _check_against_oracle(scene, meshes, instance_meshes, maps, rng, count=3000, mask=None,
+                          visible=None):
+    vertices, faces, owner, prim = _flattened(meshes, instance_meshes, maps)
+    origins, directions = _rays_at_centroids(rng, vertices, faces, count)
+    keep = np.ones(len(faces), bool) if visible is None else visible[owner]
+    hits = scene.intersect(origins, directions, mask=mask)
+    want = brute_force_intersect(vertices, faces[keep], origins, directions)
+    index = np.flatnonzero(keep)
+    found = want["prim"] >= 0
+    assert (hits.hit == found).all()
+    k = index[want["prim"][found]]
+    np.testing.assert_array_equal(hits.instance_id[found], owner[k])
+    np.testing.assert_array_equal(hits.geom_id[found], instance_meshes[owner[k]])
+    np.testing.assert_array_equal(hits.prim_id[found], prim[k])
+    # t to 1e-5 where it is well conditioned
+    steep = _steep(directions[found], want["normal"][found])
+    np.testing.assert_allclose(hits.t[found][steep], want["t"][found][steep], rtol=1e-5)
+    # world normals: cross(v1 - v0, v2 - v0) of the mapped vertices
+    np.testing.assert_allclose(hits.normal[found], want["normal"][found], atol=1e-4)
+    np.testing.assert_array_equal(
+        scene.occluded(origins, directions, mask=mask),
+        brute_force_occluded(vertices, faces[keep], origins, directions))
+    return hits
+
+
+@pytest.fixture(scope="module")
+def small():
+    return _small_meshes()
+
+
+def test_mirrored_scaled_rotated_overlapping_instances_match_the_brute_force(small,
+                                                                              suite_device):
+    rng = np.random.default_rng(25)
+    maps = _transforms(rng, 12, spread=2.0)
+    instance_meshes = np.arange(12) % 2
+    scene = hlbvh_cl.Scene(small, device=suite_device,
+                           instances=[(int(m), a) for m, a in zip(instance_meshes, maps)])
+    hits = _check_against_oracle(scene, small, instance_meshes, maps, rng)
+    assert len(set(hits.instance_id[hits.hit].tolist())) == 12  # every instance was hit
+
+
+def test_4x4_transforms_and_set_transforms(small, suite_device):
+    rng = np.random.default_rng(7)
+    maps = _transforms(rng, 6)
+    four = np.tile(np.eye(4), (6, 1, 1))
+    four[:, :3] = maps
+    scene = hlbvh_cl.Scene(small, device=suite_device,
+                           instances=[(k % 2, four[k]) for k in range(6)])
+    np.testing.assert_array_equal(scene.transforms, maps)
+    _check_against_oracle(scene, small, np.arange(6) % 2, maps, rng, count=1000)
+    moved = _transforms(rng, 3, spread=6.0)
+    scene.set_transforms([1, 4, 5], moved)
+    maps[[1, 4, 5]] = moved
+    _check_against_oracle(scene, small, np.arange(6) % 2, maps, rng, count=1000)
+    scene.set_transforms(2, four[0])  # one id, one 4x4
+    maps[2] = maps[0]
+    _check_against_oracle(scene, small, np.arange(6) % 2, maps, rng, count=1000)
+
+
+def test_instance_masks_against_a_filtered_oracle(small, suite_device):
+    rng = np.random.default_rng(3)
+    maps = _transforms(rng, 8)
+    masks = np.array([1, 2, 4, 8, 3, 5, 0xFFFFFFFF, 0x80000000], np.uint32)
+    instance_meshes = np.arange(8) % 2
+    scene = hlbvh_cl.Scene(small, device=suite_device, masks=masks,
+                           instances=[(int(m), a) for m, a in zip(instance_meshes, maps)])
+    for ray_mask in (1, 2, 6, 0x80000000, 0):
+        _check_against_oracle(scene, small, instance_meshes, maps, rng, count=800,
+                              mask=ray_mask, visible=(masks & np.uint32(ray_mask)) != 0)
+    # per-ray masks: each ray against only what it sees
+    vertices, faces, owner, _ = _flattened(small, instance_meshes, maps)
+    origins, directions = _rays_at_centroids(rng, vertices, faces, 600)
+    ray_masks = rng.choice([1, 2, 4, 8, 0], len(origins)).astype(np.uint32)
+    hits = scene.intersect(origins, directions, mask=ray_masks)
+    occluded = scene.occluded(origins, directions, mask=ray_masks)
+    for value in np.unique(ray_masks):
+        rows = ray_masks == value
+        keep = ((masks & value) != 0)[owner]
+        want = brute_force_intersect(vertices, faces[keep], origins[rows], directions[rows])
+        np.testing.assert_allclose(hits.t[rows], want["t"], rtol=1e-5)
+        np.testing.assert_array_equal(occluded[rows], want["prim"] >= 0)
+
+
+def test_mesh_masks_of_a_flat_scene(small, suite_device):
+    """Masks on a scene without instances: each mesh in place (instances of
+    the masks' making, which hits do not report: instance_id -1)."""
+    scene = hlbvh_cl.Scene(small, device=suite_device, masks=[1, 2])
+    rng = np.random.default_rng(4)
+    vertices, faces, owner, prim = _flattened(small, np.arange(2), np.tile(np.eye(3, 4),
+                                                                           (2, 1, 1)))
+    origins, directions = _rays_at_centroids(rng, vertices, faces, 500)
+    for ray_mask in (1, 2, 3):
+        keep = ((np.array([1, 2]) & ray_mask) != 0)[owner]
+        got = scene.intersect(origins, directions, mask=ray_mask)
+        want = brute_force_intersect(vertices, faces[keep], origins, directions)
+        np.testing.assert_allclose(got.t, want["t"], rtol=1e-5)
+        found = want["prim"] >= 0
+        k = np.flatnonzero(keep)[want["prim"][found]]
+        np.testing.assert_array_equal(got.geom_id[found], owner[k])
+        np.testing.assert_array_equal(got.prim_id[found], prim[k])
+        assert (got.instance_id == -1).all()
+
+
+def test_identity_instances_trace_as_the_flat_scene(meshes, suite_device):
+    """Under identity maps the mapped ray is the ray itself: the same hits as
+    the flat tree over the same meshes, bit for bit (normals aside)."""
+    parts = [meshes["bunny"], _small_meshes()[1]]
+    flat = hlbvh_cl.Scene(parts, device=suite_device)
+    instanced = hlbvh_cl.Scene(parts, device=suite_device,
+                               instances=[(0, np.eye(3, 4)), (1, np.eye(4))])
+    rng = np.random.default_rng(11)
+    origins = rng.uniform(-0.3, 0.3, (5000, 3)).astype(np.float32)
+    directions = rng.normal(size=(5000, 3)).astype(np.float32)
+    a, b = flat.intersect(origins, directions), instanced.intersect(origins, directions)
+    for name in ("t", "geom_id", "prim_id", "u", "v", "points"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    # the normal goes through the (identity) inverse transpose: rounding only
+    np.testing.assert_allclose(a.normal, b.normal, atol=3e-7)
+    np.testing.assert_array_equal(b.instance_id, np.where(a.hit, a.geom_id, -1))
+    assert (a.instance_id == -1).all()
+
+
+def test_bunny_instances_agree_with_embree(meshes, suite_device):
+    embreex = pytest.importorskip("embreex.rtcore_scene")
+    bunny = meshes["bunny"]
+    rng = np.random.default_rng(5)
+    maps = _transforms(rng, 20, spread=0.4)
+    scene = hlbvh_cl.Scene([bunny], device=suite_device,
+                           instances=[(0, a) for a in maps])
+    vertices, faces, owner, prim = _flattened([bunny], np.zeros(20, int), maps)
+    reference = embreex.EmbreeScene()
+    from embreex.mesh_construction import TriangleMesh
+    TriangleMesh(reference, vertices.astype(np.float32)[faces])
+    origins, directions = _rays_at_centroids(rng, vertices, faces, 20000, reach=2.0)
+    result = reference.run(origins, directions, output=1)
+    hits = scene.intersect(origins, directions)
+    found = result["geomID"] >= 0
+    agree = hits.hit == found
+    assert agree.mean() > 0.999
+    both = found & hits.hit
+    # overlapping bunnies cross each other: where two surfaces meet within
+    # rounding, either may be nearest
+    same = (hits.instance_id[both] == owner[result["primID"][both]]) & \
+        (hits.prim_id[both] == prim[result["primID"][both]])
+    assert same.mean() > 0.999
+    rows = np.flatnonzero(both)[same]
+    corners = vertices[faces[result["primID"][rows]]]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    steep = _steep(directions[rows], normals)
+    np.testing.assert_allclose(hits.t[rows][steep], result["tfar"][rows][steep], rtol=1e-5)
+
+
+def test_both_levels_hold_their_invariants(small, suite_device):
+    rng = np.random.default_rng(9)
+    maps = _transforms(rng, 40, spread=20.0)
+    scene = hlbvh_cl.Scene(small, device=suite_device,
+                           instances=[(k % 2, a) for k, a in enumerate(maps)])
+    tree, queue = scene._tree, scene._runtime.queue
+    # the top: one proxy triangle per instance spanning its world box
+    tris, _ = tree.top.read_triangles(queue)
+    proxies = np.stack([tris["v0"], tris["v1"], tris["v2"]], axis=1)
+    refs = tree.top.read_triangles(queue)[1]
+    proxy_vertices = np.empty((40, 3, 3), np.float32)
+    proxy_vertices[refs["prim_id"]] = proxies / np.float32(tree.top.scale)
+    proxy_mesh = hlbvh_cl.Mesh(proxy_vertices.reshape(-1, 3), np.arange(120).reshape(-1, 3))
+    check_tree(SimpleNamespace(_runtime=scene._runtime, _tree=tree.top, meshes=[proxy_mesh],
+                               stats=scene.stats, builder=scene.builder))
+    # each world box holds its instance's mapped vertices
+    lo, hi = proxy_vertices[:, 0], proxy_vertices[:, 1]
+    for k, a in enumerate(maps):
+        world = small[k % 2].vertices.astype(np.float64) @ a[:, :3].T + a[:, 3]
+        assert (world >= lo[k]).all() and (world <= hi[k]).all()
+    # each mesh's tree, read from its place among the meshes' trees
+    trees = tree.meshes
+    for m, mesh in enumerate(small):
+        count = sum(c for _, c in trees.levels[m])
+        nodes = np.empty(count, hlbvh_cl.layout.WIDE_NODE)
+        cl.enqueue_copy(queue, nodes, trees.nodes,
+                        src_offset=int(trees.node_base[m]) * nodes.itemsize)
+        tris = np.empty(mesh.triangle_count, hlbvh_cl.layout.TRIANGLE)
+        refs = np.empty(mesh.triangle_count, hlbvh_cl.layout.TRIANGLE_REF)
+        first = int(trees.triangle_base[m])
+        cl.enqueue_copy(queue, tris, trees.triangles, src_offset=first * tris.itemsize)
+        cl.enqueue_copy(queue, refs, trees.refs, src_offset=first * refs.itemsize)
+        view = SimpleNamespace(read_nodes=lambda q, n=nodes: n,
+                               read_triangles=lambda q, t=tris, r=refs: (t, r),
+                               triangle_count=mesh.triangle_count, node_count=count,
+                               levels=trees.levels[m], depth=len(trees.levels[m]),
+                               scale=trees.scales[m])
+        check_tree(SimpleNamespace(_runtime=scene._runtime, _tree=view, meshes=[mesh],
+                                   stats=trees.stats[m], builder=scene.builder))
+
+
+@pytest.mark.parametrize("instances, message", [
+    ([], "instances is empty"),
+    ([(2, np.eye(3, 4))], r"instances\[0\]\[0\] = 2 is not a mesh index"),
+    ([(0, np.eye(3))], r"instances\[0\]\[1\] \(transform\) has shape \(3, 3\)"),
+    ([(0, np.eye(3, 4)), (0, np.zeros((3, 4)))], r"instances\[1\]\[1\] is singular"),
+    ([(0, np.diag([1.0, 1.0, 1.0, 2.0]))], r"instances\[0\]\[1\] has last row"),
+    ([(0, np.full((3, 4), np.nan))], r"instances\[0\]\[1\] is not finite"),
+    ([(0.5, np.eye(3, 4))], r"instances\[0\]\[0\] \(mesh_index\) must be an int"),
+    ([np.eye(3, 4)], r"instances\[0\] must be a \(mesh_index, transform\) pair"),
+])
+def test_bad_instances_are_named(small, suite_device, instances, message):
+    with pytest.raises((ValueError, TypeError), match=message):
+        hlbvh_cl.Scene(small, device=suite_device, instances=instances)
+
+
+def test_bad_masks_and_updates_are_named(small, suite_device):
+    with pytest.raises(ValueError, match=r"masks\[1\] = 4294967296 does not fit 32 bits"):
+        hlbvh_cl.Scene(small, device=suite_device, masks=[1, 2**32])
+    with pytest.raises(ValueError, match=r"masks has shape \(3,\), expected \(2,\)"):
+        hlbvh_cl.Scene(small, device=suite_device, masks=[1, 2, 3])
+    flat = hlbvh_cl.Scene(small, device=suite_device)
+    with pytest.raises(ValueError, match="set_transforms needs an instanced Scene"):
+        flat.set_transforms([0], np.eye(3, 4)[None])
+    with pytest.raises(ValueError, match=r"mask\[1\] = -1 does not fit 32 bits"):
+        flat.intersect(np.zeros((2, 3)), np.ones((2, 3)), mask=[1, -1])
+    scene = hlbvh_cl.Scene(small, device=suite_device, instances=[(0, np.eye(3, 4))])
+    with pytest.raises(ValueError, match=r"instance_ids\[0\] = 3 is out of range"):
+        scene.set_transforms([3], np.eye(3, 4)[None])
+    with pytest.raises(ValueError, match=r"transforms\[0\] is singular"):
+        scene.set_transforms([0], np.zeros((1, 3, 4)))
+    hits = scene.intersect(np.zeros((1, 3)) - 5, np.ones((1, 3)))
+    assert hits.instance_id[0] == 0  # the scene still holds its instance
