@@ -741,7 +741,8 @@ def plot(results: dict, path: Path) -> Path:
                             va="bottom", fontsize=8)
         memory.set_xticks(x, [d for d, _ in rows])
         memory.set(ylabel="peak RSS growth, MiB", title=f"c. build memory, {c['mesh']}")
-        memory.legend(fontsize=8)
+        memory.set_ylim(0, memory.get_ylim()[1] * 1.25)  # room for the notes and the legend
+        memory.legend(fontsize=8, loc="upper right")
 
     bars = []
     d, g = results.get("identity"), results.get("grid")
@@ -755,10 +756,12 @@ def plot(results: dict, path: Path) -> Path:
         speed.set_axis_on()
         speed.bar(range(len(bars)), [v for _, v in bars],
                   color=["C2" if "mitsuba" in n else "C0" for n, _ in bars])
-        speed.set_xticks(range(len(bars)), [n for n, _ in bars], fontsize=7)
+        speed.set_xticks(range(len(bars)), [n.replace(" ", "\n") for n, _ in bars], fontsize=6)
         speed.set(yscale="log", ylabel="Mrays/s (median)",
                   title="d. camera rays, numpy in and out")
         plots._plain_log(speed)
+        from matplotlib.ticker import NullFormatter
+        speed.yaxis.set_minor_formatter(NullFormatter())  # a decade's labels crowd
     return plots._save(figure, path)
 
 
