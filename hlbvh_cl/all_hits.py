@@ -24,7 +24,8 @@ import pyopencl as cl
 
 from . import inputs
 from .order import COHERENT_MIN, coherent_order, take_rows
-from .query import RayQuery, _into_frame, _stack_size, collect
+from .instances import InstancedTree
+from .query import RayQuery, _into_frame, _masked, _stack_size, collect, scene_args
 from .tree import Tree
 
 #: Hits one fill launch writes at most (one ray with more still goes alone):
@@ -40,7 +41,7 @@ RAY_INDEX_BLOCK = 1 << 16
 
 #: Output arrays of the fill pass: dtype per hit.
 HIT_FIELDS = {"t": np.float32, "u": np.float32, "v": np.float32, "prim_id": np.int32,
-              "geom_id": np.int32}
+              "geom_id": np.int32, "instance_id": np.int32}
 
 
 @dataclass
@@ -57,6 +58,7 @@ class AllHits:
     geom_id: np.ndarray    # int32 (H,) mesh index in the scene
     u: np.ndarray          # float32 (H,) hit = (1-u-v)*v0 + u*v1 + v*v2
     v: np.ndarray          # float32 (H,)
+    instance_id: np.ndarray  # int32 (H,) instance hit in an instanced scene; else -1
     shape: tuple           # the rays' leading shape, prod(shape) = R
 
     def __len__(self) -> int:
@@ -79,12 +81,15 @@ def _check_max_hits(max_hits) -> int | None:
     return min(int(max_hits), np.iinfo(np.int32).max)
 
 
-def _rays(origins, directions, tmin, tmax, tree):
-    """The checked rays (hlbvh_cl.inputs) in the tree's frame: their four
-    arrays, the per-ray t factor back (query._into_frame) and their leading
-    shape.  The one place that reads the caller's ray arrays."""
-    batch, t_factor = _into_frame(inputs.rays(origins, directions, tmin, tmax), tree)
-    return (batch.origins, batch.directions, batch.tmin, batch.tmax), t_factor, batch.shape
+def _rays(origins, directions, tmin, tmax, mask, tree):
+    """The checked rays (hlbvh_cl.inputs) in the tree's frame: their five
+    arrays (with the masks, query._masked), the per-ray t factor back
+    (query._into_frame) and their leading shape.  The one place that reads
+    the caller's ray arrays."""
+    batch, t_factor = _into_frame(_masked(inputs.rays(origins, directions, tmin, tmax), mask,
+                                          tree), tree)
+    return ((batch.origins, batch.directions, batch.tmin, batch.tmax, batch.mask), t_factor,
+            batch.shape)
 
 
 class AllHitsQuery:
@@ -105,10 +110,10 @@ class AllHitsQuery:
     # -- public queries ---------------------------------------------------
 
     def count(self, tree: Tree, origins, directions=None, tmin=0.0,
-              tmax=np.inf) -> np.ndarray:
+              tmax=np.inf, mask=None) -> np.ndarray:
         """int32, in the rays' leading shape: the number of hits of each ray
-        with tmin <= t <= tmax."""
-        rays, _, shape = _rays(origins, directions, tmin, tmax, tree)
+        with tmin <= t <= tmax (``mask`` as RayQuery.intersect)."""
+        rays, _, shape = _rays(origins, directions, tmin, tmax, mask, tree)
         order, rays, _ = _coherent(rays, None)
         with self._lock:
             counts = self._count(tree, *rays)
@@ -117,11 +122,12 @@ class AllHitsQuery:
         return counts.reshape(shape)
 
     def intersect_all(self, tree: Tree, origins, directions=None, tmin=0.0, tmax=np.inf,
-                      max_hits=None) -> AllHits:
+                      max_hits=None, mask=None) -> AllHits:
         """Every hit of each ray with tmin <= t <= tmax, sorted by t; with
-        max_hits=k only the k nearest of each ray."""
+        max_hits=k only the k nearest of each ray (``mask`` as
+        RayQuery.intersect)."""
         max_hits = _check_max_hits(max_hits)
-        rays, t_factor, shape = _rays(origins, directions, tmin, tmax, tree)
+        rays, t_factor, shape = _rays(origins, directions, tmin, tmax, mask, tree)
         order, rays, t_factor = _coherent(rays, t_factor)
         with self._lock:
             kept = self._count(tree, *rays, empty=np.empty)  # a temporary: not pooled
@@ -148,38 +154,42 @@ class AllHitsQuery:
         compiles traverse.cl but one ray per work-item."""
         defines = {"STACK_SIZE": _stack_size(tree), "PACKET_SIZE": 1,
                    **self.query.variant.defines, **self.rt.prefetch_defines}
+        if isinstance(tree, InstancedTree):
+            defines["INSTANCES"] = 1
         return self.rt.kernel("all_hits.cl", name, **defines)
 
-    def _count(self, tree, origins, directions, tmin, tmax, empty=None) -> np.ndarray:
+    def _count(self, tree, origins, directions, tmin, tmax, mask, empty=None) -> np.ndarray:
         count = len(origins)
         counts = (empty or self.query._results.empty)(count, np.int32)
         if not (count and self.query._check_tree(tree)):
             counts[:] = 0
             return counts
         kernel = self._kernel(tree, "count_hits_arrays")
-        self._launches(tree, kernel, (origins, directions, tmin, tmax), None,
+        self._launches(tree, kernel, (origins, directions, tmin, tmax, mask), None,
                        {"counts": counts}, lambda start, stop: [])
         return counts
 
-    def _fill(self, tree, origins, directions, tmin, tmax, offsets, fields, t_factor) -> None:
+    def _fill(self, tree, origins, directions, tmin, tmax, mask, offsets, fields,
+              t_factor) -> None:
         kernel = self._kernel(tree, "fill_hits_arrays")
 
         def segments(start, stop):  # the rays' segments, from the chunk's first hit
             segment = np.empty(stop - start + 1, np.uint32)
             np.subtract(offsets[start:stop + 1], offsets[start], out=segment, casting="unsafe")
             return [segment]
-        self._launches(tree, kernel, (origins, directions, tmin, tmax), offsets, fields,
-                       segments, refs=True)
+        self._launches(tree, kernel, (origins, directions, tmin, tmax, mask), offsets, fields,
+                       segments)
         if t_factor is not None:  # back from the frame: exact, powers of two
             for start, stop in _chunks(offsets, self.query.max_rays_per_launch, len(origins)):
                 part = slice(int(offsets[start]), int(offsets[stop]))
                 fields["t"][part] = fields["t"][part] * np.repeat(
                     t_factor[start:stop], np.diff(offsets[start:stop + 1]))
 
-    def _launches(self, tree, kernel, rays, offsets, outputs, extra, refs=False) -> None:
+    def _launches(self, tree, kernel, rays, offsets, outputs, extra) -> None:
         """Runs `kernel` over chunks of rays (_chunks of `offsets`, the prefix
-        sum of each ray's output slots; None: one slot per ray): its arguments are the tree, the
-        chunk's rays, extra(start, stop) (host arrays), the chunk's slots of
+        sum of each ray's output slots; None: one slot per ray): its arguments are the scene
+        (query.scene_args, with the chunk's masks), the chunk's rays, extra(start, stop) (host
+        arrays), the chunk's slots of
         `outputs`, the counters and the ray count.  On PoCL the kernels read
         and write the arrays themselves (zero copy); elsewhere the rays go up
         per chunk and the results come back through buffers reused between
@@ -192,7 +202,7 @@ class AllHitsQuery:
             host = flags.USE_HOST_PTR if query.zero_copy else flags.COPY_HOST_PTR
             return cl.Buffer(context, access | host, hostbuf=array)
         origins, directions, *limits = rays
-        scalars = {id(value): wrap(np.full(1, value, np.float32), flags.READ_ONLY)
+        scalars = {id(value): wrap(np.full(1, value, value.dtype), flags.READ_ONLY)
                    for value in limits if value.ndim == 0}
         # at most two launches in flight (Ctrl-C waits for few), and chunks small
         # enough off PoCL that the rays' copies stay small
@@ -208,9 +218,10 @@ class AllHitsQuery:
                     (int(offsets[start]), int(offsets[stop]))
                 args = [wrap(origins[start:stop], flags.READ_ONLY),
                         wrap(directions[start:stop], flags.READ_ONLY)]
-                for value in limits:
-                    args += [wrap(value[start:stop], flags.READ_ONLY), np.uint32(1)] \
-                        if value.ndim else [scalars[id(value)], np.uint32(0)]
+                stepped = [[wrap(value[start:stop], flags.READ_ONLY), np.uint32(1)]
+                           if value.ndim else [scalars[id(value)], np.uint32(0)]
+                           for value in limits]  # tmin, tmax, mask
+                args += stepped[0] + stepped[1]
                 held = extra(start, stop)
                 args += [wrap(array, flags.READ_ONLY) for array in held]
                 parts = {name: array[first:last] for name, array in outputs.items()}
@@ -218,7 +229,7 @@ class AllHitsQuery:
                     buffers = {name: wrap(part, flags.WRITE_ONLY) for name, part in parts.items()}
                 else:
                     buffers = self._reserve(outputs, last - first)
-                tree_args = (tree.nodes, tree.triangles) + ((tree.refs,) if refs else ())
+                tree_args = scene_args(tree, *stepped[2])
                 events.append(rt.run(kernel, stop - start, *tree_args, *args,
                                      *buffers.values(), self._counters, np.uint32(stop - start),
                                      local_size=query.work_group_size))
@@ -254,12 +265,12 @@ class AllHitsQuery:
 def _coherent(rays: tuple, t_factor):
     """Big batches in Morton order of their origins (hlbvh_cl.order): the
     order (None: as given), the rays and the per-ray t factor in it."""
-    origins, directions, tmin, tmax = rays
+    origins, directions, tmin, tmax, mask = rays
     if len(origins) < COHERENT_MIN:
         return None, rays, t_factor
     order = coherent_order(origins)
     rays = (take_rows(origins, order), take_rows(directions, order),
-            *(limit[order] if limit.ndim else limit for limit in (tmin, tmax)))
+            *(limit[order] if limit.ndim else limit for limit in (tmin, tmax, mask)))
     return order, rays, None if t_factor is None else t_factor[order]
 
 

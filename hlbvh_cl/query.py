@@ -270,9 +270,9 @@ class RayQuery:
 
     def _kernel(self, tree: Tree, name: str,
                 count_packets: bool = False) -> cl.Kernel:
-        """The traversal kernel `name` for `tree` (an instanced one: one ray
-        per work-item, kernels/instance.h)."""
-        defines = {"STACK_SIZE": _stack_size(tree), "PACKET_SIZE": _packet_size(self, tree),
+        """The traversal kernel `name` for `tree` (an instanced one's walks
+        its top tree, kernels/instance.h)."""
+        defines = {"STACK_SIZE": _stack_size(tree), "PACKET_SIZE": self.packet_size,
                    **self.variant.defines, **self.rt.prefetch_defines}
         if isinstance(tree, InstancedTree):
             defines["INSTANCES"] = 1
@@ -280,9 +280,9 @@ class RayQuery:
             defines["COUNT_PACKETS"] = 1
         return self.rt.kernel("traverse.cl", name, **defines)
 
-    def _work_items(self, rays: int, tree) -> int:
-        """Work-items that trace `rays` rays through `tree`."""
-        return -(-rays // _packet_size(self, tree))
+    def _work_items(self, rays: int, tree=None) -> int:
+        """Work-items that trace `rays` rays, packet_size rays each."""
+        return -(-rays // self.packet_size)
 
     def _require_triangles(self, tree: Tree) -> None:
         if not self._check_tree(tree):
@@ -410,11 +410,6 @@ def scene_args(tree, masks: cl.Buffer, mask_step) -> tuple:
     if isinstance(tree, InstancedTree):
         return tree.scene_args(masks, mask_step)
     return tree.nodes, tree.triangles, tree.refs
-
-
-def _packet_size(query: "RayQuery", tree) -> int:
-    """Rays per work-item: one through instanced trees (kernels/instance.h)."""
-    return 1 if isinstance(tree, InstancedTree) else query.packet_size
 
 
 def _masked(batch: inputs.Rays, mask, tree) -> inputs.Rays:

@@ -258,25 +258,27 @@ class Scene:
             return self._ray_query().occluded(self._built_tree(), origins, directions, tmin,
                                               tmax, mask)
 
-    def intersect_all(self, origins, directions=None, tmin=0.0, tmax=np.inf, max_hits=None):
+    def intersect_all(self, origins, directions=None, tmin=0.0, tmax=np.inf, max_hits=None,
+                      mask=None):
         """Every hit of each ray in [tmin, tmax], sorted by t, as an AllHits
         (flat arrays, ray r's hits at [offsets[r], offsets[r + 1]), rays as
         intersect takes them, numbered in C order); with max_hits=k only the
-        k nearest of each ray.  A crossing through a shared edge or vertex
-        counts once."""
+        k nearest of each ray; mask as intersect takes it.  A crossing
+        through a shared edge or vertex counts once."""
         with self._lock:
-            return self._all_hits_query().intersect_all(self._flat_tree("intersect_all"),
-                                                        origins, directions,
-                                                        tmin, tmax, max_hits)
+            hits = self._all_hits_query().intersect_all(self._built_tree(), origins, directions,
+                                                        tmin, tmax, max_hits, mask)
+            if self._two_level is not None and not self._instanced:
+                hits.instance_id[...] = -1  # instances of the masks' making
+            return hits
 
     def count_intersections(self, origins, directions=None, tmin=0.0,
-                            tmax=np.inf) -> np.ndarray:
+                            tmax=np.inf, mask=None) -> np.ndarray:
         """int32, in the rays' leading shape: how many hits each ray has in
-        [tmin, tmax] (as intersect_all counts them)."""
+        [tmin, tmax] (as intersect_all counts them; mask as intersect)."""
         with self._lock:
-            return self._all_hits_query().count(self._flat_tree("count_intersections"),
-                                                origins, directions, tmin,
-                                                tmax)
+            return self._all_hits_query().count(self._built_tree(), origins, directions, tmin,
+                                                tmax, mask)
 
     def _all_hits_query(self):
         if self._all_hits is None:

@@ -1,4 +1,5 @@
-"""TOML scene files: meshes with colours and transforms, a ground, a camera, a light.
+"""TOML scene files: meshes with colours and transforms, instances of them, a
+ground, a camera, a light.
 
 ``read(path)`` parses one with tomllib into a SceneDescription whose meshes
 are already loaded, split and transformed; ``load(path)`` also builds its
@@ -38,12 +39,43 @@ Schema (every table and key is listed here; any other key is an error)::
     translate = [0.0, 0.0, 0.0]
     place_on_ground = false       # move along y so the mesh's lowest point is at the ground's y
 
+    [[instance]]                  # optional, any number: copies of one mesh (Instances, below)
+    mesh = 0                      # required: the [[mesh]] table drawn, counting from 0
+    scale = 1.0                   # > 0: one number, or three (per axis)
+    rotate_deg = [0.0, 0.0, 0.0]  # as a mesh's
+    translate = [0.0, 0.0, 0.0]   # one position, or a list of them [[x, y, z], ...]: a copy at each
+    grid = { count = [100, 50], spacing = [2.0, 4.0], origin = [0.0, 0.0, 0.0], jitter = 0.0 }
+                                  # instead of translate: count[0] x count[1] copies (integers >= 1)
+                                  # at origin + [i * spacing[0], 0, j * spacing[1]] (spacing > 0,
+                                  # origin default [0, 0, 0]); jitter (0..0.5, default 0) moves
+                                  # each copy by a random amount up to jitter x spacing in x and z
+    random_yaw_deg = 0.0          # 0..180: turn each copy about +y by a random angle in +-it
+    seed = 0                      # integer >= 0 for yaw and jitter; default the table's index
+    place_on_ground = false       # set each copy's y so its lowest point is at the ground's y
+
 Each mesh is split first, then scaled (scale, then fit_height), rotated and
 translated (translate, then place_on_ground).  fit_height measures the y
 extent after scale and rotation; since a uniform scale commutes with a
 rotation this equals scaling first by the right factor.  place_on_ground uses
 the ground's y when it is a number, and 0 when there is no ground or its y is
 "auto" (the ground then sits at the lowest mesh point).
+
+Instances: a file with no [[instance]] table draws each mesh once, where its
+own keys put it.  A file with any draws only instances: each mesh, shaped
+by its keys as above, is a prototype built once however many copies draw it
+(a mesh no instance names is not drawn), and the ground is one more mesh
+drawn once where it lies.  Copy k of an instance maps a prototype point p to
+Ry(yaw_k) R S p + position_k: S the table's scale, R its rotate_deg (the
+mesh's rotation convention), Ry(yaw_k) a turn about +y by the random yaw
+(none without random_yaw_deg), and position_k its translate, or its grid
+place plus jitter, with y replaced when place_on_ground is set.  The Scene
+gets the copies in file order, a grid's with i varying fastest, then the
+ground's; Hits.geom_id is the mesh's index in the file (the ground's is the
+number of meshes) and colours stay per mesh.  The ground's "auto" y is the
+lowest point of all copies, and its default size and centre come from the
+copies' boxes (each copy's prototype box, scaled, rotated and then turned
+and moved with the copy).  Random draws come from numpy's default_rng(seed):
+for a table of n copies, first the n yaws, then the grid's n (x, z) jitters.
 
 Camera convention (for renderers): forward = normalise(target - eye),
 right = normalise(forward x up), true_up = right x forward.  Pixel (x, y),
@@ -52,7 +84,8 @@ y counting down from the top row, has its centre at
 + (1 - 2 (y + 0.5) / height) * true_up) * tan(fov_deg / 2)``, aspect = width / height.
 
 Every error is a SceneFileError naming the file and the key, e.g.
-``reference.toml: mesh[2].split: expected an integer >= 1, got 0``.
+``reference.toml: mesh[2].split: expected an integer >= 1, got 0`` or
+``field.toml: instance[3].grid.count[1]: expected an integer >= 1, got 0``.
 """
 from __future__ import annotations
 
@@ -76,6 +109,8 @@ Vec3 = tuple[float, float, float]
 
 _DEFAULT_COLOR: Color = (0.8, 0.8, 0.8)
 _MAX_IMAGE_SIDE = 16384
+# Copies in one file; a bound checked before any array of them is made.
+MAX_INSTANCES = 1 << 24
 
 
 class SceneFileError(ValueError):
@@ -98,6 +133,13 @@ class MeshEntry:
     split: int = 1
 
 
+@dataclass(frozen=True)
+class InstanceEntry:
+    """One [[instance]] table: copies of meshes[mesh]."""
+    mesh: int
+    transforms: np.ndarray  # (copies, 3, 4) float64, object -> world: [A | t]
+
+
 @dataclass
 class SceneDescription:
     path: Path
@@ -107,10 +149,32 @@ class SceneDescription:
     light: Light
     meshes: list[MeshEntry] = field(default_factory=list)
     ground: Ground | None = None
+    instances: list[InstanceEntry] = field(default_factory=list)  # empty: no [[instance]]
 
     @property
     def triangle_count(self) -> int:
+        """Triangles stored: each mesh (and the ground) once, however often drawn."""
         return sum(m.triangle_count for m, _ in self.geometries())
+
+    @property
+    def drawn_triangle_count(self) -> int:
+        """Triangles in the picture's world: each mesh times its copies."""
+        if not self.instances:
+            return self.triangle_count
+        ground = 0 if self.ground is None else self.ground.mesh.triangle_count
+        return ground + sum(len(entry.transforms) * self.meshes[entry.mesh].mesh.triangle_count
+                            for entry in self.instances)
+
+    def placements(self) -> list[tuple[int, np.ndarray]]:
+        """Scene's ``instances``: (mesh index, (3, 4) transform) of every copy
+        in file order, then the ground's (identity); [] without [[instance]]."""
+        if not self.instances:
+            return []
+        found = [(entry.mesh, transform) for entry in self.instances
+                 for transform in entry.transforms]
+        if self.ground is not None:
+            found.append((len(self.meshes), np.eye(3, 4)))
+        return found
 
     def geometries(self) -> list[tuple[Mesh, Color]]:
         """(mesh, colour) of every surface: the meshes in file order, then the ground."""
@@ -120,13 +184,16 @@ class SceneDescription:
         return found
 
 
-_TOP_KEYS = ("render", "camera", "light", "ground", "mesh")
+_TOP_KEYS = ("render", "camera", "light", "ground", "mesh", "instance")
 _RENDER_KEYS = ("width", "height")
 _CAMERA_KEYS = ("eye", "target", "up", "fov_deg")
 _LIGHT_KEYS = ("direction", "intensity", "ambient")
 _GROUND_KEYS = ("y", "size", "color")
 _MESH_KEYS = ("path", "color", "split", "scale", "rotate_deg", "fit_height", "translate",
               "place_on_ground")
+_INSTANCE_KEYS = ("mesh", "scale", "rotate_deg", "translate", "grid", "random_yaw_deg", "seed",
+                  "place_on_ground")
+_GRID_KEYS = ("count", "spacing", "origin", "jitter")
 
 
 class _Reader:
@@ -191,6 +258,17 @@ class _Reader:
             raise self.error(key, f"expected true or false, got {_describe(value)}")
         return value
 
+    def scale(self, value, key: str) -> Vec3:
+        if isinstance(value, list):
+            return self.vector3(value, key, low=0.0, low_open=True)
+        return (self.number(value, key, low=0.0, low_open=True),) * 3
+
+    def pair(self, value, key: str, read) -> tuple:
+        """Two values [x, z], each checked by read(item, key)."""
+        if not isinstance(value, list) or len(value) != 2:
+            raise self.error(key, f"expected 2 values [x, z], got {_describe(value)}")
+        return tuple(read(item, f"{key}[{n}]") for n, item in enumerate(value))
+
 
 def _describe(value) -> str:
     kinds = {bool: "a boolean", int: "an integer", float: "a number", str: "a string",
@@ -211,6 +289,18 @@ class _MeshSpec:
     rotate_deg: Vec3
     fit_height: float | None
     translate: Vec3
+    place_on_ground: bool
+
+
+@dataclass
+class _InstanceSpec:
+    """One [[instance]] table, checked; positions before place_on_ground."""
+    key: str
+    mesh: int
+    scale: Vec3
+    rotate_deg: Vec3
+    positions: np.ndarray  # (copies, 3) float64
+    yaw_deg: np.ndarray  # (copies,) float64
     place_on_ground: bool
 
 
@@ -242,8 +332,13 @@ def load(path, device=None, builder: str = "hlbvh", morton_bits: int = 30) -> Lo
     description = read(path)
     loaded = time.perf_counter()
     geometries = description.geometries()
-    scene = Scene([mesh for mesh, _ in geometries], device=device, builder=builder,
-                  morton_bits=morton_bits)
+    meshes = [mesh for mesh, _ in geometries]
+    placements = description.placements()
+    if placements:
+        scene = Scene(meshes, instances=placements, device=device, builder=builder,
+                      morton_bits=morton_bits)
+    else:  # a flat scene, as the file says: each mesh drawn once as it is
+        scene = Scene(meshes, device=device, builder=builder, morton_bits=morton_bits)
     return LoadedScene(scene=scene, camera=description.camera, light=description.light,
                        colors=tuple(color for _, color in geometries), width=description.width,
                        height=description.height, path=description.path,
@@ -283,12 +378,22 @@ def read(path) -> SceneDescription:
     light = _read_light(reader, data.get("light", {}))
     ground_spec = _read_ground(reader, data["ground"]) if "ground" in data else None
     specs = _read_mesh_specs(reader, data["mesh"], path.parent)
+    instance_specs = (_read_instance_specs(reader, data["instance"], len(specs))
+                      if "instance" in data else [])
 
     ground_y = 0.0 if ground_spec is None or ground_spec["y"] is None else ground_spec["y"]
     meshes = _load_meshes(reader, specs, ground_y)
-    ground = _make_ground(ground_spec, [entry.mesh for entry in meshes]) if ground_spec else None
+    placed = [_place(reader, spec, meshes[spec.mesh].mesh, ground_y) for spec in instance_specs]
+    instances = [entry for entry, _ in placed]
+    # The boxes of what is drawn: the copies' when there are instances.
+    boxes = [box for _, box in placed] or [entry.mesh.bounds for entry in meshes]
+    ground = None
+    if ground_spec:
+        lo = np.min([lo for lo, _ in boxes], axis=0)
+        hi = np.max([hi for _, hi in boxes], axis=0)
+        ground = _make_ground(ground_spec, lo, hi)
     return SceneDescription(path=path, width=width, height=height, camera=camera, light=light,
-                            meshes=meshes, ground=ground)
+                            meshes=meshes, ground=ground, instances=instances)
 
 
 def _read_camera(reader: _Reader, value) -> Camera:
@@ -351,11 +456,7 @@ def _read_mesh_specs(reader: _Reader, value, folder: Path) -> list[_MeshSpec]:
             raise reader.error(f"{key}.path", "missing (required)")
         if not isinstance(table["path"], str) or not table["path"]:
             raise reader.error(f"{key}.path", f"expected a file name, got {_describe(table['path'])}")
-        scale = table.get("scale", 1.0)
-        if isinstance(scale, list):
-            scale = reader.vector3(scale, f"{key}.scale", low=0.0, low_open=True)
-        else:
-            scale = (reader.number(scale, f"{key}.scale", low=0.0, low_open=True),) * 3
+        scale = reader.scale(table.get("scale", 1.0), f"{key}.scale")
         fit_height = table.get("fit_height")
         if fit_height is not None:
             fit_height = reader.number(fit_height, f"{key}.fit_height", low=0.0, low_open=True)
@@ -372,6 +473,92 @@ def _read_mesh_specs(reader: _Reader, value, folder: Path) -> list[_MeshSpec]:
                                            f"{key}.place_on_ground"),
         ))
     return specs
+
+
+def _read_instance_specs(reader: _Reader, value, mesh_count: int) -> list[_InstanceSpec]:
+    if not isinstance(value, list) or not value:
+        raise reader.error("instance", f"expected one or more [[instance]] tables, "
+                                       f"got {_describe(value)}")
+    specs = []
+    total = 0
+    for index, item in enumerate(value):
+        key = f"instance[{index}]"
+        table = reader.table(item, key, _INSTANCE_KEYS)
+        if "mesh" not in table:
+            raise reader.error(f"{key}.mesh", "missing (required)")
+        mesh = table["mesh"]
+        if isinstance(mesh, bool) or not isinstance(mesh, int):
+            raise reader.error(f"{key}.mesh", f"expected the index of a [[mesh]] table, counting "
+                                              f"from 0, got {_describe(mesh)}")
+        if not 0 <= mesh < mesh_count:
+            raise reader.error(f"{key}.mesh", f"no [[mesh]] table {mesh}: the file has "
+                                              f"{mesh_count} (mesh[0] to mesh[{mesh_count - 1}])")
+        if "grid" in table and "translate" in table:
+            raise reader.error(f"{key}.grid", "give either translate or grid, not both")
+        grid = _read_grid(reader, table["grid"], f"{key}.grid", MAX_INSTANCES - total) \
+            if "grid" in table else None
+        if grid is None:
+            positions = _read_positions(reader, table.get("translate", [0.0, 0.0, 0.0]),
+                                        f"{key}.translate")
+            if total + len(positions) > MAX_INSTANCES:
+                raise reader.error(f"{key}.translate", f"more than {MAX_INSTANCES:,} copies "
+                                                       f"in the file")
+        else:
+            positions, jitter = grid
+        copies = len(positions)
+        total += copies
+        yaw_range = reader.number(table.get("random_yaw_deg", 0.0), f"{key}.random_yaw_deg",
+                                  0.0, 180.0)
+        rng = np.random.default_rng(reader.integer(table.get("seed", index), f"{key}.seed", 0))
+        yaw = rng.uniform(-yaw_range, yaw_range, copies)
+        if grid is not None:
+            positions[:, [0, 2]] += rng.uniform(-1.0, 1.0, (copies, 2)) * jitter
+        specs.append(_InstanceSpec(
+            key=key,
+            mesh=mesh,
+            scale=reader.scale(table.get("scale", 1.0), f"{key}.scale"),
+            rotate_deg=reader.vector3(table.get("rotate_deg", [0.0, 0.0, 0.0]),
+                                      f"{key}.rotate_deg"),
+            positions=positions,
+            yaw_deg=yaw,
+            place_on_ground=reader.boolean(table.get("place_on_ground", False),
+                                           f"{key}.place_on_ground"),
+        ))
+    return specs
+
+
+def _read_positions(reader: _Reader, value, key: str) -> np.ndarray:
+    """translate: [x, y, z], or a list of them; (copies, 3) float64."""
+    if isinstance(value, list) and any(isinstance(item, list) for item in value):
+        return np.array([reader.vector3(item, f"{key}[{n}]") for n, item in enumerate(value)],
+                        dtype=np.float64)
+    if isinstance(value, list) and len(value) == 3:
+        return np.array([reader.vector3(value, key)], dtype=np.float64)
+    raise reader.error(key, f"expected a position [x, y, z] or a list of them, "
+                            f"got {_describe(value)}")
+
+
+def _read_grid(reader: _Reader, value, key: str, room: int) -> tuple[np.ndarray, np.ndarray]:
+    """A grid table: its positions (copies, 3), i fastest, and the x/z jitter amplitude."""
+    table = reader.table(value, key, _GRID_KEYS)
+    for required in ("count", "spacing"):
+        if required not in table:
+            raise reader.error(f"{key}.{required}", "missing (required)")
+    nx, nz = reader.pair(table["count"], f"{key}.count",
+                         lambda item, where: reader.integer(item, where, 1))
+    if nx * nz > room:
+        raise reader.error(f"{key}.count", f"{nx} x {nz} copies: more than {MAX_INSTANCES:,} "
+                                           f"in the file")
+    spacing = np.array(reader.pair(table["spacing"], f"{key}.spacing",
+                                   lambda item, where: reader.number(item, where, low=0.0,
+                                                                     low_open=True)))
+    origin = reader.vector3(table.get("origin", [0.0, 0.0, 0.0]), f"{key}.origin")
+    jitter = reader.number(table.get("jitter", 0.0), f"{key}.jitter", 0.0, 0.5)
+    positions = np.empty((nx * nz, 3))
+    positions[:, 0] = origin[0] + spacing[0] * np.tile(np.arange(nx), nz)
+    positions[:, 1] = origin[1]
+    positions[:, 2] = origin[2] + spacing[1] * np.repeat(np.arange(nz), nx)
+    return positions, jitter * spacing
 
 
 def _rotation(degrees: Vec3) -> np.ndarray:
@@ -439,9 +626,41 @@ def _load_mesh(reader: _Reader, spec: _MeshSpec, ground_y: float, step) -> MeshE
     return MeshEntry(mesh=transformed, color=spec.color, path=spec.path, split=spec.split)
 
 
-def _make_ground(spec: dict, meshes: list[Mesh]) -> Ground:
-    lo = np.min([m.bounds[0] for m in meshes], axis=0)
-    hi = np.max([m.bounds[1] for m in meshes], axis=0)
+def _place(reader: _Reader, spec: _InstanceSpec, mesh: Mesh, ground_y: float
+           ) -> tuple[InstanceEntry, tuple[np.ndarray, np.ndarray]]:
+    """An instance table's transforms, and the box around all its copies."""
+    linear = _rotation(spec.rotate_deg) * np.array(spec.scale)  # R @ diag(scale)
+    points = mesh.vertices[_used_rows(mesh.faces, mesh.vertex_count)].astype(np.float64)
+    # einsum, not a matrix product: see _load_mesh.
+    points = np.einsum("ij,kj->ik", points, linear)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    positions = spec.positions.copy()
+    if spec.place_on_ground:  # a turn about y leaves every point's height as it is
+        positions[:, 1] = ground_y - lo[1]
+    c, s = np.cos(np.radians(spec.yaw_deg)), np.sin(np.radians(spec.yaw_deg))
+    transforms = np.zeros((len(positions), 3, 4))
+    yaw = np.zeros((len(positions), 3, 3))
+    yaw[:, 0, 0], yaw[:, 0, 2], yaw[:, 1, 1], yaw[:, 2, 0], yaw[:, 2, 2] = c, s, 1.0, -s, c
+    transforms[:, :, :3] = np.einsum("nij,jk->nik", yaw, linear)
+    transforms[:, :, 3] = positions
+    # The box (lo, hi) turned by each yaw: x' = c x + s z and z' = c z - s x
+    # range independently over the box's x and z intervals.
+    def turned(a, b, lo_a, hi_a, lo_b, hi_b):
+        return (np.minimum(a * lo_a, a * hi_a) + np.minimum(b * lo_b, b * hi_b),
+                np.maximum(a * lo_a, a * hi_a) + np.maximum(b * lo_b, b * hi_b))
+    x_lo, x_hi = turned(c, s, lo[0], hi[0], lo[2], hi[2])
+    z_lo, z_hi = turned(c, -s, lo[2], hi[2], lo[0], hi[0])
+    copies_lo = np.stack([x_lo, np.full_like(x_lo, lo[1]), z_lo], axis=1) + positions
+    copies_hi = np.stack([x_hi, np.full_like(x_hi, hi[1]), z_hi], axis=1) + positions
+    box = copies_lo.min(axis=0), copies_hi.max(axis=0)
+    reach = max(np.abs(box[0]).max(), np.abs(box[1]).max())
+    if not reach < np.finfo(np.float32).max:
+        raise reader.error(f"{spec.key}.scale", f"the copies reach {reach:.3g}, beyond float32")
+    return InstanceEntry(mesh=spec.mesh, transforms=transforms), box
+
+
+def _make_ground(spec: dict, lo: np.ndarray, hi: np.ndarray) -> Ground:
+    """The ground square under the box (lo, hi) of what is drawn."""
     y = float(lo[1]) if spec["y"] is None else spec["y"]
     size = spec["size"]
     if size is None:

@@ -6,64 +6,80 @@
  * query state: the ray is mapped, not renormalised, so t, the limit and
  * every hit found so far mean the same in both frames.  This header holds
  * the map; the visitors live with their queries (traverse.cl, all_hits.cl).
- * One ray per work-item (PACKET_SIZE 1): a packet's rays would need mapping
- * per instance as well. */
+ * A packet of rays is mapped lane by lane and walks the mesh's tree as a
+ * packet when its mapped rays still share their direction signs
+ * (prepare_packet), else one ray at a time. */
 #ifndef INSTANCE_H
 #define INSTANCE_H
 
 #include "ray.h"
 #include "triangle.h"
 
-#if PACKET_SIZE != 1
-#error "instanced scenes are traced one ray per work-item (PACKET_SIZE 1)"
-#endif
-
-/* The ray as the caller gave it (in the top tree's frame) with its mask:
- * what each instance maps. */
-typedef struct {
-    float origin[3];
-    float direction[3];
-    uint mask;
-} WorldRay;
-
-TRAVERSAL_INLINE void world_ray(WorldRay* w, const RayLanes* lanes, uint mask)
-{
-    for (int k = 0; k < 3; ++k) {
-        w->origin[k] = lanes->origin[k][0];
-        w->direction[k] = lanes->direction[k][0];
-    }
-    w->mask = mask;
-}
-
-/* Whether the ray sees the instance ((ray mask & instance mask) != 0, as
- * Embree), and if so the ray in the instance's mesh frame, prepared for its
- * tree (*out): origin
- * by the whole map, direction by its linear part, row by row in a fixed
- * order (FP_CONTRACT is off in triangle.h), so every device maps alike.  In
- * double where the device has it: then only the final rounding to float
- * stands between the mapped ray and the exact one. */
+#ifdef INSTANCES
 #ifdef cl_khr_fp64
 typedef double map_real;
 #else
 typedef float map_real;
 #endif
-TRAVERSAL_INLINE bool instance_ray(RayData* out, __global const Instance* in, const WorldRay* w,
-                                   float tmin, float tmax)
+
+/* Component `row` of the instance's map applied to a point (with the
+ * offset) or a direction (without): in a fixed order (FP_CONTRACT is off
+ * in triangle.h), so every device maps alike, and in double where the
+ * device has it, so only the final rounding to float stands between the
+ * mapped ray and the exact one. */
+#define MAP_POINT(m, x, y, z) \
+    (((map_real)(m)[0] * (x) + (map_real)(m)[1] * (y)) + (map_real)(m)[2] * (z) + (map_real)(m)[3])
+#define MAP_DIRECTION(m, x, y, z) \
+    (((map_real)(m)[0] * (x) + (map_real)(m)[1] * (y)) + (map_real)(m)[2] * (z))
+
+/* Whether the ray sees the instance ((ray mask & instance mask) != 0, as
+ * Embree), and if so the ray in the instance's mesh frame, prepared for its
+ * tree (*out). */
+TRAVERSAL_INLINE bool instance_ray(RayData* out, __global const Instance* in, const RayData* r)
 {
-    if ((in->mask & w->mask) == 0)
+    if ((in->mask & r->mask) == 0)
         return false;
     float o[3], d[3];
     for (int row = 0; row < 3; ++row) {
         __global const float* m = in->to_mesh + 4 * row;
-        map_real m0 = m[0], m1 = m[1], m2 = m[2];
-        o[row] = (float)(((m0 * w->origin[0] + m1 * w->origin[1]) + m2 * w->origin[2])
-                         + (map_real)m[3]);
-        d[row] = (float)((m0 * w->direction[0] + m1 * w->direction[1])
-                         + m2 * w->direction[2]);
+        o[row] = (float)MAP_POINT(m, r->ox, r->oy, r->oz);
+        d[row] = (float)MAP_DIRECTION(m, r->dx, r->dy, r->dz);
     }
-    prepare_ray(out, (float3)(o[0], o[1], o[2]), (float3)(d[0], d[1], d[2]), tmin, tmax);
+    prepare_ray(out, (float3)(o[0], o[1], o[2]), (float3)(d[0], d[1], d[2]), r->tmin, r->tmax);
     return true;
 }
+
+#if PACKET_SIZE > 1
+/* A packet's rays in the instance's mesh frame, as lanes for prepare_packet
+ * (or for one-by-one walks where it turns them down); the lanes whose mask
+ * hides the instance get tmin = inf, which no box or triangle meets.  False
+ * when the instance is hidden from every lane. */
+TRAVERSAL_INLINE bool instance_lanes(RayLanes* out, __global const Instance* in, const Packet* p)
+{
+    int_packet seen = (p->mask & (int_packet)((int)in->mask)) != (int_packet)(0);
+    if (!some_packet(seen))
+        return false;
+    for (int row = 0; row < 3; ++row) {
+        __global const float* m = in->to_mesh + 4 * row;
+#ifdef cl_khr_fp64
+        vstore_packet(to_float_packet(MAP_POINT(m, to_double_packet(p->ox),
+                                                to_double_packet(p->oy),
+                                                to_double_packet(p->oz))), 0, out->origin[row]);
+        vstore_packet(to_float_packet(MAP_DIRECTION(m, to_double_packet(p->dx),
+                                                    to_double_packet(p->dy),
+                                                    to_double_packet(p->dz))), 0,
+                      out->direction[row]);
+#else
+        vstore_packet(MAP_POINT(m, p->ox, p->oy, p->oz), 0, out->origin[row]);
+        vstore_packet(MAP_DIRECTION(m, p->dx, p->dy, p->dz), 0, out->direction[row]);
+#endif
+    }
+    vstore_packet(seen ? p->tmin : (float_packet)(INFINITY), 0, out->tmin);
+    vstore_packet(p->tmax, 0, out->tmax);
+    vstore_packet(as_float_packet(p->mask), 0, (float*)out->mask);
+    return true;
+}
+#endif
 
 /* A mesh-frame normal in the world: the inverse transpose of the
  * instance's map (the transpose of to_mesh's linear part), turned by the
@@ -79,5 +95,52 @@ TRAVERSAL_INLINE float3 instance_normal(__global const Instance* in, float3 n)
     w = w * (1.0f / largest);
     return w * (1.0f / SQUARE_ROOT(w.x * w.x + w.y * w.y + w.z * w.z));
 }
+
+#endif /* INSTANCES (the map) */
+
+/* The scene a ray kernel traces, as its first parameters (SCENE_PARAMS;
+ * SCENE_ARGS passes them on; hlbvh_cl/query.py's scene_args gives them). */
+#ifndef INSTANCES
+/* A flat scene: one tree over every mesh's triangles. */
+#define SCENE_PARAMS                                                                    \
+    __global const WideNode *nodes, __global const Triangle *triangles,                  \
+        __global const TriangleRef *refs
+#define SCENE_ARGS nodes, triangles, refs
+#else
+/* A two-level scene: the top tree over the instances, the instances, the
+ * rays' masks (ray_masks[i * mask_step]: step 0, one mask for all) and the
+ * meshes' trees one after another. */
+#define SCENE_PARAMS                                                                    \
+    __global const WideNode *top_nodes, __global const Triangle *top_triangles,          \
+        __global const TriangleRef *top_refs, __global const Instance *instances,        \
+        __global const uint *ray_masks, const uint mask_step,                             \
+        __global const WideNode *nodes, __global const Triangle *triangles,              \
+        __global const TriangleRef *refs
+#define SCENE_ARGS top_nodes, top_triangles, top_refs, instances, ray_masks, mask_step, nodes, \
+                   triangles, refs
+
+/* What the top tree's leaf visitors use besides the walk's own: top_refs[i]
+ * .prim_id is the instance in leaf slot i; *mesh_overflow is set when a
+ * mesh's walk runs out of stack. */
+#define INSTANCE_PARAMS                                                                 \
+    , __global const TriangleRef *top_refs, __global const Instance *instances,          \
+        __global const WideNode *mesh_nodes, __global const Triangle *mesh_triangles,    \
+        __global const TriangleRef *mesh_refs, bool *mesh_overflow
+#define INSTANCE_ARGS , top_refs, instances, mesh_nodes, mesh_triangles, mesh_refs, mesh_overflow
+/* The top walk's arguments from a kernel's SCENE_PARAMS. */
+#define TOP_ARGS(overflow_flag) top_refs, instances, nodes, triangles, refs, overflow_flag
+
+/* Leaf slot i's instance, and its mesh's tree (nodes, triangles). */
+#define INSTANCE_AT(i) __global const Instance* in = instances + top_refs[i].prim_id
+#define MESH_TREE(in) mesh_nodes + (in)->node_base, mesh_triangles + (in)->triangle_base
+
+/* The rays' masks into the lanes (lanes past `used` repeat the last). */
+TRAVERSAL_INLINE void load_masks(RayLanes* lanes, uint first, uint used,
+                                 __global const uint* ray_masks, uint mask_step)
+{
+    for (uint l = 0; l < PACKET_SIZE; ++l)
+        lanes->mask[l] = ray_masks[(first + LESSER(l, used - 1)) * mask_step];
+}
+#endif /* INSTANCES */
 
 #endif /* INSTANCE_H */

@@ -47,8 +47,11 @@ typedef double8 wide_packet;
  * shares kept scalar. */
 typedef struct {
     float_packet ox, oy, oz;
-#ifdef cl_khr_fp64
-    float_packet dx, dy, dz;  /* direction, for the refined t */
+#ifdef RAY_DIRECTION
+    float_packet dx, dy, dz;  /* direction, for the refined t, mapping */
+#endif
+#ifdef INSTANCES
+    int_packet mask;          /* the rays' masks (instance.h) */
 #endif
     float_packet inv_x, inv_y, inv_z;
     float_packet tmin, tmax;
@@ -140,10 +143,13 @@ TRAVERSAL_INLINE bool prepare_packet(const RayLanes* in, Packet* p)
     p->ox = o[0];
     p->oy = o[1];
     p->oz = o[2];
-#ifdef cl_khr_fp64
+#ifdef RAY_DIRECTION
     p->dx = d[0];
     p->dy = d[1];
     p->dz = d[2];
+#endif
+#ifdef INSTANCES
+    p->mask = as_int_packet(vload_packet(0, (const float*)in->mask));
 #endif
     p->inv_x = 1.0f / d[0];
     p->inv_y = 1.0f / d[1];
@@ -193,6 +199,9 @@ typedef struct {
     int_packet index;
     float_packet t, u, v, limit;
     float reach;
+#ifdef INSTANCES
+    int_packet instance;  /* whose mesh holds each lane's triangle (instance.h) */
+#endif
 } Found_packet;
 #define reach_packet(s) ((s)->reach)
 #define update_reach_packet(s) ((s)->reach = packet_max((s)->limit))

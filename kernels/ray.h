@@ -14,10 +14,19 @@
 #endif
 
 /* Everything about a ray that traversal reuses at each node and triangle. */
+/* Instanced scenes (instance.h) map rays by their direction, and test
+ * instances against their masks. */
+#if defined(cl_khr_fp64) || defined(INSTANCES)
+#define RAY_DIRECTION
+#endif
+
 typedef struct {
     float ox, oy, oz;           /* origin */
-#ifdef cl_khr_fp64
-    float dx, dy, dz;           /* direction, for the refined t (triangle.h) */
+#ifdef RAY_DIRECTION
+    float dx, dy, dz;           /* direction, for the refined t (triangle.h), mapping */
+#endif
+#ifdef INSTANCES
+    uint mask;                  /* the ray's mask (instance.h) */
 #endif
     float inv_x, inv_y, inv_z;  /* 1/direction; +-INFINITY for a +-0 component */
     float tmin, tmax;
@@ -46,7 +55,7 @@ TRAVERSAL_INLINE void prepare_ray(RayData* ray, float3 origin, float3 direction,
     r.ox = origin.x;
     r.oy = origin.y;
     r.oz = origin.z;
-#ifdef cl_khr_fp64
+#ifdef RAY_DIRECTION
     r.dx = d[0];
     r.dy = d[1];
     r.dz = d[2];
@@ -87,6 +96,9 @@ typedef struct {
     float direction[3][PACKET_SIZE];
     float tmin[PACKET_SIZE];
     float tmax[PACKET_SIZE];
+#ifdef INSTANCES
+    uint mask[PACKET_SIZE];  /* set by the instanced kernels (traverse.cl) */
+#endif
 } RayLanes;
 
 TRAVERSAL_INLINE void set_lane(RayLanes* lanes, uint l, float3 origin, float3 direction,
@@ -107,6 +119,9 @@ TRAVERSAL_INLINE void prepare_lane(RayData* ray, const RayLanes* lanes, uint l)
     prepare_ray(ray, (float3)(lanes->origin[0][l], lanes->origin[1][l], lanes->origin[2][l]),
                 (float3)(lanes->direction[0][l], lanes->direction[1][l], lanes->direction[2][l]),
                 lanes->tmin[l], lanes->tmax[l]);
+#ifdef INSTANCES
+    ray->mask = lanes->mask[l];
+#endif
 }
 
 /* ---- the single-ray path's vocabulary (see walk.h): one lane, scalars */
@@ -127,6 +142,9 @@ typedef double wide_ray;
 typedef struct {
     int index;
     float t, u, v, limit;
+#ifdef INSTANCES
+    int instance;  /* whose mesh holds triangle `index` (instance.h) */
+#endif
 } Found_ray;
 #define reach_ray(s) ((s)->limit)  /* the farthest the walk still looks */
 #define update_reach_ray(s)

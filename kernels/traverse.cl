@@ -37,6 +37,7 @@
 #include "ray.h"
 #endif
 #include "work_item.h"
+#include "instance.h"
 
 /* A closest hit's ids (refs[i]) are read when the traversal ends, a cache
  * miss of their own: start loading them when the hit is found. */
@@ -77,18 +78,12 @@ TRAVERSAL_INLINE void prefetch_hit_ids(__global const TriangleRef* refs, uint i)
 #define TRAVERSAL_KERNEL __kernel __attribute__((LANES_HINT))
 
 #ifndef INSTANCES
-/* A flat scene: one tree over every mesh's triangles. */
-#define SCENE_PARAMS                                                                    \
-    __global const WideNode *nodes, __global const Triangle *triangles,                  \
-        __global const TriangleRef *refs
-#define SCENE_ARGS nodes, triangles, refs
-
 /* Closest hits of the rays lanes[0, used) of a work-item as Hit records
  * (trace_intersect, in walk.h), and their instances (none: -1).  The hits'
  * ids and normals are read once every lane is traced: their cache misses
  * then overlap instead of ending each ray (measured faster).  `first` (the
  * first ray's index) is the instanced version's. */
-TRAVERSAL_INLINE void closest_hits(const RayLanes* lanes, uint used, uint first, SCENE_PARAMS,
+TRAVERSAL_INLINE void closest_hits(RayLanes* lanes, uint used, uint first, SCENE_PARAMS,
                                    __global int* overflow, Hit* hits, int* instance)
 {
     int index[PACKET_SIZE];
@@ -101,7 +96,7 @@ TRAVERSAL_INLINE void closest_hits(const RayLanes* lanes, uint used, uint first,
 }
 
 /* Occlusion of the rays lanes[0, used): occluded[l] = 1 if anything is hit. */
-TRAVERSAL_INLINE void any_hits(const RayLanes* lanes, uint used, uint first, SCENE_PARAMS,
+TRAVERSAL_INLINE void any_hits(RayLanes* lanes, uint used, uint first, SCENE_PARAMS,
                                __global int* overflow, __global uchar* occluded)
 {
     int index[PACKET_SIZE];
@@ -111,137 +106,190 @@ TRAVERSAL_INLINE void any_hits(const RayLanes* lanes, uint used, uint first, SCE
 }
 
 #else /* INSTANCES */
-#include "instance.h"
 
-/* A two-level scene (instance.h): the top tree over the instances, the
- * instances, the meshes' trees one after another, and the rays' masks
- * (ray_masks[i * mask_step]: step 0, one mask for all). */
-#define SCENE_PARAMS                                                                    \
-    __global const WideNode *top_nodes, __global const Triangle *top_triangles,          \
-        __global const TriangleRef *top_refs, __global const Instance *instances,        \
-        __global const uint *ray_masks, const uint mask_step,                             \
-        __global const WideNode *nodes, __global const Triangle *triangles,              \
-        __global const TriangleRef *refs
-#define SCENE_ARGS top_nodes, top_triangles, top_refs, instances, ray_masks, mask_step, nodes, \
-                   triangles, refs
-
-/* What the top tree's leaf visitors use besides the walk's own: top_refs[i]
- * .prim_id is the instance in leaf slot i. */
-#define INSTANCE_PARAMS                                                                 \
-    , __global const TriangleRef *top_refs, __global const Instance *instances,          \
-        __global const WideNode *mesh_nodes, __global const Triangle *mesh_triangles,    \
-        __global const TriangleRef *mesh_refs, const WorldRay *world, int *instance,     \
-        bool *out_of_stack
-#define INSTANCE_ARGS , top_refs, instances, mesh_nodes, mesh_triangles, mesh_refs, world, \
-                      instance, out_of_stack
-
-/* Closest hit: each visible instance of the leaf in turn, its mesh walked
- * by the flat visitor with the walk's state, so the limit found so far
- * prunes it; the instance whose walk lowered t holds the hit. */
-TRAVERSAL_INLINE bool instances_intersect(Found_ray* s, const RayData* r, int first,
-                                          uint count INSTANCE_PARAMS)
+/* Closest hit, one ray: each visible instance of the leaf in turn, its mesh
+ * walked by the flat visitor with the walk's state, so the limit found so
+ * far prunes it; the instance whose walk lowered t holds the hit. */
+TRAVERSAL_INLINE bool instances_intersect_ray(Found_ray* s, const RayData* r, int first,
+                                              uint count INSTANCE_PARAMS)
 {
     for (uint i = (uint)first; i < (uint)first + count; ++i) {
-        int id = top_refs[i].prim_id;
-        __global const Instance* in = instances + id;
+        INSTANCE_AT(i);
         RayData mapped;
-        if (!instance_ray(&mapped, in, world, r->tmin, r->tmax))
+        if (!instance_ray(&mapped, in, r))
             continue;
         float before = s->t;
-        *out_of_stack |= walk_intersect_ray(&mapped, mesh_nodes + in->node_base,
-                                            mesh_triangles + in->triangle_base, s,
+        *mesh_overflow |= walk_intersect_ray(&mapped, MESH_TREE(in), s,
                                             mesh_refs + in->triangle_base);
         if (s->t != before)
-            *instance = id;
+            s->instance = top_refs[i].prim_id;
     }
     return false;
 }
 
-/* Any hit: the first instance with a hit ends the walk. */
-TRAVERSAL_INLINE bool instances_occluded(Found_ray* s, const RayData* r, int first,
-                                         uint count INSTANCE_PARAMS)
+/* Any hit, one ray: the first instance with a hit ends the walk. */
+TRAVERSAL_INLINE bool instances_occluded_ray(Found_ray* s, const RayData* r, int first,
+                                             uint count INSTANCE_PARAMS)
 {
     for (uint i = (uint)first; i < (uint)first + count; ++i) {
-        int id = top_refs[i].prim_id;
-        __global const Instance* in = instances + id;
+        INSTANCE_AT(i);
         RayData mapped;
-        if (!instance_ray(&mapped, in, world, r->tmin, r->tmax))
+        if (!instance_ray(&mapped, in, r))
             continue;
-        *out_of_stack |= walk_occluded_ray(&mapped, mesh_nodes + in->node_base,
-                                           mesh_triangles + in->triangle_base, s);
+        *mesh_overflow |= walk_occluded_ray(&mapped, MESH_TREE(in), s);
         if (s->index >= 0) {
-            *instance = id;
+            s->instance = top_refs[i].prim_id;
             return true;
         }
     }
     return false;
 }
 
+#if PACKET_SIZE > 1
+/* The lanes of a mapped packet that prepare_packet turned down (their
+ * mapped directions disagree in sign), each walked as one ray with its
+ * lane's state: `walk` and its extra arguments.  Lanes the instance is
+ * hidden from (tmin inf) and lanes done (limit -inf) are skipped. */
+#define WALK_LANES(s, lanes, walk, ...)                                                  \
+    do {                                                                                 \
+        int index_[PACKET_SIZE];                                                         \
+        float t_[PACKET_SIZE], u_[PACKET_SIZE], v_[PACKET_SIZE], limit_[PACKET_SIZE];    \
+        vstore_packet((s)->index, 0, index_);                                            \
+        vstore_packet((s)->t, 0, t_);                                                    \
+        vstore_packet((s)->u, 0, u_);                                                    \
+        vstore_packet((s)->v, 0, v_);                                                    \
+        vstore_packet((s)->limit, 0, limit_);                                            \
+        for (uint l = 0; l < PACKET_SIZE; ++l) {                                         \
+            if (!((lanes)->tmin[l] <= limit_[l]))                                        \
+                continue;                                                                \
+            RayData one;                                                                 \
+            prepare_lane(&one, lanes, l);                                                \
+            Found_ray f = {index_[l], t_[l], u_[l], v_[l], limit_[l]};                   \
+            *mesh_overflow |= walk(&one, __VA_ARGS__, &f);                                \
+            index_[l] = f.index;                                                         \
+            t_[l] = f.t;                                                                 \
+            u_[l] = f.u;                                                                 \
+            v_[l] = f.v;                                                                 \
+            limit_[l] = f.limit;                                                         \
+        }                                                                                \
+        (s)->index = vload_packet(0, index_);                                            \
+        (s)->t = vload_packet(0, t_);                                                    \
+        (s)->u = vload_packet(0, u_);                                                    \
+        (s)->v = vload_packet(0, v_);                                                    \
+        (s)->limit = vload_packet(0, limit_);                                            \
+        update_reach_packet(s);                                                          \
+    } while (0)
+
+/* The walks' argument orders (state last, for WALK_LANES). */
+#define intersect_lane(r, n, t, refs, s) walk_intersect_ray(r, n, t, s, refs)
+#define occluded_lane(r, n, t, s) walk_occluded_ray(r, n, t, s)
+
+/* Closest hit, a packet: as instances_intersect_ray, the mesh walked as a
+ * packet where the mapped rays allow it. */
+TRAVERSAL_INLINE bool instances_intersect_packet(Found_packet* s, const Packet* r, int first,
+                                                 uint count INSTANCE_PARAMS)
+{
+    for (uint i = (uint)first; i < (uint)first + count; ++i) {
+        INSTANCE_AT(i);
+        RayLanes lanes;
+        if (!instance_lanes(&lanes, in, r))
+            continue;
+        float_packet before = s->t;
+        Packet mapped;
+        if (prepare_packet(&lanes, &mapped))
+            *mesh_overflow |= walk_intersect_packet(&mapped, MESH_TREE(in), s,
+                                                   mesh_refs + in->triangle_base);
+        else
+            WALK_LANES(s, &lanes, intersect_lane, MESH_TREE(in), mesh_refs + in->triangle_base);
+        s->instance = s->t != before ? (int_packet)(top_refs[i].prim_id) : s->instance;
+    }
+    return false;
+}
+
+/* Any hit, a packet: the walk ends once every lane has one. */
+TRAVERSAL_INLINE bool instances_occluded_packet(Found_packet* s, const Packet* r, int first,
+                                                uint count INSTANCE_PARAMS)
+{
+    for (uint i = (uint)first; i < (uint)first + count; ++i) {
+        INSTANCE_AT(i);
+        RayLanes lanes;
+        if (!instance_lanes(&lanes, in, r))
+            continue;
+        int_packet before = s->index;
+        Packet mapped;
+        if (prepare_packet(&lanes, &mapped))
+            *mesh_overflow |= walk_occluded_packet(&mapped, MESH_TREE(in), s);
+        else
+            WALK_LANES(s, &lanes, occluded_lane, MESH_TREE(in));
+        s->instance = s->index != before ? (int_packet)(top_refs[i].prim_id) : s->instance;
+        if (every_packet(s->index >= 0))
+            return true;
+    }
+    return false;
+}
+#endif
+
 #define QUERY intersect_top
-#define QUERY_PATH _ray
-#define QUERY_LEAF(s, r, first, count) instances_intersect(s, r, first, count INSTANCE_ARGS)
+#define QUERY_LEAF(s, r, first, count) PATH(instances_intersect)(s, r, first, count INSTANCE_ARGS)
 #define QUERY_NODE(s, r, n, mask) false
 #define QUERY_PARAMS INSTANCE_PARAMS
 #define QUERY_ARGS INSTANCE_ARGS
 #include "walk.h"
 
 #define QUERY occluded_top
-#define QUERY_PATH _ray
-#define QUERY_LEAF(s, r, first, count) instances_occluded(s, r, first, count INSTANCE_ARGS)
+#define QUERY_LEAF(s, r, first, count) PATH(instances_occluded)(s, r, first, count INSTANCE_ARGS)
 #define QUERY_NODE(s, r, n, mask) WALK_NAME(leaves_first)(s, r, n, mask, triangles INSTANCE_ARGS)
 #define QUERY_PARAMS INSTANCE_PARAMS
 #define QUERY_ARGS INSTANCE_ARGS
 #include "walk.h"
 
-/* The work-item's one ray (PACKET_SIZE 1) walked from the top: its state
- * in *s and its instance in *instance (-1: none). */
-#define TRACE_TOP(walk, lanes, first, s, instance)                                      \
-    do {                                                                                 \
-        RayData r;                                                                       \
-        prepare_lane(&r, lanes, 0);                                                      \
-        WorldRay w;                                                                      \
-        world_ray(&w, lanes, ray_masks[(first) * mask_step]);                            \
-        Found_ray start = {-1, INFINITY, 0.0f, 0.0f, r.tmax};                            \
-        *(s) = start;                                                                    \
-        *(instance) = -1;                                                                \
-        bool out_of_stack = false;                                                       \
-        out_of_stack |= walk(&r, top_nodes, top_triangles, s, top_refs, instances, nodes, \
-                             triangles, refs, &w, instance, &out_of_stack);              \
-        if (out_of_stack)                                                                \
-            overflow[0] = 1;                                                             \
-    } while (0)
-
-TRAVERSAL_INLINE void closest_hits(const RayLanes* lanes, uint used, uint first, SCENE_PARAMS,
+/* Closest hits of the rays lanes[0, used) walked from the top, as Hit
+ * records with their instances; the hit's mesh-frame normal goes to the
+ * world by its instance (instance_normal). */
+TRAVERSAL_INLINE void closest_hits(RayLanes* lanes, uint used, uint first, SCENE_PARAMS,
                                    __global int* overflow, Hit* hits, int* instance)
 {
-    Found_ray s;
-    TRACE_TOP(walk_intersect_top_ray, lanes, first, &s, instance);
-    if (s.index < 0) {
-        make_hit(hits, -1, 0.0f, 0.0f, 0.0f, triangles, refs);
-        return;
+    load_masks(lanes, first, used, ray_masks, mask_step);
+    int index[PACKET_SIZE];
+    float t[PACKET_SIZE], u[PACKET_SIZE], v[PACKET_SIZE];
+    bool out_of_stack = false;
+    trace_intersect_top(lanes, used, top_nodes, top_triangles, overflow, index, t, u, v,
+                        instance, TOP_ARGS(&out_of_stack));
+    if (out_of_stack)
+        overflow[0] = 1;
+    for (uint l = 0; l < used; ++l) {
+        if (index[l] < 0) {
+            make_hit(hits + l, -1, 0.0f, 0.0f, 0.0f, triangles, refs);
+            continue;
+        }
+        __global const Instance* in = instances + instance[l];
+        int i = in->triangle_base + index[l];
+        Hit hit;
+        hit.t = t[l];
+        hit.geom_id = in->mesh;
+        hit.prim_id = refs[i].prim_id;
+        hit.u = u[l];
+        hit.v = v[l];
+        float3 n = instance_normal(in, unit_normal(triangles + i));
+        hit.normal[0] = n.x;
+        hit.normal[1] = n.y;
+        hit.normal[2] = n.z;
+        hits[l] = hit;
     }
-    __global const Instance* in = instances + *instance;
-    int i = in->triangle_base + s.index;
-    Hit hit;
-    hit.t = s.t;
-    hit.geom_id = in->mesh;
-    hit.prim_id = refs[i].prim_id;
-    hit.u = s.u;
-    hit.v = s.v;
-    float3 n = instance_normal(in, unit_normal(triangles + i));
-    hit.normal[0] = n.x;
-    hit.normal[1] = n.y;
-    hit.normal[2] = n.z;
-    *hits = hit;
 }
 
-TRAVERSAL_INLINE void any_hits(const RayLanes* lanes, uint used, uint first, SCENE_PARAMS,
+TRAVERSAL_INLINE void any_hits(RayLanes* lanes, uint used, uint first, SCENE_PARAMS,
                                __global int* overflow, __global uchar* occluded)
 {
-    Found_ray s;
-    int instance;
-    TRACE_TOP(walk_occluded_top_ray, lanes, first, &s, &instance);
-    occluded[0] = s.index >= 0 ? 1 : 0;
+    load_masks(lanes, first, used, ray_masks, mask_step);
+    int index[PACKET_SIZE], instance[PACKET_SIZE];
+    bool out_of_stack = false;
+    trace_occluded_top(lanes, used, top_nodes, top_triangles, overflow, index, 0, 0, 0,
+                       instance, TOP_ARGS(&out_of_stack));
+    if (out_of_stack)
+        overflow[0] = 1;
+    for (uint l = 0; l < used; ++l)
+        occluded[l] = index[l] >= 0 ? 1 : 0;
 }
 #endif /* INSTANCES */
 

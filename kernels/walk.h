@@ -56,11 +56,17 @@
  * away: PoCL calls vstore out of line, which would keep them).  overflow[0]
  * is set to 1 if a walk ran out of stack. */
 #define QUERY_WALK(path) CONCAT(CONCAT(walk_, QUERY), path)
+/* Instanced scenes also give each lane's instance (instance.h). */
+#ifdef INSTANCES
+#define WALK_INSTANCE , int* instance
+#else
+#define WALK_INSTANCE
+#endif
 TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
                                             __global const WideNode* nodes,
                                             __global const Triangle* triangles,
                                             __global int* overflow, int* index, float* t,
-                                            float* u, float* v QUERY_PARAMS)
+                                            float* u, float* v WALK_INSTANCE QUERY_PARAMS)
 {
     bool out_of_stack = false;
 #if PACKET_SIZE > 1
@@ -71,8 +77,14 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
 #endif
         Found_packet s = {(int_packet)(-1), (float_packet)(INFINITY), (float_packet)(0.0f),
                           (float_packet)(0.0f), p.tmax, packet_max(p.tmax)};
+#ifdef INSTANCES
+        s.instance = (int_packet)(-1);
+#endif
         out_of_stack = QUERY_WALK(_packet)(&p, nodes, triangles, &s QUERY_ARGS);
         vstore_packet(s.index, 0, index);
+#ifdef INSTANCES
+        vstore_packet(s.instance, 0, instance);
+#endif
         if (t) {
             vstore_packet(s.t, 0, t);
             vstore_packet(s.u, 0, u);
@@ -85,8 +97,14 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
             RayData r;
             prepare_lane(&r, lanes, l);
             Found_ray s = {-1, INFINITY, 0.0f, 0.0f, r.tmax};
+#ifdef INSTANCES
+            s.instance = -1;
+#endif
             out_of_stack |= QUERY_WALK(_ray)(&r, nodes, triangles, &s QUERY_ARGS);
             index[l] = s.index;
+#ifdef INSTANCES
+            instance[l] = s.instance;
+#endif
             if (t) {
                 t[l] = s.t;
                 u[l] = s.u;
@@ -98,6 +116,7 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
         overflow[0] = 1;
 }
 #undef QUERY_WALK
+#undef WALK_INSTANCE
 #endif /* QUERY_PATH */
 
 #undef QUERY

@@ -13,7 +13,7 @@ import trimesh
 
 import hlbvh_cl
 from invariants import check_tree
-from oracle import brute_force_intersect, brute_force_occluded
+from oracle import brute_force_all_hits, brute_force_intersect, brute_force_occluded
 
 
 def _rotation(rng) -> np.ndarray:
@@ -116,6 +116,41 @@ def test_mirrored_scaled_rotated_overlapping_instances_match_the_brute_force(sma
                            instances=[(int(m), a) for m, a in zip(instance_meshes, maps)])
     hits = _check_against_oracle(scene, small, instance_meshes, maps, rng)
     assert len(set(hits.instance_id[hits.hit].tolist())) == 12  # every instance was hit
+
+
+def test_coherent_rays_trace_as_packets_through_rotated_instances(small, suite_device):
+    """Camera rays: packets at the top, mapped per instance into packets or,
+    where a rotation splits their direction signs, one ray at a time; the
+    same hits as the brute force either way."""
+    rng = np.random.default_rng(31)
+    maps = _transforms(rng, 10, spread=2.0)
+    instance_meshes = np.arange(10) % 2
+    scene = hlbvh_cl.Scene(small, device=suite_device,
+                           instances=[(int(m), a) for m, a in zip(instance_meshes, maps)])
+    side = np.linspace(-0.45, 0.45, 72)
+    directions = np.stack(np.broadcast_arrays(side[:, None], side[None, :], -1.0), axis=-1)
+    directions = directions.reshape(-1, 3).astype(np.float32)
+    origins = np.array([0.3, -0.2, 9.0], np.float32)
+    query = scene._ray_query()
+    query.count_packets = True
+    try:
+        hits = scene.intersect(origins, directions)
+        packets = query.last_packets
+    finally:
+        query.count_packets = False
+    vertices, faces, owner, prim = _flattened(small, instance_meshes, maps)
+    want = brute_force_intersect(vertices, faces, np.broadcast_to(origins, directions.shape),
+                                 directions)
+    found = want["prim"] >= 0
+    assert found.mean() > 0.3
+    np.testing.assert_array_equal(hits.hit, found)
+    np.testing.assert_array_equal(hits.instance_id[found], owner[want["prim"][found]])
+    np.testing.assert_array_equal(hits.prim_id[found], prim[want["prim"][found]])
+    steep = _steep(directions[found], want["normal"][found])
+    np.testing.assert_allclose(hits.t[found][steep], want["t"][found][steep], rtol=1e-5)
+    np.testing.assert_array_equal(scene.occluded(origins, directions), found)
+    if query.packet_size > 1:
+        assert packets > 0, "no work-item traced its rays as a packet"
 
 
 def test_4x4_transforms_and_set_transforms(small, suite_device):
@@ -268,6 +303,46 @@ def test_both_levels_hold_their_invariants(small, suite_device):
                                scale=trees.scales[m])
         check_tree(SimpleNamespace(_runtime=scene._runtime, _tree=view, meshes=[mesh],
                                    stats=trees.stats[m], builder=scene.builder))
+
+
+def test_every_hit_and_counts_through_instances(small, suite_device):
+    """intersect_all and count_intersections on mirrored, scaled, overlapping
+    instances with masks, against the brute force of the flattened scene:
+    the same hits per ray as sets of (instance, face), t to 1e-5 where well
+    conditioned; max_hits keeps the nearest."""
+    rng = np.random.default_rng(17)
+    maps = _transforms(rng, 8, spread=1.5)
+    instance_meshes = np.arange(8) % 2
+    masks = np.array([1, 1, 2, 1, 3, 1, 2, 1], np.uint32)
+    scene = hlbvh_cl.Scene(small, device=suite_device, masks=masks,
+                           instances=[(int(m), a) for m, a in zip(instance_meshes, maps)])
+    vertices, faces, owner, prim = _flattened(small, instance_meshes, maps)
+    origins, directions = _rays_at_centroids(rng, vertices, faces, 1500)
+    keep = ((masks & 1) != 0)[owner]
+    index = np.flatnonzero(keep)
+    want = brute_force_all_hits(vertices, faces[keep], origins, directions)
+    clean = want["margin"] > 1e-4  # rays that pass no edge within rounding
+    got = scene.intersect_all(origins, directions, mask=1)
+    counts = scene.count_intersections(origins, directions, mask=1)
+    np.testing.assert_array_equal(counts[clean], np.diff(want["offsets"])[clean])
+    np.testing.assert_array_equal(got.counts, counts)
+    assert clean.mean() > 0.95 and counts.sum() > 2 * len(origins)
+    for r in np.flatnonzero(clean)[:400]:
+        mine = slice(got.offsets[r], got.offsets[r + 1])
+        theirs = slice(want["offsets"][r], want["offsets"][r + 1])
+        k = index[want["prim"][theirs]]
+        assert sorted(zip(got.instance_id[mine], got.prim_id[mine])) == \
+            sorted(zip(owner[k], prim[k]))
+        np.testing.assert_array_equal(got.geom_id[mine], instance_meshes[got.instance_id[mine]])
+        np.testing.assert_allclose(got.t[mine], want["t"][theirs], rtol=1e-4)
+    nearest = scene.intersect_all(origins, directions, mask=1, max_hits=1)
+    closest = scene.intersect(origins, directions, mask=1)
+    hit = closest.hit & clean
+    np.testing.assert_array_equal(nearest.counts[hit], 1)
+    np.testing.assert_array_equal(nearest.t[nearest.offsets[:-1][hit]], closest.t[hit])
+    np.testing.assert_array_equal(nearest.instance_id[nearest.offsets[:-1][hit]],
+                                  closest.instance_id[hit])
+    assert (scene.count_intersections(origins, directions, mask=0) == 0).all()
 
 
 @pytest.mark.parametrize("instances, message", [

@@ -40,6 +40,7 @@ GROUPS = {
     "trace": ("packets", "render"),
     "points": ("points",),
     "all_hits": ("all_hits",),
+    "instances": ("instances",),
 }
 
 MODES = ("optimised", "uninitialized")
@@ -229,6 +230,48 @@ def case_all_hits(uninitialized: bool) -> dict:
     origins = (targets * 2.5 + 0.1).astype(np.float32)
     counts = case.scene.count_intersections(origins, (targets - origins).astype(np.float32))
     assert counts.tolist() == [2] * len(targets), counts
+    return {}
+
+
+def case_instances(uninitialized: bool) -> dict:
+    """A two-level scene (the tiny meshes rotated, mirrored and scaled, some
+    overlapping, with masks) traced one ray per work-item and in packets of
+    8, coherent rays and random ones, against the float64 brute force of the
+    scene flattened; then again after set_transforms."""
+    import hlbvh_cl
+    from hlbvh_cl.query import RayQuery
+    from oracle import brute_force_intersect, brute_force_occluded
+    from test_instances import _flattened, _transforms
+    meshes = tiny_meshes()
+    rng = np.random.default_rng(5)
+    maps = _transforms(rng, 5, spread=1.5)
+    masks = np.array([1, 3, 2, 1, 3], np.uint32)
+    scene = hlbvh_cl.Scene(meshes, masks=masks,
+                           instances=[(k % 2, a) for k, a in enumerate(maps)])
+    side = np.linspace(-0.3, 0.3, 8)
+    grid = np.stack(np.broadcast_arrays(side[:, None], side[None, :], -1.0), axis=-1)
+    directions = np.concatenate([grid.reshape(-1, 3), rng.normal(size=(32, 3))]).astype(np.float32)
+    origins = np.broadcast_to(np.float32([0.1, 0.2, 6.0]), directions.shape)
+    for step in ("built", "moved"):
+        vertices, faces, owner, prim = _flattened(meshes, np.arange(5) % 2, maps)
+        keep = (masks & 1 != 0)[owner]
+        want = brute_force_intersect(vertices, faces[keep], origins, directions)
+        found = want["prim"] >= 0
+        assert found.sum() > 20, "the rays should hit the instances"
+        for packet_size in (1, 8):
+            query = RayQuery(scene._runtime, packet_size=packet_size)
+            hits = query.intersect(scene._tree, origins, directions, mask=1)
+            label = f"{step}, packets of {packet_size}"
+            assert (hits.geom_id >= 0).tolist() == found.tolist(), label
+            index = np.flatnonzero(keep)[want["prim"][found]]
+            assert hits.instance_id[found].tolist() == owner[index].tolist(), label
+            assert hits.prim_id[found].tolist() == prim[index].tolist(), label
+            assert np.allclose(hits.t[found], want["t"][found], rtol=1e-4), label
+            occluded = query.occluded(scene._tree, origins, directions, mask=1)
+            assert occluded.tolist() == brute_force_occluded(
+                vertices, faces[keep], origins, directions).tolist(), label
+        maps[1:3] = _transforms(rng, 2, spread=1.5)
+        scene.set_transforms([1, 2], maps[1:3])
     return {}
 
 
