@@ -172,6 +172,33 @@ def peak_rss_bytes() -> int:
     return int(peak if sys.platform == "darwin" else peak * 1024)
 
 
+def status_bytes(key: str) -> int | None:
+    """A size line of /proc/self/status (VmRSS, VmHWM) in bytes; None off Linux."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(key + ":"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
+def reset_peak() -> bool:
+    """Linux: writing 5 to clear_refs resets VmHWM to the current RSS.  Freed
+    heap memory is handed back first (glibc's malloc_trim): still resident,
+    the call could reuse it unseen and the growth would read low."""
+    try:
+        import ctypes
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+        return True
+    except OSError:
+        return False
+
+
 # ---------------------------------------------------------------- geometry
 
 def surface(triangles: int, name: str | None = None) -> hlbvh_cl.Mesh:
@@ -245,6 +272,20 @@ def finish(results: dict, name: str, args, elapsed, plot=None) -> dict:
             written.append(plot(results, DOCS / f"bench_{name}.png"))
     print(f"\nwrote {', '.join(map(str, written))} in {results['elapsed_s']:.0f} s")
     return results
+
+
+def write_section(path: Path, text: str, name: str) -> Path:
+    """Puts ``text``, a section marked "<!-- begin NAME -->" ... "<!-- end
+    NAME -->", into the markdown file in place of its earlier copy, or at the
+    end (bench/report.py keeps such sections when it rewrites the file)."""
+    begin, end = f"<!-- begin {name} -->", f"<!-- end {name} -->"
+    old = path.read_text() if path.exists() else ""
+    if begin in old and end in old:
+        new = old[:old.index(begin)] + text.rstrip("\n") + old[old.index(end) + len(end):]
+    else:
+        new = old.rstrip("\n") + "\n\n" + text
+    path.write_text(new if new.endswith("\n") else new + "\n")
+    return path
 
 
 def machine_info() -> dict:

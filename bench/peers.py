@@ -140,23 +140,30 @@ class MitsubaPeer(Peer):
                 self.problem = f"{type(error).__name__}: {error}".strip()
         return self.problem is None
 
-    def build(self, vertices, faces) -> float:
+    @staticmethod
+    def mesh(vertices, faces):
+        """A Mitsuba Mesh of float32 vertices (N, 3) and faces (M, 3)."""
         import mitsuba as mi
-        elapsed = stopwatch()
         mesh = mi.Mesh("bench", len(vertices), len(faces), has_vertex_normals=False,
                        has_vertex_texcoords=False)
         params = mi.traverse(mesh)
         params["vertex_positions"] = mi.Float(vertices.ravel())
         params["faces"] = mi.UInt32(faces.astype(np.uint32).ravel())
         params.update()
-        self.scene = mi.load_dict({"type": "scene", "mesh": mesh})
+        return mesh
+
+    def build(self, vertices, faces) -> float:
+        import mitsuba as mi
+        elapsed = stopwatch()
+        self.scene = mi.load_dict({"type": "scene", "mesh": self.mesh(vertices, faces)})
         return elapsed()
 
     @staticmethod
     def _ray(rays):
         import mitsuba as mi
-        column = [np.ascontiguousarray(a[:, i]) for a in (rays.origins, rays.directions)
-                  for i in range(3)]
+        # Dr.Jit reads numpy arrays in place and compiles a kernel for each pattern of
+        # their alignments: columns on 64 bytes get one kernel, compiled in the warm-up
+        column = [_aligned(a[:, i]) for a in (rays.origins, rays.directions) for i in range(3)]
         return mi.Ray3f(o=mi.Point3f(*column[:3]), d=mi.Vector3f(*column[3:]))
 
     def intersect(self, rays) -> dict:
@@ -175,6 +182,15 @@ class MitsubaPeer(Peer):
 
     def occluded(self, rays) -> np.ndarray:
         return self.scene.ray_test(self._ray(rays), coherent=rays.kind == "primary").numpy()
+
+
+def _aligned(values: np.ndarray, alignment: int = 64) -> np.ndarray:
+    """A contiguous copy of ``values`` whose data starts on a multiple of ``alignment`` bytes."""
+    raw = np.empty(values.nbytes + alignment, np.uint8)
+    start = -raw.ctypes.data % alignment
+    out = raw[start:start + values.nbytes].view(values.dtype)
+    out[:] = values
+    return out
 
 
 class TrimeshPeer(Peer):

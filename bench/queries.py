@@ -48,9 +48,9 @@ import numpy as np
 
 import hlbvh_cl
 
-from . import peers, plots, trace
+from . import common, peers, plots, trace
 from .common import (BENCH, arguments, devices_or_exit, finish, machine_info, progress, rates,
-                     say, spread, stopwatch, summary, table)
+                     reset_peak, say, spread, status_bytes, stopwatch, summary, table)
 
 QUERIES = ("closest_points", "signed_distance", "count_intersections", "intersect_all")
 POINT_QUERIES = QUERIES[:2]
@@ -424,32 +424,6 @@ def bench_case(name: str, devices: list, peer_list: list, config: Config, bar=No
 
 # ---------------------------------------------------------------- memory
 
-def _status_bytes(key: str) -> int | None:
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith(key + ":"):
-                return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return None
-
-
-def _reset_peak() -> bool:
-    """Linux: writing 5 to clear_refs resets VmHWM to the current RSS.  Freed
-    heap memory is handed back first (glibc's malloc_trim): still resident,
-    the call could reuse it unseen and the growth would read low."""
-    try:
-        import ctypes
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
-    try:
-        Path("/proc/self/clear_refs").write_text("5")
-        return True
-    except OSError:
-        return False
-
-
 def _output_bytes(raw) -> int:
     if isinstance(raw, dict):
         return sum(_output_bytes(v) for v in raw.values())
@@ -472,11 +446,11 @@ def memory_child(case_name: str, participant: str, device_id: str, count: int,
     rays = centre_rays(*case.box, count, seed)
     p.run("intersect_all", head(rays, WARM_UP))
     gc.collect()
-    if not _reset_peak():
+    if not reset_peak():
         raise RuntimeError("cannot reset the peak resident memory (/proc/self/clear_refs)")
-    before = _status_bytes("VmRSS")
+    before = status_bytes("VmRSS")
     raw = p.run("intersect_all", rays)
-    peak = _status_bytes("VmHWM")
+    peak = status_bytes("VmHWM")
     output = _output_bytes(raw)
     return {"participant": participant, "rays": count, "rss_before_bytes": before,
             "peak_growth_bytes": peak - before, "output_bytes": output,
@@ -572,16 +546,8 @@ def format_results(results: dict, markdown: bool = False) -> str:
 
 
 def write_section(path: Path, text: str) -> Path:
-    """Puts ``text`` (a marked section) into the markdown file, in place of
-    its earlier copy, or at the end."""
-    begin, end = f"<!-- begin {SECTION} -->", f"<!-- end {SECTION} -->"
-    old = path.read_text() if path.exists() else ""
-    if begin in old and end in old:
-        new = old[:old.index(begin)] + text.rstrip("\n") + old[old.index(end) + len(end):]
-    else:
-        new = old.rstrip("\n") + "\n\n" + text
-    path.write_text(new if new.endswith("\n") else new + "\n")
-    return path
+    """Puts ``text`` (this bench's marked section) into the markdown file."""
+    return common.write_section(path, text, SECTION)
 
 
 def plot(results: dict, path: Path) -> Path:
