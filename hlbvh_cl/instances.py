@@ -164,21 +164,30 @@ def build_mesh_trees(rt: Runtime, meshes: list[Mesh], builder: str,
         sizes = {"nodes": (int(node_counts.sum()), layout.WIDE_NODE.itemsize),
                  "triangles": (int(triangle_counts.sum()), layout.TRIANGLE.itemsize),
                  "refs": (int(triangle_counts.sum()), layout.TRIANGLE_REF.itemsize)}
-        rt.check_allocation("the meshes' trees", {name: n * size for name, (n, size)
-                                                  in sizes.items()})
-        joined = {name: cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, n * size)
-                  for name, (n, size) in sizes.items()}
-        for tree, nb, tb in zip(trees, node_base, triangle_base):
-            for name, source, base in (("nodes", tree.nodes, nb), ("triangles", tree.triangles, tb),
-                                       ("refs", tree.refs, tb)):
-                size = sizes[name][1]
-                count = tree.node_count if name == "nodes" else tree.triangle_count
-                cl.enqueue_copy(rt.queue, joined[name], source, byte_count=count * size,
-                                dst_offset=int(base) * size)
+        if len(trees) == 1:  # its own buffers: no copy, no second set in memory
+            joined = {"nodes": trees[0].nodes, "triangles": trees[0].triangles,
+                      "refs": trees[0].refs}
+        else:
+            rt.check_allocation("the meshes' trees", {name: n * size for name, (n, size)
+                                                      in sizes.items()})
+            joined = {name: cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, n * size)
+                      for name, (n, size) in sizes.items()}
+            for tree, nb, tb in zip(trees, node_base, triangle_base):
+                for name, source, base in (("nodes", tree.nodes, nb),
+                                           ("triangles", tree.triangles, tb),
+                                           ("refs", tree.refs, tb)):
+                    size = sizes[name][1]
+                    count = tree.node_count if name == "nodes" else tree.triangle_count
+                    cl.enqueue_copy(rt.queue, joined[name], source, byte_count=count * size,
+                                    dst_offset=int(base) * size)
         rt.queue.finish()
     finally:
+        # Freed (but for what `joined` holds), not pooled: no later build takes
+        # buffers of these sizes, and pooled they would double the meshes'
+        # trees in memory.
         for tree in trees:
-            tree.release(rt.pool)
+            tree.nodes = tree.triangles = tree.refs = tree.vertex_ids = None
+            tree.released = True
     return MeshTrees(joined["nodes"], joined["triangles"], joined["refs"], node_base,
                      triangle_base, np.array(scales), np.array([m.vertices.min(axis=0)
                                                                 for m in meshes], np.float64),
@@ -295,6 +304,9 @@ class TwoLevel:
         self.transforms = transforms
         self.masks = masks
         self.trees = build_mesh_trees(rt, meshes, builder, morton_bits)
+        # The meshes' build scratch is not kept for a rebuild, as a flat
+        # scene's is: their trees are rebuilt seldom, the top tree often.
+        rt.pool.clear()
         count = len(instance_meshes)
         self._geometry = Geometry.upload(rt, np.zeros((3 * count, 3), np.float32),
                                          np.arange(3 * count, dtype=np.int32).reshape(-1, 3),
@@ -304,6 +316,7 @@ class TwoLevel:
         old, self.trees = self.trees, None
         old.release(self.rt.pool)
         self.trees = build_mesh_trees(self.rt, meshes, self.builder, self.morton_bits)
+        self.rt.pool.clear()
 
     def build_top(self) -> tuple[InstancedTree, BuildStats]:
         """The top tree over the instances as they stand, with their records."""
