@@ -110,6 +110,10 @@ class Mesh:
         self._vertices = _validate_vertices(vertices)
         self._faces = _validate_faces(faces, len(self._vertices))
         self.name = name
+
+    def __reduce__(self):
+        """Pickles as its arrays and name (checked again on arrival)."""
+        return (Mesh, (self._vertices, self._faces, self.name))
         self._bounds: tuple[np.ndarray, np.ndarray] | None = None
 
     @property

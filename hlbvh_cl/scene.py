@@ -13,7 +13,7 @@ from collections.abc import Sequence
 import numpy as np
 import pyopencl as cl
 
-from . import frame
+from . import frame, travel
 from .build import BUILDERS, BuildStats, Geometry, build, check_fits
 from .device import event_ms, runtime
 from .mesh import Mesh, _validate_vertices
@@ -75,6 +75,10 @@ class Scene:
         self.morton_bits = morton_bits
         self._lock = threading.RLock()
         self._runtime = rt = runtime(device)
+        # what pickling ships (hlbvh_cl.travel): the device as asked for
+        self._device_spec = device if device is None or isinstance(device, str) else rt.device.id
+        self._spec = None
+        self._cache_key = None
         self._instanced = instances is not None
         if self._instanced:
             instance_meshes, transforms = check_instances(instances, len(self.meshes))
@@ -148,6 +152,29 @@ class Scene:
                 self._tree, self._stats = build(rt, self._geometry, self.builder,
                                                 self.morton_bits, self._scale)
 
+    def __reduce__(self):
+        """Pickles as its SceneSpec (hlbvh_cl.travel): meshes, instances, masks,
+        options and device spec; it is built again on arrival, once per
+        process however many copies arrive."""
+        return (travel.restore, (self._travel_spec(),))
+
+    def _travel_spec(self) -> travel.SceneSpec:
+        with self._lock:
+            if self._spec is None:
+                instances = None
+                if self._instanced:
+                    instances = (self._two_level.instance_meshes.copy(),
+                                 self._two_level.transforms.copy())
+                masks = self._masks.copy() if (self._masks != ALL_BITS).any() else None
+                self._spec = travel.SceneSpec.make(self.meshes, instances, masks, self.builder,
+                                                   self.morton_bits, self._device_spec)
+            return self._spec
+
+    def _changing(self) -> None:
+        """Before the scene's content changes: what it pickled as no longer holds."""
+        travel.forget(self)
+        self._spec = None
+
     @property
     def transforms(self) -> np.ndarray | None:
         """float64 (K, 3, 4): each instance's map (a copy); None without instances."""
@@ -183,6 +210,7 @@ class Scene:
         if len(maps) != len(ids):
             raise ValueError(f"transforms has {len(maps)} maps for {len(ids)} instance_ids")
         with self._lock:
+            self._changing()
             self._two_level.transforms[ids] = maps
             self._build()
 
@@ -205,6 +233,8 @@ class Scene:
         moved = Mesh(positions, old.faces, name=old.name)
         rt = self._runtime
         started = time.perf_counter()
+        with self._lock:
+            self._changing()
         if self._two_level is not None:
             with self._lock:  # the mesh's own tree is built anew, then the top
                 self.meshes[geom_id] = moved

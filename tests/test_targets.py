@@ -22,7 +22,7 @@ import hlbvh_cl
 #: the point and all-hits queries and the input shapes, the pipeline stages,
 #: rendering, and the struct layout.
 CORRECTNESS = ["test_rays.py", "test_validation.py", "test_memory.py", "test_oracle.py",
-               "test_points.py", "test_all_hits.py", "test_shapes.py", "test_instances.py",
+               "test_points.py", "test_all_hits.py", "test_shapes.py", "test_instances.py", "test_travel.py",
                "test_embree.py", "test_watertight.py", "test_packets.py",
                "test_build.py", "test_radix_tree.py", "test_split.py", "test_sort.py", "test_scan.py",
                "test_widen.py", "test_render.py", "test_extreme_coordinates.py",

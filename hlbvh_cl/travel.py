@@ -1,0 +1,112 @@
+"""Scenes that travel: what a Scene pickles as, and the process-wide cache
+that builds each scene once per process however many tasks unpickle it.
+
+A Scene pickles as a SceneSpec: its meshes (arrays and names), its instances
+(mesh indices and maps) and masks where it has them, its build options and
+the device it was asked for (the spec as the caller gave it, never OpenCL
+objects).  Unpickling looks the spec's content key up in the cache and
+builds the Scene only when it is not there, so a worker of a cluster
+(hlbvh_cl.dask) that runs a thousand tasks on one scene builds it once.  A
+cached Scene that is then changed (update_vertices, set_transforms) leaves
+the cache, so no later task gets the changed one for the original.
+"""
+from __future__ import annotations
+
+import hashlib
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+
+
+#: Scenes the cache keeps (the least recently used goes first): each holds
+#: its trees on the device.
+CACHE_SIZE = 4
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """Everything a Scene is built from."""
+
+    meshes: tuple
+    instances: tuple | None  # (mesh indices (K,) int32, maps (K, 3, 4) float64), or None
+    masks: np.ndarray | None  # uint32, or None (every bit)
+    builder: str
+    morton_bits: int
+    device: str | None
+    key: str  # content hash of all of the above
+
+    @classmethod
+    def make(cls, meshes, instances, masks, builder: str, morton_bits: int,
+             device: str | None) -> "SceneSpec":
+        digest = hashlib.blake2b(digest_size=20)
+        for mesh in meshes:
+            for array in (mesh.vertices, mesh.faces):
+                digest.update(str(array.shape).encode())
+                digest.update(np.ascontiguousarray(array).data)
+            digest.update(repr(mesh.name).encode())
+        for part in (instances or ()) + ((masks,) if masks is not None else ()):
+            digest.update(str(part.shape).encode())
+            digest.update(np.ascontiguousarray(part).data)
+        digest.update(repr((instances is None, masks is None, builder, morton_bits,
+                            device)).encode())
+        return cls(tuple(meshes), instances, masks, builder, morton_bits, device,
+                   digest.hexdigest())
+
+    def build(self):
+        from .scene import Scene  # the spec is Scene's, and Scene pickles as a spec
+        pairs = None if self.instances is None else \
+            [(int(m), t) for m, t in zip(*self.instances)]
+        return Scene(list(self.meshes), device=self.device, builder=self.builder,
+                     morton_bits=self.morton_bits, instances=pairs, masks=self.masks)
+
+
+_cache: OrderedDict = OrderedDict()
+_cache_lock = threading.Lock()
+_building: dict = {}
+
+
+def restore(spec: SceneSpec):
+    """The Scene of ``spec``: the cached one, or a new one built and cached.
+    Concurrent restores of one spec build it once (the others wait)."""
+    with _cache_lock:
+        if spec.key in _cache:
+            _cache.move_to_end(spec.key)
+            return _cache[spec.key]
+        lock = _building.setdefault(spec.key, threading.Lock())
+    with lock:
+        with _cache_lock:
+            if spec.key in _cache:
+                return _cache[spec.key]
+        scene = spec.build()
+        scene._cache_key = spec.key
+        with _cache_lock:
+            _cache[spec.key] = scene
+            _building.pop(spec.key, None)
+            while len(_cache) > CACHE_SIZE:
+                _cache.popitem(last=False)
+        return scene
+
+
+def forget(scene) -> None:
+    """Take a scene that is about to change out of the cache."""
+    key = getattr(scene, "_cache_key", None)
+    if key is None:
+        return
+    with _cache_lock:
+        if _cache.get(key) is scene:
+            del _cache[key]
+    scene._cache_key = None
+
+
+def cached_count() -> int:
+    """How many scenes the cache holds (for tests)."""
+    with _cache_lock:
+        return len(_cache)
+
+
+def clear() -> None:
+    """Empty the cache (its scenes stay alive while anyone holds them)."""
+    with _cache_lock:
+        _cache.clear()

@@ -1,0 +1,105 @@
+"""Scenes and meshes through pickle (hlbvh_cl.travel): every kind of scene
+arrives with identical hits, is built once per process however many copies
+arrive, and a changed scene leaves the cache."""
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+import trimesh
+
+import hlbvh_cl
+from hlbvh_cl import travel
+
+
+def _sphere(scale=1.0):
+    m = trimesh.creation.icosphere(subdivisions=2)
+    return hlbvh_cl.Mesh(m.vertices * scale, m.faces, name="sphere")
+
+
+def _box():
+    m = trimesh.creation.box(extents=(1.0, 2.0, 0.5))
+    return hlbvh_cl.Mesh(m.vertices, m.faces, name="box")
+
+
+def _kinds(device):
+    maps = [np.hstack([np.eye(3) * s, [[x], [0.2], [0]]]) for s, x in ((1.0, 0), (0.5, 2.5),
+                                                                      (-1.0, -2.5))]
+    yield "flat", hlbvh_cl.Scene([_sphere(), _box()], device=device)
+    yield "lbvh, 63-bit keys", hlbvh_cl.Scene([_sphere()], device=device, builder="lbvh",
+                                             morton_bits=63)
+    yield "masked", hlbvh_cl.Scene([_sphere(), _box()], device=device, masks=[1, 2])
+    yield "instanced", hlbvh_cl.Scene([_sphere(), _box()], device=device, masks=[1, 2, 3],
+                                      instances=[(k % 2, a) for k, a in enumerate(maps)])
+    yield "huge coordinates", hlbvh_cl.Scene([_sphere(1e30)], device=device)
+
+
+def _rays(scene, count=2000, seed=0):
+    rng = np.random.default_rng(seed)
+    tree = scene._tree
+    lo, hi = tree.bounds_lo / tree.scale, tree.bounds_hi / tree.scale
+    centre, size = (lo + hi) / 2, float(np.max(hi - lo))
+    origins = (centre + rng.normal(size=(count, 3)) * size * 2).astype(np.float32)
+    targets = centre + rng.uniform(-0.5, 0.5, (count, 3)) * size
+    return origins, (targets - origins).astype(np.float32)
+
+
+def test_mesh_pickles_as_its_arrays_and_name():
+    mesh = _box()
+    back = pickle.loads(pickle.dumps(mesh))
+    assert back.name == "box"
+    np.testing.assert_array_equal(back.vertices, mesh.vertices)
+    np.testing.assert_array_equal(back.faces, mesh.faces)
+
+
+def test_every_kind_of_scene_round_trips_with_identical_hits(suite_device):
+    travel.clear()
+    for name, scene in _kinds(suite_device):
+        back = pickle.loads(pickle.dumps(scene))
+        assert back is not scene and back.device.id == scene.device.id, name
+        origins, directions = _rays(scene)
+        a, b = scene.intersect(origins, directions), back.intersect(origins, directions)
+        assert a.hit.sum() > 100, name
+        for field in ("t", "prim_id", "geom_id", "instance_id", "u", "v", "normal"):
+            np.testing.assert_array_equal(getattr(a, field), getattr(b, field),
+                                          err_msg=f"{name}: {field}")
+        np.testing.assert_array_equal(scene.count_intersections(origins, directions, mask=1),
+                                      back.count_intersections(origins, directions, mask=1))
+        assert repr(back) == repr(scene)
+    travel.clear()
+
+
+def test_a_moved_scene_travels_as_moved(suite_device):
+    scene = hlbvh_cl.Scene([_sphere(), _box()], device=suite_device)
+    scene.update_vertices(1, scene.meshes[1].vertices + np.float32([3, 0, 0]))
+    back = pickle.loads(pickle.dumps(scene))
+    np.testing.assert_array_equal(back.meshes[1].vertices, scene.meshes[1].vertices)
+    instanced = hlbvh_cl.Scene([_box()], device=suite_device,
+                               instances=[(0, np.eye(3, 4)), (0, np.eye(3, 4))])
+    instanced.set_transforms([1], np.hstack([np.eye(3), [[4], [0], [0]]])[None])
+    back = pickle.loads(pickle.dumps(instanced))
+    np.testing.assert_array_equal(back.transforms, instanced.transforms)
+
+
+def test_a_process_builds_a_scene_once_and_forgets_a_changed_one(suite_device):
+    travel.clear()
+    scene = hlbvh_cl.Scene([_sphere()], device=suite_device,
+                           instances=[(0, np.eye(3, 4))])
+    data = pickle.dumps(scene)
+    first, second = pickle.loads(data), pickle.loads(data)
+    assert first is second and travel.cached_count() == 1
+    first.set_transforms([0], np.hstack([np.eye(3), [[1], [0], [0]]])[None])
+    assert travel.cached_count() == 0
+    third = pickle.loads(data)
+    assert third is not first
+    np.testing.assert_array_equal(third.transforms, np.eye(3, 4)[None])
+    travel.clear()
+
+
+@pytest.mark.parametrize("device", [None, "pocl"])
+def test_the_device_travels_as_asked(device, suite_device):
+    if device is not None and not suite_device.id.startswith(device):
+        pytest.skip("the suite's device is another")
+    scene = hlbvh_cl.Scene([_box()], device=device)
+    assert scene._travel_spec().device == device
