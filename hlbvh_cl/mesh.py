@@ -110,11 +110,11 @@ class Mesh:
         self._vertices = _validate_vertices(vertices)
         self._faces = _validate_faces(faces, len(self._vertices))
         self.name = name
+        self._bounds: tuple[np.ndarray, np.ndarray] | None = None
 
     def __reduce__(self):
         """Pickles as its arrays and name (checked again on arrival)."""
         return (Mesh, (self._vertices, self._faces, self.name))
-        self._bounds: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def vertices(self) -> np.ndarray:
