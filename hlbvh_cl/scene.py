@@ -156,7 +156,7 @@ class Scene:
         """Pickles as its SceneSpec (hlbvh_cl.travel): meshes, instances, masks,
         options and device spec; it is built again on arrival, once per
         process however many copies arrive."""
-        return (travel.restore, (self._travel_spec(),))
+        return (_restored, (self._travel_spec(),))
 
     def _travel_spec(self) -> travel.SceneSpec:
         with self._lock:
@@ -374,3 +374,7 @@ class Scene:
         return (f"Scene({len(self.meshes)} mesh(es), {held}, builder={self.builder!r}, "
                 f"device={self.device.id!r})")
 
+
+def _restored(spec: travel.SceneSpec) -> Scene:
+    """A pickled Scene on arrival (hlbvh_cl.travel)."""
+    return travel.restore(spec, Scene)

@@ -54,12 +54,13 @@ class SceneSpec:
         return cls(tuple(meshes), instances, masks, builder, morton_bits, device,
                    digest.hexdigest())
 
-    def build(self):
-        from .scene import Scene  # the spec is Scene's, and Scene pickles as a spec
+    def arguments(self) -> tuple[list, dict]:
+        """Scene's positional and keyword arguments for this spec."""
         pairs = None if self.instances is None else \
             [(int(m), t) for m, t in zip(*self.instances)]
-        return Scene(list(self.meshes), device=self.device, builder=self.builder,
-                     morton_bits=self.morton_bits, instances=pairs, masks=self.masks)
+        return [list(self.meshes)], dict(device=self.device, builder=self.builder,
+                                         morton_bits=self.morton_bits, instances=pairs,
+                                         masks=self.masks)
 
 
 _cache: OrderedDict = OrderedDict()
@@ -67,9 +68,10 @@ _cache_lock = threading.Lock()
 _building: dict = {}
 
 
-def restore(spec: SceneSpec):
-    """The Scene of ``spec``: the cached one, or a new one built and cached.
-    Concurrent restores of one spec build it once (the others wait)."""
+def restore(spec: SceneSpec, scene_class):
+    """The Scene of ``spec``: the cached one, or a new one built (by
+    ``scene_class``) and cached.  Concurrent restores of one spec build it
+    once (the others wait)."""
     with _cache_lock:
         if spec.key in _cache:
             _cache.move_to_end(spec.key)
@@ -79,7 +81,8 @@ def restore(spec: SceneSpec):
         with _cache_lock:
             if spec.key in _cache:
                 return _cache[spec.key]
-        scene = spec.build()
+        args, kwargs = spec.arguments()
+        scene = scene_class(*args, **kwargs)
         scene._cache_key = spec.key
         with _cache_lock:
             _cache[spec.key] = scene
