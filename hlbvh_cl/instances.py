@@ -1,6 +1,7 @@
 """Two-level scenes: each mesh's own tree, built once by the usual pipeline
 (hlbvh_cl.build), and a top tree over the instances' world boxes, built by
-the same pipeline (kernels/instance.h has the traversal side).
+the same pipeline (kernels/instance.h has the rays' traversal side,
+kernels/points.cl the point queries').
 
 An instance is a mesh under an affine map (object -> world), with a 32-bit
 mask.  Many instances share their mesh's tree.  The top tree is built over
@@ -138,10 +139,17 @@ class MeshTrees:
     triangle_count: int
     stats: list                # BuildStats per mesh
     levels: list               # each tree's Tree.levels (its own node indices)
+    #: WideDipoles per wide node of every tree (in the nodes' places), made
+    #: by the first winding-number query (hlbvh_cl.points)
+    dipoles: cl.Buffer | None = None
+
+    @property
+    def node_count(self) -> int:
+        return int(self.node_base[-1]) + sum(count for _, count in self.levels[-1])
 
     def release(self, pool) -> None:
-        pool.give(self.nodes, self.triangles, self.refs)
-        self.nodes = self.triangles = self.refs = None
+        pool.give(self.nodes, self.triangles, self.refs, self.dipoles)
+        self.nodes = self.triangles = self.refs = self.dipoles = None
 
 
 def build_mesh_trees(rt: Runtime, meshes: list[Mesh], builder: str,
@@ -216,19 +224,37 @@ def _outward(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return ((lo - pad).astype(np.float32), (hi + pad).astype(np.float32))
 
 
+def reach_scales(linear: np.ndarray) -> np.ndarray:
+    """float32 (K,): 1 / s^2 for each (K, 3, 3) linear map, s its least
+    singular value, rounded up: |A x - A y| >= s |x - y|, so a box whose
+    squared distance from the mapped point exceeds reach_scale times the
+    best squared distance so far cannot hold a nearer point."""
+    least = np.linalg.svd(linear, compute_uv=False)[:, -1]
+    with np.errstate(divide="ignore", over="ignore"):
+        exact = 1.0 / least**2
+        rounded = exact.astype(np.float32)
+    return np.where(rounded < exact, np.nextafter(rounded, np.float32(np.inf)), rounded)
+
+
 def instance_records(transforms: np.ndarray, meshes: np.ndarray, masks: np.ndarray,
                      trees: MeshTrees, top_scale: float) -> np.ndarray:
     """layout.INSTANCE records: each map from the top frame (world coordinates
     times top_scale) into its mesh's frame (mesh coordinates times that
-    tree's scale)."""
+    tree's scale), and back (to_world, with the reach_scale that bounds how
+    much it can shrink a distance, for the closest-point walk)."""
     linear, offset = transforms[:, :, :3], transforms[:, :, 3]
     inverse = np.linalg.inv(linear)
     mesh_scale = trees.scales[meshes]
     to_mesh = np.empty((len(meshes), 3, 4))
     to_mesh[:, :, :3] = inverse * (mesh_scale / top_scale)[:, None, None]
     to_mesh[:, :, 3] = -np.einsum("kij,kj->ki", inverse, offset) * mesh_scale[:, None]
+    to_world = np.empty((len(meshes), 3, 4))
+    to_world[:, :, :3] = linear * (top_scale / mesh_scale)[:, None, None]
+    to_world[:, :, 3] = offset * top_scale
     records = np.zeros(len(meshes), layout.INSTANCE)
     records["to_mesh"] = to_mesh.reshape(-1, 12)
+    records["to_world"] = to_world.reshape(-1, 12)
+    records["reach_scale"] = reach_scales(to_world[:, :, :3])
     records["normal_sign"] = np.sign(np.linalg.det(linear))
     records["mask"] = masks
     records["mesh"] = meshes
@@ -239,7 +265,7 @@ def instance_records(transforms: np.ndarray, meshes: np.ndarray, masks: np.ndarr
 
 @dataclass
 class InstancedTree:
-    """A two-level scene on the device, as the ray queries read it: the top
+    """A two-level scene on the device, as the queries read it: the top
     tree over the instances (its refs' prim_id is the instance of each leaf
     slot), the instance records and every mesh's tree."""
 

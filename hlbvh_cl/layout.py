@@ -57,7 +57,8 @@ TRIANGLE = np.dtype([("v0", *_f3), ("v1", *_f3), ("v2", *_f3)])
 
 TRIANGLE_REF = np.dtype([("geom_id", np.int32), ("prim_id", np.int32)])
 
-INSTANCE = np.dtype([("to_mesh", np.float32, 12), ("normal_sign", np.float32),
+INSTANCE = np.dtype([("to_mesh", np.float32, 12), ("to_world", np.float32, 12),
+                     ("normal_sign", np.float32), ("reach_scale", np.float32),
                      ("mask", np.uint32), ("mesh", np.int32), ("node_base", np.int32),
                      ("triangle_base", np.int32)])
 

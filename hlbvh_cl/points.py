@@ -23,7 +23,13 @@ Conventions, shared with tests/point_oracle.py:
     of least area spanning it would.  Self-intersections and small holes
     move w little, so the sign stays robust.  Where shells of opposite
     orientation overlap, their windings cancel;
-  - signed distance: the closest distance, negative inside.
+  - signed distance: the closest distance, negative inside;
+  - instanced scenes (hlbvh_cl.instances): the closest point is exact in the
+    world for any affine map (each mesh's tree is walked with the point
+    mapped in, its triangles measured mapped out); w is the sum over the
+    instances of sign(det) times the mesh's own w at the mapped point, the
+    flattened scene's on closed meshes (docs/queries.md); point queries
+    take no mask and see every instance.
 """
 from __future__ import annotations
 
@@ -36,6 +42,7 @@ import pyopencl as cl
 from . import frame, inputs, layout
 from .order import COHERENT_MIN, coherent_order, take_rows
 from .device import Runtime
+from .instances import InstancedTree
 from .query import _stack_size, _work_group_size, _zero_copy, check_tree, collect
 from .tree import Tree
 
@@ -49,8 +56,9 @@ POINT_RANGE = 2.0**60
 
 #: Per-point outputs of the closest_points kernel: dtype and values per point.
 CLOSEST_FIELDS = {"distance": (np.float32, 1), "geom_id": (np.int32, 1),
-                  "prim_id": (np.int32, 1), "u": (np.float32, 1), "v": (np.float32, 1),
-                  "normal": (np.float32, 3), "points": (np.float32, 3)}
+                  "prim_id": (np.int32, 1), "instance_id": (np.int32, 1),
+                  "u": (np.float32, 1), "v": (np.float32, 1), "normal": (np.float32, 3),
+                  "points": (np.float32, 3)}
 
 
 @dataclass
@@ -62,6 +70,7 @@ class ClosestPoints:
     distance: np.ndarray  # float32 (N,)
     prim_id: np.ndarray   # int32 (N,) face index within its own mesh
     geom_id: np.ndarray   # int32 (N,) mesh index in the scene
+    instance_id: np.ndarray  # int32 (N,) the instance it lies on (-1 without instances)
     u: np.ndarray         # float32 (N,)
     v: np.ndarray         # float32 (N,)
     normal: np.ndarray    # float32 (N, 3) unit geometric normal
@@ -83,6 +92,17 @@ def check_max_distance(value) -> float:
     if np.isnan(distance) or distance < 0:
         raise ValueError(f"max_distance = {distance} must be >= 0 (inf for no limit)")
     return distance
+
+
+def point_scene_args(tree) -> tuple:
+    """A point kernel's POINT_SCENE_PARAMS (kernels/points.cl): a flat tree's
+    nodes, triangles and refs; an instanced one's top tree, instances and
+    meshes' trees (query.scene_args without the rays' masks: point queries
+    see every instance)."""
+    if isinstance(tree, InstancedTree):
+        return (tree.top.nodes, tree.top.triangles, tree.top.refs, tree.instances,
+                tree.meshes.nodes, tree.meshes.triangles, tree.meshes.refs)
+    return tree.nodes, tree.triangles, tree.refs
 
 
 class PointQuery:
@@ -120,9 +140,9 @@ class PointQuery:
             kernel = self._kernel(tree, "closest_points")
 
             def launch(n, b):
-                return self.rt.run(kernel, n, tree.nodes, tree.triangles, tree.refs, b["input"],
-                                   max_d2, b["distance"], b["geom_id"], b["prim_id"], b["u"],
-                                   b["v"], b["normal"], b["points"], self._overflow,
+                return self.rt.run(kernel, n, *point_scene_args(tree), b["input"], max_d2,
+                                   b["distance"], b["geom_id"], b["prim_id"], b["instance_id"],
+                                   b["u"], b["v"], b["normal"], b["points"], self._overflow,
                                    np.uint32(n), local_size=self.work_group_size)
             self._run(framed, launch, out)
             if tree.scale != 1.0:  # back from the frame: powers of two, exact
@@ -130,7 +150,7 @@ class PointQuery:
                 out["points"][:] = frame.to_frame(out["points"], 1.0 / tree.scale)
         elif count:
             out["distance"][:] = np.inf
-            out["geom_id"][:] = out["prim_id"][:] = -1
+            out["geom_id"][:] = out["prim_id"][:] = out["instance_id"][:] = -1
             out["u"][:] = out["v"][:] = out["normal"][:] = 0.0
             out["points"][:] = np.nan
         return ClosestPoints(**{name: array.reshape(shape + array.shape[1:])
@@ -147,7 +167,7 @@ class PointQuery:
             kernel = self._kernel(tree, "winding_numbers")
 
             def launch(n, b):
-                return self.rt.run(kernel, n, tree.nodes, tree.triangles, dipoles, b["input"],
+                return self.rt.run(kernel, n, *point_scene_args(tree), dipoles, b["input"],
                                    b["winding"], self._overflow, np.uint32(n),
                                    local_size=self.work_group_size)
             self._run(framed, launch, out)
@@ -165,7 +185,7 @@ class PointQuery:
             kernel = self._kernel(tree, "signed_distances")
 
             def launch(n, b):
-                return self.rt.run(kernel, n, tree.nodes, tree.triangles, dipoles, b["input"],
+                return self.rt.run(kernel, n, *point_scene_args(tree), dipoles, b["input"],
                                    b["distance"], b["winding"], self._overflow, np.uint32(n),
                                    local_size=self.work_group_size)
             self._run(framed, launch, out)
@@ -197,23 +217,37 @@ class PointQuery:
         return framed
 
     def _kernel(self, tree: Tree, name: str) -> cl.Kernel:
-        return self.rt.kernel("points.cl", name, STACK_SIZE=_stack_size(tree),
-                              **self.rt.prefetch_defines)
+        """The point kernel `name` for `tree` (an instanced one's walks its
+        top tree, kernels/points.cl)."""
+        defines = {"STACK_SIZE": _stack_size(tree), **self.rt.prefetch_defines}
+        if isinstance(tree, InstancedTree):
+            defines["INSTANCES"] = 1
+        return self.rt.kernel("points.cl", name, **defines)
 
-    def _dipoles(self, tree: Tree) -> cl.Buffer:
+    def _dipoles(self, tree) -> cl.Buffer:
         """The tree's dipoles (WideDipoles per node), made on the device on
-        first use after a build or refit: one launch per level, bottom-up."""
-        if tree.dipoles is None:
+        first use after a build or refit: one launch per level, bottom-up.
+        An instanced scene's are its meshes' trees' (MeshTrees.dipoles, one
+        buffer in the nodes' places, made once for every top tree over
+        them)."""
+        owner = tree.meshes if isinstance(tree, InstancedTree) else tree
+        if owner.dipoles is None:
             rt = self.rt
             with rt.build_lock:  # a buffer taken during a build would go back with its scratch
-                dipoles = rt.pool.take(tree.node_count * layout.WIDE_DIPOLES.itemsize)
+                dipoles = rt.pool.take(owner.node_count * layout.WIDE_DIPOLES.itemsize)
             kernel = rt.kernel("dipoles.cl", "dipoles_level")
+            if isinstance(tree, InstancedTree):
+                parts = zip(owner.levels, owner.node_base, owner.triangle_base)
+            else:
+                parts = [(tree.levels, 0, 0)]
             events = []
-            for first, count in reversed(tree.levels):
-                events.append(rt.run(kernel, count, first, count, tree.nodes, tree.triangles,
-                                     dipoles, wait_for=events[-1:] or None))
-            tree.dipoles = dipoles
-        return tree.dipoles
+            for levels, node_base, triangle_base in parts:
+                for first, count in reversed(levels):
+                    events.append(rt.run(kernel, count, first, count, np.int32(node_base),
+                                         np.int32(triangle_base), owner.nodes, owner.triangles,
+                                         dipoles, wait_for=events[-1:] or None))
+            owner.dipoles = dipoles
+        return owner.dipoles
 
     def _reserve(self, fields: dict[str, int]) -> None:
         count = self.max_points_per_launch

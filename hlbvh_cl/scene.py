@@ -318,25 +318,31 @@ class Scene:
     def closest_points(self, points, max_distance=np.inf):
         """The nearest surface point of each of the (..., 3) ``points`` within
         ``max_distance``: a ClosestPoints with points, distance, prim_id,
-        geom_id, u, v and normal in the points' leading shape (distance inf
-        and ids -1 beyond it)."""
+        geom_id, instance_id, u, v and normal in the points' leading shape
+        (distance inf and ids -1 beyond it).  Point queries take no mask:
+        they see every instance (every mesh)."""
         with self._lock:
-            return self._point_query().closest_points(self._flat_tree("closest_points"), points,
-                                                      max_distance)
+            found = self._point_query().closest_points(self._built_tree(), points, max_distance)
+            if self._two_level is not None and not self._instanced:
+                found.instance_id[...] = -1  # instances of the masks' making
+            return found
 
     def winding_number(self, points) -> np.ndarray:
         """float32: the generalized winding number of each point (1 inside a
         closed outward-oriented surface, -1 inside an inward-oriented one, 0
-        outside, fractional near the holes of an open one; hlbvh_cl.points)."""
+        outside, fractional near the holes of an open one; hlbvh_cl.points).
+        With instances: the sum over them of each mesh's own winding number
+        at the point mapped into it, negated for a mirroring map (on closed
+        meshes the flattened scene's)."""
         with self._lock:
-            return self._point_query().winding_numbers(self._flat_tree("winding_number"), points)
+            return self._point_query().winding_numbers(self._built_tree(), points)
 
     def signed_distance(self, points) -> np.ndarray:
         """float32: the distance to the surface, negative inside, i.e. where
         |winding number| >= 0.5, whichever way the faces turn (on an open mesh
         that closes each hole minimally; see hlbvh_cl.points)."""
         with self._lock:
-            return self._point_query().signed_distance(self._flat_tree("signed_distance"), points)
+            return self._point_query().signed_distance(self._built_tree(), points)
 
     def contains(self, points) -> np.ndarray:
         """bool: whether each point is inside (|winding number| >= 0.5)."""
@@ -354,12 +360,6 @@ class Scene:
             raise RuntimeError("this Scene has no tree: its last rebuild failed; call "
                                "scene.rebuild() (or update_vertices) to build one")
         return self._tree
-
-    def _flat_tree(self, verb: str):
-        """The current tree for a query that instanced scenes do not run yet."""
-        if self._two_level is not None:
-            raise NotImplementedError(f"{verb} on an instanced or masked Scene is not built yet")
-        return self._built_tree()
 
     def _ray_query(self):
         if self._query is None:

@@ -95,13 +95,21 @@ inline void node_dipole(__global const WideNode* nodes, __global const WideDipol
 }
 
 /* Every lane of the wide nodes [level_first, level_first + level_count),
- * whose child nodes (deeper levels) already have their dipoles. */
-__kernel void dipoles_level(int level_first, int level_count, __global const WideNode* nodes,
-                            __global const Triangle* triangles, __global WideDipoles* dipoles)
+ * whose child nodes (deeper levels) already have their dipoles.  The tree
+ * starts at nodes[node_base] and triangles[triangle_base], its dipoles at
+ * dipoles[node_base]: one tree among the meshes' trees of a two-level scene
+ * (hlbvh_cl/instances.py's MeshTrees), its indices its own; 0 and 0 for a
+ * flat scene's one tree. */
+__kernel void dipoles_level(int level_first, int level_count, int node_base, int triangle_base,
+                            __global const WideNode* nodes, __global const Triangle* triangles,
+                            __global WideDipoles* dipoles)
 {
     int i = get_global_id(0);
     if (i >= level_count)
         return;
+    nodes += node_base;
+    triangles += triangle_base;
+    dipoles += node_base;
     int n = level_first + i;
     __global const WideNode* node = nodes + n;
     for (int k = 0; k < WIDE_ARITY; ++k) {

@@ -146,12 +146,17 @@ typedef struct {
 } TriangleRef;
 
 /* One instance of a two-level scene (hlbvh_cl/instances.py): where its
- * mesh's tree lies among the meshes' trees, the map from the top tree's
- * frame to that mesh's frame, and its mask.  Rays are mapped, not
- * renormalised, so t is the same in both frames. */
+ * mesh's tree lies among the meshes' trees, the maps between the top tree's
+ * frame and that mesh's frame, and its mask.  Rays are mapped, not
+ * renormalised, so t is the same in both frames; point queries measure
+ * distances in the top frame (points.cl), where a non-similarity map does
+ * not keep them. */
 typedef struct {
     float to_mesh[12];  /* 3x4 row-major affine map: top frame -> mesh frame */
+    float to_world[12]; /* its inverse: mesh frame -> top frame */
     float normal_sign;  /* sign of the map's determinant (mirroring flips normals) */
+    float reach_scale;  /* 1 / s^2, s the least singular value of to_world's linear
+                           part: a mesh-frame distance d is at least s d in the top frame */
     uint mask;          /* a ray skips the instance when (ray mask & mask) == 0 */
     int mesh;           /* index of its mesh (the hits' geom_id) */
     int node_base;      /* its mesh tree's root among the meshes' wide nodes */

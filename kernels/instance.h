@@ -4,8 +4,9 @@
  * top tree is the one walk (walk.h) with a leaf visitor that maps the ray
  * into each instance's mesh frame and walks that mesh's tree with the same
  * query state: the ray is mapped, not renormalised, so t, the limit and
- * every hit found so far mean the same in both frames.  This header holds
- * the map; the visitors live with their queries (traverse.cl, all_hits.cl).
+ * every hit found so far mean the same in both frames.  This header maps
+ * rays (two_level.h has the maps themselves); the visitors live with their
+ * queries (traverse.cl, all_hits.cl).
  * A packet of rays is mapped lane by lane and walks the mesh's tree as a
  * packet when its mapped rays still share their direction signs
  * (prepare_packet), else one ray at a time. */
@@ -14,24 +15,9 @@
 
 #include "ray.h"
 #include "triangle.h"
+#include "two_level.h"
 
 #ifdef INSTANCES
-#ifdef cl_khr_fp64
-typedef double map_real;
-#else
-typedef float map_real;
-#endif
-
-/* Component `row` of the instance's map applied to a point (with the
- * offset) or a direction (without): in a fixed order (FP_CONTRACT is off
- * in triangle.h), so every device maps alike, and in double where the
- * device has it, so only the final rounding to float stands between the
- * mapped ray and the exact one. */
-#define MAP_POINT(m, x, y, z) \
-    (((map_real)(m)[0] * (x) + (map_real)(m)[1] * (y)) + (map_real)(m)[2] * (z) + (map_real)(m)[3])
-#define MAP_DIRECTION(m, x, y, z) \
-    (((map_real)(m)[0] * (x) + (map_real)(m)[1] * (y)) + (map_real)(m)[2] * (z))
-
 /* Whether the ray sees the instance ((ray mask & instance mask) != 0, as
  * Embree), and if so the ray in the instance's mesh frame, prepared for its
  * tree (*out). */
@@ -88,12 +74,9 @@ TRAVERSAL_INLINE bool instance_lanes(RayLanes* out, __global const Instance* in,
 TRAVERSAL_INLINE float3 instance_normal(__global const Instance* in, float3 n)
 {
     __global const float* m = in->to_mesh;
-    float3 w = (float3)((m[0] * n.x + m[4] * n.y) + m[8] * n.z,
-                        (m[1] * n.x + m[5] * n.y) + m[9] * n.z,
-                        (m[2] * n.x + m[6] * n.y) + m[10] * n.z) * in->normal_sign;
-    float largest = GROW_HI(GROW_HI(ABS_FLOAT(w.x), ABS_FLOAT(w.y)), ABS_FLOAT(w.z));
-    w = w * (1.0f / largest);
-    return w * (1.0f / SQUARE_ROOT(w.x * w.x + w.y * w.y + w.z * w.z));
+    return unit_vector((float3)((m[0] * n.x + m[4] * n.y) + m[8] * n.z,
+                                (m[1] * n.x + m[5] * n.y) + m[9] * n.z,
+                                (m[2] * n.x + m[6] * n.y) + m[10] * n.z) * in->normal_sign);
 }
 
 #endif /* INSTANCES (the map) */
@@ -118,21 +101,6 @@ TRAVERSAL_INLINE float3 instance_normal(__global const Instance* in, float3 n)
         __global const TriangleRef *refs
 #define SCENE_ARGS top_nodes, top_triangles, top_refs, instances, ray_masks, mask_step, nodes, \
                    triangles, refs
-
-/* What the top tree's leaf visitors use besides the walk's own: top_refs[i]
- * .prim_id is the instance in leaf slot i; *mesh_overflow is set when a
- * mesh's walk runs out of stack. */
-#define INSTANCE_PARAMS                                                                 \
-    , __global const TriangleRef *top_refs, __global const Instance *instances,          \
-        __global const WideNode *mesh_nodes, __global const Triangle *mesh_triangles,    \
-        __global const TriangleRef *mesh_refs, bool *mesh_overflow
-#define INSTANCE_ARGS , top_refs, instances, mesh_nodes, mesh_triangles, mesh_refs, mesh_overflow
-/* The top walk's arguments from a kernel's SCENE_PARAMS. */
-#define TOP_ARGS(overflow_flag) top_refs, instances, nodes, triangles, refs, overflow_flag
-
-/* Leaf slot i's instance, and its mesh's tree (nodes, triangles). */
-#define INSTANCE_AT(i) __global const Instance* in = instances + top_refs[i].prim_id
-#define MESH_TREE(in) mesh_nodes + (in)->node_base, mesh_triangles + (in)->triangle_base
 
 /* The rays' masks into the lanes (lanes past `used` repeat the last). */
 TRAVERSAL_INLINE void load_masks(RayLanes* lanes, uint first, uint used,

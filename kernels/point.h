@@ -24,14 +24,28 @@ typedef PointData Rays_point;
  * none), its squared distance `reach` (the walk drops boxes farther than
  * it), the closest point on it and its barycentrics (point = (1-u-v)*v0 +
  * u*v1 + v*v2); or the winding walk's sum of solid angles (4 pi times the
- * winding number). */
+ * winding number).  In a two-level scene (points.cl) the squared distance
+ * is `best`, in the top frame, with the instance that holds the triangle
+ * (its index then counts from its mesh's first triangle), and `reach` is
+ * the bound in the frame of the tree being walked. */
 typedef struct {
     int index;
     float reach;
     float u, v;
     float solid_angle;
+#ifdef INSTANCES
+    float best;
+    int instance;
+#endif
 } Found_point;
 #define reach_point(s) ((s)->reach)
+
+/* A walk's start: nothing found, squared reach `reach`. */
+#ifdef INSTANCES
+#define POINT_START(reach) {-1, reach, 0.0f, 0.0f, 0.0f, reach, -1}
+#else
+#define POINT_START(reach) {-1, reach, 0.0f, 0.0f, 0.0f}
+#endif
 
 /* Squared distance from the point to each child's box, one lane each
  * (0 inside); the children within the reach as a mask.  An unused slot's
@@ -115,11 +129,12 @@ TRAVERSAL_INLINE bool winding_leaf(Found_point* s, const PointData* q,
     return false;
 }
 
-/* The point of triangle t nearest to p, as barycentrics (u, v) of v1 and v2
- * and its squared distance to p (Ericson 2005, sec. 5.1.5: the vertex,
- * edge and face regions in turn).  A degenerate triangle that reaches the
- * face region with barycentrics out of range takes the nearest point of its
- * three edges instead (Ericson's face formula divides by its zero area). */
+/* The point of the triangle (a, b, c) nearest to p, as barycentrics (u, v)
+ * of b and c, and its squared distance to p (Ericson 2005, sec. 5.1.5: the
+ * vertex, edge and face regions in turn).  A degenerate triangle that
+ * reaches the face region with barycentrics out of range takes the nearest
+ * point of its three edges instead (Ericson's face formula divides by its
+ * zero area). */
 TRAVERSAL_INLINE float segment_point(float3 a, float3 ab, float3 p, float* w)
 {
     float length2 = DOT3(ab, ab);
@@ -130,10 +145,9 @@ TRAVERSAL_INLINE float segment_point(float3 a, float3 ab, float3 p, float* w)
     return DOT3(d, d);
 }
 
-TRAVERSAL_INLINE float closest_on_triangle(__global const Triangle* t, float3 p, float* u_out,
-                                           float* v_out)
+TRAVERSAL_INLINE float closest_on_corners(float3 a, float3 b, float3 c, float3 p, float* u_out,
+                                          float* v_out)
 {
-    float3 a = LOAD_XYZ(t->v0), b = LOAD_XYZ(t->v1), c = LOAD_XYZ(t->v2);
     float3 ab = b - a, ac = c - a, ap = p - a;
     float u, v;
     float d1 = DOT3(ab, ap), d2 = DOT3(ac, ap);
@@ -185,6 +199,13 @@ TRAVERSAL_INLINE float closest_on_triangle(__global const Triangle* t, float3 p,
     *v_out = v;
     float3 d = p - (a + u * ab + v * ac);
     return DOT3(d, d);
+}
+
+TRAVERSAL_INLINE float closest_on_triangle(__global const Triangle* t, float3 p, float* u_out,
+                                           float* v_out)
+{
+    return closest_on_corners(LOAD_XYZ(t->v0), LOAD_XYZ(t->v1), LOAD_XYZ(t->v2), p, u_out,
+                              v_out);
 }
 
 /* The closest-point walk's leaf: a triangle nearer than the reach becomes

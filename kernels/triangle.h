@@ -25,17 +25,28 @@ TRAVERSAL_INLINE void geometric_normal(__global const Triangle* tri, float* nx, 
     *nz = e1x * e2y - e1y * e2x;
 }
 
-/* The unit geometric normal, scaled by its largest component first so that
- * tiny or huge triangles neither underflow nor overflow the squared length
- * (a degenerate triangle gives NaN: callers take only triangles hit or
- * found). */
+/* w at unit length, scaled by its largest component first so that tiny or
+ * huge vectors neither underflow nor overflow the squared length (a zero
+ * vector gives NaN: callers pass normals of triangles hit or found). */
+TRAVERSAL_INLINE float3 unit_vector(float3 w)
+{
+    float largest = GROW_HI(GROW_HI(ABS_FLOAT(w.x), ABS_FLOAT(w.y)), ABS_FLOAT(w.z));
+    w = w * (1.0f / largest);
+    return w * (1.0f / SQUARE_ROOT(w.x * w.x + w.y * w.y + w.z * w.z));
+}
+
+/* The unit geometric normal of the triangle (a, b, c), as geometric_normal
+ * computes it (see unit_vector). */
+TRAVERSAL_INLINE float3 corners_normal(float3 a, float3 b, float3 c)
+{
+    float3 e1 = b - a, e2 = c - a;
+    return unit_vector((float3)(e1.y * e2.z - e1.z * e2.y, e1.z * e2.x - e1.x * e2.z,
+                                e1.x * e2.y - e1.y * e2.x));
+}
+
 TRAVERSAL_INLINE float3 unit_normal(__global const Triangle* tri)
 {
-    float nx, ny, nz;
-    geometric_normal(tri, &nx, &ny, &nz);
-    float largest = GROW_HI(GROW_HI(ABS_FLOAT(nx), ABS_FLOAT(ny)), ABS_FLOAT(nz));
-    float3 n = (float3)(nx, ny, nz) * (1.0f / largest);
-    return n * (1.0f / SQUARE_ROOT(n.x * n.x + n.y * n.y + n.z * n.z));
+    return corners_normal(LOAD_XYZ(tri->v0), LOAD_XYZ(tri->v1), LOAD_XYZ(tri->v2));
 }
 
 #ifdef cl_khr_fp64

@@ -14,6 +14,7 @@ import trimesh
 import hlbvh_cl
 from invariants import check_tree
 from oracle import brute_force_all_hits, brute_force_intersect, brute_force_occluded
+from point_oracle import brute_force_closest, brute_force_winding, closest_on_triangles
 
 
 def _rotation(rng) -> np.ndarray:
@@ -377,3 +378,248 @@ def test_bad_masks_and_updates_are_named(small, suite_device):
         scene.set_transforms([0], np.zeros((1, 3, 4)))
     hits = scene.intersect(np.zeros((1, 3)) - 5, np.ones((1, 3)))
     assert hits.instance_id[0] == 0  # the scene still holds its instance
+
+
+# -- point queries ---------------------------------------------------------------
+
+def _counts_first(meshes, instance_meshes) -> np.ndarray:
+    """The first flattened face of each instance (_flattened's order)."""
+    counts = [meshes[m].triangle_count for m in instance_meshes]
+    return np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+
+
+def _near_surface(rng, vertices, faces, count: int, offsets) -> np.ndarray:
+    """Points on random flattened triangles, moved along their normals by
+    each of ``offsets`` in turn."""
+    from test_points import surface_samples
+    on, normal, _ = surface_samples(rng, vertices, faces, count)
+    return on + np.resize(np.asarray(offsets, np.float64), count)[:, None] * normal
+
+
+def _assert_closest_matches(got, points, meshes, instance_meshes, maps, max_distance=np.inf,
+                            instance_id=None):
+    """closest_points against the float64 brute force of the flattened scene:
+    found, distance (1e-5 relative, plus the float32 rounding of the mapped
+    vertices), the point on the named (instance, face) at that distance,
+    its normal, and the ids where the nearest face is unique by a margin.
+    ``instance_id``: the instances as the flattened scene numbers them, where
+    ``got`` reports none (a masked flat scene: its meshes)."""
+    vertices, faces, owner, prim = _flattened(meshes, instance_meshes, maps)
+    instance_id = got.instance_id if instance_id is None else instance_id
+    points64 = np.asarray(points, np.float64)
+    want = brute_force_closest(vertices, faces, points64)
+    distance = want["distance"]
+    tolerance = 1e-5 * distance + 1e-6
+    edge = np.abs(distance - max_distance) <= tolerance  # either answer is right
+    found = distance <= max_distance
+    np.testing.assert_array_equal(got.found[~edge], found[~edge])
+    both = got.found & found
+    assert np.all(np.abs(got.distance[both] - distance[both]) <= tolerance[both]), \
+        np.abs(got.distance[both] - distance[both]).max()
+    missed = ~got.found
+    assert np.isinf(got.distance[missed]).all() and np.isnan(got.points[missed]).all()
+    assert (got.instance_id[missed] == -1).all() and (got.geom_id[missed] == -1).all()
+    assert (got.prim_id[missed] == -1).all() and (got.normal[missed] == 0).all()
+    g = got.found
+    np.testing.assert_array_equal(got.geom_id[g], np.asarray(instance_meshes)[instance_id[g]])
+    k = _counts_first(meshes, instance_meshes)[instance_id[g]] + got.prim_id[g]
+    tri = vertices[faces[k]]
+    u, v = got.u[g].astype(np.float64), got.v[g].astype(np.float64)
+    assert np.all((u >= -1e-6) & (v >= -1e-6) & (u + v <= 1 + 1e-6))
+    on = tri[:, 0] + u[:, None] * (tri[:, 1] - tri[:, 0]) + v[:, None] * (tri[:, 2] - tri[:, 0])
+    np.testing.assert_allclose(got.points[g], on, atol=2e-6)
+    gap = np.linalg.norm(got.points[g] - points64[g], axis=1)
+    assert np.all(np.abs(gap - got.distance[g]) <= tolerance[g] + 1e-6)
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    np.testing.assert_allclose(got.normal[g], normal, atol=1e-5)
+    a, b, c = (vertices[faces[:, j]] for j in range(3))
+    ordered = np.sort(np.sqrt(closest_on_triangles(points64, a, b, c)[0]), axis=1)
+    unique = both & (ordered[:, 1] - ordered[:, 0] > 10 * tolerance)
+    index = want["index"][unique]
+    np.testing.assert_array_equal(instance_id[unique], owner[index])
+    np.testing.assert_array_equal(got.prim_id[unique], prim[index])
+    return int(unique.sum())
+
+
+def _point_scene(small, device, count: int, spread: float, seed: int):
+    """Mirrored, scaled, rotated, overlapping instances of the small meshes,
+    and two of extreme aspect (where the closest walk's bound, 1 / s_min^2,
+    is far from tight)."""
+    rng = np.random.default_rng(seed)
+    stretched = np.zeros((2, 3, 4))
+    stretched[0, :, :3] = _rotation(rng) @ np.diag([4.0, 0.25, 1.0])
+    stretched[1, :, :3] = _rotation(rng) @ np.diag([-0.2, 3.0, 1.5])
+    stretched[:, :, 3] = rng.uniform(-spread, spread, (2, 3))
+    maps = np.concatenate([_transforms(rng, count, spread=spread), stretched])
+    instance_meshes = np.arange(len(maps)) % 2
+    scene = hlbvh_cl.Scene(small, device=device,
+                           instances=[(int(m), a) for m, a in zip(instance_meshes, maps)])
+    return scene, instance_meshes, maps, rng
+
+
+def test_closest_points_through_instances_match_the_brute_force(small, suite_device):
+    scene, instance_meshes, maps, rng = _point_scene(small, suite_device, 12, 2.0, 41)
+    vertices, faces, owner, _ = _flattened(small, instance_meshes, maps)
+    points = np.concatenate([
+        rng.uniform(-5, 5, (1500, 3)),
+        _near_surface(rng, vertices, faces, 600, [1e-3, -1e-3, 0.05, -0.05, 0.0, 0.3])])
+    points = points.astype(np.float32)
+    got = scene.closest_points(points)
+    assert got.found.all()
+    assert _assert_closest_matches(got, points, small, instance_meshes, maps) > 700
+    assert len(set(got.instance_id.tolist())) == len(maps)  # every instance was nearest
+    for max_distance in (0.0, 0.3, 1.0):
+        cut = scene.closest_points(points, max_distance=max_distance)
+        _assert_closest_matches(cut, points, small, instance_meshes, maps, max_distance)
+        assert 0 < cut.found.sum() < len(points)
+    # the leading shape, and the same answers point by point
+    grid = scene.closest_points(points[:60].reshape(3, 20, 3))
+    assert grid.instance_id.shape == (3, 20)
+    np.testing.assert_array_equal(grid.distance.reshape(-1), got.distance[:60])
+
+
+def test_winding_numbers_and_signs_through_overlapping_instances(small, suite_device):
+    """On closed meshes the winding number of the instanced scene is the
+    flattened scene's (a mirrored copy winds the other way, so where it
+    overlaps an unmirrored one their windings cancel, as they do flattened)."""
+    scene, instance_meshes, maps, rng = _point_scene(small, suite_device, 12, 2.0, 43)
+    vertices, faces, _, _ = _flattened(small, instance_meshes, maps)
+    points = np.concatenate([rng.uniform(-5, 5, (1500, 3)),
+                             _near_surface(rng, vertices, faces, 500, [1e-3, -1e-3])])
+    points = points.astype(np.float32)
+    expected = brute_force_winding(vertices, faces, points)
+    winding = scene.winding_number(points)
+    # Barill's far field, in each instance's mesh: the instances' errors add up
+    error = np.abs(winding - expected)
+    assert error.max() < 0.1 and np.median(error) < 0.01
+    inside = np.abs(expected) >= 0.5
+    decided = np.abs(np.abs(expected) - 0.5) > 0.1
+    assert 100 < inside[decided].sum() < decided.sum() - 100
+    assert (np.abs(expected) > 1.5).any() and (expected < -0.5).any()  # overlaps, mirrors
+    np.testing.assert_array_equal(scene.contains(points)[decided], inside[decided])
+    sdf = scene.signed_distance(points)
+    np.testing.assert_array_equal(np.abs(sdf), scene.closest_points(points).distance)
+    np.testing.assert_array_equal((sdf < 0)[decided], inside[decided])
+
+
+def _watertight_instances(device, seed):
+    """A watertight icosphere and box, each placed four times (rotated,
+    scaled non-uniformly, every third mirrored) on a grid wide enough that
+    no two copies meet: parity ray casting then decides inside."""
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    box = trimesh.creation.box(extents=(1.0, 0.5, 2.0))
+    meshes = [hlbvh_cl.Mesh(sphere.vertices, sphere.faces, name="sphere"),
+              hlbvh_cl.Mesh(box.vertices, box.faces, name="box")]
+    rng = np.random.default_rng(seed)
+    maps = _transforms(rng, 8)
+    cells = np.stack(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij"), -1).reshape(-1, 3)
+    maps[:, :, 3] = cells * 2.5
+    instance_meshes = np.arange(8) % 2
+    scene = hlbvh_cl.Scene(meshes, device=device,
+                           instances=[(int(m), a) for m, a in zip(instance_meshes, maps)])
+    return scene, meshes, instance_meshes, maps, rng
+
+
+def test_signs_agree_with_parity_on_watertight_instances(suite_device):
+    from test_points import parity_inside
+    scene, meshes, instance_meshes, maps, rng = _watertight_instances(suite_device, 47)
+    vertices, faces, _, _ = _flattened(meshes, instance_meshes, maps)
+    points = rng.uniform(-5, 5, (4000, 3)).astype(np.float32)
+    expected = parity_inside(vertices, faces, points.astype(np.float64))
+    nearest = scene.closest_points(points).distance
+    clear = nearest > 1e-4
+    assert expected[clear].sum() > 150
+    sdf = scene.signed_distance(points)
+    np.testing.assert_array_equal(np.abs(sdf), nearest)
+    np.testing.assert_array_equal((sdf < 0)[clear], expected[clear])
+    np.testing.assert_array_equal(scene.contains(points)[clear], expected[clear])
+    # each copy winds once, the mirrored ones the other way
+    winding = scene.winding_number(points[clear])
+    want = brute_force_winding(vertices, faces, points[clear])
+    assert np.abs(winding - np.round(want)).max() < 0.05
+    assert set(np.round(want).astype(int).tolist()) == {-1, 0, 1}
+
+
+def test_signs_hold_1e_6_off_instanced_surfaces(suite_device):
+    scene, meshes, instance_meshes, maps, rng = _watertight_instances(suite_device, 53)
+    from test_points import assert_signs_off_the_surface, surface_samples
+    vertices, faces, owner, _ = _flattened(meshes, instance_meshes, maps)
+    on, normal, chosen = surface_samples(rng, vertices, faces, 1500)
+    # both meshes are convex: outward is away from the copy's centre (a
+    # mirrored copy's normals point inward)
+    outward = normal * np.sign(np.einsum("fd,fd->f", normal,
+                                         on - maps[owner[chosen], :, 3]))[:, None]
+    assert_signs_off_the_surface(scene, on, outward, 1000)
+
+
+def test_point_queries_of_a_masked_flat_scene(small, suite_device):
+    """Masks make a flat scene's meshes identity instances: point queries
+    see every mesh whatever its mask, at the flat scene's distances, and
+    report no instance."""
+    flat = hlbvh_cl.Scene(small, device=suite_device)
+    masked = hlbvh_cl.Scene(small, device=suite_device, masks=[1, 0])
+    rng = np.random.default_rng(59)
+    points = rng.uniform(-2, 2, (1500, 3)).astype(np.float32)
+    a, b = flat.closest_points(points), masked.closest_points(points)
+    np.testing.assert_array_equal(a.distance, b.distance)
+    assert (a.instance_id == -1).all() and (b.instance_id == -1).all()
+    identity = np.tile(np.eye(3, 4), (2, 1, 1))
+    assert _assert_closest_matches(b, points, small, np.arange(2), identity,
+                                   instance_id=b.geom_id) > 300
+    vertices, faces, _, _ = _flattened(small, np.arange(2), identity)
+    expected = brute_force_winding(vertices, faces, points)
+    np.testing.assert_allclose(masked.winding_number(points), expected, atol=0.05)
+    decided = np.abs(np.abs(expected) - 0.5) > 0.1
+    np.testing.assert_array_equal(masked.contains(points)[decided],
+                                  (np.abs(expected) >= 0.5)[decided])
+    np.testing.assert_array_equal(np.abs(masked.signed_distance(points)), b.distance)
+
+
+def test_mesh_dipoles_are_made_once_and_follow_the_meshes(small, suite_device):
+    """The meshes' trees share one dipole buffer, made by the first winding
+    query: set_transforms keeps it (the meshes stand), a mesh's new vertices
+    drop it with the trees they replace."""
+    rng = np.random.default_rng(61)
+    maps = _transforms(rng, 6, spread=2.0)
+    instance_meshes = np.arange(6) % 2
+    scene = hlbvh_cl.Scene(small, device=suite_device,
+                           instances=[(int(m), a) for m, a in zip(instance_meshes, maps)])
+    points = rng.uniform(-4, 4, (800, 3)).astype(np.float32)
+
+    def check():
+        vertices, faces, _, _ = _flattened(scene.meshes, instance_meshes, maps)
+        np.testing.assert_allclose(scene.winding_number(points),
+                                   brute_force_winding(vertices, faces, points), atol=0.05)
+
+    trees = scene._tree.meshes
+    assert trees.dipoles is None
+    check()
+    dipoles = trees.dipoles
+    assert dipoles is not None
+    maps[[0, 3]] = _transforms(rng, 2, spread=2.0)
+    scene.set_transforms([0, 3], maps[[0, 3]])
+    assert scene._tree.meshes is trees and trees.dipoles is dipoles
+    check()
+    scene.update_vertices(1, scene.meshes[1].vertices * np.float32(1.5))
+    assert trees.dipoles is None and scene._tree.meshes.dipoles is None
+    check()
+    assert _assert_closest_matches(scene.closest_points(points), points, scene.meshes,
+                                   instance_meshes, maps) > 150
+
+
+def test_reach_scales_bound_the_shrinking_of_distances():
+    from hlbvh_cl.instances import reach_scales
+    rng = np.random.default_rng(67)
+    linear = np.stack([_rotation(rng) @ np.diag(rng.uniform(0.1, 3.0, 3)) @ _rotation(rng)
+                       for _ in range(50)] + [np.diag([2.0, 0.5, -1.0])])
+    scales = reach_scales(linear)
+    assert scales.dtype == np.float32 and scales[-1] == 4.0
+    x = rng.normal(size=(50, 1000, 3))
+    shrunk = np.einsum("kij,knj->kni", linear[:50], x)
+    ratio = (np.linalg.norm(x, axis=2) ** 2 / np.linalg.norm(shrunk, axis=2) ** 2).max(axis=1)
+    assert np.all(ratio <= scales[:50])  # never more than 1 / s_min^2
+    # the direction it shrinks most (the last right singular vector) reaches it
+    worst = np.linalg.svd(linear[:50])[2][:, -1]
+    ratio = 1.0 / np.linalg.norm(np.einsum("kij,kj->ki", linear[:50], worst), axis=1) ** 2
+    assert np.all(ratio <= scales[:50]) and np.all(scales[:50] <= ratio * (1 + 2**-22))

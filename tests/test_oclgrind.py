@@ -41,6 +41,7 @@ GROUPS = {
     "points": ("points",),
     "all_hits": ("all_hits",),
     "instances": ("instances",),
+    "instance_points": ("instance_points",),
 }
 
 MODES = ("optimised", "uninitialized")
@@ -270,6 +271,44 @@ def case_instances(uninitialized: bool) -> dict:
             occluded = query.occluded(scene._tree, origins, directions, mask=1)
             assert occluded.tolist() == brute_force_occluded(
                 vertices, faces[keep], origins, directions).tolist(), label
+        maps[1:3] = _transforms(rng, 2, spread=1.5)
+        scene.set_transforms([1, 2], maps[1:3])
+    return {}
+
+
+def case_instance_points(uninitialized: bool) -> dict:
+    """Closest points (with and without max_distance), winding numbers and
+    signed distances on a two-level scene (the tiny meshes rotated, mirrored
+    and scaled, some overlapping; one with mask 0, which point queries still
+    see), against the float64 brute force of the scene flattened; then again
+    after set_transforms, over the meshes' dipoles made the first time."""
+    import hlbvh_cl
+    from point_oracle import brute_force_closest, brute_force_winding
+    from test_instances import _flattened, _transforms
+    meshes = tiny_meshes()
+    rng = np.random.default_rng(7)
+    maps = _transforms(rng, 4, spread=1.5)
+    scene = hlbvh_cl.Scene(meshes, masks=np.array([1, 2, 1, 0], np.uint32),
+                           instances=[(k % 2, a) for k, a in enumerate(maps)])
+    points = rng.uniform(-2.5, 2.5, (40, 3)).astype(np.float32)
+    for step in ("built", "moved"):
+        vertices, faces, owner, prim = _flattened(meshes, np.arange(4) % 2, maps)
+        want = brute_force_closest(vertices, faces, points)
+        for max_distance in (np.inf, 0.3):
+            got = scene.closest_points(points, max_distance=max_distance)
+            found = want["distance"] <= max_distance
+            clear = np.abs(want["distance"] - max_distance) > 1e-5
+            assert np.array_equal(got.found[clear], found[clear]), step
+            both = got.found & found
+            np.testing.assert_allclose(got.distance[both], want["distance"][both], rtol=1e-5,
+                                       atol=1e-6, err_msg=step)
+            assert (got.geom_id[got.found] == got.instance_id[got.found] % 2).all(), step
+        winding = brute_force_winding(vertices, faces, points)
+        np.testing.assert_allclose(scene.winding_number(points), winding, atol=0.1,
+                                   err_msg=step)
+        sdf = scene.signed_distance(points)
+        clear = np.abs(np.abs(winding) - 0.5) > 0.15
+        assert np.array_equal((sdf < 0)[clear], (np.abs(winding) >= 0.5)[clear]), step
         maps[1:3] = _transforms(rng, 2, spread=1.5)
         scene.set_transforms([1, 2], maps[1:3])
     return {}

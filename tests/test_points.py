@@ -208,27 +208,37 @@ def test_sign_agrees_with_parity_on_watertight_meshes(name, meshes, suite_device
     assert np.array_equal(scene.contains(points)[clear], expected[clear])
 
 
-@pytest.mark.parametrize("name", ["icosphere", "bunny_small"])
-def test_sign_is_right_1e_6_off_the_surface(name, meshes, suite_device):
-    vertices, faces, scene = watertight(name, meshes, suite_device)
-    rng = np.random.default_rng(9)
-    chosen = rng.choice(len(faces), 500, replace=False)
-    tri = vertices[faces[chosen]].astype(np.float64)
-    w = rng.dirichlet((4, 4, 4), len(chosen))
-    on = np.einsum("fk,fkd->fd", w, tri)
+def surface_samples(rng, vertices, faces, count):
+    """Points on ``count`` distinct random triangles, away from their edges
+    (float64), those triangles' unit normals cross(v1 - v0, v2 - v0), and
+    which triangles they are."""
+    chosen = rng.choice(len(faces), count, replace=False)
+    tri = np.asarray(vertices, np.float64)[faces[chosen]]
+    on = np.einsum("fk,fkd->fd", rng.dirichlet((4, 4, 4), count), tri)
     normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-    outside = (on + 1e-6 * normal).astype(np.float32)
-    inside = (on - 1e-6 * normal).astype(np.float32)
-    # float32 rounding may land a point on the surface: keep those truly off it
-    vertices64, faces64, _ = oracle_of(scene)
-    for points, sign in ((outside, 1), (inside, -1)):
-        side = np.einsum("fd,fd->f", points.astype(np.float64) - on, normal)
+    return on, normal / np.linalg.norm(normal, axis=1, keepdims=True), chosen
+
+
+def assert_signs_off_the_surface(scene, on, outward, least):
+    """Points 1e-6 outside and inside the surface points ``on`` (along the
+    unit ``outward`` directions) get their side's sign from signed_distance
+    and contains: those that float32 rounding leaves truly off the surface,
+    at least ``least`` of each side."""
+    for sign in (1, -1):
+        points = (on + sign * 1e-6 * outward).astype(np.float32)
+        side = np.einsum("fd,fd->f", points.astype(np.float64) - on, outward)
         off = side * sign > 2e-7
-        assert off.sum() > 400
+        assert off.sum() > least
         sdf = scene.signed_distance(points[off])
         assert np.all(np.sign(sdf) == sign), f"{(np.sign(sdf) != sign).sum()} flipped signs"
         assert np.all(scene.contains(points[off]) == (sign < 0))
+
+
+@pytest.mark.parametrize("name", ["icosphere", "bunny_small"])
+def test_sign_is_right_1e_6_off_the_surface(name, meshes, suite_device):
+    vertices, faces, scene = watertight(name, meshes, suite_device)
+    on, normal, _ = surface_samples(np.random.default_rng(9), vertices, faces, 500)
+    assert_signs_off_the_surface(scene, on, normal, 400)
 
 
 def test_bunny_agrees_with_open3d_and_libigl(meshes, suite_device):
