@@ -123,12 +123,7 @@ def rays(origins, directions=None, tmin=0.0, tmax=np.inf) -> Rays:
     else:
         o, d = _vectors("origins", origins), _vectors("directions", directions)
         sources = [_Vectors("origins", o), _Vectors("directions", d)]
-    try:
-        shape = np.broadcast_shapes(o.shape[:-1], d.shape[:-1])
-    except ValueError:
-        raise ValueError(f"origins of shape {o.shape} and directions of shape {d.shape} do not "
-                         "broadcast together (give one origin (3,) for all, or one per "
-                         "direction)") from None
+    shape = ray_shape(o.shape, d.shape)
     o_rows, d_rows = _as_rows(o, shape), _as_rows(d, shape)
     if np.may_share_memory(o_rows, d_rows):  # two host-pointer buffers must not overlap
         d_rows = d_rows.copy()
@@ -141,6 +136,16 @@ def rays(origins, directions=None, tmin=0.0, tmax=np.inf) -> Rays:
     _check_limits(low, high, shape)
     return Rays(o_rows, d_rows, low.astype(np.float32), high.astype(np.float32), shape,
                 sources[0])
+
+
+def ray_shape(origins_shape: tuple, directions_shape: tuple) -> tuple:
+    """The rays' leading shape: origins' and directions' broadcast together."""
+    try:
+        return np.broadcast_shapes(origins_shape[:-1], directions_shape[:-1])
+    except ValueError:
+        raise ValueError(f"origins of shape {origins_shape} and directions of shape "
+                         f"{directions_shape} do not broadcast together (give one origin (3,) "
+                         "for all, or one per direction)") from None
 
 
 def points(value, name: str = "points") -> tuple[np.ndarray, tuple]:
@@ -244,13 +249,19 @@ def _limits(name: str, value, shape: tuple) -> np.ndarray:
 def _per_ray(name: str, array: np.ndarray, shape: tuple) -> np.ndarray:
     """``array`` broadcast to the rays' leading shape, flat (R,), or the
     error naming ``name``."""
+    check_per_ray_shape(name, array.shape, shape)
+    return np.broadcast_to(array, shape).reshape(-1)
+
+
+def check_per_ray_shape(name: str, given: tuple, shape: tuple) -> None:
+    """The error naming ``name`` unless its shape ``given`` broadcasts to the
+    rays' leading shape."""
     try:
-        if np.broadcast_shapes(array.shape, shape) != shape:
+        if np.broadcast_shapes(given, shape) != shape:
             raise ValueError
     except ValueError:
-        raise ValueError(f"{name} has shape {array.shape}, which does not broadcast to the "
+        raise ValueError(f"{name} has shape {given}, which does not broadcast to the "
                          f"rays' shape {shape}") from None
-    return np.broadcast_to(array, shape).reshape(-1)
 
 
 def ray_masks(value, shape: tuple) -> np.ndarray:

@@ -158,6 +158,11 @@ class Scene:
         process however many copies arrive."""
         return (_restored, (self._travel_spec(),))
 
+    def __dask_tokenize__(self):
+        """Dask's token for this scene: its content key (hlbvh_cl.travel), so
+        that naming a graph's tasks never pickles the scene."""
+        return ("hlbvh_cl.Scene", self._travel_spec().key)
+
     def _travel_spec(self) -> travel.SceneSpec:
         with self._lock:
             if self._spec is None:

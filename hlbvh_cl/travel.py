@@ -54,6 +54,9 @@ class SceneSpec:
         return cls(tuple(meshes), instances, masks, builder, morton_bits, device,
                    digest.hexdigest())
 
+    def __dask_tokenize__(self):
+        return ("hlbvh_cl.SceneSpec", self.key)
+
     def arguments(self) -> tuple[list, dict]:
         """Scene's positional and keyword arguments for this spec."""
         pairs = None if self.instances is None else \
