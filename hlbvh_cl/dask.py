@@ -41,8 +41,8 @@ import numpy as np
 from dask.array.core import unify_chunks
 
 from . import inputs, travel
-from .points import ClosestPoints, check_max_distance
-from .query import Hits
+from .points import CLOSEST_FIELDS, ClosestPoints, check_max_distance
+from .query import HIT_FIELDS, Hits
 from .render import (AO_SAMPLES, Camera, Light, Renderer, RenderSettings, check_colors, check_light,
                      default_colors)
 from .results import ResultPool
@@ -51,10 +51,17 @@ from .scene import Scene
 __all__ = ["closest_points", "contains", "count_intersections", "intersect", "occluded",
            "render_frames", "signed_distance", "winding_number"]
 
-HITS = np.dtype([("t", "f4"), ("prim_id", "i4"), ("geom_id", "i4"), ("u", "f4"), ("v", "f4"),
-                 ("normal", "f4", (3,)), ("points", "f4", (3,)), ("instance_id", "i4")])
-CLOSEST = np.dtype([("points", "f4", (3,)), ("distance", "f4"), ("prim_id", "i4"),
-                    ("geom_id", "i4"), ("u", "f4"), ("v", "f4"), ("normal", "f4", (3,))])
+
+def _record(fields: dict) -> np.dtype:
+    """The record dtype of a query's per-ray fields (query.HIT_FIELDS,
+    points.CLOSEST_FIELDS: dtype and values per item), which one chunk's
+    task returns in one array."""
+    return np.dtype([(name, dtype) if n == 1 else (name, dtype, (n,))
+                     for name, (dtype, n) in fields.items()])
+
+
+HITS = _record(HIT_FIELDS)
+CLOSEST = _record(CLOSEST_FIELDS)
 
 #: Dask configuration for the clusters a client starts (LocalCluster):
 #: their workers keep glibc's default trimming.  Dask's nanny sets
