@@ -12,9 +12,9 @@ origins broadcast, packed (..., 6), points (..., 3); numpy arrays and lists
 too) chunked along the leading dimensions, and return dask arrays chunked as
 the rays or points are: one task per chunk.  Each task runs one query on its
 chunk and returns a record array (intersect, closest_points) whose fields the
-returned Hits or ClosestPoints hold as dask arrays.  intersect_all is left
-out: its hits per ray are known only once traced, so its arrays would have
-chunks of unknown length and offsets that depend on every earlier chunk.
+returned Hits or ClosestPoints hold as dask arrays.  intersect_all's hits per
+ray are known only once traced: its hit arrays have chunks of unknown length,
+and its offsets come from a count of each chunk.
 
 The scene enters a graph once: scattered to every worker of a distributed
 client (the given one, else the current default), else as one key of the
@@ -41,6 +41,8 @@ import numpy as np
 from dask.array.core import unify_chunks
 
 from . import inputs, travel
+from .all_hits import HIT_FIELDS as ALL_HIT_FIELDS
+from .all_hits import AllHits, _check_max_hits
 from .points import CLOSEST_FIELDS, ClosestPoints, check_max_distance
 from .query import HIT_FIELDS, Hits
 from .render import (AO_SAMPLES, Camera, Light, Renderer, RenderSettings, check_colors, check_light,
@@ -48,7 +50,8 @@ from .render import (AO_SAMPLES, Camera, Light, Renderer, RenderSettings, check_
 from .results import ResultPool
 from .scene import Scene
 
-__all__ = ["closest_points", "contains", "count_intersections", "intersect", "occluded",
+__all__ = ["closest_points", "contains", "count_intersections", "intersect", "intersect_all",
+           "occluded",
            "render_frames", "signed_distance", "winding_number"]
 
 
@@ -61,6 +64,9 @@ def _record(fields: dict) -> np.dtype:
 
 
 HITS = _record(HIT_FIELDS)
+#: intersect_all's hits as one record array per chunk, with their rays.
+HIT_LIST = _record({"ray_index": (np.int64, 1),
+                    **{name: (dtype, 1) for name, dtype in ALL_HIT_FIELDS.items()}})
 CLOSEST = _record(CLOSEST_FIELDS)
 
 #: Dask configuration for the clusters a client starts (LocalCluster):
@@ -258,12 +264,19 @@ def _ray_block(*blocks, names, own, starts, verb, limits, block_id=None):
     rays = (given["rays"], None) if "rays" in given else (given["origins"], given["directions"])
     scene = shipped.scene()
     result = _call(getattr(scene, verb), offsets, own, *rays, **limits)
+    if verb == "intersect_all":  # its hits, each with its ray's index in the whole array
+        out = np.empty(len(result), HIT_LIST)
+        for name in HIT_LIST.names:
+            out[name] = getattr(result, name)
+        out["ray_index"] += offsets[0] * int(np.prod(result.shape[1:], dtype=np.int64))
+        return out
     return _records(result, HITS) if verb == "intersect" else result
 
 
-def _ray_query(verb: str, dtype: np.dtype, scene, origins, directions, tmin, tmax, mask,
-               client):
-    client = _current_client(client)
+def _ray_inputs(origins, directions, tmin, tmax, mask):
+    """The rays as dask arrays (name -> array), their leading shape, and the
+    limits and mask that are one value for all; checked as the Scene
+    methods check them."""
     if directions is None:
         arrays = {"rays": _vectors("rays", origins, 6)}
         lead = arrays["rays"].shape[:-1]
@@ -283,6 +296,13 @@ def _ray_query(verb: str, dtype: np.dtype, scene, origins, directions, tmin, tma
             limits[name] = inputs._limits(name, value, lead)
     if "tmin" in limits and "tmax" in limits:
         inputs._check_limits(limits["tmin"], limits["tmax"], lead)
+    return arrays, lead, limits
+
+
+def _ray_query(verb: str, dtype: np.dtype, scene, origins, directions, tmin, tmax, mask,
+               client):
+    client = _current_client(client)
+    arrays, lead, limits = _ray_inputs(origins, directions, tmin, tmax, mask)
     return _blocks(_ray_block, arrays, _ship(scene, client), dtype, len(lead), verb=verb,
                    limits=limits)
 
@@ -308,6 +328,45 @@ def count_intersections(scene: Scene, origins, directions=None, tmin=0.0, tmax=n
     """Scene.count_intersections over chunks: int32, in the rays' leading shape."""
     return _ray_query("count_intersections", np.dtype(np.int32), scene, origins, directions,
                       tmin, tmax, mask, client)
+
+
+def intersect_all(scene: Scene, origins, directions=None, tmin=0.0, tmax=np.inf, max_hits=None,
+                  mask=None, *, client=None) -> AllHits:
+    """Scene.intersect_all over chunks of rays: an AllHits of dask arrays.
+    The rays are chunked along their first leading axis only (the others
+    are made one chunk), so the chunks' hits, one after another, are in the
+    rays' C order: ray_index and the hit fields are those of one
+    intersect_all of all the rays, their chunks of unknown length until
+    computed.  offsets and counts come from count_intersections (one more
+    counting pass over the rays, run only if they are computed)."""
+    max_hits = _check_max_hits(max_hits)
+    client = _current_client(client)
+    arrays, lead, limits = _ray_inputs(origins, directions, tmin, tmax, mask)
+    if not lead:
+        raise ValueError("intersect_all over dask arrays takes rays with a leading dimension "
+                         "(one ray: use Scene.intersect_all)")
+    whole = len(lead) + 1  # axes of a full-rank array; only axis 0 of those stays chunked
+    arrays = {name: a.rechunk({k: -1 for k in range(a.ndim) if k != a.ndim - whole})
+              for name, a in arrays.items()}
+    shipped = _ship(scene, client)
+    pairs = []
+    for array in arrays.values():
+        pairs += [array, tuple(range(whole - array.ndim, whole))]
+    chunks, aligned = unify_chunks(*pairs)
+    own = {name: a.shape[:-1] for name, a in zip(arrays, aligned)}
+    first_axis = chunks[0]
+    hits = da.map_blocks(_ray_block, *aligned, shipped, names=tuple(arrays), own=own,
+                         starts=_starts(tuple(chunks[k] for k in range(len(lead)))),
+                         verb="intersect_all", limits=dict(limits, max_hits=max_hits),
+                         dtype=HIT_LIST, drop_axis=list(range(1, whole)),
+                         chunks=((np.nan,) * len(first_axis),), meta=np.empty((0,), HIT_LIST))
+    counts = _blocks(_ray_block, arrays, shipped, np.dtype(np.int32), len(lead),
+                     verb="count_intersections", limits=limits).astype(np.int64)
+    if max_hits is not None:
+        counts = da.minimum(counts, max_hits)
+    offsets = da.concatenate([da.zeros(1, np.int64), da.cumsum(counts.reshape(-1))])
+    return AllHits(offsets=offsets, shape=tuple(lead),
+                   **{name: hits[name] for name in HIT_LIST.names})
 
 
 # ---------------------------------------------------------------- point queries

@@ -159,6 +159,15 @@ def test_ray_queries_match_one_process(client, meshes, suite_device):
     assert hits.t.chunks == ((20, 20, 20, 4), (40, 40, 16))
     _same(scene.intersect(eye[0], image), hits, ("t", "prim_id", "normal", "points"))
 
+    # every hit: the chunks' hits in the rays' order, offsets from the counts
+    local = scene.intersect_all(eye[0], image, max_hits=4, mask=3)
+    spread = hd.intersect_all(scene, eye[0], tiles, max_hits=4, mask=3)
+    assert spread.shape == (64, 96) and np.isnan(spread.t.chunks[0]).all()
+    names = ("offsets", "ray_index", "t", "u", "v", "prim_id", "geom_id", "instance_id")
+    for name, value in zip(names, dask.compute(*(getattr(spread, n) for n in names))):
+        np.testing.assert_array_equal(value, getattr(local, name), err_msg=name)
+    assert local.t.size > 1000
+
     built = client.run(travel.cached_count)
     assert sorted(built.values()) == [1, 1], built  # one build per worker for all of the above
     assert travel.cached_count() == 0  # none in the client (and its scheduler)
