@@ -13,16 +13,25 @@ import numpy as np
 #: (coherent_order); smaller ones as given.
 COHERENT_MIN = 1024
 
-#: Bits per axis of the Morton codes that order the points: a 16-bit key,
-#: which numpy's stable argsort sorts by radix (5 to 10 bits walked alike).
+#: Bits per axis of the Morton codes that order the points: a 15-bit key,
+#: which numpy's stable argsort sorts by radix (for queries walked one per
+#: work-item, 5 to 10 bits walked alike).
 ORDER_BITS = 5
+
+#: Bits per axis for queries walked in packets (point queries,
+#: kernels/point_packet.h): a packet's consecutive points must lie close
+#: together, not merely in one of 2^15 cells.
+FINE_ORDER_BITS = 10
 
 
 def _spread_bits(cells: np.ndarray) -> np.ndarray:
-    """uint16 cells < 2^5 with two zero bits after each bit (the Morton
+    """uint32 cells < 2^10 with two zero bits after each bit (the Morton
     interleave, by the usual shifts and masks)."""
-    x = (cells | (cells << 4)) & 0x30C3
-    return (x | (x << 2)) & 0x9249
+    x = cells.astype(np.uint32)
+    x = (x | (x << 16)) & 0x030000FF
+    x = (x | (x << 8)) & 0x0300F00F
+    x = (x | (x << 4)) & 0x030C30C3
+    return (x | (x << 2)) & 0x09249249
 
 
 def take_rows(points: np.ndarray, order: np.ndarray) -> np.ndarray:
@@ -33,22 +42,38 @@ def take_rows(points: np.ndarray, order: np.ndarray) -> np.ndarray:
     return np.take(rows, order).view(np.float32).reshape(-1, 3)
 
 
-def coherent_order(points: np.ndarray) -> np.ndarray:
+def put_rows(out: np.ndarray, order: np.ndarray, values: np.ndarray) -> None:
+    """out[order] = values, as take_rows's inverse: rows of 2-D arrays moved
+    as one item each (numpy scatters an (N, 3) array element by element)."""
+    if out.ndim == 2:
+        item = np.dtype((np.void, out.itemsize * out.shape[1]))
+        out = out.view(item).reshape(-1)
+        values = np.ascontiguousarray(values).view(item).reshape(-1)
+    out[order] = values
+
+
+def coherent_order(points: np.ndarray, bits: int = ORDER_BITS) -> np.ndarray:
     """The indices of float32 (N, 3) points in Morton order of their cells
-    in a 2^ORDER_BITS grid over their box: consecutive work-items then walk
-    much the same nodes and triangles, which stay in cache (points come in
-    any order, often uniformly random).  A column at a time: numpy reduces a
-    contiguous column in one pass, an (N, 3) array along its first axis with
-    a stride."""
-    key = np.zeros(len(points), np.uint16)
-    top = (1 << ORDER_BITS) - 1
+    in a 2^bits grid (bits <= 10) over their box: consecutive work-items
+    then walk much the same nodes and triangles, which stay in cache (points
+    come in any order, often uniformly random).  A column at a time: numpy
+    reduces a contiguous column in one pass, an (N, 3) array along its first
+    axis with a stride.  Stable: points in one cell keep their order."""
+    key = np.zeros(len(points), np.uint32)
+    top = (1 << bits) - 1
     for axis in range(3):
         column = points[:, axis]
         lo, hi = column.min(), column.max()
         # capped: a denormal extent would make it inf, and 0 * inf NaN
         scale = np.float32(min(top / (float(hi) - float(lo)), 2.0**100)) if hi > lo else \
             np.float32(0)
-        cells = ((column - lo) * scale).astype(np.uint16)
+        cells = ((column - lo) * scale).astype(np.uint32)
         np.minimum(cells, top, out=cells)
         key |= _spread_bits(cells) << axis
-    return np.argsort(key, kind="stable")
+    if bits <= 5:
+        return np.argsort(key.astype(np.uint16), kind="stable")
+    # a 30-bit key as two 15-bit digits, least significant first (LSD
+    # radix): numpy sorts 16-bit keys by radix, wider ones by timsort
+    order = np.argsort((key & 0x7FFF).astype(np.uint16), kind="stable")
+    high = (key >> 15).astype(np.uint16)
+    return order[np.argsort(high[order], kind="stable")]

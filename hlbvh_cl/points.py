@@ -1,7 +1,10 @@
 """Point queries on a finished Tree (kernels/points.cl): the closest surface
 point, the generalized winding number, and from both the signed distance and
-inside/outside.  One query point per work-item walks the wide tree with the
-same walk as the rays (kernels/walk.h), as another visitor.
+inside/outside.  Query points walk the wide tree with the same walk as the
+rays (kernels/walk.h), as another visitor: on a flat tree a packet of nearby
+points per work-item (kernels/point_packet.h; big batches run in fine Morton
+order so that a packet's points lie close together), on an instanced one a
+point per work-item.
 
 Conventions, shared with tests/point_oracle.py:
   - the closest point is exact per triangle in float (Ericson 2005, sec.
@@ -40,10 +43,11 @@ import numpy as np
 import pyopencl as cl
 
 from . import frame, inputs, layout
-from .order import COHERENT_MIN, coherent_order, take_rows
+from .order import COHERENT_MIN, FINE_ORDER_BITS, coherent_order, put_rows, take_rows
 from .device import Runtime
 from .instances import InstancedTree
-from .query import _stack_size, _work_group_size, _zero_copy, check_tree, collect
+from .query import (_check_packet_size, _stack_size, _work_group_size, _zero_copy,
+                    check_tree, collect)
 from .tree import Tree
 
 #: Points per kernel launch at most (as query.MAX_RAYS_PER_LAUNCH: a launch
@@ -111,16 +115,24 @@ class PointQuery:
     On PoCL the kernels read the points and write the results in the numpy
     arrays themselves (query._zero_copy); elsewhere through device buffers
     reused between calls, which only grow.  ``max_points_per_launch`` caps
-    the points per kernel launch (bigger batches go in chunks)."""
+    the points per kernel launch (bigger batches go in chunks).
+    ``packet_size`` sets the points a work-item walks together on flat
+    trees (query.PACKET_SIZES; by default the runtime's kernel variant's, as
+    RayQuery's): every size gives the same closest points, and winding
+    numbers as exact or more (kernels/point_packet.h)."""
 
-    def __init__(self, rt: Runtime, max_points_per_launch: int | None = None):
+    def __init__(self, rt: Runtime, max_points_per_launch: int | None = None,
+                 packet_size: int | None = None):
         self.rt = rt
+        self.variant = rt.variant if packet_size is None else \
+            rt.packet_variant(_check_packet_size(packet_size))
         self.work_group_size = _work_group_size(rt)
         self.max_points_per_launch = max(1, min(MAX_POINTS_PER_LAUNCH,
                                                 int(max_points_per_launch or MAX_POINTS_PER_LAUNCH)))
         self.zero_copy = _zero_copy(rt)
         self._buffers: dict[str, cl.Buffer] = {}
         self._overflow = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 4)
+        self._no_slots = cl.Buffer(rt.context, cl.mem_flags.READ_ONLY, 4)  # launches not indexed
         self._lock = threading.Lock()
 
     # -- public queries ---------------------------------------------------
@@ -137,13 +149,14 @@ class PointQuery:
             framed = self._into_frame(points, shape, tree)
             with np.errstate(over="ignore"):
                 max_d2 = np.float32((max_distance * tree.scale) ** 2)
-            kernel = self._kernel(tree, "closest_points")
+            kernel, packet = self._kernel(tree, "closest_points")
 
-            def launch(n, b):
-                return self.rt.run(kernel, n, *point_scene_args(tree), b["input"], max_d2,
+            def launch(n, b, slots, indexed):
+                return self.rt.run(kernel, -(-n // packet), *point_scene_args(tree), b["input"],
+                                   slots, np.uint32(indexed), np.uint32(n), max_d2,
                                    b["distance"], b["geom_id"], b["prim_id"], b["instance_id"],
                                    b["u"], b["v"], b["normal"], b["points"], self._overflow,
-                                   np.uint32(n), local_size=self.work_group_size)
+                                   local_size=self.work_group_size)
             self._run(framed, launch, out)
             if tree.scale != 1.0:  # back from the frame: powers of two, exact
                 out["distance"][:] = frame.to_frame(out["distance"], 1.0 / tree.scale)
@@ -164,12 +177,12 @@ class PointQuery:
         if len(points) and self._usable(tree):
             framed = self._into_frame(points, shape, tree)
             dipoles = self._dipoles(tree)
-            kernel = self._kernel(tree, "winding_numbers")
+            kernel, packet = self._kernel(tree, "winding_numbers")
 
-            def launch(n, b):
-                return self.rt.run(kernel, n, *point_scene_args(tree), dipoles, b["input"],
-                                   b["winding"], self._overflow, np.uint32(n),
-                                   local_size=self.work_group_size)
+            def launch(n, b, slots, indexed):
+                return self.rt.run(kernel, -(-n // packet), *point_scene_args(tree), dipoles,
+                                   b["input"], slots, np.uint32(indexed), np.uint32(n),
+                                   b["winding"], self._overflow, local_size=self.work_group_size)
             self._run(framed, launch, out)
         return out["winding"].reshape(shape)
 
@@ -182,11 +195,12 @@ class PointQuery:
         if len(points) and self._usable(tree):
             framed = self._into_frame(points, shape, tree)
             dipoles = self._dipoles(tree)
-            kernel = self._kernel(tree, "signed_distances")
+            kernel, packet = self._kernel(tree, "signed_distances")
 
-            def launch(n, b):
-                return self.rt.run(kernel, n, *point_scene_args(tree), dipoles, b["input"],
-                                   b["distance"], b["winding"], self._overflow, np.uint32(n),
+            def launch(n, b, slots, indexed):
+                return self.rt.run(kernel, -(-n // packet), *point_scene_args(tree), dipoles,
+                                   b["input"], slots, np.uint32(indexed), np.uint32(n),
+                                   b["distance"], b["winding"], self._overflow,
                                    local_size=self.work_group_size)
             self._run(framed, launch, out)
             if tree.scale != 1.0:
@@ -216,13 +230,18 @@ class PointQuery:
                              "float32")
         return framed
 
-    def _kernel(self, tree: Tree, name: str) -> cl.Kernel:
+    def _kernel(self, tree: Tree, name: str) -> tuple[cl.Kernel, int]:
         """The point kernel `name` for `tree` (an instanced one's walks its
-        top tree, kernels/points.cl)."""
-        defines = {"STACK_SIZE": _stack_size(tree), **self.rt.prefetch_defines}
+        top tree, kernels/points.cl), and how many points each work-item
+        takes: on a flat tree the walks go in packets of the
+        variant (by default the runtime's, which its probe chose), an
+        instanced tree's one point each."""
+        packet = 1 if isinstance(tree, InstancedTree) else self.variant.packet_size
+        defines = {"STACK_SIZE": _stack_size(tree), "PACKET_SIZE": packet,
+                   **self.variant.defines, **self.rt.prefetch_defines}
         if isinstance(tree, InstancedTree):
             defines["INSTANCES"] = 1
-        return self.rt.kernel("points.cl", name, **defines)
+        return self.rt.kernel("points.cl", name, **defines), packet
 
     def _dipoles(self, tree) -> cl.Buffer:
         """The tree's dipoles (WideDipoles per node), made on the device on
@@ -261,25 +280,52 @@ class PointQuery:
                          for name, size in wanted.items()}
 
     def _run(self, points: np.ndarray, launch, outputs: dict[str, np.ndarray]) -> None:
-        """Runs ``launch(n, buffers)`` over chunks of max_points_per_launch
-        points (buffers["input"]: the chunk's points); the results land in
-        the arrays of ``outputs``.  Raises if a walk ran out of stack.  Big
-        batches run in coherent_order, their results put back in place."""
-        order = coherent_order(points) if len(points) >= COHERENT_MIN else None
-        results = outputs if order is None else {name: np.empty_like(array)
-                                                 for name, array in outputs.items()}
+        """Runs ``launch(n, buffers, slots, indexed)`` over chunks of at most
+        max_points_per_launch points (buffers["input"]: the points; slots
+        and indexed: QUERY_POINTS in kernels/points.cl); the results land in
+        the arrays of ``outputs``.  Raises if a walk ran out of stack.
+
+        Big batches run in coherent_order, fine enough for packets.  Where
+        the kernels use the arrays themselves (zero copy), each launch takes
+        a run of that order as its slots and reads and writes the whole
+        arrays in place; elsewhere the points go up in that order, chunk by
+        chunk, and the results are put back on the host."""
+        order = coherent_order(points, FINE_ORDER_BITS) if len(points) >= COHERENT_MIN else None
         with self._lock:
             try:
-                self._run_locked(points if order is None else take_rows(points, order), launch,
-                                  results)
+                if order is not None and self.zero_copy:
+                    self._run_indexed(points, order.astype(np.uint32), launch, outputs)
+                elif order is not None:
+                    results = {name: np.empty_like(array) for name, array in outputs.items()}
+                    self._run_chunks(take_rows(points, order), launch, results)
+                    for name, array in outputs.items():
+                        put_rows(array, order, results[name])
+                else:
+                    self._run_chunks(points, launch, outputs)
             except BaseException:
                 self.rt.queue.finish()  # launches in flight may still write the arrays
                 raise
-        if order is not None:
-            for name, array in outputs.items():
-                array[order] = results[name]
 
-    def _run_locked(self, points, launch, outputs) -> None:
+    def _wrap(self, array: np.ndarray, name: str) -> cl.Buffer:
+        """The array's own memory as a buffer (zero copy): read-only for the
+        points and slots, write-only for results."""
+        flags = cl.mem_flags.READ_ONLY if name in ("input", "slots") else cl.mem_flags.WRITE_ONLY
+        return cl.Buffer(self.rt.context, flags | cl.mem_flags.USE_HOST_PTR, hostbuf=array)
+
+    def _run_indexed(self, points, order, launch, outputs) -> None:
+        chunk, count = self.max_points_per_launch, len(points)
+        buffers = {name: self._wrap(array, name)
+                   for name, array in {"input": points, **outputs}.items()}
+        cl.enqueue_copy(self.rt.queue, self._overflow, np.zeros(1, np.int32))
+        events, held = [], []
+        for start in range(0, count, chunk):
+            if len(events) >= 2:
+                self.rt.wait(events[-2:-1])
+            held.append(self._wrap(order[start:start + chunk], "slots"))
+            events.append(launch(min(chunk, count - start), buffers, held[-1], 1))
+        self._check_overflow()
+
+    def _run_chunks(self, points, launch, outputs) -> None:
         queue, chunk, count = self.rt.queue, self.max_points_per_launch, len(points)
         arrays = {"input": points, **outputs}
         if not self.zero_copy:
@@ -292,20 +338,21 @@ class PointQuery:
                 self.rt.wait(events[-2:-1])
             part = slice(start, min(start + chunk, count))
             if self.zero_copy:
-                buffers = {name: cl.Buffer(self.rt.context,
-                                           (cl.mem_flags.READ_ONLY if name == "input"
-                                            else cl.mem_flags.WRITE_ONLY)
-                                           | cl.mem_flags.USE_HOST_PTR, hostbuf=array[part])
-                           for name, array in arrays.items()}
+                buffers = {name: self._wrap(array[part], name) for name, array in arrays.items()}
             else:
                 buffers = self._buffers
                 transfers.append(cl.enqueue_copy(queue, buffers["input"], points[part],
                                                  is_blocking=False))
-            events.append(launch(part.stop - part.start, buffers))
+            events.append(launch(part.stop - part.start, buffers, self._no_slots, 0))
             transfers += [collect(queue, buffers[name], array[part], self.zero_copy)
                           for name, array in outputs.items()]
+        self._check_overflow()
+
+    def _check_overflow(self) -> None:
+        """Waits for the launches; raises if a walk ran out of stack."""
         overflow = np.zeros(1, np.int32)
-        self.rt.wait([cl.enqueue_copy(queue, overflow, self._overflow, is_blocking=False)])
+        self.rt.wait([cl.enqueue_copy(self.rt.queue, overflow, self._overflow,
+                                      is_blocking=False)])
         if overflow[0]:
             raise RuntimeError("a point query's walk overflowed its stack (sized from "
                                "Tree.depth): the tree is deeper than its depth field says")

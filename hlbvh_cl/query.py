@@ -118,6 +118,16 @@ HIT_ARRAYS = {name: np.dtype(dtype).itemsize * n for name, (dtype, n) in HIT_FIE
 OCCLUDED_ARRAYS = {"occluded": 1}
 
 
+def _check_packet_size(packet_size) -> int:
+    """A packet_size argument (queries per work-item) as an int of
+    PACKET_SIZES, else TypeError / ValueError."""
+    if isinstance(packet_size, bool) or not isinstance(packet_size, (int, np.integer)):
+        raise TypeError(f"packet_size must be an int, got {type(packet_size).__name__}")
+    if packet_size not in PACKET_SIZES:
+        raise ValueError(f"packet_size must be one of {PACKET_SIZES}, got {packet_size!r}")
+    return int(packet_size)
+
+
 class RayQuery:
     """Closest-hit and any-hit queries on one device.
 
@@ -140,13 +150,9 @@ class RayQuery:
         self.work_group_size = _work_group_size(rt)
         if packet_size is None:
             packet_size = rt.variant.packet_size  # the one its probe chose
-        elif isinstance(packet_size, bool) or not isinstance(packet_size, (int, np.integer)):
-            raise TypeError(f"packet_size must be an int, got {type(packet_size).__name__}")
-        elif packet_size not in PACKET_SIZES:
-            raise ValueError(f"packet_size must be one of {PACKET_SIZES}, got {packet_size!r}")
         #: the variant traversal is compiled as (a requested packet size that
         #: the device cannot run gives way to a smaller one, with a warning)
-        self.variant = rt.packet_variant(int(packet_size))
+        self.variant = rt.packet_variant(_check_packet_size(packet_size))
         self.packet_size = self.variant.packet_size
         self.max_rays_per_launch = self._chunk_size(max_rays_per_launch)
         self._capacity = 0

@@ -209,8 +209,10 @@ TRAVERSAL_INLINE float closest_on_triangle(__global const Triangle* t, float3 p,
 }
 
 /* The closest-point walk's leaf: a triangle nearer than the reach becomes
- * the best (at the reach itself only while there is none, so that a point
- * exactly max_distance away is found). */
+ * the best (at the reach itself while there is none, so that a point
+ * exactly max_distance away is found, or when it comes first in tree
+ * order: equidistant triangles resolve the same whichever order the walk
+ * meets them in, alone or in any packet). */
 TRAVERSAL_INLINE bool closest_leaf(Found_point* s, const PointData* q,
                                    __global const Triangle* triangles, int first, uint count)
 {
@@ -218,7 +220,7 @@ TRAVERSAL_INLINE bool closest_leaf(Found_point* s, const PointData* q,
     for (int i = first; i < first + (int)count; ++i) {
         float u, v;
         float d2 = closest_on_triangle(triangles + i, p, &u, &v);
-        if (d2 < s->reach || (s->index < 0 && d2 <= s->reach)) {
+        if (d2 < s->reach || (d2 <= s->reach && (s->index < 0 || i < s->index))) {
             s->index = i;
             s->reach = d2;
             s->u = u;

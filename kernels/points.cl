@@ -1,7 +1,10 @@
 /* Point queries: the closest point of the scene, the generalized winding
  * number (Jacobson, Kavan & Sorkine-Hornung 2013), and from both the signed
  * distance.  Two visitors of the one walk of the wide tree (walk.h) on the
- * point path (point.h), one query point per work-item.
+ * point path (point.h), one query point per work-item; on flat scenes with
+ * PACKET_SIZE > 1 a packet of points per work-item (point_packet.h).  A
+ * launch's points and results are the arrays' first `count` slots, or the
+ * slots the host lists (QUERY_POINTS).
  *
  * Kernels
  *   closest_points    nearest surface point within max_distance -> its
@@ -15,8 +18,9 @@
  * instance's mesh tree with the point mapped into its frame (below).  Point
  * queries take no mask: they see every instance.
  *
- * Compile-time parameters (-D): STACK_SIZE, PREFETCH and INSTANCES as
- * traverse.cl's.
+ * Compile-time parameters (-D): STACK_SIZE, PACKET_SIZE, PREFETCH and
+ * INSTANCES as traverse.cl's (instanced scenes walk one point per
+ * work-item whatever PACKET_SIZE).
  */
 #include "point.h"
 #include "stack.h"
@@ -33,6 +37,23 @@
 #define QUERY_ARGS
 #include "walk.h"
 
+/* The same walk for a packet of points (point_packet.h, which also has the
+ * packet's winding walk): flat scenes, where the kernel variant has packets
+ * (PACKET_SIZE > 1). */
+#if PACKET_SIZE > 1 && !defined(INSTANCES)
+#define POINT_PACKETS
+#include "point_packet.h"
+#define QUERY closest
+#define QUERY_PATH _points
+#define QUERY_HIT(s, i, hit, t, u, v) false
+#define QUERY_NODE(s, r, n, mask) false
+#define QUERY_CHILDREN(r, n, s, entry) children_points(r, n, s, entry)
+#define QUERY_LEAF(s, r, first, count) closest_leaf_points(s, r, triangles, first, count)
+#define QUERY_PARAMS
+#define QUERY_ARGS
+#include "walk.h"
+#endif
+
 /* Winding number: children far enough count by their dipole, the rest are
  * descended (reach +inf), and leaves add their exact solid angles. */
 #define QUERY winding
@@ -47,15 +68,12 @@
 
 #define POINT_KERNEL __kernel __attribute__((LANES_HINT))
 
-/* Point i of points[0, count); false past the last. */
-TRAVERSAL_INLINE bool load_point(__global const float* points, uint i, uint count, PointData* q)
+/* The point at slot `at` of points. */
+TRAVERSAL_INLINE void load_point(__global const float* points, uint at, PointData* q)
 {
-    if (i >= count)
-        return false;
-    q->x = points[3 * i];
-    q->y = points[3 * i + 1];
-    q->z = points[3 * i + 2];
-    return true;
+    q->x = points[3 * at];
+    q->y = points[3 * at + 1];
+    q->z = points[3 * at + 2];
 }
 
 /* The winding number's walk of one tree: 4 pi w in s->solid_angle. */
@@ -382,38 +400,29 @@ TRAVERSAL_INLINE void closest_triangle(const Found_point* s, POINT_SCENE_PARAMS,
 }
 #endif /* INSTANCES */
 
-#define WINDING(s) ((s).solid_angle * (float)(0.25 / M_PI))
-
-/* Closest point of points[0, count) within sqrt(max_d2): distance (inf if
- * none), ids (-1), u, v, unit normal (0) and the point (NaN). */
-POINT_KERNEL void closest_points(POINT_SCENE_PARAMS, __global const float* points,
-        const float max_d2, __global float* distance_out, __global int* geom_out,
-        __global int* prim_out, __global int* instance_out, __global float* u_out,
-        __global float* v_out, __global float* normal_out, __global float* points_out,
-        __global int* overflow, const uint count)
+/* The closest-point results at slot i from a walk's state s. */
+#define CLOSEST_OUTPUTS                                                                 \
+    __global float *distance_out, __global int *geom_out, __global int *prim_out,         \
+        __global int *instance_out, __global float *u_out, __global float *v_out,         \
+        __global float *normal_out, __global float *points_out
+TRAVERSAL_INLINE void store_closest(const Found_point* s, uint i, POINT_SCENE_PARAMS,
+                                    CLOSEST_OUTPUTS)
 {
-    uint i = get_global_id(0);
-    PointData q;
-    if (!load_point(points, i, count, &q))
-        return;
-    Found_point s;
-    if (closest_search(&q, max_d2, &s, POINT_SCENE_ARGS))
-        overflow[0] = 1;
-    bool found = s.index >= 0;
+    bool found = s->index >= 0;
     float3 normal = (float3)(0.0f), at = (float3)(NAN);
     int geom = -1, prim = -1, instance = -1;
     if (found) {
         float3 a, b, c;
-        closest_triangle(&s, POINT_SCENE_ARGS, &a, &b, &c, &geom, &prim, &instance);
+        closest_triangle(s, POINT_SCENE_ARGS, &a, &b, &c, &geom, &prim, &instance);
         normal = corners_normal(a, b, c);
-        at = a + s.u * (b - a) + s.v * (c - a);
+        at = a + s->u * (b - a) + s->v * (c - a);
     }
-    distance_out[i] = found ? SQUARE_ROOT(s.reach) : INFINITY;
+    distance_out[i] = found ? SQUARE_ROOT(s->reach) : INFINITY;
     geom_out[i] = geom;
     prim_out[i] = prim;
     instance_out[i] = instance;
-    u_out[i] = found ? s.u : 0.0f;
-    v_out[i] = found ? s.v : 0.0f;
+    u_out[i] = found ? s->u : 0.0f;
+    v_out[i] = found ? s->v : 0.0f;
     float n[3] = {normal.x, normal.y, normal.z}, p[3] = {at.x, at.y, at.z};
     for (uint k = 0; k < 3; ++k) {
         normal_out[3 * i + k] = n[k];
@@ -421,38 +430,163 @@ POINT_KERNEL void closest_points(POINT_SCENE_PARAMS, __global const float* point
     }
 }
 
-/* The winding number of points[0, count). */
-POINT_KERNEL void winding_numbers(POINT_SCENE_PARAMS, __global const WideDipoles* dipoles,
-        __global const float* points, __global float* winding_out, __global int* overflow,
-        const uint count)
+#define WINDING(s) ((s).solid_angle * (float)(0.25 / M_PI))
+
+/* The points a work-item takes: one, or (POINT_PACKETS) a packet. */
+#ifdef POINT_PACKETS
+#define POINTS_PER_ITEM PACKET_SIZE
+#else
+#define POINTS_PER_ITEM 1
+#endif
+
+/* The arguments that say which points a launch queries: `count` of them,
+ * query i's point at slot i of points and its results at slot i of each
+ * output; or, where `indexed` (the host hands whole arrays, points in any
+ * order), at slot slots[i]. */
+#define QUERY_POINTS                                                                    \
+    __global const float *points, __global const uint *slots, const uint indexed,        \
+        const uint count
+
+/* The work-item's queries and their slots (lanes past the last repeat it);
+ * how many exist (0 past the end). */
+TRAVERSAL_INLINE uint query_slots(__global const uint* slots, uint indexed, uint count,
+                                  uint* at)
 {
-    uint i = get_global_id(0);
-    PointData q;
-    if (!load_point(points, i, count, &q))
-        return;
-    Found_point s;
-    if (winding_search(&q, &s, POINT_SCENE_ARGS, dipoles))
-        overflow[0] = 1;
-    winding_out[i] = WINDING(s);
+    uint first = get_global_id(0) * POINTS_PER_ITEM;
+    if (first >= count)
+        return 0;
+    uint used = LESSER((uint)POINTS_PER_ITEM, count - first);
+    for (uint l = 0; l < POINTS_PER_ITEM; ++l) {
+        uint i = first + LESSER(l, used - 1u);
+        at[l] = indexed ? slots[i] : i;
+    }
+    return used;
 }
 
-/* The signed distance of points[0, count) (in the frame's units; negative
- * where |w| >= 0.5), and their winding numbers. */
-POINT_KERNEL void signed_distances(POINT_SCENE_PARAMS, __global const WideDipoles* dipoles,
-        __global const float* points, __global float* distance_out,
-        __global float* winding_out, __global int* overflow, const uint count)
+#ifdef POINT_PACKETS
+/* The packet's closest walk from the squared reach `reach`, its lanes'
+ * states as Found_point each; true if the stack ran out. */
+TRAVERSAL_INLINE bool closest_packet(const PointPacket* q, float reach, POINT_SCENE_PARAMS,
+                                     Found_point* lanes)
 {
-    uint i = get_global_id(0);
+    Found_points s = {(int_packet)(-1), (float_packet)(reach), (float_packet)(0.0f),
+                      (float_packet)(0.0f), (float_packet)(0.0f), reach};
+    bool out_of_stack = walk_closest_points(q, nodes, triangles, &s);
+    int index[PACKET_SIZE];
+    float best[PACKET_SIZE], u[PACKET_SIZE], v[PACKET_SIZE];
+    vstore_packet(s.index, 0, index);
+    vstore_packet(s.best, 0, best);
+    vstore_packet(s.u, 0, u);
+    vstore_packet(s.v, 0, v);
+    for (uint l = 0; l < PACKET_SIZE; ++l) {
+        Found_point one = POINT_START(best[l]);
+        one.index = index[l];
+        one.u = u[l];
+        one.v = v[l];
+        lanes[l] = one;
+    }
+    return out_of_stack;
+}
+
+/* The packet's winding walk: each lane's winding number in w; true if the
+ * stack ran out. */
+TRAVERSAL_INLINE bool winding_packet(const PointPacket* q, POINT_SCENE_PARAMS,
+                                     __global const WideDipoles* dipoles, float* w)
+{
+    Found_points s = {(int_packet)(-1), (float_packet)(INFINITY), (float_packet)(0.0f),
+                      (float_packet)(0.0f), (float_packet)(0.0f), INFINITY};
+    bool out_of_stack = walk_winding_points(q, nodes, triangles, &s, dipoles);
+    vstore_packet(WINDING(s), 0, w);
+    return out_of_stack;
+}
+#endif
+
+/* The work-item's closest walks from the squared reach `reach`: its
+ * points' states in lanes. */
+TRAVERSAL_INLINE bool closest_walks(__global const float* points, const uint* at, float reach,
+                                    POINT_SCENE_PARAMS, Found_point* lanes)
+{
+#ifdef POINT_PACKETS
+    PointPacket q;
+    load_point_packet(points, at, &q);
+    return closest_packet(&q, reach, POINT_SCENE_ARGS, lanes);
+#else
     PointData q;
-    if (!load_point(points, i, count, &q))
-        return;
+    load_point(points, at[0], &q);
+    return closest_search(&q, reach, lanes, POINT_SCENE_ARGS);
+#endif
+}
+
+/* The work-item's winding walks: its points' winding numbers in w. */
+TRAVERSAL_INLINE bool winding_walks(__global const float* points, const uint* at,
+                                    POINT_SCENE_PARAMS, __global const WideDipoles* dipoles,
+                                    float* w)
+{
+#ifdef POINT_PACKETS
+    PointPacket q;
+    load_point_packet(points, at, &q);
+    return winding_packet(&q, POINT_SCENE_ARGS, dipoles, w);
+#else
+    PointData q;
+    load_point(points, at[0], &q);
     Found_point s;
-    bool out_of_stack = closest_search(&q, INFINITY, &s, POINT_SCENE_ARGS);
-    float distance = s.index >= 0 ? SQUARE_ROOT(s.reach) : INFINITY;
-    out_of_stack |= winding_search(&q, &s, POINT_SCENE_ARGS, dipoles);
-    float w = WINDING(s);
-    if (out_of_stack)
+    bool out_of_stack = winding_search(&q, &s, POINT_SCENE_ARGS, dipoles);
+    w[0] = WINDING(s);
+    return out_of_stack;
+#endif
+}
+
+/* Closest point of each query within sqrt(max_d2): distance (inf if
+ * none), ids (-1), u, v, unit normal (0) and the point (NaN). */
+POINT_KERNEL void closest_points(POINT_SCENE_PARAMS, QUERY_POINTS, const float max_d2,
+                                 CLOSEST_OUTPUTS, __global int* overflow)
+{
+    uint at[POINTS_PER_ITEM];
+    uint used = query_slots(slots, indexed, count, at);
+    if (used == 0)
+        return;
+    Found_point lanes[POINTS_PER_ITEM];
+    if (closest_walks(points, at, max_d2, POINT_SCENE_ARGS, lanes))
         overflow[0] = 1;
-    distance_out[i] = fabs(w) >= 0.5f ? -distance : distance;
-    winding_out[i] = w;
+    for (uint l = 0; l < used; ++l)
+        store_closest(lanes + l, at[l], POINT_SCENE_ARGS, distance_out, geom_out, prim_out,
+                      instance_out, u_out, v_out, normal_out, points_out);
+}
+
+/* The winding number of each query. */
+POINT_KERNEL void winding_numbers(POINT_SCENE_PARAMS, __global const WideDipoles* dipoles,
+                                  QUERY_POINTS, __global float* winding_out,
+                                  __global int* overflow)
+{
+    uint at[POINTS_PER_ITEM];
+    uint used = query_slots(slots, indexed, count, at);
+    if (used == 0)
+        return;
+    float w[POINTS_PER_ITEM];
+    if (winding_walks(points, at, POINT_SCENE_ARGS, dipoles, w))
+        overflow[0] = 1;
+    for (uint l = 0; l < used; ++l)
+        winding_out[at[l]] = w[l];
+}
+
+/* The signed distance of each query (in the frame's units; negative where
+ * |w| >= 0.5), and its winding number. */
+POINT_KERNEL void signed_distances(POINT_SCENE_PARAMS, __global const WideDipoles* dipoles,
+                                   QUERY_POINTS, __global float* distance_out,
+                                   __global float* winding_out, __global int* overflow)
+{
+    uint at[POINTS_PER_ITEM];
+    uint used = query_slots(slots, indexed, count, at);
+    if (used == 0)
+        return;
+    Found_point lanes[POINTS_PER_ITEM];
+    float w[POINTS_PER_ITEM];
+    if (closest_walks(points, at, INFINITY, POINT_SCENE_ARGS, lanes)
+        | winding_walks(points, at, POINT_SCENE_ARGS, dipoles, w))
+        overflow[0] = 1;
+    for (uint l = 0; l < used; ++l) {
+        float distance = lanes[l].index >= 0 ? SQUARE_ROOT(lanes[l].reach) : INFINITY;
+        distance_out[at[l]] = fabs(w[l]) >= 0.5f ? -distance : distance;
+        winding_out[at[l]] = w[l];
+    }
 }

@@ -183,11 +183,16 @@ def case_render(uninitialized: bool) -> dict:
 
 def case_points(uninitialized: bool) -> dict:
     """Closest points (with and without max_distance), winding numbers and
-    signed distances on the tiny scene, against the float64 brute force
-    (tests/point_oracle.py); then the same after a refit, whose dipoles are
-    made anew."""
+    signed distances on the tiny scene, one point per work-item and in
+    packets of 8 (kernels/point_packet.h), against the float64 brute force
+    (tests/point_oracle.py); a batch in Morton order over whole arrays (the
+    indexed launches, with COHERENT_MIN lowered for the simulator's sake);
+    then the same after a refit, whose dipoles are made anew."""
     import hlbvh_cl
+    from hlbvh_cl import points as point_module
+    from hlbvh_cl.points import PointQuery
     from point_oracle import brute_force_closest, brute_force_winding
+    point_module.COHERENT_MIN = 32
     scene = hlbvh_cl.Scene(tiny_meshes())
     rng = np.random.default_rng(3)
     points = rng.uniform(-1.6, 1.6, (60, 3)).astype(np.float32)
@@ -195,19 +200,22 @@ def case_points(uninitialized: bool) -> dict:
         vertices = np.concatenate([m.vertices for m in scene.meshes]).astype(np.float64)
         faces = np.concatenate([scene.meshes[0].faces,
                                 scene.meshes[1].faces + scene.meshes[0].vertex_count])
-        for max_distance in (np.inf, 0.3):
-            got = scene.closest_points(points, max_distance=max_distance)
-            expected = brute_force_closest(vertices, faces, points, max_distance)
-            found = expected["index"] >= 0
-            assert np.array_equal(got.found, found), step
-            np.testing.assert_allclose(got.distance[found], expected["distance"][found],
-                                       atol=1e-5, err_msg=step)
         winding = brute_force_winding(vertices, faces, points)
-        np.testing.assert_allclose(scene.winding_number(points), winding, atol=0.05,
-                                   err_msg=step)
-        sdf = scene.signed_distance(points)
-        clear = np.abs(winding - 0.5) > 0.1
-        assert np.array_equal((sdf < 0)[clear], (winding >= 0.5)[clear]), step
+        for packet_size in (1, 8):
+            query, tree = PointQuery(scene._runtime, packet_size=packet_size), scene._built_tree()
+            label = f"{step}, packets of {packet_size}"
+            for max_distance, batch in ((np.inf, points), (0.3, points[:20])):
+                got = query.closest_points(tree, batch, max_distance=max_distance)
+                expected = brute_force_closest(vertices, faces, batch, max_distance)
+                found = expected["index"] >= 0
+                assert np.array_equal(got.found, found), label
+                np.testing.assert_allclose(got.distance[found], expected["distance"][found],
+                                           atol=1e-5, err_msg=label)
+            np.testing.assert_allclose(query.winding_numbers(tree, points), winding, atol=0.05,
+                                       err_msg=label)
+            sdf = query.signed_distance(tree, points[:20])
+            clear = np.abs(winding[:20] - 0.5) > 0.1
+            assert np.array_equal((sdf < 0)[clear], (winding[:20] >= 0.5)[clear]), label
         scene.update_vertices(0, scene.meshes[0].vertices * np.float32(1.1))
     return {}
 

@@ -416,3 +416,69 @@ def test_big_batches_answer_in_place(sphere_scene):
                   np.array([[0, 0, 0], [1e-44, 0, 0], [0, 1e-44, 3e38]], np.float32)):
         order = coherent_order(block)
         assert np.array_equal(np.sort(order), np.arange(len(block)))
+
+
+def test_every_packet_size_gives_the_same_closest_points(meshes, suite_device):
+    """Closest points walked one per work-item and in packets of 8 and 16
+    (kernels/point_packet.h), on a batch big enough to run in Morton order
+    (whole arrays read and written in place where zero copy), uniform in the
+    box and near the surface: each matches the brute force, and the sizes
+    agree exactly, ties included (they resolve in tree order).  Winding
+    numbers take the same terms whatever the packet (summed in another order
+    than one point's walk), so a point's does not depend on its batch."""
+    from hlbvh_cl.order import COHERENT_MIN
+    from hlbvh_cl.points import PointQuery
+    mesh = meshes["bunny_small"]
+    scene = hlbvh_cl.Scene([mesh], device=suite_device)
+    vertices, faces, _ = oracle_of(scene)
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    rng = np.random.default_rng(31)
+    count = 2 * COHERENT_MIN + 3
+    uniform = rng.uniform(lo - 0.2 * (hi - lo), hi + 0.2 * (hi - lo), (count, 3))
+    corners = vertices[faces[rng.integers(0, len(faces), count)]]
+    weights = rng.dirichlet(np.ones(3), count)
+    near = np.einsum("nk,nkd->nd", weights, corners) + rng.normal(0, 0.01, (count, 3)) * (hi - lo)
+    points = np.concatenate([uniform, near]).astype(np.float32)
+    size = float(np.linalg.norm(hi - lo))
+    winding = brute_force_winding(vertices, faces, points)
+    answers = {}
+    for packet_size in (1, 8, 16):
+        query = PointQuery(scene._runtime, packet_size=packet_size)
+        tree = scene._built_tree()
+        got = query.closest_points(tree, points)
+        assert assert_closest_matches(scene, got, points, size=size) > count
+        w = query.winding_numbers(tree, points)
+        np.testing.assert_allclose(w, winding, atol=0.05)
+        sdf = query.signed_distance(tree, points)
+        np.testing.assert_array_equal(np.abs(sdf), got.distance)
+        clear = np.abs(np.abs(winding) - 0.5) > 0.1
+        assert np.array_equal((sdf < 0)[clear], (np.abs(winding) >= 0.5)[clear])
+        answers[query.variant.packet_size] = got, w
+    first = answers[1]
+    for packet_size, (got, w) in answers.items():
+        for name in ("distance", "prim_id", "u", "v", "points", "normal"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(first[0], name),
+                                          err_msg=f"packets of {packet_size}: {name}")
+        # the same terms as one point's walk, summed in another order
+        np.testing.assert_allclose(w, first[1], rtol=0, atol=1e-5)
+    # a lane's sum does not depend on the other points of its packet
+    query = PointQuery(scene._runtime)
+    w = query.winding_numbers(scene._built_tree(), points)
+    for part in (slice(None, None, 3), slice(1, None, 2)):
+        np.testing.assert_array_equal(query.winding_numbers(scene._built_tree(), points[part]),
+                                      w[part])
+
+
+@pytest.mark.parametrize("bits", [5, 10])
+def test_morton_order_uses_every_bit(bits):
+    """coherent_order's cells: points along one axis, one per cell of the
+    2^bits grid, come out in their order along it (each bit of the cell
+    index counts), and along the diagonal too."""
+    from hlbvh_cl.order import coherent_order
+    cells = 1 << bits
+    line = np.zeros((cells, 3), np.float32)
+    line[:, 1] = (np.arange(cells) + 0.5) / cells
+    shuffled = np.random.default_rng(2).permutation(cells)
+    for points in (line, np.repeat(line[:, 1:2], 3, axis=1)):
+        order = coherent_order(points[shuffled], bits)
+        assert np.array_equal(shuffled[order], np.arange(cells))
