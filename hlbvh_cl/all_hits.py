@@ -4,10 +4,18 @@ visitors of the one walk of the wide tree.
 intersect_all runs two passes over the rays.  The count pass gives each ray's
 number of hits; a prefix sum of min(count, max_hits) gives each ray its
 segment of the output (CSR); the fill pass then walks again and stores each
-ray's hits sorted by t in its segment.  The fill pass goes in chunks of rays
-whose hits stay under HITS_PER_LAUNCH, into device buffers reused between
-chunks (or, on PoCL, straight into the result arrays, as query.py's zero
-copy), so memory stays near the output's own size whatever the counts.
+ray's hits sorted by t in its segment, so memory stays near the output's own
+size whatever the counts.  The count pass traces packets of nearby rays on
+flat scenes (the query's kernel variant), the fill pass one ray per
+work-item.
+
+Big batches run in fine Morton order of their origins (hlbvh_cl.order).  On
+zero-copy devices (PoCL, query.py) each launch takes a run of that order as
+its rays' slots and reads and writes the whole arrays in place: counts land
+in the caller's order, and the hits in the caller's segments.  Elsewhere the
+rays go up in that order in chunks whose hits stay under HITS_PER_LAUNCH,
+through device buffers reused between chunks, and the hits are moved to the
+caller's order afterwards (_to_caller_order).
 
 A ray through an edge or a vertex shared by triangles on opposite sides
 counts that crossing once (triangle.h, OWN_EDGES), so the parity of a count
@@ -23,7 +31,7 @@ import numpy as np
 import pyopencl as cl
 
 from . import inputs
-from .order import COHERENT_MIN, coherent_order, take_rows
+from .order import COHERENT_MIN, FINE_ORDER_BITS, coherent_order, take_rows
 from .instances import InstancedTree
 from .query import RayQuery, _into_frame, _masked, _stack_size, collect, scene_args
 from .tree import Tree
@@ -106,6 +114,7 @@ class AllHitsQuery:
         # int32 [0]: a walk overflowed its stack; [1]: the fill pass found
         # fewer hits than the count pass
         self._counters = cl.Buffer(self.rt.context, cl.mem_flags.READ_WRITE, 8)
+        self._no_slots = cl.Buffer(self.rt.context, cl.mem_flags.READ_ONLY, 4)  # not indexed
 
     # -- public queries ---------------------------------------------------
 
@@ -114,11 +123,8 @@ class AllHitsQuery:
         """int32, in the rays' leading shape: the number of hits of each ray
         with tmin <= t <= tmax (``mask`` as RayQuery.intersect)."""
         rays, _, shape = _rays(origins, directions, tmin, tmax, mask, tree)
-        order, rays, _ = _coherent(rays, None)
         with self._lock:
-            counts = self._count(tree, *rays)
-        if order is not None:
-            counts[order] = counts.copy()
+            counts = self._count(tree, rays, self.query._results.empty)
         return counts.reshape(shape)
 
     def intersect_all(self, tree: Tree, origins, directions=None, tmin=0.0, tmax=np.inf,
@@ -128,9 +134,16 @@ class AllHitsQuery:
         RayQuery.intersect)."""
         max_hits = _check_max_hits(max_hits)
         rays, t_factor, shape = _rays(origins, directions, tmin, tmax, mask, tree)
-        order, rays, t_factor = _coherent(rays, t_factor)
+        order = _coherent_order(rays[0])
+        if order is not None and not self.query.zero_copy:
+            # the rays go up chunk by chunk in Morton order, and the hits come
+            # back in that order: moved to the caller's afterwards
+            rays, t_factor = _take(rays, order), None if t_factor is None else t_factor[order]
+            caller_order, order = order, None
+        else:
+            caller_order = None
         with self._lock:
-            kept = self._count(tree, *rays, empty=np.empty)  # a temporary: not pooled
+            kept = self._count(tree, rays, np.empty, order)  # a temporary: not pooled
             if max_hits is not None:
                 np.minimum(kept, max_hits, out=kept)
             offsets = np.empty(len(kept) + 1, np.int64)
@@ -141,59 +154,69 @@ class AllHitsQuery:
             fields = {name: self.query._results.empty(total, dtype)
                       for name, dtype in HIT_FIELDS.items()}
             if total:
-                self._fill(tree, *rays, offsets, fields, t_factor)
+                self._fill(tree, rays, offsets, fields, t_factor, order)
         del rays  # the traced copies (ordered rays), before the hits move: peak memory
-        if order is not None:
-            offsets = _to_caller_order(fields, offsets, order, self.query._results)
+        if caller_order is not None:
+            offsets = _to_caller_order(fields, offsets, caller_order, self.query._results)
         return AllHits(offsets=offsets, ray_index=_ray_index(offsets), **fields, shape=shape)
 
     # -- internals ----------------------------------------------------------
 
-    def _kernel(self, tree: Tree, name: str) -> cl.Kernel:
+    def _kernel(self, tree: Tree, name: str) -> tuple[cl.Kernel, int]:
         """all_hits.cl's kernel `name` for `tree`, compiled as RayQuery._kernel
-        compiles traverse.cl but one ray per work-item."""
-        defines = {"STACK_SIZE": _stack_size(tree), "PACKET_SIZE": 1,
+        compiles traverse.cl, and its rays per work-item: the count kernel
+        traces packets of the query's variant on flat trees, the rest one
+        ray per work-item."""
+        packet = self.query.packet_size if name == "count_hits_arrays" and not isinstance(
+            tree, InstancedTree) else 1
+        defines = {"STACK_SIZE": _stack_size(tree), "PACKET_SIZE": packet,
                    **self.query.variant.defines, **self.rt.prefetch_defines}
         if isinstance(tree, InstancedTree):
             defines["INSTANCES"] = 1
-        return self.rt.kernel("all_hits.cl", name, **defines)
+        return self.rt.kernel("all_hits.cl", name, **defines), packet
 
-    def _count(self, tree, origins, directions, tmin, tmax, mask, empty=None) -> np.ndarray:
-        count = len(origins)
-        counts = (empty or self.query._results.empty)(count, np.int32)
+    def _count(self, tree, rays, empty, order="coherent") -> np.ndarray:
+        """int32 counts of the rays in their own order, from `empty`.  The
+        rays run in `order` (by default their Morton order where that is big
+        enough): on zero-copy devices as the kernel's slots, elsewhere as
+        copies taken in that order and counts put back."""
+        count = len(rays[0])
+        counts = empty(count, np.int32)
         if not (count and self.query._check_tree(tree)):
             counts[:] = 0
             return counts
-        kernel = self._kernel(tree, "count_hits_arrays")
-        self._launches(tree, kernel, (origins, directions, tmin, tmax, mask), None,
-                       {"counts": counts}, lambda start, stop: [])
+        if isinstance(order, str):
+            order = _coherent_order(rays[0])
+        if order is not None and not self.query.zero_copy:
+            counts[order] = self._count(tree, _take(rays, order), np.empty, None)
+            return counts
+        kernel, packet = self._kernel(tree, "count_hits_arrays")
+        self._launches(tree, kernel, packet, rays, order, None, {"counts": counts})
         return counts
 
-    def _fill(self, tree, origins, directions, tmin, tmax, mask, offsets, fields,
-              t_factor) -> None:
-        kernel = self._kernel(tree, "fill_hits_arrays")
-
-        def segments(start, stop):  # the rays' segments, from the chunk's first hit
-            segment = np.empty(stop - start + 1, np.uint32)
-            np.subtract(offsets[start:stop + 1], offsets[start], out=segment, casting="unsafe")
-            return [segment]
-        self._launches(tree, kernel, (origins, directions, tmin, tmax, mask), offsets, fields,
-                       segments)
+    def _fill(self, tree, rays, offsets, fields, t_factor, order) -> None:
+        kernel, _ = self._kernel(tree, "fill_hits_arrays")
+        self._launches(tree, kernel, 1, rays, order, offsets, fields)
         if t_factor is not None:  # back from the frame: exact, powers of two
-            for start, stop in _chunks(offsets, self.query.max_rays_per_launch, len(origins)):
+            for start, stop in _chunks(offsets, self.query.max_rays_per_launch, len(t_factor)):
                 part = slice(int(offsets[start]), int(offsets[stop]))
                 fields["t"][part] = fields["t"][part] * np.repeat(
                     t_factor[start:stop], np.diff(offsets[start:stop + 1]))
 
-    def _launches(self, tree, kernel, rays, offsets, outputs, extra) -> None:
-        """Runs `kernel` over chunks of rays (_chunks of `offsets`, the prefix
-        sum of each ray's output slots; None: one slot per ray): its arguments are the scene
-        (query.scene_args, with the chunk's masks), the chunk's rays, extra(start, stop) (host
-        arrays), the chunk's slots of
-        `outputs`, the counters and the ray count.  On PoCL the kernels read
-        and write the arrays themselves (zero copy); elsewhere the rays go up
-        per chunk and the results come back through buffers reused between
-        chunks."""
+    def _launches(self, tree, kernel, packet, rays, order, offsets, outputs) -> None:
+        """Runs `kernel` (`packet` rays per work-item) over the rays: its
+        arguments are the scene (query.scene_args, with the masks), the rays
+        and their slots (RAY_PARAMS in kernels/all_hits.cl), the offsets of
+        the rays' output segments (the fill kernel: `offsets`, the prefix sum
+        of each ray's slots; None: one slot per ray, the count kernel), the
+        `outputs`, the counters and the ray count.
+
+        With an `order` (zero-copy devices) the kernels read and write the
+        whole arrays in place, each launch a run of that order as its slots.
+        Otherwise they go in chunks of rays (_chunks): on PoCL reading and
+        writing the arrays' parts themselves (zero copy), elsewhere with the
+        rays going up per chunk and the results coming back through buffers
+        reused between chunks."""
         query, rt, queue = self.query, self.rt, self.rt.queue
         context, flags = rt.context, cl.mem_flags
         cl.enqueue_copy(queue, self._counters, np.zeros(2, np.int32))
@@ -204,38 +227,63 @@ class AllHitsQuery:
         origins, directions, *limits = rays
         scalars = {id(value): wrap(np.full(1, value, value.dtype), flags.READ_ONLY)
                    for value in limits if value.ndim == 0}
+
+        def ray_args(part):  # the rays' arrays, or part of them: RAY_PARAMS but the slots
+            stepped = [[wrap(value[part], flags.READ_ONLY), np.uint32(1)]
+                       if value.ndim else [scalars[id(value)], np.uint32(0)]
+                       for value in limits]  # tmin, tmax, mask
+            return (scene_args(tree, *stepped[2]), [
+                wrap(origins[part], flags.READ_ONLY), wrap(directions[part], flags.READ_ONLY),
+                *stepped[0], *stepped[1]])
         # at most two launches in flight (Ctrl-C waits for few), and chunks small
         # enough off PoCL that the rays' copies stay small
         rays_per_launch = query.max_rays_per_launch if query.zero_copy else \
             min(query.max_rays_per_launch, COPIED_RAYS_PER_LAUNCH)
         events, kept = [], []  # kept: what the launches in flight read or write
         try:
-            for start, stop in _chunks(offsets, rays_per_launch, len(origins)):
+            if order is not None:
+                whole = ray_args(slice(None))
+                segments = [] if offsets is None else [wrap(offsets, flags.READ_ONLY),
+                                                       np.int64(0)]
+                buffers = [wrap(array, flags.WRITE_ONLY) for array in outputs.values()]
+                runs = ((start, min(start + rays_per_launch, len(order)))
+                        for start in range(0, len(order), rays_per_launch))
+            else:
+                runs = _chunks(offsets, rays_per_launch, len(origins))
+            for start, stop in runs:
                 if len(events) >= 2:
                     rt.wait(events[-2:-1])
                     del kept[:-1]
-                first, last = (start, stop) if offsets is None else \
-                    (int(offsets[start]), int(offsets[stop]))
-                args = [wrap(origins[start:stop], flags.READ_ONLY),
-                        wrap(directions[start:stop], flags.READ_ONLY)]
-                stepped = [[wrap(value[start:stop], flags.READ_ONLY), np.uint32(1)]
-                           if value.ndim else [scalars[id(value)], np.uint32(0)]
-                           for value in limits]  # tmin, tmax, mask
-                args += stepped[0] + stepped[1]
-                held = extra(start, stop)
-                args += [wrap(array, flags.READ_ONLY) for array in held]
-                parts = {name: array[first:last] for name, array in outputs.items()}
-                if query.zero_copy:
-                    buffers = {name: wrap(part, flags.WRITE_ONLY) for name, part in parts.items()}
+                if order is not None:
+                    slots = wrap(order[start:stop], flags.READ_ONLY)
+                    scene, args = whole
+                    args = [*args, slots, np.uint32(1), *segments, *buffers]
+                    held = (slots,)
                 else:
-                    buffers = self._reserve(outputs, last - first)
-                tree_args = scene_args(tree, *stepped[2])
-                events.append(rt.run(kernel, stop - start, *tree_args, *args,
-                                     *buffers.values(), self._counters, np.uint32(stop - start),
+                    first, last = (start, stop) if offsets is None else \
+                        (int(offsets[start]), int(offsets[stop]))
+                    scene, args = ray_args(slice(start, stop))
+                    args += [self._no_slots, np.uint32(0)]
+                    if offsets is not None:
+                        args += [wrap(offsets[start:stop + 1], flags.READ_ONLY),
+                                 np.int64(first)]
+                    parts = {name: array[first:last] for name, array in outputs.items()}
+                    if query.zero_copy:
+                        out = {name: wrap(part, flags.WRITE_ONLY) for name, part in parts.items()}
+                    else:
+                        out = self._reserve(outputs, last - first)
+                    args += list(out.values())
+                    held = (out,)
+                events.append(rt.run(kernel, -(-(stop - start) // packet), *scene, *args,
+                                     self._counters, np.uint32(stop - start),
                                      local_size=query.work_group_size))
-                copies = [collect(queue, buffers[name], part, query.zero_copy)
-                          for name, part in parts.items()]
-                kept.append((args, held, buffers, copies))
+                if order is None:
+                    held += tuple(collect(queue, out[name], part, query.zero_copy)
+                                  for name, part in parts.items())
+                kept.append((args, held))
+            if order is not None:
+                kept.append([collect(queue, buffer, array, True)
+                             for buffer, array in zip(buffers, outputs.values())])
             counters = np.zeros(2, np.int32)
             rt.wait([cl.enqueue_copy(queue, counters, self._counters, is_blocking=False)])
         except BaseException:  # launches in flight may still write: let them end
@@ -262,16 +310,20 @@ class AllHitsQuery:
         return {name: self._outputs[name] for name in outputs}
 
 
-def _coherent(rays: tuple, t_factor):
-    """Big batches in Morton order of their origins (hlbvh_cl.order): the
-    order (None: as given), the rays and the per-ray t factor in it."""
-    origins, directions, tmin, tmax, mask = rays
+def _coherent_order(origins: np.ndarray) -> np.ndarray | None:
+    """Big batches' rays in fine Morton order of their origins (hlbvh_cl.
+    order: close origins, and for packets close enough to share their
+    nodes), as uint32 slots; None: as given."""
     if len(origins) < COHERENT_MIN:
-        return None, rays, t_factor
-    order = coherent_order(origins)
-    rays = (take_rows(origins, order), take_rows(directions, order),
-            *(limit[order] if limit.ndim else limit for limit in (tmin, tmax, mask)))
-    return order, rays, None if t_factor is None else t_factor[order]
+        return None
+    return coherent_order(origins, FINE_ORDER_BITS).astype(np.uint32)
+
+
+def _take(rays: tuple, order: np.ndarray) -> tuple:
+    """The rays' five arrays in `order` (scalar limits stay scalars)."""
+    origins, directions, *limits = rays
+    return (take_rows(origins, order), take_rows(directions, order),
+            *(limit[order] if limit.ndim else limit for limit in limits))
 
 
 def _to_caller_order(fields: dict, offsets: np.ndarray, order: np.ndarray, pool) -> np.ndarray:

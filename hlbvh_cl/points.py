@@ -323,6 +323,8 @@ class PointQuery:
                 self.rt.wait(events[-2:-1])
             held.append(self._wrap(order[start:start + chunk], "slots"))
             events.append(launch(min(chunk, count - start), buffers, held[-1], 1))
+        held += [collect(self.rt.queue, buffers[name], array, True)
+                 for name, array in outputs.items()]
         self._check_overflow()
 
     def _run_chunks(self, points, launch, outputs) -> None:

@@ -14,27 +14,52 @@
  * Conventions are traverse.cl's (tmin <= t <= tmax, no culling, degenerate
  * triangles never hit, hit = (1-u-v)*v0 + u*v1 + v*v2).
  *
+ * A launch's rays are its arrays' first ray_count slots, or the slots the
+ * host lists (RAY_SLOTS: whole arrays in the host's Morton order), and each
+ * ray's results go to its own slot (counts) or its own segment (hits).
+ *
  * Compile-time parameters (-D): STACK_SIZE, PREFETCH and INSTANCES as
- * traverse.cl; PACKET_SIZE must be 1 (each ray's hits are its own: nothing
- * for a packet to share).
+ * traverse.cl.  PACKET_SIZE: the count kernel traces packets of that many
+ * rays on flat scenes (walk.h's packet path with a counting visitor); the
+ * fill kernel and instanced scenes take one ray per work-item (PACKET_SIZE
+ * 1: a ray's sorted hits are its own).
  */
-#if PACKET_SIZE != 1
-#error "all_hits.cl traces one ray per work-item (PACKET_SIZE 1)"
+#if PACKET_SIZE != 1 && defined(INSTANCES)
+#error "all_hits.cl traces one ray per work-item on instanced scenes (PACKET_SIZE 1)"
 #endif
 #define OWN_EDGES
 #include "ray.h"
 #include "work_item.h"
 #include "instance.h"
 
-/* Counting: every hit adds one; the limit stays tmax and the walk never
- * ends early.  s->index stays -1, so hit_triangle takes t == tmax too. */
+/* Counting: every hit adds one to each lane it hits (a ray's hit flag is
+ * 1, a packet lane's -1); the limit stays tmax and the walk never ends
+ * early.  s->index stays -1, so hit_triangle takes t == tmax too. */
+typedef uint hits_ray;
+#define add_hits_ray(found, hit) (*(found) += (uint)(hit))
+#if PACKET_SIZE > 1
+#include "packet.h"
+typedef int_packet hits_packet;
+#define add_hits_packet(found, hit) (*(found) -= (hit))
+#endif
 #define QUERY count
-#define QUERY_HIT(s, i, hit, t, u, v) (*found += (uint)(hit), false)
+#define QUERY_PATH _ray
+#define QUERY_HIT(s, i, hit, t, u, v) (add_hits_ray(found, hit), false)
 #define QUERY_NODE(s, r, n, mask) false
-#define QUERY_PARAMS , uint* found
+#define QUERY_PARAMS , hits_ray* found
 #define QUERY_ARGS , found
 #include "walk.h"
+#if PACKET_SIZE > 1
+#define QUERY count
+#define QUERY_PATH _packet
+#define QUERY_HIT(s, i, hit, t, u, v) (add_hits_packet(found, hit), false)
+#define QUERY_NODE(s, r, n, mask) false
+#define QUERY_PARAMS , hits_packet* found
+#define QUERY_ARGS , found
+#include "walk.h"
+#endif
 
+#if PACKET_SIZE == 1
 /* Whether hit (t, i, k) comes before the stored hit j: by t, ties by
  * triangle index, then by instance. */
 #define BEFORE(t, i, k, out_t, index, instance, j)                                      \
@@ -94,6 +119,8 @@ TRAVERSAL_INLINE void keep_hit(Found_ray* s, int i, int k, float t, float u, flo
 #define QUERY_ARGS FILL_ARGS, base, owner
 #include "walk.h"
 
+#endif /* PACKET_SIZE == 1 */
+
 #ifdef INSTANCES
 /* The top tree's leaves: each visible instance's mesh walked by the flat
  * visitor with the walk's state (a full segment's limit prunes the next
@@ -143,35 +170,48 @@ TRAVERSAL_INLINE bool instances_fill(Found_ray* s, const RayData* r, int first,
 /* See traverse.cl's TRAVERSAL_KERNEL. */
 #define TRAVERSAL_KERNEL __kernel __attribute__((LANES_HINT))
 
-/* The work-item's ray (load_arrays), its index in *ray; false past the last. */
+/* The rays as numpy arrays (work_item.h's load_arrays), and which slots a
+ * launch's rays take: ray i of the launch slot i, or where `indexed` slot
+ * slots[i] (whole arrays, in the host's order). */
 #define RAY_ARRAYS origins, directions, tmin, tmin_step, tmax, tmax_step
-TRAVERSAL_INLINE bool load_ray(uint ray_count, __global const float* origins,
-                               __global const float* directions, __global const float* tmin,
-                               uint tmin_step, __global const float* tmax, uint tmax_step,
-                               RayLanes* lanes, uint* ray)
+#define RAY_PARAMS                                                                      \
+    __global const float *origins, __global const float *directions,                     \
+        __global const float *tmin, const uint tmin_step, __global const float *tmax,    \
+        const uint tmax_step, __global const uint *slots, const uint indexed
+
+/* The work-item's rays into lanes and their slots into at (lanes past the
+ * last repeat it); how many exist (0 past the end). */
+TRAVERSAL_INLINE uint load_rays(uint ray_count, RAY_PARAMS, RayLanes* lanes, uint* at)
 {
-    uint used = packet_rays(ray_count, ray);
-    if (used != 0)
-        load_arrays(*ray, used, RAY_ARRAYS, lanes);
-    return used != 0;
+    uint first, used = packet_rays(ray_count, &first);
+    if (used == 0)
+        return 0;
+    for (uint l = 0; l < PACKET_SIZE; ++l) {
+        uint i = first + LESSER(l, used - 1u);
+        at[l] = indexed ? slots[i] : i;
+    }
+    load_arrays_at(at, RAY_ARRAYS, lanes);
+    return used;
 }
 
-/* Walks the work-item's one ray (lanes) with `query`'s walk of the flat
- * tree, or of the top tree of an instanced scene, with the walk's extra
- * arguments; sets overflow[0] if a stack ran out. */
+/* Walks one ray (lane `lane` of lanes, at slot `at`) with `query`'s walk of the
+ * flat tree, or of the top tree of an instanced scene, with the walk's
+ * extra arguments; sets overflow[0] if a stack ran out. */
 #ifndef INSTANCES
-#define WALK_RAY(query, lanes, first, ...)                                               \
+#define WALK_RAY(query, lanes, lane, at, ...)                                            \
     do {                                                                                 \
-        int index_[1];                                                                   \
-        CONCAT(trace_, query)(lanes, 1, nodes, triangles, overflow, index_, 0, 0, 0,      \
-                              __VA_ARGS__);                                              \
+        RayData r_;                                                                      \
+        prepare_lane(&r_, lanes, lane);                                                   \
+        Found_ray s_ = {-1, INFINITY, 0.0f, 0.0f, r_.tmax};                              \
+        if (CONCAT(CONCAT(walk_, query), _ray)(&r_, nodes, triangles, &s_, __VA_ARGS__)) \
+            overflow[0] = 1;                                                             \
     } while (0)
 #else
-#define WALK_RAY(query, lanes, first, ...)                                               \
+#define WALK_RAY(query, lanes, lane, at, ...)                                            \
     do {                                                                                 \
-        load_masks(lanes, first, 1, ray_masks, mask_step);                               \
+        load_masks(lanes, at, 1, ray_masks, mask_step);                                  \
         RayData r_;                                                                      \
-        prepare_lane(&r_, lanes, 0);                                                     \
+        prepare_lane(&r_, lanes, lane);                                                   \
         Found_ray s_ = {-1, INFINITY, 0.0f, 0.0f, r_.tmax};                              \
         bool nested_ = false;                                                            \
         if (CONCAT(CONCAT(walk_, query), _top_ray)(&r_, top_nodes, top_triangles, &s_,    \
@@ -181,48 +221,71 @@ TRAVERSAL_INLINE bool load_ray(uint ray_count, __global const float* origins,
     } while (0)
 #endif
 
-TRAVERSAL_KERNEL void count_hits_arrays(SCENE_PARAMS, __global const float* origins,
-        __global const float* directions, __global const float* tmin, const uint tmin_step,
-        __global const float* tmax, const uint tmax_step, __global int* counts,
-        __global int* overflow, const uint ray_count)
+/* counts[slot] = the number of hits of each ray in [tmin, tmax]: a packet
+ * of rays per work-item where they share their direction signs and axis
+ * (prepare_packet), else one by one. */
+TRAVERSAL_KERNEL void count_hits_arrays(SCENE_PARAMS, RAY_PARAMS, __global int* counts,
+                                        __global int* overflow, const uint ray_count)
 {
     RayLanes lanes;
-    uint first;
-    if (!load_ray(ray_count, RAY_ARRAYS, &lanes, &first))
+    uint at[PACKET_SIZE];
+    uint used = load_rays(ray_count, RAY_ARRAYS, slots, indexed, &lanes, at);
+    if (used == 0)
         return;
-    uint found = 0;
-    WALK_RAY(count, &lanes, first, &found);
-    counts[first] = (int)found;
+#if PACKET_SIZE > 1
+    Packet p;
+    if (prepare_packet(&lanes, &p)) {
+        Found_packet s = {(int_packet)(-1), (float_packet)(INFINITY), (float_packet)(0.0f),
+                          (float_packet)(0.0f), p.tmax, packet_max(p.tmax)};
+        hits_packet found = (hits_packet)(0);
+        if (walk_count_packet(&p, nodes, triangles, &s, &found))
+            overflow[0] = 1;
+        int lane_counts[PACKET_SIZE];
+        vstore_packet(found, 0, lane_counts);
+        for (uint l = 0; l < used; ++l)
+            counts[at[l]] = lane_counts[l];
+        return;
+    }
+#endif
+    for (uint l = 0; l < used; ++l) {
+        hits_ray found = 0;
+        WALK_RAY(count, &lanes, l, at[l], &found);
+        counts[at[l]] = (int)found;
+    }
 }
 
-/* Ray i's hits go to [segment[i], segment[i + 1]) of the output arrays, as
- * many as that holds (the count pass sized it: all of them, or the first
- * k).  overflow[1] is set if a ray found fewer (the passes disagree: the
- * host raises rather than return unwritten slots). */
-TRAVERSAL_KERNEL void fill_hits_arrays(SCENE_PARAMS, __global const float* origins,
-        __global const float* directions, __global const float* tmin, const uint tmin_step,
-        __global const float* tmax, const uint tmax_step, __global const uint* segment,
-        __global float* t_out, __global float* u_out, __global float* v_out,
+#if PACKET_SIZE == 1
+/* Each ray's hits go to its segment [offsets[slot] - base, offsets[slot +
+ * 1] - base) of the output arrays (the host's prefix sum of the counts, or
+ * of the first k), as many as that holds.  overflow[1] is set if a ray
+ * found fewer (the passes disagree: the host raises rather than return
+ * unwritten slots). */
+TRAVERSAL_KERNEL void fill_hits_arrays(SCENE_PARAMS, RAY_PARAMS, __global const long* offsets,
+        const long base, __global float* t_out, __global float* u_out, __global float* v_out,
         __global int* prim_out, __global int* geom_out, __global int* instance_out,
         __global int* overflow, const uint ray_count)
 {
-    uint first = get_global_id(0);  /* one ray per work-item */
-    if (first >= ray_count || segment[first + 1] == segment[first])
+    uint i = get_global_id(0);  /* one ray per work-item */
+    if (i >= ray_count)
         return;
-    uint start = segment[first], capacity = segment[first + 1] - start;
+    uint at = indexed ? slots[i] : i;
+    if (offsets[at + 1] == offsets[at])
+        return;
+    size_t start = (size_t)(offsets[at] - base);
+    uint capacity = (uint)(offsets[at + 1] - offsets[at]);
     RayLanes lanes;
-    load_ray(ray_count, RAY_ARRAYS, &lanes, &first);
+    load_arrays_at(&at, RAY_ARRAYS, &lanes);
     uint kept = 0;
 #ifndef INSTANCES
-    WALK_RAY(fill, &lanes, first, t_out + start, u_out + start, v_out + start,
+    WALK_RAY(fill, &lanes, 0, at, t_out + start, u_out + start, v_out + start,
              prim_out + start, instance_out + start, &kept, capacity, 0, -1);
 #else
-    WALK_RAY(fill, &lanes, first, t_out + start, u_out + start, v_out + start,
+    WALK_RAY(fill, &lanes, 0, at, t_out + start, u_out + start, v_out + start,
              prim_out + start, instance_out + start, &kept, capacity);
 #endif
     if (kept != capacity)
         overflow[1] = 1;
-    for (uint j = start; j < start + kept; ++j) {
+    for (size_t j = start; j < start + kept; ++j) {
         TriangleRef ref = refs[prim_out[j]];
         prim_out[j] = ref.prim_id;
 #ifdef INSTANCES
@@ -232,3 +295,4 @@ TRAVERSAL_KERNEL void fill_hits_arrays(SCENE_PARAMS, __global const float* origi
 #endif
     }
 }
+#endif

@@ -86,11 +86,12 @@ TRAVERSAL_INLINE void plane_double(__global const Triangle* tri, double* v0, dou
  * ray: e != 0 (the inside test decides), or an exact 0 on an edge that owns
  * the ray (see hit_triangle).  A triangle with det < 0 has its interior on
  * the left of its edges; one with det > 0 on their right, where the
- * direction is negated.  Scalars and vectors alike (comparisons and ?:). */
+ * direction is negated.  Scalars and vectors alike: the negation picks
+ * floats, as ?: between two flag tests became logic on the compares' i1
+ * vectors with a negation, which Oclgrind runs wrong (see inside_packet). */
 #define OWNS_EDGE(e, dx, dy, det)                                                       \
-    (((e) != 0.0f)                                                                     \
-     | ((det) < 0.0f ? ((dy) > 0.0f) | (((dy) == 0.0f) & ((dx) < 0.0f))                 \
-                     : ((dy) < 0.0f) | (((dy) == 0.0f) & ((dx) > 0.0f))))
+    (((e) != 0.0f) | OWNS_DIRECTION((det) < 0.0f ? (dx) : -(dx), (det) < 0.0f ? (dy) : -(dy)))
+#define OWNS_DIRECTION(dx, dy) (((dy) > 0.0f) | (((dy) == 0.0f) & ((dx) < 0.0f)))
 #endif
 
 #endif /* TRIANGLE_H */

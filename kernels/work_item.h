@@ -28,6 +28,20 @@ TRAVERSAL_INLINE void load_records(__global const Ray* rays, uint first, uint us
     }
 }
 
+/* Lane l's ray from slot at[l] of the arrays load_arrays reads. */
+TRAVERSAL_INLINE void load_arrays_at(const uint* at, __global const float* origins,
+                                     __global const float* directions,
+                                     __global const float* tmin, uint tmin_step,
+                                     __global const float* tmax, uint tmax_step,
+                                     RayLanes* lanes)
+{
+    for (uint l = 0; l < PACKET_SIZE; ++l) {
+        uint i = at[l];
+        set_lane(lanes, l, LOAD_XYZ(origins + 3 * i), LOAD_XYZ(directions + 3 * i),
+                 tmin[i * tmin_step], tmax[i * tmax_step]);
+    }
+}
+
 /* The rays as the arrays numpy users hand in (query.py): origins and
  * directions packed (x, y, z) per ray, tmin[i * tmin_step], tmax[i *
  * tmax_step] (step 0: every ray the same limit).  Results go to one array
@@ -49,11 +63,10 @@ TRAVERSAL_INLINE void load_arrays(uint first, uint used, __global const float* o
         __builtin_prefetch((__global const char*)(directions + 3 * (first + PACKET_SIZE)) + offset);
     }
 #endif
-    for (uint l = 0; l < PACKET_SIZE; ++l) {
-        uint i = first + LESSER(l, used - 1);
-        set_lane(lanes, l, LOAD_XYZ(origins + 3 * i), LOAD_XYZ(directions + 3 * i),
-                 tmin[i * tmin_step], tmax[i * tmax_step]);
-    }
+    uint at[PACKET_SIZE];
+    for (uint l = 0; l < PACKET_SIZE; ++l)
+        at[l] = first + LESSER(l, used - 1);
+    load_arrays_at(at, origins, directions, tmin, tmin_step, tmax, tmax_step, lanes);
 }
 
 /* One ray's closest hit as a Hit record (a miss: t = INFINITY, ids -1, the

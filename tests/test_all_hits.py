@@ -373,7 +373,8 @@ def test_big_batches_traced_in_morton_order_answer_in_the_callers_order(tiny, mo
     from hlbvh_cl.order import COHERENT_MIN
     traced = []  # the orders the big batches were traced in
     monkeypatch.setattr(all_hits, "coherent_order",
-                        lambda points: traced.append(order.coherent_order(points)) or traced[-1])
+                        lambda points, *bits: traced.append(order.coherent_order(points, *bits))
+                        or traced[-1])
     count = 2 * COHERENT_MIN + 37
     origins, directions = random_rays(tiny, count, seed=31)
     tmax = np.random.default_rng(32).uniform(0.5, 3, count).astype(np.float32)
@@ -412,3 +413,38 @@ def test_properties(tiny, seed, k, window):
     rank = np.arange(len(every)) - every.offsets[every.ray_index]
     np.testing.assert_array_equal(first.t, every.t[rank < k])
     np.testing.assert_array_equal(first.prim_id, every.prim_id[rank < k])
+
+
+@pytest.mark.parametrize("packet_size", [1, 8, 16])
+def test_count_packets_cross_shared_edges_once(packet_size):
+    """Counting in packets (kernels/all_hits.cl: walk.h's packet path with
+    the counting visitor) keeps one crossing per shared edge and vertex: a
+    big batch (Morton order; packets of nearby rays that share their
+    direction signs) aimed at a closed grid's inner vertices and cell
+    centres on one face enters and leaves once each; random rays count as
+    the fill pass (one ray per work-item) finds them."""
+    from hlbvh_cl.all_hits import AllHitsQuery
+    from hlbvh_cl.order import COHERENT_MIN
+    from hlbvh_cl.query import RayQuery
+    n = 4
+    scene = hlbvh_cl.Scene([grid_box(n)])
+    ticks = np.arange(n + 1, dtype=float)
+    half = np.arange(n) + 0.5
+    points = [(x, y) for x in ticks for y in ticks] + [(x, y) for x in half for y in half]
+    targets = np.array([(x, y, 0.0) for x, y in points])
+    inside = (targets[:, 0] > 0) & (targets[:, 0] < n) & (targets[:, 1] > 0) & (targets[:, 1] < n)
+    targets = targets[inside]
+    copies = -(-COHERENT_MIN // len(targets)) + 1
+    jitter = np.random.default_rng(8).uniform(-0.01, 0.01, (len(targets) * copies, 3))
+    jitter[:, 2] = 0
+    origins = np.repeat(targets, copies, axis=0) + [0.3, 0.2, -5] + jitter
+    aims = np.repeat(targets, copies, axis=0)
+    query = AllHitsQuery(RayQuery(scene._runtime, packet_size=packet_size))
+    directions = (aims - origins).astype(np.float32)
+    counts = query.count(scene._built_tree(), origins.astype(np.float32), directions)
+    assert counts.tolist() == [2] * len(origins)
+    case = SceneCase([grid_box(n)])
+    random_origins, random_directions = random_rays(case, 2 * COHERENT_MIN, seed=12)
+    got = query.count(scene._built_tree(), random_origins, random_directions)
+    np.testing.assert_array_equal(got, scene.intersect_all(random_origins,
+                                                            random_directions).counts)

@@ -223,7 +223,8 @@ def case_points(uninitialized: bool) -> dict:
 def case_all_hits(uninitialized: bool) -> dict:
     """intersect_all (both passes, with and without max_hits) and
     count_intersections on an 80-triangle icosphere: random rays against the
-    float64 brute force, and rays through its vertices, which cross twice."""
+    float64 brute force, and rays through its vertices, which cross twice,
+    one ray per work-item and in packets of 8."""
     import trimesh
 
     import hlbvh_cl
@@ -239,6 +240,16 @@ def case_all_hits(uninitialized: bool) -> dict:
     origins = (targets * 2.5 + 0.1).astype(np.float32)
     counts = case.scene.count_intersections(origins, (targets - origins).astype(np.float32))
     assert counts.tolist() == [2] * len(targets), counts
+    # counting in packets of 8: each work-item's rays start near one
+    # another and aim at one vertex (one direction sign pattern)
+    from hlbvh_cl.all_hits import AllHitsQuery
+    from hlbvh_cl.query import RayQuery
+    query = AllHitsQuery(RayQuery(case.scene._runtime, packet_size=8))
+    near = np.repeat(origins, 8, axis=0) + np.float32(0.01) * np.tile(
+        np.eye(8, 3, dtype=np.float32), (len(targets), 1))
+    counts = query.count(case.scene._built_tree(), near,
+                         (np.repeat(targets, 8, axis=0) - near).astype(np.float32))
+    assert counts.tolist() == [2] * len(near), counts
     return {}
 
 
