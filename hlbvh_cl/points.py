@@ -118,8 +118,9 @@ class PointQuery:
     the points per kernel launch (bigger batches go in chunks).
     ``packet_size`` sets the points a work-item walks together on flat
     trees (query.PACKET_SIZES; by default the runtime's kernel variant's, as
-    RayQuery's): every size gives the same closest points, and winding
-    numbers as exact or more (kernels/point_packet.h)."""
+    RayQuery's): every size gives the same closest points, and the same
+    winding numbers up to rounding (the same terms, summed in another order:
+    kernels/point_packet.h)."""
 
     def __init__(self, rt: Runtime, max_points_per_launch: int | None = None,
                  packet_size: int | None = None):
@@ -233,9 +234,9 @@ class PointQuery:
     def _kernel(self, tree: Tree, name: str) -> tuple[cl.Kernel, int]:
         """The point kernel `name` for `tree` (an instanced one's walks its
         top tree, kernels/points.cl), and how many points each work-item
-        takes: on a flat tree the walks go in packets of the
-        variant (by default the runtime's, which its probe chose), an
-        instanced tree's one point each."""
+        takes: on a flat tree the walks go in packets of the variant (by
+        default the runtime's, which its probe chose), on an instanced tree
+        one point each."""
         packet = 1 if isinstance(tree, InstancedTree) else self.variant.packet_size
         defines = {"STACK_SIZE": _stack_size(tree), "PACKET_SIZE": packet,
                    **self.variant.defines, **self.rt.prefetch_defines}
