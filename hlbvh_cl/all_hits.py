@@ -164,11 +164,9 @@ class AllHitsQuery:
 
     def _kernel(self, tree: Tree, name: str) -> tuple[cl.Kernel, int]:
         """all_hits.cl's kernel `name` for `tree`, compiled as RayQuery._kernel
-        compiles traverse.cl, and its rays per work-item: the count kernel
-        traces packets of the query's variant on flat trees, the rest one
-        ray per work-item."""
-        packet = self.query.packet_size if name == "count_hits_arrays" and not isinstance(
-            tree, InstancedTree) else 1
+        compiles traverse.cl, and its rays per work-item: packets of the
+        query's variant on flat trees, one ray on instanced ones."""
+        packet = 1 if isinstance(tree, InstancedTree) else self.query.packet_size
         defines = {"STACK_SIZE": _stack_size(tree), "PACKET_SIZE": packet,
                    **self.query.variant.defines, **self.rt.prefetch_defines}
         if isinstance(tree, InstancedTree):
@@ -195,8 +193,8 @@ class AllHitsQuery:
         return counts
 
     def _fill(self, tree, rays, offsets, fields, t_factor, order) -> None:
-        kernel, _ = self._kernel(tree, "fill_hits_arrays")
-        self._launches(tree, kernel, 1, rays, order, offsets, fields)
+        kernel, packet = self._kernel(tree, "fill_hits_arrays")
+        self._launches(tree, kernel, packet, rays, order, offsets, fields)
         if t_factor is not None:  # back from the frame: exact, powers of two
             for start, stop in _chunks(offsets, self.query.max_rays_per_launch, len(t_factor)):
                 part = slice(int(offsets[start]), int(offsets[stop]))

@@ -19,10 +19,10 @@
  * ray's results go to its own slot (counts) or its own segment (hits).
  *
  * Compile-time parameters (-D): STACK_SIZE, PREFETCH and INSTANCES as
- * traverse.cl.  PACKET_SIZE: the count kernel traces packets of that many
- * rays on flat scenes (walk.h's packet path with a counting visitor); the
- * fill kernel and instanced scenes take one ray per work-item (PACKET_SIZE
- * 1: a ray's sorted hits are its own).
+ * traverse.cl.  PACKET_SIZE: both kernels trace packets of that many rays
+ * on flat scenes (walk.h's packet path with the counting or the filling
+ * visitor, each lane into its own segment); instanced scenes take one ray
+ * per work-item (PACKET_SIZE 1).
  */
 #if PACKET_SIZE != 1 && defined(INSTANCES)
 #error "all_hits.cl traces one ray per work-item on instanced scenes (PACKET_SIZE 1)"
@@ -59,7 +59,6 @@ typedef int_packet hits_packet;
 #include "walk.h"
 #endif
 
-#if PACKET_SIZE == 1
 /* Whether hit (t, i, k) comes before the stored hit j: by t, ties by
  * triangle index, then by instance. */
 #define BEFORE(t, i, k, out_t, index, instance, j)                                      \
@@ -70,9 +69,9 @@ typedef int_packet hits_packet;
  * the ray's sorted segment of `capacity` slots, of which *kept are used
  * (insertion sort: a ray's hits are few).
  * When the segment is full a later hit goes in only if it comes before the
- * last, which it shifts out; the limit then drops to the last one's t, so
- * the walk skips what could not get in (a tie at that t still can). */
-TRAVERSAL_INLINE void keep_hit(Found_ray* s, int i, int k, float t, float u, float v,
+ * last, which it shifts out; the ray's *limit then drops to the last one's
+ * t, so the walk skips what could not get in (a tie at that t still can). */
+TRAVERSAL_INLINE void keep_hit(float* limit, int i, int k, float t, float u, float v,
                                __global float* out_t, __global float* out_u,
                                __global float* out_v, __global int* index,
                                __global int* instance, uint* kept, uint capacity)
@@ -98,7 +97,7 @@ TRAVERSAL_INLINE void keep_hit(Found_ray* s, int i, int k, float t, float u, flo
     index[j] = i;
     instance[j] = k;
     if (*kept == capacity)
-        s->limit = out_t[capacity - 1u];
+        *limit = out_t[capacity - 1u];
 }
 
 /* Filling: each hit goes into the ray's segment (keep_hit); the triangle's
@@ -110,16 +109,65 @@ TRAVERSAL_INLINE void keep_hit(Found_ray* s, int i, int k, float t, float u, flo
         __global int *out_index, __global int *out_instance, uint *kept, uint capacity
 #define FILL_ARGS , out_t, out_u, out_v, out_index, out_instance, kept, capacity
 #define QUERY fill
+#define QUERY_PATH _ray
 #define QUERY_HIT(s, i, hit, t, u, v)                                                    \
-    (keep_hit(s, (int)(i) + base, owner, t, u, v, out_t, out_u, out_v, out_index,         \
-              out_instance, kept, capacity),                                            \
+    (keep_hit(&(s)->limit, (int)(i) + base, owner, t, u, v, out_t, out_u, out_v,          \
+              out_index, out_instance, kept, capacity),                                 \
      false)
 #define QUERY_NODE(s, r, n, mask) false
 #define QUERY_PARAMS FILL_PARAMS, int base, int owner
 #define QUERY_ARGS FILL_ARGS, base, owner
 #include "walk.h"
 
-#endif /* PACKET_SIZE == 1 */
+#if PACKET_SIZE > 1
+/* A packet's segments: each lane's first output slot, its capacity (0 for
+ * lanes that repeat the last ray or have no hit: they keep nothing) and
+ * how many it holds. */
+typedef struct {
+    size_t start[PACKET_SIZE];
+    uint capacity[PACKET_SIZE];
+    uint kept[PACKET_SIZE];
+} Segments;
+
+/* keep_hit for each lane that hits triangle i, into its own segment; the
+ * lanes whose segment fills take their new limits. */
+TRAVERSAL_INLINE void keep_hits(Found_packet* s, int i, int_packet hit, float_packet t,
+                                float_packet u, float_packet v, __global float* out_t,
+                                __global float* out_u, __global float* out_v,
+                                __global int* out_index, __global int* out_instance,
+                                Segments* g)
+{
+    int flags[PACKET_SIZE];
+    float ts[PACKET_SIZE], us[PACKET_SIZE], vs[PACKET_SIZE], limit[PACKET_SIZE];
+    vstore_packet(hit, 0, flags);
+    vstore_packet(t, 0, ts);
+    vstore_packet(u, 0, us);
+    vstore_packet(v, 0, vs);
+    vstore_packet(s->limit, 0, limit);
+    for (uint l = 0; l < PACKET_SIZE; ++l) {
+        if (flags[l] == 0 || g->capacity[l] == 0)
+            continue;
+        size_t at = g->start[l];
+        keep_hit(limit + l, i, -1, ts[l], us[l], vs[l], out_t + at, out_u + at, out_v + at,
+                 out_index + at, out_instance + at, g->kept + l, g->capacity[l]);
+    }
+    s->limit = vload_packet(0, limit);
+    update_reach_packet(s);
+}
+
+#define QUERY fill
+#define QUERY_PATH _packet
+#define QUERY_HIT(s, i, hit, t, u, v)                                                    \
+    (keep_hits(s, (int)(i), hit, t, u, v, out_t, out_u, out_v, out_index, out_instance,   \
+               segments),                                                               \
+     false)
+#define QUERY_NODE(s, r, n, mask) false
+#define QUERY_PARAMS                                                                    \
+    , __global float *out_t, __global float *out_u, __global float *out_v,               \
+        __global int *out_index, __global int *out_instance, Segments *segments
+#define QUERY_ARGS , out_t, out_u, out_v, out_index, out_instance, segments
+#include "walk.h"
+#endif
 
 #ifdef INSTANCES
 /* The top tree's leaves: each visible instance's mesh walked by the flat
@@ -254,45 +302,75 @@ TRAVERSAL_KERNEL void count_hits_arrays(SCENE_PARAMS, RAY_PARAMS, __global int* 
     }
 }
 
-#if PACKET_SIZE == 1
 /* Each ray's hits go to its segment [offsets[slot] - base, offsets[slot +
  * 1] - base) of the output arrays (the host's prefix sum of the counts, or
- * of the first k), as many as that holds.  overflow[1] is set if a ray
- * found fewer (the passes disagree: the host raises rather than return
- * unwritten slots). */
+ * of the first k), as many as that holds: a packet of rays per work-item
+ * where they share their direction signs and axis, else one by one.
+ * overflow[1] is set if a ray found fewer (the passes disagree: the host
+ * raises rather than return unwritten slots). */
 TRAVERSAL_KERNEL void fill_hits_arrays(SCENE_PARAMS, RAY_PARAMS, __global const long* offsets,
         const long base, __global float* t_out, __global float* u_out, __global float* v_out,
         __global int* prim_out, __global int* geom_out, __global int* instance_out,
         __global int* overflow, const uint ray_count)
 {
-    uint i = get_global_id(0);  /* one ray per work-item */
-    if (i >= ray_count)
-        return;
-    uint at = indexed ? slots[i] : i;
-    if (offsets[at + 1] == offsets[at])
-        return;
-    size_t start = (size_t)(offsets[at] - base);
-    uint capacity = (uint)(offsets[at + 1] - offsets[at]);
     RayLanes lanes;
-    load_arrays_at(&at, RAY_ARRAYS, &lanes);
-    uint kept = 0;
+    uint at[PACKET_SIZE];
+    uint used = load_rays(ray_count, RAY_ARRAYS, slots, indexed, &lanes, at);
+    if (used == 0)
+        return;
+    size_t start[PACKET_SIZE];
+    uint capacity[PACKET_SIZE], kept[PACKET_SIZE];
+    for (uint l = 0; l < PACKET_SIZE; ++l) {
+        start[l] = (size_t)(offsets[at[l]] - base);
+        capacity[l] = l < used ? (uint)(offsets[at[l] + 1] - offsets[at[l]]) : 0u;
+        kept[l] = 0;
+    }
+#if PACKET_SIZE > 1
+    Packet p;
+    if (prepare_packet(&lanes, &p)) {
+        Segments g;
+        for (uint l = 0; l < PACKET_SIZE; ++l) {
+            g.start[l] = start[l];
+            g.capacity[l] = capacity[l];
+            g.kept[l] = 0;
+            if (capacity[l] == 0)  /* nothing to find: out of the packet's reach */
+                lanes.tmax[l] = -INFINITY;
+        }
+        Found_packet s = {(int_packet)(-1), (float_packet)(INFINITY), (float_packet)(0.0f),
+                          (float_packet)(0.0f), vload_packet(0, lanes.tmax), 0.0f};
+        update_reach_packet(&s);
+        if (walk_fill_packet(&p, nodes, triangles, &s, t_out, u_out, v_out, prim_out,
+                             instance_out, &g))
+            overflow[0] = 1;
+        for (uint l = 0; l < PACKET_SIZE; ++l)
+            kept[l] = g.kept[l];
+    } else
+#endif
+    {
+        for (uint l = 0; l < used; ++l) {
+            if (capacity[l] == 0)
+                continue;
+            size_t j = start[l];
 #ifndef INSTANCES
-    WALK_RAY(fill, &lanes, 0, at, t_out + start, u_out + start, v_out + start,
-             prim_out + start, instance_out + start, &kept, capacity, 0, -1);
+            WALK_RAY(fill, &lanes, l, at[l], t_out + j, u_out + j, v_out + j, prim_out + j,
+                     instance_out + j, kept + l, capacity[l], 0, -1);
 #else
-    WALK_RAY(fill, &lanes, 0, at, t_out + start, u_out + start, v_out + start,
-             prim_out + start, instance_out + start, &kept, capacity);
+            WALK_RAY(fill, &lanes, l, at[l], t_out + j, u_out + j, v_out + j, prim_out + j,
+                     instance_out + j, kept + l, capacity[l]);
 #endif
-    if (kept != capacity)
-        overflow[1] = 1;
-    for (size_t j = start; j < start + kept; ++j) {
-        TriangleRef ref = refs[prim_out[j]];
-        prim_out[j] = ref.prim_id;
+        }
+    }
+    for (uint l = 0; l < used; ++l) {
+        if (kept[l] != capacity[l])
+            overflow[1] = 1;
+        for (size_t j = start[l]; j < start[l] + kept[l]; ++j) {
+            TriangleRef ref = refs[prim_out[j]];
+            prim_out[j] = ref.prim_id;
 #ifdef INSTANCES
-        geom_out[j] = instances[instance_out[j]].mesh;
+            geom_out[j] = instances[instance_out[j]].mesh;
 #else
-        geom_out[j] = ref.geom_id;
+            geom_out[j] = ref.geom_id;
 #endif
+        }
     }
 }
-#endif

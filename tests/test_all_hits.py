@@ -448,3 +448,32 @@ def test_count_packets_cross_shared_edges_once(packet_size):
     got = query.count(scene._built_tree(), random_origins, random_directions)
     np.testing.assert_array_equal(got, scene.intersect_all(random_origins,
                                                             random_directions).counts)
+
+
+@pytest.mark.parametrize("max_hits", [None, 1, 3])
+def test_fill_packets_give_the_hits_of_one_ray(tiny, max_hits):
+    """The fill pass in packets of 8 and 16 (each lane into its own
+    segment, a full segment lowering that lane's limit) stores exactly the
+    hits one ray per work-item stores, on a big batch of camera-like rays
+    (packets) and of random ones (mostly one by one)."""
+    from hlbvh_cl.all_hits import AllHitsQuery
+    from hlbvh_cl.order import COHERENT_MIN
+    from hlbvh_cl.query import RayQuery
+    side = np.linspace(-0.4, 0.4, 48)
+    grid = np.stack(np.broadcast_arrays(side[:, None], side[None, :], -1.0), axis=-1)
+    camera = grid.reshape(-1, 3).astype(np.float32)
+    origins, directions = random_rays(tiny, COHERENT_MIN, seed=41)
+    origins = np.concatenate([np.broadcast_to(np.float32([0.05, 0.1, 4.0]), camera.shape),
+                              origins]).astype(np.float32)
+    directions = np.concatenate([camera, directions]).astype(np.float32)
+    tree = tiny.scene._built_tree()
+    want = AllHitsQuery(RayQuery(tiny.scene._runtime, packet_size=1)).intersect_all(
+        tree, origins, directions, max_hits=max_hits)
+    assert (want.counts[:len(camera)] >= min(2, max_hits or 2)).sum() > 100, \
+        "camera rays should cross the sphere"
+    for packet_size in (8, 16):
+        got = AllHitsQuery(RayQuery(tiny.scene._runtime, packet_size=packet_size)).intersect_all(
+            tree, origins, directions, max_hits=max_hits)
+        for name in ("offsets", "ray_index", "t", "u", "v", "prim_id", "geom_id", "instance_id"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(want, name),
+                                          err_msg=f"packets of {packet_size}: {name}")

@@ -224,7 +224,7 @@ def case_all_hits(uninitialized: bool) -> dict:
     """intersect_all (both passes, with and without max_hits) and
     count_intersections on an 80-triangle icosphere: random rays against the
     float64 brute force, and rays through its vertices, which cross twice,
-    one ray per work-item and in packets of 8."""
+    counted and filled one ray per work-item and in packets of 8."""
     import trimesh
 
     import hlbvh_cl
@@ -247,9 +247,16 @@ def case_all_hits(uninitialized: bool) -> dict:
     query = AllHitsQuery(RayQuery(case.scene._runtime, packet_size=8))
     near = np.repeat(origins, 8, axis=0) + np.float32(0.01) * np.tile(
         np.eye(8, 3, dtype=np.float32), (len(targets), 1))
-    counts = query.count(case.scene._built_tree(), near,
-                         (np.repeat(targets, 8, axis=0) - near).astype(np.float32))
+    aims = (np.repeat(targets, 8, axis=0) - near).astype(np.float32)
+    counts = query.count(case.scene._built_tree(), near, aims)
     assert counts.tolist() == [2] * len(near), counts
+    # and filling in packets: the hits one ray per work-item finds
+    one = AllHitsQuery(RayQuery(case.scene._runtime, packet_size=1))
+    for max_hits in (None, 1):
+        got = query.intersect_all(case.scene._built_tree(), near, aims, max_hits=max_hits)
+        want = one.intersect_all(case.scene._built_tree(), near, aims, max_hits=max_hits)
+        for name in ("offsets", "t", "u", "v", "prim_id", "geom_id"):
+            assert np.array_equal(getattr(got, name), getattr(want, name)), (max_hits, name)
     return {}
 
 
