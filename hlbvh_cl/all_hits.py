@@ -31,7 +31,7 @@ import numpy as np
 import pyopencl as cl
 
 from . import inputs
-from .order import COHERENT_MIN, FINE_ORDER_BITS, coherent_order, take_rows
+from .order import COHERENT_MIN, FINE_ORDER_BITS, device_order, take_rows
 from .instances import InstancedTree
 from .query import RayQuery, _into_frame, _masked, _stack_size, collect, scene_args
 from .tree import Tree
@@ -134,7 +134,7 @@ class AllHitsQuery:
         RayQuery.intersect)."""
         max_hits = _check_max_hits(max_hits)
         rays, t_factor, shape = _rays(origins, directions, tmin, tmax, mask, tree)
-        order = _coherent_order(rays[0])
+        order = _coherent_order(self.query, rays[0])
         if order is not None and not self.query.zero_copy:
             # the rays go up chunk by chunk in Morton order, and the hits come
             # back in that order: moved to the caller's afterwards
@@ -184,7 +184,7 @@ class AllHitsQuery:
             counts[:] = 0
             return counts
         if isinstance(order, str):
-            order = _coherent_order(rays[0])
+            order = _coherent_order(self.query, rays[0])
         if order is not None and not self.query.zero_copy:
             counts[order] = self._count(tree, _take(rays, order), np.empty, None)
             return counts
@@ -308,13 +308,13 @@ class AllHitsQuery:
         return {name: self._outputs[name] for name in outputs}
 
 
-def _coherent_order(origins: np.ndarray) -> np.ndarray | None:
+def _coherent_order(query: RayQuery, origins: np.ndarray) -> np.ndarray | None:
     """Big batches' rays in fine Morton order of their origins (hlbvh_cl.
     order: close origins, and for packets close enough to share their
-    nodes), as uint32 slots; None: as given."""
+    nodes), as uint32 slots found on the query's device; None: as given."""
     if len(origins) < COHERENT_MIN:
         return None
-    return coherent_order(origins, FINE_ORDER_BITS).astype(np.uint32)
+    return device_order(query.rt, origins, FINE_ORDER_BITS, query.zero_copy)
 
 
 def _take(rays: tuple, order: np.ndarray) -> tuple:

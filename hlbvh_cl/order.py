@@ -8,6 +8,7 @@ The results are put back in the caller's order."""
 from __future__ import annotations
 
 import numpy as np
+import pyopencl as cl
 
 #: Batches of at least this many points or rays run in Morton order
 #: (coherent_order); smaller ones as given.
@@ -52,22 +53,35 @@ def put_rows(out: np.ndarray, order: np.ndarray, values: np.ndarray) -> None:
     out[order] = values
 
 
+def _cell_scales(points: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per axis, float32, the points' least coordinate and the scale that
+    maps their extent onto cells 0 .. 2^bits - 1 (0 on a flat axis)."""
+    top = (1 << bits) - 1
+    lo, scale = np.zeros(3, np.float32), np.zeros(3, np.float32)
+    for axis in range(3):
+        # a column at a time: numpy reduces a contiguous column in one pass,
+        # an (N, 3) array along its first axis with a stride
+        column = points[:, axis]
+        low, high = column.min(), column.max()
+        lo[axis] = low
+        # capped: a denormal extent would make it inf, and 0 * inf NaN
+        if high > low:
+            scale[axis] = min(top / (float(high) - float(low)), 2.0**100)
+    return lo, scale
+
+
 def coherent_order(points: np.ndarray, bits: int = ORDER_BITS) -> np.ndarray:
     """The indices of float32 (N, 3) points in Morton order of their cells
     in a 2^bits grid (bits <= 10) over their box: consecutive work-items
     then walk much the same nodes and triangles, which stay in cache (points
-    come in any order, often uniformly random).  A column at a time: numpy
-    reduces a contiguous column in one pass, an (N, 3) array along its first
-    axis with a stride.  Stable: points in one cell keep their order."""
+    come in any order, often uniformly random).  Stable: points in one cell
+    keep their order.  On the host with numpy; device_order gives the same
+    order from the device."""
     key = np.zeros(len(points), np.uint32)
     top = (1 << bits) - 1
+    lo, scale = _cell_scales(points, bits)
     for axis in range(3):
-        column = points[:, axis]
-        lo, hi = column.min(), column.max()
-        # capped: a denormal extent would make it inf, and 0 * inf NaN
-        scale = np.float32(min(top / (float(hi) - float(lo)), 2.0**100)) if hi > lo else \
-            np.float32(0)
-        cells = ((column - lo) * scale).astype(np.uint32)
+        cells = ((points[:, axis] - lo[axis]) * scale[axis]).astype(np.uint32)
         np.minimum(cells, top, out=cells)
         key |= _spread_bits(cells) << axis
     if bits <= 5:
@@ -77,3 +91,35 @@ def coherent_order(points: np.ndarray, bits: int = ORDER_BITS) -> np.ndarray:
     order = np.argsort((key & 0x7FFF).astype(np.uint16), kind="stable")
     high = (key >> 15).astype(np.uint16)
     return order[np.argsort(high[order], kind="stable")]
+
+
+def device_order(rt, points: np.ndarray, bits: int = FINE_ORDER_BITS,
+                 zero_copy: bool = False) -> np.ndarray:
+    """coherent_order(points, bits) as uint32, computed on rt's device: the
+    keys by kernels/order.cl, the stable sort by the library's radix sort
+    (hlbvh_cl.sort) rather than numpy's two argsorts on the host.  With
+    zero_copy the kernel reads the points in place."""
+    from .sort import _sorter  # the sort module imports the device layer
+    count = len(points)
+    order = np.empty(count, np.uint32)
+    if count == 0:
+        return order
+    points = np.ascontiguousarray(points, np.float32)
+    lo, scale = _cell_scales(points, bits)
+    flags = cl.mem_flags
+    # the sorter's scratch buffers are shared with builds (Runtime.build_lock)
+    with rt.build_lock:
+        try:
+            host = flags.USE_HOST_PTR if zero_copy else flags.COPY_HOST_PTR
+            source = cl.Buffer(rt.context, flags.READ_ONLY | host, hostbuf=points)
+            keys, ids = rt.allocate(4 * count), rt.allocate(4 * count)
+            made = rt.run(rt.kernel("order.cl", "point_keys", ORDER_BITS=bits), count, source,
+                          np.uint32(count), *lo, *scale, keys, ids)
+            _, values, events = _sorter(rt, np.dtype(np.uint32)).sort(
+                keys, ids, count, 3 * bits, wait_for=[made])
+            rt.wait([cl.enqueue_copy(rt.queue, order, values, wait_for=events[-1:] or [made],
+                                     is_blocking=False)])
+        except BaseException:  # Ctrl-C: the kernels may still read the points
+            rt.queue.finish()
+            raise
+    return order

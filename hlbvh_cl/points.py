@@ -43,7 +43,7 @@ import numpy as np
 import pyopencl as cl
 
 from . import frame, inputs, layout
-from .order import COHERENT_MIN, FINE_ORDER_BITS, coherent_order, put_rows, take_rows
+from .order import COHERENT_MIN, FINE_ORDER_BITS, device_order, put_rows, take_rows
 from .device import Runtime
 from .instances import InstancedTree
 from .query import (_check_packet_size, _stack_size, _work_group_size, _zero_copy,
@@ -286,16 +286,18 @@ class PointQuery:
         and indexed: QUERY_POINTS in kernels/points.cl); the results land in
         the arrays of ``outputs``.  Raises if a walk ran out of stack.
 
-        Big batches run in coherent_order, fine enough for packets.  Where
-        the kernels use the arrays themselves (zero copy), each launch takes
-        a run of that order as its slots and reads and writes the whole
-        arrays in place; elsewhere the points go up in that order, chunk by
-        chunk, and the results are put back on the host."""
-        order = coherent_order(points, FINE_ORDER_BITS) if len(points) >= COHERENT_MIN else None
+        Big batches run in Morton order (order.device_order), fine enough
+        for packets.  Where the kernels use the arrays themselves (zero
+        copy), each launch takes a run of that order as its slots and reads
+        and writes the whole arrays in place; elsewhere the points go up in
+        that order, chunk by chunk, and the results are put back on the
+        host."""
+        order = device_order(self.rt, points, FINE_ORDER_BITS, self.zero_copy) \
+            if len(points) >= COHERENT_MIN else None
         with self._lock:
             try:
                 if order is not None and self.zero_copy:
-                    self._run_indexed(points, order.astype(np.uint32), launch, outputs)
+                    self._run_indexed(points, order, launch, outputs)
                 elif order is not None:
                     results = {name: np.empty_like(array) for name, array in outputs.items()}
                     self._run_chunks(take_rows(points, order), launch, results)

@@ -372,9 +372,9 @@ def test_big_batches_traced_in_morton_order_answer_in_the_callers_order(tiny, mo
     from hlbvh_cl import all_hits, order
     from hlbvh_cl.order import COHERENT_MIN
     traced = []  # the orders the big batches were traced in
-    monkeypatch.setattr(all_hits, "coherent_order",
-                        lambda points, *bits: traced.append(order.coherent_order(points, *bits))
-                        or traced[-1])
+    monkeypatch.setattr(all_hits, "device_order",
+                        lambda rt, points, *args: traced.append(order.device_order(
+                            rt, points, *args)) or traced[-1])
     count = 2 * COHERENT_MIN + 37
     origins, directions = random_rays(tiny, count, seed=31)
     tmax = np.random.default_rng(32).uniform(0.5, 3, count).astype(np.float32)

@@ -390,7 +390,7 @@ def test_points_keep_their_leading_shape(sphere_scene):
 
 def test_big_batches_answer_in_place(sphere_scene):
     """Batches of COHERENT_MIN and more run in Morton order (order.
-    coherent_order) and in chunks: each point's answer is the one it gets
+    device_order) and in chunks: each point's answer is the one it gets
     alone in a small batch, in its own row, also with a flat axis (all z
     equal), repeated points and extents down to a denormal."""
     from hlbvh_cl.order import COHERENT_MIN, coherent_order
@@ -482,3 +482,26 @@ def test_morton_order_uses_every_bit(bits):
     for points in (line, np.repeat(line[:, 1:2], 3, axis=1)):
         order = coherent_order(points[shuffled], bits)
         assert np.array_equal(shuffled[order], np.arange(cells))
+
+
+@pytest.mark.parametrize("bits", [5, 10])
+def test_device_order_is_the_numpy_order(bits, suite_device):
+    """device_order (Morton keys in kernels/order.cl, the library's radix
+    sort) gives exactly numpy's stable coherent_order: random points, a flat
+    axis, repeats, a denormal extent, coordinates up to 3e38, one point."""
+    from hlbvh_cl.device import runtime
+    from hlbvh_cl.order import coherent_order, device_order
+    rt = runtime(suite_device)
+    rng = np.random.default_rng(bits)
+    flat = rng.normal(size=(3001, 3)).astype(np.float32)
+    flat[:, 1] = 7.0
+    flat[::5] = flat[2]
+    blocks = [rng.random((20000, 3)).astype(np.float32), flat,
+              np.array([[0, 0, 0], [1e-44, 0, 0], [0, 1e-44, 3e38], [1e-44, 1, 3e38]] * 9,
+                       np.float32),
+              np.ones((1, 3), np.float32)]
+    for block in blocks:
+        for zero_copy in (False, True):
+            order = device_order(rt, block, bits, zero_copy)
+            assert order.dtype == np.uint32
+            assert np.array_equal(order, coherent_order(block, bits))
