@@ -2,20 +2,20 @@
 visitors of the one walk of the wide tree.
 
 intersect_all runs two passes over the rays.  The count pass gives each ray's
-number of hits; a prefix sum of min(count, max_hits) gives each ray its
-segment of the output (CSR); the fill pass then walks again and stores each
-ray's hits sorted by t in its segment, so memory stays near the output's own
-size whatever the counts.  The count pass traces packets of nearby rays on
-flat scenes (the query's kernel variant), the fill pass one ray per
-work-item.
+number of hits and keeps its first KEEP_HITS hit triangles; a prefix sum of
+min(count, max_hits) gives each ray its segment of the output (CSR); the fill
+pass then stores each ray's hits sorted by t in its segment, testing the kept
+triangles again where they are all of them and walking again otherwise, so
+memory stays near the output's own size whatever the counts.  Both passes
+trace packets of nearby rays on flat scenes (the query's kernel variant).
 
-Big batches run in fine Morton order of their origins (hlbvh_cl.order).  On
-zero-copy devices (PoCL, query.py) each launch takes a run of that order as
-its rays' slots and reads and writes the whole arrays in place: counts land
-in the caller's order, and the hits in the caller's segments.  Elsewhere the
-rays go up in that order in chunks whose hits stay under HITS_PER_LAUNCH,
-through device buffers reused between chunks, and the hits are moved to the
-caller's order afterwards (_to_caller_order).
+Big batches run in fine Morton order of their origins (hlbvh_cl.order): the
+kernels read the rays by slots in that order and write their results in it,
+where they pack together (in the caller's order they would scatter); the
+counts are put back in the caller's order and the hits moved there on the
+device (_to_caller_order).  On zero-copy devices (PoCL, query.py) the kernels
+read and write the arrays themselves; elsewhere through device buffers reused
+between chunks whose hits stay under HITS_PER_LAUNCH.
 
 A ray through an edge or a vertex shared by triangles on opposite sides
 counts that crossing once (triangle.h, OWN_EDGES), so the parity of a count
@@ -31,7 +31,7 @@ import numpy as np
 import pyopencl as cl
 
 from . import inputs
-from .order import COHERENT_MIN, FINE_ORDER_BITS, device_order, take_rows
+from .order import COHERENT_MIN, FINE_ORDER_BITS, device_order
 from .instances import InstancedTree
 from .query import RayQuery, _into_frame, _masked, _stack_size, collect, scene_args
 from .tree import Tree
@@ -43,6 +43,11 @@ HITS_PER_LAUNCH = 1 << 18
 #: Rays per launch where the rays are copied to the device (not PoCL): bounds
 #: those copies, 32 bytes a ray, two launches in flight.
 COPIED_RAYS_PER_LAUNCH = 1 << 16
+
+#: Hit triangles the count pass keeps per ray (kernels/all_hits.cl): a ray
+#: with no more hits skips the fill pass's walk.  A uint32 each, for every
+#: ray, while the fill runs.
+KEEP_HITS = 4
 
 #: Rays per block of _ray_index.
 RAY_INDEX_BLOCK = 1 << 16
@@ -110,6 +115,7 @@ class AllHitsQuery:
         self.rt = query.rt
         self._lock = threading.Lock()
         self._outputs: dict[str, cl.Buffer] = {}
+        self._row_bytes: dict[str, int] = {}  # of each output's rows
         self._capacity = 0
         # int32 [0]: a walk overflowed its stack; [1]: the fill pass found
         # fewer hits than the count pass
@@ -123,8 +129,12 @@ class AllHitsQuery:
         """int32, in the rays' leading shape: the number of hits of each ray
         with tmin <= t <= tmax (``mask`` as RayQuery.intersect)."""
         rays, _, shape = _rays(origins, directions, tmin, tmax, mask, tree)
+        order = _coherent_order(self.query, rays[0])
         with self._lock:
-            counts = self._count(tree, rays, self.query._results.empty)
+            counts = self._count(tree, rays, order, self.query._results.empty)
+        if order is not None:  # back to the caller's order
+            traced, counts = counts, self.query._results.empty(len(counts), np.int32)
+            counts[order] = traced
         return counts.reshape(shape)
 
     def intersect_all(self, tree: Tree, origins, directions=None, tmin=0.0, tmax=np.inf,
@@ -135,17 +145,14 @@ class AllHitsQuery:
         max_hits = _check_max_hits(max_hits)
         rays, t_factor, shape = _rays(origins, directions, tmin, tmax, mask, tree)
         order = _coherent_order(self.query, rays[0])
-        if order is not None and not self.query.zero_copy:
-            # the rays go up chunk by chunk in Morton order, and the hits come
-            # back in that order: moved to the caller's afterwards
-            rays, t_factor = _take(rays, order), None if t_factor is None else t_factor[order]
-            caller_order, order = order, None
-        else:
-            caller_order = None
+        if order is not None and t_factor is not None:
+            t_factor = t_factor[order]
         with self._lock:
-            kept = self._count(tree, rays, np.empty, order)  # a temporary: not pooled
-            if max_hits is not None:
-                np.minimum(kept, max_hits, out=kept)
+            # temporaries, not pooled, in the order traced: each ray's count,
+            # and on flat scenes its first hits, which spare most rays the
+            # fill pass's walk
+            counts, known = self._count(tree, rays, order, np.empty, keep=True)
+            kept = counts if max_hits is None else np.minimum(counts, max_hits)
             offsets = np.empty(len(kept) + 1, np.int64)
             offsets[0] = 0
             np.cumsum(kept, out=offsets[1:])
@@ -154,10 +161,10 @@ class AllHitsQuery:
             fields = {name: self.query._results.empty(total, dtype)
                       for name, dtype in HIT_FIELDS.items()}
             if total:
-                self._fill(tree, rays, offsets, fields, t_factor, order)
-        del rays  # the traced copies (ordered rays), before the hits move: peak memory
-        if caller_order is not None:
-            offsets = _to_caller_order(fields, offsets, caller_order, self.query._results)
+                self._fill(tree, rays, order, offsets, (counts, known), fields, t_factor)
+            del counts, known
+            if order is not None:
+                offsets = self._to_caller_order(fields, offsets, order)
         return AllHits(offsets=offsets, ray_index=_ray_index(offsets), **fields, shape=shape)
 
     # -- internals ----------------------------------------------------------
@@ -168,53 +175,67 @@ class AllHitsQuery:
         query's variant on flat trees, one ray on instanced ones."""
         packet = 1 if isinstance(tree, InstancedTree) else self.query.packet_size
         defines = {"STACK_SIZE": _stack_size(tree), "PACKET_SIZE": packet,
-                   **self.query.variant.defines, **self.rt.prefetch_defines}
+                   "KEEP_HITS": KEEP_HITS, **self.query.variant.defines,
+                   **self.rt.prefetch_defines}
         if isinstance(tree, InstancedTree):
             defines["INSTANCES"] = 1
         return self.rt.kernel("all_hits.cl", name, **defines), packet
 
-    def _count(self, tree, rays, empty, order="coherent") -> np.ndarray:
-        """int32 counts of the rays in their own order, from `empty`.  The
-        rays run in `order` (by default their Morton order where that is big
-        enough): on zero-copy devices as the kernel's slots, elsewhere as
-        copies taken in that order and counts put back."""
+    def _count(self, tree, rays, order, empty, keep=False):
+        """The rays' int32 counts, from `empty`, in the order they are traced
+        (`order`, or as given where None); with `keep`, (counts, known): on
+        flat scenes also each ray's first KEEP_HITS hit triangles, uint32
+        (rays, KEEP_HITS) (the fill pass tests them again instead of
+        walking), else None."""
         count = len(rays[0])
-        counts = empty(count, np.int32)
+        outputs = {"counts": empty(count, np.int32)}
+        if keep and not isinstance(tree, InstancedTree):
+            outputs["known"] = np.empty((count, KEEP_HITS), np.uint32)
+        results = (outputs["counts"], outputs.get("known")) if keep else outputs["counts"]
+        keep = "known" in outputs
         if not (count and self.query._check_tree(tree)):
-            counts[:] = 0
-            return counts
-        if isinstance(order, str):
-            order = _coherent_order(self.query, rays[0])
-        if order is not None and not self.query.zero_copy:
-            counts[order] = self._count(tree, _take(rays, order), np.empty, None)
-            return counts
+            outputs["counts"][:] = 0
+            return results
         kernel, packet = self._kernel(tree, "count_hits_arrays")
-        self._launches(tree, kernel, packet, rays, order, None, {"counts": counts})
-        return counts
+        # not keeping: the kernel writes no known triangle (a stand-in buffer)
+        tail = [np.uint32(1)] if keep else [self._no_slots, np.uint32(0)]
+        self._launches(tree, kernel, packet, rays, order, None, [], outputs, tail)
+        return results
 
-    def _fill(self, tree, rays, offsets, fields, t_factor, order) -> None:
+    def _fill(self, tree, rays, order, offsets, known, fields, t_factor) -> None:
+        """The hits into `fields`, ray i's (i in the order traced) in
+        [offsets[i], offsets[i + 1]); `known`: _count's (counts, known) for
+        the same rays and order."""
         kernel, packet = self._kernel(tree, "fill_hits_arrays")
-        self._launches(tree, kernel, packet, rays, order, offsets, fields)
+        counts, triangles = known
+        inputs = [counts, triangles, np.uint32(1)] if triangles is not None else \
+            [self._no_slots, self._no_slots, np.uint32(0)]
+        self._launches(tree, kernel, packet, rays, order, offsets, inputs, fields, [])
         if t_factor is not None:  # back from the frame: exact, powers of two
             for start, stop in _chunks(offsets, self.query.max_rays_per_launch, len(t_factor)):
                 part = slice(int(offsets[start]), int(offsets[stop]))
                 fields["t"][part] = fields["t"][part] * np.repeat(
                     t_factor[start:stop], np.diff(offsets[start:stop + 1]))
 
-    def _launches(self, tree, kernel, packet, rays, order, offsets, outputs) -> None:
-        """Runs `kernel` (`packet` rays per work-item) over the rays: its
-        arguments are the scene (query.scene_args, with the masks), the rays
-        and their slots (RAY_PARAMS in kernels/all_hits.cl), the offsets of
-        the rays' output segments (the fill kernel: `offsets`, the prefix sum
-        of each ray's slots; None: one slot per ray, the count kernel), the
-        `outputs`, the counters and the ray count.
+    def _launches(self, tree, kernel, packet, rays, order, offsets, inputs, outputs,
+                  tail) -> None:
+        """Runs `kernel` (`packet` rays per work-item) over the rays in
+        chunks (_chunks), the launch's ray i being the chunk's i-th in
+        `order` (None: as given): its arguments are the scene
+        (query.scene_args, with the masks), the rays and their slots
+        (RAY_PARAMS in kernels/all_hits.cl), the chunk's part of the offsets
+        of the rays' output segments (the fill kernel: `offsets`, the prefix
+        sum of each ray's slots in that order; None: one slot per ray, the
+        count kernel), of the `inputs` (arrays of a row per ray in that
+        order, or arguments as they are) and of the `outputs` (a row per
+        ray, or the segments' slots), the `tail` arguments, the counters and
+        the ray count.
 
-        With an `order` (zero-copy devices) the kernels read and write the
-        whole arrays in place, each launch a run of that order as its slots.
-        Otherwise they go in chunks of rays (_chunks): on PoCL reading and
-        writing the arrays' parts themselves (zero copy), elsewhere with the
-        rays going up per chunk and the results coming back through buffers
-        reused between chunks."""
+        In `order` the kernels read the rays from the whole arrays by the
+        chunk's slots, and write their results in order, where they pack
+        together.  On PoCL the kernels read and write the arrays themselves
+        (zero copy); elsewhere the rays go up once (whole) or per chunk, and
+        the results come back through buffers reused between chunks."""
         query, rt, queue = self.query, self.rt, self.rt.queue
         context, flags = rt.context, cl.mem_flags
         cl.enqueue_copy(queue, self._counters, np.zeros(2, np.int32))
@@ -237,51 +258,39 @@ class AllHitsQuery:
         # enough off PoCL that the rays' copies stay small
         rays_per_launch = query.max_rays_per_launch if query.zero_copy else \
             min(query.max_rays_per_launch, COPIED_RAYS_PER_LAUNCH)
+        whole = ray_args(slice(None)) if order is not None else None
         events, kept = [], []  # kept: what the launches in flight read or write
         try:
-            if order is not None:
-                whole = ray_args(slice(None))
-                segments = [] if offsets is None else [wrap(offsets, flags.READ_ONLY),
-                                                       np.int64(0)]
-                buffers = [wrap(array, flags.WRITE_ONLY) for array in outputs.values()]
-                runs = ((start, min(start + rays_per_launch, len(order)))
-                        for start in range(0, len(order), rays_per_launch))
-            else:
-                runs = _chunks(offsets, rays_per_launch, len(origins))
-            for start, stop in runs:
+            # off PoCL the results come back through buffers of HITS_PER_LAUNCH
+            max_slots = None if query.zero_copy else HITS_PER_LAUNCH
+            for start, stop in _chunks(offsets, rays_per_launch, len(origins), max_slots):
                 if len(events) >= 2:
                     rt.wait(events[-2:-1])
                     del kept[:-1]
+                first, last = (start, stop) if offsets is None else \
+                    (int(offsets[start]), int(offsets[stop]))
                 if order is not None:
-                    slots = wrap(order[start:stop], flags.READ_ONLY)
                     scene, args = whole
-                    args = [*args, slots, np.uint32(1), *segments, *buffers]
-                    held = (slots,)
+                    args = [*args, wrap(order[start:stop], flags.READ_ONLY), np.uint32(1)]
                 else:
-                    first, last = (start, stop) if offsets is None else \
-                        (int(offsets[start]), int(offsets[stop]))
                     scene, args = ray_args(slice(start, stop))
                     args += [self._no_slots, np.uint32(0)]
-                    if offsets is not None:
-                        args += [wrap(offsets[start:stop + 1], flags.READ_ONLY),
-                                 np.int64(first)]
-                    parts = {name: array[first:last] for name, array in outputs.items()}
-                    if query.zero_copy:
-                        out = {name: wrap(part, flags.WRITE_ONLY) for name, part in parts.items()}
-                    else:
-                        out = self._reserve(outputs, last - first)
-                    args += list(out.values())
-                    held = (out,)
+                if offsets is not None:
+                    args += [wrap(offsets[start:stop + 1], flags.READ_ONLY), np.int64(first)]
+                args += [wrap(value[start:stop], flags.READ_ONLY)
+                         if isinstance(value, np.ndarray) else value for value in inputs]
+                parts = {name: array[first:last] for name, array in outputs.items()}
+                if query.zero_copy:
+                    out = {name: wrap(part, flags.WRITE_ONLY) for name, part in parts.items()}
+                else:
+                    out = self._reserve(outputs, last - first)
+                args += list(out.values())
                 events.append(rt.run(kernel, -(-(stop - start) // packet), *scene, *args,
-                                     self._counters, np.uint32(stop - start),
+                                     *tail, self._counters, np.uint32(stop - start),
                                      local_size=query.work_group_size))
-                if order is None:
-                    held += tuple(collect(queue, out[name], part, query.zero_copy)
-                                  for name, part in parts.items())
-                kept.append((args, held))
-            if order is not None:
-                kept.append([collect(queue, buffer, array, True)
-                             for buffer, array in zip(buffers, outputs.values())])
+                held = tuple(collect(queue, out[name], part, query.zero_copy)
+                             for name, part in parts.items())
+                kept.append((args, out, held))
             counters = np.zeros(2, np.int32)
             rt.wait([cl.enqueue_copy(queue, counters, self._counters, is_blocking=False)])
         except BaseException:  # launches in flight may still write: let them end
@@ -294,12 +303,52 @@ class AllHitsQuery:
             raise RuntimeError("hlbvh_cl internal error: intersect_all's fill pass found fewer "
                                "hits than its count pass")
 
+    def _to_caller_order(self, fields: dict, offsets: np.ndarray, order: np.ndarray) -> np.ndarray:
+        """Moves the hits of rays traced in ``order`` (CSR ``offsets`` in that
+        order) to the caller's ray order on the device (kernels/segments.cl),
+        one field at a time, so that the move needs one field's copy more,
+        not the whole output's; returns the caller's offsets."""
+        rt, queue, flags = self.rt, self.rt.queue, cl.mem_flags
+        caller = np.empty(len(order) + 1, np.int64)
+        caller[0] = 0
+        counts = np.empty(len(order), np.int64)
+        counts[order] = np.diff(offsets)
+        np.cumsum(counts, out=caller[1:])
+        del counts
+        start = np.empty(len(order), np.int64)  # where each caller ray's hits were traced
+        start[order] = offsets[:-1]
+        if not len(fields["t"]):
+            return caller
+        kernel = rt.kernel("segments.cl", "move_segments")
+        # the arrays themselves where the device shares the host's memory
+        host = flags.USE_HOST_PTR if self.query.zero_copy else flags.COPY_HOST_PTR
+        to = cl.Buffer(rt.context, flags.READ_ONLY | host, hostbuf=caller)
+        source_start = cl.Buffer(rt.context, flags.READ_ONLY | host, hostbuf=start)
+        try:
+            for name, values in fields.items():
+                moved = self.query._results.empty(len(values), values.dtype)
+                source = cl.Buffer(rt.context, flags.READ_ONLY | host, hostbuf=values)
+                target = cl.Buffer(rt.context, flags.WRITE_ONLY | host, hostbuf=moved) \
+                    if self.query.zero_copy else \
+                    cl.Buffer(rt.context, flags.WRITE_ONLY, moved.nbytes)
+                done = rt.run(kernel, len(order), source, target, to, source_start,
+                              np.uint32(len(order)))
+                rt.wait([done, collect(queue, target, moved, self.query.zero_copy)])
+                fields[name] = moved
+                del source, target, values
+        except BaseException:  # the kernel may still read and write the arrays
+            queue.finish()
+            raise
+        return caller
+
     def _reserve(self, outputs: dict, slots: int) -> dict[str, cl.Buffer]:
-        """Grow-only device buffers for `slots` results of each output
-        (copied back after each launch)."""
+        """Grow-only device buffers for `slots` rows of each output (copied
+        back after each launch)."""
+        self._row_bytes.update({name: array.itemsize * int(np.prod(array.shape[1:]))
+                                for name, array in outputs.items()})
         if slots > self._capacity or any(name not in self._outputs for name in outputs):
             capacity = max(slots, min(HITS_PER_LAUNCH, 2 * self._capacity), self._capacity)
-            sizes = {name: capacity * 4 for name in {*self._outputs, *outputs}}  # 4-byte fields
+            sizes = {name: capacity * self._row_bytes[name] for name in {*self._outputs, *outputs}}
             self._outputs = {}
             self.rt.check_allocation("all-hits buffers", sizes)
             self._outputs = {name: cl.Buffer(self.rt.context, cl.mem_flags.READ_WRITE, size)
@@ -317,37 +366,6 @@ def _coherent_order(query: RayQuery, origins: np.ndarray) -> np.ndarray | None:
     return device_order(query.rt, origins, FINE_ORDER_BITS, query.zero_copy)
 
 
-def _take(rays: tuple, order: np.ndarray) -> tuple:
-    """The rays' five arrays in `order` (scalar limits stay scalars)."""
-    origins, directions, *limits = rays
-    return (take_rows(origins, order), take_rows(directions, order),
-            *(limit[order] if limit.ndim else limit for limit in limits))
-
-
-def _to_caller_order(fields: dict, offsets: np.ndarray, order: np.ndarray, pool) -> np.ndarray:
-    """Moves the hits of rays traced in ``order`` (CSR ``offsets`` in that
-    order) to the caller's ray order, one field at a time and a block of rays
-    at a time, so that the move needs one field's copy more, not the whole
-    output's; returns the caller's offsets."""
-    counts = np.empty(len(order), np.int64)
-    counts[order] = np.diff(offsets)
-    caller = np.zeros(len(order) + 1, np.int64)
-    np.cumsum(counts, out=caller[1:])
-    shift = np.empty(len(order), np.int64)  # a ray's first hit: traced at caller + shift
-    shift[order] = offsets[:-1]
-    shift -= caller[:-1]
-    for name, values in fields.items():
-        moved = pool.empty(len(values), values.dtype)
-        for start in range(0, len(order), RAY_INDEX_BLOCK):
-            stop = min(start + RAY_INDEX_BLOCK, len(order))
-            first, last = int(caller[start]), int(caller[stop])
-            source = np.repeat(shift[start:stop], counts[start:stop])
-            source += np.arange(first, last)
-            np.take(values, source, out=moved[first:last])
-        fields[name] = moved
-    return caller
-
-
 def _ray_index(offsets: np.ndarray) -> np.ndarray:
     """int64 (H,): the ray of each hit.  Each ray's first slot gets the step
     from the previous ray with hits, then a running sum; block by block, so
@@ -363,17 +381,19 @@ def _ray_index(offsets: np.ndarray) -> np.ndarray:
     return np.cumsum(index, out=index)
 
 
-def _chunks(offsets: np.ndarray | None, max_rays: int, count: int):
+def _chunks(offsets: np.ndarray | None, max_rays: int, count: int,
+            max_slots: int | None = HITS_PER_LAUNCH):
     """(start, stop) runs of the `count` rays with at most max_rays rays and
-    (unless one ray has more) HITS_PER_LAUNCH slots, where ray r has slots
-    [offsets[r], offsets[r + 1]) (None: one each); runs without slots are
-    skipped."""
+    (unless one ray has more) max_slots slots (None: any number), where ray
+    r has slots [offsets[r], offsets[r + 1]) (None: one each); runs without
+    slots are skipped."""
     start = 0
+    max_slots = max_slots or count + (int(offsets[-1]) if offsets is not None else 0) + 1
     while start < count:
         if offsets is None:
-            stop = min(start + max_rays, start + HITS_PER_LAUNCH, count)
+            stop = min(start + max_rays, start + max_slots, count)
         else:
-            bound = int(np.searchsorted(offsets, offsets[start] + HITS_PER_LAUNCH, "right")) - 1
+            bound = int(np.searchsorted(offsets, offsets[start] + max_slots, "right")) - 1
             stop = min(start + max_rays, count, max(bound, start + 1))
             if offsets[stop] == offsets[start]:
                 start = stop

@@ -6,17 +6,20 @@
  * ray through a shared edge or vertex counts its crossing once.
  *
  * Kernels
- *   count_hits_arrays  counts[i] = number of hits of ray i in [tmin, tmax]
+ *   count_hits_arrays  counts[i] = number of hits of ray i in [tmin, tmax],
+ *                      and its first KEEP_HITS hit triangles
  *   fill_hits_arrays   ray i's min(count, k) nearest hits, sorted by t (ties
  *                      by tree-order triangle index), in its segment
- *                      [first[i], first[i + 1]) of the output arrays
+ *                      [first[i], first[i + 1]) of the output arrays: the
+ *                      known triangles tested again where they are all its
+ *                      hits, else found by a walk
  *
  * Conventions are traverse.cl's (tmin <= t <= tmax, no culling, degenerate
  * triangles never hit, hit = (1-u-v)*v0 + u*v1 + v*v2).
  *
  * A launch's rays are its arrays' first ray_count slots, or the slots the
- * host lists (RAY_SLOTS: whole arrays in the host's Morton order), and each
- * ray's results go to its own slot (counts) or its own segment (hits).
+ * host lists (whole arrays read in the host's Morton order); ray i's
+ * results go to position i (counts) or segment i (hits) either way.
  *
  * Compile-time parameters (-D): STACK_SIZE, PREFETCH and INSTANCES as
  * traverse.cl.  PACKET_SIZE: both kernels trace packets of that many rays
@@ -34,27 +37,48 @@
 
 /* Counting: every hit adds one to each lane it hits (a ray's hit flag is
  * 1, a packet lane's -1); the limit stays tmax and the walk never ends
- * early.  s->index stays -1, so hit_triangle takes t == tmax too. */
-typedef uint hits_ray;
-#define add_hits_ray(found, hit) (*(found) += (uint)(hit))
+ * early.  s->index stays -1, so hit_triangle takes t == tmax too.
+ *
+ * The count also keeps the first KEEP_HITS triangles it hits (in walk
+ * order): a ray with no more hits than that needs no second walk, as the
+ * fill pass tests those triangles again instead (keep_known). */
+typedef struct {
+    uint count;
+    uint kept[KEEP_HITS];
+} Hits_ray;
+TRAVERSAL_INLINE void add_hits_ray(Hits_ray* found, uint i)
+{
+    if (found->count < KEEP_HITS)
+        found->kept[found->count] = i;
+    ++found->count;
+}
 #if PACKET_SIZE > 1
 #include "packet.h"
-typedef int_packet hits_packet;
-#define add_hits_packet(found, hit) (*(found) -= (hit))
+typedef struct {
+    int_packet count;
+    int_packet kept[KEEP_HITS];
+} Hits_packet;
+TRAVERSAL_INLINE void add_hits_packet(Hits_packet* found, uint i, int_packet hit)
+{
+    for (int j = 0; j < KEEP_HITS; ++j)
+        found->kept[j] = (hit & (found->count == (int_packet)(j))) ? (int_packet)((int)i)
+                                                                  : found->kept[j];
+    found->count -= hit;
+}
 #endif
 #define QUERY count
 #define QUERY_PATH _ray
-#define QUERY_HIT(s, i, hit, t, u, v) (add_hits_ray(found, hit), false)
+#define QUERY_HIT(s, i, hit, t, u, v) (add_hits_ray(found, i), false)
 #define QUERY_NODE(s, r, n, mask) false
-#define QUERY_PARAMS , hits_ray* found
+#define QUERY_PARAMS , Hits_ray* found
 #define QUERY_ARGS , found
 #include "walk.h"
 #if PACKET_SIZE > 1
 #define QUERY count
 #define QUERY_PATH _packet
-#define QUERY_HIT(s, i, hit, t, u, v) (add_hits_packet(found, hit), false)
+#define QUERY_HIT(s, i, hit, t, u, v) (add_hits_packet(found, i, hit), false)
 #define QUERY_NODE(s, r, n, mask) false
-#define QUERY_PARAMS , hits_packet* found
+#define QUERY_PARAMS , Hits_packet* found
 #define QUERY_ARGS , found
 #include "walk.h"
 #endif
@@ -174,7 +198,7 @@ TRAVERSAL_INLINE void keep_hits(Found_packet* s, int i, int_packet hit, float_pa
  * visitor with the walk's state (a full segment's limit prunes the next
  * instances too). */
 TRAVERSAL_INLINE bool instances_count(Found_ray* s, const RayData* r, int first,
-                                      uint count INSTANCE_PARAMS, uint* found)
+                                      uint count INSTANCE_PARAMS, Hits_ray* found)
 {
     for (uint i = (uint)first; i < (uint)first + count; ++i) {
         INSTANCE_AT(i);
@@ -202,7 +226,7 @@ TRAVERSAL_INLINE bool instances_fill(Found_ray* s, const RayData* r, int first,
 #define QUERY_PATH _ray
 #define QUERY_LEAF(s, r, first, count) instances_count(s, r, first, count INSTANCE_ARGS, found)
 #define QUERY_NODE(s, r, n, mask) false
-#define QUERY_PARAMS INSTANCE_PARAMS, uint* found
+#define QUERY_PARAMS INSTANCE_PARAMS, Hits_ray* found
 #define QUERY_ARGS INSTANCE_ARGS, found
 #include "walk.h"
 
@@ -218,24 +242,28 @@ TRAVERSAL_INLINE bool instances_fill(Found_ray* s, const RayData* r, int first,
 /* See traverse.cl's TRAVERSAL_KERNEL. */
 #define TRAVERSAL_KERNEL __kernel __attribute__((LANES_HINT))
 
-/* The rays as numpy arrays (work_item.h's load_arrays), and which slots a
- * launch's rays take: ray i of the launch slot i, or where `indexed` slot
- * slots[i] (whole arrays, in the host's order). */
+/* The rays as numpy arrays (work_item.h's load_arrays), and where a
+ * launch's ray i is read: slot i, or where `indexed` slot slots[i] (whole
+ * arrays, read in the host's order).  Its results go to the launch's
+ * position i either way: counts in the order traced, hits in its segment
+ * of a CSR in that order. */
 #define RAY_ARRAYS origins, directions, tmin, tmin_step, tmax, tmax_step
 #define RAY_PARAMS                                                                      \
     __global const float *origins, __global const float *directions,                     \
         __global const float *tmin, const uint tmin_step, __global const float *tmax,    \
         const uint tmax_step, __global const uint *slots, const uint indexed
 
-/* The work-item's rays into lanes and their slots into at (lanes past the
- * last repeat it); how many exist (0 past the end). */
-TRAVERSAL_INLINE uint load_rays(uint ray_count, RAY_PARAMS, RayLanes* lanes, uint* at)
+/* The work-item's rays into lanes, the slots they are read from into at
+ * (lanes past the last repeat it) and the launch position of the first into
+ * *first; how many exist (0 past the end). */
+TRAVERSAL_INLINE uint load_rays(uint ray_count, RAY_PARAMS, RayLanes* lanes, uint* at,
+                                uint* first)
 {
-    uint first, used = packet_rays(ray_count, &first);
+    uint used = packet_rays(ray_count, first);
     if (used == 0)
         return 0;
     for (uint l = 0; l < PACKET_SIZE; ++l) {
-        uint i = first + LESSER(l, used - 1u);
+        uint i = *first + LESSER(l, used - 1u);
         at[l] = indexed ? slots[i] : i;
     }
     load_arrays_at(at, RAY_ARRAYS, lanes);
@@ -269,71 +297,130 @@ TRAVERSAL_INLINE uint load_rays(uint ray_count, RAY_PARAMS, RayLanes* lanes, uin
     } while (0)
 #endif
 
-/* counts[slot] = the number of hits of each ray in [tmin, tmax]: a packet
- * of rays per work-item where they share their direction signs and axis
+/* counts[i] = the number of hits of the launch's ray i in [tmin, tmax],
+ * and with `keeping` its first min(count, KEEP_HITS) hit triangles (tree
+ * order, in walk order) in kept[i * KEEP_HITS ...]: a packet of rays per
+ * work-item where they share their direction signs and axis
  * (prepare_packet), else one by one. */
 TRAVERSAL_KERNEL void count_hits_arrays(SCENE_PARAMS, RAY_PARAMS, __global int* counts,
+                                        __global uint* kept, const uint keeping,
                                         __global int* overflow, const uint ray_count)
 {
     RayLanes lanes;
-    uint at[PACKET_SIZE];
-    uint used = load_rays(ray_count, RAY_ARRAYS, slots, indexed, &lanes, at);
+    uint at[PACKET_SIZE], first;
+    uint used = load_rays(ray_count, RAY_ARRAYS, slots, indexed, &lanes, at, &first);
     if (used == 0)
         return;
+    int lane_counts[PACKET_SIZE];
+    uint lane_kept[KEEP_HITS][PACKET_SIZE];
 #if PACKET_SIZE > 1
     Packet p;
     if (prepare_packet(&lanes, &p)) {
         Found_packet s = {(int_packet)(-1), (float_packet)(INFINITY), (float_packet)(0.0f),
                           (float_packet)(0.0f), p.tmax, packet_max(p.tmax)};
-        hits_packet found = (hits_packet)(0);
+        Hits_packet found;
+        found.count = (int_packet)(0);
+        for (int j = 0; j < KEEP_HITS; ++j)
+            found.kept[j] = (int_packet)(0);
         if (walk_count_packet(&p, nodes, triangles, &s, &found))
             overflow[0] = 1;
-        int lane_counts[PACKET_SIZE];
-        vstore_packet(found, 0, lane_counts);
-        for (uint l = 0; l < used; ++l)
-            counts[at[l]] = lane_counts[l];
-        return;
-    }
+        vstore_packet(found.count, 0, lane_counts);
+        for (int j = 0; j < KEEP_HITS; ++j)
+            vstore_packet(found.kept[j], 0, (int*)lane_kept[j]);
+    } else
 #endif
+    {
+        for (uint l = 0; l < used; ++l) {
+            Hits_ray found;
+            found.count = 0;
+            WALK_RAY(count, &lanes, l, at[l], &found);
+            lane_counts[l] = (int)found.count;
+            for (uint j = 0; j < LESSER(found.count, (uint)KEEP_HITS); ++j)
+                lane_kept[j][l] = found.kept[j];
+        }
+    }
     for (uint l = 0; l < used; ++l) {
-        hits_ray found = 0;
-        WALK_RAY(count, &lanes, l, at[l], &found);
-        counts[at[l]] = (int)found;
+        counts[first + l] = lane_counts[l];
+        if (keeping)
+            for (int j = 0; j < LESSER(lane_counts[l], KEEP_HITS); ++j)
+                kept[(size_t)(first + l) * KEEP_HITS + j] = lane_kept[j][l];
     }
 }
 
-/* Each ray's hits go to its segment [offsets[slot] - base, offsets[slot +
- * 1] - base) of the output arrays (the host's prefix sum of the counts, or
- * of the first k), as many as that holds: a packet of rays per work-item
- * where they share their direction signs and axis, else one by one.
+#ifndef INSTANCES
+/* A flat scene's ray (lane l) whose count pass kept all its hits: those
+ * triangles tested again, as the walk would test them (the same arithmetic
+ * on one ray as on a packet lane), into its segment (keep_hit); the kept
+ * hits as *kept_hits. */
+TRAVERSAL_INLINE void keep_known(const RayLanes* lanes, uint l, __global const Triangle* triangles,
+                                 __global const uint* known, uint count, __global float* out_t,
+                                 __global float* out_u, __global float* out_v,
+                                 __global int* out_index, __global int* out_instance,
+                                 uint* kept_hits, uint capacity)
+{
+    RayData r;
+    prepare_lane(&r, lanes, l);
+    float limit = r.tmax;  /* not lowered: each triangle is hit within tmax */
+    for (uint j = 0; j < count; ++j) {
+        float t, u, v;
+        if (hit_triangle_ray(&r, triangles + known[j], r.tmax, false, &t, &u, &v))
+            keep_hit(&limit, (int)known[j], -1, t, u, v, out_t, out_u, out_v, out_index,
+                     out_instance, kept_hits, capacity);
+    }
+}
+#endif
+
+/* The launch's ray i's hits go to its segment [offsets[i] - base,
+ * offsets[i + 1] - base) of the output arrays (the host's prefix sum of the
+ * counts, or of the first k), as many as that holds.  With `keeping`, a ray
+ * whose count pass kept all its hits (counts[i] <= KEEP_HITS, known) has
+ * them tested again (keep_known); the others walk, a packet of rays per
+ * work-item where they share their direction signs and axis, else one by
+ * one.
  * overflow[1] is set if a ray found fewer (the passes disagree: the host
  * raises rather than return unwritten slots). */
 TRAVERSAL_KERNEL void fill_hits_arrays(SCENE_PARAMS, RAY_PARAMS, __global const long* offsets,
-        const long base, __global float* t_out, __global float* u_out, __global float* v_out,
-        __global int* prim_out, __global int* geom_out, __global int* instance_out,
-        __global int* overflow, const uint ray_count)
+        const long base, __global const int* counts, __global const uint* known,
+        const uint keeping, __global float* t_out, __global float* u_out,
+        __global float* v_out, __global int* prim_out, __global int* geom_out,
+        __global int* instance_out, __global int* overflow, const uint ray_count)
 {
     RayLanes lanes;
-    uint at[PACKET_SIZE];
-    uint used = load_rays(ray_count, RAY_ARRAYS, slots, indexed, &lanes, at);
+    uint at[PACKET_SIZE], first;
+    uint used = load_rays(ray_count, RAY_ARRAYS, slots, indexed, &lanes, at, &first);
     if (used == 0)
         return;
     size_t start[PACKET_SIZE];
     uint capacity[PACKET_SIZE], kept[PACKET_SIZE];
+    bool walk = false;
     for (uint l = 0; l < PACKET_SIZE; ++l) {
-        start[l] = (size_t)(offsets[at[l]] - base);
-        capacity[l] = l < used ? (uint)(offsets[at[l] + 1] - offsets[at[l]]) : 0u;
+        uint i = first + LESSER(l, used - 1u);  /* the ray's launch position */
+        start[l] = (size_t)(offsets[i] - base);
+        capacity[l] = l < used ? (uint)(offsets[i + 1] - offsets[i]) : 0u;
         kept[l] = 0;
+#ifndef INSTANCES
+        if (keeping && capacity[l] != 0 && counts[i] <= KEEP_HITS) {
+            size_t j = start[l];
+            keep_known(&lanes, l, triangles, known + (size_t)i * KEEP_HITS, (uint)counts[i],
+                       t_out + j, u_out + j, v_out + j, prim_out + j,
+                       instance_out + j, kept + l, capacity[l]);
+            continue;
+        }
+#endif
+        walk |= capacity[l] != 0;
     }
 #if PACKET_SIZE > 1
     Packet p;
-    if (prepare_packet(&lanes, &p)) {
+    if (!walk) {
+    } else if (prepare_packet(&lanes, &p)) {
         Segments g;
         for (uint l = 0; l < PACKET_SIZE; ++l) {
+            /* lanes filled already, or with nothing to find: out of reach */
+            bool walks = capacity[l] != 0 && kept[l] == 0;
             g.start[l] = start[l];
-            g.capacity[l] = capacity[l];
-            g.kept[l] = 0;
-            if (capacity[l] == 0)  /* nothing to find: out of the packet's reach */
+            g.capacity[l] = walks ? capacity[l] : 0u;
+            g.kept[l] = kept[l];
+            if (!walks)
                 lanes.tmax[l] = -INFINITY;
         }
         Found_packet s = {(int_packet)(-1), (float_packet)(INFINITY), (float_packet)(0.0f),
@@ -348,7 +435,7 @@ TRAVERSAL_KERNEL void fill_hits_arrays(SCENE_PARAMS, RAY_PARAMS, __global const 
 #endif
     {
         for (uint l = 0; l < used; ++l) {
-            if (capacity[l] == 0)
+            if (capacity[l] == 0 || kept[l] != 0)  /* nothing to find, or filled */
                 continue;
             size_t j = start[l];
 #ifndef INSTANCES

@@ -477,3 +477,41 @@ def test_fill_packets_give_the_hits_of_one_ray(tiny, max_hits):
         for name in ("offsets", "ray_index", "t", "u", "v", "prim_id", "geom_id", "instance_id"):
             np.testing.assert_array_equal(getattr(got, name), getattr(want, name),
                                           err_msg=f"packets of {packet_size}: {name}")
+
+
+def plates(count: int = 9) -> hlbvh_cl.Mesh:
+    """`count` squares [-1, 1]^2 stacked at z = 0, 1, ..., two triangles each."""
+    vertices = np.array([[x, y, z] for z in range(count) for x, y in
+                         ((-1, -1), (1, -1), (1, 1), (-1, 1))], float)
+    faces = np.array([[q, q + 1, q + 2] for q in range(0, 4 * count, 4)]
+                     + [[q, q + 2, q + 3] for q in range(0, 4 * count, 4)])
+    return hlbvh_cl.Mesh(vertices, faces, name="plates")
+
+
+@pytest.mark.parametrize("max_hits", [None, 2, 6])
+def test_rays_with_more_hits_than_kept_walk_again(max_hits, monkeypatch):
+    """The count pass keeps each ray's first KEEP_HITS hit triangles, and the
+    fill pass tests those again instead of walking where they are all its
+    hits; rays with more walk again, in packets among rays that do not.
+    Through 9 stacked plates with random tmax (0 to 9 hits a ray), a batch
+    big enough for Morton order and packets matches the brute force, and
+    is exactly what kernels that keep one triangle give."""
+    from hlbvh_cl import all_hits
+    from hlbvh_cl.order import COHERENT_MIN
+    case = SceneCase([plates()])
+    count = 2 * COHERENT_MIN + 5
+    rng = np.random.default_rng(7)
+    origins = np.column_stack([rng.uniform(-0.9, 0.9, (count, 2)), np.full(count, -0.5)])
+    directions = np.column_stack([rng.uniform(-0.05, 0.05, (count, 2)), np.ones(count)])
+    origins, directions = origins.astype(np.float32), directions.astype(np.float32)
+    tmax = rng.uniform(0, 9.5, count).astype(np.float32)
+    compared, got = assert_matches_brute_force(case, origins, directions, tmax=tmax,
+                                               max_hits=max_hits)
+    assert compared > 0.9 * count
+    counts = case.scene.count_intersections(origins, directions, tmax=tmax)
+    assert ((counts > all_hits.KEEP_HITS).sum() > 100
+            and ((counts > 0) & (counts <= all_hits.KEEP_HITS)).sum() > 100)
+    monkeypatch.setattr(all_hits, "KEEP_HITS", 1)
+    again = case.scene.intersect_all(origins, directions, tmax=tmax, max_hits=max_hits)
+    for name in ("offsets", "t", "u", "v", "prim_id", "geom_id", "instance_id"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(got, name), err_msg=name)
