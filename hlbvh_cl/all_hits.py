@@ -164,8 +164,11 @@ class AllHitsQuery:
                 self._fill(tree, rays, order, offsets, (counts, known), fields, t_factor)
             del counts, known
             if order is not None:
-                offsets = self._to_caller_order(fields, offsets, order)
-        return AllHits(offsets=offsets, ray_index=_ray_index(offsets), **fields, shape=shape)
+                offsets, ray_index = self._to_caller_order(
+                    fields, offsets, order, flat=not isinstance(tree, InstancedTree))
+            else:
+                ray_index = _ray_index(offsets)
+        return AllHits(offsets=offsets, ray_index=ray_index, **fields, shape=shape)
 
     # -- internals ----------------------------------------------------------
 
@@ -303,12 +306,14 @@ class AllHitsQuery:
             raise RuntimeError("hlbvh_cl internal error: intersect_all's fill pass found fewer "
                                "hits than its count pass")
 
-    def _to_caller_order(self, fields: dict, offsets: np.ndarray, order: np.ndarray) -> np.ndarray:
+    def _to_caller_order(self, fields: dict, offsets: np.ndarray, order: np.ndarray,
+                         flat: bool) -> tuple[np.ndarray, np.ndarray]:
         """Moves the hits of rays traced in ``order`` (CSR ``offsets`` in that
         order) to the caller's ray order on the device (kernels/segments.cl),
         one field at a time, so that the move needs one field's copy more,
-        not the whole output's; returns the caller's offsets."""
-        rt, queue, flags = self.rt, self.rt.queue, cl.mem_flags
+        not the whole output's; returns the caller's offsets and ray_index.
+        On a `flat` scene every instance_id is -1: set, not moved."""
+        rt, queue, flags, pool = self.rt, self.rt.queue, cl.mem_flags, self.query._results
         caller = np.empty(len(order) + 1, np.int64)
         caller[0] = 0
         counts = np.empty(len(order), np.int64)
@@ -317,29 +322,40 @@ class AllHitsQuery:
         del counts
         start = np.empty(len(order), np.int64)  # where each caller ray's hits were traced
         start[order] = offsets[:-1]
-        if not len(fields["t"]):
-            return caller
+        total = len(fields["t"])
+        if flat:
+            fields["instance_id"] = pool.empty(total, np.int32)
+            fields["instance_id"][:] = -1
+        # with zero copy the first move numbers the hits too; elsewhere the
+        # host does (a device copy of the int64 ray_index would cost memory)
+        zero_copy = self.query.zero_copy
+        ray_index = pool.empty(total, np.int64) if zero_copy else None
+        if not total:
+            return caller, np.zeros(0, np.int64)
         kernel = rt.kernel("segments.cl", "move_segments")
         # the arrays themselves where the device shares the host's memory
-        host = flags.USE_HOST_PTR if self.query.zero_copy else flags.COPY_HOST_PTR
+        host = flags.USE_HOST_PTR if zero_copy else flags.COPY_HOST_PTR
         to = cl.Buffer(rt.context, flags.READ_ONLY | host, hostbuf=caller)
         source_start = cl.Buffer(rt.context, flags.READ_ONLY | host, hostbuf=start)
+        numbers = cl.Buffer(rt.context, flags.WRITE_ONLY | host, hostbuf=ray_index) \
+            if zero_copy else self._no_slots
         try:
-            for name, values in fields.items():
-                moved = self.query._results.empty(len(values), values.dtype)
+            for name in [name for name in fields if not (flat and name == "instance_id")]:
+                values, numbering = fields[name], name == "t" and zero_copy
+                moved = pool.empty(len(values), values.dtype)
                 source = cl.Buffer(rt.context, flags.READ_ONLY | host, hostbuf=values)
                 target = cl.Buffer(rt.context, flags.WRITE_ONLY | host, hostbuf=moved) \
-                    if self.query.zero_copy else \
-                    cl.Buffer(rt.context, flags.WRITE_ONLY, moved.nbytes)
-                done = rt.run(kernel, len(order), source, target, to, source_start,
-                              np.uint32(len(order)))
-                rt.wait([done, collect(queue, target, moved, self.query.zero_copy)])
+                    if zero_copy else cl.Buffer(rt.context, flags.WRITE_ONLY, moved.nbytes)
+                done = rt.run(kernel, len(order), source, target, to, source_start, numbers,
+                              np.uint32(numbering), np.uint32(len(order)))
+                rt.wait([done, collect(queue, target, moved, zero_copy),
+                         *([collect(queue, numbers, ray_index, True)] if numbering else [])])
                 fields[name] = moved
                 del source, target, values
         except BaseException:  # the kernel may still read and write the arrays
             queue.finish()
             raise
-        return caller
+        return caller, ray_index if zero_copy else _ray_index(caller)
 
     def _reserve(self, outputs: dict, slots: int) -> dict[str, cl.Buffer]:
         """Grow-only device buffers for `slots` rows of each output (copied
