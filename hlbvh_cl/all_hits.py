@@ -9,13 +9,15 @@ triangles again where they are all of them and walking again otherwise, so
 memory stays near the output's own size whatever the counts.  Both passes
 trace packets of nearby rays on flat scenes (the query's kernel variant).
 
-Big batches run in fine Morton order of their origins (hlbvh_cl.order): the
-kernels read the rays by slots in that order and write their results in it,
-where they pack together (in the caller's order they would scatter); the
-counts are put back in the caller's order and the hits moved there on the
-device (_to_caller_order).  On zero-copy devices (PoCL, query.py) the kernels
-read and write the arrays themselves; elsewhere through device buffers reused
-between chunks whose hits stay under HITS_PER_LAUNCH.
+The count pass runs big batches in fine Morton order of their origins
+(hlbvh_cl.order), so that packets hold nearby rays: on zero-copy devices
+(PoCL, query.py) each launch takes a run of that order as its rays' slots and
+reads and writes the whole arrays in place; elsewhere the rays of a run are
+taken on the host and the results put back.  The fill pass runs the rays in
+the caller's order, so that its results land in order (most rays only test
+their kept triangles again; in Morton order their hits would scatter).  Off
+PoCL the rays go up in chunks whose hits stay under HITS_PER_LAUNCH, through
+device buffers reused between chunks.
 
 A ray through an edge or a vertex shared by triangles on opposite sides
 counts that crossing once (triangle.h, OWN_EDGES), so the parity of a count
@@ -31,7 +33,7 @@ import numpy as np
 import pyopencl as cl
 
 from . import inputs
-from .order import COHERENT_MIN, FINE_ORDER_BITS, device_order
+from .order import COHERENT_MIN, FINE_ORDER_BITS, device_order, put_rows, take_rows
 from .instances import InstancedTree
 from .query import RayQuery, _into_frame, _masked, _stack_size, collect, scene_args
 from .tree import Tree
@@ -45,12 +47,10 @@ HITS_PER_LAUNCH = 1 << 18
 COPIED_RAYS_PER_LAUNCH = 1 << 16
 
 #: Hit triangles the count pass keeps per ray (kernels/all_hits.cl): a ray
-#: with no more hits skips the fill pass's walk.  A uint32 each, for every
-#: ray, while the fill runs.
-KEEP_HITS = 4
-
-#: Rays per block of _ray_index.
-RAY_INDEX_BLOCK = 1 << 16
+#: with no more hits skips the fill pass's walk (which runs in the caller's
+#: order, where rays seldom make packets).  A uint32 each, for every ray,
+#: while the fill runs.
+KEEP_HITS = 8
 
 #: Output arrays of the fill pass: dtype per hit.
 HIT_FIELDS = {"t": np.float32, "u": np.float32, "v": np.float32, "prim_id": np.int32,
@@ -129,12 +129,8 @@ class AllHitsQuery:
         """int32, in the rays' leading shape: the number of hits of each ray
         with tmin <= t <= tmax (``mask`` as RayQuery.intersect)."""
         rays, _, shape = _rays(origins, directions, tmin, tmax, mask, tree)
-        order = _coherent_order(self.query, rays[0])
         with self._lock:
-            counts = self._count(tree, rays, order, self.query._results.empty)
-        if order is not None:  # back to the caller's order
-            traced, counts = counts, self.query._results.empty(len(counts), np.int32)
-            counts[order] = traced
+            counts = self._count(tree, rays, self.query._results.empty)
         return counts.reshape(shape)
 
     def intersect_all(self, tree: Tree, origins, directions=None, tmin=0.0, tmax=np.inf,
@@ -144,30 +140,22 @@ class AllHitsQuery:
         RayQuery.intersect)."""
         max_hits = _check_max_hits(max_hits)
         rays, t_factor, shape = _rays(origins, directions, tmin, tmax, mask, tree)
-        order = _coherent_order(self.query, rays[0])
-        if order is not None and t_factor is not None:
-            t_factor = t_factor[order]
+        pool = self.query._results
         with self._lock:
-            # temporaries, not pooled, in the order traced: each ray's count,
-            # and on flat scenes its first hits, which spare most rays the
-            # fill pass's walk
-            counts, known = self._count(tree, rays, order, np.empty, keep=True)
+            # temporaries, not pooled: each ray's count, and on flat scenes
+            # its first hits, which spare most rays the fill pass's walk
+            counts, known = self._count(tree, rays, np.empty, keep=True)
             kept = counts if max_hits is None else np.minimum(counts, max_hits)
             offsets = np.empty(len(kept) + 1, np.int64)
             offsets[0] = 0
             np.cumsum(kept, out=offsets[1:])
             del kept  # before the output is allocated: peak memory
             total = int(offsets[-1])
-            fields = {name: self.query._results.empty(total, dtype)
-                      for name, dtype in HIT_FIELDS.items()}
+            fields = {name: pool.empty(total, dtype) for name, dtype in HIT_FIELDS.items()}
+            ray_index = pool.empty(total, np.int64)
             if total:
-                self._fill(tree, rays, order, offsets, (counts, known), fields, t_factor)
-            del counts, known
-            if order is not None:
-                offsets, ray_index = self._to_caller_order(
-                    fields, offsets, order, flat=not isinstance(tree, InstancedTree))
-            else:
-                ray_index = _ray_index(offsets)
+                self._fill(tree, rays, offsets, (counts, known),
+                           {**fields, "ray_index": ray_index}, t_factor)
         return AllHits(offsets=offsets, ray_index=ray_index, **fields, shape=shape)
 
     # -- internals ----------------------------------------------------------
@@ -184,12 +172,12 @@ class AllHitsQuery:
             defines["INSTANCES"] = 1
         return self.rt.kernel("all_hits.cl", name, **defines), packet
 
-    def _count(self, tree, rays, order, empty, keep=False):
-        """The rays' int32 counts, from `empty`, in the order they are traced
-        (`order`, or as given where None); with `keep`, (counts, known): on
-        flat scenes also each ray's first KEEP_HITS hit triangles, uint32
-        (rays, KEEP_HITS) (the fill pass tests them again instead of
-        walking), else None."""
+    def _count(self, tree, rays, empty, keep=False):
+        """int32 counts of the rays, from `empty`; with `keep`, (counts,
+        known): on flat scenes also each ray's first KEEP_HITS hit
+        triangles, uint32 (rays, KEEP_HITS) (the fill pass tests them again
+        instead of walking), else None.  Big batches run in Morton order,
+        read by slots (_launches)."""
         count = len(rays[0])
         outputs = {"counts": empty(count, np.int32)}
         if keep and not isinstance(tree, InstancedTree):
@@ -202,45 +190,51 @@ class AllHitsQuery:
         kernel, packet = self._kernel(tree, "count_hits_arrays")
         # not keeping: the kernel writes no known triangle (a stand-in buffer)
         tail = [np.uint32(1)] if keep else [self._no_slots, np.uint32(0)]
-        self._launches(tree, kernel, packet, rays, order, None, [], outputs, tail)
+        self._launches(tree, kernel, packet, rays, _coherent_order(self.query, rays[0]), None,
+                       [], outputs, tail)
         return results
 
-    def _fill(self, tree, rays, order, offsets, known, fields, t_factor) -> None:
-        """The hits into `fields`, ray i's (i in the order traced) in
-        [offsets[i], offsets[i + 1]); `known`: _count's (counts, known) for
-        the same rays and order."""
+    def _fill(self, tree, rays, offsets, known, outputs, t_factor) -> None:
+        """The hits into `outputs` (HIT_FIELDS and ray_index), ray r's in
+        [offsets[r], offsets[r + 1]); `known`: _count's (counts, known).
+        The rays go in their own order: most only have their known triangles
+        tested again, and the results then land in order."""
         kernel, packet = self._kernel(tree, "fill_hits_arrays")
         counts, triangles = known
         inputs = [counts, triangles, np.uint32(1)] if triangles is not None else \
             [self._no_slots, self._no_slots, np.uint32(0)]
-        self._launches(tree, kernel, packet, rays, order, offsets, inputs, fields, [])
+        self._launches(tree, kernel, packet, rays, None, offsets, inputs, outputs, [])
         if t_factor is not None:  # back from the frame: exact, powers of two
+            t = outputs["t"]
             for start, stop in _chunks(offsets, self.query.max_rays_per_launch, len(t_factor)):
                 part = slice(int(offsets[start]), int(offsets[stop]))
-                fields["t"][part] = fields["t"][part] * np.repeat(
-                    t_factor[start:stop], np.diff(offsets[start:stop + 1]))
+                t[part] = t[part] * np.repeat(t_factor[start:stop],
+                                              np.diff(offsets[start:stop + 1]))
 
     def _launches(self, tree, kernel, packet, rays, order, offsets, inputs, outputs,
                   tail) -> None:
-        """Runs `kernel` (`packet` rays per work-item) over the rays in
-        chunks (_chunks), the launch's ray i being the chunk's i-th in
-        `order` (None: as given): its arguments are the scene
-        (query.scene_args, with the masks), the rays and their slots
-        (RAY_PARAMS in kernels/all_hits.cl), the chunk's part of the offsets
-        of the rays' output segments (the fill kernel: `offsets`, the prefix
-        sum of each ray's slots in that order; None: one slot per ray, the
-        count kernel), of the `inputs` (arrays of a row per ray in that
-        order, or arguments as they are) and of the `outputs` (a row per
-        ray, or the segments' slots), the `tail` arguments, the counters and
-        the ray count.
+        """Runs `kernel` (`packet` rays per work-item) over the rays: its
+        arguments are the scene (query.scene_args, with the masks), the rays
+        and their slots (RAY_PARAMS in kernels/all_hits.cl), the offsets of
+        the rays' output segments and the first ray (the fill kernel:
+        `offsets`, the prefix sum of each ray's slots; None: one slot per
+        ray, the count kernel), the `inputs` (arrays of a row per ray, or
+        arguments as they are), the `outputs` (a row per ray, or the
+        segments' slots), the `tail` arguments, the counters and the ray
+        count.
 
-        In `order` the kernels read the rays from the whole arrays by the
-        chunk's slots, and write their results in order, where they pack
-        together.  On PoCL the kernels read and write the arrays themselves
-        (zero copy); elsewhere the rays go up once (whole) or per chunk, and
-        the results come back through buffers reused between chunks."""
+        They go in chunks of rays (_chunks).  With an `order` (the count
+        kernel's, one slot per ray) a chunk is a run of that order: on
+        zero-copy devices the kernel reads and writes the whole arrays by
+        those slots, in place; elsewhere the chunk's rays are taken in that
+        order on the host and its results put back.  On PoCL the kernels
+        read and write the arrays themselves (zero copy); elsewhere the rays
+        go up per chunk and the results come back through buffers reused
+        between chunks."""
         query, rt, queue = self.query, self.rt, self.rt.queue
         context, flags = rt.context, cl.mem_flags
+        indexed = order is not None and query.zero_copy
+        assert order is None or (offsets is None and not inputs)
         cl.enqueue_copy(queue, self._counters, np.zeros(2, np.int32))
 
         def wrap(array, access):  # the array's own memory (zero copy) or a copy of it
@@ -250,50 +244,75 @@ class AllHitsQuery:
         scalars = {id(value): wrap(np.full(1, value, value.dtype), flags.READ_ONLY)
                    for value in limits if value.ndim == 0}
 
-        def ray_args(part):  # the rays' arrays, or part of them: RAY_PARAMS but the slots
-            stepped = [[wrap(value[part], flags.READ_ONLY), np.uint32(1)]
+        def ray_args(rows):  # the rays' arrays, or some rows of them: RAY_PARAMS but the slots
+            def part(array):
+                return array[rows] if isinstance(rows, slice) else take_rows(array, rows)
+            stepped = [[wrap(value[rows], flags.READ_ONLY), np.uint32(1)]
                        if value.ndim else [scalars[id(value)], np.uint32(0)]
                        for value in limits]  # tmin, tmax, mask
             return (scene_args(tree, *stepped[2]), [
-                wrap(origins[part], flags.READ_ONLY), wrap(directions[part], flags.READ_ONLY),
+                wrap(part(origins), flags.READ_ONLY), wrap(part(directions), flags.READ_ONLY),
                 *stepped[0], *stepped[1]])
         # at most two launches in flight (Ctrl-C waits for few), and chunks small
         # enough off PoCL that the rays' copies stay small
         rays_per_launch = query.max_rays_per_launch if query.zero_copy else \
             min(query.max_rays_per_launch, COPIED_RAYS_PER_LAUNCH)
-        whole = ray_args(slice(None)) if order is not None else None
-        events, kept = [], []  # kept: what the launches in flight read or write
+        if indexed:
+            whole = ray_args(slice(None))
+            buffers = [wrap(array, flags.WRITE_ONLY) for array in outputs.values()]
+        # launches in flight: their events, and what ends them (results put
+        # back); they hold what the kernels read or write
+        flight: list[tuple[list, object, tuple]] = []
+
+        def retire(count):
+            while len(flight) > count:
+                waited, put_back, _ = flight.pop(0)
+                rt.wait(waited)
+                put_back()
         try:
             # off PoCL the results come back through buffers of HITS_PER_LAUNCH
             max_slots = None if query.zero_copy else HITS_PER_LAUNCH
             for start, stop in _chunks(offsets, rays_per_launch, len(origins), max_slots):
-                if len(events) >= 2:
-                    rt.wait(events[-2:-1])
-                    del kept[:-1]
+                retire(1)
+                rows = slice(start, stop) if order is None else order[start:stop]
                 first, last = (start, stop) if offsets is None else \
                     (int(offsets[start]), int(offsets[stop]))
-                if order is not None:
+                if indexed:
                     scene, args = whole
-                    args = [*args, wrap(order[start:stop], flags.READ_ONLY), np.uint32(1)]
+                    args = [*args, wrap(rows, flags.READ_ONLY), np.uint32(1), *buffers]
+                    done, put_back, parts, out = [], (lambda: None), {}, {}
                 else:
-                    scene, args = ray_args(slice(start, stop))
+                    scene, args = ray_args(rows)
                     args += [self._no_slots, np.uint32(0)]
-                if offsets is not None:
-                    args += [wrap(offsets[start:stop + 1], flags.READ_ONLY), np.int64(first)]
-                args += [wrap(value[start:stop], flags.READ_ONLY)
-                         if isinstance(value, np.ndarray) else value for value in inputs]
-                parts = {name: array[first:last] for name, array in outputs.items()}
-                if query.zero_copy:
-                    out = {name: wrap(part, flags.WRITE_ONLY) for name, part in parts.items()}
-                else:
-                    out = self._reserve(outputs, last - first)
-                args += list(out.values())
-                events.append(rt.run(kernel, -(-(stop - start) // packet), *scene, *args,
-                                     *tail, self._counters, np.uint32(stop - start),
-                                     local_size=query.work_group_size))
-                held = tuple(collect(queue, out[name], part, query.zero_copy)
-                             for name, part in parts.items())
-                kept.append((args, out, held))
+                    if offsets is not None:
+                        args += [wrap(offsets[start:stop + 1], flags.READ_ONLY),
+                                 np.int64(first), np.int64(start)]
+                    args += [wrap(value[start:stop], flags.READ_ONLY)
+                             if isinstance(value, np.ndarray) else value for value in inputs]
+                    # a taken chunk's results land in rows of their own first
+                    parts = {name: array[first:last] if order is None
+                             else np.empty((stop - start, *array.shape[1:]), array.dtype)
+                             for name, array in outputs.items()}
+                    if query.zero_copy:
+                        out = {name: wrap(part, flags.WRITE_ONLY) for name, part in parts.items()}
+                    else:
+                        out = self._reserve(outputs, last - first)
+                    args += list(out.values())
+
+                    def put_back(rows=rows, parts=parts):
+                        if order is not None:
+                            for name, part in parts.items():
+                                put_rows(outputs[name], rows, part)
+                launched = rt.run(kernel, -(-(stop - start) // packet), *scene, *args, *tail,
+                                  self._counters, np.uint32(stop - start),
+                                  local_size=query.work_group_size)
+                done = [launched, *(collect(queue, out[name], part, query.zero_copy)
+                                    for name, part in parts.items())]
+                flight.append((done, put_back, (args, out)))
+            retire(0)
+            if indexed:
+                rt.wait([collect(queue, buffer, array, True)
+                         for buffer, array in zip(buffers, outputs.values())])
             counters = np.zeros(2, np.int32)
             rt.wait([cl.enqueue_copy(queue, counters, self._counters, is_blocking=False)])
         except BaseException:  # launches in flight may still write: let them end
@@ -305,57 +324,6 @@ class AllHitsQuery:
         if counters[1]:
             raise RuntimeError("hlbvh_cl internal error: intersect_all's fill pass found fewer "
                                "hits than its count pass")
-
-    def _to_caller_order(self, fields: dict, offsets: np.ndarray, order: np.ndarray,
-                         flat: bool) -> tuple[np.ndarray, np.ndarray]:
-        """Moves the hits of rays traced in ``order`` (CSR ``offsets`` in that
-        order) to the caller's ray order on the device (kernels/segments.cl),
-        one field at a time, so that the move needs one field's copy more,
-        not the whole output's; returns the caller's offsets and ray_index.
-        On a `flat` scene every instance_id is -1: set, not moved."""
-        rt, queue, flags, pool = self.rt, self.rt.queue, cl.mem_flags, self.query._results
-        caller = np.empty(len(order) + 1, np.int64)
-        caller[0] = 0
-        counts = np.empty(len(order), np.int64)
-        counts[order] = np.diff(offsets)
-        np.cumsum(counts, out=caller[1:])
-        del counts
-        start = np.empty(len(order), np.int64)  # where each caller ray's hits were traced
-        start[order] = offsets[:-1]
-        total = len(fields["t"])
-        if flat:
-            fields["instance_id"] = pool.empty(total, np.int32)
-            fields["instance_id"][:] = -1
-        # with zero copy the first move numbers the hits too; elsewhere the
-        # host does (a device copy of the int64 ray_index would cost memory)
-        zero_copy = self.query.zero_copy
-        ray_index = pool.empty(total, np.int64) if zero_copy else None
-        if not total:
-            return caller, np.zeros(0, np.int64)
-        kernel = rt.kernel("segments.cl", "move_segments")
-        # the arrays themselves where the device shares the host's memory
-        host = flags.USE_HOST_PTR if zero_copy else flags.COPY_HOST_PTR
-        to = cl.Buffer(rt.context, flags.READ_ONLY | host, hostbuf=caller)
-        source_start = cl.Buffer(rt.context, flags.READ_ONLY | host, hostbuf=start)
-        numbers = cl.Buffer(rt.context, flags.WRITE_ONLY | host, hostbuf=ray_index) \
-            if zero_copy else self._no_slots
-        try:
-            for name in [name for name in fields if not (flat and name == "instance_id")]:
-                values, numbering = fields[name], name == "t" and zero_copy
-                moved = pool.empty(len(values), values.dtype)
-                source = cl.Buffer(rt.context, flags.READ_ONLY | host, hostbuf=values)
-                target = cl.Buffer(rt.context, flags.WRITE_ONLY | host, hostbuf=moved) \
-                    if zero_copy else cl.Buffer(rt.context, flags.WRITE_ONLY, moved.nbytes)
-                done = rt.run(kernel, len(order), source, target, to, source_start, numbers,
-                              np.uint32(numbering), np.uint32(len(order)))
-                rt.wait([done, collect(queue, target, moved, zero_copy),
-                         *([collect(queue, numbers, ray_index, True)] if numbering else [])])
-                fields[name] = moved
-                del source, target, values
-        except BaseException:  # the kernel may still read and write the arrays
-            queue.finish()
-            raise
-        return caller, ray_index if zero_copy else _ray_index(caller)
 
     def _reserve(self, outputs: dict, slots: int) -> dict[str, cl.Buffer]:
         """Grow-only device buffers for `slots` rows of each output (copied
@@ -380,21 +348,6 @@ def _coherent_order(query: RayQuery, origins: np.ndarray) -> np.ndarray | None:
     if len(origins) < COHERENT_MIN:
         return None
     return device_order(query.rt, origins, FINE_ORDER_BITS, query.zero_copy)
-
-
-def _ray_index(offsets: np.ndarray) -> np.ndarray:
-    """int64 (H,): the ray of each hit.  Each ray's first slot gets the step
-    from the previous ray with hits, then a running sum; block by block, so
-    that no temporary is as large as a per-ray array (np.repeat over
-    np.arange(R) would make two)."""
-    index = np.zeros(int(offsets[-1]), np.int64)
-    previous = 0
-    for start in range(0, len(offsets) - 1, RAY_INDEX_BLOCK):
-        rays = np.flatnonzero(np.diff(offsets[start:start + RAY_INDEX_BLOCK + 1])) + start
-        if len(rays):
-            index[offsets[rays]] = np.diff(rays, prepend=previous)
-            previous = rays[-1]
-    return np.cumsum(index, out=index)
 
 
 def _chunks(offsets: np.ndarray | None, max_rays: int, count: int,

@@ -12,14 +12,14 @@
  *                      by tree-order triangle index), in its segment
  *                      [first[i], first[i + 1]) of the output arrays: the
  *                      known triangles tested again where they are all its
- *                      hits, else found by a walk
+ *                      hits, else found by a walk; and its index
  *
  * Conventions are traverse.cl's (tmin <= t <= tmax, no culling, degenerate
  * triangles never hit, hit = (1-u-v)*v0 + u*v1 + v*v2).
  *
  * A launch's rays are its arrays' first ray_count slots, or the slots the
- * host lists (whole arrays read in the host's Morton order); ray i's
- * results go to position i (counts) or segment i (hits) either way.
+ * host lists (whole arrays in the host's Morton order), and each ray's
+ * results go to its own slot (counts) or its own segment (hits).
  *
  * Compile-time parameters (-D): STACK_SIZE, PREFETCH and INSTANCES as
  * traverse.cl.  PACKET_SIZE: both kernels trace packets of that many rays
@@ -242,28 +242,25 @@ TRAVERSAL_INLINE bool instances_fill(Found_ray* s, const RayData* r, int first,
 /* See traverse.cl's TRAVERSAL_KERNEL. */
 #define TRAVERSAL_KERNEL __kernel __attribute__((LANES_HINT))
 
-/* The rays as numpy arrays (work_item.h's load_arrays), and where a
- * launch's ray i is read: slot i, or where `indexed` slot slots[i] (whole
- * arrays, read in the host's order).  Its results go to the launch's
- * position i either way: counts in the order traced, hits in its segment
- * of a CSR in that order. */
+/* The rays as numpy arrays (work_item.h's load_arrays), and which slots a
+ * launch's rays take: ray i of the launch slot i, or where `indexed` slot
+ * slots[i] (whole arrays, in the host's order).  A ray's results go to its
+ * slot. */
 #define RAY_ARRAYS origins, directions, tmin, tmin_step, tmax, tmax_step
 #define RAY_PARAMS                                                                      \
     __global const float *origins, __global const float *directions,                     \
         __global const float *tmin, const uint tmin_step, __global const float *tmax,    \
         const uint tmax_step, __global const uint *slots, const uint indexed
 
-/* The work-item's rays into lanes, the slots they are read from into at
- * (lanes past the last repeat it) and the launch position of the first into
- * *first; how many exist (0 past the end). */
-TRAVERSAL_INLINE uint load_rays(uint ray_count, RAY_PARAMS, RayLanes* lanes, uint* at,
-                                uint* first)
+/* The work-item's rays into lanes and their slots into at (lanes past the
+ * last repeat it); how many exist (0 past the end). */
+TRAVERSAL_INLINE uint load_rays(uint ray_count, RAY_PARAMS, RayLanes* lanes, uint* at)
 {
-    uint used = packet_rays(ray_count, first);
+    uint first, used = packet_rays(ray_count, &first);
     if (used == 0)
         return 0;
     for (uint l = 0; l < PACKET_SIZE; ++l) {
-        uint i = *first + LESSER(l, used - 1u);
+        uint i = first + LESSER(l, used - 1u);
         at[l] = indexed ? slots[i] : i;
     }
     load_arrays_at(at, RAY_ARRAYS, lanes);
@@ -297,9 +294,9 @@ TRAVERSAL_INLINE uint load_rays(uint ray_count, RAY_PARAMS, RayLanes* lanes, uin
     } while (0)
 #endif
 
-/* counts[i] = the number of hits of the launch's ray i in [tmin, tmax],
- * and with `keeping` its first min(count, KEEP_HITS) hit triangles (tree
- * order, in walk order) in kept[i * KEEP_HITS ...]: a packet of rays per
+/* counts[slot] = the number of hits of each ray in [tmin, tmax], and with
+ * `keeping` its first min(count, KEEP_HITS) hit triangles (tree order, in
+ * walk order) in kept[slot * KEEP_HITS ...]: a packet of rays per
  * work-item where they share their direction signs and axis
  * (prepare_packet), else one by one. */
 TRAVERSAL_KERNEL void count_hits_arrays(SCENE_PARAMS, RAY_PARAMS, __global int* counts,
@@ -307,8 +304,8 @@ TRAVERSAL_KERNEL void count_hits_arrays(SCENE_PARAMS, RAY_PARAMS, __global int* 
                                         __global int* overflow, const uint ray_count)
 {
     RayLanes lanes;
-    uint at[PACKET_SIZE], first;
-    uint used = load_rays(ray_count, RAY_ARRAYS, slots, indexed, &lanes, at, &first);
+    uint at[PACKET_SIZE];
+    uint used = load_rays(ray_count, RAY_ARRAYS, slots, indexed, &lanes, at);
     if (used == 0)
         return;
     int lane_counts[PACKET_SIZE];
@@ -340,10 +337,10 @@ TRAVERSAL_KERNEL void count_hits_arrays(SCENE_PARAMS, RAY_PARAMS, __global int* 
         }
     }
     for (uint l = 0; l < used; ++l) {
-        counts[first + l] = lane_counts[l];
+        counts[at[l]] = lane_counts[l];
         if (keeping)
             for (int j = 0; j < LESSER(lane_counts[l], KEEP_HITS); ++j)
-                kept[(size_t)(first + l) * KEEP_HITS + j] = lane_kept[j][l];
+                kept[(size_t)at[l] * KEEP_HITS + j] = lane_kept[j][l];
     }
 }
 
@@ -370,31 +367,32 @@ TRAVERSAL_INLINE void keep_known(const RayLanes* lanes, uint l, __global const T
 }
 #endif
 
-/* The launch's ray i's hits go to its segment [offsets[i] - base,
- * offsets[i + 1] - base) of the output arrays (the host's prefix sum of the
- * counts, or of the first k), as many as that holds.  With `keeping`, a ray
- * whose count pass kept all its hits (counts[i] <= KEEP_HITS, known) has
- * them tested again (keep_known); the others walk, a packet of rays per
- * work-item where they share their direction signs and axis, else one by
- * one.
+/* Each ray's hits go to its segment [offsets[slot] - base, offsets[slot +
+ * 1] - base) of the output arrays (the host's prefix sum of the counts, or
+ * of the first k), as many as that holds, and its number (first_ray +
+ * slot) to ray_out there.  With `keeping`, a ray whose count pass kept all
+ * its hits (counts[slot] <= KEEP_HITS, known) has them tested again
+ * (keep_known); the others walk, a packet of rays per work-item where they
+ * share their direction signs and axis, else one by one.
  * overflow[1] is set if a ray found fewer (the passes disagree: the host
  * raises rather than return unwritten slots). */
 TRAVERSAL_KERNEL void fill_hits_arrays(SCENE_PARAMS, RAY_PARAMS, __global const long* offsets,
-        const long base, __global const int* counts, __global const uint* known,
-        const uint keeping, __global float* t_out, __global float* u_out,
-        __global float* v_out, __global int* prim_out, __global int* geom_out,
-        __global int* instance_out, __global int* overflow, const uint ray_count)
+        const long base, const long first_ray, __global const int* counts,
+        __global const uint* known, const uint keeping, __global float* t_out,
+        __global float* u_out, __global float* v_out, __global int* prim_out,
+        __global int* geom_out, __global int* instance_out, __global long* ray_out,
+        __global int* overflow, const uint ray_count)
 {
     RayLanes lanes;
-    uint at[PACKET_SIZE], first;
-    uint used = load_rays(ray_count, RAY_ARRAYS, slots, indexed, &lanes, at, &first);
+    uint at[PACKET_SIZE];
+    uint used = load_rays(ray_count, RAY_ARRAYS, slots, indexed, &lanes, at);
     if (used == 0)
         return;
     size_t start[PACKET_SIZE];
     uint capacity[PACKET_SIZE], kept[PACKET_SIZE];
     bool walk = false;
     for (uint l = 0; l < PACKET_SIZE; ++l) {
-        uint i = first + LESSER(l, used - 1u);  /* the ray's launch position */
+        uint i = at[l];
         start[l] = (size_t)(offsets[i] - base);
         capacity[l] = l < used ? (uint)(offsets[i + 1] - offsets[i]) : 0u;
         kept[l] = 0;
@@ -451,6 +449,7 @@ TRAVERSAL_KERNEL void fill_hits_arrays(SCENE_PARAMS, RAY_PARAMS, __global const 
         if (kept[l] != capacity[l])
             overflow[1] = 1;
         for (size_t j = start[l]; j < start[l] + kept[l]; ++j) {
+            ray_out[j] = first_ray + at[l];
             TriangleRef ref = refs[prim_out[j]];
             prim_out[j] = ref.prim_id;
 #ifdef INSTANCES

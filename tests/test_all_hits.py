@@ -353,7 +353,6 @@ def test_small_chunks_give_the_same_hits(tiny, monkeypatch):
     assert whole.counts.max() >= 3
     monkeypatch.setattr(all_hits, "HITS_PER_LAUNCH", 2)
     monkeypatch.setattr(all_hits, "COPIED_RAYS_PER_LAUNCH", 5)
-    monkeypatch.setattr(all_hits, "RAY_INDEX_BLOCK", 3)
     monkeypatch.setattr(tiny.scene._ray_query(), "max_rays_per_launch", 7)
     chunked = tiny.scene.intersect_all(origins, directions, tmax=tmax)
     for name in ("offsets", "ray_index", "t", "u", "v", "prim_id", "geom_id"):
@@ -364,11 +363,15 @@ def test_small_chunks_give_the_same_hits(tiny, monkeypatch):
     np.testing.assert_array_equal(first.counts, np.minimum(counts, 2))
 
 
-def test_big_batches_traced_in_morton_order_answer_in_the_callers_order(tiny, monkeypatch):
-    """A batch of COHERENT_MIN rays and more is traced in Morton order of its
-    origins (hlbvh_cl.order) and its hits moved back: each ray's hits, counts
-    and t (with per-ray limits) are those it gets in small batches, which run
-    as given; also in small blocks of the move."""
+@pytest.mark.parametrize("copies", [False, True])
+def test_big_batches_traced_in_morton_order_answer_in_the_callers_order(tiny, monkeypatch,
+                                                                         copies):
+    """A batch of COHERENT_MIN rays and more is counted in Morton order of its
+    origins (hlbvh_cl.order), in launches of a few hundred rays: each ray's
+    hits, counts and t (with per-ray limits) are those it gets in small
+    batches, which run as given.  Both ways to run that order: slots into
+    the whole arrays (zero copy, PoCL), and rays taken per launch with the
+    results put back (device copies, forced with `copies`)."""
     from hlbvh_cl import all_hits, order
     from hlbvh_cl.order import COHERENT_MIN
     traced = []  # the orders the big batches were traced in
@@ -378,7 +381,11 @@ def test_big_batches_traced_in_morton_order_answer_in_the_callers_order(tiny, mo
     count = 2 * COHERENT_MIN + 37
     origins, directions = random_rays(tiny, count, seed=31)
     tmax = np.random.default_rng(32).uniform(0.5, 3, count).astype(np.float32)
-    monkeypatch.setattr(all_hits, "RAY_INDEX_BLOCK", 100)
+    query = tiny.scene._ray_query()
+    monkeypatch.setattr(query, "max_rays_per_launch", 700)
+    monkeypatch.setattr(all_hits, "COPIED_RAYS_PER_LAUNCH", 300)
+    if copies:
+        monkeypatch.setattr(query, "zero_copy", False)
     for max_hits in (None, 2):
         whole = tiny.scene.intersect_all(origins, directions, tmax=tmax, max_hits=max_hits)
         parts = [tiny.scene.intersect_all(origins[i:i + 500], directions[i:i + 500],
@@ -493,18 +500,19 @@ def test_rays_with_more_hits_than_kept_walk_again(max_hits, monkeypatch):
     """The count pass keeps each ray's first KEEP_HITS hit triangles, and the
     fill pass tests those again instead of walking where they are all its
     hits; rays with more walk again, in packets among rays that do not.
-    Through 9 stacked plates with random tmax (0 to 9 hits a ray), a batch
-    big enough for Morton order and packets matches the brute force, and
-    is exactly what kernels that keep one triangle give."""
+    Through KEEP_HITS + 4 stacked plates with random tmax (0 to all of them
+    hit), a batch big enough for Morton order and packets matches the brute
+    force, and is exactly what kernels that keep one triangle give."""
     from hlbvh_cl import all_hits
     from hlbvh_cl.order import COHERENT_MIN
-    case = SceneCase([plates()])
+    layers = all_hits.KEEP_HITS + 4
+    case = SceneCase([plates(layers)])
     count = 2 * COHERENT_MIN + 5
     rng = np.random.default_rng(7)
     origins = np.column_stack([rng.uniform(-0.9, 0.9, (count, 2)), np.full(count, -0.5)])
     directions = np.column_stack([rng.uniform(-0.05, 0.05, (count, 2)), np.ones(count)])
     origins, directions = origins.astype(np.float32), directions.astype(np.float32)
-    tmax = rng.uniform(0, 9.5, count).astype(np.float32)
+    tmax = rng.uniform(0, layers + 0.5, count).astype(np.float32)
     compared, got = assert_matches_brute_force(case, origins, directions, tmax=tmax,
                                                max_hits=max_hits)
     assert compared > 0.9 * count

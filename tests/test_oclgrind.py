@@ -225,8 +225,8 @@ def case_all_hits(uninitialized: bool) -> dict:
     count_intersections on an 80-triangle icosphere: random rays against the
     float64 brute force, and rays through its vertices, which cross twice,
     counted and filled one ray per work-item and in packets of 8; and a
-    batch in Morton order through stacked plates (kept hits, walks, the
-    move to the caller's order)."""
+    batch in Morton order through stacked plates (slots, kept hits,
+    walks)."""
     import trimesh
 
     import hlbvh_cl
@@ -259,18 +259,18 @@ def case_all_hits(uninitialized: bool) -> dict:
         want = one.intersect_all(case.scene._built_tree(), near, aims, max_hits=max_hits)
         for name in ("offsets", "t", "u", "v", "prim_id", "geom_id"):
             assert np.array_equal(getattr(got, name), getattr(want, name)), (max_hits, name)
-    # a batch in Morton order (COHERENT_MIN lowered for the simulator's
-    # sake), read by slots and moved to the caller's order (segments.cl),
-    # through 5 stacked plates: rays with more hits than the count pass
-    # keeps walk again among rays that do not
+    # a batch counted in Morton order (COHERENT_MIN lowered for the
+    # simulator's sake), read by slots, through stacked plates: rays with
+    # more hits than the count pass keeps walk again among rays that do not
     from hlbvh_cl import all_hits
     from test_all_hits import plates
     all_hits.COHERENT_MIN = 32
-    stack = SceneCase([plates(5)])
+    layers = all_hits.KEEP_HITS + 2
+    stack = SceneCase([plates(layers)])
     rng = np.random.default_rng(5)
     origins = np.column_stack([rng.uniform(-0.9, 0.9, (48, 2)), np.full(48, -0.5)])
     directions = np.column_stack([rng.uniform(-0.05, 0.05, (48, 2)), np.ones(48)])
-    tmax = rng.uniform(0, 5.5, 48).astype(np.float32)
+    tmax = rng.uniform(0, layers + 0.5, 48).astype(np.float32)
     for max_hits in (None, 2):
         compared, got = assert_matches_brute_force(
             stack, origins.astype(np.float32), directions.astype(np.float32), tmax=tmax,
