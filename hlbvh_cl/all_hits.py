@@ -160,13 +160,14 @@ class AllHitsQuery:
 
     # -- internals ----------------------------------------------------------
 
-    def _kernel(self, tree: Tree, name: str) -> tuple[cl.Kernel, int]:
+    def _kernel(self, tree: Tree, name: str, keep: bool = True) -> tuple[cl.Kernel, int]:
         """all_hits.cl's kernel `name` for `tree`, compiled as RayQuery._kernel
         compiles traverse.cl, and its rays per work-item: packets of the
-        query's variant on flat trees, one ray on instanced ones."""
+        query's variant on flat trees, one ray on instanced ones.  Without
+        `keep` a count keeps no hit (KEEP_HITS 0)."""
         packet = 1 if isinstance(tree, InstancedTree) else self.query.packet_size
         defines = {"STACK_SIZE": _stack_size(tree), "PACKET_SIZE": packet,
-                   "KEEP_HITS": KEEP_HITS, **self.query.variant.defines,
+                   "KEEP_HITS": KEEP_HITS if keep else 0, **self.query.variant.defines,
                    **self.rt.prefetch_defines}
         if isinstance(tree, InstancedTree):
             defines["INSTANCES"] = 1
@@ -187,7 +188,7 @@ class AllHitsQuery:
         if not (count and self.query._check_tree(tree)):
             outputs["counts"][:] = 0
             return results
-        kernel, packet = self._kernel(tree, "count_hits_arrays")
+        kernel, packet = self._kernel(tree, "count_hits_arrays", keep)
         # not keeping: the kernel writes no known triangle (a stand-in buffer)
         tail = [np.uint32(1)] if keep else [self._no_slots, np.uint32(0)]
         self._launches(tree, kernel, packet, rays, _coherent_order(self.query, rays[0]), None,

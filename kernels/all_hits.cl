@@ -41,10 +41,12 @@
  *
  * The count also keeps the first KEEP_HITS triangles it hits (in walk
  * order): a ray with no more hits than that needs no second walk, as the
- * fill pass tests those triangles again instead (keep_known). */
+ * fill pass tests those triangles again instead (keep_known).  A count
+ * alone is built with KEEP_HITS 0. */
+#define KEPT_SLOTS (KEEP_HITS > 0 ? KEEP_HITS : 1) /* arrays of no element are not C */
 typedef struct {
     uint count;
-    uint kept[KEEP_HITS];
+    uint kept[KEPT_SLOTS];
 } Hits_ray;
 TRAVERSAL_INLINE void add_hits_ray(Hits_ray* found, uint i)
 {
@@ -56,7 +58,7 @@ TRAVERSAL_INLINE void add_hits_ray(Hits_ray* found, uint i)
 #include "packet.h"
 typedef struct {
     int_packet count;
-    int_packet kept[KEEP_HITS];
+    int_packet kept[KEPT_SLOTS];
 } Hits_packet;
 TRAVERSAL_INLINE void add_hits_packet(Hits_packet* found, uint i, int_packet hit)
 {
@@ -309,7 +311,7 @@ TRAVERSAL_KERNEL void count_hits_arrays(SCENE_PARAMS, RAY_PARAMS, __global int* 
     if (used == 0)
         return;
     int lane_counts[PACKET_SIZE];
-    uint lane_kept[KEEP_HITS][PACKET_SIZE];
+    uint lane_kept[KEPT_SLOTS][PACKET_SIZE];
 #if PACKET_SIZE > 1
     Packet p;
     if (prepare_packet(&lanes, &p)) {
