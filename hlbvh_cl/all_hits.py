@@ -120,7 +120,9 @@ class AllHitsQuery:
         # int32 [0]: a walk overflowed its stack; [1]: the fill pass found
         # fewer hits than the count pass
         self._counters = cl.Buffer(self.rt.context, cl.mem_flags.READ_WRITE, 8)
-        self._no_slots = cl.Buffer(self.rt.context, cl.mem_flags.READ_ONLY, 4)  # not indexed
+        # stands for a buffer argument a launch does not use (no slots, no
+        # kept triangles)
+        self._unused = cl.Buffer(self.rt.context, cl.mem_flags.READ_ONLY, 4)
 
     # -- public queries ---------------------------------------------------
 
@@ -190,7 +192,7 @@ class AllHitsQuery:
             return results
         kernel, packet = self._kernel(tree, "count_hits_arrays", keep)
         # not keeping: the kernel writes no known triangle (a stand-in buffer)
-        tail = [np.uint32(1)] if keep else [self._no_slots, np.uint32(0)]
+        tail = [np.uint32(1)] if keep else [self._unused, np.uint32(0)]
         self._launches(tree, kernel, packet, rays, _coherent_order(self.query, rays[0]), None,
                        [], outputs, tail)
         return results
@@ -203,7 +205,7 @@ class AllHitsQuery:
         kernel, packet = self._kernel(tree, "fill_hits_arrays")
         counts, triangles = known
         inputs = [counts, triangles, np.uint32(1)] if triangles is not None else \
-            [self._no_slots, self._no_slots, np.uint32(0)]
+            [self._unused, self._unused, np.uint32(0)]
         self._launches(tree, kernel, packet, rays, None, offsets, inputs, outputs, [])
         if t_factor is not None:  # back from the frame: exact, powers of two
             t = outputs["t"]
@@ -281,10 +283,10 @@ class AllHitsQuery:
                 if indexed:
                     scene, args = whole
                     args = [*args, wrap(rows, flags.READ_ONLY), np.uint32(1), *buffers]
-                    done, put_back, parts, out = [], (lambda: None), {}, {}
+                    put_back, parts, out = (lambda: None), {}, {}
                 else:
                     scene, args = ray_args(rows)
-                    args += [self._no_slots, np.uint32(0)]
+                    args += [self._unused, np.uint32(0)]
                     if offsets is not None:
                         args += [wrap(offsets[start:stop + 1], flags.READ_ONLY),
                                  np.int64(first), np.int64(start)]
