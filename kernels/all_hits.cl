@@ -271,18 +271,19 @@ TRAVERSAL_INLINE uint load_rays(uint ray_count, RAY_PARAMS, RayLanes* lanes, uin
 
 /* Walks one ray (lane `lane` of lanes, at slot `at`) with `query`'s walk of the
  * flat tree, or of the top tree of an instanced scene, with the walk's
- * extra arguments; sets overflow[0] if a stack ran out. */
+ * extra arguments `args` (one expression, or a macro naming several: OpenCL C
+ * has no variadic macros, 6.9); sets overflow[0] if a stack ran out. */
 #ifndef INSTANCES
-#define WALK_RAY(query, lanes, lane, at, ...)                                            \
+#define WALK_RAY(query, lanes, lane, at, args)                                           \
     do {                                                                                 \
         RayData r_;                                                                      \
         prepare_lane(&r_, lanes, lane);                                                   \
         Found_ray s_ = {-1, INFINITY, 0.0f, 0.0f, r_.tmax};                              \
-        if (CONCAT(CONCAT(walk_, query), _ray)(&r_, nodes, triangles, &s_, __VA_ARGS__)) \
+        if (CONCAT(CONCAT(walk_, query), _ray)(&r_, nodes, triangles, &s_, args))        \
             overflow[0] = 1;                                                             \
     } while (0)
 #else
-#define WALK_RAY(query, lanes, lane, at, ...)                                            \
+#define WALK_RAY(query, lanes, lane, at, args)                                           \
     do {                                                                                 \
         load_masks(lanes, at, 1, ray_masks, mask_step);                                  \
         RayData r_;                                                                      \
@@ -290,7 +291,7 @@ TRAVERSAL_INLINE uint load_rays(uint ray_count, RAY_PARAMS, RayLanes* lanes, uin
         Found_ray s_ = {-1, INFINITY, 0.0f, 0.0f, r_.tmax};                              \
         bool nested_ = false;                                                            \
         if (CONCAT(CONCAT(walk_, query), _top_ray)(&r_, top_nodes, top_triangles, &s_,    \
-                                                   TOP_ARGS(&nested_), __VA_ARGS__)      \
+                                                   TOP_ARGS(&nested_), args)              \
             || nested_)                                                                  \
             overflow[0] = 1;                                                             \
     } while (0)
@@ -439,12 +440,14 @@ TRAVERSAL_KERNEL void fill_hits_arrays(SCENE_PARAMS, RAY_PARAMS, __global const 
                 continue;
             size_t j = start[l];
 #ifndef INSTANCES
-            WALK_RAY(fill, &lanes, l, at[l], t_out + j, u_out + j, v_out + j, prim_out + j,
-                     instance_out + j, kept + l, capacity[l], 0, -1);
+#define SEGMENT t_out + j, u_out + j, v_out + j, prim_out + j, instance_out + j, kept + l, \
+                capacity[l], 0, -1
 #else
-            WALK_RAY(fill, &lanes, l, at[l], t_out + j, u_out + j, v_out + j, prim_out + j,
-                     instance_out + j, kept + l, capacity[l]);
+#define SEGMENT t_out + j, u_out + j, v_out + j, prim_out + j, instance_out + j, kept + l, \
+                capacity[l]
 #endif
+            WALK_RAY(fill, &lanes, l, at[l], SEGMENT);
+#undef SEGMENT
         }
     }
     for (uint l = 0; l < used; ++l) {

@@ -149,8 +149,10 @@ TRAVERSAL_INLINE bool instances_occluded_ray(Found_ray* s, const RayData* r, int
 /* The lanes of a mapped packet that prepare_packet turned down (their
  * mapped directions disagree in sign), each walked as one ray with its
  * lane's state: `walk` and its extra arguments.  Lanes the instance is
- * hidden from (tmin inf) and lanes done (limit -inf) are skipped. */
-#define WALK_LANES(s, lanes, walk, ...)                                                  \
+ * hidden from (tmin inf) and lanes done (limit -inf) are skipped.  `tree`
+ * is the walk's arguments before its state: one macro naming several (OpenCL
+ * C has no variadic macros, 6.9). */
+#define WALK_LANES(s, lanes, walk, tree)                                                 \
     do {                                                                                 \
         int index_[PACKET_SIZE];                                                         \
         float t_[PACKET_SIZE], u_[PACKET_SIZE], v_[PACKET_SIZE], limit_[PACKET_SIZE];    \
@@ -165,7 +167,7 @@ TRAVERSAL_INLINE bool instances_occluded_ray(Found_ray* s, const RayData* r, int
             RayData one;                                                                 \
             prepare_lane(&one, lanes, l);                                                \
             Found_ray f = {index_[l], t_[l], u_[l], v_[l], limit_[l]};                   \
-            *mesh_overflow |= walk(&one, __VA_ARGS__, &f);                                \
+            *mesh_overflow |= walk(&one, tree, &f);                                       \
             index_[l] = f.index;                                                         \
             t_[l] = f.t;                                                                 \
             u_[l] = f.u;                                                                 \
@@ -200,7 +202,7 @@ TRAVERSAL_INLINE bool instances_intersect_packet(Found_packet* s, const Packet* 
             *mesh_overflow |= walk_intersect_packet(&mapped, MESH_TREE(in), s,
                                                    mesh_refs + in->triangle_base);
         else
-            WALK_LANES(s, &lanes, intersect_lane, MESH_TREE(in), mesh_refs + in->triangle_base);
+            WALK_LANES(s, &lanes, intersect_lane, MESH_TREE_REFS(in));
         s->instance = s->t != before ? (int_packet)(top_refs[i].prim_id) : s->instance;
     }
     return false;

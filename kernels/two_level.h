@@ -46,6 +46,8 @@ TRAVERSAL_INLINE float3 map_point(__global const float* m, float3 p)
 /* Leaf slot i's instance, and its mesh's tree (nodes, triangles). */
 #define INSTANCE_AT(i) __global const Instance* in = instances + top_refs[i].prim_id
 #define MESH_TREE(in) mesh_nodes + (in)->node_base, mesh_triangles + (in)->triangle_base
+/* ... and its triangle refs, for closest-hit walks. */
+#define MESH_TREE_REFS(in) MESH_TREE(in), mesh_refs + (in)->triangle_base
 #endif /* INSTANCES */
 
 #endif /* TWO_LEVEL_H */
