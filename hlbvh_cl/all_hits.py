@@ -9,7 +9,8 @@ triangles again where they are all of them and walking again otherwise, so
 memory stays near the output's own size whatever the counts.  Both passes
 trace packets of nearby rays on flat scenes (the query's kernel variant).
 
-The count pass runs big batches in fine Morton order of their origins
+The count pass runs big batches by direction class (the axis and signs that
+a packet's rays share), then in fine Morton order of their origins
 (hlbvh_cl.order), so that packets hold nearby rays: on zero-copy devices
 (PoCL, query.py) each launch takes a run of that order as its rays' slots and
 reads and writes the whole arrays in place; elsewhere the rays of a run are
@@ -33,7 +34,7 @@ import numpy as np
 import pyopencl as cl
 
 from . import inputs
-from .order import COHERENT_MIN, FINE_ORDER_BITS, device_order, put_rows, take_rows
+from .order import COHERENT_MIN, RAY_ORDER_BITS, device_order, put_rows, take_rows
 from .instances import InstancedTree
 from .query import RayQuery, _into_frame, _masked, _stack_size, collect, scene_args
 from .tree import Tree
@@ -179,8 +180,8 @@ class AllHitsQuery:
         """int32 counts of the rays, from `empty`; with `keep`, (counts,
         known): on flat scenes also each ray's first KEEP_HITS hit
         triangles, uint32 (rays, KEEP_HITS) (the fill pass tests them again
-        instead of walking), else None.  Big batches run in Morton order,
-        read by slots (_launches)."""
+        instead of walking), else None.  Big batches run in class and
+        Morton order, read by slots (_launches)."""
         count = len(rays[0])
         outputs = {"counts": empty(count, np.int32)}
         if keep and not isinstance(tree, InstancedTree):
@@ -193,7 +194,7 @@ class AllHitsQuery:
         kernel, packet = self._kernel(tree, "count_hits_arrays", keep)
         # not keeping: the kernel writes no known triangle (a stand-in buffer)
         tail = [np.uint32(1)] if keep else [self._unused, np.uint32(0)]
-        self._launches(tree, kernel, packet, rays, _coherent_order(self.query, rays[0]), None,
+        self._launches(tree, kernel, packet, rays, _coherent_order(self.query, rays), None,
                        [], outputs, tail)
         return results
 
@@ -344,13 +345,16 @@ class AllHitsQuery:
         return {name: self._outputs[name] for name in outputs}
 
 
-def _coherent_order(query: RayQuery, origins: np.ndarray) -> np.ndarray | None:
-    """Big batches' rays in fine Morton order of their origins (hlbvh_cl.
-    order: close origins, and for packets close enough to share their
-    nodes), as uint32 slots found on the query's device; None: as given."""
+def _coherent_order(query: RayQuery, rays) -> np.ndarray | None:
+    """Big batches' rays by class, then in fine Morton order of their
+    origins (hlbvh_cl.order: rays a packet can trace together, with origins
+    close enough to share their nodes), as uint32 slots found on the
+    query's device; None: as given."""
+    origins, directions = rays[:2]
     if len(origins) < COHERENT_MIN:
         return None
-    return device_order(query.rt, origins, FINE_ORDER_BITS, query.zero_copy)
+    return device_order(query.rt, origins, RAY_ORDER_BITS, query.zero_copy,
+                        directions=directions)
 
 
 def _chunks(offsets: np.ndarray | None, max_rays: int, count: int,

@@ -1,10 +1,13 @@
 /* The order a batch of queries runs in (hlbvh_cl/order.py): the Morton code
  * of each point's cell in a 2^ORDER_BITS grid over the batch's box, whose
- * sort on the device (radix_sort.cl) gives the order.  The cells are
- * computed as order.py's numpy reference computes them, in float32 without
- * contraction, so both give the same keys.
+ * sort on the device (radix_sort.cl) gives the order.  A ray's key has its
+ * class (ray_class.h) above its origin's code, so that the rays of a class
+ * run together, as packets need.  The cells are computed as order.py's
+ * numpy reference computes them, in float32 without contraction, so both
+ * give the same keys.
  */
 #include "hlbvh.h"
+#include "ray_class.h"
 
 #pragma OPENCL FP_CONTRACT OFF
 
@@ -21,9 +24,22 @@ inline uint spread_cell(uint v)
     return (v | (v << 2)) & 0x09249249u;
 }
 
-/* points: float32 (count, 3) rows; lo and scale: per axis, the box's low
- * corner and (2^ORDER_BITS - 1) / extent (0 on a flat axis), from the host.
- * keys[i] <- the Morton code of point i's cell, ids[i] <- i. */
+/* The Morton code of a point's cell (lo and scale: per axis, the box's
+ * low corner and (2^ORDER_BITS - 1) / extent, 0 on a flat axis). */
+inline uint cell_key(__global const float* point, const float* lo, const float* scale)
+{
+    const uint top = (1u << ORDER_BITS) - 1u;
+    uint key = 0;
+    for (int axis = 0; axis < 3; ++axis) {
+        /* >= 0 by the box; truncation toward zero, as numpy's astype */
+        uint cell = convert_uint((point[axis] - lo[axis]) * scale[axis]);
+        key |= spread_cell(cell < top ? cell : top) << axis;
+    }
+    return key;
+}
+
+/* points: float32 (count, 3) rows; lo and scale as cell_key's, from the
+ * host.  keys[i] <- the Morton code of point i's cell, ids[i] <- i. */
 __kernel void point_keys(__global const float* points, const uint count, const float lo_x,
                          const float lo_y, const float lo_z, const float scale_x,
                          const float scale_y, const float scale_z, __global uint* keys,
@@ -32,14 +48,30 @@ __kernel void point_keys(__global const float* points, const uint count, const f
     uint i = get_global_id(0);
     if (i >= count)
         return;
-    const uint top = (1u << ORDER_BITS) - 1u;
     const float lo[3] = {lo_x, lo_y, lo_z}, scale[3] = {scale_x, scale_y, scale_z};
-    uint key = 0;
-    for (int axis = 0; axis < 3; ++axis) {
-        /* >= 0 by the box; truncation toward zero, as numpy's astype */
-        uint cell = convert_uint((points[3 * (size_t)i + axis] - lo[axis]) * scale[axis]);
-        key |= spread_cell(cell < top ? cell : top) << axis;
-    }
-    keys[i] = key;
+    keys[i] = cell_key(points + 3 * (size_t)i, lo, scale);
+    ids[i] = i;
+}
+
+/* As point_keys for rays' origins, with the class of each ray's direction
+ * (directions: float32 (count, 3) rows) above the cell's code: kz * 8, plus
+ * 1, 2, 4 for a sign bit set in x, y, z (-0 counts as negative, as its
+ * inverse is -inf). */
+__kernel void ray_keys(__global const float* origins, __global const float* directions,
+                       const uint count, const float lo_x, const float lo_y, const float lo_z,
+                       const float scale_x, const float scale_y, const float scale_z,
+                       __global uint* keys, __global uint* ids)
+{
+    uint i = get_global_id(0);
+    if (i >= count)
+        return;
+    const float lo[3] = {lo_x, lo_y, lo_z}, scale[3] = {scale_x, scale_y, scale_z};
+    __global const float* d = directions + 3 * (size_t)i;
+    uint bits[3] = {as_uint(d[0]), as_uint(d[1]), as_uint(d[2])};
+    float ax = as_float(bits[0] & 0x7fffffffu), ay = as_float(bits[1] & 0x7fffffffu),
+          az = as_float(bits[2] & 0x7fffffffu);
+    uint ray_class = (uint)SHEAR_AXIS(ax, ay, az) * 8u + (bits[0] >> 31) + ((bits[1] >> 31) << 1)
+                     + ((bits[2] >> 31) << 2);
+    keys[i] = cell_key(origins + 3 * (size_t)i, lo, scale) | ray_class << (3 * ORDER_BITS);
     ids[i] = i;
 }

@@ -8,6 +8,7 @@
 #define RAY_H
 
 #include "node.h"
+#include "ray_class.h"
 
 #ifndef PACKET_SIZE
 #error "PACKET_SIZE must be defined (-D PACKET_SIZE=...)"
@@ -68,7 +69,7 @@ TRAVERSAL_INLINE void prepare_ray(RayData* ray, float3 origin, float3 direction,
     r.tmax = tmax;
 
     float ax = ABS_FLOAT(d[0]), ay = ABS_FLOAT(d[1]), az = ABS_FLOAT(d[2]);
-    r.kz = (ax >= ay && ax >= az) ? 0 : (ay >= az ? 1 : 2);
+    r.kz = SHEAR_AXIS(ax, ay, az);
     r.kx = r.kz == 2 ? 0 : r.kz + 1;
     r.ky = r.kx == 2 ? 0 : r.kx + 1;
     /* Components picked by indexing (a load from the private array) rather

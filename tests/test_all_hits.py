@@ -366,8 +366,8 @@ def test_small_chunks_give_the_same_hits(tiny, monkeypatch):
 @pytest.mark.parametrize("copies", [False, True])
 def test_big_batches_traced_in_morton_order_answer_in_the_callers_order(tiny, monkeypatch,
                                                                          copies):
-    """A batch of COHERENT_MIN rays and more is counted in Morton order of its
-    origins (hlbvh_cl.order), in launches of a few hundred rays: each ray's
+    """A batch of COHERENT_MIN rays and more is counted by class, then in
+    Morton order of its origins (hlbvh_cl.order), in launches of a few hundred rays: each ray's
     hits, counts and t (with per-ray limits) are those it gets in small
     batches, which run as given.  Both ways to run that order: slots into
     the whole arrays (zero copy, PoCL), and rays taken per launch with the
@@ -376,8 +376,8 @@ def test_big_batches_traced_in_morton_order_answer_in_the_callers_order(tiny, mo
     from hlbvh_cl.order import COHERENT_MIN
     traced = []  # the orders the big batches were traced in
     monkeypatch.setattr(all_hits, "device_order",
-                        lambda rt, points, *args: traced.append(order.device_order(
-                            rt, points, *args)) or traced[-1])
+                        lambda rt, points, *args, **named: traced.append(
+                            order.device_order(rt, points, *args, **named)) or traced[-1])
     count = 2 * COHERENT_MIN + 37
     origins, directions = random_rays(tiny, count, seed=31)
     tmax = np.random.default_rng(32).uniform(0.5, 3, count).astype(np.float32)

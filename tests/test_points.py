@@ -505,3 +505,39 @@ def test_device_order_is_the_numpy_order(bits, suite_device):
             order = device_order(rt, block, bits, zero_copy)
             assert order.dtype == np.uint32
             assert np.array_equal(order, coherent_order(block, bits))
+
+
+def test_ray_classes_follow_the_packet_rules():
+    """A ray's class (kernels/ray_class.h): kz * 8, the axis of the largest
+    direction component with ties to the lower axis, plus 1, 2, 4 for a
+    negative x, y, z, -0 included."""
+    from hlbvh_cl.order import ray_classes
+    directions = np.array([[1, 1, 1], [-2, 2, 0], [0, -3, 3], [-0.0, 0, 1], [0, 0, -0.0],
+                           [1, -5, 4], [-1, -2, -3], [7, 0, -7]], np.float32)
+    np.testing.assert_array_equal(ray_classes(directions), [0, 1, 10, 17, 4, 10, 23, 4])
+
+
+def test_device_ray_order_is_the_numpy_order(suite_device):
+    """device_order with directions (ray_keys in kernels/order.cl: the
+    class above the origin's code, a 32-bit key) gives exactly numpy's
+    coherent_order; the classes come out in order, and rays of one origin
+    keep their order within a class (a LiDAR's scan)."""
+    from hlbvh_cl.device import runtime
+    from hlbvh_cl.order import RAY_ORDER_BITS, coherent_order, device_order, ray_classes
+    rt = runtime(suite_device)
+    rng = np.random.default_rng(9)
+    origins = rng.random((20000, 3)).astype(np.float32)
+    directions = rng.normal(size=(20000, 3)).astype(np.float32)
+    directions[::7, 0] = -0.0
+    directions[::11] = [1, 1, 1]  # ties between axes
+    directions[::13] = [-2, 2, 0]
+    one_origin = np.zeros_like(origins)
+    for points in (origins, one_origin):
+        expected = coherent_order(points, RAY_ORDER_BITS, directions)
+        classes = ray_classes(directions)[expected]
+        assert (np.diff(classes.astype(np.int64)) >= 0).all()
+        for zero_copy in (False, True):
+            order = device_order(rt, points, RAY_ORDER_BITS, zero_copy, directions=directions)
+            assert np.array_equal(order, expected)
+    for c in np.unique(classes):
+        assert (np.diff(expected[classes == c].astype(np.int64)) > 0).all()
