@@ -311,6 +311,9 @@ TRAVERSAL_KERNEL void count_hits_arrays(SCENE_PARAMS, RAY_PARAMS, __global int* 
     uint used = load_rays(ray_count, RAY_ARRAYS, slots, indexed, &lanes, at);
     if (used == 0)
         return;
+    if (indexed)
+        prefetch_slots(slots, get_global_id(0) * PACKET_SIZE + PACKET_SIZE, ray_count, origins,
+                       directions, counts);
     int lane_counts[PACKET_SIZE];
     uint lane_kept[KEPT_SLOTS][PACKET_SIZE];
 #if PACKET_SIZE > 1

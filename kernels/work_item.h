@@ -28,6 +28,26 @@ TRAVERSAL_INLINE void load_records(__global const Ray* rays, uint first, uint us
     }
 }
 
+/* The rays of the work-item after this one, at slots[next, next +
+ * PACKET_SIZE) (those below ray_count), and their results[slot] it will
+ * write, asked for ahead: slots scatter them over the arrays, and each
+ * lane's load and store would miss the cache (see load_arrays). */
+TRAVERSAL_INLINE void prefetch_slots(__global const uint* slots, uint next, uint ray_count,
+                                     __global const float* origins,
+                                     __global const float* directions, __global int* results)
+{
+#ifdef PREFETCH
+    for (uint i = next; i < LESSER(next + PACKET_SIZE, ray_count); ++i) {
+        uint slot = slots[i];
+        __builtin_prefetch(origins + 3 * slot);
+        __builtin_prefetch(origins + 3 * slot + 2);
+        __builtin_prefetch(directions + 3 * slot);
+        __builtin_prefetch(directions + 3 * slot + 2);
+        __builtin_prefetch(results + slot, 1);
+    }
+#endif
+}
+
 /* Lane l's ray from slot at[l] of the arrays load_arrays reads. */
 TRAVERSAL_INLINE void load_arrays_at(const uint* at, __global const float* origins,
                                      __global const float* directions,
