@@ -60,6 +60,16 @@ TRAVERSAL_INLINE __global const float* plane_row(__global const WideNode* node, 
 #define SQUARE_ROOT sqrt
 #endif
 
+/* The same for 8 lanes at once, as x86's one vsqrtps where the compiler
+ * exposes it: PoCL calls sqrt on vectors out of line, and the winding
+ * walk's dipole and solid-angle terms took a call each (measured slower).
+ * Both round correctly, as sqrtf does, so the results are the same. */
+#if HAS_BUILTIN(__builtin_ia32_sqrtps256)
+#define LANES_ROOT(v) __builtin_ia32_sqrtps256(v)
+#else
+#define LANES_ROOT(v) sqrt(v)
+#endif
+
 /* Sign bit and absolute value by their bits (PoCL: see LOAD_ROW). */
 #define SIGN_BIT(x) (as_uint(x) >> 31)
 #define ABS_FLOAT(x) as_float(as_uint(x) & 0x7fffffffu)

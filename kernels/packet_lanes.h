@@ -58,6 +58,16 @@ TRAVERSAL_INLINE float packet_max(float_packet v) { FOLD_LANES(float, v, GROW_HI
 TRAVERSAL_INLINE int packet_or(int_packet v) { FOLD_LANES(int, v, OR); }
 TRAVERSAL_INLINE int packet_and(int_packet v) { FOLD_LANES(int, v, AND); }
 
+/* sqrt of every lane (LANES_ROOT, a half at a time for 16 lanes). */
+TRAVERSAL_INLINE float_packet packet_root(float_packet v)
+{
+#if PACKET_SIZE == 16
+    return (float16)(LANES_ROOT(v.lo), LANES_ROOT(v.hi));
+#else
+    return LANES_ROOT(v);
+#endif
+}
+
 /* Whether some / every lane flag is set: after the halves, one movmskps
  * where there is one (measured faster). */
 TRAVERSAL_INLINE bool some_packet(int_packet v)

@@ -86,7 +86,7 @@ TRAVERSAL_INLINE uint children_winding(const PointData* q, __global const WideNo
     float_lanes flux = (DIPOLE_ROW(a_x) * dx + DIPOLE_ROW(a_y) * dy) + DIPOLE_ROW(a_z) * dz;
     /* far lanes have d2 > 0; an unused slot's dipole is 0 (far unless the
      * point sits at its centre 0, and never descended) */
-    float_lanes term = as_float8(as_int8(flux / (d2 * sqrt(d2))) & far);
+    float_lanes term = as_float8(as_int8(flux / (d2 * LANES_ROOT(d2))) & far);
     float4 halves = term.lo + term.hi;
     float2 quarter = halves.lo + halves.hi;
     s->solid_angle += quarter.x + quarter.y;

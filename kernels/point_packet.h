@@ -212,9 +212,9 @@ TRAVERSAL_INLINE float_packet solid_angle_points(float3 a, float3 b, float3 c,
     float_packet ax = a.x - q->x, ay = a.y - q->y, az = a.z - q->z;
     float_packet bx = b.x - q->x, by = b.y - q->y, bz = b.z - q->z;
     float_packet cx = c.x - q->x, cy = c.y - q->y, cz = c.z - q->z;
-    float_packet la = sqrt((ax * ax + ay * ay) + az * az),
-                 lb = sqrt((bx * bx + by * by) + bz * bz),
-                 lc = sqrt((cx * cx + cy * cy) + cz * cz);
+    float_packet la = packet_root((ax * ax + ay * ay) + az * az),
+                 lb = packet_root((bx * bx + by * by) + bz * bz),
+                 lc = packet_root((cx * cx + cy * cy) + cz * cz);
     float_packet det = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz)
                        + az * (bx * cy - by * cx);
     float_packet ab = (ax * bx + ay * by) + az * bz, bc = (bx * cx + by * cy) + bz * cz,
@@ -267,7 +267,7 @@ TRAVERSAL_INLINE bool walk_winding_points(const PointPacket* q, __global const W
                 float_packet flux = (dipole->a_x[c] * dx + dipole->a_y[c] * dy)
                                     + dipole->a_z[c] * dz;
                 int_packet far = active & (d2 > (float_packet)(near * near));
-                s->solid_angle += far ? flux / (d2 * sqrt(d2)) : (float_packet)(0.0f);
+                s->solid_angle += far ? flux / (d2 * packet_root(d2)) : (float_packet)(0.0f);
                 uint descend = BITS_OF(active & (d2 <= (float_packet)(near * near)));
                 if (descend != 0) {
                     if (sp == STACK_SIZE + WIDE_ARITY)
