@@ -72,6 +72,7 @@ TRAVERSAL_INLINE void add_hits_packet(Hits_packet* found, uint i, int_packet hit
 #define QUERY_PATH _ray
 #define QUERY_HIT(s, i, hit, t, u, v) (add_hits_ray(found, i), false)
 #define QUERY_NODE(s, r, n, mask) false
+#define QUERY_UNORDERED
 #define QUERY_PARAMS , Hits_ray* found
 #define QUERY_ARGS , found
 #include "walk.h"
@@ -80,6 +81,7 @@ TRAVERSAL_INLINE void add_hits_packet(Hits_packet* found, uint i, int_packet hit
 #define QUERY_PATH _packet
 #define QUERY_HIT(s, i, hit, t, u, v) (add_hits_packet(found, i, hit), false)
 #define QUERY_NODE(s, r, n, mask) false
+#define QUERY_UNORDERED
 #define QUERY_PARAMS , Hits_packet* found
 #define QUERY_ARGS , found
 #include "walk.h"
@@ -226,6 +228,7 @@ TRAVERSAL_INLINE bool instances_fill(Found_ray* s, const RayData* r, int first,
 
 #define QUERY count_top
 #define QUERY_PATH _ray
+#define QUERY_UNORDERED
 #define QUERY_LEAF(s, r, first, count) instances_count(s, r, first, count INSTANCE_ARGS, found)
 #define QUERY_NODE(s, r, n, mask) false
 #define QUERY_PARAMS INSTANCE_PARAMS, Hits_ray* found

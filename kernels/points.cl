@@ -58,6 +58,7 @@
  * descended (reach +inf), and leaves add their exact solid angles. */
 #define QUERY winding
 #define QUERY_PATH _point
+#define QUERY_UNORDERED
 #define QUERY_HIT(s, i, hit, t, u, v) false
 #define QUERY_NODE(s, r, n, mask) false
 #define QUERY_CHILDREN(r, n, s, entry) children_winding(r, n, dipoles + (n - nodes), s, entry)
@@ -346,6 +347,7 @@ TRAVERSAL_INLINE bool instances_winding(Found_point* s, const PointData* q, int 
 
 #define QUERY winding_top
 #define QUERY_PATH _point
+#define QUERY_UNORDERED
 #define QUERY_HIT(s, i, hit, t, u, v) false
 #define QUERY_NODE(s, r, n, mask) false
 #define QUERY_LEAF(s, r, first, count) \

@@ -156,4 +156,34 @@ TRAVERSAL_INLINE int next_item(__global const WideNode* n, uint mask,
     return NEXT_ITEM;
 }
 
+/* next_item for a walk that visits every met child whatever the order (a
+ * count, a winding number: the limit never shrinks, so no child is ever
+ * dropped by distance): the children in slot order, as the ordered walk
+ * takes children whose entries tie (so a sum keeps its order), with no
+ * entry compared or sorted.  Their entries are -inf, so that pop never
+ * drops them. */
+TRAVERSAL_INLINE int next_item_any(__global const WideNode* n, uint mask,
+                                   __global const WideNode* nodes,
+                                   __global const Triangle* triangles, StackItem* stack, int* sp,
+                                   float limit, int* index, uint* count)
+{
+    if (mask == 0)
+        return pop(stack, sp, limit, index, count) ? NEXT_ITEM : NO_ITEM;
+    int near = lowest_slot(mask);
+    mask &= mask - 1u;
+    if (*sp + bit_count(mask) > STACK_SIZE)
+        return STACK_FULL;
+    prefetch_child(n, near, nodes, triangles);
+    while (mask != 0) {
+        int slot = 31 - (int)clz(mask);  /* the highest first: popped last */
+        mask ^= 1u << slot;
+        prefetch_child(n, slot, nodes, triangles);
+        stack[*sp] = (StackItem){n->child[slot], n->count[slot], -INFINITY};
+        ++*sp;
+    }
+    *index = n->child[near];
+    *count = n->count[near];
+    return NEXT_ITEM;
+}
+
 #endif /* STACK_H */

@@ -23,6 +23,10 @@
  *                               hits (point queries); says whether the walk
  *                               ends.  Default: the path's hit_triangle on
  *                               each, then QUERY_HIT
+ *   QUERY_UNORDERED             optional, defined: the query visits every
+ *                               met child (its limit never shrinks), so
+ *                               the walk neither orders children nor keeps
+ *                               their entries (next_item_any)
  *   QUERY_PATH                  optional: the one path to instantiate (e.g.
  *                               _point, point.h); without it, _ray and
  *                               _packet and the ray wrapper trace_QUERY
@@ -127,6 +131,7 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
 #undef QUERY_CHILDREN
 #undef QUERY_LEAF
 #undef QUERY_PATH
+#undef QUERY_UNORDERED
 
 #else /* one path */
 
@@ -196,8 +201,13 @@ TRAVERSAL_INLINE bool WALK_NAME(walk)(const PATH(Rays)* r, __global const WideNo
             uint mask = WALK_CHILDREN(r, n, s, &entry);
             if (QUERY_NODE(s, r, n, &mask))
                 return false;
+#ifdef QUERY_UNORDERED
+            int next = next_item_any(n, mask, nodes, triangles, stack, &sp, PATH(reach)(s),
+                                     &index, &count);
+#else
             int next = next_item(n, mask, &entry, nodes, triangles, stack, &sp,
                                  PATH(reach)(s), &index, &count);
+#endif
             if (next == STACK_FULL)
                 return true;
             done = next == NO_ITEM;
