@@ -133,10 +133,11 @@ TRAVERSAL_INLINE uint lane_mask(int_lanes hit)
 #endif
 }
 
-/* The lowest set bit's position (mask != 0) and the number of set bits of a
- * child mask: one tzcnt / popcnt where the compiler is a Clang, else plain
- * arithmetic (ctz is OpenCL 2.0, and Oclgrind cannot run popcount()). */
-#if HAS_BUILTIN(__builtin_ctz) && HAS_BUILTIN(__builtin_popcount)
+/* The lowest and highest set bits' positions (mask != 0) and the number of
+ * set bits of a child mask: one tzcnt / lzcnt / popcnt where the compiler is
+ * a Clang, else plain arithmetic (ctz is OpenCL 2.0, PoCL calls clz out of
+ * line, and Oclgrind cannot run popcount()). */
+#if HAS_BUILTIN(__builtin_ctz) && HAS_BUILTIN(__builtin_clz) && HAS_BUILTIN(__builtin_popcount)
 #define HAVE_BIT_BUILTINS
 #endif
 
@@ -154,6 +155,15 @@ TRAVERSAL_INLINE int lowest_slot(uint mask)
     return __builtin_ctz(mask);
 #else
     return 31 - (int)clz(mask & (0u - mask));
+#endif
+}
+
+TRAVERSAL_INLINE int highest_slot(uint mask)
+{
+#ifdef HAVE_BIT_BUILTINS
+    return 31 - __builtin_clz(mask);
+#else
+    return 31 - (int)clz(mask);
 #endif
 }
 

@@ -175,7 +175,7 @@ TRAVERSAL_INLINE int next_item_any(__global const WideNode* n, uint mask,
         return STACK_FULL;
     prefetch_child(n, near, nodes, triangles);
     while (mask != 0) {
-        int slot = 31 - (int)clz(mask);  /* the highest first: popped last */
+        int slot = highest_slot(mask);  /* the highest first: popped last */
         mask ^= 1u << slot;
         prefetch_child(n, slot, nodes, triangles);
         stack[*sp] = (StackItem){n->child[slot], n->count[slot], -INFINITY};
