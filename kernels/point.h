@@ -72,7 +72,7 @@ TRAVERSAL_INLINE uint children_point(const PointData* q, __global const WideNode
 /* The winding walk's node test: the children far enough from the point
  * (Barill's |q - p| > beta r) add their dipole's solid angle a.(p - q) /
  * |p - q|^3 to the sum and are not descended; the others (used slots) are,
- * in any order (entries 0, reach +inf). */
+ * in any order: the walk is unordered (QUERY_UNORDERED), so no entry is set. */
 #define DIPOLE_ROW(row) LOAD_ROW(float_lanes, dipole->row)
 TRAVERSAL_INLINE uint children_winding(const PointData* q, __global const WideNode* node,
                                        __global const WideDipoles* dipole, Found_point* s,
@@ -90,7 +90,6 @@ TRAVERSAL_INLINE uint children_winding(const PointData* q, __global const WideNo
     float4 halves = term.lo + term.hi;
     float2 quarter = halves.lo + halves.hi;
     s->solid_angle += quarter.x + quarter.y;
-    entry->lanes = (float_lanes)(0.0f);
     int_lanes used = (LOAD_ROW(int_lanes, node->count) != (int_lanes)(0))
                      | (LOAD_ROW(int_lanes, node->child) != (int_lanes)(EMPTY_CHILD));
     /* the near lanes by a compare of their own, not as far == 0: Clang
