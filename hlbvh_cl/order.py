@@ -27,7 +27,11 @@ ORDER_BITS = 5
 FINE_ORDER_BITS = 10
 
 #: Bits per axis for rays walked in packets: their origins' code under the
-#: 5 bits of their direction's class, in a 32-bit key.
+#: 5 bits of their direction's class, in a 32-bit key.  Origin rather than
+#: direction under the class: keys led by the direction's cell, or
+#: interleaving it with the origin's (5-D Morton), or a line's two points
+#: on the scene's bounding sphere, ordered rays aimed at one point better
+#: but rays with scattered origins and directions, or parallel ones, worse.
 RAY_ORDER_BITS = 9
 CLASS_BITS = 5
 
