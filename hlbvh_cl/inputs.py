@@ -16,6 +16,7 @@ reason (not finite, overflows float32, a direction too short to invert).
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -31,6 +32,10 @@ CHECK_BLOCK = 1 << 16
 #: The mask of a ray (or an instance) that gives none: every bit, so it
 #: sees (is seen by) everything.
 ALL_BITS = 0xFFFFFFFF
+
+#: The most rays, or points, one call takes: the kernels address them by
+#: uint32 slots and counts.
+MAX_BATCH = 2**32 - 1
 
 #: float32's smallest normal: a direction needs a component at least this
 #: large, or its inverse overflows.
@@ -124,6 +129,7 @@ def rays(origins, directions=None, tmin=0.0, tmax=np.inf) -> Rays:
         o, d = _vectors("origins", origins), _vectors("directions", directions)
         sources = [_Vectors("origins", o), _Vectors("directions", d)]
     shape = ray_shape(o.shape, d.shape)
+    _check_batch("rays", shape)
     o_rows, d_rows = _as_rows(o, shape), _as_rows(d, shape)
     if np.may_share_memory(o_rows, d_rows):  # two host-pointer buffers must not overlap
         d_rows = d_rows.copy()
@@ -148,11 +154,20 @@ def ray_shape(origins_shape: tuple, directions_shape: tuple) -> tuple:
                          "for all, or one per direction)") from None
 
 
+def _check_batch(what: str, shape: tuple) -> None:
+    """Refuses a batch larger than MAX_BATCH, before it is flattened."""
+    count = math.prod(shape)
+    if count > MAX_BATCH:
+        raise ValueError(f"{count} {what} in one call (leading shape {shape}): at most "
+                         "2**32 - 1 fit the kernels' uint32 indices; split the batch")
+
+
 def points(value, name: str = "points") -> tuple[np.ndarray, tuple]:
     """Query points (..., 3) as (N, 3) float32 C-contiguous rows, and their
     leading shape; a point that is not finite in float32 is named."""
     array = _vectors(name, value)
     shape = array.shape[:-1]
+    _check_batch(name, shape)
     rows = _as_rows(array, shape)
     finite = np.isfinite(rows).all(axis=1)
     if not finite.all():

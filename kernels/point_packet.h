@@ -39,7 +39,7 @@ TRAVERSAL_INLINE void load_point_packet(__global const float* points, const uint
     float c[3][PACKET_SIZE];
     for (uint l = 0; l < PACKET_SIZE; ++l)
         for (uint k = 0; k < 3; ++k)
-            c[k][l] = points[3 * at[l] + k];
+            c[k][l] = points[3 * (size_t)at[l] + k];
     q->x = vload_packet(0, c[0]);
     q->y = vload_packet(0, c[1]);
     q->z = vload_packet(0, c[2]);

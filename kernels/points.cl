@@ -72,9 +72,9 @@
 /* The point at slot `at` of points. */
 TRAVERSAL_INLINE void load_point(__global const float* points, uint at, PointData* q)
 {
-    q->x = points[3 * at];
-    q->y = points[3 * at + 1];
-    q->z = points[3 * at + 2];
+    q->x = points[3 * (size_t)at];
+    q->y = points[3 * (size_t)at + 1];
+    q->z = points[3 * (size_t)at + 2];
 }
 
 /* The winding number's walk of one tree: 4 pi w in s->solid_angle. */
@@ -427,8 +427,8 @@ TRAVERSAL_INLINE void store_closest(const Found_point* s, uint i, POINT_SCENE_PA
     v_out[i] = found ? s->v : 0.0f;
     float n[3] = {normal.x, normal.y, normal.z}, p[3] = {at.x, at.y, at.z};
     for (uint k = 0; k < 3; ++k) {
-        normal_out[3 * i + k] = n[k];
-        points_out[3 * i + k] = p[k];
+        normal_out[3 * (size_t)i + k] = n[k];
+        points_out[3 * (size_t)i + k] = p[k];
     }
 }
 

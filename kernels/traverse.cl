@@ -351,8 +351,8 @@ TRAVERSAL_KERNEL void intersect_closest_arrays(SCENE_PARAMS, __global const floa
          * (FP_CONTRACT is off), NaN on a miss: written here, where the ray
          * is at hand, rather than kept for the host to compute later. */
         for (uint k = 0; k < 3; ++k) {
-            normal_out[3 * i + k] = found[l].normal[k];
-            points_out[3 * i + k] = found[l].geom_id >= 0
+            normal_out[3 * (size_t)i + k] = found[l].normal[k];
+            points_out[3 * (size_t)i + k] = found[l].geom_id >= 0
                 ? lanes.origin[k][l] + found[l].t * lanes.direction[k][l] : NAN;
         }
     }

@@ -39,10 +39,10 @@ TRAVERSAL_INLINE void prefetch_slots(__global const uint* slots, uint next, uint
 #ifdef PREFETCH
     for (uint i = next; i < LESSER(next + PACKET_SIZE, ray_count); ++i) {
         uint slot = slots[i];
-        __builtin_prefetch(origins + 3 * slot);
-        __builtin_prefetch(origins + 3 * slot + 2);
-        __builtin_prefetch(directions + 3 * slot);
-        __builtin_prefetch(directions + 3 * slot + 2);
+        __builtin_prefetch(origins + 3 * (size_t)slot);
+        __builtin_prefetch(origins + 3 * (size_t)slot + 2);
+        __builtin_prefetch(directions + 3 * (size_t)slot);
+        __builtin_prefetch(directions + 3 * (size_t)slot + 2);
         __builtin_prefetch(results + slot, 1);
     }
 #endif
@@ -57,7 +57,7 @@ TRAVERSAL_INLINE void load_arrays_at(const uint* at, __global const float* origi
 {
     for (uint l = 0; l < PACKET_SIZE; ++l) {
         uint i = at[l];
-        set_lane(lanes, l, LOAD_XYZ(origins + 3 * i), LOAD_XYZ(directions + 3 * i),
+        set_lane(lanes, l, LOAD_XYZ(origins + 3 * (size_t)i), LOAD_XYZ(directions + 3 * (size_t)i),
                  tmin[i * tmin_step], tmax[i * tmax_step]);
     }
 }
@@ -79,8 +79,8 @@ TRAVERSAL_INLINE void load_arrays(uint first, uint used, __global const float* o
      * asks for memory the kernel never reads, which a prefetch may: it never
      * faults. */
     for (uint offset = 0; offset < 3 * PACKET_SIZE * sizeof(float); offset += 64) {
-        __builtin_prefetch((__global const char*)(origins + 3 * (first + PACKET_SIZE)) + offset);
-        __builtin_prefetch((__global const char*)(directions + 3 * (first + PACKET_SIZE)) + offset);
+        __builtin_prefetch((__global const char*)(origins + 3 * ((size_t)first + PACKET_SIZE)) + offset);
+        __builtin_prefetch((__global const char*)(directions + 3 * ((size_t)first + PACKET_SIZE)) + offset);
     }
 #endif
     uint at[PACKET_SIZE];

@@ -68,6 +68,9 @@ BAD_INPUTS = [
     (GOOD_O, [["a", "b", "c"]] * 3, 0.0, np.inf, TypeError, r"directions must hold real numbers"),
     ([[0, 0, 0], [0, 0]], GOOD_D[:2], 0.0, np.inf, ValueError, r"origins is not a rectangular"),
     (GOOD_O, GOOD_D, "0", np.inf, TypeError, r"tmin must hold real numbers"),
+    # a broadcast view: 2**32 rays that take no memory
+    (GOOD_O[0], np.broadcast_to(GOOD_D[0], (2**16, 2**16, 3)), 0.0, np.inf, ValueError,
+     r"4294967296 rays in one call \(leading shape \(65536, 65536\)\): at most 2\*\*32 - 1"),
 ]
 
 
@@ -84,6 +87,15 @@ def test_bad_input_raises_before_any_kernel(monkeypatch, origins, directions, tm
         case.scene.intersect(origins, directions, tmin, tmax)
     with pytest.raises(error, match=message):
         case.scene.occluded(origins, directions, tmin, tmax)
+
+
+@pytest.mark.parametrize("query", ["closest_points", "signed_distance", "contains"])
+def test_too_many_points_are_refused_before_any_kernel(monkeypatch, query):
+    case = scene_case("cube")
+    monkeypatch.setattr(RayQuery, "_run", lambda *args, **kwargs: pytest.fail("a kernel ran"))
+    points = np.broadcast_to(np.zeros(3), (2**32, 3))  # a view: no memory
+    with pytest.raises(ValueError, match=r"4294967296 points in one call .* split the batch"):
+        getattr(case.scene, query)(points)
 
 
 def test_short_directions_are_found_in_any_block_of_a_large_batch(monkeypatch):
