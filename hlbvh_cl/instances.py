@@ -340,7 +340,8 @@ class TwoLevel:
 
     def rebuild_meshes(self, meshes: list[Mesh]) -> None:
         old, self.trees = self.trees, None
-        old.release(self.rt.pool)
+        if old is not None:  # None after a rebuild that failed
+            old.release(self.rt.pool)
         self.trees = build_mesh_trees(self.rt, meshes, self.builder, self.morton_bits)
         self.rt.pool.clear()
 

@@ -23,6 +23,7 @@ import functools
 import hashlib
 import json
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -97,21 +98,34 @@ def _load(key: str) -> dict:
 
 
 def _save(key: str, record: dict) -> None:
-    """Writes the record atomically; a cache folder that cannot be written
-    only costs the next process a new probe."""
+    """Writes the record atomically, less the verdicts the machine's state
+    gave (TRANSIENT): those hold for this process only.  A cache folder
+    that cannot be written only costs the next process a new probe."""
     path = _cache_file(key)
+    lasting = {**record, "results": {name: result for name, result in record["results"].items()
+                                     if not result.get("transient")}}
+    if record.get("target", {}).get("transient"):
+        del lasting["target"]
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         temporary = path.with_suffix(f".{os.getpid()}.tmp")
-        temporary.write_text(json.dumps(record, indent=1, sort_keys=True))
+        temporary.write_text(json.dumps(lasting, indent=1, sort_keys=True))
         temporary.replace(path)
     except OSError:
         pass
 
 
+#: Signals that end a child from outside (Ctrl-C, the OOM killer, a
+#: shutdown) rather than from its own code: a probe they end, like one that
+#: times out on a loaded machine, says nothing lasting about the variant.
+TRANSIENT_SIGNALS = {int(signal.SIGINT), int(signal.SIGKILL), int(signal.SIGTERM),
+                     int(signal.SIGHUP)}
+
+
 def _run_child(device_id: str, profile: Profile, variant: Variant | None) -> dict:
     """Runs the probe of one variant (or only the target query) in a child
-    process; returns {"target": ..., "ok": ..., "reason": ..., ...}."""
+    process; returns {"target": ..., "ok": ..., "reason": ..., ...}, with
+    "transient": True when a timeout or an outside signal ended it."""
     command = [sys.executable, "-m", "hlbvh_cl.probe_child", device_id, profile.name]
     if variant is not None:
         command.append(variant.name)
@@ -125,11 +139,13 @@ def _run_child(device_id: str, profile: Profile, variant: Variant | None) -> dic
     except subprocess.TimeoutExpired as expired:
         out = expired.stdout.decode() if isinstance(expired.stdout, bytes) else expired.stdout
         report = _last_json(out or "")
-        report.update(ok=False, reason=f"timed out after {timeout:g} s")
+        report.update(ok=False, reason=f"timed out after {timeout:g} s", transient=True)
         return report
     report = _last_json(done.stdout)
     if done.returncode != 0 or "ok" not in report and variant is not None:
         report.update(ok=False, reason=_why(done.returncode, done.stderr))
+        if -done.returncode in TRANSIENT_SIGNALS:
+            report["transient"] = True
     elif report.get("ok") is False:
         # the driver's own words (an LLVM or Oclgrind fatal error) are on stderr
         fatal = [line.strip() for line in done.stderr.splitlines()
@@ -168,6 +184,8 @@ def _result(device, profile: Profile, key: str, record: dict, variant: Variant) 
             record["target"] = report["target"]
         result = {k: report.get(k) for k in ("ok", "reason", "mrays_per_s")}
         result["ok"] = bool(result["ok"])
+        if report.get("transient"):
+            result["transient"] = True
         record["results"][variant.name] = result
         _save(key, record)
     return result
@@ -178,6 +196,8 @@ def _target(device, profile: Profile, key: str, record: dict) -> dict:
         report = _run_child(device.id, profile, None)
         record["target"] = report.get("target") or {
             "reported_width": 1, "error": _why(1, report.get("reason", ""))}
+        if report.get("transient"):
+            record["target"]["transient"] = True
         _save(key, record)
     return record["target"]
 

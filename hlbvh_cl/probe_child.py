@@ -130,8 +130,10 @@ def _probe_variant(rt) -> dict:
 
 def _injected_fault(variant: Variant) -> None:
     """For the tests of this module: HLBVH_CL_PROBE_FAULT=NAME:abort (or
-    :hang) makes the child die as a crashing compiler would (or hang) while
-    it probes variant NAME (* for every variant)."""
+    :hang, :killed) makes the child die as a crashing compiler would (or
+    hang, or die as the OOM killer ends it) while it probes variant NAME (*
+    for every variant)."""
+    import signal
     import time
     name, _, action = os.environ.get("HLBVH_CL_PROBE_FAULT", "").partition(":")
     if name in (variant.name, "*"):
@@ -141,6 +143,8 @@ def _injected_fault(variant: Variant) -> None:
             os.abort()
         if action == "hang":
             time.sleep(3600)
+        if action == "killed":
+            os.kill(os.getpid(), signal.SIGKILL)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -303,7 +303,8 @@ class RayQuery:
             return
         capacity = min(self.max_rays_per_launch, max(count, 2 * self._capacity))
         sizes = {**RAY_ARRAYS, **HIT_ARRAYS, **OCCLUDED_ARRAYS}
-        self._buffers = {}  # release the old ones before allocating
+        # release the old ones before allocating, and hold none if that fails
+        self._buffers, self._capacity = {}, 0
         self.rt.check_allocation("ray query buffers",
                                  {name: capacity * size for name, size in sizes.items()})
         self._buffers = {name: cl.Buffer(self.rt.context, cl.mem_flags.READ_WRITE,

@@ -135,17 +135,25 @@ class Scene:
         (hlbvh_cl.pool)."""
         with self._lock:
             if self._two_level is not None:
+                # the top tree points into the meshes' trees: gone before they go
+                self._drop_tree()
                 self._two_level.rebuild_meshes(self.meshes)
             self._build()
+
+    def _drop_tree(self) -> None:
+        """Release the tree: queries then raise (_built_tree) until a build
+        succeeds, rather than trace a tree that is gone or out of date."""
+        with self._lock, self._runtime.build_lock:
+            old, self._tree = self._tree, None
+            if old is not None:
+                old.release(self._runtime.pool)
 
     def _build(self) -> None:
         """The tree over what the scene holds now (an instanced scene's top
         tree only: its meshes' trees stand)."""
         rt = self._runtime
         with self._lock, rt.build_lock:
-            old, self._tree = self._tree, None
-            if old is not None:
-                old.release(rt.pool)
+            self._drop_tree()
             if self._two_level is not None:
                 self._tree, self._stats = self._two_level.build_top()
             else:
@@ -238,14 +246,14 @@ class Scene:
         moved = Mesh(positions, old.faces, name=old.name)
         rt = self._runtime
         started = time.perf_counter()
+        # one lock throughout: a pickle between forgetting the old content's
+        # spec and changing the meshes would describe the old content
         with self._lock:
             self._changing()
-        if self._two_level is not None:
-            with self._lock:  # the mesh's own tree is built anew, then the top
+            if self._two_level is not None:  # the mesh's own tree is built anew, then the top
                 self.meshes[geom_id] = moved
                 self.rebuild()
-            return
-        with self._lock:
+                return
             largest = list(self._largest)
             largest[geom_id] = frame.largest_magnitude(moved.vertices)
             # the meshes follow the device's vertices from here on, whatever fails below
@@ -259,12 +267,18 @@ class Scene:
                                 frame.to_frame(vertices, self._scale))
                 self.rebuild()
                 return
-            upload = cl.enqueue_copy(rt.queue, self._geometry.vertices,
-                                     frame.to_frame(moved.vertices, self._scale),
-                                     dst_offset=int(self._vertex_offsets[geom_id]) * 12,
-                                     is_blocking=False)
-            events = refit(rt, tree, self._geometry.vertices, wait_for=[upload])
-            tree.bounds_lo, tree.bounds_hi = tree.read_root_box(rt.queue, wait_for=events[-1:])
+            try:
+                upload = cl.enqueue_copy(rt.queue, self._geometry.vertices,
+                                         frame.to_frame(moved.vertices, self._scale),
+                                         dst_offset=int(self._vertex_offsets[geom_id]) * 12,
+                                         is_blocking=False)
+                events = refit(rt, tree, self._geometry.vertices, wait_for=[upload])
+                tree.bounds_lo, tree.bounds_hi = tree.read_root_box(rt.queue,
+                                                                    wait_for=events[-1:])
+            except BaseException:  # Ctrl-C, a failed build of refit.cl: the boxes are
+                rt.queue.finish()  # part old, part new, so no query may use them
+                self._drop_tree()
+                raise
             self._stats = dataclasses.replace(self._stats, refit_ms={
                 "upload": event_ms([upload]), "refit": event_ms(events),
                 "wall": (time.perf_counter() - started) * 1e3})
@@ -359,11 +373,11 @@ class Scene:
         return self._points
 
     def _built_tree(self):
-        """The current tree; a clear error when the last rebuild failed (the
+        """The current tree; a clear error when the last rebuild or update failed (the
         old tree was released before it) and none has been built since."""
         if self._tree is None:
-            raise RuntimeError("this Scene has no tree: its last rebuild failed; call "
-                               "scene.rebuild() (or update_vertices) to build one")
+            raise RuntimeError("this Scene has no tree: its last rebuild or update failed; "
+                               "call scene.rebuild() (or update_vertices) to build one")
         return self._tree
 
     def _ray_query(self):

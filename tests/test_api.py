@@ -116,10 +116,71 @@ def test_no_module_imports_another_in_a_cycle():
     assert graph["tree"] <= {"layout"} and "tree" in graph["widen"] | graph["build"]
 
 
+def test_a_failed_mesh_rebuild_of_an_instanced_scene_says_so_and_recovers(monkeypatch):
+    """The meshes' trees of a two-level scene are released before they are
+    built again: when that build raises, queries say to rebuild (rather than
+    trace the top tree into released buffers), and rebuild() recovers."""
+    import pytest
+
+    import hlbvh_cl.instances as instances_module
+    from shapes import grid_mesh
+
+    grid = grid_mesh(4)
+    shifted = np.hstack([np.eye(3), [[0.0], [0.0], [2.0]]])
+    scene = hlbvh_cl.Scene([grid], instances=[(0, np.hstack([np.eye(3), np.zeros((3, 1))])),
+                                              (0, shifted)])
+    origins = np.float32([[0.3, 0.4, -3.0], [1.3, 2.4, -3.0]])
+    directions = np.tile(np.float32([[0.0, 0.0, 1.0]]), (2, 1))
+    before = scene.intersect(origins, directions)
+    assert before.hit.all()
+
+    def fail(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    for step in ("rebuild", "update_vertices"):
+        with monkeypatch.context() as patch:
+            patch.setattr(instances_module, "build_mesh_trees", fail)
+            with pytest.raises(KeyboardInterrupt):
+                scene.rebuild() if step == "rebuild" else scene.update_vertices(0, grid.vertices)
+        for call in (lambda: scene.intersect(origins, directions),
+                     lambda: scene.count_intersections(origins, directions),
+                     lambda: scene.closest_points(origins)):
+            with pytest.raises(RuntimeError, match="last rebuild or update failed"):
+                call()
+        scene.rebuild()
+        assert np.array_equal(scene.intersect(origins, directions).t, before.t), step
+
+
+def test_a_failed_buffer_reservation_does_not_break_later_queries(monkeypatch):
+    """Ray-query buffers are released before bigger ones are allocated: if
+    that allocation fails (or Ctrl-C comes), the next query allocates again
+    rather than find no buffers under the old capacity."""
+    import pytest
+
+    from hlbvh_cl.query import RayQuery
+    from shapes import grid_mesh
+
+    scene = hlbvh_cl.Scene([grid_mesh(4)])
+    query = RayQuery(scene._runtime)
+    query.zero_copy = False  # the device-buffer path (GPUs, Intel's CPU runtime)
+    tree = scene._built_tree()
+    origins = np.float32([[0.3, 0.4, -3.0]] * 64)
+    directions = np.tile(np.float32([[0.0, 0.0, 1.0]]), (64, 1))
+    expected = query.intersect(tree, origins[:8], directions[:8]).t
+    with monkeypatch.context() as patch:
+        patch.setattr(type(scene._runtime), "check_allocation",
+                      lambda *args, **kwargs: (_ for _ in ()).throw(KeyboardInterrupt()))
+        with pytest.raises(KeyboardInterrupt):
+            query.intersect(tree, origins, directions)
+    assert np.array_equal(query.intersect(tree, origins[:8], directions[:8]).t, expected)
+
+
 def test_a_failed_rebuild_or_refit_leaves_a_scene_that_says_so_and_recovers(monkeypatch):
     """A build that raises leaves no half-made tree: queries and renders say
     to rebuild, and update_vertices builds anew.  A refit that raises leaves
-    the meshes as the device has them, so the next rebuild matches them."""
+    no half-refit tree either (queries say so, rather than trace boxes part
+    old, part new) and the meshes as the device has them, so the next
+    rebuild matches them."""
     import pytest
 
     import hlbvh_cl.scene as scene_module
@@ -144,7 +205,7 @@ def test_a_failed_rebuild_or_refit_leaves_a_scene_that_says_so_and_recovers(monk
                  lambda: scene.occluded(origins, directions),
                  lambda: hlbvh_cl.Renderer(scene).render(
                      hlbvh_cl.Camera((4, 4, -3), (4, 4, 0)), 4, 4)):
-        with pytest.raises(RuntimeError, match="last rebuild failed"):
+        with pytest.raises(RuntimeError, match="last rebuild or update failed"):
             call()
     scene.update_vertices(0, vertices)  # builds anew
     assert np.array_equal(scene.intersect(origins, directions).t, before.t)
@@ -155,6 +216,8 @@ def test_a_failed_rebuild_or_refit_leaves_a_scene_that_says_so_and_recovers(monk
         with pytest.raises(RuntimeError, match="injected"):
             scene.update_vertices(0, moved)
     assert np.array_equal(scene.meshes[0].vertices, moved)
+    with pytest.raises(RuntimeError, match="last rebuild or update failed"):
+        scene.intersect(origins, directions)
     scene.rebuild()
     fresh = hlbvh_cl.Scene([hlbvh_cl.Mesh(moved, faces)])
     assert np.array_equal(scene.intersect(origins, directions).t,

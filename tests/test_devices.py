@@ -222,11 +222,32 @@ def test_a_variant_that_crashes_the_compiler_falls_back_with_one_warning(fresh_p
     assert "\n" not in messages[0]
 
 
+def _saved_verdicts() -> dict:
+    """The variants' verdicts in the probe cache on disk."""
+    import json
+    return {name: result for path in probe.cache_root().glob("probes/*.json")
+            for name, result in json.loads(path.read_text())["results"].items()}
+
+
 def test_a_hanging_variant_times_out(fresh_probes, monkeypatch):
     monkeypatch.setenv("HLBVH_CL_PROBE_FAULT", "packet8:hang")
     monkeypatch.setenv("HLBVH_CL_PROBE_TIMEOUT", "5")
     reason = probe.usable(fresh_probes, CPU, Variant(8))
     assert reason == "timed out after 5 s"
+    # the machine's state, not the variant: this process falls back, the next one probes again
+    assert "packet8" not in _saved_verdicts()
+
+
+def test_a_probe_killed_from_outside_is_not_remembered_but_a_crash_is(fresh_probes,
+                                                                       monkeypatch):
+    monkeypatch.setenv("HLBVH_CL_PROBE_FAULT", "packet8:killed")  # as the OOM killer does
+    reason = probe.usable(fresh_probes, CPU, Variant(8))
+    assert "killed by signal 9" in reason
+    assert "packet8" not in _saved_verdicts()
+    monkeypatch.setenv("HLBVH_CL_PROBE_FAULT", "packet16:abort")  # as a crashing compiler does
+    reason = probe.usable(fresh_probes, CPU, Variant(16))
+    assert "signal 6" in reason
+    assert _saved_verdicts()["packet16"]["ok"] is False
 
 
 def test_a_device_where_no_variant_runs_raises_kernel_build_error(fresh_probes, monkeypatch):
