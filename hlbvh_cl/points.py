@@ -77,7 +77,7 @@ class ClosestPoints:
     instance_id: np.ndarray  # int32 (N,) the instance it lies on (-1 without instances)
     u: np.ndarray         # float32 (N,)
     v: np.ndarray         # float32 (N,)
-    normal: np.ndarray    # float32 (N, 3) unit geometric normal
+    normal: np.ndarray    # float32 (N, 3) unit geometric normal (0 on a zero-area triangle)
 
     def __len__(self) -> int:
         return len(self.distance)

@@ -130,10 +130,13 @@ TRAVERSAL_INLINE bool winding_leaf(Found_point* s, const PointData* q,
 
 /* The point of the triangle (a, b, c) nearest to p, as barycentrics (u, v)
  * of b and c, and its squared distance to p (Ericson 2005, sec. 5.1.5: the
- * vertex, edge and face regions in turn).  A degenerate triangle that
- * reaches the face region with barycentrics out of range takes the nearest
- * point of its three edges instead (Ericson's face formula divides by its
- * zero area). */
+ * vertex, edge and face regions in turn).  Ericson's formulas divide by an
+ * edge's squared length (edge regions) or by the squared area (face), so:
+ * an edge region is taken only for an edge of nonzero length, and a point
+ * left in the face region takes the nearest point of the three edges
+ * (segment_point, exact for any triangle) when its face barycentrics are
+ * out of range or NaN, and the nearer of that and the face point when the
+ * triangle is a sliver (THIN_TRIANGLE), whose face formula cancels badly. */
 TRAVERSAL_INLINE float segment_point(float3 a, float3 ab, float3 p, float* w)
 {
     float length2 = DOT3(ab, ab);
@@ -142,6 +145,23 @@ TRAVERSAL_INLINE float segment_point(float3 a, float3 ab, float3 p, float* w)
     *w = along;
     float3 d = p - (a + along * ab);
     return DOT3(d, d);
+}
+
+/* Whether the face formula may not be trusted: twice the area squared,
+ * |ab x ac|^2, below THIN_RATIO times the longest edge's length to the
+ * fourth (the height over that edge under 1% of it), or NaN.  Ericson's
+ * face denominator va + vb + vc is |ab x ac|^2 summed from products of the
+ * point's dot products, whose rounding is that of the edges' lengths to
+ * the fourth (times the point's distance over them, squared). */
+#define THIN_RATIO 1e-4f
+TRAVERSAL_INLINE bool thin_triangle(float3 ab, float3 ac)
+{
+    /* |ab x ac|^2 by Lagrange's identity, and |bc|^2 from the same dots:
+     * their rounding, eps |ab|^2 |ac|^2, is far below THIN_RATIO's scale */
+    float aa = DOT3(ab, ab), cc = DOT3(ac, ac), ac_dot = DOT3(ab, ac);
+    float area2 = aa * cc - ac_dot * ac_dot;
+    float longest = GROW_HI(GROW_HI(aa, cc), (aa + cc) - 2.0f * ac_dot);
+    return !(area2 >= THIN_RATIO * longest * longest);
 }
 
 TRAVERSAL_INLINE float closest_on_corners(float3 a, float3 b, float3 c, float3 p, float* u_out,
@@ -161,36 +181,43 @@ TRAVERSAL_INLINE float closest_on_corners(float3 a, float3 b, float3 c, float3 p
     } else if (d3 >= 0.0f && d4 <= d3) {                 /* vertex b */
         u = 1.0f;
         v = 0.0f;
-    } else if (vc <= 0.0f && d1 >= 0.0f && d3 <= 0.0f) { /* edge ab */
+    } else if (vc <= 0.0f && d1 >= 0.0f && d3 <= 0.0f && d1 - d3 > 0.0f) { /* edge ab */
         u = d1 / (d1 - d3);
         v = 0.0f;
     } else if (d6 >= 0.0f && d5 <= d6) {                 /* vertex c */
         u = 0.0f;
         v = 1.0f;
-    } else if (vb <= 0.0f && d2 >= 0.0f && d6 <= 0.0f) { /* edge ac */
+    } else if (vb <= 0.0f && d2 >= 0.0f && d6 <= 0.0f && d2 - d6 > 0.0f) { /* edge ac */
         u = 0.0f;
         v = d2 / (d2 - d6);
-    } else if (va <= 0.0f && d4 - d3 >= 0.0f && d5 - d6 >= 0.0f) { /* edge bc */
+    } else if (va <= 0.0f && d4 - d3 >= 0.0f && d5 - d6 >= 0.0f
+               && (d4 - d3) + (d5 - d6) > 0.0f) {        /* edge bc */
         v = (d4 - d3) / ((d4 - d3) + (d5 - d6));
         u = 1.0f - v;
     } else {                                             /* face */
         float inv = 1.0f / (va + vb + vc);
         u = vb * inv;
         v = vc * inv;
-        if (!(u >= 0.0f && v >= 0.0f && u + v <= 1.0f)) {
+        bool inside = u >= 0.0f && v >= 0.0f && u + v <= 1.0f;
+        if (!inside || thin_triangle(ab, ac)) {
             float w, best = segment_point(a, ab, p, &w);
-            u = w;
-            v = 0.0f;
+            float eu = w, ev = 0.0f;
             float d = segment_point(a, ac, p, &w);
             if (d < best) {
                 best = d;
-                u = 0.0f;
-                v = w;
+                eu = 0.0f;
+                ev = w;
             }
             d = segment_point(b, c - b, p, &w);
             if (d < best) {
-                u = 1.0f - w;
-                v = w;
+                best = d;
+                eu = 1.0f - w;
+                ev = w;
+            }
+            float3 f = p - (a + u * ab + v * ac);
+            if (!inside || best < DOT3(f, f)) {
+                u = eu;
+                v = ev;
             }
         }
     }

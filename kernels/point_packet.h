@@ -127,21 +127,27 @@ TRAVERSAL_INLINE float_packet closest_on_corners_packet(float3 a, float3 b, floa
     const float_packet zero = (float_packet)(0.0f), one = (float_packet)(1.0f);
     int_packet vertex_a = (d1 <= 0.0f) & (d2 <= 0.0f);
     int_packet vertex_b = (d3 >= 0.0f) & (d4 <= d3);
-    int_packet edge_ab = (vc <= 0.0f) & (d1 >= 0.0f) & (d3 <= 0.0f);
+    float_packet len_ab = d1 - d3, len_ac = d2 - d6, len_bc = (d4 - d3) + (d5 - d6);
+    int_packet edge_ab = (vc <= 0.0f) & (d1 >= 0.0f) & (d3 <= 0.0f) & (len_ab > 0.0f);
     int_packet vertex_c = (d6 >= 0.0f) & (d5 <= d6);
-    int_packet edge_ac = (vb <= 0.0f) & (d2 >= 0.0f) & (d6 <= 0.0f);
-    int_packet edge_bc = (va <= 0.0f) & (d4 - d3 >= 0.0f) & (d5 - d6 >= 0.0f);
+    int_packet edge_ac = (vb <= 0.0f) & (d2 >= 0.0f) & (d6 <= 0.0f) & (len_ac > 0.0f);
+    int_packet edge_bc = (va <= 0.0f) & (d4 - d3 >= 0.0f) & (d5 - d6 >= 0.0f) & (len_bc > 0.0f);
     /* the lanes in the face region, as the chain reaches it (every test
      * above failed), spelled as the compares that fail rather than their
      * negation, which Clang makes an xor of the compare's i1 vector with
-     * true: Oclgrind runs that wrong (see inside_packet) */
+     * true: Oclgrind runs that wrong (see inside_packet).  A NaN fails
+     * the chain's tests and these alike, so NaN lanes join explicitly. */
     int_packet face = ((d1 > 0.0f) | (d2 > 0.0f)) & ((d3 < 0.0f) | (d4 > d3))
-                      & ((vc > 0.0f) | (d1 < 0.0f) | (d3 > 0.0f)) & ((d6 < 0.0f) | (d5 > d6))
-                      & ((vb > 0.0f) | (d2 < 0.0f) | (d6 > 0.0f))
-                      & ((va > 0.0f) | (d4 - d3 < 0.0f) | (d5 - d6 < 0.0f));
-    /* face lanes with u, v out of range (NaN included) */
+                      & ((vc > 0.0f) | (d1 < 0.0f) | (d3 > 0.0f) | (len_ab <= 0.0f))
+                      & ((d6 < 0.0f) | (d5 > d6))
+                      & ((vb > 0.0f) | (d2 < 0.0f) | (d6 > 0.0f) | (len_ac <= 0.0f))
+                      & ((va > 0.0f) | (d4 - d3 < 0.0f) | (d5 - d6 < 0.0f) | (len_bc <= 0.0f));
+    face |= (va != va) | (vb != vb) | (vc != vc);
+    /* face lanes with u, v out of range (NaN included), or all of them on a
+     * sliver: closest_on_corners' fallback */
     int_packet out_of_range = (u < 0.0f) | (v < 0.0f) | (u + v > 1.0f) | (u != u) | (v != v);
-    int_packet degenerate = face & out_of_range;
+    bool thin = some_packet(face) && thin_triangle(ab, ac);
+    int_packet degenerate = face & (thin ? face : out_of_range);
     if (some_packet(degenerate)) {
         float_packet w, best = segment_points(a, ab, q, &w);
         float_packet fu = w, fv = zero;
@@ -152,19 +158,26 @@ TRAVERSAL_INLINE float_packet closest_on_corners_packet(float3 a, float3 b, floa
         fv = PICK(nearer, w, fv);
         d = segment_points(b, c - b, q, &w);
         nearer = d < best;
+        best = PICK(nearer, d, best);
         fu = PICK(nearer, one - w, fu);
         fv = PICK(nearer, w, fv);
+        if (thin) {  /* the edges' point where it is nearer than the face's */
+            float_packet fx = q->x - ((a.x + u * ab.x) + v * ac.x),
+                         fy = q->y - ((a.y + u * ab.y) + v * ac.y),
+                         fz = q->z - ((a.z + u * ab.z) + v * ac.z);
+            degenerate &= out_of_range | (best < (fx * fx + fy * fy) + fz * fz);
+        }
         u = PICK(degenerate, fu, u);
         v = PICK(degenerate, fv, v);
     }
-    float_packet along_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6));
+    float_packet along_bc = (d4 - d3) / len_bc;
     u = PICK(edge_bc, one - along_bc, u);
     v = PICK(edge_bc, along_bc, v);
     u = PICK(edge_ac, zero, u);
-    v = PICK(edge_ac, d2 / (d2 - d6), v);
+    v = PICK(edge_ac, d2 / len_ac, v);
     u = PICK(vertex_c, zero, u);
     v = PICK(vertex_c, one, v);
-    u = PICK(edge_ab, d1 / (d1 - d3), u);
+    u = PICK(edge_ab, d1 / len_ab, u);
     v = PICK(edge_ab, zero, v);
     u = PICK(vertex_b, one, u);
     v = PICK(vertex_b, zero, v);

@@ -198,7 +198,9 @@ TRAVERSAL_INLINE void mesh_frame(MeshFrame* f, __global const Instance* in, cons
 /* The squared mesh-frame reach for the top frame's squared distance `best`. */
 TRAVERSAL_INLINE float mesh_reach(float best, const MeshFrame* f)
 {
-    float r = SQUARE_ROOT(best * f->reach_scale) * REACH_PAD + f->slack;
+    /* best 0 stays 0 where reach_scale is inf (an instance scaled below
+     * about 1e-19), not 0 * inf = NaN, which would skip the instance */
+    float r = SQUARE_ROOT(best > 0.0f ? best * f->reach_scale : 0.0f) * REACH_PAD + f->slack;
     return r * r;
 }
 

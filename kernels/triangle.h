@@ -26,11 +26,14 @@ TRAVERSAL_INLINE void geometric_normal(__global const Triangle* tri, float* nx, 
 }
 
 /* w at unit length, scaled by its largest component first so that tiny or
- * huge vectors neither underflow nor overflow the squared length (a zero
- * vector gives NaN: callers pass normals of triangles hit or found). */
+ * huge vectors neither underflow nor overflow the squared length; a zero
+ * vector (the normal of a zero-area triangle, which a closest-point query
+ * can find) stays zero. */
 TRAVERSAL_INLINE float3 unit_vector(float3 w)
 {
     float largest = GROW_HI(GROW_HI(ABS_FLOAT(w.x), ABS_FLOAT(w.y)), ABS_FLOAT(w.z));
+    if (largest == 0.0f)
+        return w;
     w = w * (1.0f / largest);
     return w * (1.0f / SQUARE_ROOT(w.x * w.x + w.y * w.y + w.z * w.z));
 }

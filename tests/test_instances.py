@@ -553,6 +553,21 @@ def test_signs_hold_1e_6_off_instanced_surfaces(suite_device):
     assert_signs_off_the_surface(scene, on, outward, 1000)
 
 
+@pytest.mark.parametrize("scale", [1e-19, 1e-20, 1e-25])
+def test_a_point_on_a_tiny_instance_is_found_within_max_distance_0(scale, suite_device):
+    """An instance scaled so small that its reach scale (1 / s^2) is inf in
+    float32: a point on it is found at distance 0 with max_distance 0 (or
+    one whose square underflows), as with no max_distance."""
+    triangle = hlbvh_cl.Mesh(np.float32([[0, 0, 0], [1, 0, 0], [0, 1, 0]]), [[0, 1, 2]])
+    tiny = np.hstack([scale * np.eye(3), np.zeros((3, 1))])
+    beside = np.hstack([np.eye(3), [[5.0], [0.0], [0.0]]])
+    scene = hlbvh_cl.Scene([triangle], instances=[(0, tiny), (0, beside)], device=suite_device)
+    on_it = np.zeros((1, 3), np.float32)
+    for max_distance in (0.0, 1e-30, np.inf):
+        got = scene.closest_points(on_it, max_distance)
+        assert got.distance[0] == 0.0 and got.instance_id[0] == 0, max_distance
+
+
 def test_point_queries_of_a_masked_flat_scene(small, suite_device):
     """Masks make a flat scene's meshes identity instances: point queries
     see every mesh whatever its mask, at the flat scene's distances, and

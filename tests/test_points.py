@@ -147,6 +147,95 @@ def test_distances_never_exceed_brute_force(sphere_scene, rows, max_distance):
     assert not got.found[expected > max_distance + DISTANCE_TOLERANCE].any()
 
 
+def _edges_or_face_distance(points, a, b, c):
+    """(P, F) float64 distances from points to triangles, independent of
+    Ericson's regions: the nearest of the three edges, or the plane where
+    the point's projection falls inside (barycentrics by least squares)."""
+    from point_oracle import _segment
+    p = np.asarray(points, np.float64)[:, None, :]
+    a, b, c = (np.asarray(x, np.float64)[None] for x in (a, b, c))
+    best = np.minimum(np.minimum(_segment(a, b - a, p)[0], _segment(a, c - a, p)[0]),
+                      _segment(b, c - b, p)[0])
+    ab, ac, ap = b - a, c - a, p - a
+    gram = np.stack([np.stack([(ab * ab).sum(-1), (ab * ac).sum(-1)], -1),
+                     np.stack([(ac * ab).sum(-1), (ac * ac).sum(-1)], -1)], -2)
+    rhs = np.stack([(ab * ap).sum(-1), (ac * ap).sum(-1)], -1)
+    gram = np.broadcast_to(gram, rhs.shape[:-1] + (2, 2))
+    solvable = np.abs(np.linalg.det(gram)) > 1e-300
+    uv = np.zeros(rhs.shape)
+    uv[solvable] = np.linalg.solve(gram[solvable], rhs[solvable][..., None])[..., 0]
+    inside = solvable & (uv[..., 0] >= 0) & (uv[..., 1] >= 0) & (uv.sum(-1) <= 1)
+    face = ap - uv[..., :1] * ab - uv[..., 1:] * ac
+    best = np.where(inside, np.minimum(best, (face * face).sum(-1)), best)
+    return np.sqrt(best)
+
+
+@pytest.mark.parametrize("case", ["repeated vertex", "collinear", "sliver", "far point"])
+def test_degenerate_and_thin_triangles_and_far_points(case, suite_device):
+    """Triangles that Ericson's formulas divide by zero or cancel on: a
+    repeated vertex (an edge of length 0), three collinear vertices, a
+    sliver, and a point 1e5 times the triangle's size away (its products
+    overflow float32): single points and packets give the nearest point
+    of the triangle, against a float64 oracle of edges and face, and a
+    zero-area triangle's normal is 0 (no direction), not NaN."""
+    from hlbvh_cl.points import PointQuery
+    triangles = {"repeated vertex": [[0, 0, 0], [0, 0, 0], [1, 0, 0]],
+                 "collinear": [[0, 0, 0], [1, 0, 0], [2, 0, 0]],
+                 "sliver": [[0, 0, 0], [0.1, 0.2, 0.3], [1.1, 2.2, 3.3]],
+                 "far point": [[0, 0, 0], [1e7, 0, 0], [0, 1e7, 0]]}
+    vertices = np.float32(triangles[case])
+    rng = np.random.default_rng(5)
+    if case == "far point":
+        points = np.float32([[5e12 + 3e6, 5e12 - 3e6, 0.0], [-4e12, 3e12, 1e12]])
+    else:
+        points = rng.normal(0.5, 2.0, (64, 3)).astype(np.float32)
+    scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(vertices, [[0, 1, 2]])], device=suite_device)
+    expected = _edges_or_face_distance(points, *vertices[None, :, :].transpose(1, 0, 2))[:, 0]
+    for packet_size in (1, 8):
+        got = PointQuery(scene._runtime, packet_size=packet_size).closest_points(
+            scene._built_tree(), points)
+        assert np.all(got.prim_id == 0), (case, packet_size)
+        np.testing.assert_allclose(got.distance, expected, rtol=1e-5, atol=1e-6,
+                                   err_msg=f"{case}, packets of {packet_size}")
+        assert np.isfinite(got.normal).all()
+        if case in ("repeated vertex", "collinear"):
+            assert np.all(got.normal == 0)
+
+
+def test_slivers_match_the_oracle(suite_device):
+    """Many near-collinear triangles (their third vertex within 1e-4 of
+    the line through the other two), each in a cell of its own, and points
+    above and below their insides: the nearest distances match a float64 oracle that does not
+    use Ericson's face formula, single points and packets alike, within the
+    suite's tolerance of the scene's size."""
+    from hlbvh_cl.points import PointQuery
+    rng = np.random.default_rng(11)
+    count = 300
+    cells = np.stack(np.unravel_index(np.arange(count), (7, 7, 7)), 1)
+    base = rng.uniform(-1, 1, (count, 3)) + 10.0 * cells
+    along = rng.normal(0, 1, (count, 3))
+    a, b = base, base + along
+    c = base + rng.uniform(-0.5, 1.5, (count, 1)) * along + rng.normal(0, 1e-4, (count, 3))
+    vertices = np.stack([a, b, c], 1).reshape(-1, 3).astype(np.float32)
+    faces = np.arange(3 * count).reshape(-1, 3)
+    corners = vertices.reshape(-1, 3, 3).astype(np.float64)
+    # above and below each sliver's inside, where Ericson's face region lies
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    inside = np.einsum("rnk,nkd->rnd", rng.dirichlet(np.ones(3), (4, count)), corners)
+    points = (inside + rng.normal(0, 1.0, (4, count, 1)) * normal).reshape(-1, 3)
+    points = points.astype(np.float32)
+    expected = _edges_or_face_distance(points, corners[:, 0], corners[:, 1],
+                                       corners[:, 2]).min(axis=1)
+    scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(vertices, faces)], device=suite_device)
+    size = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
+    for packet_size in (1, 8):
+        got = PointQuery(scene._runtime, packet_size=packet_size).closest_points(
+            scene._built_tree(), points)
+        np.testing.assert_allclose(got.distance, expected, rtol=0, atol=DISTANCE_TOLERANCE * size,
+                                   err_msg=f"packets of {packet_size}")
+
+
 def test_multi_mesh_scene_geom_ids(suite_device):
     v1, f1 = icosphere(1)
     v2, f2 = icosphere(1, radius=0.5)
