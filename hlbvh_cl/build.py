@@ -30,6 +30,7 @@ from .widen import widen
 BUILDERS = ("hlbvh", "lbvh")
 STAGES = ("bounds", "morton", "sort", "radix_tree", "sah_top", "flatten", "widen")
 MAX_TRIANGLES = 2**30  # node indices are int32 (2n - 1 of them must fit)
+MAX_VERTICES = 2**31 - 1  # the meshes' faces are joined into one int32 index array
 
 
 @dataclass
@@ -75,6 +76,9 @@ def build_memory(vertex_count: int, triangle_count: int, morton_bits: int) -> di
 
 
 def check_fits(rt: Runtime, vertex_count: int, triangle_count: int, morton_bits: int) -> None:
+    if vertex_count > MAX_VERTICES:
+        raise ValueError(f"the scene has {vertex_count} vertices over all its meshes; at most "
+                         f"{MAX_VERTICES} fit the int32 face indices they are joined by")
     if triangle_count > MAX_TRIANGLES:
         raise ValueError(f"the scene has {triangle_count} triangles; at most {MAX_TRIANGLES} fit "
                          "int32 node indices")

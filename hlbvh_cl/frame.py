@@ -35,6 +35,20 @@ def largest_magnitude(points: np.ndarray) -> float:
     return float(np.abs(points).max()) if points.size else 0.0
 
 
+def used_vertices(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """The vertices some face references (the array itself when all are):
+    one that no face uses must not set a frame or a box, where a far one
+    would scale every triangle into float32's underflow."""
+    used = np.zeros(len(vertices), bool)
+    used[np.asarray(faces).ravel()] = True
+    return vertices if used.all() else vertices[used]
+
+
+def largest_used(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """largest_magnitude of used_vertices."""
+    return largest_magnitude(used_vertices(vertices, faces))
+
+
 def to_frame(points: np.ndarray, scale: float) -> np.ndarray:
     """float32 ``points`` times ``scale`` (exact; through float64, where a
     scale like 2^140 is representable).  The array itself when scale is 1."""

@@ -152,13 +152,20 @@ class MeshTrees:
         self.nodes = self.triangles = self.refs = self.dipoles = None
 
 
+def _mesh_boxes(meshes: list[Mesh]) -> tuple[np.ndarray, np.ndarray]:
+    """float64 (M, 3) lo and hi of each mesh's triangles (its used vertices)."""
+    used = [frame.used_vertices(m.vertices, m.faces) for m in meshes]
+    return (np.array([u.min(axis=0) for u in used], np.float64),
+            np.array([u.max(axis=0) for u in used], np.float64))
+
+
 def build_mesh_trees(rt: Runtime, meshes: list[Mesh], builder: str,
                      morton_bits: int) -> MeshTrees:
     """Each mesh's tree by the usual build, copied into shared buffers."""
     trees, stats, scales = [], [], []
     try:
         for mesh in meshes:
-            scale = frame.scale_for(frame.largest_magnitude(mesh.vertices))
+            scale = frame.scale_for(frame.largest_used(mesh.vertices, mesh.faces))
             geometry = Geometry.upload(rt, frame.to_frame(mesh.vertices, scale), mesh.faces,
                                        np.zeros(1, np.int32))
             tree, stat = build(rt, geometry, builder, morton_bits, scale)
@@ -197,9 +204,7 @@ def build_mesh_trees(rt: Runtime, meshes: list[Mesh], builder: str,
             tree.nodes = tree.triangles = tree.refs = tree.vertex_ids = None
             tree.released = True
     return MeshTrees(joined["nodes"], joined["triangles"], joined["refs"], node_base,
-                     triangle_base, np.array(scales), np.array([m.vertices.min(axis=0)
-                                                                for m in meshes], np.float64),
-                     np.array([m.vertices.max(axis=0) for m in meshes], np.float64),
+                     triangle_base, np.array(scales), *_mesh_boxes(meshes),
                      max(t.depth for t in trees), int(triangle_counts.sum()), stats,
                      [t.levels for t in trees])
 
@@ -251,6 +256,14 @@ def instance_records(transforms: np.ndarray, meshes: np.ndarray, masks: np.ndarr
     to_world = np.empty((len(meshes), 3, 4))
     to_world[:, :, :3] = linear * (top_scale / mesh_scale)[:, None, None]
     to_world[:, :, 3] = offset * top_scale
+    with np.errstate(over="ignore"):
+        held = (np.isfinite(to_mesh.astype(np.float32)).all(axis=(1, 2))
+                & np.isfinite(to_world.astype(np.float32)).all(axis=(1, 2)))
+    if not held.all():  # its instance would be silently missed by every query
+        k = int(np.flatnonzero(~held)[0])
+        raise ValueError(f"instance {k}'s transform stretches its mesh too unevenly for "
+                         "float32: its map into the mesh (or back), in the frames the scene is "
+                         "built in, overflows; scale its axes less far apart")
     records = np.zeros(len(meshes), layout.INSTANCE)
     records["to_mesh"] = to_mesh.reshape(-1, 12)
     records["to_world"] = to_world.reshape(-1, 12)

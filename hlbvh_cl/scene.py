@@ -107,7 +107,7 @@ class Scene:
         faces = np.concatenate([m.faces + np.int32(off) for m, off in
                                 zip(self.meshes, self._vertex_offsets[:-1])])
         vertices = np.concatenate([m.vertices for m in self.meshes])
-        self._largest = [frame.largest_magnitude(m.vertices) for m in self.meshes]
+        self._largest = [frame.largest_used(m.vertices, m.faces) for m in self.meshes]
         self._scale = frame.scale_for(max(self._largest))  # the tree's frame (hlbvh_cl.frame)
         self._geometry = Geometry.upload(rt, frame.to_frame(vertices, self._scale),
                                          faces, first_face)
@@ -255,7 +255,7 @@ class Scene:
                 self.rebuild()
                 return
             largest = list(self._largest)
-            largest[geom_id] = frame.largest_magnitude(moved.vertices)
+            largest[geom_id] = frame.largest_used(moved.vertices, moved.faces)
             # the meshes follow the device's vertices from here on, whatever fails below
             self.meshes[geom_id], self._largest = moved, largest
             tree = self._tree

@@ -277,9 +277,9 @@ inline float3 aabb_center(Aabb a)
 inline void load_triangle(__global const float *vertices, __global const int *faces, int face,
                           float3 *a, float3 *b, float3 *c)
 {
-    *a = load_vertex(vertices, faces[3 * face + 0]);
-    *b = load_vertex(vertices, faces[3 * face + 1]);
-    *c = load_vertex(vertices, faces[3 * face + 2]);
+    *a = load_vertex(vertices, faces[3 * (size_t)face + 0]);
+    *b = load_vertex(vertices, faces[3 * (size_t)face + 1]);
+    *c = load_vertex(vertices, faces[3 * (size_t)face + 2]);
 }
 
 /* Triangle j of the tree-ordered triangle array (an initializer, not

@@ -83,8 +83,10 @@ TRAVERSAL_INLINE __global const float* plane_row(__global const WideNode* node, 
 /* The closing step of a slab test (Kay & Kajiya 1986), one lane each, from
  * the distances to the near planes (nx, ny, nz) and far planes (fx, fy, fz):
  * the entry is the latest of tmin and the near ones, the exit the earliest
- * far one scaled by EXIT_SCALE.  Sets `entry` and gives whether [entry, exit]
- * meets [tmin, limit] (-1 or 0) per lane.  The GROW_HI / GROW_LO chains start
+ * far one.  Sets `entry` and gives whether [entry, exit] meets [tmin, limit]
+ * (-1 or 0) per lane, with the lesser of exit and limit scaled by
+ * EXIT_SCALE: the limit too, as the entry may round up past a hit exactly
+ * at the limit (a ray's tmax is inclusive).  The GROW_HI / GROW_LO chains start
  * from tmin and +inf, never NaN, so they ignore a 0 * inf = NaN distance
  * (origin on a slab plane, direction component 0): a ray lying in a face
  * plane counts as inside, as the closed box demands.  (fmax / fmin would do
@@ -95,8 +97,8 @@ TRAVERSAL_INLINE __global const float* plane_row(__global const WideNode* node, 
  * children (one ray, float_lanes) or rays (a packet at one child). */
 #define SLABS_MEET(type, nx, ny, nz, fx, fy, fz, tmin, limit, entry)                     \
     ((entry) = GROW_HI(GROW_HI(GROW_HI(tmin, nx), ny), nz),                             \
-     (entry) <= GROW_LO(GROW_LO(GROW_LO(GROW_LO((type)(INFINITY), fx), fy), fz) * EXIT_SCALE, \
-                        limit))
+     (entry) <= GROW_LO(GROW_LO(GROW_LO(GROW_LO((type)(INFINITY), fx), fy), fz), limit)   \
+                    * EXIT_SCALE)
 
 /* The slab test of ray or packet r, whose near_* offsets pick the entry
  * plane rows by the sign of the inverse direction (Williams et al. 2005; the

@@ -98,7 +98,7 @@ void lay_out_leaves(int n, __global const float *vertices, __global const int *f
     store_triangle(triangles, j, a, b, c);
     refs[j] = triangle_ref(mesh_first_face, mesh_count, face);
     for (int k = 0; k < 3; ++k) /* not vstore3(vload3()): see load_vertex */
-        vertex_ids[3 * j + k] = faces[3 * face + k];
+        vertex_ids[3 * (size_t)j + k] = faces[3 * (size_t)face + k];
     Aabb box = aabb_of_points(a, b, c);
     int node = (n - 1) + j;
     boxes[node] = box;

@@ -23,9 +23,11 @@ typedef struct {
 } StackItem;
 
 /* Pops the next stacked item that can still hold a hit within limit (items
- * whose box is entered beyond it are dropped); false when none is left. */
+ * whose box is entered beyond it are dropped, with SLABS_MEET's allowance
+ * for the entry's rounding); false when none is left. */
 TRAVERSAL_INLINE bool pop(const StackItem* stack, int* sp, float limit, int* index, uint* count)
 {
+    limit *= EXIT_SCALE;
     while (*sp > 0) {
         --*sp;
         if (stack[*sp].entry <= limit) {

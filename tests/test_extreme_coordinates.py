@@ -144,3 +144,24 @@ def test_the_frame_is_one_where_coordinates_are_ordinary():
     for largest in (1e-30, 3e-8, 2.0**24 * 1.01, 1e30, 3.4e38):
         scaled = largest * frame.scale_for(largest)
         assert 0.5 <= scaled < 1.0
+
+
+@pytest.mark.parametrize("far", [1e20, 1e30, 3e38])
+def test_a_vertex_no_face_uses_does_not_set_the_frame(far):
+    """A mesh with an unused vertex far out (a leftover of an export): the
+    frame follows the triangles, so the hits are those of the mesh without
+    it, from the start and after update_vertices moves the vertex out."""
+    rng = np.random.default_rng(12)
+    (v, f), _ = sphere_and_ground()
+    origins, directions = rays(200, rng)
+    expected = hlbvh_cl.Scene([hlbvh_cl.Mesh(v, f)]).intersect(origins, directions)
+    assert expected.hit.sum() > 100
+    with_far = np.vstack([v, [[far, -far, far]]])
+    scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(with_far, f)])
+    np.testing.assert_array_equal(scene.intersect(origins, directions).t, expected.t)
+    scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(np.vstack([v, [[0.0, 0.0, 0.0]]]), f)])
+    scene.update_vertices(0, with_far)
+    np.testing.assert_array_equal(scene.intersect(origins, directions).t, expected.t)
+    instanced = hlbvh_cl.Scene([hlbvh_cl.Mesh(with_far, f)],
+                               instances=[(0, np.hstack([np.eye(3), np.zeros((3, 1))]))])
+    np.testing.assert_array_equal(instanced.intersect(origins, directions).t, expected.t)

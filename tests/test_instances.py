@@ -355,6 +355,9 @@ def test_every_hit_and_counts_through_instances(small, suite_device):
     ([(0, np.full((3, 4), np.nan))], r"instances\[0\]\[1\] is not finite"),
     ([(0.5, np.eye(3, 4))], r"instances\[0\]\[0\] \(mesh_index\) must be an int"),
     ([np.eye(3, 4)], r"instances\[0\] must be a \(mesh_index, transform\) pair"),
+    # not singular, but its inverse overflows float32 in the scene's frames
+    ([(0, np.eye(3, 4)), (0, np.hstack([np.diag([1e20, 1.0, 1e-20]), np.zeros((3, 1))]))],
+     r"instance 1's transform stretches its mesh too unevenly for float32"),
 ])
 def test_bad_instances_are_named(small, suite_device, instances, message):
     with pytest.raises((ValueError, TypeError), match=message):

@@ -149,6 +149,32 @@ def test_tmax_cuts_off_hits(name):
     np.testing.assert_array_equal(hits.t[first.hit], first.t[first.hit])
 
 
+@pytest.mark.parametrize("instanced", [False, True])
+def test_a_hit_exactly_at_tmax_counts(instanced):
+    """[tmin, tmax] is closed: with tmax (and tmin) set to the t of each
+    ray's closest hit, every query still finds that hit.  The box entry
+    the walk compares with the limit rounds, and could round past it (on
+    the cube, about one ray in seven, before it was allowed for)."""
+    case = scene_case("cube")
+    scene = case.scene
+    if instanced:
+        scene = hlbvh_cl.Scene(case.scene.meshes,
+                               instances=[(0, np.hstack([np.eye(3), np.zeros((3, 1))]))])
+    origins, directions = random_rays(case, 2000, seed=8)
+    first = scene.intersect(origins, directions)
+    hit = first.hit
+    assert hit.sum() > 500
+    o, d, t = origins[hit], directions[hit], first.t[hit]
+    again = scene.intersect(o, d, tmax=t)
+    np.testing.assert_array_equal(again.t, t)
+    np.testing.assert_array_equal(again.prim_id, first.prim_id[hit])
+    assert scene.occluded(o, d, tmax=t).all()
+    assert (scene.count_intersections(o, d, tmax=t) >= 1).all()
+    assert (scene.count_intersections(o, d, tmin=t, tmax=t) >= 1).all()
+    found = scene.intersect_all(o, d, tmax=t)
+    np.testing.assert_array_equal(found.t[found.offsets[1:] - 1], t)
+
+
 @pytest.mark.parametrize("name", ["knight", "bunny_small", "teapot", "cube"])
 def test_rays_from_the_surface_with_tmin(name):
     case = scene_case(name)

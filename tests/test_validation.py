@@ -322,6 +322,22 @@ def test_scene_too_large_is_refused_before_upload(monkeypatch, meshes):
     assert uploads == []
 
 
+def test_more_vertices_than_int32_indices_reach_are_refused(monkeypatch, meshes):
+    """The meshes' faces are joined into one int32 index array: a scene
+    whose vertex total passes that raises, naming the count, before any
+    upload (the limit is lowered here: 2**31 vertices take 24 GiB)."""
+    from hlbvh_cl import build as build_module
+    from hlbvh_cl import scene as scene_module
+    uploads = []
+    monkeypatch.setattr(scene_module.Geometry, "upload", lambda *a: uploads.append(a))
+    monkeypatch.setattr(build_module, "MAX_VERTICES", 1000)
+    quad = Mesh(QUAD, QUAD_FACES)
+    big = Mesh(np.zeros((999, 3), np.float32), [[0, 1, 2]])
+    with pytest.raises(ValueError, match="the scene has 1003 vertices over all its meshes"):
+        Scene([quad, big])
+    assert uploads == []
+
+
 # -- renderer, cameras, lights -------------------------------------------------------
 
 @pytest.mark.parametrize("kwargs, error, words", [
