@@ -136,7 +136,7 @@ TRAVERSAL_INLINE bool winding_leaf(Found_point* s, const PointData* q,
  * left in the face region takes the nearest point of the three edges
  * (segment_point, exact for any triangle) when its face barycentrics are
  * out of range or NaN, and the nearer of that and the face point when the
- * triangle is a sliver (THIN_TRIANGLE), whose face formula cancels badly. */
+ * triangle is a sliver (thin_triangle), whose face formula cancels badly. */
 TRAVERSAL_INLINE float segment_point(float3 a, float3 ab, float3 p, float* w)
 {
     float length2 = DOT3(ab, ab);
