@@ -261,9 +261,9 @@ def instance_records(transforms: np.ndarray, meshes: np.ndarray, masks: np.ndarr
                 & np.isfinite(to_world.astype(np.float32)).all(axis=(1, 2)))
     if not held.all():  # its instance would be silently missed by every query
         k = int(np.flatnonzero(~held)[0])
-        raise ValueError(f"instance {k}'s transform stretches its mesh too unevenly for "
-                         "float32: its map into the mesh (or back), in the frames the scene is "
-                         "built in, overflows; scale its axes less far apart")
+        raise ValueError(f"instance {k}'s transform does not fit float32: its map into the "
+                         "mesh (or back), in the frames the scene is built in, overflows; scale "
+                         "its axes less far apart, or move it less far")
     records = np.zeros(len(meshes), layout.INSTANCE)
     records["to_mesh"] = to_mesh.reshape(-1, 12)
     records["to_world"] = to_world.reshape(-1, 12)

@@ -26,9 +26,9 @@ from .query import RayQuery
 from .refit import refit
 
 
-def _as_meshes(meshes) -> list[Mesh]:
+def _as_meshes(meshes) -> tuple[Mesh, ...]:
     if isinstance(meshes, Mesh):
-        return [meshes]
+        return (meshes,)
     if not isinstance(meshes, Sequence) or isinstance(meshes, (str, bytes)):
         raise TypeError(f"meshes must be a Mesh or a sequence of Mesh, got {type(meshes).__name__}")
     out = list(meshes)
@@ -37,15 +37,16 @@ def _as_meshes(meshes) -> list[Mesh]:
     for i, mesh in enumerate(out):
         if not isinstance(mesh, Mesh):
             raise TypeError(f"meshes[{i}] must be a hlbvh_cl.Mesh, got {type(mesh).__name__}")
-    return out
+    return tuple(out)
 
 
 class Scene:
     """One BVH over a list of meshes on an OpenCL device, or, with
     ``instances``, a two-level scene of those meshes placed by affine maps.
 
-    ``geom_id`` of a triangle is the index of its mesh in ``meshes``;
-    ``prim_id`` its face index within that mesh.
+    ``geom_id`` of a triangle is the index of its mesh in ``meshes`` (a
+    tuple: update_vertices is the way to change one); ``prim_id`` its face
+    index within that mesh.
 
     ``instances``: (mesh_index, transform) pairs, each transform a (3, 4) or
     (4, 4) affine map from the mesh's coordinates to the world's (mirrors and
@@ -78,7 +79,7 @@ class Scene:
         # what pickling ships (hlbvh_cl.travel): the device as asked for
         self._device_spec = device if device is None or isinstance(device, str) else rt.device.id
         self._spec = None
-        self._cache_key = None
+        self._shared = False  # a view of a travelled scene's trees (_view)
         self._instanced = instances is not None
         if self._instanced:
             instance_meshes, transforms = check_instances(instances, len(self.meshes))
@@ -134,6 +135,8 @@ class Scene:
         the new one reuses its buffers and the last build's scratch
         (hlbvh_cl.pool)."""
         with self._lock:
+            if self._own():  # a view builds its own trees: that is the rebuild
+                return
             if self._two_level is not None:
                 # the top tree points into the meshes' trees: gone before they go
                 self._drop_tree()
@@ -160,6 +163,20 @@ class Scene:
                 self._tree, self._stats = build(rt, self._geometry, self.builder,
                                                 self.morton_bits, self._scale)
 
+    def _build_or_undo(self, undo, meshes: bool = False) -> None:
+        """The tree over changed content (its meshes' trees too with
+        `meshes`), or when the build rejects that content (a ValueError,
+        such as a map that overflows float32 in the built frames) the tree
+        over the content as it was, `undo` restoring it, and the error
+        raised: a rejected change leaves the scene as it was."""
+        build = self.rebuild if meshes else self._build
+        try:
+            build()
+        except ValueError:
+            undo()
+            build()
+            raise
+
     def __reduce__(self):
         """Pickles as its SceneSpec (hlbvh_cl.travel): meshes, instances, masks,
         options and device spec; it is built again on arrival, once per
@@ -184,9 +201,35 @@ class Scene:
             return self._spec
 
     def _changing(self) -> None:
-        """Before the scene's content changes: what it pickled as no longer holds."""
-        travel.forget(self)
+        """Before the scene's content changes: what it pickled as no longer
+        holds, and a view gets trees of its own."""
+        self._own()
         self._spec = None
+
+    def _view(self) -> Scene:
+        """Another Scene object over this one's trees (hlbvh_cl.travel hands
+        these out): it shares them until it changes, then builds its own
+        first (_own), so that no change reaches another holder."""
+        view = object.__new__(type(self))
+        view.__dict__.update(self.__dict__)
+        view._lock = threading.RLock()
+        view._query = view._points = view._all_hits = None  # buffers of its own
+        view._shared = True
+        return view
+
+    def _own(self) -> bool:
+        """Before a view changes or rebuilds: its own scene built from the
+        content it shares (copy on write); true when one was built.  The
+        lock stays, held by the caller."""
+        with self._lock:
+            if not self._shared:
+                return False
+            args, kwargs = self._travel_spec().arguments()
+            own = dict(type(self)(*args, **kwargs).__dict__)
+            del own["_lock"]
+            self.__dict__.update(own)
+            weakref.finalize(self, self._runtime.pool.clear)
+            return True
 
     @property
     def transforms(self) -> np.ndarray | None:
@@ -219,13 +262,18 @@ class Scene:
             k = int(np.flatnonzero(outside)[0])
             raise ValueError(f"instance_ids[{k}] = {int(ids[k])} is out of range: the scene has "
                              f"{count} instance(s)")
+        first = np.unique(ids, return_index=True)[1]
+        if len(first) < len(ids):  # which of two maps would hold is no choice to make silently
+            k = int(np.setdiff1d(np.arange(len(ids)), first)[0])
+            raise ValueError(f"instance_ids[{k}] = {int(ids[k])} is given twice")
         maps = check_transforms(array, lambda k: f"transforms[{k}]")
         if len(maps) != len(ids):
             raise ValueError(f"transforms has {len(maps)} maps for {len(ids)} instance_ids")
         with self._lock:
             self._changing()
+            previous = self._two_level.transforms.copy()
             self._two_level.transforms[ids] = maps
-            self._build()
+            self._build_or_undo(lambda: setattr(self._two_level, "transforms", previous))
 
     def update_vertices(self, geom_id: int, vertices) -> None:
         """Replace mesh ``geom_id``'s vertex positions (same count) and refit
@@ -246,18 +294,19 @@ class Scene:
         moved = Mesh(positions, old.faces, name=old.name)
         rt = self._runtime
         started = time.perf_counter()
-        # one lock throughout: a pickle between forgetting the old content's
+        # one lock throughout: a pickle between dropping the old content's
         # spec and changing the meshes would describe the old content
         with self._lock:
             self._changing()
+            meshes = self.meshes[:geom_id] + (moved,) + self.meshes[geom_id + 1:]
             if self._two_level is not None:  # the mesh's own tree is built anew, then the top
-                self.meshes[geom_id] = moved
-                self.rebuild()
+                previous, self.meshes = self.meshes, meshes
+                self._build_or_undo(lambda: setattr(self, "meshes", previous), meshes=True)
                 return
             largest = list(self._largest)
             largest[geom_id] = frame.largest_used(moved.vertices, moved.faces)
             # the meshes follow the device's vertices from here on, whatever fails below
-            self.meshes[geom_id], self._largest = moved, largest
+            self.meshes, self._largest = meshes, largest
             tree = self._tree
             if tree is None or frame.scale_for(max(largest) * self._scale) != 1.0:
                 # out of this frame (or no tree since a failed rebuild): build anew

@@ -6,9 +6,11 @@ A Scene pickles as a SceneSpec: its meshes (arrays and names), its instances
 the device it was asked for (the spec as the caller gave it, never OpenCL
 objects).  Unpickling looks the spec's content key up in the cache and
 builds the Scene only when it is not there, so a worker of a cluster
-(hlbvh_cl.dask) that runs a thousand tasks on one scene builds it once.  A
-cached Scene that is then changed (update_vertices, set_transforms) leaves
-the cache, so no later task gets the changed one for the original.
+(hlbvh_cl.dask) that runs a thousand tasks on one scene builds it once.
+Each unpickling gets a Scene object of its own, a view over the cached
+scene's trees (Scene._view): a view that changes (update_vertices,
+set_transforms, rebuild) first builds trees of its own, so no change
+reaches the cache or another holder, as with any copy.
 """
 from __future__ import annotations
 
@@ -72,38 +74,27 @@ _building: dict = {}
 
 
 def restore(spec: SceneSpec, scene_class):
-    """The Scene of ``spec``: the cached one, or a new one built (by
-    ``scene_class``) and cached.  Concurrent restores of one spec build it
-    once (the others wait)."""
+    """A view (Scene._view) of the Scene of ``spec``: the cached one, or a
+    new one built (by ``scene_class``) and cached.  Concurrent restores of
+    one spec build it once (the others wait).  The cached scene itself is
+    never handed out, so it never changes."""
     with _cache_lock:
         if spec.key in _cache:
             _cache.move_to_end(spec.key)
-            return _cache[spec.key]
+            return _cache[spec.key]._view()
         lock = _building.setdefault(spec.key, threading.Lock())
     with lock:
         with _cache_lock:
             if spec.key in _cache:
-                return _cache[spec.key]
+                return _cache[spec.key]._view()
         args, kwargs = spec.arguments()
         scene = scene_class(*args, **kwargs)
-        scene._cache_key = spec.key
         with _cache_lock:
             _cache[spec.key] = scene
             _building.pop(spec.key, None)
             while len(_cache) > CACHE_SIZE:
                 _cache.popitem(last=False)
-        return scene
-
-
-def forget(scene) -> None:
-    """Take a scene that is about to change out of the cache."""
-    key = getattr(scene, "_cache_key", None)
-    if key is None:
-        return
-    with _cache_lock:
-        if _cache.get(key) is scene:
-            del _cache[key]
-    scene._cache_key = None
+        return scene._view()
 
 
 def cached_count() -> int:

@@ -357,7 +357,7 @@ def test_every_hit_and_counts_through_instances(small, suite_device):
     ([np.eye(3, 4)], r"instances\[0\] must be a \(mesh_index, transform\) pair"),
     # not singular, but its inverse overflows float32 in the scene's frames
     ([(0, np.eye(3, 4)), (0, np.hstack([np.diag([1e20, 1.0, 1e-20]), np.zeros((3, 1))]))],
-     r"instance 1's transform stretches its mesh too unevenly for float32"),
+     r"instance 1's transform does not fit float32"),
 ])
 def test_bad_instances_are_named(small, suite_device, instances, message):
     with pytest.raises((ValueError, TypeError), match=message):
@@ -379,8 +379,36 @@ def test_bad_masks_and_updates_are_named(small, suite_device):
         scene.set_transforms([3], np.eye(3, 4)[None])
     with pytest.raises(ValueError, match=r"transforms\[0\] is singular"):
         scene.set_transforms([0], np.zeros((1, 3, 4)))
+    with pytest.raises(ValueError, match=r"instance_ids\[1\] = 0 is given twice"):
+        scene.set_transforms([0, 0, 0], np.tile(np.eye(3, 4), (3, 1, 1)))
     hits = scene.intersect(np.zeros((1, 3)) - 5, np.ones((1, 3)))
     assert hits.instance_id[0] == 0  # the scene still holds its instance
+
+
+@pytest.mark.parametrize("change", ["set_transforms", "update_vertices"])
+def test_a_change_the_build_rejects_leaves_the_scene_as_it_was(small, suite_device, change):
+    """Maps and vertices that pass the checks but overflow float32 in the
+    frames the scene is built in are refused by the build; the scene keeps
+    its content and its tree."""
+    scene = hlbvh_cl.Scene(small, device=suite_device,
+                           instances=[(0, np.eye(3, 4)), (1, np.eye(3, 4))])
+    rng = np.random.default_rng(5)
+    origins, directions = _rays_at_centroids(rng, small[0].vertices, small[0].faces, 500)
+    before = scene.intersect(origins, directions)
+    assert before.hit.sum() > 100
+    with pytest.raises(ValueError, match="instance 1's transform does not fit float32"):
+        if change == "set_transforms":
+            scene.set_transforms(1, np.hstack([np.eye(3), [[1e39], [0], [0]]]))
+        else:  # mesh 1 grown to 1e30 under instance 1's scale of 1e10: beyond float32
+            scene.set_transforms(1, np.hstack([np.eye(3) * 1e10, np.zeros((3, 1))]))
+            scene.update_vertices(1, small[1].vertices * np.float32(1e30))
+    if change == "update_vertices":
+        np.testing.assert_array_equal(scene.meshes[1].vertices, small[1].vertices)
+        scene.set_transforms(1, np.eye(3, 4))
+    np.testing.assert_array_equal(scene.transforms, np.tile(np.eye(3, 4), (2, 1, 1)))
+    after = scene.intersect(origins, directions)
+    for field in ("t", "prim_id", "geom_id", "instance_id"):
+        np.testing.assert_array_equal(getattr(after, field), getattr(before, field))
 
 
 # -- point queries ---------------------------------------------------------------

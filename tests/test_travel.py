@@ -3,6 +3,7 @@ arrives with identical hits, is built once per process however many copies
 arrive, and a changed scene leaves the cache."""
 from __future__ import annotations
 
+import copy
 import pickle
 
 import numpy as np
@@ -82,19 +83,52 @@ def test_a_moved_scene_travels_as_moved(suite_device):
     np.testing.assert_array_equal(back.transforms, instanced.transforms)
 
 
-def test_a_process_builds_a_scene_once_and_forgets_a_changed_one(suite_device):
+def _down(scene):
+    """t of a ray straight down the z axis onto the scene's first mesh."""
+    return float(scene.intersect([0.0, 0.0, 5.0], [0.0, 0.0, -1.0]).t)
+
+
+def test_a_process_builds_a_scene_once_and_each_copy_changes_alone(suite_device):
     travel.clear()
     scene = hlbvh_cl.Scene([_sphere()], device=suite_device,
                            instances=[(0, np.eye(3, 4))])
     data = pickle.dumps(scene)
     first, second = pickle.loads(data), pickle.loads(data)
-    assert first is second and travel.cached_count() == 1
-    first.set_transforms([0], np.hstack([np.eye(3), [[1], [0], [0]]])[None])
-    assert travel.cached_count() == 0
-    third = pickle.loads(data)
-    assert third is not first
+    assert first is not second and travel.cached_count() == 1  # two objects, one build
+    first.set_transforms([0], np.hstack([np.eye(3), [[0], [0], [-1]]])[None])
+    np.testing.assert_array_equal(second.transforms, np.eye(3, 4)[None])
+    assert _down(first) == pytest.approx(5.0, abs=1e-5)
+    assert _down(second) == pytest.approx(4.0, abs=1e-5)
+    third = pickle.loads(data)  # the cached scene never changed
     np.testing.assert_array_equal(third.transforms, np.eye(3, 4)[None])
+    assert _down(third) == pytest.approx(4.0, abs=1e-5) and travel.cached_count() == 1
     travel.clear()
+
+
+@pytest.mark.parametrize("change", ["update_vertices", "rebuild"])
+def test_copies_of_a_scene_are_independent(suite_device, change):
+    travel.clear()
+    scene = hlbvh_cl.Scene([_sphere(), _box()], device=suite_device)
+    a, b = copy.deepcopy(scene), copy.copy(scene)
+    assert len({id(scene), id(a), id(b)}) == 3
+    if change == "update_vertices":
+        a.update_vertices(0, scene.meshes[0].vertices + np.float32([0, 0, -1]))
+        assert _down(a) == pytest.approx(4.75, abs=1e-5)  # the box's top now
+    else:
+        a.rebuild()  # its own trees: the ones b shares are not released
+        assert _down(a) == pytest.approx(4.0, abs=1e-5)
+    for other in (scene, b, pickle.loads(pickle.dumps(scene))):
+        assert _down(other) == pytest.approx(4.0, abs=1e-5)
+        np.testing.assert_array_equal(other.meshes[0].vertices, scene.meshes[0].vertices)
+    travel.clear()
+
+
+def test_meshes_cannot_be_replaced_behind_the_scene(suite_device):
+    scene = hlbvh_cl.Scene([_box()], device=suite_device)
+    with pytest.raises(TypeError):
+        scene.meshes[0] = _sphere()
+    with pytest.raises(AttributeError):
+        scene.meshes.append(_sphere())
 
 
 @pytest.mark.parametrize("device", [None, "pocl"])
