@@ -209,7 +209,7 @@ def main(argv=None) -> int:
     info.add_argument("--device", default=None, help="device id, index or name (default: auto)")
     info.add_argument("--builder", default="hlbvh", choices=["hlbvh", "lbvh"])
     info.add_argument("--morton-bits", type=int, default=30, choices=[30, 63])
-    info.add_argument("--repeat", type=int, default=2,
+    info.add_argument("--repeat", type=_integer_in(1, 1000), default=2,
                       help="builds to run; the stats are the last one's (default 2)")
     info.set_defaults(run=_cmd_info)
     render = sub.add_parser("render", help="render a scene file to an image (PNG, JPEG, ...)")
@@ -236,13 +236,15 @@ def main(argv=None) -> int:
         return 2
     # Some drivers (Intel's) log every build, and pyopencl turns the log into
     # a warning: noise for the command's user, who sees real build errors anyway.
-    warnings.simplefilter("ignore", cl.CompilerWarning)
-    try:
-        return args.run(args)
-    except (ValueError, TypeError, FileNotFoundError, DeviceMemoryError, KernelBuildError,
-            RuntimeError) as error:
-        print(f"hlbvh-cl: error: {error}", file=sys.stderr)
-        return 2
+    # (Within this call only: main() may be called from Python.)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", cl.CompilerWarning)
+        try:
+            return args.run(args)
+        except (ValueError, TypeError, OSError, DeviceMemoryError, KernelBuildError,
+                RuntimeError) as error:  # OSError: files (missing, unreadable, unwritable)
+            print(f"hlbvh-cl: error: {error}", file=sys.stderr)
+            return 2
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ import errno
 import gzip
 import io
 import os
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -161,6 +162,8 @@ class Mesh:
         """
         path = Path(os.fspath(path))
         file_type, gzipped = _file_type(path)
+        if path.is_dir():
+            raise ValueError(f"{path}: is a folder, not a mesh file")
         if not path.is_file():
             raise FileNotFoundError(errno.ENOENT, "mesh file not found", str(path))
         vertices, faces = _read_with_trimesh(path, file_type, gzipped)
@@ -194,7 +197,7 @@ def _read_with_trimesh(path: Path, file_type: str, gzipped: bool) -> tuple[np.nd
                 source = io.BytesIO(compressed.read())
         else:
             source = io.BytesIO(path.read_bytes())
-    except (OSError, EOFError) as error:
+    except (OSError, EOFError, zlib.error) as error:  # zlib: a corrupt .gz
         raise ValueError(f"{path}: cannot read the file: {error}") from None
     try:
         scene = trimesh.load_scene(source, file_type=file_type, process=False)

@@ -148,8 +148,8 @@ class PointQuery:
                for name, (dtype, n) in CLOSEST_FIELDS.items()}
         if count and self._usable(tree):
             framed = self._into_frame(points, shape, tree)
-            with np.errstate(over="ignore"):
-                max_d2 = np.float32((max_distance * tree.scale) ** 2)
+            with np.errstate(over="ignore"):  # numpy floats: a Python float would raise
+                max_d2 = np.float32((np.float64(max_distance) * tree.scale) ** 2)
             kernel, packet = self._kernel(tree, "closest_points")
 
             def launch(n, b, slots, indexed):

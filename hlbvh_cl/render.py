@@ -116,6 +116,34 @@ def _vector3(name: str, value) -> np.ndarray:
     return array
 
 
+def unit(vector: np.ndarray) -> np.ndarray | None:
+    """A finite float64 vector's direction, scaled to its largest component
+    first so that the length neither overflows (1e300) nor underflows; None
+    for the zero vector."""
+    largest = np.abs(vector).max()
+    if not largest > 0:
+        return None
+    vector = vector / largest
+    return vector / np.linalg.norm(vector)
+
+
+def view_problem(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> tuple[str, str] | None:
+    """What stops a camera at finite ``eye`` looking at ``target`` with ``up``
+    from making rays, as (field, what is wrong); None when nothing does.
+    Camera and scene files (scenefile.py) both ask."""
+    largest = float(np.finfo(np.float32).max)
+    for name, point in (("eye", eye), ("target", target)):
+        if np.abs(point).max() > largest:
+            return name, f"{point.tolist()} does not fit float32, as the rays must"
+    forward = unit(target - eye)
+    if forward is None:
+        return "target", f"{target.tolist()} equals eye: the camera looks nowhere"
+    up_unit = unit(up)
+    if up_unit is None or not np.linalg.norm(np.cross(forward, up_unit)) > 1e-6:
+        return "up", f"{up.tolist()} is zero or parallel to the view direction target - eye"
+    return None
+
+
 # -- light ----------------------------------------------------------------------
 
 @dataclass(frozen=True)
@@ -129,11 +157,10 @@ class Light:
     ambient: float = 0.15
 
     def __post_init__(self):
-        direction = _vector3("light.direction", self.direction)
-        length = np.linalg.norm(direction)
-        if not length > 0:
+        direction = unit(_vector3("light.direction", self.direction))
+        if direction is None:
             raise ValueError("light.direction is the zero vector")
-        object.__setattr__(self, "direction", tuple(float(x) for x in direction / length))
+        object.__setattr__(self, "direction", tuple(float(x) for x in direction))
         object.__setattr__(self, "intensity", _number("light.intensity", self.intensity, 0.0))
         object.__setattr__(self, "ambient", _number("light.ambient", self.ambient, 0.0, 1.0))
 
@@ -160,23 +187,17 @@ class Camera:
         fov = float(self.fov_deg)
         if not 0.0 < fov < 180.0:
             raise ValueError(f"fov_deg must be > 0 and < 180, got {self.fov_deg}")
-        forward = target - eye
-        if not np.linalg.norm(forward) > 0:
-            raise ValueError(f"target {target.tolist()} equals eye: the camera looks nowhere")
-        side = np.cross(forward / np.linalg.norm(forward), up)
-        if not np.linalg.norm(side) > 1e-6 * max(np.linalg.norm(up), 1e-300):
-            raise ValueError(f"up {up.tolist()} is zero or parallel to the view direction "
-                             f"target - eye")
+        problem = view_problem(eye, target, up)
+        if problem is not None:
+            raise ValueError(" ".join(problem))
         for name, value in (("eye", eye), ("target", target), ("up", up)):
             object.__setattr__(self, name, tuple(float(x) for x in value))
         object.__setattr__(self, "fov_deg", fov)
 
     def basis(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """forward, right, true_up: unit vectors (float64)."""
-        forward = np.subtract(self.target, self.eye)
-        forward /= np.linalg.norm(forward)
-        right = np.cross(forward, self.up)
-        right /= np.linalg.norm(right)
+        forward = unit(np.subtract(self.target, self.eye))
+        right = unit(np.cross(forward, unit(np.asarray(self.up, np.float64))))
         return forward, right, np.cross(right, forward)
 
     def pinhole(self, width: int, height: int) -> np.ndarray:

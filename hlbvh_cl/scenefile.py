@@ -99,8 +99,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .instances import check_transforms
 from .mesh import Mesh
-from .render import Camera, Light, Renderer
+from .render import Camera, Light, Renderer, unit, view_problem
 from .scene import Scene
 from .split import split_edges
 
@@ -362,6 +363,9 @@ def read(path) -> SceneDescription:
         raise SceneFileError(f"{reader.label}: TOML syntax error: {error}") from None
     except UnicodeDecodeError as error:
         raise SceneFileError(f"{reader.label}: not UTF-8 text: {error}") from None
+    except (IsADirectoryError, PermissionError) as error:
+        raise SceneFileError(f"{reader.label}: cannot read the scene file: "
+                             f"{error.strerror}") from None
 
     reader.table(data, "", _TOP_KEYS)
     for required in ("render", "camera", "mesh"):
@@ -391,7 +395,7 @@ def read(path) -> SceneDescription:
     if ground_spec:
         lo = np.min([lo for lo, _ in boxes], axis=0)
         hi = np.max([hi for _, hi in boxes], axis=0)
-        ground = _make_ground(ground_spec, lo, hi)
+        ground = _make_ground(reader, ground_spec, lo, hi)
     return SceneDescription(path=path, width=width, height=height, camera=camera, light=light,
                             meshes=meshes, ground=ground, instances=instances)
 
@@ -406,26 +410,21 @@ def _read_camera(reader: _Reader, value) -> Camera:
     up = reader.vector3(table.get("up", [0.0, 1.0, 0.0]), "camera.up")
     fov = reader.number(table.get("fov_deg", Camera.fov_deg), "camera.fov_deg", 0.0, 180.0,
                         low_open=True, high_open=True)
-    forward = np.subtract(target, eye)
-    if not np.any(forward):
-        raise reader.error("camera.target", "equals camera.eye: the camera looks nowhere")
-    side = np.cross(forward / np.linalg.norm(forward), up)
-    if not np.linalg.norm(side) > 1e-6 * max(np.linalg.norm(up), 1e-300):
-        raise reader.error("camera.up", f"{list(up)} is zero or parallel to the view direction "
-                                        f"target - eye")
+    problem = view_problem(*(np.array(v, np.float64) for v in (eye, target, up)))
+    if problem is not None:
+        raise reader.error(f"camera.{problem[0]}", problem[1])
     return Camera(eye=eye, target=target, up=up, fov_deg=fov)
 
 
 def _read_light(reader: _Reader, value) -> Light:
     table = reader.table(value, "light", _LIGHT_KEYS)
-    direction = np.array(reader.vector3(table.get("direction", [1.0, 2.0, 1.0]),
-                                        "light.direction"))
-    length = np.linalg.norm(direction)
-    if not length > 0:
+    direction = unit(np.array(reader.vector3(table.get("direction", [1.0, 2.0, 1.0]),
+                                             "light.direction"), np.float64))
+    if direction is None:
         raise reader.error("light.direction", "is the zero vector")
     intensity = reader.number(table.get("intensity", 1.0), "light.intensity", low=0.0)
     ambient = reader.number(table.get("ambient", 0.15), "light.ambient", low=0.0, high=1.0)
-    return Light(direction=tuple(float(x) for x in direction / length), intensity=intensity,
+    return Light(direction=tuple(float(x) for x in direction), intensity=intensity,
                  ambient=ambient)
 
 
@@ -620,8 +619,9 @@ def _load_mesh(reader: _Reader, spec: _MeshSpec, ground_y: float, step) -> MeshE
         points[:, 1] += ground_y - points[used, 1].min()
     try:
         transformed = Mesh(points, faces, name=mesh.name)
-    except ValueError as error:  # e.g. a scale that overflows float32
-        raise reader.error(f"{spec.key}.scale", f"the transformed mesh is invalid: {error}") from None
+    except ValueError as error:  # e.g. a scale, height or offset that overflows float32
+        raise reader.error(spec.key, "its scale, rotate_deg, fit_height and translate give an "
+                                     f"invalid mesh: {error}") from None
     step(spec, "done")
     return MeshEntry(mesh=transformed, color=spec.color, path=spec.path, split=spec.split)
 
@@ -655,11 +655,16 @@ def _place(reader: _Reader, spec: _InstanceSpec, mesh: Mesh, ground_y: float
     box = copies_lo.min(axis=0), copies_hi.max(axis=0)
     reach = max(np.abs(box[0]).max(), np.abs(box[1]).max())
     if not reach < np.finfo(np.float32).max:
-        raise reader.error(f"{spec.key}.scale", f"the copies reach {reach:.3g}, beyond float32")
+        raise reader.error(spec.key, f"its scale and positions put copies at {reach:.3g}, "
+                                     "beyond float32")
+    try:  # the Scene's own check (a scale of 1e-300 is singular)
+        check_transforms(transforms, lambda k: f"copy {k}'s transform")
+    except ValueError as error:
+        raise reader.error(spec.key, str(error)) from None
     return InstanceEntry(mesh=spec.mesh, transforms=transforms), box
 
 
-def _make_ground(spec: dict, lo: np.ndarray, hi: np.ndarray) -> Ground:
+def _make_ground(reader: _Reader, spec: dict, lo: np.ndarray, hi: np.ndarray) -> Ground:
     """The ground square under the box (lo, hi) of what is drawn."""
     y = float(lo[1]) if spec["y"] is None else spec["y"]
     size = spec["size"]
@@ -672,4 +677,9 @@ def _make_ground(spec: dict, lo: np.ndarray, hi: np.ndarray) -> Ground:
     vertices = [[cx - h, y, cz - h], [cx + h, y, cz - h], [cx + h, y, cz + h], [cx - h, y, cz + h]]
     # Wound so that cross(v1 - v0, v2 - v0) points to +y.
     faces = [[0, 2, 1], [0, 3, 2]]
-    return Ground(mesh=Mesh(vertices, faces, name="ground"), y=y, size=size, color=spec["color"])
+    try:
+        mesh = Mesh(vertices, faces, name="ground")
+    except ValueError as error:  # a size or height beyond float32
+        raise reader.error("ground", f"its size {size:.3g} at y {y:.3g} gives an invalid "
+                                     f"square: {error}") from None
+    return Ground(mesh=mesh, y=y, size=size, color=spec["color"])

@@ -1,6 +1,7 @@
 """Smoke tests of the hlbvh-cl command."""
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 
@@ -25,6 +26,18 @@ def test_user_mistakes_give_one_line_and_exit_2(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.startswith("hlbvh-cl: error:") and "missing.toml" in err and "\n" not in err
     assert main(["info", str(SCENES / "bunny_small.toml"), "--device", "nope"]) == 2
+    assert main(["info", str(SCENES / "bunny_small.toml"), "--repeat", "0"]) == 2
+    capsys.readouterr()
+    (tmp_path / "folder.toml").mkdir()
+    assert main(["render", str(tmp_path / "folder.toml"), "-o", str(tmp_path / "x.png")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("hlbvh-cl: error:") and "folder.toml" in err and "\n" not in err
+
+
+def test_main_leaves_the_callers_warning_filters_alone():
+    before = list(warnings.filters)
+    assert main(["info", str(SCENES / "bunny_small.toml"), "--repeat", "1"]) == 0
+    assert warnings.filters == before
 
 
 def test_console_script_runs(suite_device):

@@ -129,6 +129,9 @@ def test_far_points_and_max_distance(sphere_scene):
         assert_closest_matches(sphere_scene, cut, points, max_distance, size=size)
         assert 0 < cut.found.sum() < len(points) or max_distance == 0.0
     assert not sphere_scene.closest_points(points[:3], max_distance=10.0).found.any()
+    # a limit whose square overflows float64 is no limit
+    huge = sphere_scene.closest_points(points, max_distance=1e200)
+    np.testing.assert_array_equal(huge.distance, got.distance)
 
 
 @settings(max_examples=25, deadline=None)

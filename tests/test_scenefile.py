@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from hlbvh_cl import Camera
 from hlbvh_cl.scenefile import SceneFileError, read
 
 SCENES = Path(__file__).resolve().parent.parent / "scenes"
@@ -218,6 +219,8 @@ MESH = f'\n[[mesh]]\npath = "{KNIGHT}"\n'
     (BASE + "fov_deg = 180.0\n" + MESH, "camera.fov_deg", "< 180"),
     (BASE + "up = [0.0, -1.0, -10.0]\n" + MESH, "camera.up", "parallel"),
     (BASE.replace("[0.0, 0.5, 0.0]", "[0.0, 1.0, 5.0]") + MESH, "camera.target", "equals"),
+    (BASE.replace("eye = [0.0, 1.0, 5.0]", "eye = [0.0, 1.0, 1e39]") + MESH, "camera.eye",
+     "does not fit float32"),
     (BASE + MESH + "color = [1.5, 0.0, 0.0]\n", "mesh[0].color[0]", "<= 1"),
     (BASE + MESH + "scale = -1.0\n", "mesh[0].scale", "> 0"),
     (BASE + MESH + "scale = [1.0, 0.0, 1.0]\n", "mesh[0].scale[1]", "> 0"),
@@ -229,6 +232,9 @@ MESH = f'\n[[mesh]]\npath = "{KNIGHT}"\n'
     (BASE + '[[mesh]]\npath = 3\n', "mesh[0].path", "file name"),
     (BASE + '[ground]\ny = "low"\n' + MESH, "ground.y", '"auto"'),
     (BASE + '[ground]\nsize = 0.0\n' + MESH, "ground.size", "> 0"),
+    (BASE + '[ground]\nsize = 1e300\n' + MESH, "ground", "its size 1e+300 at y"),
+    (BASE + '[ground]\ny = 1e39\n' + MESH, "ground", "at y 1e+39 gives an invalid square"),
+    (BASE + MESH + "translate = [0.0, 1e39, 0.0]\n", "mesh[0]", "fit_height and translate give"),
     (BASE + '[ground]\nheight = 1.0\n' + MESH, "ground.height", "unknown key"),
     (BASE + '[light]\ndirection = [0.0, 0.0, 0.0]\n' + MESH, "light.direction", "zero"),
     (BASE + '[light]\nambient = 1.5\n' + MESH, "light.ambient", "<= 1"),
@@ -251,6 +257,15 @@ def test_errors_name_the_file_and_the_key(tmp_path, text, key, words):
     assert "broken_scene.toml" in message
     assert f": {key}: " in message
     assert words in message
+
+
+def test_huge_but_finite_directions_are_normalised(tmp_path):
+    """The length of (0, 1e300, 0) overflows float64: the direction does not."""
+    text = BASE + "up = [0.0, 1e300, 0.0]\n[light]\ndirection = [0.0, 0.0, -1e300]\n" + MESH
+    scene = read(write(tmp_path, text))
+    assert scene.light.direction == (0.0, 0.0, -1.0)
+    np.testing.assert_allclose(scene.camera.basis()[2], Camera(**{
+        "eye": scene.camera.eye, "target": scene.camera.target}).basis()[2])
 
 
 def test_toml_syntax_error_gives_the_line(tmp_path):

@@ -218,6 +218,9 @@ def test_bad_faces(faces, error, words):
 def test_missing_file(tmp_path):
     with pytest.raises(FileNotFoundError, match="nothing.ply"):
         Mesh.load(tmp_path / "nothing.ply")
+    (tmp_path / "folder.ply").mkdir()
+    with pytest.raises(ValueError, match=r"folder\.ply: is a folder, not a mesh file"):
+        Mesh.load(tmp_path / "folder.ply")
 
 
 @pytest.mark.parametrize("name", ["mesh.xyz", "mesh", "mesh.gz", "mesh.xyz.gz"])
@@ -233,6 +236,7 @@ def test_unknown_extension(tmp_path, name):
                    b"element face 3\nproperty list uchar int vertex_indices\nend_header\n\x01\x02"),
     ("broken.glb", b"glTF\x02\x00\x00\x00garbage"),
     ("broken.ply.gz", b"this is not gzip data"),
+    ("deflate.ply.gz", b"\x1f\x8b\x08\x00\x00\x00\x00\x00\x00\xffgarbage!!"),  # zlib.error
 ])
 def test_corrupt_file(tmp_path, name, content):
     (tmp_path / name).write_bytes(content)
@@ -386,6 +390,8 @@ def test_bad_colors_and_light_are_named(scene, renderer):
     ({"eye": (0, 0), "target": (0, 0, 1)}, "eye"),
     ({"eye": (0, 0, 0), "target": (0, 0, 1), "fov_deg": 180}, "fov_deg"),
     ({"eye": (0, 0, 0), "target": (0, 0, 1), "fov_deg": 0}, "fov_deg"),
+    ({"eye": (0, 0, -1e39), "target": (0, 0, 0)}, r"eye \[0.0, 0.0, -1e\+39\] does not fit float32"),
+    ({"eye": (-1e308, 0, 0), "target": (1e308, 0, 0)}, "eye .* does not fit float32"),
 ])
 def test_bad_cameras_are_named(kwargs, words):
     with pytest.raises(ValueError, match=words):
@@ -400,3 +406,15 @@ def test_bad_cameras_are_named(kwargs, words):
 def test_bad_lights_are_named(kwargs, words):
     with pytest.raises(ValueError, match=words):
         hlbvh_cl.Light(**kwargs)
+
+
+def test_directions_of_any_finite_length_are_normalised():
+    """|(0, 0, -1e300)| overflows and |(0, 0, 1e-320)| underflows in float64;
+    their directions do not."""
+    assert hlbvh_cl.Light(direction=(0, 0, -1e300)).direction == (0.0, 0.0, -1.0)
+    assert hlbvh_cl.Light(direction=(0, 0, 1e-320)).direction == (0.0, 0.0, 1.0)
+    plain = hlbvh_cl.Camera(eye=(0, 0, 0), target=(0, 0, 1)).basis()
+    for up in ((0, 1e300, 0), (0, 1e-320, 0)):
+        for got, expected in zip(hlbvh_cl.Camera(eye=(0, 0, 0), target=(0, 0, 1), up=up).basis(),
+                                 plain):
+            np.testing.assert_array_equal(got, expected)
