@@ -98,6 +98,29 @@ def check_max_distance(value) -> float:
     return distance
 
 
+def squared_limit(limit: float) -> np.float32:
+    """The kernels' limit on squared distances for distances up to ``limit``
+    (>= 0, in the tree's frame): the greatest float32 whose float32 square
+    root, the distance they report, is at most ``limit`` rounded up to
+    float32.  So a point is kept exactly when its reported distance is
+    within the limit: float32(limit**2) can lie below the square of a
+    distance that rounds to the limit itself."""
+    with np.errstate(over="ignore"):
+        top = np.float32(limit)
+    if float(top) < limit:
+        top = np.nextafter(top, np.float32(np.inf))
+    exact = np.float64(top) ** 2
+    if not exact <= np.finfo(np.float32).max:  # squares that overflow are kept too
+        return np.float32(np.inf)
+    square = np.float32(exact)
+    while square > 0 and np.sqrt(square) > top:
+        square = np.nextafter(square, np.float32(0))
+    with np.errstate(over="ignore"):  # the float after FLT_MAX is inf, whose root is too far
+        while np.sqrt(np.nextafter(square, np.float32(np.inf))) <= top:
+            square = np.nextafter(square, np.float32(np.inf))
+    return square
+
+
 def point_scene_args(tree) -> tuple:
     """A point kernel's POINT_SCENE_PARAMS (kernels/points.cl): a flat tree's
     nodes, triangles and refs; an instanced one's top tree, instances and
@@ -148,8 +171,7 @@ class PointQuery:
                for name, (dtype, n) in CLOSEST_FIELDS.items()}
         if count and self._usable(tree):
             framed = self._into_frame(points, shape, tree)
-            with np.errstate(over="ignore"):  # numpy floats: a Python float would raise
-                max_d2 = np.float32((np.float64(max_distance) * tree.scale) ** 2)
+            max_d2 = squared_limit(max_distance * tree.scale)
             kernel, packet = self._kernel(tree, "closest_points")
 
             def launch(n, b, slots, indexed):

@@ -129,6 +129,12 @@ def test_far_points_and_max_distance(sphere_scene):
         assert_closest_matches(sphere_scene, cut, points, max_distance, size=size)
         assert 0 < cut.found.sum() < len(points) or max_distance == 0.0
     assert not sphere_scene.closest_points(points[:3], max_distance=10.0).found.any()
+    # a point exactly max_distance away, as the query itself reports its
+    # distance, is kept: the limit is not float32(max_distance**2)
+    for k in np.linspace(3, len(points) - 1, 40).astype(int):
+        limit = float(np.sort(got.distance)[k])
+        within = sphere_scene.closest_points(points, max_distance=limit).found
+        np.testing.assert_array_equal(within, got.distance <= limit, err_msg=f"{limit!r}")
     # a limit whose square overflows float64 is no limit
     huge = sphere_scene.closest_points(points, max_distance=1e200)
     np.testing.assert_array_equal(huge.distance, got.distance)
