@@ -128,32 +128,14 @@ TRAVERSAL_INLINE bool winding_leaf(Found_point* s, const PointData* q,
     return false;
 }
 
-/* The point of the triangle (a, b, c) nearest to p, as barycentrics (u, v)
- * of b and c, and its squared distance to p (Ericson 2005, sec. 5.1.5: the
- * vertex, edge and face regions in turn).  Ericson's formulas divide by an
- * edge's squared length (edge regions) or by the squared area (face), so:
- * an edge region is taken only for an edge of nonzero length, and a point
- * left in the face region takes the nearest point of the three edges
- * (segment_point, exact for any triangle) when its face barycentrics are
- * out of range or NaN, and the nearer of that and the face point when the
- * triangle is a sliver (thin_triangle), whose face formula cancels badly. */
-TRAVERSAL_INLINE float segment_point(float3 a, float3 ab, float3 p, float* w)
-{
-    float length2 = DOT3(ab, ab);
-    float along = length2 > 0.0f ? DOT3(p - a, ab) / length2 : 0.0f;
-    along = GROW_LO(GROW_HI(along, 0.0f), 1.0f);
-    *w = along;
-    float3 d = p - (a + along * ab);
-    return DOT3(d, d);
-}
-
-/* Whether the face formula may not be trusted: twice the area squared,
- * |ab x ac|^2, below THIN_RATIO times the longest edge's length to the
- * fourth (the height over that edge under 1% of it), or NaN.  Ericson's
- * face denominator va + vb + vc is |ab x ac|^2 summed from products of the
- * point's dot products, whose rounding is that of the edges' lengths to
- * the fourth (times the point's distance over them, squared). */
-#define THIN_RATIO 1e-4f
+/* Whether the float face formula may not be trusted (a sliver): twice the
+ * area squared, |ab x ac|^2, below THIN_RATIO times the longest edge's
+ * length L to the fourth (the height over that edge under 10% of it), or
+ * NaN.  Ericson's face denominator va + vb + vc is |ab x ac|^2 summed from
+ * products of the point's dot products, whose rounding is that of L to the
+ * fourth, so the face point is off by about eps L over that ratio: more
+ * than a hundred float ulps of the triangle's size past THIN_RATIO. */
+#define THIN_RATIO 1e-2f
 TRAVERSAL_INLINE bool thin_triangle(float3 ab, float3 ac)
 {
     /* |ab x ac|^2 by Lagrange's identity, and |bc|^2 from the same dots:
@@ -164,67 +146,58 @@ TRAVERSAL_INLINE bool thin_triangle(float3 ab, float3 ac)
     return !(area2 >= THIN_RATIO * longest * longest);
 }
 
+/* The closest point on a triangle in float, and in double where the device
+ * has it (closest_corners.h).  A sliver's face formula cancels badly in
+ * float (its point could lie a hundred times farther from p than the true
+ * one), so slivers take the double version, whose error is far below
+ * float's; a device without doubles takes the nearer of the face point and
+ * the edges'. */
+#define REAL float
+#define REAL3 float3
+#define CORNERS(name) CONCAT(name, _float)
+#ifdef cl_khr_fp64
+#define THIN(ab, ac) false
+#else
+#define THIN(ab, ac) thin_triangle(ab, ac)
+#endif
+#include "closest_corners.h"
+#undef REAL
+#undef REAL3
+#undef CORNERS
+#undef THIN
+#ifdef cl_khr_fp64
+#define REAL double
+#define REAL3 double3
+#define CORNERS(name) CONCAT(name, _double)
+#define THIN(ab, ac) false
+#include "closest_corners.h"
+#undef REAL
+#undef REAL3
+#undef CORNERS
+#undef THIN
+#endif
+
+#ifdef cl_khr_fp64
+TRAVERSAL_INLINE float closest_on_sliver(float3 a, float3 b, float3 c, float3 p, float* u_out,
+                                         float* v_out)
+{
+    double u, v;
+    double d2 = closest_on_corners_double(convert_double3(a), convert_double3(b),
+                                          convert_double3(c), convert_double3(p), &u, &v);
+    *u_out = (float)u;
+    *v_out = (float)v;
+    return (float)d2;
+}
+#endif
+
 TRAVERSAL_INLINE float closest_on_corners(float3 a, float3 b, float3 c, float3 p, float* u_out,
                                           float* v_out)
 {
-    float3 ab = b - a, ac = c - a, ap = p - a;
-    float u, v;
-    float d1 = DOT3(ab, ap), d2 = DOT3(ac, ap);
-    float3 bp = p - b;
-    float d3 = DOT3(ab, bp), d4 = DOT3(ac, bp);
-    float3 cp = p - c;
-    float d5 = DOT3(ab, cp), d6 = DOT3(ac, cp);
-    float vc = d1 * d4 - d3 * d2, vb = d5 * d2 - d1 * d6, va = d3 * d6 - d5 * d4;
-    if (d1 <= 0.0f && d2 <= 0.0f) {                      /* vertex a */
-        u = 0.0f;
-        v = 0.0f;
-    } else if (d3 >= 0.0f && d4 <= d3) {                 /* vertex b */
-        u = 1.0f;
-        v = 0.0f;
-    } else if (vc <= 0.0f && d1 >= 0.0f && d3 <= 0.0f && d1 - d3 > 0.0f) { /* edge ab */
-        u = d1 / (d1 - d3);
-        v = 0.0f;
-    } else if (d6 >= 0.0f && d5 <= d6) {                 /* vertex c */
-        u = 0.0f;
-        v = 1.0f;
-    } else if (vb <= 0.0f && d2 >= 0.0f && d6 <= 0.0f && d2 - d6 > 0.0f) { /* edge ac */
-        u = 0.0f;
-        v = d2 / (d2 - d6);
-    } else if (va <= 0.0f && d4 - d3 >= 0.0f && d5 - d6 >= 0.0f
-               && (d4 - d3) + (d5 - d6) > 0.0f) {        /* edge bc */
-        v = (d4 - d3) / ((d4 - d3) + (d5 - d6));
-        u = 1.0f - v;
-    } else {                                             /* face */
-        float inv = 1.0f / (va + vb + vc);
-        u = vb * inv;
-        v = vc * inv;
-        bool inside = u >= 0.0f && v >= 0.0f && u + v <= 1.0f;
-        if (!inside || thin_triangle(ab, ac)) {
-            float w, best = segment_point(a, ab, p, &w);
-            float eu = w, ev = 0.0f;
-            float d = segment_point(a, ac, p, &w);
-            if (d < best) {
-                best = d;
-                eu = 0.0f;
-                ev = w;
-            }
-            d = segment_point(b, c - b, p, &w);
-            if (d < best) {
-                best = d;
-                eu = 1.0f - w;
-                ev = w;
-            }
-            float3 f = p - (a + u * ab + v * ac);
-            if (!inside || best < DOT3(f, f)) {
-                u = eu;
-                v = ev;
-            }
-        }
-    }
-    *u_out = u;
-    *v_out = v;
-    float3 d = p - (a + u * ab + v * ac);
-    return DOT3(d, d);
+#ifdef cl_khr_fp64
+    if (thin_triangle(b - a, c - a))
+        return closest_on_sliver(a, b, c, p, u_out, v_out);
+#endif
+    return closest_on_corners_float(a, b, c, p, u_out, v_out);
 }
 
 TRAVERSAL_INLINE float closest_on_triangle(__global const Triangle* t, float3 p, float* u_out,

@@ -102,12 +102,32 @@ TRAVERSAL_INLINE float_packet segment_points(float3 a, float3 ab, const PointPac
     return (dx * dx + dy * dy) + dz * dz;
 }
 
+#ifdef cl_khr_fp64
+/* closest_on_sliver lane by lane (point.h: a sliver is found in double). */
+typedef union {
+    float_packet lanes;
+    float lane[PACKET_SIZE];
+} PacketLanes;
+TRAVERSAL_INLINE float_packet sliver_packet(float3 a, float3 b, float3 c, const PointPacket* q,
+                                            float_packet* u_out, float_packet* v_out)
+{
+    PacketLanes x = {q->x}, y = {q->y}, z = {q->z}, u, v, d2;
+    for (int l = 0; l < PACKET_SIZE; ++l)
+        d2.lane[l] = closest_on_sliver(a, b, c, (float3)(x.lane[l], y.lane[l], z.lane[l]),
+                                       &u.lane[l], &v.lane[l]);
+    *u_out = u.lanes;
+    *v_out = v.lanes;
+    return d2.lanes;
+}
+#endif
+
 /* closest_on_corners for every lane: the same regions and formulas (Ericson
  * 2005, sec. 5.1.5), each lane's picked by selects instead of branches.
  * The face region is the default, and each region of the scalar chain
  * overrides it, the earliest last, so that a lane in several takes the one
  * the chain tests first.  The degenerate triangle's fallback runs only when
- * a lane left in the face region has barycentrics out of range. */
+ * a lane left in the face region has barycentrics out of range.  A sliver
+ * goes lane by lane in double where the device has it (sliver_packet). */
 #define PICK(cond, value, was) ((cond) ? (value) : (was))
 TRAVERSAL_INLINE float_packet closest_on_corners_packet(float3 a, float3 b, float3 c,
                                                         const PointPacket* q,
@@ -115,6 +135,10 @@ TRAVERSAL_INLINE float_packet closest_on_corners_packet(float3 a, float3 b, floa
                                                         float_packet* v_out)
 {
     float3 ab = b - a, ac = c - a;
+#ifdef cl_khr_fp64
+    if (thin_triangle(ab, ac))
+        return sliver_packet(a, b, c, q, u_out, v_out);
+#endif
     float_packet apx = q->x - a.x, apy = q->y - a.y, apz = q->z - a.z;
     float_packet bpx = q->x - b.x, bpy = q->y - b.y, bpz = q->z - b.z;
     float_packet cpx = q->x - c.x, cpy = q->y - c.y, cpz = q->z - c.z;

@@ -211,6 +211,39 @@ def test_degenerate_and_thin_triangles_and_far_points(case, suite_device):
             assert np.all(got.normal == 0)
 
 
+@pytest.mark.parametrize("placed", ["flat", "instanced"])
+def test_points_just_off_slivers_are_exact(suite_device, placed):
+    """Triangles 30 long and 0.03 to 10 high, turned and moved, and points
+    1e-4 above and below their insides: Ericson's face formula in float
+    cancels on the thinner ones (its point came out up to 0.013 away, a
+    hundred times the distance), so slivers are found in double where the
+    device has it.  Distances within a few float ulps of the coordinates."""
+    from hlbvh_cl.points import PointQuery
+    rng = np.random.default_rng(12)
+    for height in (0.03, 0.3, 1.0, 3.0, 10.0):
+        turn, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        place = np.hstack([turn, [[20.0], [-10.0], [5.0]]])
+        local = np.float32([[0, 0, 0], [30, 0, 0], [12, height, 0]])
+        corners = local.astype(np.float64) @ turn.T + place[:, 3]
+        if placed == "flat":
+            scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(corners.astype(np.float32), [[0, 1, 2]])],
+                                   device=suite_device)
+            corners = corners.astype(np.float32).astype(np.float64)  # as the scene holds them
+        else:
+            scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(local, [[0, 1, 2]])], device=suite_device,
+                                   instances=[(0, place)])
+        normal = np.cross(corners[1] - corners[0], corners[2] - corners[0])
+        normal /= np.linalg.norm(normal)
+        points = (rng.dirichlet(np.ones(3), 2000) @ corners
+                  + 1e-4 * rng.choice([-1.0, 1.0], (2000, 1)) * normal).astype(np.float32)
+        expected = _edges_or_face_distance(points, *corners[:, None, :])[:, 0]
+        for packet_size in (1, 8):
+            got = PointQuery(scene._runtime, packet_size=packet_size).closest_points(
+                scene._built_tree(), points)
+            np.testing.assert_allclose(got.distance, expected, rtol=0, atol=1e-5,
+                                       err_msg=f"height {height}, packets of {packet_size}")
+
+
 def test_slivers_match_the_oracle(suite_device):
     """Many near-collinear triangles (their third vertex within 1e-4 of
     the line through the other two), each in a cell of its own, and points
