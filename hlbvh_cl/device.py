@@ -7,6 +7,7 @@ vendor's devices in platform order (``pocl:0``, ``intel:0``, ``nvidia:1``).
 from __future__ import annotations
 
 import ctypes
+import dataclasses
 import functools
 import os
 import re
@@ -187,7 +188,8 @@ _devices_cache: list[Device] | None = None
 
 
 def devices() -> list[Device]:
-    """Every OpenCL device present, in platform order."""
+    """Every OpenCL device present, in platform order, simulators last (an
+    index such as device=0 then never picks one)."""
     global _devices_cache
     if _devices_cache is None:
         _register_intel_cpu_runtime()
@@ -217,7 +219,8 @@ def devices() -> list[Device]:
                                 "list it (libintelocl.so or a library it needs failed to load)")
         for note in unregistered:
             warnings.warn(f"hlbvh_cl: {note}", RuntimeWarning, stacklevel=2)
-        _devices_cache = found
+        ordered = sorted(found, key=lambda d: d.simulator)  # stable: platform order otherwise
+        _devices_cache = [dataclasses.replace(d, index=i) for i, d in enumerate(ordered)]
     return list(_devices_cache)
 
 

@@ -48,10 +48,15 @@ def check_transforms(transforms, label) -> np.ndarray:
         raise ValueError(f"{label(0).partition('[')[0]} has shape {array.shape}, expected "
                          "(K, 3, 4) or (K, 4, 4)")
     array = array.astype(np.float64)
-    bad = ~np.isfinite(array).reshape(len(array), -1).all(axis=1)
+    flat = array.reshape(len(array), array.shape[1] * array.shape[2])  # (K may be 0)
+    bad = ~np.isfinite(flat).all(axis=1)
     if bad.any():
         k = int(np.flatnonzero(bad)[0])
         raise ValueError(f"{label(k)} is not finite (NaN or inf)")
+    large = np.abs(flat).max(axis=1, initial=0.0)
+    if (large > np.finfo(np.float32).max).any():  # (its determinant would overflow too)
+        k = int(np.argmax(large))
+        raise ValueError(f"{label(k)} does not fit float32: an entry is {large[k]:.3g}")
     if array.shape[1] == 4:
         wrong = np.abs(array[:, 3] - (0.0, 0.0, 0.0, 1.0)).max(axis=1) != 0
         if wrong.any():
@@ -261,9 +266,11 @@ def instance_records(transforms: np.ndarray, meshes: np.ndarray, masks: np.ndarr
                 & np.isfinite(to_world.astype(np.float32)).all(axis=(1, 2)))
     if not held.all():  # its instance would be silently missed by every query
         k = int(np.flatnonzero(~held)[0])
+        reach = f" (the instances reach up to {1.0 / top_scale:.3g})" if top_scale < 1 else ""
         raise ValueError(f"instance {k}'s transform does not fit float32: its map into the "
-                         "mesh (or back), in the frames the scene is built in, overflows; scale "
-                         "its axes less far apart, or move it less far")
+                         f"mesh (or back) overflows in the frames the scene is built in{reach}; "
+                         "scale its axes less far apart, or keep the instances within a "
+                         "smaller range")
     records = np.zeros(len(meshes), layout.INSTANCE)
     records["to_mesh"] = to_mesh.reshape(-1, 12)
     records["to_world"] = to_world.reshape(-1, 12)

@@ -123,7 +123,9 @@ class Scene:
 
     @property
     def stats(self) -> BuildStats:
-        """The last build's BuildStats (with refit_ms after update_vertices)."""
+        """The last build's BuildStats (with refit_ms after update_vertices); on an
+        instanced scene, or a flat one with masks (traced as one instance per
+        mesh), the top tree's over the instances."""
         with self._lock:
             return self._stats
 
@@ -249,6 +251,8 @@ class Scene:
             raise ValueError("set_transforms needs an instanced Scene: Scene(meshes, "
                              "instances=[(mesh_index, transform), ...])")
         ids = np.asarray(instance_ids)
+        if ids.size == 0 and ids.dtype.kind == "f":  # [] is float64 to numpy
+            ids = ids.astype(np.int64)
         if ids.dtype == np.bool_ or not np.issubdtype(ids.dtype, np.integer):
             raise TypeError(f"instance_ids must be integers, got dtype {ids.dtype}")
         array = np.asarray(transforms)

@@ -33,6 +33,9 @@ def test_devices_have_stable_short_ids(suite_device):
         assert d.index == i and d.type in ("cpu", "gpu", "accelerator", "other")
         assert d.platform and d.name
     assert suite_device in found and suite_device.problem is None
+    # simulators come last: device=0 picks a real device where there is one
+    kinds = [d.simulator for d in found]
+    assert kinds == sorted(kinds)
 
 
 def test_selection_by_id_index_substring_and_environment(monkeypatch, suite_device):

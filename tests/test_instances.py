@@ -353,6 +353,8 @@ def test_every_hit_and_counts_through_instances(small, suite_device):
     ([(0, np.eye(3, 4)), (0, np.zeros((3, 4)))], r"instances\[1\]\[1\] is singular"),
     ([(0, np.diag([1.0, 1.0, 1.0, 2.0]))], r"instances\[0\]\[1\] has last row"),
     ([(0, np.full((3, 4), np.nan))], r"instances\[0\]\[1\] is not finite"),
+    ([(0, np.eye(3, 4)), (0, np.eye(3, 4) * 1e200)],
+     r"instances\[1\]\[1\] does not fit float32: an entry is 1e\+200"),
     ([(0.5, np.eye(3, 4))], r"instances\[0\]\[0\] \(mesh_index\) must be an int"),
     ([np.eye(3, 4)], r"instances\[0\] must be a \(mesh_index, transform\) pair"),
     # not singular, but its inverse overflows float32 in the scene's frames
@@ -379,6 +381,7 @@ def test_bad_masks_and_updates_are_named(small, suite_device):
         scene.set_transforms([3], np.eye(3, 4)[None])
     with pytest.raises(ValueError, match=r"transforms\[0\] is singular"):
         scene.set_transforms([0], np.zeros((1, 3, 4)))
+    scene.set_transforms([], np.zeros((0, 3, 4)))  # nothing to move
     with pytest.raises(ValueError, match=r"instance_ids\[1\] = 0 is given twice"):
         scene.set_transforms([0, 0, 0], np.tile(np.eye(3, 4), (3, 1, 1)))
     hits = scene.intersect(np.zeros((1, 3)) - 5, np.ones((1, 3)))
@@ -396,9 +399,9 @@ def test_a_change_the_build_rejects_leaves_the_scene_as_it_was(small, suite_devi
     origins, directions = _rays_at_centroids(rng, small[0].vertices, small[0].faces, 500)
     before = scene.intersect(origins, directions)
     assert before.hit.sum() > 100
-    with pytest.raises(ValueError, match="instance 1's transform does not fit float32"):
-        if change == "set_transforms":
-            scene.set_transforms(1, np.hstack([np.eye(3), [[1e39], [0], [0]]]))
+    with pytest.raises(ValueError, match=r"instance \d's transform does not fit float32"):
+        if change == "set_transforms":  # the top frame then shrinks instance 0's past float32
+            scene.set_transforms(1, np.hstack([np.eye(3), [[3e38], [0], [0]]]))
         else:  # mesh 1 grown to 1e30 under instance 1's scale of 1e10: beyond float32
             scene.set_transforms(1, np.hstack([np.eye(3) * 1e10, np.zeros((3, 1))]))
             scene.update_vertices(1, small[1].vertices * np.float32(1e30))
