@@ -68,12 +68,14 @@ class Rays:
 
 def numeric_array(name: str, value) -> np.ndarray:
     """``value`` as a numpy array of real numbers, or the error naming ``name``."""
+    if np.ma.is_masked(value):  # np.asarray would drop the mask and keep what it hides
+        raise ValueError(f"{name} is a masked array with masked entries: fill or drop them "
+                         "first (e.g. .filled(np.nan) or .compressed())")
     try:
         array = np.asarray(value)
     except (ValueError, TypeError) as error:
         raise ValueError(f"{name} is not a rectangular numeric array: {error}") from None
-    if array.dtype == np.bool_ or not (np.issubdtype(array.dtype, np.floating)
-                                       or np.issubdtype(array.dtype, np.integer)):
+    if array.dtype.kind not in "fiu":  # not bool, nor timedelta64 (a numpy integer)
         raise TypeError(f"{name} must hold real numbers (float32/float64), got dtype {array.dtype}")
     return array
 

@@ -27,6 +27,8 @@ _INT32_LIMIT = 2**31
 
 
 def _as_array(name: str, data) -> np.ndarray:
+    if np.ma.is_masked(data):  # np.asarray would keep what the mask hides
+        raise ValueError(f"{name}: a masked array with masked entries; fill or drop them first")
     try:
         return np.asarray(data)
     except (ValueError, TypeError) as error:  # ragged nested lists

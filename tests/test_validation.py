@@ -68,6 +68,9 @@ BAD_INPUTS = [
     (GOOD_O, [["a", "b", "c"]] * 3, 0.0, np.inf, TypeError, r"directions must hold real numbers"),
     ([[0, 0, 0], [0, 0]], GOOD_D[:2], 0.0, np.inf, ValueError, r"origins is not a rectangular"),
     (GOOD_O, GOOD_D, "0", np.inf, TypeError, r"tmin must hold real numbers"),
+    (GOOD_O.astype("m8[s]"), GOOD_D, 0.0, np.inf, TypeError, r"origins must hold real numbers"),
+    (np.ma.masked_array(GOOD_O, mask=np.eye(3, dtype=bool)), GOOD_D, 0.0, np.inf, ValueError,
+     r"origins is a masked array with masked entries"),
     # a broadcast view: 2**32 rays that take no memory
     (GOOD_O[0], np.broadcast_to(GOOD_D[0], (2**16, 2**16, 3)), 0.0, np.inf, ValueError,
      r"4294967296 rays in one call \(leading shape \(65536, 65536\)\): at most 2\*\*32 - 1"),
@@ -171,6 +174,8 @@ def test_packet_size_is_checked():
     (np.ones((4, 3), dtype=complex), TypeError, ["vertices", "complex"]),
     (np.full((4, 3), "x"), TypeError, ["vertices", "<U1"]),
     (np.array([[0, 0, None]] * 4), TypeError, ["vertices", "object"]),
+    (np.ma.masked_array(np.ones((4, 3)), mask=np.eye(4, 3, dtype=bool)), ValueError,
+     ["vertices", "masked entries"]),
     ([[0, 0, 0], [1, 0], [1, 1, 0], [0, 1, 0]], ValueError, ["vertices"]),
 ])
 def test_bad_vertices(vertices, error, words):
