@@ -102,7 +102,28 @@ class _Shipped:
         # a scene changed since the graph was made answers for its old content, as workers do
         if local is not None and local._travel_spec().key == self.spec.key:
             return local
-        return travel.restore(self.spec, Scene)
+        return _task_scene(self.spec)
+
+
+_views: OrderedDict = OrderedDict()
+_views_lock = threading.Lock()
+
+
+def _task_scene(spec: travel.SceneSpec) -> Scene:
+    """The one Scene that this process's tasks use for ``spec``: a view
+    (hlbvh_cl.travel) that they share, as they only query it, so that they
+    share its query buffers and renderers (_renderer) too, as tasks on one
+    scene object would."""
+    with _views_lock:
+        if spec.key in _views:
+            _views.move_to_end(spec.key)
+            return _views[spec.key]
+    view = travel.restore(spec, Scene)
+    with _views_lock:
+        view = _views.setdefault(spec.key, view)
+        while len(_views) > travel.CACHE_SIZE:
+            _views.popitem(last=False)
+    return view
 
 
 def _current_client(client=None):

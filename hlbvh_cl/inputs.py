@@ -66,11 +66,18 @@ class Rays:
         return f"{source.label(index)} = {source.values(index)}"
 
 
-def numeric_array(name: str, value) -> np.ndarray:
-    """``value`` as a numpy array of real numbers, or the error naming ``name``."""
-    if np.ma.is_masked(value):  # np.asarray would drop the mask and keep what it hides
+def unmasked(name: str, value):
+    """``value``, unless it is a masked array with masked entries: np.asarray
+    would drop the mask and keep what it hides."""
+    if np.ma.is_masked(value):
         raise ValueError(f"{name} is a masked array with masked entries: fill or drop them "
                          "first (e.g. .filled(np.nan) or .compressed())")
+    return value
+
+
+def numeric_array(name: str, value) -> np.ndarray:
+    """``value`` as a numpy array of real numbers, or the error naming ``name``."""
+    unmasked(name, value)
     try:
         array = np.asarray(value)
     except (ValueError, TypeError) as error:
@@ -284,8 +291,8 @@ def check_per_ray_shape(name: str, given: tuple, shape: tuple) -> None:
 def ray_masks(value, shape: tuple) -> np.ndarray:
     """uint32 masks for rays of leading shape ``shape``: one for all (0-d)
     or one per ray (R,), broadcast from an array of integers in [0, 2^32)."""
-    array = np.asarray(value)
-    if array.dtype == np.bool_ or not np.issubdtype(array.dtype, np.integer):
+    array = np.asarray(unmasked("mask", value))
+    if array.dtype.kind not in "iu":  # not bool, nor timedelta64 (a numpy integer)
         raise TypeError(f"mask must hold integers (32-bit masks), got dtype {array.dtype}")
     outside = (array < 0) | (array > ALL_BITS)
     if outside.any():

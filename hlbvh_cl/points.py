@@ -101,14 +101,14 @@ def check_max_distance(value) -> float:
 def squared_limit(limit: float) -> np.float32:
     """The kernels' limit on squared distances for distances up to ``limit``
     (>= 0, in the tree's frame): the greatest float32 whose float32 square
-    root, the distance they report, is at most ``limit`` rounded up to
-    float32.  So a point is kept exactly when its reported distance is
-    within the limit: float32(limit**2) can lie below the square of a
-    distance that rounds to the limit itself."""
+    root, the distance they report, is at most ``limit``.  So a point is
+    kept exactly when its reported distance is within the limit, where
+    float32(limit**2) could drop a point whose distance is the limit
+    itself, or keep one beyond a limit that falls between two floats."""
     with np.errstate(over="ignore"):
         top = np.float32(limit)
-    if float(top) < limit:
-        top = np.nextafter(top, np.float32(np.inf))
+    if float(top) > limit:  # the greatest float32 distance within the limit
+        top = np.nextafter(top, np.float32(0))
     exact = np.float64(top) ** 2
     if not exact <= np.finfo(np.float32).max:  # squares that overflow are kept too
         return np.float32(np.inf)

@@ -60,6 +60,7 @@ import numpy as np
 import pyopencl as cl
 
 from . import layout
+from .inputs import unmasked
 from .device import Runtime, event_ms
 from .query import RayQuery
 from .scene import Scene
@@ -105,6 +106,8 @@ def default_colors(count: int) -> list[tuple[float, float, float]]:
 
 
 def _vector3(name: str, value) -> np.ndarray:
+    if np.asarray(unmasked(name, value)).dtype.kind not in "fiub":  # e.g. timedelta64
+        raise TypeError(f"{name} must be 3 numbers [x, y, z], got {value!r}")
     try:
         array = np.asarray(value, dtype=np.float64)
     except (ValueError, TypeError):

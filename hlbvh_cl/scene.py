@@ -19,7 +19,7 @@ from .device import event_ms, runtime
 from .mesh import Mesh, _validate_vertices
 from .morton import key_dtype
 from .all_hits import AllHitsQuery
-from .inputs import ALL_BITS
+from .inputs import ALL_BITS, unmasked
 from .instances import TwoLevel, check_instances, check_masks, check_transforms
 from .points import PointQuery
 from .query import RayQuery
@@ -250,12 +250,12 @@ class Scene:
         if not self._instanced:
             raise ValueError("set_transforms needs an instanced Scene: Scene(meshes, "
                              "instances=[(mesh_index, transform), ...])")
-        ids = np.asarray(instance_ids)
+        ids = np.asarray(unmasked("instance_ids", instance_ids))
         if ids.size == 0 and ids.dtype.kind == "f":  # [] is float64 to numpy
             ids = ids.astype(np.int64)
-        if ids.dtype == np.bool_ or not np.issubdtype(ids.dtype, np.integer):
+        if ids.dtype.kind not in "iu":  # not bool, nor timedelta64 (a numpy integer)
             raise TypeError(f"instance_ids must be integers, got dtype {ids.dtype}")
-        array = np.asarray(transforms)
+        array = np.asarray(unmasked("transforms", transforms))
         if ids.ndim == 0:
             ids, array = ids[None], array[None]
         if ids.ndim != 1:

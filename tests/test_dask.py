@@ -108,6 +108,21 @@ def test_a_scene_tokenizes_by_its_content_without_pickling(meshes, suite_device,
     assert dask.base.tokenize(scene) != before
 
 
+def test_a_process_tasks_share_one_view_of_a_shipped_scene(meshes, suite_device):
+    """Unpickled copies are Scene objects of their own (hlbvh_cl.travel), but
+    the tasks of one process share one, its buffers and its renderers."""
+    spec = _scene(meshes, suite_device.id)._travel_spec()
+    try:
+        first, second = hd._Shipped(spec).scene(), hd._Shipped(spec).scene()
+        assert first is second
+        colors = np.ones((1, 3))
+        assert hd._renderer(first, colors, None) is hd._renderer(second, colors, None)
+    finally:  # later tests count the scenes this process restores
+        hd._views.clear()
+        hd._renderers.clear()
+        travel.clear()
+
+
 def test_dask_local_scheduler_matches_one_process(meshes, suite_device):
     assert hd._current_client() is None  # this test runs before any cluster of this module
     scene = _scene(meshes, suite_device.id)

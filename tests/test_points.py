@@ -133,8 +133,12 @@ def test_far_points_and_max_distance(sphere_scene):
     # distance, is kept: the limit is not float32(max_distance**2)
     for k in np.linspace(3, len(points) - 1, 40).astype(int):
         limit = float(np.sort(got.distance)[k])
-        within = sphere_scene.closest_points(points, max_distance=limit).found
-        np.testing.assert_array_equal(within, got.distance <= limit, err_msg=f"{limit!r}")
+        below = float(np.nextafter(np.float32(limit), np.float32(0)))
+        for cut in (limit, (limit + below) / 2):  # a float32, and a limit between two
+            within = sphere_scene.closest_points(points, max_distance=cut).found
+            # in float64: numpy would round a Python float to float32 to compare
+            np.testing.assert_array_equal(within, got.distance.astype(np.float64) <= cut,
+                                          err_msg=f"{cut!r}")
     # a limit whose square overflows float64 is no limit
     huge = sphere_scene.closest_points(points, max_distance=1e200)
     np.testing.assert_array_equal(huge.distance, got.distance)

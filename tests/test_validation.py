@@ -423,3 +423,33 @@ def test_directions_of_any_finite_length_are_normalised():
         for got, expected in zip(hlbvh_cl.Camera(eye=(0, 0, 0), target=(0, 0, 1), up=up).basis(),
                                  plain):
             np.testing.assert_array_equal(got, expected)
+
+
+def test_masked_entries_and_timedeltas_are_refused_everywhere(suite_device):
+    """np.asarray drops a masked array's mask (and numpy counts timedelta64
+    as an integer): every input that takes an array refuses them."""
+    hidden = np.ma.masked_array(np.eye(3, 4), mask=np.eye(3, 4, dtype=bool))
+    box = Mesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]])
+    with pytest.raises(ValueError, match="masked entries"):
+        hlbvh_cl.Scene([box], device=suite_device, instances=[(0, hidden)])
+    with pytest.raises(ValueError, match="masks is a masked array"):
+        hlbvh_cl.Scene([box], device=suite_device,
+                       masks=np.ma.masked_array([1], mask=[True]))
+    scene = hlbvh_cl.Scene([box], device=suite_device, instances=[(0, np.eye(3, 4))])
+    with pytest.raises(ValueError, match="transforms is a masked array"):
+        scene.set_transforms([0], hidden[None])
+    with pytest.raises(ValueError, match="instance_ids is a masked array"):
+        scene.set_transforms(np.ma.masked_array([0], mask=[True]), np.eye(3, 4)[None])
+    with pytest.raises(TypeError, match="instance_ids must be integers"):
+        scene.set_transforms(np.array([0], "m8[s]"), np.eye(3, 4)[None])
+    rays = np.zeros((2, 3)), np.ones((2, 3))
+    with pytest.raises(ValueError, match="mask is a masked array"):
+        scene.intersect(*rays, mask=np.ma.masked_array([1, 1], mask=[False, True]))
+    with pytest.raises(TypeError, match="mask must hold integers"):
+        scene.intersect(*rays, mask=np.array([1, 1], "m8[s]"))
+    with pytest.raises(ValueError, match="eye is a masked array"):
+        hlbvh_cl.Camera(eye=np.ma.masked_array([0, 0, 5], mask=[0, 0, 1]), target=(0, 0, 0))
+    with pytest.raises(TypeError, match="eye must be 3 numbers"):
+        hlbvh_cl.Camera(eye=np.array([0, 0, 5], "m8[s]"), target=(0, 0, 0))
+    with pytest.raises(ValueError, match="light.direction is a masked array"):
+        hlbvh_cl.Light(direction=np.ma.masked_array([0, 1, 0], mask=[0, 1, 0]))
