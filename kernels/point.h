@@ -133,8 +133,8 @@ TRAVERSAL_INLINE bool winding_leaf(Found_point* s, const PointData* q,
  * length L to the fourth (the height over that edge under 10% of it), or
  * NaN.  Ericson's face denominator va + vb + vc is |ab x ac|^2 summed from
  * products of the point's dot products, whose rounding is that of L to the
- * fourth, so the face point is off by about eps L over that ratio: more
- * than a hundred float ulps of the triangle's size past THIN_RATIO. */
+ * fourth, so the face point's error grows as the ratio shrinks: below
+ * THIN_RATIO it is no longer within a few float ulps of the coordinates. */
 #define THIN_RATIO 1e-2f
 TRAVERSAL_INLINE bool thin_triangle(float3 ab, float3 ac)
 {
