@@ -231,7 +231,8 @@ def _outward(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     the rounding a mapped ray sees, so a hit near an instance's boundary is
     never culled at the top."""
     pad = (np.abs(lo) + np.abs(hi) + (hi - lo)) * 2.0**-20
-    return ((lo - pad).astype(np.float32), (hi + pad).astype(np.float32))
+    with np.errstate(over="ignore"):  # a box past float32 becomes infinite, as it should
+        return ((lo - pad).astype(np.float32), (hi + pad).astype(np.float32))
 
 
 def reach_scales(linear: np.ndarray) -> np.ndarray:
@@ -373,14 +374,15 @@ class TwoLevel:
         lo, hi = _outward(lo, hi)
         largest = max(float(np.abs(lo).max()), float(np.abs(hi).max()))
         top_scale = frame.scale_for(largest)
+        # first: maps that overflow float32 in these frames are refused before any build
+        records = instance_records(self.transforms, self.instance_meshes, self.masks, self.trees,
+                                   top_scale)
         proxies = np.empty((len(lo), 3, 3), np.float32)
         proxies[:, 0], proxies[:, 1] = lo, hi
         proxies[:, 2] = (lo.astype(np.float64) + hi) / 2
         proxies = frame.to_frame(proxies.reshape(-1, 3), top_scale)
         cl.enqueue_copy(rt.queue, self._geometry.vertices, np.ascontiguousarray(proxies))
         top, stats = build(rt, self._geometry, self.builder, self.morton_bits, top_scale)
-        records = instance_records(self.transforms, self.instance_meshes, self.masks, self.trees,
-                                   top_scale)
         instances = cl.Buffer(rt.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
                               hostbuf=records)
         return InstancedTree(top, self.trees, instances, len(records)), stats

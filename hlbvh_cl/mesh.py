@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .inputs import unmasked
+
 #: file extensions Mesh.load understands (each may also end in .gz)
 MESH_EXTENSIONS = ("ply", "obj", "off", "stl", "glb")
 
@@ -27,10 +29,8 @@ _INT32_LIMIT = 2**31
 
 
 def _as_array(name: str, data) -> np.ndarray:
-    if np.ma.is_masked(data):  # np.asarray would keep what the mask hides
-        raise ValueError(f"{name}: a masked array with masked entries; fill or drop them first")
     try:
-        return np.asarray(data)
+        return np.asarray(unmasked(name, data))
     except (ValueError, TypeError) as error:  # ragged nested lists
         raise ValueError(f"{name}: cannot be read as an (N, 3) array: {error}") from None
 

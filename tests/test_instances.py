@@ -6,6 +6,8 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
+import warnings
+
 import numpy as np
 import pyopencl as cl
 import pytest
@@ -399,7 +401,9 @@ def test_a_change_the_build_rejects_leaves_the_scene_as_it_was(small, suite_devi
     origins, directions = _rays_at_centroids(rng, small[0].vertices, small[0].faces, 500)
     before = scene.intersect(origins, directions)
     assert before.hit.sum() > 100
-    with pytest.raises(ValueError, match=r"instance \d's transform does not fit float32"):
+    with pytest.raises(ValueError, match=r"instance \d's transform does not fit float32"), \
+            warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # refused before numpy overflows
         if change == "set_transforms":  # the top frame then shrinks instance 0's past float32
             scene.set_transforms(1, np.hstack([np.eye(3), [[3e38], [0], [0]]]))
         else:  # mesh 1 grown to 1e30 under instance 1's scale of 1e10: beyond float32
