@@ -36,7 +36,7 @@ import pyopencl as cl
 from . import inputs
 from .order import COHERENT_MIN, RAY_ORDER_BITS, device_order, put_rows, take_rows
 from .instances import InstancedTree
-from .query import RayQuery, _into_frame, _masked, _stack_size, collect, scene_args
+from .query import RayQuery, _into_frame, _masked, _stack_size, caller_t, collect, scene_args
 from .tree import Tree
 
 #: Hits one fill launch writes at most (one ray with more still goes alone):
@@ -98,12 +98,12 @@ def _check_max_hits(max_hits) -> int | None:
 def _rays(origins, directions, tmin, tmax, mask, tree):
     """The checked rays (hlbvh_cl.inputs) in the tree's frame: their five
     arrays (with the masks, query._masked), the per-ray t factor back
-    (query._into_frame) and their leading shape.  The one place that reads
-    the caller's ray arrays."""
+    (query._into_frame) and the checked batch (its leading shape, the names
+    of its rows).  The one place that reads the caller's ray arrays."""
     batch, t_factor = _into_frame(_masked(inputs.rays(origins, directions, tmin, tmax), mask,
                                           tree), tree)
     return ((batch.origins, batch.directions, batch.tmin, batch.tmax, batch.mask), t_factor,
-            batch.shape)
+            batch)
 
 
 class AllHitsQuery:
@@ -131,10 +131,10 @@ class AllHitsQuery:
               tmax=np.inf, mask=None) -> np.ndarray:
         """int32, in the rays' leading shape: the number of hits of each ray
         with tmin <= t <= tmax (``mask`` as RayQuery.intersect)."""
-        rays, _, shape = _rays(origins, directions, tmin, tmax, mask, tree)
+        rays, _, batch = _rays(origins, directions, tmin, tmax, mask, tree)
         with self._lock:
             counts = self._count(tree, rays, self.query._results.empty)
-        return counts.reshape(shape)
+        return counts.reshape(batch.shape)
 
     def intersect_all(self, tree: Tree, origins, directions=None, tmin=0.0, tmax=np.inf,
                       max_hits=None, mask=None) -> AllHits:
@@ -142,7 +142,7 @@ class AllHitsQuery:
         max_hits=k only the k nearest of each ray (``mask`` as
         RayQuery.intersect)."""
         max_hits = _check_max_hits(max_hits)
-        rays, t_factor, shape = _rays(origins, directions, tmin, tmax, mask, tree)
+        rays, t_factor, batch = _rays(origins, directions, tmin, tmax, mask, tree)
         pool = self.query._results
         with self._lock:
             # temporaries, not pooled: each ray's count, and on flat scenes
@@ -158,8 +158,8 @@ class AllHitsQuery:
             ray_index = pool.empty(total, np.int64)
             if total:
                 self._fill(tree, rays, offsets, (counts, known),
-                           {**fields, "ray_index": ray_index}, t_factor)
-        return AllHits(offsets=offsets, ray_index=ray_index, **fields, shape=shape)
+                           {**fields, "ray_index": ray_index}, t_factor, batch)
+        return AllHits(offsets=offsets, ray_index=ray_index, **fields, shape=batch.shape)
 
     # -- internals ----------------------------------------------------------
 
@@ -198,9 +198,10 @@ class AllHitsQuery:
                        [], outputs, tail)
         return results
 
-    def _fill(self, tree, rays, offsets, known, outputs, t_factor) -> None:
+    def _fill(self, tree, rays, offsets, known, outputs, t_factor, batch) -> None:
         """The hits into `outputs` (HIT_FIELDS and ray_index), ray r's in
-        [offsets[r], offsets[r + 1]); `known`: _count's (counts, known).
+        [offsets[r], offsets[r + 1]); `known`: _count's (counts, known);
+        t_factor and batch: _rays's (t back in the caller's units).
         The rays go in their own order: most only have their known triangles
         tested again, and the results then land in order."""
         kernel, packet = self._kernel(tree, "fill_hits_arrays")
@@ -208,12 +209,11 @@ class AllHitsQuery:
         inputs = [counts, triangles, np.uint32(1)] if triangles is not None else \
             [self._unused, self._unused, np.uint32(0)]
         self._launches(tree, kernel, packet, rays, None, offsets, inputs, outputs, [])
-        if t_factor is not None:  # back from the frame: exact, powers of two
-            t = outputs["t"]
+        if t_factor is not None:  # back from the frame
+            t, ray_index = outputs["t"], outputs["ray_index"]
             for start, stop in _chunks(offsets, self.query.max_rays_per_launch, len(t_factor)):
                 part = slice(int(offsets[start]), int(offsets[stop]))
-                t[part] = t[part] * np.repeat(t_factor[start:stop],
-                                              np.diff(offsets[start:stop + 1]))
+                caller_t(t[part], t_factor, ray_index[part], batch)
 
     def _launches(self, tree, kernel, packet, rays, order, offsets, inputs, outputs,
                   tail) -> None:

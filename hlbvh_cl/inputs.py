@@ -41,6 +41,10 @@ MAX_BATCH = 2**32 - 1
 #: large, or its inverse overflows.
 _TINY = np.finfo(np.float32).tiny
 
+#: Directions whose components all reach this magnitude are short only for
+#: origins beyond 2^100 or so (Rays.shortest_direction): no row is looked at.
+_SHORT = 2.0**-20
+
 
 @dataclass
 class Rays:
@@ -53,6 +57,12 @@ class Rays:
     tmax: np.ndarray
     shape: tuple
     origin_source: "_Vectors | None" = None
+    direction_source: "_Vectors | None" = None
+    #: the largest magnitude of an origin's component, and a lower bound on
+    #: every direction's largest component magnitude: together they bound
+    #: the t of any hit in a scene of bounded size (query._into_frame)
+    farthest_origin: float = np.inf
+    shortest_direction: float = 0.0
     #: uint32 0-d (one mask for all) or (R,): the rays' masks (ray_masks)
     mask: np.ndarray = dataclasses.field(default_factory=lambda: np.array(ALL_BITS, np.uint32))
 
@@ -61,9 +71,17 @@ class Rays:
 
     def name_origin(self, row: int) -> str:
         """The caller's name for the origin of flat row ``row``, and its value."""
-        source = self.origin_source or _Vectors("origins", self.origins)
-        index = source.index_of(row, self.shape)
-        return f"{source.label(index)} = {source.values(index)}"
+        return _name_row(self.origin_source or _Vectors("origins", self.origins), row, self.shape)
+
+    def name_direction(self, row: int) -> str:
+        """The caller's name for the direction of flat row ``row``, and its value."""
+        return _name_row(self.direction_source or _Vectors("directions", self.directions), row,
+                         self.shape)
+
+
+def _name_row(source: "_Vectors", row: int, shape: tuple) -> str:
+    index = source.index_of(row, shape)
+    return f"{source.label(index)} = {source.values(index)}"
 
 
 def unmasked(name: str, value):
@@ -142,7 +160,8 @@ def rays(origins, directions=None, tmin=0.0, tmax=np.inf) -> Rays:
     o_rows, d_rows = _as_rows(o, shape), _as_rows(d, shape)
     if np.may_share_memory(o_rows, d_rows):  # two host-pointer buffers must not overlap
         d_rows = d_rows.copy()
-    if not _rays_are_valid(o_rows, d_rows):
+    extent = _rays_are_valid(o_rows, d_rows)
+    if extent is None:
         _raise_first_bad_row(sources[0], o_rows, shape, directions=False)
         _raise_first_bad_row(sources[1], d_rows, shape, directions=True)
         raise RuntimeError("hlbvh_cl internal error: a block of rays failed its check but no "
@@ -150,7 +169,7 @@ def rays(origins, directions=None, tmin=0.0, tmax=np.inf) -> Rays:
     low, high = _limits("tmin", tmin, shape), _limits("tmax", tmax, shape)
     _check_limits(low, high, shape)
     return Rays(o_rows, d_rows, low.astype(np.float32), high.astype(np.float32), shape,
-                sources[0])
+                sources[0], sources[1], *extent)
 
 
 def ray_shape(origins_shape: tuple, directions_shape: tuple) -> tuple:
@@ -185,24 +204,39 @@ def points(value, name: str = "points") -> tuple[np.ndarray, tuple]:
     return rows, shape
 
 
-def _rows_are_valid(origins: np.ndarray, directions: np.ndarray, start: int, stop: int) -> bool:
-    """Whether the rays [start, stop) have finite origins and finite
-    directions with a component of magnitude >= _TINY: one pass, block by
-    block.  min() and max() propagate NaN, so they test finiteness without a
-    temporary; a direction's magnitudes serve both of its tests, and only a
-    block that holds a tiny component looks at its rows."""
+def _rows_are_valid(origins: np.ndarray, directions: np.ndarray, start: int,
+                    stop: int) -> tuple[float, float] | None:
+    """None unless the rays [start, stop) have finite origins and finite
+    directions with a component of magnitude >= _TINY; else the largest
+    origin component magnitude, and a lower bound on each direction's
+    largest component magnitude (exact below _SHORT; see Rays).  One pass, block by block.  min() and max() propagate NaN,
+    so they test finiteness without a temporary; a direction's magnitudes
+    serve both of its tests, and only a block that holds a small component
+    looks at its rows."""
     magnitudes = np.empty((min(CHECK_BLOCK, stop - start), 3), np.float32)
+    longest = np.empty(len(magnitudes), np.float32)
+    farthest, shortest = 0.0, np.inf
     for first in range(start, stop, CHECK_BLOCK):
         last = min(first + CHECK_BLOCK, stop)
         block = origins[first:last]
-        if not (np.isfinite(block.min()) and np.isfinite(block.max())):
-            return False
+        low, high = block.min(), block.max()
+        if not (np.isfinite(low) and np.isfinite(high)):
+            return None
+        farthest = max(farthest, -float(low), float(high))
         size = np.abs(directions[first:last], out=magnitudes[:last - first])
         if not np.isfinite(size.max()):
-            return False
-        if size.min() < _TINY and (size.max(axis=1) < _TINY).any():
-            return False
-    return True
+            return None
+        least = size.min()
+        if least < _SHORT:
+            # each row's largest, column by column (max(axis=1) over rows of
+            # three goes element by element, many times slower)
+            rows = longest[:last - first]
+            np.maximum(size[:, 0], size[:, 1], out=rows)
+            least = np.maximum(rows, size[:, 2], out=rows).min()
+            if least < _TINY:
+                return None
+        shortest = min(shortest, float(least))
+    return farthest, shortest
 
 
 _check_pool: ThreadPoolExecutor | None = None
@@ -220,7 +254,7 @@ def _check_threads() -> ThreadPoolExecutor:
         return _check_pool
 
 
-def _rays_are_valid(origins: np.ndarray, directions: np.ndarray) -> bool:
+def _rays_are_valid(origins: np.ndarray, directions: np.ndarray) -> tuple[float, float] | None:
     """_rows_are_valid over every ray, a run of blocks per thread for large
     batches."""
     count = len(origins)
@@ -231,8 +265,11 @@ def _rays_are_valid(origins: np.ndarray, directions: np.ndarray) -> bool:
     step = -(-blocks // parts) * CHECK_BLOCK
     bounds = [(first, min(first + step, count)) for first in range(0, count, step)]
     rest = [_check_threads().submit(_rows_are_valid, origins, directions, *b) for b in bounds[1:]]
-    valid = _rows_are_valid(origins, directions, *bounds[0])
-    return all([future.result() for future in rest]) and valid
+    found = [_rows_are_valid(origins, directions, *bounds[0])]
+    found += [future.result() for future in rest]
+    if any(part is None for part in found):
+        return None
+    return max(part[0] for part in found), min(part[1] for part in found)
 
 
 def _raise_first_bad_row(source: _Vectors, rows: np.ndarray, shape: tuple,

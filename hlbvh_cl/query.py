@@ -14,6 +14,7 @@ Conventions, shared with tests/oracle.py:
 from __future__ import annotations
 
 import dataclasses
+import math
 import threading
 from dataclasses import dataclass
 
@@ -216,8 +217,11 @@ class RayQuery:
                                    b["points"], b["instance_id"], self._counters, np.uint32(n),
                                    local_size=self.work_group_size)
             self._run(batch, launch, {name: getattr(hits, name) for name in HIT_ARRAYS})
-            if t_factor is not None:  # back from the frame: exact, powers of two
-                hits.t[:] = hits.t * t_factor
+            if t_factor is not None:  # back from the frame
+                hit = np.flatnonzero(hits.prim_id >= 0)
+                found = hits.t[hit]
+                caller_t(found, t_factor, hit, batch)
+                hits.t[hit] = found
                 hits.points[:] = frame.to_frame(hits.points, 1.0 / tree.scale)
         elif count:
             hits.t[:] = np.inf
@@ -452,13 +456,16 @@ def _round_up(value: int, multiple: int) -> int:
 def _into_frame(batch: inputs.Rays, tree) -> tuple[inputs.Rays, np.ndarray | None]:
     """The (checked) rays in the frame of a tree built at a scale other than 1
     (hlbvh_cl.frame), and the factor per ray that turns the frame's t back
-    into the caller's (None at scale 1).  Origins take the tree's scale; each
-    direction a power of two of its own that brings its largest component to
-    [0.5, 1), so that no direction under- or overflows and t stays near the
-    frame's size; tmin and tmax follow.  An origin that the scale takes out of
+    into the caller's (None when the rays go as given).  Origins take the
+    tree's scale; each direction a power of two of its own that brings its
+    largest component to [0.5, 1), so that no direction under- or overflows
+    and t stays near the frame's size; tmin and tmax follow.  At scale 1 only
+    short directions are, and only when a hit's t could pass float32's range
+    (_t_may_overflow): the kernels' box and triangle tests would overflow to
+    inf and miss it.  An origin that the scale takes out of
     float32 (far from a tiny scene) raises the ValueError that names it."""
     scale = getattr(tree, "scale", 1.0)
-    if scale == 1.0:
+    if scale == 1.0 and not _t_may_overflow(batch):
         return batch, None
     framed = frame.to_frame(batch.origins, scale)
     finite = np.isfinite(framed).all(axis=1)
@@ -468,9 +475,46 @@ def _into_frame(batch: inputs.Rays, tree) -> tuple[inputs.Rays, np.ndarray | Non
                          "frame (hlbvh_cl/frame.py)")
     _, exponent = np.frexp(np.abs(batch.directions).max(axis=1))
     per_ray = np.ldexp(1.0, -exponent)
+    if scale == 1.0:
+        # only short directions are lengthened: shortening a long one would
+        # lengthen the t of a far origin's hit
+        np.maximum(per_ray, 1.0, out=per_ray)
+        if (per_ray == 1.0).all():
+            return batch, None
     directions = (batch.directions * per_ray[:, None]).astype(np.float32)
     t_factor = per_ray / scale  # the caller's t = the frame's t * t_factor
     with np.errstate(over="ignore", under="ignore"):
         tmin, tmax = ((limit / t_factor).astype(np.float32) for limit in (batch.tmin, batch.tmax))
     return dataclasses.replace(batch, origins=framed, directions=directions, tmin=tmin,
                                tmax=tmax), t_factor
+
+
+#: The t that the rays of a scene at scale 1 may reach without a rescale:
+#: float32's largest with room for the slab test's products.
+_SAFE_T = float(np.finfo(np.float32).max) / 4
+
+
+def _t_may_overflow(batch: inputs.Rays) -> bool:
+    """Whether a hit of the batch in a scene at scale 1 (coordinates within
+    frame.SAFE_RANGE) could lie at a t near float32's overflow: its
+    distance from the origin, at most sqrt(3) (|origin|_inf + 2^24), over
+    its direction's largest component."""
+    reach = math.sqrt(3.0) * (batch.farthest_origin + frame.SAFE_RANGE[1])
+    return reach > _SAFE_T * batch.shortest_direction
+
+
+def caller_t(t: np.ndarray, t_factor: np.ndarray, rays: np.ndarray, batch: inputs.Rays) -> None:
+    """t (float32, hits only) times the t_factor of its ray (rays: the ray
+    of each), in place: the frame's t back in the caller's units, exactly
+    (powers of two).  A t past float32's range raises the ValueError that
+    names the ray's direction: a hit there has no t to give."""
+    with np.errstate(over="ignore"):
+        scaled = (t * t_factor[rays]).astype(np.float32)
+    over = np.flatnonzero(np.isinf(scaled))
+    if len(over):
+        row = int(rays[over[0]])
+        distance = float(t[over[0]]) * float(t_factor[row])
+        raise ValueError(f"{batch.name_direction(row)} is too short for this ray's hit: it lies "
+                         f"at t = {distance:.4g} direction lengths, past float32's largest "
+                         "value (3.4e38); give a longer direction")
+    t[...] = scaled

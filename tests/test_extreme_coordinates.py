@@ -130,6 +130,29 @@ def test_directions_of_any_length_in_a_scene_of_any_scale(scale, length):
                           expected["t"] <= limit)
 
 
+@pytest.mark.parametrize("scale, distance", [(1.0, 1e20), (1.0, 30.0), (1e10, 3e10),
+                                             (1e-10, 1e3)])
+def test_a_hit_past_float32s_t_is_found_and_its_t_refused(scale, distance):
+    """A direction so short that its hit's t passes float32's largest value:
+    the hit is found (occluded, counts), and the queries that return t name
+    the ray rather than give t = inf or miss it.  Rays whose t fits beside
+    it (near 1e37) keep their hits, scaled or not."""
+    scene = scene_at(scale)
+    origins = np.array([[0.0, 0.0, distance]] * 3, np.float32)
+    directions = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, -distance * 1e-37],
+                           [0.0, 0.0, -distance * 1e-39]], np.float32)
+    expected = brute_force_intersect(scene.meshes[0].vertices, scene.meshes[0].faces,
+                                     origins[:2], directions[:2])
+    assert np.isfinite(expected["t"]).all()
+    assert scene.occluded(origins, directions).tolist() == [True, True, True]
+    assert scene.count_intersections(origins, directions).tolist() == [2, 2, 2]
+    hits = scene.intersect(origins[:2], directions[:2])
+    np.testing.assert_allclose(hits.t, expected["t"], rtol=1e-5)
+    for query in (scene.intersect, scene.intersect_all):
+        with pytest.raises(ValueError, match=r"directions\[2\] = .* too short .* past float32"):
+            query(origins, directions)
+
+
 def test_a_ray_the_frame_cannot_hold_is_named():
     scene = scene_at(1e-30)
     origins = np.array([[0.0, 0.0, 3e-30], [3e30, 0.0, 0.0]], np.float32)
