@@ -245,12 +245,13 @@ class PointQuery:
             far = ~(np.abs(framed) <= POINT_RANGE).all(axis=1)
         if far.any():
             row = int(np.argmax(far))
-            where = (f" once multiplied by {frame.describe(tree.scale)}, the scale of this "
-                     f"scene's frame (hlbvh_cl/frame.py)" if tree.scale != 1.0 else "")
-            raise ValueError(f"{inputs.row_name('points', row, shape)} = {points[row].tolist()} is too far from the "
-                             f"origin{where}: point queries take coordinates up to "
-                             f"{POINT_RANGE:.3g}, where squared distances stay finite in "
-                             "float32")
+            # the limit in the caller's units: a scaled frame's is POINT_RANGE there
+            where = (f" in this scene (its frame is scaled by {frame.describe(tree.scale)}, "
+                     f"hlbvh_cl/frame.py)" if tree.scale != 1.0 else "")
+            raise ValueError(f"{inputs.row_name('points', row, shape)} = {points[row].tolist()} "
+                             f"is too far from the origin: point queries take coordinates up to "
+                             f"{POINT_RANGE / tree.scale:.3g}{where}, where squared distances "
+                             "stay finite in float32")
         return framed
 
     def _kernel(self, tree: Tree, name: str) -> tuple[cl.Kernel, int]:

@@ -6,6 +6,8 @@ outside [0, 1], and a tree as deep as the same scene at 1.  Scenes outside
 those of the unscaled scene, bit for bit."""
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import trimesh
@@ -151,6 +153,23 @@ def test_a_hit_past_float32s_t_is_found_and_its_t_refused(scale, distance):
     for query in (scene.intersect, scene.intersect_all):
         with pytest.raises(ValueError, match=r"directions\[2\] = .* too short .* past float32"):
             query(origins, directions)
+
+
+@pytest.mark.parametrize("scale", [1e-30, 1.0])
+def test_a_point_too_far_is_refused_with_the_limit_that_holds(scale):
+    """The limit the point queries' error quotes is in the caller's units:
+    a point at half of it is answered, one at twice it refused.  (A scene
+    at 1e30 has no such limit within float32: its frame is scaled down.)"""
+    scene = scene_at(scale)
+    far = np.array([[0.0, 0.0, 3e38]], np.float32)
+    with pytest.raises(ValueError, match=r"points\[0\] = .* too far .* up to ([0-9.e+-]+)") as error:
+        scene.closest_points(far)
+    limit = float(re.search(r"up to ([0-9.e+-]+)", str(error.value)).group(1))
+    near = scene.closest_points(np.array([[0.0, 0.0, limit / 2]], np.float32))
+    assert np.isfinite(near.distance).all() and near.prim_id[0] >= 0
+    with pytest.raises(ValueError, match="too far"):
+        scene.signed_distance(np.array([[0.0, 0.0, limit * 2]], np.float32))
+    assert np.isfinite(scene_at(1e30).closest_points(far).distance).all()
 
 
 def test_a_ray_the_frame_cannot_hold_is_named():
