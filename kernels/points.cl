@@ -434,7 +434,7 @@ TRAVERSAL_INLINE void store_closest(const Found_point* s, uint i, POINT_SCENE_PA
     }
 }
 
-#define WINDING(s) ((s).solid_angle * (float)(0.25 / M_PI))
+#define WINDING(s) ((s).solid_angle * (0.25f * M_1_PI_F))
 
 /* The points a work-item takes: one, or (POINT_PACKETS) a packet. */
 #ifdef POINT_PACKETS

@@ -31,16 +31,23 @@ PEDANTIC = ('#pragma clang diagnostic error "-Wpedantic"\n'
 PROBE_ONLY = {"target_probe.cl"}
 
 
-@pytest.fixture
-def pedantic_kernels(tmp_path, monkeypatch, suite_device):
-    """Runtimes made from here on build the pedantic copies of the kernels;
-    returns the set of kernel files they built."""
-    if not suite_device.id.startswith("pocl"):
-        pytest.skip("the pragma is Clang's: checked on PoCL")
-    folder = tmp_path / "kernels"
+#: What OpenCL C lacks on a device without cl_khr_fp64: the extension's
+#: macros, and the double constants the spec gives only with it (6.13.2.1;
+#: Clang's opencl-c-base.h defines them only then).
+NO_FP64 = "".join(f"#undef {name}\n" for name in (
+    "cl_khr_fp64", "__opencl_c_fp64", "HUGE_VAL", "DBL_DIG", "DBL_MANT_DIG", "DBL_MAX_10_EXP",
+    "DBL_MAX_EXP", "DBL_MIN_10_EXP", "DBL_MIN_EXP", "DBL_RADIX", "DBL_MAX", "DBL_MIN",
+    "DBL_EPSILON", "M_E", "M_LOG2E", "M_LOG10E", "M_LN2", "M_LN10", "M_PI", "M_PI_2", "M_PI_4",
+    "M_1_PI", "M_2_PI", "M_2_SQRTPI", "M_SQRT2", "M_SQRT1_2"))
+
+
+def _kernel_copies(folder, monkeypatch, prelude: str) -> set:
+    """Runtimes made from here on build copies of the kernels, in `folder`,
+    with `prelude` before each file; returns the set of kernel files they
+    built."""
     shutil.copytree(kernel_dir(), folder)
     for source in folder.glob("*.cl"):
-        source.write_text(PEDANTIC + source.read_text())
+        source.write_text(prelude + source.read_text())
     monkeypatch.setattr(device_module, "kernel_dir", lambda: folder)
     monkeypatch.setattr(device_module, "_runtimes", {})  # fresh runtimes, nothing cached
     built = set()
@@ -52,6 +59,19 @@ def pedantic_kernels(tmp_path, monkeypatch, suite_device):
 
     monkeypatch.setattr(device_module.Runtime, "_build", recording)
     return built
+
+
+def _pocl_only(device) -> None:
+    if not device.id.startswith("pocl"):
+        pytest.skip("the pragma and the copies' preludes are Clang's: checked on PoCL")
+
+
+@pytest.fixture
+def pedantic_kernels(tmp_path, monkeypatch, suite_device):
+    """Runtimes made from here on build the pedantic copies of the kernels;
+    returns the set of kernel files they built."""
+    _pocl_only(suite_device)
+    return _kernel_copies(tmp_path / "kernels", monkeypatch, PEDANTIC)
 
 
 def _exercise(device) -> None:
@@ -94,3 +114,49 @@ def test_every_kernel_builds_as_standard_opencl_c(pedantic_kernels, monkeypatch,
     _exercise(suite_device.id)
     every = {path.name for path in kernel_dir().glob("*.cl")} - PROBE_ONLY
     assert every - pedantic_kernels == set(), "kernel files this test never built"
+
+
+def _answers(device) -> dict:
+    """Closest hits, counts, closest points and signed distances on a
+    closed mesh and on two instances of it."""
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    mesh = hlbvh_cl.Mesh(sphere.vertices, sphere.faces, name="sphere")
+    rng = np.random.default_rng(2)
+    origins = rng.uniform(-2, 2, (3 * COHERENT_MIN, 3))
+    directions = rng.uniform(-1, 1, (1, 3)) * 0.2 - origins
+    shift = np.eye(4)[:3]
+    shift[:, 3] = (1.5, 0, 0)
+    found = {}
+    for name, scene in (("flat", hlbvh_cl.Scene([mesh], device=device)),
+                        ("instanced", hlbvh_cl.Scene([mesh], device=device,
+                                                     instances=[(0, np.eye(4)), (0, shift)]))):
+        hits = scene.intersect(origins, directions)
+        closest = scene.closest_points(origins)
+        found[name] = {"prim_id": hits.prim_id, "t": hits.t,
+                       "counts": scene.count_intersections(origins, directions),
+                       "distance": closest.distance,
+                       "signed": scene.signed_distance(origins)}
+    return found
+
+
+def test_kernels_without_fp64_build_and_answer_as_with_it(tmp_path, monkeypatch, suite_device):
+    """Every kernel builds where the device has no doubles (no cl_khr_fp64,
+    no double constants such as M_PI), and the float fallbacks give the
+    answers the double paths give: the same triangles, counts and signs, t
+    and distances within float rounding."""
+    _pocl_only(suite_device)
+    expected = _answers(suite_device.id)
+    built = _kernel_copies(tmp_path / "kernels", monkeypatch, NO_FP64)
+    got = _answers(suite_device.id)
+    _exercise(suite_device.id)
+    every = {path.name for path in kernel_dir().glob("*.cl")} - PROBE_ONLY
+    assert every - built == set(), "kernel files this test never built"
+    for name, answers in expected.items():
+        assert (answers["prim_id"] >= 0).sum() > 50
+        np.testing.assert_array_equal(got[name]["prim_id"], answers["prim_id"])
+        np.testing.assert_allclose(got[name]["t"], answers["t"], rtol=1e-5)
+        np.testing.assert_array_equal(got[name]["counts"], answers["counts"])
+        np.testing.assert_allclose(got[name]["distance"], answers["distance"], rtol=1e-5,
+                                   atol=1e-6)
+        np.testing.assert_array_equal(np.sign(got[name]["signed"]), np.sign(answers["signed"]))
+        np.testing.assert_allclose(got[name]["signed"], answers["signed"], rtol=1e-5, atol=1e-6)
