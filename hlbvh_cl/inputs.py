@@ -168,8 +168,19 @@ def rays(origins, directions=None, tmin=0.0, tmax=np.inf) -> Rays:
                            "row did")
     low, high = _limits("tmin", tmin, shape), _limits("tmax", tmax, shape)
     _check_limits(low, high, shape)
-    return Rays(o_rows, d_rows, low.astype(np.float32), high.astype(np.float32), shape,
-                sources[0], sources[1], *extent)
+    return Rays(o_rows, d_rows, *_inward(low, high), shape, sources[0], sources[1], *extent)
+
+
+def _inward(low: np.ndarray, high: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The float64 limits as float32, tmin rounded up and tmax down: the
+    kernels compare float32 t, and every t they then take meets the limits
+    as given (rounding to nearest would take t = float32(0.1) > 0.1 under
+    tmax = 0.1).  A tmax past float32's range becomes its largest value."""
+    with np.errstate(over="ignore"):
+        low32, high32 = low.astype(np.float32), high.astype(np.float32)
+    low32 = np.where(low32 < low, np.nextafter(low32, np.float32(np.inf)), low32)
+    high32 = np.where(high32 > high, np.nextafter(high32, np.float32(-np.inf)), high32)
+    return low32.astype(np.float32, copy=False), high32.astype(np.float32, copy=False)
 
 
 def ray_shape(origins_shape: tuple, directions_shape: tuple) -> tuple:

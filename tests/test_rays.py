@@ -175,6 +175,39 @@ def test_a_hit_exactly_at_tmax_counts(instanced):
     np.testing.assert_array_equal(found.t[found.offsets[1:] - 1], t)
 
 
+def test_float64_limits_keep_every_t_returned_within_them():
+    """tmin and tmax given in float64 are rounded inward to float32: a hit
+    whose (float32) t lies just outside them as given is not taken, one at
+    their float32 rounding is.  Squares at z = float32(0.1) and just below,
+    hit at those t by rays up z."""
+    above = float(np.float32(0.1))                     # 0.10000000149...
+    below = float(np.nextafter(np.float32(0.1), np.float32(0.0)))  # 0.0999999940...
+    assert below < 0.1 < above
+    # two rays, one through each square only (x < 0 hits the first, x > 0 the second)
+    squares = [hlbvh_cl.Mesh(np.array([[x0, -1.0, z], [x1, -1.0, z], [x1, 1.0, z], [x0, 1.0, z]],
+                                      np.float32), [[0, 1, 2], [0, 2, 3]])
+               for z, x0, x1 in ((above, -1.0, 0.0), (below, 0.0, 1.0))]
+    scene = hlbvh_cl.Scene(squares, device="pocl:0")
+    origins = np.array([[-0.5, 0.0, 0.0], [0.5, 0.0, 0.0]], np.float32)
+    directions = np.array([[0.0, 0.0, 1.0]] * 2, np.float32)
+    assert scene.intersect(origins, directions).t.tolist() == [np.float32(above),
+                                                               np.float32(below)]
+    # tmax 0.1: t = 0.10000000149 (ray 0) lies past it, 0.0999999940 (ray 1) within
+    hits = scene.intersect(origins, directions, tmax=0.1)
+    assert hits.prim_id[0] == -1 and hits.t[1] == np.float32(below)
+    assert scene.occluded(origins, directions, tmax=0.1).tolist() == [False, True]
+    assert scene.count_intersections(origins, directions, tmax=0.1).tolist() == [0, 1]
+    assert scene.intersect_all(origins, directions, tmax=0.1).counts.tolist() == [0, 1]
+    # tmin between the two float32 values, nearer the lower: only ray 0's t lies above it
+    tmin = below + (above - below) / 8
+    assert scene.count_intersections(origins, directions, tmin=tmin).tolist() == [1, 0]
+    assert scene.occluded(origins, directions, tmin=np.array([tmin, tmin])).tolist() == [True,
+                                                                                       False]
+    # limits already float32 keep their hits at exactly those t
+    assert scene.count_intersections(origins, directions, tmin=np.float32(below),
+                                     tmax=np.float32(above)).tolist() == [1, 1]
+
+
 @pytest.mark.parametrize("name", ["knight", "bunny_small", "teapot", "cube"])
 def test_rays_from_the_surface_with_tmin(name):
     case = scene_case(name)
