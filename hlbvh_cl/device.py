@@ -317,6 +317,7 @@ class Runtime:
                                      properties=cl.command_queue_properties.PROFILING_ENABLE)
         self._programs: dict[tuple, cl.Program] = {}
         self._kernels: dict[tuple, cl.Kernel] = {}
+        self._group_limits: dict[int, int] = {}  # see largest_group
         self._lock = threading.Lock()
         self._launch_lock = threading.Lock()
         self._waiter: ThreadPoolExecutor | None = None  # see wait()
@@ -403,13 +404,27 @@ class Runtime:
         cost per work-group, and 64 measured much slower on a plain copy."""
         return min(256, self.device.cl_device.max_work_group_size)
 
+    def largest_group(self, kernel: cl.Kernel) -> int:
+        """The most work-items per group ``kernel`` may run with here, as a
+        power of two (CL_KERNEL_WORK_GROUP_SIZE, cached): a kernel heavy in
+        private memory or registers may allow fewer than the device's
+        maximum, and a launch past it fails (CL_INVALID_WORK_GROUP_SIZE)."""
+        limit = self._group_limits.get(kernel.int_ptr)
+        if limit is None:
+            allowed = kernel.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE,
+                                                 self.device.cl_device)
+            limit = self._group_limits[kernel.int_ptr] = 1 << (max(1, allowed).bit_length() - 1)
+        return limit
+
     def run(self, kernel: cl.Kernel, work_items: int | tuple[int, int], *args, wait_for=None,
             local_size: int | None = None) -> cl.Event:
         """Enqueue ``kernel`` over ``work_items`` items, or a 2D range
         (columns, rows) in work-groups of one row; columns are rounded up to
         whole work-groups, and every kernel checks its own bound.  Python
-        ints and floats become int32 and float32 arguments."""
-        local_size = local_size or self.group_size
+        ints and floats become int32 and float32 arguments.  ``local_size``
+        (by default group_size) is capped at what the kernel allows
+        (largest_group); the kernels take any group size."""
+        local_size = min(local_size or self.group_size, self.largest_group(kernel))
         values = [_kernel_arg(a) for a in args]
         columns, rows = work_items if isinstance(work_items, tuple) else (work_items, None)
         size = max(1, -(-columns // local_size)) * local_size

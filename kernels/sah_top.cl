@@ -478,23 +478,25 @@ __kernel void split_top_level(__global const TopTask *tasks, int level, int seri
 
 /* The SAH cost of the whole tree: cost(node) = C_t A(node) + cost(left) +
  * cost(right) unrolls into the sum of C_t A over the top nodes plus the
- * clusters' costs.  One work-group: each work-item sums a fixed stride,
- * work-item 0 adds the partial sums in order (the same total every run). */
+ * clusters' costs.  One work-group of at most TOP_COST_GROUP: each
+ * work-item sums a fixed stride, work-item 0 adds the partial sums in order
+ * (the same total every run on a device). */
 __kernel void sum_top_cost(int top_count, __global const Aabb *top_boxes, int cluster_count,
                            __global const float *cluster_cost, __global float *sah_cost_out)
 {
     __local float partial[TOP_COST_GROUP];
-    int i = get_local_id(0);
+    /* the group may be smaller than asked (a device's limit for the kernel) */
+    int i = get_local_id(0), items = (int)get_local_size(0);
     float sum = 0.0f;
-    for (int t = i; t < top_count; t += TOP_COST_GROUP)
+    for (int t = i; t < top_count; t += items)
         sum += SAH_TRAVERSAL_COST * aabb_area(top_boxes[t]);
-    for (int c = i; c < cluster_count; c += TOP_COST_GROUP)
+    for (int c = i; c < cluster_count; c += items)
         sum += cluster_cost[c];
     partial[i] = sum;
     barrier(CLK_LOCAL_MEM_FENCE);
     if (i == 0) {
         float total = 0.0f;
-        for (int k = 0; k < TOP_COST_GROUP; ++k)
+        for (int k = 0; k < items; ++k)
             total += partial[k];
         sah_cost_out[0] = total;
     }

@@ -296,6 +296,58 @@ def test_every_profile_gives_the_same_hits(monkeypatch, suite_device):
         np.testing.assert_array_equal(getattr(results["cpu"], field), getattr(results["gpu"], field))
 
 
+def test_kernels_a_device_limits_to_small_groups_run_in_them(monkeypatch, suite_device):
+    """A kernel may allow fewer work-items per group than the device
+    (CL_KERNEL_WORK_GROUP_SIZE, e.g. a GPU kernel heavy in registers): every
+    launch keeps within it, and builds, queries and renders answer as with
+    full groups.  Here every kernel reports 3 (so groups of 2), in both
+    profiles; the sort and scan size their own groups from the same limit."""
+    from shapes import grid_mesh
+    mesh = grid_mesh(12)
+    rng = np.random.default_rng(4)
+    origins = rng.uniform(-1, 13, (3000, 3)) + [0, 0, 3]
+    directions = rng.normal(size=(3000, 3)) + [0, 0, -2]
+    camera = hlbvh_cl.Camera(eye=(6, -4, 8), target=(6, 6, 0))
+
+    def answers():
+        monkeypatch.setattr(device_module, "_runtimes", {})  # fresh runtimes
+        scene = hlbvh_cl.Scene([mesh], device=suite_device)
+        return (scene.intersect(origins, directions).prim_id,
+                scene.count_intersections(origins, directions),
+                scene.closest_points(origins).distance, scene.stats.sah_cost,
+                hlbvh_cl.Renderer(scene).render(camera, 24, 16))
+    asked = []
+    info = cl.Kernel.get_work_group_info
+
+    def limited(kernel, param, device):
+        if param == cl.kernel_work_group_info.WORK_GROUP_SIZE:
+            asked.append(kernel.function_name)
+            return 3
+        return info(kernel, param, device)
+    for profile in ("cpu", "gpu"):
+        monkeypatch.setenv("HLBVH_CL_PROFILE", profile)
+        monkeypatch.setattr(cl.Kernel, "get_work_group_info", info)
+        expected = answers()
+        enqueue = cl.enqueue_nd_range_kernel
+        groups = []
+
+        def recording(queue, kernel, global_size, local_size, *args, **kwargs):
+            groups.append(int(np.prod(local_size)) if local_size else 0)
+            return enqueue(queue, kernel, global_size, local_size, *args, **kwargs)
+        monkeypatch.setattr(cl.Kernel, "get_work_group_info", limited)
+        monkeypatch.setattr(cl, "enqueue_nd_range_kernel", recording)
+        got = answers()
+        monkeypatch.setattr(cl, "enqueue_nd_range_kernel", enqueue)
+        assert {"intersect_closest_arrays", "count_hits_arrays", "sum_top_cost"} <= set(asked)
+        assert groups and max(groups) <= 2
+        prim_id, counts, distance, sah_cost, image = got
+        np.testing.assert_array_equal(prim_id, expected[0])
+        np.testing.assert_array_equal(counts, expected[1])
+        np.testing.assert_array_equal(distance, expected[2])
+        assert sah_cost == pytest.approx(expected[3], rel=1e-5)  # summed in another order
+        np.testing.assert_array_equal(image, expected[4])
+
+
 # -- struct layout on every device -----------------------------------------------------
 
 #: Every struct of layout.STRUCTS and each of its fields: (struct, None) is its size.
