@@ -144,7 +144,23 @@ inline float4 areas_of(float4 d0, float4 d1, float4 d2)
 inline int4 bins_of(ClusterRecord r, float4 lo, float4 inv_extent, int bins)
 {
     float4 center = 0.5f * (r.lo + r.hi);
-    return clamp(convert_int4((center - lo) * inv_extent), (int4)(0), (int4)(bins - 1));
+    /* clamped as floats first: converting a float the int cannot hold is
+     * undefined (OpenCL C 6.2.3.3); inverse_extents keeps it finite */
+    float4 x = (center - lo) * inv_extent;
+    x = x > 0.0f ? x : (float4)(0.0f);
+    x = x < (float)(bins - 1) ? x : (float4)((float)(bins - 1));
+    return convert_int4(x);
+}
+
+/* bins / extent per axis (0 on a flat one), capped at FLT_MAX: centres
+ * closer than bins / FLT_MAX (1e-38 apart) would make it inf, and the
+ * lowest centre's bin 0 * inf = NaN, which left_of_split sends right. */
+inline float4 inverse_extents(float4 extent, float bins)
+{
+    float4 inv = (float4)(extent.x > 0.0f ? bins / extent.x : 0.0f,
+                          extent.y > 0.0f ? bins / extent.y : 0.0f,
+                          extent.z > 0.0f ? bins / extent.z : 0.0f, 0.0f);
+    return inv < FLT_MAX ? inv : (float4)(FLT_MAX);
 }
 
 inline int lane(int4 v, int axis)
@@ -213,9 +229,7 @@ inline int split_pair(__global const ClusterRecord *in, __global ClusterRecord *
     float4 center_a = 0.5f * (a.lo + a.hi), center_b = 0.5f * (b.lo + b.hi);
     float4 lo = grow_lo(center_a, center_b), extent = grow_hi(center_a, center_b) - lo;
     lo.w = 0.0f;
-    float4 inv_extent = (float4)(extent.x > 0.0f ? 2 / extent.x : 0.0f,
-                                 extent.y > 0.0f ? 2 / extent.y : 0.0f,
-                                 extent.z > 0.0f ? 2 / extent.z : 0.0f, 0.0f);
+    float4 inv_extent = inverse_extents(extent, 2.0f);
     int4 bin_a = bins_of(a, lo, inv_extent, 2), bin_b = bins_of(b, lo, inv_extent, 2);
     float area_a = area_of(a.lo, a.hi), area_b = area_of(b.lo, b.hi);
     float cost_a_left = a.lo.w * area_a + b.lo.w * area_b;
@@ -291,9 +305,7 @@ inline int split_clusters(__global const ClusterRecord *records, __global Cluste
     int bins = min(max((end - begin) / 2, 2), TOP_SAH_BINS);
     float4 extent = centroid_hi - centroid_lo;
     float4 lo = (float4)(centroid_lo.xyz, 0.0f);
-    float4 inv_extent = (float4)(extent.x > 0.0f ? bins / extent.x : 0.0f,
-                                 extent.y > 0.0f ? bins / extent.y : 0.0f,
-                                 extent.z > 0.0f ? bins / extent.z : 0.0f, 0.0f);
+    float4 inv_extent = inverse_extents(extent, (float)bins);
 
     /* Per axis a: bin_lo/hi[a][b] the box of bin b, with bin b's triangle
      * count in bin_lo's w lane (grow_bin). */

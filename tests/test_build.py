@@ -58,6 +58,12 @@ SPECIAL_INPUTS = {
     "soup 1e-3..1e6": lambda rng: _soup(rng, 5000),
     "degenerate triangles": lambda rng: Mesh(np.repeat(rng.normal(size=(50, 3)), 3, axis=0),
                                              np.arange(150).reshape(50, 3)),
+    # clusters whose centres lie 1e-38 apart, in a frame set to 1 by a unit
+    # triangle: the SAH top's bins / extent passes float32's range
+    "centres 1e-38 apart": lambda rng: Mesh(
+        np.concatenate([(rng.uniform(0, 4e-37, (3000, 1, 3))
+                         + rng.uniform(0, 1e-38, (3000, 3, 3))).reshape(-1, 3),
+                        np.eye(3)]), np.arange(3 * 3001).reshape(3001, 3)),
 }
 
 
