@@ -9,6 +9,12 @@
 #ifndef HLBVH_H
 #define HLBVH_H
 
+/* Arithmetic as written, never fused into multiply-adds, in every kernel:
+ * OpenCL C lets a compiler contract by default, and one that does (for the
+ * SAH's box areas, say) would build another tree, and draw other pixels, than
+ * one that does not.  Traversal needs it besides (triangle.h). */
+#pragma OPENCL FP_CONTRACT OFF
+
 /* Compiler builtins are only ever a faster spelling of plain OpenCL C: each
  * use asks HAS_BUILTIN(name) and keeps a portable fallback.  The host defines
  * PLAIN_OPENCL for compilers that claim a builtin they cannot lower (Oclgrind
