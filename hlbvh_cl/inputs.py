@@ -220,10 +220,10 @@ def _rows_are_valid(origins: np.ndarray, directions: np.ndarray, start: int,
     """None unless the rays [start, stop) have finite origins and finite
     directions with a component of magnitude >= _TINY; else the largest
     origin component magnitude, and a lower bound on each direction's
-    largest component magnitude (exact below _SHORT; see Rays).  One pass, block by block.  min() and max() propagate NaN,
-    so they test finiteness without a temporary; a direction's magnitudes
-    serve both of its tests, and only a block that holds a small component
-    looks at its rows."""
+    largest component magnitude (exact below _SHORT; see Rays).  One pass,
+    block by block.  min() and max() propagate NaN, so they test finiteness
+    without a temporary; a direction's magnitudes serve both of its tests,
+    and only a block that holds a small component looks at its rows."""
     magnitudes = np.empty((min(CHECK_BLOCK, stop - start), 3), np.float32)
     longest = np.empty(len(magnitudes), np.float32)
     farthest, shortest = 0.0, np.inf
