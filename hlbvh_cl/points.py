@@ -274,23 +274,27 @@ class PointQuery:
         buffer in the nodes' places, made once for every top tree over
         them)."""
         owner = tree.meshes if isinstance(tree, InstancedTree) else tree
-        if owner.dipoles is None:
-            rt = self.rt
-            with rt.build_lock:  # a buffer taken during a build would go back with its scratch
+        rt = self.rt
+        # under the build lock from the check to the store: views of one scene
+        # (hlbvh_cl.travel) share the tree, and a buffer taken during a build
+        # would go back with its scratch
+        with rt.build_lock:
+            if owner.dipoles is None:
                 dipoles = rt.pool.take(owner.node_count * layout.WIDE_DIPOLES.itemsize)
-            kernel = rt.kernel("dipoles.cl", "dipoles_level")
-            if isinstance(tree, InstancedTree):
-                parts = zip(owner.levels, owner.node_base, owner.triangle_base)
-            else:
-                parts = [(tree.levels, 0, 0)]
-            events = []
-            for levels, node_base, triangle_base in parts:
-                for first, count in reversed(levels):
-                    events.append(rt.run(kernel, count, first, count, np.int32(node_base),
-                                         np.int32(triangle_base), owner.nodes, owner.triangles,
-                                         dipoles, wait_for=events[-1:] or None))
-            owner.dipoles = dipoles
-        return owner.dipoles
+                kernel = rt.kernel("dipoles.cl", "dipoles_level")
+                if isinstance(tree, InstancedTree):
+                    parts = zip(owner.levels, owner.node_base, owner.triangle_base)
+                else:
+                    parts = [(tree.levels, 0, 0)]
+                events = []
+                for levels, node_base, triangle_base in parts:
+                    for first, count in reversed(levels):
+                        events.append(rt.run(kernel, count, first, count, np.int32(node_base),
+                                             np.int32(triangle_base), owner.nodes,
+                                             owner.triangles, dipoles,
+                                             wait_for=events[-1:] or None))
+                owner.dipoles = dipoles
+            return owner.dipoles
 
     def _reserve(self, fields: dict[str, int]) -> None:
         count = self.max_points_per_launch

@@ -108,3 +108,36 @@ def test_threads_get_serial_results_while_scenes_rebuild(scenes):
         sys.setswitchinterval(previous)
     assert not failures, failures[:5]
     assert counts["queries"] > 20 and counts["rebuilds"] > 5, counts
+
+
+def test_views_of_one_scene_make_its_dipoles_once(monkeypatch):
+    """Views of one scene (what unpickling hands out, hlbvh_cl.travel) share
+    its tree, and so its winding-number dipoles: two views asking at once make
+    them once, rather than each its own with one buffer lost, and both get the
+    serial answer."""
+    scene = hlbvh_cl.Scene([grid_mesh(3)])
+    points = np.random.default_rng(0).uniform(-1, 2, (2000, 3)).astype(np.float32)
+    views = [scene._view() for _ in range(2)]
+    rt = scene._runtime
+    made, kernel = [], rt.kernel
+
+    def slow_kernel(file, name, **defines):
+        if name == "dipoles_level":  # widen the window between the check and the store
+            made.append(name)
+            time.sleep(0.3)
+        return kernel(file, name, **defines)
+
+    monkeypatch.setattr(rt, "kernel", slow_kernel)
+    got = [None, None]
+
+    def ask(k):
+        got[k] = views[k].winding_number(points)
+
+    threads = [threading.Thread(target=ask, args=(k,)) for k in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=120)
+    assert len(made) == 1
+    expected = scene.winding_number(points)
+    assert all(np.array_equal(g, expected) for g in got)
