@@ -338,18 +338,27 @@ def check_per_ray_shape(name: str, given: tuple, shape: tuple) -> None:
 
 def ray_masks(value, shape: tuple) -> np.ndarray:
     """uint32 masks for rays of leading shape ``shape``: one for all (0-d)
-    or one per ray (R,), broadcast from an array of integers in [0, 2^32)."""
+    or one per ray (R,), broadcast from an array of integers (mask_bits)."""
     array = np.asarray(unmasked("mask", value))
     if array.dtype.kind not in "iu":  # not bool, nor timedelta64 (a numpy integer)
         raise TypeError(f"mask must hold integers (32-bit masks), got dtype {array.dtype}")
-    outside = (array < 0) | (array > ALL_BITS)
+    bits = mask_bits(array, "mask")
+    if array.ndim == 0:
+        return bits
+    return np.ascontiguousarray(_per_ray("mask", bits, shape), np.uint32)
+
+
+def mask_bits(array: np.ndarray, name: str) -> np.ndarray:
+    """uint32 bit patterns of an integer array of masks called ``name``,
+    each in [-2^31, 2^32): a negative one stands for its 32-bit two's
+    complement, as Python's ~2 for every bit but bit 1.  Else the
+    ValueError that names the first that does not fit."""
+    outside = (array < -2**31) | (array > ALL_BITS)
     if outside.any():
         index = np.unravel_index(int(np.argmax(outside.reshape(-1))), array.shape)
-        where = f"mask[{', '.join(str(int(i)) for i in index)}]" if array.ndim else "mask"
+        where = f"{name}[{', '.join(str(int(i)) for i in index)}]" if array.ndim else name
         raise ValueError(f"{where} = {int(array[index])} does not fit 32 bits")
-    if array.ndim == 0:
-        return array.astype(np.uint32)
-    return np.ascontiguousarray(_per_ray("mask", array, shape), np.uint32)
+    return (array.astype(np.int64) & ALL_BITS).astype(np.uint32)
 
 
 def row_name(name: str, row: int, shape: tuple) -> str:

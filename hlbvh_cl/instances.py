@@ -26,7 +26,7 @@ import pyopencl as cl
 from . import frame, layout
 from .build import BuildStats, Geometry, build
 from .device import Runtime
-from .inputs import ALL_BITS, unmasked
+from .inputs import ALL_BITS, mask_bits, unmasked
 from .mesh import Mesh
 from .tree import Tree
 
@@ -108,7 +108,8 @@ def check_instances(instances, mesh_count: int) -> tuple[np.ndarray, np.ndarray]
 
 
 def check_masks(masks, count: int, what: str) -> np.ndarray:
-    """uint32 (count,) masks: None (all bits), one int, or one per item."""
+    """uint32 (count,) masks: None (all bits), one int, or one per item
+    (inputs.mask_bits: ~2 is every bit but bit 1)."""
     if masks is None:
         return np.full(count, ALL_BITS, np.uint32)
     array = np.asarray(unmasked("masks", masks))
@@ -118,11 +119,7 @@ def check_masks(masks, count: int, what: str) -> np.ndarray:
         array = np.full(count, array)
     if array.shape != (count,):
         raise ValueError(f"masks has shape {array.shape}, expected ({count},): one per {what}")
-    out_of_range = (array < 0) | (array > ALL_BITS)
-    if out_of_range.any():
-        k = int(np.flatnonzero(out_of_range)[0])
-        raise ValueError(f"masks[{k}] = {int(array[k])} does not fit 32 bits")
-    return array.astype(np.uint32)
+    return mask_bits(array, "masks")
 
 
 @dataclass
@@ -272,6 +269,8 @@ def instance_records(transforms: np.ndarray, meshes: np.ndarray, masks: np.ndarr
                          f"mesh (or back) overflows in the frames the scene is built in{reach}; "
                          "scale its axes less far apart, or keep the instances within a "
                          "smaller range")
+    check_resolved(*world_boxes(transforms, trees.lo[meshes], trees.hi[meshes]),
+                   lambda k: f"instance {k}'s transform")
     records = np.zeros(len(meshes), layout.INSTANCE)
     records["to_mesh"] = to_mesh.reshape(-1, 12)
     records["to_world"] = to_world.reshape(-1, 12)
@@ -282,6 +281,33 @@ def instance_records(transforms: np.ndarray, meshes: np.ndarray, masks: np.ndarr
     records["node_base"] = trees.node_base[meshes]
     records["triangle_base"] = trees.triangle_base[meshes]
     return records
+
+
+#: The fewest float32 steps (spacings at its farthest coordinate) an
+#: instance's world box may span (check_resolved).  Rounding a world point to float32, and
+#: the map into the mesh in float32 entries, move it by a few steps, in
+#: world units whatever the map, so an instance smaller than that is missed,
+#: or hit anywhere, by every ray.  A map that squashes a mesh flat keeps its
+#: other sides, and is hit as a flat mesh there would be.
+FEWEST_STEPS = 4
+
+
+def check_resolved(lo: np.ndarray, hi: np.ndarray, label) -> None:
+    """Raises the ValueError that names (``label(k)``, e.g. "instance 3's
+    transform") the first instance whose world box [lo, hi] (float64 (K, 3))
+    spans fewer than FEWEST_STEPS float32 steps at its place (a mesh of no
+    extent, every triangle a point, is never hit anyway)."""
+    span = (hi - lo).max(axis=1, initial=0.0)
+    farthest = np.maximum(np.abs(lo), np.abs(hi)).max(axis=1, initial=0.0)
+    with np.errstate(over="ignore"):
+        step = np.spacing(farthest.astype(np.float32)).astype(np.float64)
+    small = (span > 0) & (span < FEWEST_STEPS * step)
+    if small.any():
+        k = int(np.argmax(small))
+        raise ValueError(f"{label(k)} makes its mesh too small for its place in the world: it "
+                         f"spans {span[k]:.3g} at {farthest[k]:.3g} from the origin, under "
+                         f"{FEWEST_STEPS} float32 steps of {step[k]:.2g} there, so rays would "
+                         "miss it or hit it anywhere; scale it up or place it nearer the origin")
 
 
 @dataclass

@@ -99,7 +99,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .instances import check_transforms
+from .instances import check_resolved, check_transforms
 from .mesh import Mesh
 from .render import Camera, Light, Renderer, unit, view_problem
 from .scene import Scene
@@ -657,8 +657,9 @@ def _place(reader: _Reader, spec: _InstanceSpec, mesh: Mesh, ground_y: float
     if not reach < np.finfo(np.float32).max:
         raise reader.error(spec.key, f"its scale and positions put copies at {reach:.3g}, "
                                      "beyond float32")
-    try:  # the Scene's own check (a scale of 1e-300 is singular)
+    try:  # the Scene's own checks (a scale of 1e-300 is singular)
         check_transforms(transforms, lambda k: f"copy {k}'s transform")
+        check_resolved(copies_lo, copies_hi, lambda k: f"copy {k}'s transform")
     except ValueError as error:
         raise reader.error(spec.key, str(error)) from None
     return InstanceEntry(mesh=spec.mesh, transforms=transforms), box

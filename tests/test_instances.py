@@ -362,6 +362,10 @@ def test_every_hit_and_counts_through_instances(small, suite_device):
     # not singular, but its inverse overflows float32 in the scene's frames
     ([(0, np.eye(3, 4)), (0, np.hstack([np.diag([1e20, 1.0, 1e-20]), np.zeros((3, 1))]))],
      r"instance 1's transform does not fit float32"),
+    # the sphere 2e-12 across at x = 3, where float32's steps are 2.4e-7
+    ([(0, np.eye(3, 4)), (0, np.hstack([np.eye(3) * 1e-12, [[3.0], [0.0], [0.0]]]))],
+     r"instance 1's transform makes its mesh too small for its place in the world: it spans "
+     r"2e-12 at 3 from the origin, under 4 float32 steps of 2.4e-07"),
 ])
 def test_bad_instances_are_named(small, suite_device, instances, message):
     with pytest.raises((ValueError, TypeError), match=message):
@@ -376,8 +380,8 @@ def test_bad_masks_and_updates_are_named(small, suite_device):
     flat = hlbvh_cl.Scene(small, device=suite_device)
     with pytest.raises(ValueError, match="set_transforms needs an instanced Scene"):
         flat.set_transforms([0], np.eye(3, 4)[None])
-    with pytest.raises(ValueError, match=r"mask\[1\] = -1 does not fit 32 bits"):
-        flat.intersect(np.zeros((2, 3)), np.ones((2, 3)), mask=[1, -1])
+    with pytest.raises(ValueError, match=r"mask\[1\] = -2147483649 does not fit 32 bits"):
+        flat.intersect(np.zeros((2, 3)), np.ones((2, 3)), mask=[1, -2**31 - 1])
     scene = hlbvh_cl.Scene(small, device=suite_device, instances=[(0, np.eye(3, 4))])
     with pytest.raises(ValueError, match=r"instance_ids\[0\] = 3 is out of range"):
         scene.set_transforms([3], np.eye(3, 4)[None])
@@ -388,6 +392,23 @@ def test_bad_masks_and_updates_are_named(small, suite_device):
         scene.set_transforms([0, 0, 0], np.tile(np.eye(3, 4), (3, 1, 1)))
     hits = scene.intersect(np.zeros((1, 3)) - 5, np.ones((1, 3)))
     assert hits.instance_id[0] == 0  # the scene still holds its instance
+
+
+def test_negative_masks_are_their_two_s_complement(small, suite_device):
+    """Python's ~2 (-3) is every bit but bit 1, in a ray's mask as in a
+    scene's: the same hits as 0xFFFFFFFD."""
+    rng = np.random.default_rng(9)
+    origins, directions = _rays_at_centroids(rng, small[0].vertices, small[0].faces, 300)
+    place = [(0, np.eye(3, 4)), (1, np.eye(3, 4))]
+    spelled = hlbvh_cl.Scene(small, device=suite_device, instances=place, masks=[-1, 2])
+    plain = hlbvh_cl.Scene(small, device=suite_device, instances=place, masks=[2**32 - 1, 2])
+    for mask, bits in ((~2, 0xFFFFFFFD), ([~2] * 300, [0xFFFFFFFD] * 300), (-1, 2**32 - 1)):
+        got = spelled.intersect(origins, directions, mask=mask)
+        expected = plain.intersect(origins, directions, mask=bits)
+        for field in ("t", "prim_id", "geom_id", "instance_id"):
+            np.testing.assert_array_equal(getattr(got, field), getattr(expected, field))
+    skipping = spelled.intersect(origins, directions, mask=~2)
+    assert skipping.hit.sum() > 100 and (skipping.instance_id[skipping.hit] == 0).all()
 
 
 @pytest.mark.parametrize("change", ["set_transforms", "update_vertices"])
@@ -416,6 +437,37 @@ def test_a_change_the_build_rejects_leaves_the_scene_as_it_was(small, suite_devi
     after = scene.intersect(origins, directions)
     for field in ("t", "prim_id", "geom_id", "instance_id"):
         np.testing.assert_array_equal(getattr(after, field), getattr(before, field))
+
+
+def test_an_instance_too_small_for_its_place_is_refused_but_a_flattened_one_is_traced(
+        small, suite_device):
+    """An instance spanning under 4 float32 steps at its place is refused
+    (rays would miss it, or hit it anywhere), and the scene keeps what it
+    held; one squashed flat far out keeps its other sides and is hit where
+    the brute force hits its flattened copy.  So is one spanning 6 steps."""
+    sphere = small[0]
+    scene = hlbvh_cl.Scene([sphere], device=suite_device, instances=[(0, np.eye(3, 4))])
+    step = float(np.spacing(np.float32(1000.0)))
+    with pytest.raises(ValueError, match=r"instance 0's transform makes its mesh too small"):
+        scene.set_transforms(0, np.hstack([np.eye(3) * step, [[1000.0], [0.0], [0.0]]]))
+    np.testing.assert_array_equal(scene.transforms, np.eye(3, 4)[None])
+    rng = np.random.default_rng(3)
+    for linear, place in ((np.diag([1.0, 1.0, 1e-7]), (0.5, 0.2, 1000.0)),
+                          (np.eye(3) * 3 * step, (1000.0, 0.0, 0.0))):
+        transform = np.hstack([linear, np.array(place)[:, None]])
+        scene.set_transforms(0, transform)
+        reach = float(np.abs(linear).max())
+        across = rng.uniform(-0.6, 0.6, (400, 3)) * reach
+        across[:, 2] = 0.0
+        origins = (np.array(place) + across + (0.0, 0.0, 3 * reach)).astype(np.float32)
+        directions = np.tile(np.float32([0.0, 0.0, -1.0]), (len(origins), 1))
+        vertices, faces, _, _ = _flattened([sphere], [0], transform[None])
+        expected = brute_force_intersect(vertices, faces, origins.astype(np.float64),
+                                         directions.astype(np.float64))
+        got = scene.intersect(origins, directions)
+        np.testing.assert_array_equal(got.hit, np.isfinite(expected["t"]))
+        assert got.hit.all()
+        np.testing.assert_allclose(got.t, expected["t"], rtol=0, atol=4 * step / reach)
 
 
 # -- point queries ---------------------------------------------------------------

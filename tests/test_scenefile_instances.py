@@ -297,6 +297,8 @@ def instance(text):
     (instance("mesh = 0\nscale = 5e38\n"), "instance[0]", "scale and positions put copies at"),
     (instance("mesh = 0\ntranslate = [0.0, 1e39, 0.0]\n"), "instance[0]", "beyond float32"),
     (instance("mesh = 0\nscale = 1e-300\n"), "instance[0]", "copy 0's transform is singular"),
+    (instance("mesh = 0\nscale = 1e-12\ntranslate = [3.0, 0.0, 0.0]\n"), "instance[0]",
+     "copy 0's transform makes its mesh too small for its place in the world"),
     (instance("mesh = 0\nrotate_deg = 90.0\n"), "instance[0].rotate_deg", "3 numbers"),
     (instance('mesh = 0\nplace_on_ground = "yes"\n'), "instance[0].place_on_ground",
      "true or false"),
