@@ -68,6 +68,16 @@ def _validate_vertices(vertices) -> np.ndarray:
         row = _first_row(overflow)
         raise ValueError(f"vertices[{row}] = {array[row].tolist()} overflows float32 "
                          f"(|x| > {np.finfo(np.float32).max:.3g})")
+    if array.dtype.kind == "f":
+        # a mesh whose every coordinate is below float32's normal range would
+        # round to subnormals or 0: its shape lost, it would be missed silently
+        largest = np.abs(array).max(axis=1)
+        row = int(np.argmax(largest))
+        if 0 < largest[row] < np.finfo(np.float32).tiny:
+            raise ValueError(f"vertices are all below float32's normal range (the largest, "
+                             f"vertices[{row}] = {array[row].tolist()}, is under "
+                             f"{np.finfo(np.float32).tiny:.3g}): in float32 the mesh would "
+                             "lose its shape; scale it up")
     converted.flags.writeable = False
     return converted
 

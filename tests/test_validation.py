@@ -201,6 +201,23 @@ def test_vertices_must_be_finite_in_float32(value, words):
         assert word in str(caught.value)
 
 
+def test_a_mesh_below_float32_s_normal_range_is_refused():
+    """A float64 mesh whose coordinates are all under float32's smallest
+    normal number would round to subnormals or 0 and lose its shape; one
+    that reaches the normal range keeps its tiny details as rounding does."""
+    with pytest.raises(ValueError) as caught:
+        Mesh(QUAD * 1e-50, QUAD_FACES)
+    for word in ("vertices are all below float32's normal range", "vertices[1]", "scale it up"):
+        assert word in str(caught.value)
+    with pytest.raises(ValueError, match="below float32's normal range"):
+        Mesh(QUAD * 1e-39, QUAD_FACES)
+    Mesh(QUAD * 1e-37, QUAD_FACES)  # normal: kept
+    mixed = QUAD.copy()
+    mixed[:3] *= 1e-50
+    Mesh(mixed, QUAD_FACES)  # the mesh reaches 1: its tiny corner rounds as any would
+    Mesh(np.zeros((4, 3)), QUAD_FACES)  # every triangle a point: no shape to lose
+
+
 @pytest.mark.parametrize("faces, error, words", [
     (np.zeros((2, 4), dtype=int), ValueError, ["faces", "(2, 4)", "(M, 3)"]),
     (np.zeros((0, 3), dtype=int), ValueError, ["faces", "empty"]),
