@@ -93,13 +93,19 @@ def unmasked(name: str, value):
     return value
 
 
-def numeric_array(name: str, value) -> np.ndarray:
-    """``value`` as a numpy array of real numbers, or the error naming ``name``."""
+def as_array(name: str, value) -> np.ndarray:
+    """``value`` as a numpy array (unmasked), or the ValueError naming
+    ``name`` when it is ragged (nested lists of unequal lengths)."""
     unmasked(name, value)
     try:
-        array = np.asarray(value)
+        return np.asarray(value)
     except (ValueError, TypeError) as error:
-        raise ValueError(f"{name} is not a rectangular numeric array: {error}") from None
+        raise ValueError(f"{name} is not a rectangular array: {error}") from None
+
+
+def numeric_array(name: str, value) -> np.ndarray:
+    """``value`` as a numpy array of real numbers, or the error naming ``name``."""
+    array = as_array(name, value)
     if array.dtype.kind not in "fiu":  # not bool, nor timedelta64 (a numpy integer)
         raise TypeError(f"{name} must hold real numbers (float32/float64), got dtype {array.dtype}")
     return array
@@ -339,7 +345,7 @@ def check_per_ray_shape(name: str, given: tuple, shape: tuple) -> None:
 def ray_masks(value, shape: tuple) -> np.ndarray:
     """uint32 masks for rays of leading shape ``shape``: one for all (0-d)
     or one per ray (R,), broadcast from an array of integers (mask_bits)."""
-    array = np.asarray(unmasked("mask", value))
+    array = as_array("mask", value)
     if array.dtype.kind not in "iu":  # not bool, nor timedelta64 (a numpy integer)
         raise TypeError(f"mask must hold integers (32-bit masks), got dtype {array.dtype}")
     bits = mask_bits(array, "mask")

@@ -26,7 +26,7 @@ import pyopencl as cl
 from . import frame, layout
 from .build import BuildStats, Geometry, build
 from .device import Runtime
-from .inputs import ALL_BITS, mask_bits, unmasked
+from .inputs import ALL_BITS, as_array, mask_bits
 from .mesh import Mesh
 from .tree import Tree
 
@@ -40,7 +40,7 @@ def check_transforms(transforms, label) -> np.ndarray:
     """float64 (K, 3, 4) affine maps from (K, 3, 4) or (K, 4, 4) input (a
     4x4's last row must be 0 0 0 1); ``label(k)`` names transform k in errors
     (e.g. "transforms[3]")."""
-    array = np.asarray(unmasked(label(0).partition('[')[0], transforms))
+    array = as_array(label(0).partition('[')[0], transforms)
     if array.dtype.kind not in "fiu":
         raise TypeError(f"{label(0).partition('[')[0]} has dtype {array.dtype}, expected real "
                         "numbers")
@@ -99,7 +99,7 @@ def check_instances(instances, mesh_count: int) -> tuple[np.ndarray, np.ndarray]
             raise ValueError(f"instances[{k}][0] = {index} is not a mesh index: the scene has "
                              f"{mesh_count} mesh(es)")
         meshes[k] = index
-        array = np.asarray(unmasked(f"instances[{k}][1]", transform))
+        array = as_array(f"instances[{k}][1]", transform)
         if array.shape not in ((3, 4), (4, 4)) or array.dtype.kind not in "fiu":
             raise ValueError(f"instances[{k}][1] (transform) has shape {array.shape} and dtype "
                              f"{array.dtype}, expected a (3, 4) or (4, 4) array of numbers")
@@ -112,7 +112,7 @@ def check_masks(masks, count: int, what: str) -> np.ndarray:
     (inputs.mask_bits: ~2 is every bit but bit 1)."""
     if masks is None:
         return np.full(count, ALL_BITS, np.uint32)
-    array = np.asarray(unmasked("masks", masks))
+    array = as_array("masks", masks)
     if array.dtype.kind not in "iu":
         raise TypeError(f"masks has dtype {array.dtype}, expected integers (32-bit masks)")
     if array.ndim == 0:

@@ -8,8 +8,9 @@ MORTON_BITS = (30, 63)
 
 
 def key_dtype(bits: int) -> np.dtype:
-    if bits not in MORTON_BITS:
-        raise ValueError(f"morton_bits must be 30 or 63, got {bits!r}")
+    # an int, not merely equal to one: 30.0 would reach the kernels as -DMORTON_BITS=30.0f
+    if isinstance(bits, bool) or not isinstance(bits, (int, np.integer)) or bits not in MORTON_BITS:
+        raise ValueError(f"morton_bits must be the int 30 or 63, got {bits!r}")
     return np.dtype(np.uint32 if bits == 30 else np.uint64)
 
 

@@ -1,6 +1,6 @@
 """Ray queries on a finished Tree: closest hit and any hit, as a stack-based
 walk of its 8-wide nodes (kernels/traverse.cl; Wald, Benthin & Boulos 2008,
-and the ray-triangle test of Moller & Trumbore 1997), one ray or one small
+and the watertight ray-triangle test of Woop, Benthin & Wald 2013), one ray or one small
 packet of rays per work-item.  A query never builds or changes the tree.
 
 Conventions, shared with tests/oracle.py:

@@ -59,8 +59,8 @@ from dataclasses import dataclass
 import numpy as np
 import pyopencl as cl
 
-from . import layout
-from .inputs import unmasked
+from . import frame, layout
+from .inputs import as_array
 from .device import Runtime, event_ms
 from .query import RayQuery
 from .scene import Scene
@@ -105,8 +105,13 @@ def default_colors(count: int) -> list[tuple[float, float, float]]:
     return [PALETTE[i % len(PALETTE)] for i in range(count)]
 
 
+#: What a number parameter may be: not a bool, nor a complex (np.number),
+#: whose imaginary part float() would drop.
+_REAL = (int, float, np.integer, np.floating)
+
+
 def _vector3(name: str, value) -> np.ndarray:
-    if np.asarray(unmasked(name, value)).dtype.kind not in "fiub":  # e.g. timedelta64
+    if as_array(name, value).dtype.kind not in "fiu":  # not bool, nor e.g. timedelta64
         raise TypeError(f"{name} must be 3 numbers [x, y, z], got {value!r}")
     try:
         array = np.asarray(value, dtype=np.float64)
@@ -185,7 +190,7 @@ class Camera:
 
     def __post_init__(self):
         eye, target, up = (_vector3(name, getattr(self, name)) for name in ("eye", "target", "up"))
-        if isinstance(self.fov_deg, bool) or not isinstance(self.fov_deg, (int, float, np.number)):
+        if isinstance(self.fov_deg, bool) or not isinstance(self.fov_deg, _REAL):
             raise TypeError(f"fov_deg must be a number, got {type(self.fov_deg).__name__}")
         fov = float(self.fov_deg)
         if not 0.0 < fov < 180.0:
@@ -243,7 +248,7 @@ def _integer(name: str, value, low: int, high: int) -> int:
 
 def _number(name: str, value, low: float, high: float | None = None,
             low_open: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
+    if isinstance(value, bool) or not isinstance(value, _REAL):
         raise TypeError(f"{name} must be a number, got {type(value).__name__}")
     number = float(value)
     too_low = number <= low if low_open else number < low
@@ -323,6 +328,14 @@ class RenderSettings:
         and lengths times ``scale``."""
         if scale == 1.0:
             return self
+        largest = float(np.finfo(np.float32).max)
+        for name in ("eye", "target"):
+            given = getattr(self.camera, name)
+            if np.abs(np.multiply(given, scale)).max() > largest:
+                raise ValueError(f"camera {name} {list(given)} is too far from the origin for "
+                                 f"this scene: its frame is scaled by {frame.describe(scale)} "
+                                 "(hlbvh_cl/frame.py), and there the point would not fit "
+                                 f"float32; keep the camera within {largest / scale:.3g}")
         camera = dataclasses.replace(self.camera, eye=tuple(np.multiply(self.camera.eye, scale)),
                                      target=tuple(np.multiply(self.camera.target, scale)))
         distance = None if self.ao_distance is None else self.ao_distance * scale

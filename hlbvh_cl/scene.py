@@ -19,7 +19,7 @@ from .device import event_ms, runtime
 from .mesh import Mesh, _validate_vertices
 from .morton import key_dtype
 from .all_hits import AllHitsQuery
-from .inputs import ALL_BITS, unmasked
+from .inputs import ALL_BITS, as_array
 from .instances import TwoLevel, check_instances, check_masks, check_transforms
 from .points import PointQuery
 from .query import RayQuery
@@ -250,14 +250,16 @@ class Scene:
         if not self._instanced:
             raise ValueError("set_transforms needs an instanced Scene: Scene(meshes, "
                              "instances=[(mesh_index, transform), ...])")
-        ids = np.asarray(unmasked("instance_ids", instance_ids))
+        ids = as_array("instance_ids", instance_ids)
         if ids.size == 0 and ids.dtype.kind == "f":  # [] is float64 to numpy
             ids = ids.astype(np.int64)
         if ids.dtype.kind not in "iu":  # not bool, nor timedelta64 (a numpy integer)
             raise TypeError(f"instance_ids must be integers, got dtype {ids.dtype}")
-        array = np.asarray(unmasked("transforms", transforms))
-        if ids.ndim == 0:
-            ids, array = ids[None], array[None]
+        array = as_array("transforms", transforms)
+        if ids.ndim == 0:  # one id, with one map or a stack of one
+            ids = ids[None]
+            if array.ndim == 2:
+                array = array[None]
         if ids.ndim != 1:
             raise ValueError(f"instance_ids has shape {ids.shape}, expected (K,)")
         count = len(self._two_level.instance_meshes)

@@ -470,3 +470,44 @@ def test_masked_entries_and_timedeltas_are_refused_everywhere(suite_device):
         hlbvh_cl.Camera(eye=np.array([0, 0, 5], "m8[s]"), target=(0, 0, 0))
     with pytest.raises(ValueError, match="light.direction is a masked array"):
         hlbvh_cl.Light(direction=np.ma.masked_array([0, 1, 0], mask=[0, 1, 0]))
+
+
+def test_ragged_inputs_odd_scalars_and_far_cameras_are_named(suite_device):
+    """Review G's cases: ragged lists name their array (not numpy's bare
+    'setting an array element with a sequence'); a float morton_bits, a bool
+    coordinate and a complex number are refused, not rounded or truncated; a
+    camera that a scene's scaled frame puts past float32 is named as given."""
+    box = Mesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]])
+    ragged_map = [[1, 0, 0, 0], [0, 1, 0], [0, 0, 1, 0]]
+    with pytest.raises(ValueError, match=r"instances\[0\]\[1\] is not a rectangular array"):
+        hlbvh_cl.Scene([box], device=suite_device, instances=[(0, ragged_map)])
+    with pytest.raises(ValueError, match="masks is not a rectangular array"):
+        hlbvh_cl.Scene([box, box], device=suite_device, masks=[[1], [1, 2]])
+    with pytest.raises(ValueError, match="morton_bits must be the int 30 or 63, got 30.0"):
+        hlbvh_cl.Scene([box], device=suite_device, morton_bits=30.0)
+    scene = hlbvh_cl.Scene([box], device=suite_device, instances=[(0, np.eye(3, 4))])
+    with pytest.raises(ValueError, match="transforms is not a rectangular array"):
+        scene.set_transforms([0], [ragged_map])
+    with pytest.raises(ValueError, match="instance_ids is not a rectangular array"):
+        scene.set_transforms([[0], [0, 1]], np.eye(3, 4)[None])
+    moved = np.hstack([np.eye(3), [[1.0], [0.0], [0.0]]])
+    scene.set_transforms(0, [moved])  # one id with a stack of one map
+    np.testing.assert_array_equal(scene.transforms, moved[None])
+    rays = np.zeros((2, 3)), np.ones((2, 3))
+    with pytest.raises(ValueError, match="mask is not a rectangular array"):
+        scene.intersect(*rays, mask=[[1, 2], [3]])
+    with pytest.raises(ValueError, match="eye is not a rectangular array"):
+        hlbvh_cl.Camera(eye=[0, [0, 1], 2], target=(0, 0, 0))
+    with pytest.raises(TypeError, match="eye must be 3 numbers"):
+        hlbvh_cl.Camera(eye=(True, False, True), target=(0, 0, 0))
+    with pytest.raises(TypeError, match="fov_deg must be a number, got complex128"):
+        hlbvh_cl.Camera(eye=(0, 0, 5), target=(0, 0, 0), fov_deg=np.complex128(45 + 30j))
+    with pytest.raises(TypeError, match="intensity must be a number, got complex64"):
+        hlbvh_cl.Light(intensity=np.complex64(1 + 2j))
+    tiny = hlbvh_cl.Scene([Mesh(np.float32([[0, 0, 0], [1, 0, 0], [0, 1, 0]]) * 1e-30,
+                                [[0, 1, 2]])], device=suite_device)
+    far = hlbvh_cl.Camera(eye=(0.0, 0.0, 1e10), target=(0.0, 0.0, 0.0))
+    with pytest.raises(ValueError, match=r"camera eye \[0.0, 0.0, 10000000000.0\] is too far "
+                                         r"from the origin for this scene: its frame is scaled "
+                                         r"by 2\^"):
+        hlbvh_cl.Renderer(tiny).render(far, 8, 6)
