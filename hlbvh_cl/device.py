@@ -317,7 +317,7 @@ class Runtime:
                                      properties=cl.command_queue_properties.PROFILING_ENABLE)
         self._programs: dict[tuple, cl.Program] = {}
         self._kernels: dict[tuple, cl.Kernel] = {}
-        self._group_limits: dict[int, int] = {}  # see largest_group
+        self._group_limits: dict[int, tuple] = {}  # see largest_group
         self._lock = threading.Lock()
         self._launch_lock = threading.Lock()
         self._waiter: ThreadPoolExecutor | None = None  # see wait()
@@ -361,7 +361,8 @@ class Runtime:
             except cl.Error as error:  # e.g. a driver that built the program but cannot run it
                 raise KernelBuildError(f"{filename}: kernel {name} cannot be created on "
                                        f"{self.device}: {error}") from None
-            self._kernels[key] = kernel
+            # threads that made it at once all get the first one stored
+            kernel = self._kernels.setdefault(key, kernel)
         return kernel
 
     def packet_variant(self, packet_size: int) -> Variant:
@@ -409,12 +410,15 @@ class Runtime:
         power of two (CL_KERNEL_WORK_GROUP_SIZE, cached): a kernel heavy in
         private memory or registers may allow fewer than the device's
         maximum, and a launch past it fails (CL_INVALID_WORK_GROUP_SIZE)."""
-        limit = self._group_limits.get(kernel.int_ptr)
-        if limit is None:
+        # keyed by address, with the kernel kept alive beside its limit: a
+        # freed kernel's address could be reused by another kernel
+        known = self._group_limits.get(kernel.int_ptr)
+        if known is None:
             allowed = kernel.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE,
                                                  self.device.cl_device)
-            limit = self._group_limits[kernel.int_ptr] = 1 << (max(1, allowed).bit_length() - 1)
-        return limit
+            known = self._group_limits[kernel.int_ptr] = (
+                kernel, 1 << (max(1, allowed).bit_length() - 1))
+        return known[1]
 
     def run(self, kernel: cl.Kernel, work_items: int | tuple[int, int], *args, wait_for=None,
             local_size: int | None = None) -> cl.Event:

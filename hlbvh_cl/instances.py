@@ -395,6 +395,9 @@ class TwoLevel:
     def build_top(self) -> tuple[InstancedTree, BuildStats]:
         """The top tree over the instances as they stand, with their records."""
         rt = self.rt
+        if self.trees is None:  # a rebuild of the meshes' trees failed or was interrupted
+            raise RuntimeError("this Scene's meshes have no trees: its last rebuild failed; "
+                               "call scene.rebuild() to build them")
         lo, hi = world_boxes(self.transforms, self.trees.lo[self.instance_meshes],
                              self.trees.hi[self.instance_meshes])
         lo, hi = _outward(lo, hi)

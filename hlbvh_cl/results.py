@@ -13,10 +13,14 @@ weakref.finalize on the lease hands the block back.  The finalizer may run in
 any thread, inside the garbage collector, so it only puts the block on a
 queue (SimpleQueue.put is safe there); the pool takes returned blocks off the
 queue on its next request.  Of the returned blocks, the ``keep`` most recent
-are kept; the pool lives as long as its RayQuery (so its Scene).
+are kept, and only those of a size among the last ``keep`` requests: a block
+is only lent again at its own size, so one of a size no longer asked for
+(results of varying length, intersect_all's) would be held for nothing.  The
+pool lives as long as its RayQuery (so its Scene).
 """
 from __future__ import annotations
 
+import collections
 import queue
 import threading
 import weakref
@@ -45,6 +49,7 @@ class ResultPool:
     def __init__(self, keep: int = 16):
         self.keep = keep  # an intersect's Hits take 6 blocks
         self._free: list[np.ndarray] = []
+        self._asked: collections.deque = collections.deque(maxlen=keep)  # recent block sizes
         self._returned: queue.SimpleQueue = queue.SimpleQueue()
         self._lock = threading.Lock()
 
@@ -67,6 +72,7 @@ class ResultPool:
 
     def _take(self, nbytes: int) -> np.ndarray:
         with self._lock:
+            self._asked.append(nbytes)
             self._collect()
             for i, block in enumerate(self._free):
                 if len(block) == nbytes:
@@ -80,4 +86,5 @@ class ResultPool:
                 self._free.append(self._returned.get_nowait())
             except queue.Empty:
                 break
-        del self._free[:-self.keep]  # the most recent ones
+        asked = set(self._asked)
+        self._free = [block for block in self._free if len(block) in asked][-self.keep:]

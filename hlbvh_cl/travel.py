@@ -87,8 +87,13 @@ def restore(spec: SceneSpec, scene_class):
         with _cache_lock:
             if spec.key in _cache:
                 return _cache[spec.key]._view()
-        args, kwargs = spec.arguments()
-        scene = scene_class(*args, **kwargs)
+        try:
+            args, kwargs = spec.arguments()
+            scene = scene_class(*args, **kwargs)
+        except BaseException:  # a device gone, Ctrl-C: the lock's entry goes too
+            with _cache_lock:
+                _building.pop(spec.key, None)
+            raise
         with _cache_lock:
             _cache[spec.key] = scene
             _building.pop(spec.key, None)

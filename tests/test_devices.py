@@ -85,6 +85,27 @@ def test_programs_are_built_once_and_cached():
         rt.kernel("morton.cl", "morton_codes", MORTON_BITS=30)
 
 
+def test_threads_asking_for_a_new_kernel_at_once_get_one_object():
+    """Runtime.kernel's cache: threads that create the same kernel at once
+    all get the one stored (before, each kept its own, and largest_group's
+    cache gained an entry per copy)."""
+    import threading
+    rt = runtime()
+    barrier, got = threading.Barrier(4), [None] * 4
+
+    def ask(k):
+        barrier.wait()
+        got[k] = rt.kernel("scan.cl", "scan_reduce_tiles", SCAN_GROUP_SIZE=8)
+
+    threads = [threading.Thread(target=ask, args=(k,)) for k in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=300)
+    assert len({id(kernel) for kernel in got}) == 1
+    assert rt.largest_group(got[0]) == rt.largest_group(got[0]) >= 1
+
+
 def test_compile_error_shows_the_build_log(tmp_path, monkeypatch):
     (tmp_path / "hlbvh.h").write_text("")
     (tmp_path / "broken.cl").write_text("__kernel void f(__global int *x) { x[0] = nope; }\n")

@@ -470,6 +470,34 @@ def test_an_instance_too_small_for_its_place_is_refused_but_a_flattened_one_is_t
         np.testing.assert_allclose(got.t, expected["t"], rtol=0, atol=4 * step / reach)
 
 
+def test_an_interrupted_rebuild_of_the_meshes_is_named_until_rebuilt(small, suite_device,
+                                                                     monkeypatch):
+    """Ctrl-C while an instanced scene rebuilds its meshes' trees leaves it
+    without them: queries and set_transforms say so (not an AttributeError
+    on None), and a rebuild restores the same answers."""
+    from hlbvh_cl import instances as instances_module
+    scene = hlbvh_cl.Scene(small, device=suite_device, instances=[(0, np.eye(3, 4))])
+    rng = np.random.default_rng(2)
+    origins, directions = _rays_at_centroids(rng, small[0].vertices, small[0].faces, 200)
+    before = scene.intersect(origins, directions)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as patch:
+        patch.setattr(instances_module, "build_mesh_trees", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            scene.rebuild()
+    with pytest.raises(RuntimeError, match="no tree"):
+        scene.intersect(origins, directions)
+    with pytest.raises(RuntimeError, match="meshes have no trees: its last rebuild failed"):
+        scene.set_transforms(0, np.eye(3, 4))
+    scene.rebuild()
+    after = scene.intersect(origins, directions)
+    for field in ("t", "prim_id", "instance_id"):
+        np.testing.assert_array_equal(getattr(after, field), getattr(before, field))
+
+
 # -- point queries ---------------------------------------------------------------
 
 def _counts_first(meshes, instance_meshes) -> np.ndarray:

@@ -212,6 +212,17 @@ def test_blocks_of_several_sizes_and_held_results():
     assert len(pool._free) <= pool.keep
 
 
+def test_a_block_of_a_size_no_longer_asked_for_is_let_go():
+    """Results of varying length (intersect_all's) would otherwise keep up to
+    `keep` blocks of sizes that are never lent again."""
+    pool = ResultPool(keep=3)
+    big = pool.empty(4 * BIG, np.float32)
+    del big
+    gc.collect()
+    held = [pool.empty(BIG, np.float32) for _ in range(3)]  # the big size falls out
+    assert len(held) == 3 and [len(block) for block in pool._free] == []
+
+
 def test_small_results_are_plain_arrays():
     assert ResultPool().empty(16, np.float32).flags.owndata
 

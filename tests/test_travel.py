@@ -137,3 +137,17 @@ def test_the_device_travels_as_asked(device, suite_device):
         pytest.skip("the suite's device is another")
     scene = hlbvh_cl.Scene([_box()], device=device)
     assert scene._travel_spec().device == device
+
+
+def test_a_restore_that_fails_leaves_nothing_behind(suite_device):
+    """A restore whose build raises (a device gone, Ctrl-C) takes its
+    per-spec lock entry away with it, so failures do not pile up."""
+    spec = hlbvh_cl.Scene([_box()], device=suite_device)._travel_spec()
+
+    def failing(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    for _ in range(3):
+        with pytest.raises(KeyboardInterrupt):
+            travel.restore(spec, failing)
+    assert spec.key not in travel._building
