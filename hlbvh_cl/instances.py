@@ -284,11 +284,11 @@ def instance_records(transforms: np.ndarray, meshes: np.ndarray, masks: np.ndarr
 
 
 #: The fewest float32 steps (spacings at its farthest coordinate) an
-#: instance's world box may span (check_resolved).  Rounding a world point to float32, and
-#: the map into the mesh in float32 entries, move it by a few steps, in
-#: world units whatever the map, so an instance smaller than that is missed,
-#: or hit anywhere, by every ray.  A map that squashes a mesh flat keeps its
-#: other sides, and is hit as a flat mesh there would be.
+#: instance's world box may span (check_resolved).  Rounding a world point
+#: to float32, and the map into the mesh in float32 entries, move it by a
+#: few steps, in world units whatever the map, so an instance smaller than
+#: that is missed, or hit anywhere, by every ray.  A map that squashes a
+#: mesh flat keeps its other sides, and is hit as a flat mesh there would be.
 FEWEST_STEPS = 4
 
 
