@@ -20,19 +20,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .inputs import unmasked
+from .inputs import as_array
 
 #: file extensions Mesh.load understands (each may also end in .gz)
 MESH_EXTENSIONS = ("ply", "obj", "off", "stl", "glb")
 
 _INT32_LIMIT = 2**31
-
-
-def _as_array(name: str, data) -> np.ndarray:
-    try:
-        return np.asarray(unmasked(name, data))
-    except (ValueError, TypeError) as error:  # ragged nested lists
-        raise ValueError(f"{name}: cannot be read as an (N, 3) array: {error}") from None
 
 
 def _check_shape(name: str, array: np.ndarray, rows: str) -> None:
@@ -49,7 +42,7 @@ def _first_row(mask: np.ndarray) -> int:
 
 
 def _validate_vertices(vertices) -> np.ndarray:
-    array = _as_array("vertices", vertices)
+    array = as_array("vertices", vertices)
     if array.dtype.kind not in "fiu":
         raise TypeError(f"vertices has dtype {array.dtype}, expected real numbers (float32 "
                         f"preferred; any float or integer dtype is converted)")
@@ -83,7 +76,7 @@ def _validate_vertices(vertices) -> np.ndarray:
 
 
 def _validate_faces(faces, vertex_count: int) -> np.ndarray:
-    array = _as_array("faces", faces)
+    array = as_array("faces", faces)
     if array.dtype.kind == "f":
         raise TypeError(f"faces has dtype {array.dtype}: pass integers (e.g. faces.astype(np.int32))")
     if array.dtype.kind not in "iu":

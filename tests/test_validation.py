@@ -176,7 +176,8 @@ def test_packet_size_is_checked():
     (np.array([[0, 0, None]] * 4), TypeError, ["vertices", "object"]),
     (np.ma.masked_array(np.ones((4, 3)), mask=np.eye(4, 3, dtype=bool)), ValueError,
      ["vertices", "masked entries"]),
-    ([[0, 0, 0], [1, 0], [1, 1, 0], [0, 1, 0]], ValueError, ["vertices"]),
+    ([[0, 0, 0], [1, 0], [1, 1, 0], [0, 1, 0]], ValueError,
+     ["vertices", "not a rectangular array"]),
 ])
 def test_bad_vertices(vertices, error, words):
     with pytest.raises(error) as caught:
