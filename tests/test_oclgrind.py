@@ -22,7 +22,6 @@ from __future__ import annotations
 import functools
 import os
 import re
-import subprocess
 import sys
 from pathlib import Path
 
@@ -565,7 +564,8 @@ def expected_images():
     return {f"image_{name}": render(scene, name) for name in RENDERS}
 
 
-def run_child(mode: str, group: str, out: Path) -> subprocess.CompletedProcess:
+def child_job(mode: str, group: str, out: Path) -> dict:
+    """The child process that runs a group's cases in a mode (children.Children's job)."""
     import hlbvh_cl
     checkout = str(Path(hlbvh_cl.__file__).resolve().parent.parent)  # the package under test
     env = {**os.environ, **CHECKS, "HLBVH_CL_DEVICE": DEVICE.id,
@@ -578,17 +578,28 @@ def run_child(mode: str, group: str, out: Path) -> subprocess.CompletedProcess:
         env.update(OCLGRIND_UNINITIALIZED="1", OCLGRIND_BUILD_OPTIONS=UNOPTIMISED)
     else:
         env.pop("OCLGRIND_UNINITIALIZED", None)
-    return subprocess.run([sys.executable, __file__, mode, group, str(out)], env=env,
-                          capture_output=True, text=True, timeout=CHILD_TIMEOUT_S,
-                          stdin=subprocess.DEVNULL)
+    return {"args": [sys.executable, __file__, mode, group, str(out)], "env": env,
+            "timeout": CHILD_TIMEOUT_S}
+
+
+@pytest.fixture(scope="module")
+def oclgrind_children(request, tmp_path_factory, warm_kernel_variants):
+    """The children of the selected cases, started side by side (children.py):
+    {(group, mode): (Children, results file)}."""
+    from children import Children, selected_params
+    outputs = {(p["group"], p["mode"]): tmp_path_factory.mktemp("oclgrind") / "results.npz"
+               for p in selected_params(request, test_kernels_are_clean_under_oclgrind)}
+    running = Children({key: child_job(*reversed(key), out) for key, out in outputs.items()})
+    yield running, outputs
+    running.close()
 
 
 @pytest.mark.parametrize("mode", MODES)
 @pytest.mark.parametrize("group", list(GROUPS))
-def test_kernels_are_clean_under_oclgrind(group, mode, tmp_path, warm_kernel_variants,
-                                          expected_images):
-    out = tmp_path / "results.npz"
-    done = run_child(mode, group, out)
+def test_kernels_are_clean_under_oclgrind(group, mode, oclgrind_children, expected_images):
+    running, outputs = oclgrind_children
+    done = running.result((group, mode))
+    out = outputs[(group, mode)]
     found = reports(done.stderr)
     first = "".join("\n\n" + "\n".join(report) for report in found[:3])
     if done.returncode != 0:  # the child's traceback if it has one, else how it ended

@@ -9,7 +9,6 @@ per work-item, GPU work-group sizes, device copies) is tested where there is
 no GPU.  The simulator has its own tier (test_oclgrind.py).
 """
 import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -31,6 +30,9 @@ CORRECTNESS = ["test_rays.py", "test_validation.py", "test_memory.py", "test_ora
 
 HERE = Path(__file__).resolve().parent
 
+#: Seconds one child run may take (well over what the slowest takes).
+CHILD_TIMEOUT_S = 1800
+
 
 def _targets() -> list[tuple[str, str]]:
     """(device id, profile) pairs besides the suite's own."""
@@ -48,14 +50,27 @@ def _targets() -> list[tuple[str, str]]:
     return found
 
 
-@pytest.mark.parametrize("device, profile", _targets())
-def test_correctness_suite_on(device, profile):
+def _child_job(device: str, profile: str) -> dict:
     env = {**os.environ, "HLBVH_CL_DEVICE": device, "HLBVH_CL_PROFILE": profile,
            "HLBVH_CL_TARGET_CHILD": "1"}
     command = [sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider",
                *(str(HERE / name) for name in CORRECTNESS)]
-    done = subprocess.run(command, env=env, capture_output=True, text=True, cwd=HERE.parent,
-                          stdin=subprocess.DEVNULL)
+    return {"args": command, "env": env, "cwd": HERE.parent, "timeout": CHILD_TIMEOUT_S}
+
+
+@pytest.fixture(scope="module")
+def target_children(request):
+    """The selected targets' child runs, started side by side (children.py)."""
+    from children import Children, selected_params
+    running = Children({(p["device"], p["profile"]): _child_job(p["device"], p["profile"])
+                        for p in selected_params(request, test_correctness_suite_on)})
+    yield running
+    running.close()
+
+
+@pytest.mark.parametrize("device, profile", _targets())
+def test_correctness_suite_on(device, profile, target_children):
+    done = target_children.result((device, profile))
     summary = done.stdout.strip().splitlines()[-1:] or ["no output"]
     print(f"{device} ({profile} profile): {summary[0]}")
     assert done.returncode == 0, f"{device} with the {profile} profile:\n{done.stdout[-6000:]}" \
