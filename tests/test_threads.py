@@ -1,6 +1,7 @@
-"""Thread safety: any mix of queries, renders, refits and rebuilds from many
-threads, on one Scene or several Scenes of one device, gives what some serial
-order of the same calls gives, bit for bit."""
+"""Thread safety: any mix of queries (of every kind), renders, refits and
+rebuilds from many threads, on one Scene or several Scenes of one device,
+gives what some serial order of the same calls gives, bit for bit."""
+import dataclasses
 import sys
 import threading
 import time
@@ -36,6 +37,7 @@ def scenes():
 def _calls(scene, k):
     """The calls the threads make on a scene, each with a fixed input."""
     origins, directions = _rays(scene, 20000, k)
+    points = origins[:5000] * np.float32(0.3) + directions[:5000] * np.float32(0.1)
     lo, hi = scene._tree.bounds_lo, scene._tree.bounds_hi
     eye = (lo + hi) / 2 + (hi - lo) * [0.2, 0.9, 1.4]
     camera = hlbvh_cl.Camera(eye, (lo + hi) / 2)
@@ -43,15 +45,23 @@ def _calls(scene, k):
     return {
         "intersect": lambda: scene.intersect(origins, directions),
         "occluded": lambda: scene.occluded(origins, directions),
+        "count_intersections": lambda: scene.count_intersections(origins, directions),
+        "intersect_all": lambda: scene.intersect_all(origins, directions, max_hits=4),
+        "closest_points": lambda: scene.closest_points(points),
+        "signed_distance": lambda: scene.signed_distance(points),
+        "contains": lambda: scene.contains(points),
         "render": lambda: renderer.render(camera, 48, 32, shading="diffuse"),
     }
 
 
 def _same(a, b) -> bool:
+    """Bit for bit: arrays, or every array field of a result (Hits, AllHits,
+    ClosestPoints)."""
     if isinstance(a, np.ndarray):
-        return a.shape == b.shape and a.dtype == b.dtype and np.array_equal(a, b)
-    return all(np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True)
-               for f in ("t", "prim_id", "geom_id", "u", "v", "normal"))
+        return a.shape == b.shape and a.dtype == b.dtype and \
+            np.array_equal(a, b, equal_nan=a.dtype.kind == "f")
+    arrays = [f.name for f in dataclasses.fields(a) if isinstance(getattr(a, f.name), np.ndarray)]
+    return len(arrays) > 2 and all(_same(getattr(a, name), getattr(b, name)) for name in arrays)
 
 
 def test_threads_get_serial_results_while_scenes_rebuild(scenes):
@@ -62,12 +72,14 @@ def test_threads_get_serial_results_while_scenes_rebuild(scenes):
     stop = time.monotonic() + SECONDS
     failures: list[str] = []
     counts = {"queries": 0, "rebuilds": 0}
+    ran = set()
     lock = threading.Lock()
 
     def worker(seed):
         rng = np.random.default_rng(seed)
         while time.monotonic() < stop and not failures:
             i, name, fn = calls[rng.integers(len(calls))]
+            ran.add(name)
             try:
                 got = fn()
             except Exception as error:  # noqa: BLE001 - reported below
@@ -108,6 +120,7 @@ def test_threads_get_serial_results_while_scenes_rebuild(scenes):
         sys.setswitchinterval(previous)
     assert not failures, failures[:5]
     assert counts["queries"] > 20 and counts["rebuilds"] > 5, counts
+    assert ran == {name for _, name, _ in calls}, ran
 
 
 def test_views_of_one_scene_make_its_dipoles_once(monkeypatch):
