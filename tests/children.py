@@ -4,8 +4,9 @@ The slow tiers (test_oclgrind.py, test_targets.py) each run their cases in
 child processes that are mostly single-threaded (the simulator, a compiler,
 another device's pytest).  Run one after another they leave the other cores
 idle, so a tier starts all of its selected children at its first test, as
-many at once as this process may use cores, and each test then waits for
-its own child's result.
+many at once as this process may use cores and the free memory holds (each
+tier says how much one child may take), and each test then waits for its
+own child's result.
 """
 from __future__ import annotations
 
@@ -23,6 +24,27 @@ def usable_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def available_memory() -> int | None:
+    """Bytes of memory available to new processes (Linux's MemAvailable), or
+    None where the system does not say."""
+    try:
+        with open("/proc/meminfo") as info:
+            for line in info:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def slots(memory_per_child: int) -> int:
+    """How many children to run at once: one per usable core, as many as
+    the available memory holds at memory_per_child bytes each (at least one)."""
+    memory = available_memory()
+    fit = usable_cores() if memory is None else memory // memory_per_child
+    return max(1, min(usable_cores(), fit))
+
+
 def selected_params(request, function) -> list[dict]:
     """The parameters of each test of `function` this session runs (after
     -k, -x, or node ids on the command line), in their order."""
@@ -31,17 +53,17 @@ def selected_params(request, function) -> list[dict]:
 
 
 class Children:
-    """Runs commands as child processes, at most `slots` at a time, in the
-    order given; result(key) waits for one and gives its CompletedProcess
-    (stdout and stderr as text), or raises its subprocess.TimeoutExpired.
-    close() kills the running children and drops the waiting ones."""
+    """Runs commands as child processes, at most `slots` at a time (see
+    slots()), in the order given; result(key) waits for one and gives its
+    CompletedProcess (stdout and stderr as text), or raises its
+    subprocess.TimeoutExpired.  close() kills the running children and
+    drops the waiting ones."""
 
-    def __init__(self, jobs: dict, slots: int | None = None):
+    def __init__(self, jobs: dict, slots: int):
         self._lock = threading.Lock()
         self._running: set[subprocess.Popen] = set()
         self._closed = False
-        self._pool = ThreadPoolExecutor(max_workers=slots or usable_cores(),
-                                        thread_name_prefix="test-child")
+        self._pool = ThreadPoolExecutor(max_workers=slots, thread_name_prefix="test-child")
         self._futures: dict[object, Future] = {
             key: self._pool.submit(self._run, **job) for key, job in jobs.items()}
 

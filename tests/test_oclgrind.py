@@ -32,6 +32,10 @@ HERE = Path(__file__).resolve().parent
 #: Seconds one child may run (the slowest takes well under a minute).
 CHILD_TIMEOUT_S = 600
 
+#: Memory one child may take (the largest peak measured, about 5.4 GiB, with
+#: room to spare): no more children run at once than the free memory holds.
+CHILD_MEMORY = 7 << 30
+
 #: The cases each child runs, in groups that share a process (start-up and
 #: compiling the programs on Oclgrind cost a few seconds per process).
 GROUPS = {
@@ -586,10 +590,11 @@ def child_job(mode: str, group: str, out: Path) -> dict:
 def oclgrind_children(request, tmp_path_factory, warm_kernel_variants):
     """The children of the selected cases, started side by side (children.py):
     {(group, mode): (Children, results file)}."""
-    from children import Children, selected_params
+    from children import Children, selected_params, slots
     outputs = {(p["group"], p["mode"]): tmp_path_factory.mktemp("oclgrind") / "results.npz"
                for p in selected_params(request, test_kernels_are_clean_under_oclgrind)}
-    running = Children({key: child_job(*reversed(key), out) for key, out in outputs.items()})
+    running = Children({key: child_job(*reversed(key), out) for key, out in outputs.items()},
+                       slots(CHILD_MEMORY))
     yield running, outputs
     running.close()
 

@@ -33,6 +33,10 @@ HERE = Path(__file__).resolve().parent
 #: Seconds one child run may take (well over what the slowest takes).
 CHILD_TIMEOUT_S = 1800
 
+#: Memory one child run may take (the largest peak measured, about 4.3 GiB,
+#: with room to spare): no more run at once than the free memory holds.
+CHILD_MEMORY = 6 << 30
+
 
 def _targets() -> list[tuple[str, str]]:
     """(device id, profile) pairs besides the suite's own."""
@@ -61,9 +65,10 @@ def _child_job(device: str, profile: str) -> dict:
 @pytest.fixture(scope="module")
 def target_children(request):
     """The selected targets' child runs, started side by side (children.py)."""
-    from children import Children, selected_params
+    from children import Children, selected_params, slots
     running = Children({(p["device"], p["profile"]): _child_job(p["device"], p["profile"])
-                        for p in selected_params(request, test_correctness_suite_on)})
+                        for p in selected_params(request, test_correctness_suite_on)},
+                       slots(CHILD_MEMORY))
     yield running
     running.close()
 
