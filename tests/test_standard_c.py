@@ -7,10 +7,17 @@ built on PoCL with Clang's pedantic diagnostics made errors, for each profile's
 packet size, by running every query, builder and render once on a tiny scene.
 The test also checks that this covered every kernel file, so a new one cannot
 slip past it.
+
+Each case runs in a child process (this file as a script), the cases side by
+side (children.py): their time is the compiler's, on one core each.
 """
 from __future__ import annotations
 
+import json
+import os
 import shutil
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -41,15 +48,15 @@ NO_FP64 = "".join(f"#undef {name}\n" for name in (
     "M_1_PI", "M_2_PI", "M_2_SQRTPI", "M_SQRT2", "M_SQRT1_2"))
 
 
-def _kernel_copies(folder, monkeypatch, prelude: str) -> set:
-    """Runtimes made from here on build copies of the kernels, in `folder`,
-    with `prelude` before each file; returns the set of kernel files they
-    built."""
+def _kernel_copies(folder: Path, prelude: str) -> set:
+    """Runtimes made from here on, in this (child) process, build copies of
+    the kernels, in `folder`, with `prelude` before each file; returns the
+    set of kernel files they built."""
     shutil.copytree(kernel_dir(), folder)
     for source in folder.glob("*.cl"):
         source.write_text(prelude + source.read_text())
-    monkeypatch.setattr(device_module, "kernel_dir", lambda: folder)
-    monkeypatch.setattr(device_module, "_runtimes", {})  # fresh runtimes, nothing cached
+    device_module.kernel_dir = lambda: folder
+    device_module._runtimes = {}  # fresh runtimes, nothing cached
     built = set()
     build = device_module.Runtime._build
 
@@ -57,21 +64,8 @@ def _kernel_copies(folder, monkeypatch, prelude: str) -> set:
         built.add(filename)
         return build(self, filename, defines)
 
-    monkeypatch.setattr(device_module.Runtime, "_build", recording)
+    device_module.Runtime._build = recording
     return built
-
-
-def _pocl_only(device) -> None:
-    if not device.id.startswith("pocl"):
-        pytest.skip("the pragma and the copies' preludes are Clang's: checked on PoCL")
-
-
-@pytest.fixture
-def pedantic_kernels(tmp_path, monkeypatch, suite_device):
-    """Runtimes made from here on build the pedantic copies of the kernels;
-    returns the set of kernel files they built."""
-    _pocl_only(suite_device)
-    return _kernel_copies(tmp_path / "kernels", monkeypatch, PEDANTIC)
 
 
 def _exercise(device) -> None:
@@ -107,15 +101,6 @@ def _exercise(device) -> None:
     scenes[1].intersect(origins, directions, mask=2)
 
 
-@pytest.mark.parametrize("profile", ["cpu", "gpu"])
-def test_every_kernel_builds_as_standard_opencl_c(pedantic_kernels, monkeypatch, suite_device,
-                                                  profile):
-    monkeypatch.setenv("HLBVH_CL_PROFILE", profile)
-    _exercise(suite_device.id)
-    every = {path.name for path in kernel_dir().glob("*.cl")} - PROBE_ONLY
-    assert every - pedantic_kernels == set(), "kernel files this test never built"
-
-
 def _answers(device) -> dict:
     """Closest hits, counts, closest points and signed distances on a
     closed mesh and on two instances of it."""
@@ -139,18 +124,101 @@ def _answers(device) -> dict:
     return found
 
 
-def test_kernels_without_fp64_build_and_answer_as_with_it(tmp_path, monkeypatch, suite_device):
+#: The cases, each a child: (kernel prelude, profile, whether it answers too).
+CASES = {"pedantic-cpu": (PEDANTIC, "cpu", False), "pedantic-gpu": (PEDANTIC, "gpu", False),
+         "no-fp64": (NO_FP64, None, True)}
+
+#: Seconds one child may take (the slowest takes about a minute).
+CHILD_TIMEOUT_S = 900
+
+#: Memory one child may take (see children.slots): a tiny scene's queries.
+CHILD_MEMORY = 2 << 30
+
+
+def child(case: str, folder: str) -> None:
+    """One case, in this process: every kernel built from its copies (and
+    the answers, for no-fp64); the built files and the answers go to
+    `folder` (built.json, answers.npz)."""
+    prelude, _, answers = CASES[case]
+    device = os.environ["HLBVH_CL_DEVICE"]
+    built = _kernel_copies(Path(folder) / "kernels", prelude)
+    if answers:
+        found = _answers(device)
+        np.savez(Path(folder) / "answers.npz",
+                 **{f"{name}/{key}": value for name, values in found.items()
+                    for key, value in values.items()})
+    _exercise(device)
+    (Path(folder) / "built.json").write_text(json.dumps(sorted(built)))
+
+
+if __name__ == "__main__":
+    child(*sys.argv[1:])
+    sys.exit(0)
+
+
+def _pocl_only(device) -> None:
+    if not device.id.startswith("pocl"):
+        pytest.skip("the pragma and the copies' preludes are Clang's: checked on PoCL")
+
+
+def _case(item) -> str | None:
+    """The case a selected test needs, if it is one of this file's."""
+    function = getattr(item, "function", None)
+    if function is test_every_kernel_builds_as_standard_opencl_c:
+        return f"pedantic-{item.callspec.params['profile']}"
+    if function is test_kernels_without_fp64_build_and_answer_as_with_it:
+        return "no-fp64"
+    return None
+
+
+@pytest.fixture(scope="module")
+def case_children(request, tmp_path_factory, suite_device):
+    """The selected tests' cases, started side by side in children
+    (children.py): (Children, {case: its folder})."""
+    from children import Children, slots
+    _pocl_only(suite_device)
+    selected = {_case(item) for item in request.session.items} - {None}
+    folders = {case: tmp_path_factory.mktemp(case) for case in CASES if case in selected}
+    checkout = str(Path(hlbvh_cl.__file__).resolve().parent.parent)  # the package under test
+    path = os.pathsep.join([checkout, *filter(None, [os.environ.get("PYTHONPATH")])])
+    env = {**os.environ, "HLBVH_CL_DEVICE": suite_device.id, "PYTHONPATH": path}
+    jobs = {}
+    for case, folder in folders.items():
+        profile = CASES[case][1]
+        jobs[case] = {"args": [sys.executable, __file__, case, str(folder)],
+                      "env": {**env, "HLBVH_CL_PROFILE": profile} if profile else env,
+                      "timeout": CHILD_TIMEOUT_S}
+    running = Children(jobs, slots(CHILD_MEMORY))
+    yield running, folders
+    running.close()
+
+
+def _finished(case_children, case: str) -> Path:
+    """The case's folder, once its child has built every kernel file."""
+    running, folders = case_children
+    done = running.result(case)
+    assert done.returncode == 0, f"the {case} case exited with {done.returncode}:\n" \
+                                 f"{done.stderr[-6000:]}"
+    built = set(json.loads((folders[case] / "built.json").read_text()))
+    every = {path.name for path in kernel_dir().glob("*.cl")} - PROBE_ONLY
+    assert every - built == set(), "kernel files this test never built"
+    return folders[case]
+
+
+@pytest.mark.parametrize("profile", ["cpu", "gpu"])
+def test_every_kernel_builds_as_standard_opencl_c(case_children, profile):
+    _finished(case_children, f"pedantic-{profile}")
+
+
+def test_kernels_without_fp64_build_and_answer_as_with_it(case_children, suite_device):
     """Every kernel builds where the device has no doubles (no cl_khr_fp64,
     no double constants such as M_PI), and the float fallbacks give the
     answers the double paths give: the same triangles, counts and signs, t
     and distances within float rounding."""
-    _pocl_only(suite_device)
     expected = _answers(suite_device.id)
-    built = _kernel_copies(tmp_path / "kernels", monkeypatch, NO_FP64)
-    got = _answers(suite_device.id)
-    _exercise(suite_device.id)
-    every = {path.name for path in kernel_dir().glob("*.cl")} - PROBE_ONLY
-    assert every - built == set(), "kernel files this test never built"
+    with np.load(_finished(case_children, "no-fp64") / "answers.npz") as saved:
+        got = {name: {key: saved[f"{name}/{key}"] for key in answers}
+               for name, answers in expected.items()}
     for name, answers in expected.items():
         assert (answers["prim_id"] >= 0).sum() > 50
         np.testing.assert_array_equal(got[name]["prim_id"], answers["prim_id"])
