@@ -14,6 +14,7 @@ import os
 import subprocess
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
 
 
 def usable_cores() -> int:
@@ -43,6 +44,15 @@ def slots(memory_per_child: int) -> int:
     memory = available_memory()
     fit = usable_cores() if memory is None else memory // memory_per_child
     return max(1, min(usable_cores(), fit))
+
+
+def package_environment(**variables: str) -> dict:
+    """os.environ with `variables`, and PYTHONPATH led by the checkout whose
+    hlbvh_cl this process tests, so that a child imports the same package."""
+    import hlbvh_cl
+    checkout = str(Path(hlbvh_cl.__file__).resolve().parent.parent)
+    path = os.pathsep.join([checkout, *filter(None, [os.environ.get("PYTHONPATH")])])
+    return {**os.environ, **variables, "PYTHONPATH": path}
 
 
 def selected_params(request, function) -> list[dict]:

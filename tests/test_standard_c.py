@@ -128,7 +128,7 @@ def _answers(device) -> dict:
 CASES = {"pedantic-cpu": (PEDANTIC, "cpu", False), "pedantic-gpu": (PEDANTIC, "gpu", False),
          "no-fp64": (NO_FP64, None, True)}
 
-#: Seconds one child may take (the slowest takes about a minute).
+#: Seconds one child may take (far more than any needs).
 CHILD_TIMEOUT_S = 900
 
 #: Memory one child may take (see children.slots): a tiny scene's queries.
@@ -175,13 +175,11 @@ def _case(item) -> str | None:
 def case_children(request, tmp_path_factory, suite_device):
     """The selected tests' cases, started side by side in children
     (children.py): (Children, {case: its folder})."""
-    from children import Children, slots
+    from children import Children, package_environment, slots
     _pocl_only(suite_device)
     selected = {_case(item) for item in request.session.items} - {None}
     folders = {case: tmp_path_factory.mktemp(case) for case in CASES if case in selected}
-    checkout = str(Path(hlbvh_cl.__file__).resolve().parent.parent)  # the package under test
-    path = os.pathsep.join([checkout, *filter(None, [os.environ.get("PYTHONPATH")])])
-    env = {**os.environ, "HLBVH_CL_DEVICE": suite_device.id, "PYTHONPATH": path}
+    env = package_environment(HLBVH_CL_DEVICE=suite_device.id)
     jobs = {}
     for case, folder in folders.items():
         profile = CASES[case][1]
