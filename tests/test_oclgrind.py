@@ -585,7 +585,7 @@ def child_job(mode: str, group: str, out: Path) -> dict:
 @pytest.fixture(scope="module")
 def oclgrind_children(request, tmp_path_factory, warm_kernel_variants):
     """The children of the selected cases, started side by side (children.py):
-    {(group, mode): (Children, results file)}."""
+    (Children, {(group, mode): its results file})."""
     from children import Children, selected_params, slots
     outputs = {(p["group"], p["mode"]): tmp_path_factory.mktemp("oclgrind") / "results.npz"
                for p in selected_params(request, test_kernels_are_clean_under_oclgrind)}
