@@ -16,6 +16,7 @@ import time
 import numpy as np
 import pytest
 from bench_support import ROOT
+from children import package_environment
 
 import hlbvh_cl
 from hlbvh_cl import travel
@@ -94,7 +95,7 @@ def test_importing_hlbvh_cl_imports_no_dask():
     code = ("import sys, hlbvh_cl; "
             "print(sorted(m for m in sys.modules if m.startswith(('dask', 'distributed'))))")
     found = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                           cwd=ROOT, check=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+                           cwd=ROOT, check=True, env=package_environment())
     assert found.stdout.strip() == "[]"
 
 
