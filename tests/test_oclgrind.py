@@ -28,10 +28,11 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 
-#: Seconds one child may run (the slowest takes well under a minute).
+#: Seconds one child may run: a bound for a hung simulator, far above what a
+#: child needs, so that a slow shared machine does not fail the tier.
 CHILD_TIMEOUT_S = 600
 
-#: Memory one child may take (the largest peak measured, about 5.4 GiB, with
+#: Memory one child may take (the largest peak seen, about 5.4 GiB, with
 #: room to spare): no more children run at once than the free memory holds.
 CHILD_MEMORY = 7 << 30
 
