@@ -212,8 +212,28 @@ def _read_with_trimesh(path: Path, file_type: str, gzipped: bool) -> tuple[np.nd
         reason = str(error) or type(error).__name__
         raise ValueError(f"{path}: trimesh cannot read it as {file_type.upper()}: {reason}") from None
     if not parts:
+        declared = _ply_element_counts(source.getvalue()) if file_type == "ply" else {}
+        if declared.get("face", 0) > 0:
+            faces, vertices = declared["face"], declared.get("vertex", 0)
+            raise ValueError(f"{path}: its PLY header declares {faces:,} face{'s' * (faces != 1)} "
+                             f"and {vertices:,} vertices, but trimesh read no triangle: the "
+                             f"file is cut short or its header's counts are wrong")
         raise ValueError(f"{path}: the file holds no triangles")
     offsets = np.cumsum([0] + [len(p.vertices) for p in parts[:-1]])
     vertices = np.concatenate([np.asarray(p.vertices) for p in parts])
     faces = np.concatenate([np.asarray(p.faces, dtype=np.int64) + o for p, o in zip(parts, offsets)])
     return vertices, faces
+
+
+def _ply_element_counts(data: bytes) -> dict[str, int]:
+    """The element counts a PLY header declares ({"vertex": n, "face": m}),
+    or {} where the header cannot be read."""
+    end = data.find(b"end_header", 0, 1 << 16)
+    if not data.startswith(b"ply") or end < 0:
+        return {}
+    counts = {}
+    for line in data[:end].decode("ascii", "replace").splitlines():
+        words = line.split()
+        if len(words) == 3 and words[0] == "element" and words[2].isdigit():
+            counts[words[1]] = int(words[2])
+    return counts

@@ -276,6 +276,22 @@ def test_file_without_triangles(tmp_path):
     assert "points.ply" in str(caught.value)
 
 
+def test_a_ply_whose_header_counts_are_wrong_says_so(tmp_path):
+    """trimesh reads no triangle from a PLY whose header claims more vertices
+    than the file holds; the error names the header's counts, not an empty
+    mesh."""
+    path = tmp_path / "huge.ply"
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 1000000000000\nproperty float x\n"
+                    "property float y\nproperty float z\nelement face 1\n"
+                    "property list uchar int vertex_indices\nend_header\n"
+                    "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")
+    with pytest.raises(ValueError) as caught:
+        Mesh.load(path)
+    assert str(caught.value) == (
+        f"{path}: its PLY header declares 1 face and 1,000,000,000,000 vertices, but trimesh "
+        "read no triangle: the file is cut short or its header's counts are wrong")
+
+
 def test_bad_data_in_a_file_names_the_file(tmp_path):
     path = tmp_path / "nan.obj"
     path.write_text("v 0 0 0\nv 1 0 0\nv nan 1 0\nf 1 2 3\n")
