@@ -33,7 +33,7 @@ HERE = Path(__file__).resolve().parent
 #: Seconds one child run may take (well over what the slowest takes).
 CHILD_TIMEOUT_S = 1800
 
-#: Memory one child run may take (the largest peak measured, about 4.3 GiB,
+#: Memory one child run may take (the largest peak seen, about 4.3 GiB,
 #: with room to spare): no more run at once than the free memory holds.
 CHILD_MEMORY = 6 << 30
 
@@ -55,8 +55,9 @@ def _targets() -> list[tuple[str, str]]:
 
 
 def _child_job(device: str, profile: str) -> dict:
-    env = {**os.environ, "HLBVH_CL_DEVICE": device, "HLBVH_CL_PROFILE": profile,
-           "HLBVH_CL_TARGET_CHILD": "1"}
+    from children import package_environment
+    env = package_environment(HLBVH_CL_DEVICE=device, HLBVH_CL_PROFILE=profile,
+                              HLBVH_CL_TARGET_CHILD="1")
     command = [sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider",
                *(str(HERE / name) for name in CORRECTNESS)]
     return {"args": command, "env": env, "cwd": HERE.parent, "timeout": CHILD_TIMEOUT_S}
