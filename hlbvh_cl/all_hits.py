@@ -34,7 +34,8 @@ import numpy as np
 import pyopencl as cl
 
 from . import inputs
-from .order import COHERENT_MIN, RAY_ORDER_BITS, device_order, put_rows, take_rows
+from .order import (COHERENT_MIN, RAY_ORDER_BITS, concurrent_rays, device_order, put_rows,
+                    take_rows)
 from .instances import InstancedTree
 from .query import RayQuery, _into_frame, _masked, _stack_size, caller_t, collect, scene_args
 from .tree import Tree
@@ -347,14 +348,16 @@ class AllHitsQuery:
 
 def _coherent_order(query: RayQuery, rays) -> np.ndarray | None:
     """Big batches' rays by class, then in fine Morton order of their
-    origins (hlbvh_cl.order: rays a packet can trace together, with origins
-    close enough to share their nodes), as uint32 slots found on the
-    query's device; None: as given."""
+    origins, or of their directions where their lines nearly meet at one
+    point (hlbvh_cl.order: rays a packet can trace together, close enough
+    to share their nodes), as uint32 slots found on the query's device;
+    None: as given."""
     origins, directions = rays[:2]
     if len(origins) < COHERENT_MIN:
         return None
     return device_order(query.rt, origins, RAY_ORDER_BITS, query.zero_copy,
-                        directions=directions)
+                        directions=directions,
+                        by_direction=concurrent_rays(origins, directions))
 
 
 def _chunks(offsets: np.ndarray | None, max_rays: int, count: int,

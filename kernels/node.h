@@ -73,6 +73,7 @@ TRAVERSAL_INLINE __global const float* plane_row(__global const WideNode* node, 
 /* Sign bit and absolute value by their bits (PoCL: see LOAD_ROW). */
 #define SIGN_BIT(x) (as_uint(x) >> 31)
 #define ABS_FLOAT(x) as_float(as_uint(x) & 0x7fffffffu)
+#define ABS_LANES(x) as_float8(as_int8(x) & (int8)(0x7fffffff))
 
 /* Ize 2013: scaling the exit distance by 1 + 2*gamma(3) makes the slab test
  * conservative under float rounding.  We use gamma(5) (gamma(n) = n*eps /

@@ -36,11 +36,69 @@ typedef struct {
      * interval arithmetic before the per-lane tests (children_interval):
      * per axis the lanes' least and greatest inverse direction, and the
      * origin component that bounds the entry (near_o) and the exit (far_o)
-     * distances from below and above; the least tmin. */
+     * distances from below and above, of the origins moved onto one plane
+     * (interval_origins); the least tmin from there, the least move (a
+     * lane's limit L is at most L - least_move from there), and the slack
+     * the test allows its exit for the largest move (children_interval). */
     float inv_lo_x, inv_lo_y, inv_lo_z, inv_hi_x, inv_hi_y, inv_hi_z;
     float near_ox, near_oy, near_oz, far_ox, far_oy, far_oz;
-    float tmin_lo;
+    float tmin_lo, least_move, slack;
 } Packet;
+
+/* The interval test's relative slack on the exit: it must keep every child
+ * a lane's own test keeps, and that test lets the exit grow by Ize's
+ * 2 * gamma(5) (EXIT_SCALE, about 2^-20.7) of its own distance; the moved
+ * origins' tmin and limit round by a few units of 2^-24 more. */
+#define INTERVAL_SLACK 0x1p-19f
+
+/* Lanes that are infinite or NaN, from the exponent's bits. */
+#define NOT_FINITE(v) ((as_int_packet(v) & (int_packet)(0x7f800000)) == (int_packet)(0x7f800000))
+
+/* The lanes' extent on each axis, summed. */
+TRAVERSAL_INLINE float packet_spread(const float_packet* v)
+{
+    float sum = 0.0f;
+    for (int k = 0; k < 3; ++k)
+        sum += packet_max(v[k]) - packet_min(v[k]);
+    return sum;
+}
+
+/* The interval ray's origins (o, directions d) into `moved`, and each
+ * lane's `move`: rays along nearly one line but starting apart (rays aimed
+ * at one point, ordered by direction: hlbvh_cl/order.py) would make an
+ * interval ray as wide as their origins are apart (Boulos et al. 2007 bound
+ * the origins as given); moved along their rays, by `move` times their
+ * directions, onto the plane across kz through the middle of the lanes' kz
+ * coordinates, they make a thin one.  A lane's distances from its moved
+ * origin are its own less its move.  The origins stay where moving them
+ * spreads them more (rays that part), or a move is not finite (huge
+ * coordinates).  Returns, per axis, a bound on how far a moved origin may
+ * be from the real point its move reaches: off kz, o + move * d rounds
+ * twice, by 2^-24 (|o| + |move d|) at most each time; along kz, the move is
+ * mid - o rounded, times 1 / d rounded (by up to 2.5 ulp in OpenCL), so the
+ * point reached misses mid by at most about 2^-24 * 4.5 |move d|. */
+TRAVERSAL_INLINE float3 interval_origins(const Packet* p, const float_packet* o,
+                                         const float_packet* d, float_packet* moved,
+                                         float_packet* move)
+{
+    float mid = 0.5f * (packet_min(o[p->kz]) + packet_max(o[p->kz]));
+    *move = (mid - o[p->kz]) * p->sz;
+    int_packet wild = NOT_FINITE(*move);
+    float error[3];
+    for (int k = 0; k < 3; ++k) {
+        float_packet step = *move * d[k];
+        moved[k] = k == p->kz ? (float_packet)(mid) : o[k] + step;
+        wild |= NOT_FINITE(moved[k]);
+        error[k] = 0x1p-21f * packet_max(ABS_PACKET(o[k]) + ABS_PACKET(step));
+    }
+    if (some_packet(wild) || !(packet_spread(moved) < packet_spread(o))) {
+        for (int k = 0; k < 3; ++k)
+            moved[k] = o[k];
+        *move = (float_packet)(0.0f);
+        return (float3)(0.0f);
+    }
+    return (float3)(error[0], error[1], error[2]);
+}
 
 /* prepare_ray for every lane, in vector arithmetic; false when the lanes do
  * not share direction signs and kz (then they are traced one by one). */
@@ -104,15 +162,22 @@ TRAVERSAL_INLINE bool prepare_packet(const RayLanes* in, Packet* p)
     /* (plane - o) * inv over the lanes: the least entry comes from the
      * greatest origin when the direction is positive, the least when it is
      * negative; the greatest exit the other way round. */
-    float o_lo_x = packet_min(o[0]), o_lo_y = packet_min(o[1]), o_lo_z = packet_min(o[2]);
-    float o_hi_x = packet_max(o[0]), o_hi_y = packet_max(o[1]), o_hi_z = packet_max(o[2]);
+    float_packet moved[3], move;
+    float3 error = interval_origins(p, o, d, moved, &move);
+    /* the moved origins' box, grown by their error */
+    float o_lo_x = packet_min(moved[0]) - error.x, o_lo_y = packet_min(moved[1]) - error.y,
+          o_lo_z = packet_min(moved[2]) - error.z;
+    float o_hi_x = packet_max(moved[0]) + error.x, o_hi_y = packet_max(moved[1]) + error.y,
+          o_hi_z = packet_max(moved[2]) + error.z;
     p->near_ox = neg_x.s0 ? o_lo_x : o_hi_x;
     p->near_oy = neg_y.s0 ? o_lo_y : o_hi_y;
     p->near_oz = neg_z.s0 ? o_lo_z : o_hi_z;
     p->far_ox = neg_x.s0 ? o_hi_x : o_lo_x;
     p->far_oy = neg_y.s0 ? o_hi_y : o_lo_y;
     p->far_oz = neg_z.s0 ? o_hi_z : o_lo_z;
-    p->tmin_lo = packet_min(p->tmin);
+    p->slack = INTERVAL_SLACK * packet_max(ABS_PACKET(move));
+    p->tmin_lo = packet_min(p->tmin - move);
+    p->least_move = packet_min(move);
     return true;
 }
 
@@ -163,25 +228,32 @@ TRAVERSAL_INLINE float_lanes exit_bound(float_lanes offset, float inv_lo, float 
 }
 
 /* The children of a node that some lane may meet within `reach`, as a bit
- * mask, from one slab test of the interval ray (Boulos et al. 2007).  Float
- * rounding is monotone, so each bound is as far out as the per-lane results
- * computed the same way: a child left out here fails the per-lane test for
- * every lane, and the culling changes no result.  A NaN (0 * inf) bound is
- * ignored, as in SLABS_MEET, which only widens the interval. */
+ * mask, from one slab test of the interval ray (Boulos et al. 2007), its
+ * distances counted from the moved origins (interval_origins), whose box is
+ * grown by their rounding.  Its bounds then hold in real arithmetic, and the
+ * exit grows by INTERVAL_SLACK of its size plus the slack for the largest
+ * move: a lane's own test grows its exit by EXIT_SCALE of its distance from
+ * the lane's real origin, which is at most the exit's size plus the move,
+ * so every child some lane's test keeps is kept.  A NaN (0 * inf) bound is
+ * ignored, as in SLABS_MEET, which only widens the interval; an unused
+ * slot's -inf exit grows to NaN, and no lane meets it. */
 #define NODE_ROW(offset) LOAD_ROW(float_lanes, plane_row(node, offset))
 TRAVERSAL_INLINE uint children_interval(const Packet* p, __global const WideNode* node,
                                         float reach)
 {
-    float_lanes entry;
-    return lane_mask(SLABS_MEET(
-        float_lanes,
-        entry_bound(NODE_ROW(p->near_x) - p->near_ox, p->inv_lo_x, p->inv_hi_x),
-        entry_bound(NODE_ROW(p->near_y) - p->near_oy, p->inv_lo_y, p->inv_hi_y),
-        entry_bound(NODE_ROW(p->near_z) - p->near_oz, p->inv_lo_z, p->inv_hi_z),
-        exit_bound(NODE_ROW(p->near_x ^ ROW_BYTES) - p->far_ox, p->inv_lo_x, p->inv_hi_x),
-        exit_bound(NODE_ROW(p->near_y ^ ROW_BYTES) - p->far_oy, p->inv_lo_y, p->inv_hi_y),
-        exit_bound(NODE_ROW(p->near_z ^ ROW_BYTES) - p->far_oz, p->inv_lo_z, p->inv_hi_z),
-        (float_lanes)(p->tmin_lo), (float_lanes)(reach), entry));
+    float_lanes entry = GROW_HI(
+        GROW_HI(GROW_HI((float_lanes)(p->tmin_lo),
+                        entry_bound(NODE_ROW(p->near_x) - p->near_ox, p->inv_lo_x, p->inv_hi_x)),
+                entry_bound(NODE_ROW(p->near_y) - p->near_oy, p->inv_lo_y, p->inv_hi_y)),
+        entry_bound(NODE_ROW(p->near_z) - p->near_oz, p->inv_lo_z, p->inv_hi_z));
+    float_lanes exit = GROW_LO(
+        GROW_LO(GROW_LO((float_lanes)(reach - p->least_move),
+                        exit_bound(NODE_ROW(p->near_x ^ ROW_BYTES) - p->far_ox, p->inv_lo_x,
+                                   p->inv_hi_x)),
+                exit_bound(NODE_ROW(p->near_y ^ ROW_BYTES) - p->far_oy, p->inv_lo_y,
+                           p->inv_hi_y)),
+        exit_bound(NODE_ROW(p->near_z ^ ROW_BYTES) - p->far_oz, p->inv_lo_z, p->inv_hi_z));
+    return lane_mask(entry <= exit + (INTERVAL_SLACK * ABS_LANES(exit) + (float_lanes)(p->slack)));
 }
 #undef NODE_ROW
 

@@ -34,6 +34,9 @@ typedef double8 wide_packet;
 #error "PACKET_SIZE must be 1, 8 or 16"
 #endif
 
+/* |v| of every lane, by its bits (PoCL: see LOAD_ROW). */
+#define ABS_PACKET(v) as_float_packet(as_int_packet(v) & (int_packet)(0x7fffffff))
+
 /* Folds a packet's lanes to one with f: the halves first, then theirs.
  * GROW_LO / GROW_HI give the least / greatest lane of lanes that are never
  * NaN (entry distances, limits), without fmin / fmax's NaN tests; OR / AND

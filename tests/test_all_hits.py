@@ -457,6 +457,44 @@ def test_count_packets_cross_shared_edges_once(packet_size):
                                                             random_directions).counts)
 
 
+@pytest.mark.parametrize("packet_size", [1, 8, 16])
+def test_rays_aimed_at_one_point_count_each_crossing_once(packet_size, monkeypatch):
+    """Rays from scattered origins aimed at one point of a closed grid's
+    face (an inner vertex, an edge's midpoint, a cell's centre: shared by
+    several triangles) run ordered by direction (hlbvh_cl.order's
+    concurrent_rays), so that a packet's rays lie along nearly one line but
+    start up to 80 units apart along it: the packet's interval ray is
+    taken from origins moved along their rays (kernels/packet.h).  Every ray
+    enters and leaves the grid once, and crosses each face of a wide slab
+    below it that it starts under."""
+    from hlbvh_cl import all_hits, order
+    from hlbvh_cl.all_hits import AllHitsQuery
+    from hlbvh_cl.order import COHERENT_MIN
+    from hlbvh_cl.query import RayQuery
+    by_direction = []
+    monkeypatch.setattr(all_hits, "device_order", lambda *args, **named: by_direction.append(
+        named["by_direction"]) or order.device_order(*args, **named))
+    n = 4
+    slab = cube_mesh()
+    slab = hlbvh_cl.Mesh(slab.vertices * [80, 80, 10] + [-40, -40, -40], slab.faces, name="slab")
+    scene = hlbvh_cl.Scene([grid_box(n), slab])
+    query = AllHitsQuery(RayQuery(scene._runtime, packet_size=packet_size))
+    rng = np.random.default_rng(14)
+    count = COHERENT_MIN + 300
+    for target in ([1.0, 2.0, 0.0], [1.5, 2.0, 0.0], [2.5, 1.5, 0.0]):
+        slant = np.column_stack([rng.uniform(-0.6, 0.6, (count, 2)), -np.ones(count)])
+        depth = rng.uniform(0.5, 80.0, count)
+        depth[np.abs(depth - 30) < 0.01] += 0.05  # off the slab's faces
+        depth[np.abs(depth - 40) < 0.01] += 0.05
+        origins = (target + depth[:, None] * slant).astype(np.float32)
+        directions = (np.float32(target) - origins).astype(np.float32)
+        counts = query.count(scene._built_tree(), origins, directions)
+        want = 2 + (origins[:, 2] < -30) + (origins[:, 2] < -40)
+        assert (want > 2).any() and (want == 2).any()
+        np.testing.assert_array_equal(counts, want, err_msg=str(target))
+    assert by_direction == [True] * 3
+
+
 @pytest.mark.parametrize("max_hits", [None, 1, 3])
 def test_fill_packets_give_the_hits_of_one_ray(tiny, max_hits):
     """The fill pass in packets of 8 and 16 (each lane into its own

@@ -282,6 +282,15 @@ def case_all_hits(uninitialized: bool) -> dict:
     counts = stack.scene.count_intersections(origins.astype(np.float32),
                                              directions.astype(np.float32), tmax=tmax)
     assert (counts > all_hits.KEEP_HITS).sum() > 3 and ((counts > 0) & (counts < 4)).sum() > 3
+    # a batch aimed at one vertex from scattered origins, ordered by
+    # direction (the keys' other kind), in packets whose interval ray starts
+    # from origins moved along the rays
+    from hlbvh_cl.order import concurrent_rays
+    far = (targets[0] * rng.uniform(2, 6, (48, 1)) + rng.uniform(-0.3, 0.3, (48, 3)))
+    far, aims = far.astype(np.float32), (targets[0] - far).astype(np.float32)
+    assert concurrent_rays(far, aims)
+    counts = query.count(case.scene._built_tree(), far, aims)
+    assert counts.tolist() == [2] * len(far), counts
     return {}
 
 

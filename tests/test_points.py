@@ -652,6 +652,66 @@ def test_ray_classes_follow_the_packet_rules():
     np.testing.assert_array_equal(ray_classes(directions), [0, 1, 10, 17, 4, 10, 23, 4])
 
 
+def test_device_ray_order_by_direction_is_the_numpy_order(suite_device):
+    """device_order by direction (ray_keys' direction_key: the 2-D Morton
+    code of the direction's cell on its cube face, under its class, a 23-bit
+    key) gives exactly numpy's coherent_order, on directions whose face
+    coordinates sit in the middle of their cells (so that no division
+    rounding crosses a cell's edge) with majors of any power of two; the
+    classes come out in order, and within a class the cells."""
+    from hlbvh_cl.device import runtime
+    from hlbvh_cl.order import (DIRECTION_BITS, coherent_order, device_order, direction_keys,
+                                ray_classes)
+    rt = runtime(suite_device)
+    rng = np.random.default_rng(21)
+    count = 5000
+    half = ((1 << DIRECTION_BITS) - 1) / 2
+    cells = rng.integers(0, 1 << DIRECTION_BITS, (count, 2))
+    face = (cells + 0.5) / half - 1  # in (-1, 1), mid-cell
+    kz = rng.integers(0, 3, count)
+    major = np.where(rng.random(count) < 0.5, -1.0, 1.0) * 2.0 ** rng.integers(-3, 4, count)
+    directions = np.empty((count, 3))
+    rows = np.arange(count)
+    directions[rows, kz] = major
+    directions[rows, (kz + 1) % 3] = face[:, 0] * np.abs(major)
+    directions[rows, (kz + 2) % 3] = face[:, 1] * np.abs(major)
+    directions = directions.astype(np.float32)
+    origins = rng.random((count, 3)).astype(np.float32)
+    expected = coherent_order(origins, directions=directions, by_direction=True)
+    classes = ray_classes(directions)[expected]
+    assert (np.diff(classes.astype(np.int64)) >= 0).all()
+    keys = direction_keys(directions)[expected]
+    same = classes[1:] == classes[:-1]
+    assert (np.diff(keys.astype(np.int64))[same] >= 0).all()
+    assert len(np.unique(keys)) > count // 2  # the cells tell the rays apart
+    for zero_copy in (False, True):
+        order = device_order(rt, origins, zero_copy=zero_copy, directions=directions,
+                             by_direction=True)
+        assert np.array_equal(order, expected)
+
+
+def test_concurrent_rays_are_rays_aimed_at_one_point():
+    """order.concurrent_rays: rays from scattered origins (a box, or a
+    plane) aimed at one point are; random rays, parallel rays, and rays from
+    one origin (a sensor's, whose own order is kept) are not, nor rays aimed
+    at points spread wider than their origins are apart."""
+    from hlbvh_cl.order import concurrent_rays
+    rng = np.random.default_rng(22)
+    count = 20000
+    box = rng.random((count, 3)).astype(np.float32) * 10 - 5
+    plane = box.copy()
+    plane[:, 2] = 3
+    target = np.float32([0.3, -0.2, 0.1])
+    assert concurrent_rays(box, target - box)
+    assert concurrent_rays(plane, target - plane)
+    assert concurrent_rays(box + 1e4, target - box)  # far from the world's origin
+    assert not concurrent_rays(box, rng.normal(size=(count, 3)).astype(np.float32))
+    assert not concurrent_rays(plane, np.tile(np.float32([0.1, 0.2, -1]), (count, 1)))
+    assert not concurrent_rays(np.tile(target, (count, 1)), box)
+    spread = target + rng.normal(scale=0.5, size=(count, 3)).astype(np.float32)
+    assert not concurrent_rays(box, spread - box)
+
+
 def test_device_ray_order_is_the_numpy_order(suite_device):
     """device_order with directions (ray_keys in kernels/order.cl: the
     class above the origin's code, a 32-bit key) gives exactly numpy's
