@@ -51,7 +51,7 @@ DIRECTION_BITS = 9
 CONCURRENT_TOLERANCE = 1e-5
 
 #: concurrent_rays looks at an even sample of about this many rays.
-CONCURRENT_SAMPLE = 4096
+CONCURRENT_SAMPLE = 1024
 
 
 def _spread_bits(cells: np.ndarray) -> np.ndarray:
@@ -134,9 +134,11 @@ def concurrent_rays(origins: np.ndarray, directions: np.ndarray) -> bool:
     d = d / np.linalg.norm(d, axis=1, keepdims=True)
     # the sums over the lines of their projections across, (I - d d^T), and
     # of those applied to their origins: the normal equations of the point
+    # (sums of outer products, not d.T @ d: BLAS wakes its threads for that)
     along = (d * o).sum(axis=1)
-    point = np.linalg.lstsq(len(d) * np.eye(3) - d.T @ d, o.sum(axis=0) - d.T @ along,
-                            rcond=None)[0]
+    outer = (d[:, :, None] * d[:, None, :]).sum(axis=0)
+    point = np.linalg.lstsq(len(d) * np.eye(3) - outer,
+                            o.sum(axis=0) - (d * along[:, None]).sum(axis=0), rcond=None)[0]
     offsets = o - point
     distances = np.linalg.norm(offsets - (offsets * d).sum(axis=1, keepdims=True) * d, axis=1)
     rounding = CONCURRENT_TOLERANCE * (np.abs(point).max()

@@ -53,19 +53,22 @@ inline uint spread_cell_2d(uint v)
     return (v | (v << 1)) & 0x55555555u;
 }
 
+/* The cell, 0 .. 2^DIRECTION_BITS - 1, of a face coordinate in [-1, 1]. */
+inline uint face_cell(float face)
+{
+    const uint top = (1u << DIRECTION_BITS) - 1u;
+    uint cell = convert_uint((face + 1.0f) * (0.5f * (float)top));
+    return cell < top ? cell : top;
+}
+
 /* The 2-D Morton code of a direction's cell on its cube face: the face
  * coordinates are its components after kz (cyclically) over its component
  * along kz, the largest in magnitude (`major`), in [-1, 1]. */
-inline uint direction_key(__global const float* d, int kz, float major)
+inline uint direction_key(float dx, float dy, float dz, int kz, float major)
 {
-    const uint top = (1u << DIRECTION_BITS) - 1u;
-    uint key = 0;
-    for (int step = 1; step <= 2; ++step) {
-        float face = d[(kz + step) % 3] / major;
-        uint cell = convert_uint((face + 1.0f) * (0.5f * (float)top));
-        key |= spread_cell_2d(cell < top ? cell : top) << (step - 1);
-    }
-    return key;
+    float u = kz == 0 ? dy : (kz == 1 ? dz : dx);
+    float w = kz == 0 ? dz : (kz == 1 ? dx : dy);
+    return spread_cell_2d(face_cell(u / major)) | spread_cell_2d(face_cell(w / major)) << 1;
 }
 
 /* points: float32 (count, 3) rows; lo and scale as cell_key's, from the
@@ -106,7 +109,8 @@ __kernel void ray_keys(__global const float* origins, __global const float* dire
                      + ((bits[2] >> 31) << 2);
     if (by_direction) {
         float major = kz == 0 ? ax : (kz == 1 ? ay : az);
-        keys[i] = direction_key(d, kz, major) | ray_class << (2 * DIRECTION_BITS);
+        keys[i] = direction_key(as_float(bits[0]), as_float(bits[1]), as_float(bits[2]), kz, major)
+                  | ray_class << (2 * DIRECTION_BITS);
     } else {
         keys[i] = cell_key(origins + 3 * (size_t)i, lo, scale) | ray_class << (3 * ORDER_BITS);
     }
