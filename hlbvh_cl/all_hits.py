@@ -229,21 +229,26 @@ class AllHitsQuery:
         count.
 
         They go in chunks of rays (_chunks).  With an `order` (the count
-        kernel's, one slot per ray) a chunk is a run of that order: on
-        zero-copy devices the kernel reads and writes the whole arrays by
-        those slots, in place; elsewhere the chunk's rays are taken in that
-        order on the host and its results put back.  On PoCL the kernels
+        kernel's, one slot per ray) a chunk is a run of that order: on CPU
+        devices the kernel reads and writes the whole arrays by those slots,
+        in place (USE_HOST_PTR: the runtime's own copy at most, where it
+        wants an aligned pointer); on GPUs the chunk's rays are taken in that
+        order on the host and its results put back (a GPU holds one chunk's
+        copy, not the whole arrays').  Without an order, on PoCL the kernels
         read and write the arrays themselves (zero copy); elsewhere the rays
         go up per chunk and the results come back through buffers reused
         between chunks."""
         query, rt, queue = self.query, self.rt, self.rt.queue
         context, flags = rt.context, cl.mem_flags
-        indexed = order is not None and query.zero_copy
+        # (the host's gather of a chunk's 12-byte rows, random in that order,
+        # measured slower on Intel's CPU runtime than the kernel's by slots)
+        indexed = order is not None and not rt.profile.gpu
+        in_place = query.zero_copy or indexed
         assert order is None or (offsets is None and not inputs)
         cl.enqueue_copy(queue, self._counters, np.zeros(2, np.int32))
 
         def wrap(array, access):  # the array's own memory (zero copy) or a copy of it
-            host = flags.USE_HOST_PTR if query.zero_copy else flags.COPY_HOST_PTR
+            host = flags.USE_HOST_PTR if in_place else flags.COPY_HOST_PTR
             return cl.Buffer(context, access | host, hostbuf=array)
         origins, directions, *limits = rays
         scalars = {id(value): wrap(np.full(1, value, value.dtype), flags.READ_ONLY)
@@ -259,8 +264,8 @@ class AllHitsQuery:
                 wrap(part(origins), flags.READ_ONLY), wrap(part(directions), flags.READ_ONLY),
                 *stepped[0], *stepped[1]])
         # at most two launches in flight (Ctrl-C waits for few), and chunks small
-        # enough off PoCL that the rays' copies stay small
-        rays_per_launch = query.max_rays_per_launch if query.zero_copy else \
+        # enough, where the rays are copied per chunk, that the copies stay small
+        rays_per_launch = query.max_rays_per_launch if in_place else \
             min(query.max_rays_per_launch, COPIED_RAYS_PER_LAUNCH)
         if indexed:
             whole = ray_args(slice(None))
@@ -355,7 +360,8 @@ def _coherent_order(query: RayQuery, rays) -> np.ndarray | None:
     origins, directions = rays[:2]
     if len(origins) < COHERENT_MIN:
         return None
-    return device_order(query.rt, origins, RAY_ORDER_BITS, query.zero_copy,
+    # CPU devices read the rays in place to sort them (as _launches does)
+    return device_order(query.rt, origins, RAY_ORDER_BITS, not query.rt.profile.gpu,
                         directions=directions,
                         by_direction=concurrent_rays(origins, directions))
 

@@ -370,8 +370,8 @@ def test_big_batches_traced_in_morton_order_answer_in_the_callers_order(tiny, mo
     Morton order of its origins (hlbvh_cl.order), in launches of a few hundred rays: each ray's
     hits, counts and t (with per-ray limits) are those it gets in small
     batches, which run as given.  Both ways to run that order: slots into
-    the whole arrays (zero copy, PoCL), and rays taken per launch with the
-    results put back (device copies, forced with `copies`)."""
+    the whole arrays (CPU devices), and rays taken per launch with the
+    results put back (GPUs' device copies, forced with `copies`)."""
     from hlbvh_cl import all_hits, order
     from hlbvh_cl.order import COHERENT_MIN
     traced = []  # the orders the big batches were traced in
@@ -384,8 +384,13 @@ def test_big_batches_traced_in_morton_order_answer_in_the_callers_order(tiny, mo
     query = tiny.scene._ray_query()
     monkeypatch.setattr(query, "max_rays_per_launch", 700)
     monkeypatch.setattr(all_hits, "COPIED_RAYS_PER_LAUNCH", 300)
-    if copies:
+    taken = []  # the launches whose rays the host took
+    monkeypatch.setattr(all_hits, "take_rows",
+                        lambda array, rows: taken.append(len(rows)) or order.take_rows(array, rows))
+    if copies:  # as on a GPU
+        from hlbvh_cl.profile import Profile
         monkeypatch.setattr(query, "zero_copy", False)
+        monkeypatch.setattr(query.rt, "profile", Profile("gpu"))
     for max_hits in (None, 2):
         whole = tiny.scene.intersect_all(origins, directions, tmax=tmax, max_hits=max_hits)
         parts = [tiny.scene.intersect_all(origins[i:i + 500], directions[i:i + 500],
@@ -400,6 +405,7 @@ def test_big_batches_traced_in_morton_order_answer_in_the_callers_order(tiny, mo
     np.testing.assert_array_equal(tiny.scene.count_intersections(origins, directions, tmax=tmax),
                                   tiny.scene.intersect_all(origins, directions, tmax=tmax).counts)
     assert len(traced) == 4 and all((o != np.arange(count)).any() for o in traced)
+    assert bool(taken) == copies  # CPU devices read the whole arrays by slots
 
 
 @settings(max_examples=15, deadline=None)
