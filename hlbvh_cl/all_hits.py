@@ -48,6 +48,12 @@ HITS_PER_LAUNCH = 1 << 18
 #: those copies, 32 bytes a ray, two launches in flight.
 COPIED_RAYS_PER_LAUNCH = 1 << 16
 
+#: Off zero copy, a CPU device runs an ordered batch of up to this many rays
+#: by slots into its whole arrays, which its runtime may copy (about 100
+#: bytes a ray with intersect_all's kept hits); a bigger one takes its rows
+#: per launch, as GPUs do, so that the copies stay bounded.
+INDEXED_COPY_MAX = 1 << 22
+
 #: Hit triangles the count pass keeps per ray (kernels/all_hits.cl): a ray
 #: with no more hits skips the fill pass's walk (which runs in the caller's
 #: order, where rays seldom make packets).  A uint32 each, for every ray,
@@ -232,17 +238,20 @@ class AllHitsQuery:
         kernel's, one slot per ray) a chunk is a run of that order: on CPU
         devices the kernel reads and writes the whole arrays by those slots,
         in place (USE_HOST_PTR: the runtime's own copy at most, where it
-        wants an aligned pointer); on GPUs the chunk's rays are taken in that
-        order on the host and its results put back (a GPU holds one chunk's
-        copy, not the whole arrays').  Without an order, on PoCL the kernels
+        wants an aligned pointer, so off zero copy only up to
+        INDEXED_COPY_MAX rays); on GPUs, and for bigger batches, the chunk's
+        rays are taken in that order on the host and its results put back (a
+        device then holds one chunk's copy, not the whole arrays').  Without an order, on PoCL the kernels
         read and write the arrays themselves (zero copy); elsewhere the rays
         go up per chunk and the results come back through buffers reused
         between chunks."""
         query, rt, queue = self.query, self.rt, self.rt.queue
         context, flags = rt.context, cl.mem_flags
+        origins, directions, *limits = rays
         # (the host's gather of a chunk's 12-byte rows, random in that order,
         # measured slower on Intel's CPU runtime than the kernel's by slots)
-        indexed = order is not None and not rt.profile.gpu
+        indexed = order is not None and not rt.profile.gpu and (
+            query.zero_copy or len(origins) <= INDEXED_COPY_MAX)
         in_place = query.zero_copy or indexed
         assert order is None or (offsets is None and not inputs)
         cl.enqueue_copy(queue, self._counters, np.zeros(2, np.int32))
@@ -250,7 +259,6 @@ class AllHitsQuery:
         def wrap(array, access):  # the array's own memory (zero copy) or a copy of it
             host = flags.USE_HOST_PTR if in_place else flags.COPY_HOST_PTR
             return cl.Buffer(context, access | host, hostbuf=array)
-        origins, directions, *limits = rays
         scalars = {id(value): wrap(np.full(1, value, value.dtype), flags.READ_ONLY)
                    for value in limits if value.ndim == 0}
 

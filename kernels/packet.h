@@ -75,8 +75,9 @@ TRAVERSAL_INLINE float packet_spread(const float_packet* v)
  * coordinates).  Returns, per axis, a bound on how far a moved origin may
  * be from the real point its move reaches: off kz, o + move * d rounds
  * twice, by 2^-24 (|o| + |move d|) at most each time; along kz, the move is
- * mid - o rounded, times 1 / d rounded (by up to 2.5 ulp in OpenCL), so the
- * point reached misses mid by at most about 2^-24 * 4.5 |move d|. */
+ * mid - o rounded, times 1 / d rounded (by up to 2.5 ulp in OpenCL), and
+ * rounded again, so the point reached misses mid by at most about
+ * 2^-24 * 7 |move d|. */
 TRAVERSAL_INLINE float3 interval_origins(const Packet* p, const float_packet* o,
                                          const float_packet* d, float_packet* moved,
                                          float_packet* move)
@@ -164,11 +165,17 @@ TRAVERSAL_INLINE bool prepare_packet(const RayLanes* in, Packet* p)
      * negative; the greatest exit the other way round. */
     float_packet moved[3], move;
     float3 error = interval_origins(p, o, d, moved, &move);
-    /* the moved origins' box, grown by their error */
-    float o_lo_x = packet_min(moved[0]) - error.x, o_lo_y = packet_min(moved[1]) - error.y,
-          o_lo_z = packet_min(moved[2]) - error.z;
-    float o_hi_x = packet_max(moved[0]) + error.x, o_hi_y = packet_max(moved[1]) + error.y,
-          o_hi_z = packet_max(moved[2]) + error.z;
+    /* The moved origins' box, grown by their error and then by one ulp, so
+     * that no origin lies on its faces: a lane whose origin lies on a node's
+     * plane and whose direction is 0 along that axis ignores the plane (0 *
+     * inf is NaN), but the box's distance to that plane would be 0 times a
+     * finite inverse of another lane, a bound of 0 that drops the child. */
+    float o_lo_x = nextafter(packet_min(moved[0]) - error.x, -INFINITY),
+          o_lo_y = nextafter(packet_min(moved[1]) - error.y, -INFINITY),
+          o_lo_z = nextafter(packet_min(moved[2]) - error.z, -INFINITY);
+    float o_hi_x = nextafter(packet_max(moved[0]) + error.x, INFINITY),
+          o_hi_y = nextafter(packet_max(moved[1]) + error.y, INFINITY),
+          o_hi_z = nextafter(packet_max(moved[2]) + error.z, INFINITY);
     p->near_ox = neg_x.s0 ? o_lo_x : o_hi_x;
     p->near_oy = neg_y.s0 ? o_lo_y : o_hi_y;
     p->near_oz = neg_z.s0 ? o_lo_z : o_hi_z;

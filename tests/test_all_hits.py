@@ -363,7 +363,7 @@ def test_small_chunks_give_the_same_hits(tiny, monkeypatch):
     np.testing.assert_array_equal(first.counts, np.minimum(counts, 2))
 
 
-@pytest.mark.parametrize("copies", [False, True])
+@pytest.mark.parametrize("copies", [None, "gpu", "big"])
 def test_big_batches_traced_in_morton_order_answer_in_the_callers_order(tiny, monkeypatch,
                                                                          copies):
     """A batch of COHERENT_MIN rays and more is counted by class, then in
@@ -371,7 +371,8 @@ def test_big_batches_traced_in_morton_order_answer_in_the_callers_order(tiny, mo
     hits, counts and t (with per-ray limits) are those it gets in small
     batches, which run as given.  Both ways to run that order: slots into
     the whole arrays (CPU devices), and rays taken per launch with the
-    results put back (GPUs' device copies, forced with `copies`)."""
+    results put back (device copies: on GPUs, forced with `copies`, and for
+    batches over INDEXED_COPY_MAX off zero copy)."""
     from hlbvh_cl import all_hits, order
     from hlbvh_cl.order import COHERENT_MIN
     traced = []  # the orders the big batches were traced in
@@ -387,10 +388,13 @@ def test_big_batches_traced_in_morton_order_answer_in_the_callers_order(tiny, mo
     taken = []  # the launches whose rays the host took
     monkeypatch.setattr(all_hits, "take_rows",
                         lambda array, rows: taken.append(len(rows)) or order.take_rows(array, rows))
-    if copies:  # as on a GPU
-        from hlbvh_cl.profile import Profile
+    if copies:
         monkeypatch.setattr(query, "zero_copy", False)
+    if copies == "gpu":
+        from hlbvh_cl.profile import Profile
         monkeypatch.setattr(query.rt, "profile", Profile("gpu"))
+    if copies == "big":
+        monkeypatch.setattr(all_hits, "INDEXED_COPY_MAX", count - 1)
     for max_hits in (None, 2):
         whole = tiny.scene.intersect_all(origins, directions, tmax=tmax, max_hits=max_hits)
         parts = [tiny.scene.intersect_all(origins[i:i + 500], directions[i:i + 500],
@@ -405,7 +409,8 @@ def test_big_batches_traced_in_morton_order_answer_in_the_callers_order(tiny, mo
     np.testing.assert_array_equal(tiny.scene.count_intersections(origins, directions, tmax=tmax),
                                   tiny.scene.intersect_all(origins, directions, tmax=tmax).counts)
     assert len(traced) == 4 and all((o != np.arange(count)).any() for o in traced)
-    assert bool(taken) == copies  # CPU devices read the whole arrays by slots
+    # CPU devices read the whole arrays by slots, up to INDEXED_COPY_MAX rays
+    assert bool(taken) == (copies is not None or query.rt.profile.gpu)
 
 
 @settings(max_examples=15, deadline=None)

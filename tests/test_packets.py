@@ -167,3 +167,48 @@ def test_axis_parallel_packets_match_oracle(name, zero):
     assert_matches_oracle(case, hits, origins, directions)
     assert 0 < hits.hit.sum() < len(origins)
     np.testing.assert_array_equal(traced(q, "occluded", case, origins, directions), hits.hit)
+
+
+def _strip(x0: float, z: float, n: int = 8) -> hlbvh_cl.Mesh:
+    """The unit grid x in [x0, x0 + n], y in [-n, n] at height z."""
+    vertices = [(x0 + i, j, z) for i in range(n + 1) for j in range(-n, n + 1)]
+    at = lambda i, j: i * (2 * n + 1) + j + n  # noqa: E731
+    faces = []
+    for i in range(n):
+        for j in range(-n, n):
+            faces += [[at(i, j), at(i + 1, j), at(i + 1, j + 1)],
+                      [at(i, j), at(i + 1, j + 1), at(i, j + 1)]]
+    return hlbvh_cl.Mesh(np.array(vertices, float), faces, name="strip")
+
+
+@pytest.mark.parametrize("packet_size", [8, 16])
+@pytest.mark.parametrize("sign", [1.0, -1.0], ids=["+0", "-0"])
+def test_packets_with_zero_components_on_a_node_plane(sign, packet_size):
+    """Lanes whose direction is 0 along x and whose origins lie on the
+    plane x = x0 where a strip of triangles starts (the box of a node's child
+    starts there): each such lane ignores that plane, and must still hit
+    the strip's edge, in packets where other lanes move along x (the
+    packet's interval ray must keep the child; kernels/packet.h).  With +0
+    some lanes start far apart along z, so the interval ray's origins move;
+    with -0 none move."""
+    zero = np.float32(0.0) * np.float32(sign)
+    if sign > 0:
+        scene = hlbvh_cl.Scene([_strip(0.0, -7.0)])
+        lanes = [((0, .5, -10), (zero, 0, 1))] * 4 + [((0, .5, 0), (.5, 0, 1))] * 2 \
+            + [((0, .5, 10), (zero, 0, 1))] * 2
+    else:
+        scene = hlbvh_cl.Scene([_strip(3.0, -7.0)])
+        lanes = [((3, .5, -10), (zero, 0, 1))] * 4 + [((3, .5, -10), (-.5, 0, 1))] * 4
+    origins = np.array([o for o, _ in lanes] * (packet_size // 8), np.float32)
+    directions = np.array([d for _, d in lanes] * (packet_size // 8), np.float32)
+    assert (np.signbit(directions[:, 0]) == (sign < 0)).all()  # one packet class
+    want = np.array([3.0 if d[0] == 0 and o[2] == -10 else np.inf for o, d in lanes]
+                    * (packet_size // 8), np.float32)
+    tree = scene._built_tree()
+    for size in (1, packet_size):
+        q = RayQuery(scene._runtime, packet_size=size)
+        q.count_packets = True
+        hits = q.intersect(tree, origins, directions)
+        assert q.last_packets == (1 if size > 1 else 0)
+        np.testing.assert_array_equal(hits.t, want, err_msg=f"packets of {size}")
+        np.testing.assert_array_equal(q.occluded(tree, origins, directions), want < np.inf)
