@@ -241,10 +241,10 @@ class AllHitsQuery:
         wants an aligned pointer, so off zero copy only up to
         INDEXED_COPY_MAX rays); on GPUs, and for bigger batches, the chunk's
         rays are taken in that order on the host and its results put back (a
-        device then holds one chunk's copy, not the whole arrays').  Without an order, on PoCL the kernels
-        read and write the arrays themselves (zero copy); elsewhere the rays
-        go up per chunk and the results come back through buffers reused
-        between chunks."""
+        device then holds one chunk's copy, not the whole arrays').  Without
+        an order, on PoCL the kernels read and write the arrays themselves
+        (zero copy); elsewhere the rays go up per chunk and the results come
+        back through buffers reused between chunks."""
         query, rt, queue = self.query, self.rt, self.rt.queue
         context, flags = rt.context, cl.mem_flags
         origins, directions, *limits = rays
