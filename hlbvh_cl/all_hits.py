@@ -10,15 +10,18 @@ memory stays near the output's own size whatever the counts.  Both passes
 trace packets of nearby rays on flat scenes (the query's kernel variant).
 
 The count pass runs big batches by direction class (the axis and signs that
-a packet's rays share), then in fine Morton order of their origins
-(hlbvh_cl.order), so that packets hold nearby rays: on zero-copy devices
-(PoCL, query.py) each launch takes a run of that order as its rays' slots and
-reads and writes the whole arrays in place; elsewhere the rays of a run are
-taken on the host and the results put back.  The fill pass runs the rays in
-the caller's order, so that its results land in order (most rays only test
-their kept triangles again; in Morton order their hits would scatter).  Off
-PoCL the rays go up in chunks whose hits stay under HITS_PER_LAUNCH, through
-device buffers reused between chunks.
+a packet's rays share), then in fine Morton order of their origins, or of
+their directions where their lines nearly meet (hlbvh_cl.order), so that
+packets hold nearby rays; a scene's count takes packets twice its query's
+on CPUs (wide_count_packets).  The fill pass runs the rays in the caller's
+order, so that its results land in order (most rays only test their kept
+triangles again; in Morton order their hits would scatter).  On CPU devices
+each launch of either pass takes a run of its order as its rays' slots and
+reads and writes the whole arrays in place (_placed puts big arrays that a
+runtime could not use so on a page, once); on GPUs, and off zero copy for
+batches over INDEXED_COPY_MAX, a run's rays are taken on the host and go up
+in chunks whose hits stay under HITS_PER_LAUNCH, through device buffers
+reused between chunks, and the results are put back.
 
 A ray through an edge or a vertex shared by triangles on opposite sides
 counts that crossing once (triangle.h, OWN_EDGES), so the parity of a count
@@ -33,10 +36,12 @@ from dataclasses import dataclass
 import numpy as np
 import pyopencl as cl
 
-from . import inputs
+from . import inputs, probe
 from .order import (COHERENT_MIN, RAY_ORDER_BITS, concurrent_rays, device_order, put_rows,
                     take_rows)
 from .instances import InstancedTree
+from .profile import PACKET_SIZES
+from .results import ALIGNMENT, MIN_POOLED_BYTES
 from .query import RayQuery, _into_frame, _masked, _stack_size, caller_t, collect, scene_args
 from .tree import Tree
 
@@ -44,14 +49,16 @@ from .tree import Tree
 #: bounds the device buffers where results are copied back.
 HITS_PER_LAUNCH = 1 << 18
 
-#: Rays per launch where the rays are copied to the device (not PoCL): bounds
-#: those copies, 32 bytes a ray, two launches in flight.
+#: Rays per launch where the rays are copied to the device (GPUs; see
+#: INDEXED_COPY_MAX): bounds those copies, 32 bytes a ray, two launches in
+#: flight.
 COPIED_RAYS_PER_LAUNCH = 1 << 16
 
-#: Off zero copy, a CPU device runs an ordered batch of up to this many rays
-#: by slots into its whole arrays, which its runtime may copy (about 100
-#: bytes a ray with intersect_all's kept hits); a bigger one takes its rows
-#: per launch, as GPUs do, so that the copies stay bounded.
+#: Off zero copy, a CPU device runs a batch of up to this many rays by slots
+#: into its whole arrays, which a runtime that cannot use them in place
+#: copies (about 100 bytes a ray with intersect_all's kept hits); a bigger
+#: one takes its rows per launch, as GPUs do, so that the copies stay
+#: bounded.
 INDEXED_COPY_MAX = 1 << 22
 
 #: Hit triangles the count pass keeps per ray (kernels/all_hits.cl): a ray
@@ -113,14 +120,29 @@ def _rays(origins, directions, tmin, tmax, mask, tree):
             batch)
 
 
+def wide_count_packets(query: RayQuery) -> int:
+    """Rays per work-item for a scene's count pass: twice the query's packet
+    on CPU devices (16 for 8) where that variant passes its probe, else the
+    query's.  A count's lanes never part (no limit shrinks, no walk ends
+    early), so a wider packet idles no lane while it halves the node steps
+    per ray and gives each step two independent vector halves."""
+    rt, wider = query.rt, 2 * query.packet_size
+    if rt.profile.gpu or query.packet_size == 1 or wider not in PACKET_SIZES:
+        return query.packet_size
+    usable = probe.usable(rt.device, rt.profile, query.variant.with_packet(wider)) is None
+    return wider if usable else query.packet_size
+
+
 class AllHitsQuery:
     """count_intersections and intersect_all on one device, with a RayQuery's
     device choices (zero copy, work-group size, kernel variant, rays per
-    launch) and its result pool."""
+    launch) and its result pool; the count pass with `count_packet_size`
+    rays per work-item (None: the query's)."""
 
-    def __init__(self, query: RayQuery):
+    def __init__(self, query: RayQuery, count_packet_size: int | None = None):
         self.query = query
         self.rt = query.rt
+        self.count_packet_size = count_packet_size or query.packet_size
         self._lock = threading.Lock()
         self._outputs: dict[str, cl.Buffer] = {}
         self._row_bytes: dict[str, int] = {}  # of each output's rows
@@ -140,7 +162,7 @@ class AllHitsQuery:
         with tmin <= t <= tmax (``mask`` as RayQuery.intersect)."""
         rays, _, batch = _rays(origins, directions, tmin, tmax, mask, tree)
         with self._lock:
-            counts = self._count(tree, rays, self.query._results.empty)
+            counts = self._count(tree, self._placed(rays), self.query._results.empty)
         return counts.reshape(batch.shape)
 
     def intersect_all(self, tree: Tree, origins, directions=None, tmin=0.0, tmax=np.inf,
@@ -152,11 +174,13 @@ class AllHitsQuery:
         rays, t_factor, batch = _rays(origins, directions, tmin, tmax, mask, tree)
         pool = self.query._results
         with self._lock:
-            # temporaries, not pooled: each ray's count, and on flat scenes
-            # its first hits, which spare most rays the fill pass's walk
-            counts, known = self._count(tree, rays, np.empty, keep=True)
+            rays = self._placed(rays)
+            # each ray's count, and on flat scenes its first hits, which spare
+            # most rays the fill pass's walk: from the pool, as the kernels
+            # use them in place (_placed)
+            counts, known = self._count(tree, rays, pool.empty, keep=True)
             kept = counts if max_hits is None else np.minimum(counts, max_hits)
-            offsets = np.empty(len(kept) + 1, np.int64)
+            offsets = pool.empty(len(kept) + 1, np.int64)
             offsets[0] = 0
             np.cumsum(kept, out=offsets[1:])
             del kept  # before the output is allocated: peak memory
@@ -170,12 +194,13 @@ class AllHitsQuery:
 
     # -- internals ----------------------------------------------------------
 
-    def _kernel(self, tree: Tree, name: str, keep: bool = True) -> tuple[cl.Kernel, int]:
+    def _kernel(self, tree: Tree, name: str, keep: bool = True,
+                packet: int | None = None) -> tuple[cl.Kernel, int]:
         """all_hits.cl's kernel `name` for `tree`, compiled as RayQuery._kernel
-        compiles traverse.cl, and its rays per work-item: packets of the
-        query's variant on flat trees, one ray on instanced ones.  Without
-        `keep` a count keeps no hit (KEEP_HITS 0)."""
-        packet = 1 if isinstance(tree, InstancedTree) else self.query.packet_size
+        compiles traverse.cl, and its rays per work-item: on flat trees
+        `packet` (None: the query's variant's), one ray on instanced ones.
+        Without `keep` a count keeps no hit (KEEP_HITS 0)."""
+        packet = 1 if isinstance(tree, InstancedTree) else packet or self.query.packet_size
         defines = {"STACK_SIZE": _stack_size(tree), "PACKET_SIZE": packet,
                    "KEEP_HITS": KEEP_HITS if keep else 0, **self.query.variant.defines,
                    **self.rt.prefetch_defines}
@@ -192,18 +217,37 @@ class AllHitsQuery:
         count = len(rays[0])
         outputs = {"counts": empty(count, np.int32)}
         if keep and not isinstance(tree, InstancedTree):
-            outputs["known"] = np.empty((count, KEEP_HITS), np.uint32)
+            outputs["known"] = empty((count, KEEP_HITS), np.uint32)
         results = (outputs["counts"], outputs.get("known")) if keep else outputs["counts"]
         keep = "known" in outputs
         if not (count and self.query._check_tree(tree)):
             outputs["counts"][:] = 0
             return results
-        kernel, packet = self._kernel(tree, "count_hits_arrays", keep)
+        kernel, packet = self._kernel(tree, "count_hits_arrays", keep, self.count_packet_size)
         # not keeping: the kernel writes no known triangle (a stand-in buffer)
         tail = [np.uint32(1)] if keep else [self._unused, np.uint32(0)]
         self._launches(tree, kernel, packet, rays, _coherent_order(self.query, rays), None,
                        [], outputs, tail)
         return results
+
+    def _placed(self, rays: tuple) -> tuple:
+        """The rays' arrays (_rays's), each that the kernels would use in
+        place off zero copy (_whole) but that does not start on a page
+        copied into one from the result pool that does: a CPU runtime may
+        use a host pointer in place only there (Intel's, results.ALIGNMENT),
+        and would copy the whole array for every buffer made over it (the
+        order's and each pass's), where one copy here serves them all."""
+        if self.query.zero_copy or not _whole(self.query, len(rays[0])):
+            return rays
+        pool = self.query._results
+
+        def placed(array):  # (the pool lends small arrays unplaced: np.empty)
+            if array.nbytes < MIN_POOLED_BYTES or array.ctypes.data % ALIGNMENT == 0:
+                return array
+            copy = pool.empty(array.shape, array.dtype)
+            copy[...] = array
+            return copy
+        return tuple(placed(array) for array in rays)
 
     def _fill(self, tree, rays, offsets, known, outputs, t_factor, batch) -> None:
         """The hits into `outputs` (HIT_FIELDS and ray_index), ray r's in
@@ -234,30 +278,23 @@ class AllHitsQuery:
         segments' slots), the `tail` arguments, the counters and the ray
         count.
 
-        They go in chunks of rays (_chunks).  With an `order` (the count
-        kernel's, one slot per ray) a chunk is a run of that order: on CPU
-        devices the kernel reads and writes the whole arrays by those slots,
-        in place (USE_HOST_PTR: the runtime's own copy at most, where it
-        wants an aligned pointer, so off zero copy only up to
-        INDEXED_COPY_MAX rays); on GPUs, and for bigger batches, the chunk's
-        rays are taken in that order on the host and its results put back (a
-        device then holds one chunk's copy, not the whole arrays').  Without
-        an order, on PoCL the kernels read and write the arrays themselves
-        (zero copy); elsewhere the rays go up per chunk and the results come
-        back through buffers reused between chunks."""
+        They go in chunks of rays (_chunks), runs of `order` (None: as
+        given).  Where _whole holds (CPU devices) each launch reads and
+        writes the whole arrays in place by its rays' slots (USE_HOST_PTR:
+        the runtime's own copy at most, which _placed spares it); elsewhere
+        (GPUs, big batches off zero copy) the host takes each chunk's rays
+        in that order and puts its results back, and the rays go up and the
+        results come back through buffers reused between chunks, so that a
+        device holds one chunk's copy, not the whole arrays'."""
         query, rt, queue = self.query, self.rt, self.rt.queue
         context, flags = rt.context, cl.mem_flags
         origins, directions, *limits = rays
-        # (the host's gather of a chunk's 12-byte rows, random in that order,
-        # measured slower on Intel's CPU runtime than the kernel's by slots)
-        indexed = order is not None and not rt.profile.gpu and (
-            query.zero_copy or len(origins) <= INDEXED_COPY_MAX)
-        in_place = query.zero_copy or indexed
-        assert order is None or (offsets is None and not inputs)
+        whole = _whole(query, len(origins))
+        assert whole or order is None or (offsets is None and not inputs)
         cl.enqueue_copy(queue, self._counters, np.zeros(2, np.int32))
 
-        def wrap(array, access):  # the array's own memory (zero copy) or a copy of it
-            host = flags.USE_HOST_PTR if in_place else flags.COPY_HOST_PTR
+        def wrap(array, access):  # the array's own memory (in place) or a copy of it
+            host = flags.USE_HOST_PTR if whole else flags.COPY_HOST_PTR
             return cl.Buffer(context, access | host, hostbuf=array)
         scalars = {id(value): wrap(np.full(1, value, value.dtype), flags.READ_ONLY)
                    for value in limits if value.ndim == 0}
@@ -273,10 +310,18 @@ class AllHitsQuery:
                 *stepped[0], *stepped[1]])
         # at most two launches in flight (Ctrl-C waits for few), and chunks small
         # enough, where the rays are copied per chunk, that the copies stay small
-        rays_per_launch = query.max_rays_per_launch if in_place else \
+        rays_per_launch = query.max_rays_per_launch if whole else \
             min(query.max_rays_per_launch, COPIED_RAYS_PER_LAUNCH)
-        if indexed:
-            whole = ray_args(slice(None))
+        if whole:
+            scene, whole_rays = ray_args(slice(None))
+            if order is None:
+                order = np.arange(len(origins), dtype=np.uint32)
+            # the segments' offsets index the whole output arrays: base and
+            # first ray 0
+            segments = [] if offsets is None else \
+                [wrap(offsets, flags.READ_ONLY), np.int64(0), np.int64(0)]
+            whole_inputs = [wrap(value, flags.READ_ONLY) if isinstance(value, np.ndarray)
+                            else value for value in inputs]
             buffers = [wrap(array, flags.WRITE_ONLY) for array in outputs.values()]
         # launches in flight: their events, and what ends them (results put
         # back); they hold what the kernels read or write
@@ -288,18 +333,18 @@ class AllHitsQuery:
                 rt.wait(waited)
                 put_back()
         try:
-            # off PoCL the results come back through buffers of HITS_PER_LAUNCH
-            max_slots = None if query.zero_copy else HITS_PER_LAUNCH
+            # results copied back go through buffers of HITS_PER_LAUNCH slots
+            max_slots = None if whole else HITS_PER_LAUNCH
             for start, stop in _chunks(offsets, rays_per_launch, len(origins), max_slots):
                 retire(1)
-                rows = slice(start, stop) if order is None else order[start:stop]
-                first, last = (start, stop) if offsets is None else \
-                    (int(offsets[start]), int(offsets[stop]))
-                if indexed:
-                    scene, args = whole
-                    args = [*args, wrap(rows, flags.READ_ONLY), np.uint32(1), *buffers]
+                if whole:
+                    args = [*whole_rays, wrap(order[start:stop], flags.READ_ONLY), np.uint32(1),
+                            *segments, *whole_inputs, *buffers]
                     put_back, parts, out = (lambda: None), {}, {}
                 else:
+                    rows = slice(start, stop) if order is None else order[start:stop]
+                    first, last = (start, stop) if offsets is None else \
+                        (int(offsets[start]), int(offsets[stop]))
                     scene, args = ray_args(rows)
                     args += [self._unused, np.uint32(0)]
                     if offsets is not None:
@@ -311,10 +356,7 @@ class AllHitsQuery:
                     parts = {name: array[first:last] if order is None
                              else np.empty((stop - start, *array.shape[1:]), array.dtype)
                              for name, array in outputs.items()}
-                    if query.zero_copy:
-                        out = {name: wrap(part, flags.WRITE_ONLY) for name, part in parts.items()}
-                    else:
-                        out = self._reserve(outputs, last - first)
+                    out = self._reserve(outputs, last - first)
                     args += list(out.values())
 
                     def put_back(rows=rows, parts=parts):
@@ -324,11 +366,11 @@ class AllHitsQuery:
                 launched = rt.run(kernel, -(-(stop - start) // packet), *scene, *args, *tail,
                                   self._counters, np.uint32(stop - start),
                                   local_size=query.work_group_size)
-                done = [launched, *(collect(queue, out[name], part, query.zero_copy)
+                done = [launched, *(collect(queue, out[name], part, False)
                                     for name, part in parts.items())]
                 flight.append((done, put_back, (args, out)))
             retire(0)
-            if indexed:
+            if whole:
                 rt.wait([collect(queue, buffer, array, True)
                          for buffer, array in zip(buffers, outputs.values())])
             counters = np.zeros(2, np.int32)
@@ -359,6 +401,14 @@ class AllHitsQuery:
         return {name: self._outputs[name] for name in outputs}
 
 
+def _whole(query: RayQuery, count: int) -> bool:
+    """Whether launches over `count` rays read and write the whole arrays in
+    place by slots (_launches): on CPU devices, off zero copy only up to
+    INDEXED_COPY_MAX rays (a runtime that copies a host pointer it cannot
+    use copies the whole arrays)."""
+    return not query.rt.profile.gpu and (query.zero_copy or count <= INDEXED_COPY_MAX)
+
+
 def _coherent_order(query: RayQuery, rays) -> np.ndarray | None:
     """Big batches' rays by class, then in fine Morton order of their
     origins, or of their directions where their lines nearly meet at one
@@ -368,8 +418,8 @@ def _coherent_order(query: RayQuery, rays) -> np.ndarray | None:
     origins, directions = rays[:2]
     if len(origins) < COHERENT_MIN:
         return None
-    # CPU devices read the rays in place to sort them (as _launches does)
-    return device_order(query.rt, origins, RAY_ORDER_BITS, not query.rt.profile.gpu,
+    # read in place where the launches read them so (_whole)
+    return device_order(query.rt, origins, RAY_ORDER_BITS, _whole(query, len(origins)),
                         directions=directions,
                         by_direction=concurrent_rays(origins, directions))
 

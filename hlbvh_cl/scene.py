@@ -18,7 +18,7 @@ from .build import BUILDERS, BuildStats, Geometry, build, check_fits
 from .device import event_ms, runtime
 from .mesh import Mesh, _validate_vertices
 from .morton import key_dtype
-from .all_hits import AllHitsQuery
+from .all_hits import AllHitsQuery, wide_count_packets
 from .inputs import ALL_BITS, as_array
 from .instances import TwoLevel, check_instances, check_masks, check_transforms
 from .points import PointQuery
@@ -386,7 +386,8 @@ class Scene:
 
     def _all_hits_query(self):
         if self._all_hits is None:
-            self._all_hits = AllHitsQuery(self._ray_query())
+            query = self._ray_query()
+            self._all_hits = AllHitsQuery(query, wide_count_packets(query))
         return self._all_hits
 
     def closest_points(self, points, max_distance=np.inf):

@@ -5,6 +5,7 @@ RaycastingScene on the bunny."""
 from __future__ import annotations
 
 import numpy as np
+import pyopencl as cl
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -342,15 +343,24 @@ def test_bunny_agrees_with_open3d(meshes):
         assert set(every.prim_id[mine_r]) == set(prim_theirs[theirs_r])
 
 
-def test_small_chunks_give_the_same_hits(tiny, monkeypatch):
+@pytest.mark.parametrize("copies", [False, True], ids=["in-place", "device-copies"])
+def test_small_chunks_give_the_same_hits(tiny, monkeypatch, copies):
     """Launches cut into chunks of few rays and few hits (a ray with more
-    hits than a chunk holds goes alone) give what one launch gives."""
+    hits than a chunk holds goes alone) give what one launch gives: in
+    place over the whole arrays (CPU devices), and with each chunk's rays
+    and results copied (GPUs; forced here by INDEXED_COPY_MAX 0)."""
     from hlbvh_cl import all_hits
     origins, directions = random_rays(tiny, 300, seed=11)
     tmax = np.random.default_rng(12).uniform(0.5, 3, len(origins)).astype(np.float32)
     whole = tiny.scene.intersect_all(origins, directions, tmax=tmax)
     counts = tiny.scene.count_intersections(origins, directions, tmax=tmax)
     assert whole.counts.max() >= 3
+    if copies:
+        monkeypatch.setattr(tiny.scene._ray_query(), "zero_copy", False)
+        monkeypatch.setattr(all_hits, "INDEXED_COPY_MAX", 0)
+        copied, buffer = [], cl.Buffer  # the launches' buffers made as copies
+        monkeypatch.setattr(all_hits.cl, "Buffer", lambda *args, **named: copied.append(
+            args[1] & cl.mem_flags.COPY_HOST_PTR) or buffer(*args, **named))
     monkeypatch.setattr(all_hits, "HITS_PER_LAUNCH", 2)
     monkeypatch.setattr(all_hits, "COPIED_RAYS_PER_LAUNCH", 5)
     monkeypatch.setattr(tiny.scene._ray_query(), "max_rays_per_launch", 7)
@@ -361,6 +371,55 @@ def test_small_chunks_give_the_same_hits(tiny, monkeypatch):
                                   counts)
     first = tiny.scene.intersect_all(origins, directions, tmax=tmax, max_hits=2)
     np.testing.assert_array_equal(first.counts, np.minimum(counts, 2))
+    if copies:
+        assert any(copied), "the chunks were not copied"
+
+
+def test_rays_the_kernels_read_in_place_start_on_a_page(tiny, monkeypatch):
+    """Off zero copy, on CPU devices, the count and fill passes read the
+    whole ray arrays in place: big arrays that do not start on a page are
+    copied once onto one (a runtime such as Intel's would otherwise copy
+    them for each buffer), and the hits are those of zero copy."""
+    from hlbvh_cl import all_hits
+    from hlbvh_cl.results import ALIGNMENT, MIN_POOLED_BYTES
+    query = tiny.scene._ray_query()
+    if query.rt.profile.gpu:
+        pytest.skip("GPUs take each chunk's rays (device copies)")
+    count = MIN_POOLED_BYTES // 12 + 4097
+    origins, directions = random_rays(tiny, count + 1, seed=41)
+    origins, directions = origins[1:], directions[1:]  # off the page their arrays start on
+    tmax = np.random.default_rng(42).uniform(0.5, 3, count).astype(np.float32)
+    assert origins.ctypes.data % ALIGNMENT and directions.ctypes.data % ALIGNMENT
+    monkeypatch.setattr(query, "zero_copy", True)
+    want = tiny.scene.intersect_all(origins, directions, tmax=tmax)
+    monkeypatch.setattr(query, "zero_copy", False)
+    read = []  # the ray arrays each pass was given
+    launches = all_hits.AllHitsQuery._launches
+    monkeypatch.setattr(all_hits.AllHitsQuery, "_launches",
+                        lambda self, tree, kernel, packet, rays, *rest: read.append(rays)
+                        or launches(self, tree, kernel, packet, rays, *rest))
+    got = tiny.scene.intersect_all(origins, directions, tmax=tmax)
+    big = [a for rays in read for a in rays if a.nbytes >= MIN_POOLED_BYTES]
+    assert len(read) == 2 and len(big) == 4  # each pass's origins and directions
+    assert all(a.ctypes.data % ALIGNMENT == 0 for a in big)
+    for name in ("offsets", "ray_index", "t", "u", "v", "prim_id", "geom_id"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name), name)
+    np.testing.assert_array_equal(tiny.scene.count_intersections(origins, directions, tmax=tmax),
+                                  want.counts)
+
+
+def test_scenes_count_in_packets_twice_their_querys_on_cpus(tiny):
+    """A scene's count pass takes packets twice its query's on CPU devices (a
+    count's lanes never part) where that variant passes its probe, and its
+    query's elsewhere (GPUs trace one ray per work-item)."""
+    from hlbvh_cl import probe
+    query = tiny.scene._ray_query()
+    counting = tiny.scene._all_hits_query().count_packet_size
+    rt, wider = query.rt, 2 * query.packet_size
+    if rt.profile.gpu or query.packet_size == 1 or wider > 16:
+        assert counting == query.packet_size
+    elif probe.usable(rt.device, rt.profile, query.variant.with_packet(wider)) is None:
+        assert counting == wider
 
 
 @pytest.mark.parametrize("copies", [None, "gpu", "big"])
