@@ -279,17 +279,22 @@ class AllHitsQuery:
         count.
 
         They go in chunks of rays (_chunks), runs of `order` (None: as
-        given).  Where _whole holds (CPU devices) each launch reads and
-        writes the whole arrays in place by its rays' slots (USE_HOST_PTR:
-        the runtime's own copy at most, which _placed spares it); elsewhere
-        (GPUs, big batches off zero copy) the host takes each chunk's rays
-        in that order and puts its results back, and the rays go up and the
-        results come back through buffers reused between chunks, so that a
-        device holds one chunk's copy, not the whole arrays'."""
+        given).  Where _whole holds (CPU devices) and the device allows a
+        buffer of each whole array, each launch reads and writes the whole
+        arrays in place by its rays' slots (USE_HOST_PTR: the runtime's own
+        copy at most, which _placed spares it); elsewhere (GPUs, big batches
+        off zero copy, outputs too big for one buffer) the host takes each
+        chunk's rays in that order and puts its results back, and the rays
+        go up and the results come back through buffers reused between
+        chunks, so that a device holds one chunk's copy, not the whole
+        arrays'."""
         query, rt, queue = self.query, self.rt, self.rt.queue
         context, flags = rt.context, cl.mem_flags
         origins, directions, *limits = rays
-        whole = _whole(query, len(origins))
+        # (each whole array one buffer: only where the device allows its size)
+        whole = _whole(query, len(origins)) and all(
+            array.nbytes <= rt.device.max_mem_alloc_size
+            for array in [*rays, *inputs, *outputs.values()] if isinstance(array, np.ndarray))
         assert whole or order is None or (offsets is None and not inputs)
         cl.enqueue_copy(queue, self._counters, np.zeros(2, np.int32))
 
@@ -322,7 +327,8 @@ class AllHitsQuery:
                 [wrap(offsets, flags.READ_ONLY), np.int64(0), np.int64(0)]
             whole_inputs = [wrap(value, flags.READ_ONLY) if isinstance(value, np.ndarray)
                             else value for value in inputs]
-            buffers = [wrap(array, flags.WRITE_ONLY) for array in outputs.values()]
+            # read too: the fill kernel sorts the hits in its segments
+            buffers = [wrap(array, flags.READ_WRITE) for array in outputs.values()]
         # launches in flight: their events, and what ends them (results put
         # back); they hold what the kernels read or write
         flight: list[tuple[list, object, tuple]] = []

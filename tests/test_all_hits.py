@@ -375,6 +375,32 @@ def test_small_chunks_give_the_same_hits(tiny, monkeypatch, copies):
         assert any(copied), "the chunks were not copied"
 
 
+def test_outputs_bigger_than_a_device_buffer_come_back_in_chunks(tiny, monkeypatch):
+    """Where a whole array would not fit one buffer of the device
+    (CL_DEVICE_MAX_MEM_ALLOC_SIZE), even on CPU devices the passes copy
+    their rays and results chunk by chunk, through buffers that fit, and
+    give the same hits."""
+    import dataclasses
+    from hlbvh_cl import all_hits
+    origins, directions = random_rays(tiny, 3000, seed=51)
+    want = tiny.scene.intersect_all(origins, directions)
+    rt = tiny.scene._ray_query().rt
+    limit = want.ray_index.nbytes // 4
+    assert limit < origins.nbytes  # no whole array fits: the count pass copies too
+    monkeypatch.setattr(rt, "device", dataclasses.replace(rt.device, max_mem_alloc_size=limit))
+    # chunks whose buffers fit: 32 bytes of kept hits a ray, 8 of ray_index a hit
+    monkeypatch.setattr(all_hits, "COPIED_RAYS_PER_LAUNCH", limit // 64)
+    monkeypatch.setattr(all_hits, "HITS_PER_LAUNCH", limit // 16)
+    reserved = []  # the slots each copied launch's result buffers hold
+    reserve = all_hits.AllHitsQuery._reserve
+    monkeypatch.setattr(all_hits.AllHitsQuery, "_reserve", lambda self, outputs, slots:
+                        reserved.append(slots) or reserve(self, outputs, slots))
+    got = tiny.scene.intersect_all(origins, directions)
+    assert len(reserved) > 2 and max(reserved) <= limit // 8
+    for name in ("offsets", "ray_index", "t", "u", "v", "prim_id", "geom_id"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name), name)
+
+
 def test_rays_the_kernels_read_in_place_start_on_a_page(tiny, monkeypatch):
     """Off zero copy, on CPU devices, the count and fill passes read the
     whole ray arrays in place: big arrays that do not start on a page are
@@ -398,7 +424,11 @@ def test_rays_the_kernels_read_in_place_start_on_a_page(tiny, monkeypatch):
     monkeypatch.setattr(all_hits.AllHitsQuery, "_launches",
                         lambda self, tree, kernel, packet, rays, *rest: read.append(rays)
                         or launches(self, tree, kernel, packet, rays, *rest))
+    reserved = []  # launches that copied their results back (none should)
+    monkeypatch.setattr(all_hits.AllHitsQuery, "_reserve", lambda self, *args:
+                        reserved.append(args) or pytest.fail("a pass copied its results"))
     got = tiny.scene.intersect_all(origins, directions, tmax=tmax)
+    assert not reserved
     big = [a for rays in read for a in rays if a.nbytes >= MIN_POOLED_BYTES]
     assert len(read) == 2 and len(big) == 4  # each pass's origins and directions
     assert all(a.ctypes.data % ALIGNMENT == 0 for a in big)
@@ -408,18 +438,25 @@ def test_rays_the_kernels_read_in_place_start_on_a_page(tiny, monkeypatch):
                                   want.counts)
 
 
-def test_scenes_count_in_packets_twice_their_querys_on_cpus(tiny):
-    """A scene's count pass takes packets twice its query's on CPU devices (a
-    count's lanes never part) where that variant passes its probe, and its
-    query's elsewhere (GPUs trace one ray per work-item)."""
-    from hlbvh_cl import probe
+def test_scenes_count_in_packets_twice_their_querys_on_cpus(tiny, monkeypatch):
+    """A scene's count pass runs in packets twice its query's on CPU devices
+    (a count's lanes never part) where that variant passes its probe, and in
+    its query's elsewhere (GPUs trace one ray per work-item); the fill pass
+    in its query's."""
+    from hlbvh_cl import all_hits, probe
     query = tiny.scene._ray_query()
-    counting = tiny.scene._all_hits_query().count_packet_size
     rt, wider = query.rt, 2 * query.packet_size
-    if rt.profile.gpu or query.packet_size == 1 or wider > 16:
-        assert counting == query.packet_size
-    elif probe.usable(rt.device, rt.profile, query.variant.with_packet(wider)) is None:
-        assert counting == wider
+    wide = not rt.profile.gpu and query.packet_size > 1 and wider <= 16 and \
+        probe.usable(rt.device, rt.profile, query.variant.with_packet(wider)) is None
+    built = []  # each kernel the passes ran, with its rays per work-item
+    kernel = all_hits.AllHitsQuery._kernel
+    monkeypatch.setattr(all_hits.AllHitsQuery, "_kernel", lambda self, tree, name, *args:
+                        built.append((name, kernel(self, tree, name, *args)[1])) or
+                        kernel(self, tree, name, *args))
+    origins, directions = random_rays(tiny, 200, seed=61)
+    tiny.scene.intersect_all(origins, directions)
+    counting = wider if wide else query.packet_size
+    assert built == [("count_hits_arrays", counting), ("fill_hits_arrays", query.packet_size)]
 
 
 @pytest.mark.parametrize("copies", [None, "gpu", "big"])
