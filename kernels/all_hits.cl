@@ -314,9 +314,11 @@ TRAVERSAL_KERNEL void count_hits_arrays(SCENE_PARAMS, RAY_PARAMS, __global int* 
     uint used = load_rays(ray_count, RAY_ARRAYS, slots, indexed, &lanes, at);
     if (used == 0)
         return;
+    /* two work-items ahead (CPUs run a group's items in order): the next
+     * item's walk alone is too short to hide its successor's misses */
     if (indexed)
-        prefetch_slots(slots, get_global_id(0) * PACKET_SIZE + PACKET_SIZE, ray_count, origins,
-                       directions, counts);
+        prefetch_slots(slots, get_global_id(0) * PACKET_SIZE + 2 * PACKET_SIZE, ray_count,
+                       origins, directions, counts);
     int lane_counts[PACKET_SIZE];
     uint lane_kept[KEPT_SLOTS][PACKET_SIZE];
 #if PACKET_SIZE > 1

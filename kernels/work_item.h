@@ -28,10 +28,10 @@ TRAVERSAL_INLINE void load_records(__global const Ray* rays, uint first, uint us
     }
 }
 
-/* The rays of the work-item after this one, at slots[next, next +
- * PACKET_SIZE) (those below ray_count), and their results[slot] it will
- * write, asked for ahead: slots scatter them over the arrays, and each
- * lane's load and store would miss the cache (see load_arrays). */
+/* The rays of a later work-item, at slots[next, next + PACKET_SIZE) (those
+ * below ray_count), and their results[slot] it will write, asked for
+ * ahead: slots scatter them over the arrays, and each lane's load and store
+ * would miss the cache (see load_arrays). */
 TRAVERSAL_INLINE void prefetch_slots(__global const uint* slots, uint next, uint ray_count,
                                      __global const float* origins,
                                      __global const float* directions, __global int* results)
