@@ -16,12 +16,13 @@ packets hold nearby rays; a scene's count takes packets twice its query's
 on CPUs (wide_count_packets).  The fill pass runs the rays in the caller's
 order, so that its results land in order (most rays only test their kept
 triangles again; in Morton order their hits would scatter).  On CPU devices
-each launch of either pass takes a run of its order as its rays' slots and
-reads and writes the whole arrays in place (_placed puts big arrays that a
-runtime could not use so on a page, once); on GPUs, and off zero copy for
-batches over INDEXED_COPY_MAX, a run's rays are taken on the host and go up
-in chunks whose hits stay under HITS_PER_LAUNCH, through device buffers
-reused between chunks, and the results are put back.
+the launches of both passes read and write the whole arrays in place, the
+count's by the slots of runs of its order (_placed puts big arrays that a
+runtime could not use so on a page, once); on GPUs, off zero copy for
+batches over INDEXED_COPY_MAX, and where a whole array would not fit one
+device buffer, the rays of a run are taken on the host and go up in chunks
+whose hits stay under HITS_PER_LAUNCH, through device buffers reused
+between chunks, and the results are put back.
 
 A ray through an edge or a vertex shared by triangles on opposite sides
 counts that crossing once (triangle.h, OWN_EDGES), so the parity of a count
