@@ -42,7 +42,7 @@ from .order import (COHERENT_MIN, RAY_ORDER_BITS, concurrent_rays, device_order,
                     take_rows)
 from .instances import InstancedTree
 from .profile import PACKET_SIZES
-from .results import ALIGNMENT, MIN_POOLED_BYTES
+from .results import on_page
 from .query import RayQuery, _into_frame, _masked, _stack_size, caller_t, collect, scene_args
 from .tree import Tree
 
@@ -232,23 +232,12 @@ class AllHitsQuery:
         return results
 
     def _placed(self, rays: tuple) -> tuple:
-        """The rays' arrays (_rays's), each that the kernels would use in
-        place off zero copy (_whole) but that does not start on a page
-        copied into one from the result pool that does: a CPU runtime may
-        use a host pointer in place only there (Intel's, results.ALIGNMENT),
-        and would copy the whole array for every buffer made over it (the
-        order's and each pass's), where one copy here serves them all."""
+        """The rays' arrays (_rays's) on pages (results.on_page) where the
+        kernels would use them in place off zero copy (_whole): one copy
+        serves the order's buffers and each pass's."""
         if self.query.zero_copy or not _whole(self.query, len(rays[0])):
             return rays
-        pool = self.query._results
-
-        def placed(array):  # (the pool lends small arrays unplaced: np.empty)
-            if array.nbytes < MIN_POOLED_BYTES or array.ctypes.data % ALIGNMENT == 0:
-                return array
-            copy = pool.empty(array.shape, array.dtype)
-            copy[...] = array
-            return copy
-        return tuple(placed(array) for array in rays)
+        return tuple(on_page(self.query._results, array) for array in rays)
 
     def _fill(self, tree, rays, offsets, known, outputs, t_factor, batch) -> None:
         """The hits into `outputs` (HIT_FIELDS and ray_index), ray r's in

@@ -214,8 +214,9 @@ def points(value, name: str = "points") -> tuple[np.ndarray, tuple]:
     shape = array.shape[:-1]
     _check_batch(name, shape)
     rows = _as_rows(array, shape)
-    finite = np.isfinite(rows).all(axis=1)
-    if not finite.all():
+    # min() and max() propagate NaN: two fast passes, no temporary (isfinite
+    # then all(axis=1) over rows of three goes element by element)
+    if len(rows) and not (np.isfinite(rows.min()) and np.isfinite(rows.max())):
         source = _Vectors(name, array)
         _raise_first_bad_row(source, rows, shape, directions=False)
     return rows, shape

@@ -46,8 +46,9 @@ from . import frame, inputs, layout
 from .order import COHERENT_MIN, FINE_ORDER_BITS, device_order, put_rows, take_rows
 from .device import Runtime
 from .instances import InstancedTree
-from .query import (_check_packet_size, _stack_size, _work_group_size, _zero_copy,
-                    check_tree, collect)
+from .query import (_check_packet_size, _outputs_in_place, _stack_size, _work_group_size,
+                    _zero_copy, check_tree, collect)
+from .results import ALIGNMENT, ResultPool, on_page
 from .tree import Tree
 
 #: Points per kernel launch at most (as query.MAX_RAYS_PER_LAUNCH: a launch
@@ -135,8 +136,10 @@ def point_scene_args(tree) -> tuple:
 class PointQuery:
     """Closest points, winding numbers and signed distances on one device.
 
-    On PoCL the kernels read the points and write the results in the numpy
-    arrays themselves (query._zero_copy); elsewhere through device buffers
+    On CPU runtimes the kernels read the points and write the results in
+    the numpy arrays themselves: any array on PoCL (query._zero_copy), arrays
+    that start on a page on Intel's (the results are lent from a pool that
+    starts them there, results.ResultPool); elsewhere through device buffers
     reused between calls, which only grow.  ``max_points_per_launch`` caps
     the points per kernel launch (bigger batches go in chunks).
     ``packet_size`` sets the points a work-item walks together on flat
@@ -154,6 +157,12 @@ class PointQuery:
         self.max_points_per_launch = max(1, min(MAX_POINTS_PER_LAUNCH,
                                                 int(max_points_per_launch or MAX_POINTS_PER_LAUNCH)))
         self.zero_copy = _zero_copy(rt)
+        # Intel's CPU runtime uses host memory in place only where it starts
+        # on a page: results lent from the pool do, and big points are put
+        # on one (results.on_page)
+        self.on_pages = _outputs_in_place(rt)
+        # a closest_points's arrays, kept and made again, and the points' copy
+        self._results = ResultPool(keep=2 * len(CLOSEST_FIELDS) + 2)
         self._buffers: dict[str, cl.Buffer] = {}
         self._overflow = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 4)
         self._no_slots = cl.Buffer(rt.context, cl.mem_flags.READ_ONLY, 4)  # launches not indexed
@@ -167,7 +176,7 @@ class PointQuery:
         points, shape = inputs.points(points)
         max_distance = check_max_distance(max_distance)
         count = len(points)
-        out = {name: np.empty((count, n) if n > 1 else count, dtype)
+        out = {name: self._results.empty((count, n) if n > 1 else count, dtype)
                for name, (dtype, n) in CLOSEST_FIELDS.items()}
         if count and self._usable(tree):
             framed = self._into_frame(points, shape, tree)
@@ -196,8 +205,10 @@ class PointQuery:
         """float32: the generalized winding number of each point, in the
         points' leading shape."""
         points, shape = inputs.points(points)
-        out = {"winding": np.zeros(len(points), np.float32)}
-        if len(points) and self._usable(tree):
+        out = {"winding": self._results.empty(len(points), np.float32)}
+        if not (len(points) and self._usable(tree)):
+            out["winding"][:] = 0.0
+        else:
             framed = self._into_frame(points, shape, tree)
             dipoles = self._dipoles(tree)
             kernel, packet = self._kernel(tree, "winding_numbers")
@@ -213,9 +224,11 @@ class PointQuery:
         """float32: the distance to the surface, negative inside (|winding
         number| >= 0.5), in the points' leading shape."""
         points, shape = inputs.points(points)
-        out = {"distance": np.full(len(points), np.inf, np.float32),
-               "winding": np.zeros(len(points), np.float32)}
-        if len(points) and self._usable(tree):
+        out = {name: self._results.empty(len(points), np.float32)
+               for name in ("distance", "winding")}
+        if not (len(points) and self._usable(tree)):
+            out["distance"][:] = np.inf
+        else:
             framed = self._into_frame(points, shape, tree)
             dipoles = self._dipoles(tree)
             kernel, packet = self._kernel(tree, "signed_distances")
@@ -241,6 +254,8 @@ class PointQuery:
         """The points in the tree's frame (hlbvh_cl.frame), each within
         POINT_RANGE there, else a ValueError naming the first that is not."""
         framed = frame.to_frame(points, tree.scale)
+        if len(framed) and -POINT_RANGE <= framed.min() and framed.max() <= POINT_RANGE:
+            return framed  # (two fast passes; the rows below only to name one)
         with np.errstate(invalid="ignore"):
             far = ~(np.abs(framed) <= POINT_RANGE).all(axis=1)
         if far.any():
@@ -314,16 +329,20 @@ class PointQuery:
         the arrays of ``outputs``.  Raises if a walk ran out of stack.
 
         Big batches run in Morton order (order.device_order), fine enough
-        for packets.  Where the kernels use the arrays themselves (zero
-        copy), each launch takes a run of that order as its slots and reads
-        and writes the whole arrays in place; elsewhere the points go up in
-        that order, chunk by chunk, and the results are put back on the
-        host."""
-        order = device_order(self.rt, points, FINE_ORDER_BITS, self.zero_copy) \
-            if len(points) >= COHERENT_MIN else None
+        for packets.  Where the kernels use the arrays themselves
+        (_in_place), each launch takes a run of that order as its slots and
+        reads and writes the whole arrays in place; elsewhere the points go
+        up in that order, chunk by chunk, and the results are put back on
+        the host."""
+        order, in_place = None, False
+        if len(points) >= COHERENT_MIN:
+            if self.on_pages:
+                points = on_page(self._results, points)
+            in_place = self._in_place([points, *outputs.values()])
+            order = device_order(self.rt, points, FINE_ORDER_BITS, in_place)
         with self._lock:
             try:
-                if order is not None and self.zero_copy:
+                if in_place:
                     self._run_indexed(points, order, launch, outputs)
                 elif order is not None:
                     results = {name: np.empty_like(array) for name, array in outputs.items()}
@@ -336,8 +355,17 @@ class PointQuery:
                 self.rt.queue.finish()  # launches in flight may still write the arrays
                 raise
 
+    def _in_place(self, arrays: list[np.ndarray]) -> bool:
+        """Whether the kernels use these whole arrays themselves
+        (USE_HOST_PTR): on zero copy (PoCL), or where each starts on a page
+        (self.on_pages); and only where the device allows a buffer of each."""
+        if any(array.nbytes > self.rt.device.max_mem_alloc_size for array in arrays):
+            return False
+        return self.zero_copy or (self.on_pages and all(array.ctypes.data % ALIGNMENT == 0
+                                                        for array in arrays))
+
     def _wrap(self, array: np.ndarray, name: str) -> cl.Buffer:
-        """The array's own memory as a buffer (zero copy): read-only for the
+        """The array's own memory as a buffer (in place): read-only for the
         points and slots, write-only for results."""
         flags = cl.mem_flags.READ_ONLY if name in ("input", "slots") else cl.mem_flags.WRITE_ONLY
         return cl.Buffer(self.rt.context, flags | cl.mem_flags.USE_HOST_PTR, hostbuf=array)

@@ -88,3 +88,15 @@ class ResultPool:
                 break
         asked = set(self._asked)
         self._free = [block for block in self._free if len(block) in asked][-self.keep:]
+
+
+def on_page(pool: ResultPool, array: np.ndarray) -> np.ndarray:
+    """``array`` itself where it is small or starts on a page, else a copy
+    lent from ``pool``, which does: a CPU runtime may use a host pointer in
+    place only there (Intel's), and would copy the whole array for every
+    buffer made over it, where one copy here serves them all."""
+    if array.nbytes < MIN_POOLED_BYTES or array.ctypes.data % ALIGNMENT == 0:
+        return array
+    copy = pool.empty(array.shape, array.dtype)
+    copy[...] = array
+    return copy

@@ -553,6 +553,85 @@ def test_big_batches_answer_in_place(sphere_scene):
         assert np.array_equal(np.sort(order), np.arange(len(block)))
 
 
+POINT_QUERIES = ("closest_points", "winding_number", "signed_distance", "contains")
+
+
+def _answers(scene, points) -> dict:
+    """Every point query's answer (closest_points's fields) on ``points``."""
+    answers = {}
+    for query in POINT_QUERIES:
+        got = getattr(scene, query)(points)
+        if query == "closest_points":
+            answers.update({f"closest {name}": getattr(got, name) for name in
+                            ("distance", "prim_id", "geom_id", "u", "v", "normal", "points")})
+        else:
+            answers[query] = got
+    return answers
+
+
+def _recording(monkeypatch, name: str) -> list:
+    """The (points, outputs) of each PointQuery.<name> call (_run_indexed,
+    _run_chunks), which still runs."""
+    from hlbvh_cl.points import PointQuery
+    calls, run = [], getattr(PointQuery, name)
+    monkeypatch.setattr(PointQuery, name, lambda self, points, *rest:
+                        calls.append((points, rest[-1])) or run(self, points, *rest))
+    return calls
+
+
+def test_points_the_kernels_use_in_place_start_on_a_page(sphere_scene, monkeypatch):
+    """Off zero copy, on a CPU runtime that uses host memory in place only
+    where it starts on a page (Intel's: PointQuery.on_pages), big batches
+    run in place: the points are copied onto a page once, the results are
+    lent on pages, and every answer is the copied path's."""
+    from hlbvh_cl import results
+    from hlbvh_cl.order import COHERENT_MIN
+    query = sphere_scene._point_query()
+    if query.rt.profile.gpu:
+        pytest.skip("GPUs take device copies of the points")
+    monkeypatch.setattr(results, "MIN_POOLED_BYTES", 4096)  # this batch's arrays pooled
+    count = 2 * COHERENT_MIN
+    points = np.random.default_rng(31).uniform(-2, 2, (count + 1, 3)).astype(np.float32)[1:]
+    assert points.ctypes.data % results.ALIGNMENT  # off the page its array starts on
+    monkeypatch.setattr(query, "zero_copy", False)
+    monkeypatch.setattr(query, "on_pages", False)
+    want = _answers(sphere_scene, points)
+    monkeypatch.setattr(query, "on_pages", True)
+    in_place, copied = _recording(monkeypatch, "_run_indexed"), _recording(monkeypatch, "_run_chunks")
+    got = _answers(sphere_scene, points)
+    assert not copied and len(in_place) == len(POINT_QUERIES)
+    for placed, outputs in in_place:
+        assert placed is not points and np.array_equal(placed, points)
+        assert all(array.ctypes.data % results.ALIGNMENT == 0
+                   for array in (placed, *outputs.values()))
+    for name, array in want.items():
+        np.testing.assert_array_equal(got[name], array, err_msg=name)
+
+
+def test_points_past_a_device_buffer_go_in_chunks(sphere_scene, monkeypatch):
+    """Where a whole array would not fit one buffer of the device
+    (CL_DEVICE_MAX_MEM_ALLOC_SIZE), in-place runtimes too copy the points
+    and results chunk by chunk, through buffers that fit, with the same
+    answers."""
+    import dataclasses
+    from hlbvh_cl.order import COHERENT_MIN
+    query = sphere_scene._point_query()
+    count = 2 * COHERENT_MIN
+    points = np.random.default_rng(32).uniform(-2, 2, (count, 3)).astype(np.float32)
+    want = _answers(sphere_scene, points)
+    monkeypatch.setattr(query, "on_pages", True)
+    monkeypatch.setattr(query, "max_points_per_launch", 100)
+    monkeypatch.setattr(query, "_buffers", {})  # made again within the limit
+    limit = points.nbytes // 2
+    monkeypatch.setattr(query.rt, "device", dataclasses.replace(query.rt.device,
+                                                                max_mem_alloc_size=limit))
+    in_place, copied = _recording(monkeypatch, "_run_indexed"), _recording(monkeypatch, "_run_chunks")
+    got = _answers(sphere_scene, points)
+    assert not in_place and len(copied) == len(POINT_QUERIES)
+    for name, array in want.items():
+        np.testing.assert_array_equal(got[name], array, err_msg=name)
+
+
 def test_every_packet_size_gives_the_same_closest_points(meshes, suite_device):
     """Closest points walked one per work-item and in packets of 8 and 16
     (kernels/point_packet.h), on a batch big enough to run in Morton order
