@@ -101,6 +101,25 @@ TRAVERSAL_INLINE float3 interval_origins(const Packet* p, const float_packet* o,
     return (float3)(error[0], error[1], error[2]);
 }
 
+/* nextafter(x, INFINITY) and nextafter(x, -INFINITY), by the bits: the
+ * next float up is the next integer up for a positive x and the next down
+ * for a negative one, from either zero the least subnormal.  (OpenCL's
+ * nextafter is a library call on some CPU runtimes, and a packet takes six.) */
+TRAVERSAL_INLINE float float_above(float x)
+{
+    int bits = as_int(x);
+    if ((bits & 0x7f800000) == 0x7f800000)  /* inf or NaN */
+        return x == -INFINITY ? -FLT_MAX : x;
+    if ((bits & 0x7fffffff) == 0)
+        return as_float(1);
+    return as_float(bits >= 0 ? bits + 1 : bits - 1);
+}
+
+TRAVERSAL_INLINE float float_below(float x)
+{
+    return -float_above(-x);
+}
+
 /* prepare_ray for every lane, in vector arithmetic; false when the lanes do
  * not share direction signs and kz (then they are traced one by one). */
 TRAVERSAL_INLINE bool prepare_packet(const RayLanes* in, Packet* p)
@@ -170,12 +189,12 @@ TRAVERSAL_INLINE bool prepare_packet(const RayLanes* in, Packet* p)
      * plane and whose direction is 0 along that axis ignores the plane (0 *
      * inf is NaN), but the box's distance to that plane would be 0 times a
      * finite inverse of another lane, a bound of 0 that drops the child. */
-    float o_lo_x = nextafter(packet_min(moved[0]) - error.x, -INFINITY),
-          o_lo_y = nextafter(packet_min(moved[1]) - error.y, -INFINITY),
-          o_lo_z = nextafter(packet_min(moved[2]) - error.z, -INFINITY);
-    float o_hi_x = nextafter(packet_max(moved[0]) + error.x, INFINITY),
-          o_hi_y = nextafter(packet_max(moved[1]) + error.y, INFINITY),
-          o_hi_z = nextafter(packet_max(moved[2]) + error.z, INFINITY);
+    float o_lo_x = float_below(packet_min(moved[0]) - error.x),
+          o_lo_y = float_below(packet_min(moved[1]) - error.y),
+          o_lo_z = float_below(packet_min(moved[2]) - error.z);
+    float o_hi_x = float_above(packet_max(moved[0]) + error.x),
+          o_hi_y = float_above(packet_max(moved[1]) + error.y),
+          o_hi_z = float_above(packet_max(moved[2]) + error.z);
     p->near_ox = neg_x.s0 ? o_lo_x : o_hi_x;
     p->near_oy = neg_y.s0 ? o_lo_y : o_hi_y;
     p->near_oz = neg_z.s0 ? o_lo_z : o_hi_z;

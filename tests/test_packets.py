@@ -212,3 +212,40 @@ def test_packets_with_zero_components_on_a_node_plane(sign, packet_size):
         assert q.last_packets == (1 if size > 1 else 0)
         np.testing.assert_array_equal(hits.t, want, err_msg=f"packets of {size}")
         np.testing.assert_array_equal(q.occluded(tree, origins, directions), want < np.inf)
+
+
+STEPS = """#include "packet.h"
+__kernel void steps(__global const float* x, __global float* up, __global float* down)
+{
+    size_t i = get_global_id(0);
+    up[i] = float_above(x[i]);
+    down[i] = float_below(x[i]);
+}
+"""
+
+
+def test_float_steps_are_nextafter(suite_device):
+    """packet.h's float_above and float_below (the packet box's one-ulp
+    growth, by the bits) give C's nextafter toward +inf and -inf bit for bit,
+    as numpy computes it: zeros of both signs, subnormals, the largest
+    floats, infinities and NaN."""
+    import pyopencl as cl
+    from hlbvh_cl.device import runtime
+    from hlbvh_cl.paths import kernel_dir
+    rt = runtime(suite_device)
+    options = ["-I", str(kernel_dir())] + [f"-D{name}={value}" for name, value in
+                                           {**rt.variant.defines, "PACKET_SIZE": 8}.items()]
+    program = cl.Program(rt.context, STEPS).build(options=options)
+    big, tiny = np.finfo(np.float32).max, np.finfo(np.float32).smallest_subnormal
+    x = np.array([0.0, -0.0, tiny, -tiny, 2 * tiny, 1.17549435e-38, -5e-39, 1.0, -1.0, 3.5,
+                  -2.75e10, big, -big, np.inf, -np.inf, np.nan], np.float32)
+    flags = cl.mem_flags
+    source = cl.Buffer(rt.context, flags.READ_ONLY | flags.COPY_HOST_PTR, hostbuf=x)
+    up, down = (cl.Buffer(rt.context, flags.WRITE_ONLY, x.nbytes) for _ in range(2))
+    program.steps(rt.queue, (len(x),), None, source, up, down)
+    for buffer, toward in ((up, np.inf), (down, -np.inf)):
+        got = np.empty_like(x)
+        cl.enqueue_copy(rt.queue, got, buffer)
+        want = np.nextafter(x, np.float32(toward))
+        same = (got.view(np.int32) == want.view(np.int32)) | (np.isnan(got) & np.isnan(want))
+        assert same.all(), (toward, x[~same], got[~same], want[~same])
