@@ -336,7 +336,9 @@ class PointQuery:
         the host."""
         order, in_place = None, False
         if len(points) >= COHERENT_MIN:
-            if self.on_pages:
+            # (outputs too small for the pool stay off a page: then no copy)
+            if self.on_pages and all(array.ctypes.data % ALIGNMENT == 0
+                                     for array in outputs.values()):
                 points = on_page(self._results, points)
             in_place = self._in_place([points, *outputs.values()])
             order = device_order(self.rt, points, FINE_ORDER_BITS, in_place)

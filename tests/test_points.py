@@ -608,6 +608,27 @@ def test_points_the_kernels_use_in_place_start_on_a_page(sphere_scene, monkeypat
         np.testing.assert_array_equal(got[name], array, err_msg=name)
 
 
+def test_points_stay_put_when_their_results_are_off_a_page(sphere_scene, monkeypatch):
+    """On a runtime that uses host memory in place only on a page, a batch
+    whose results are too small for the pool (so off a page: the copied
+    path) does not first copy its points onto one."""
+    from hlbvh_cl import points as points_module, results
+    from hlbvh_cl.order import COHERENT_MIN
+    query = sphere_scene._point_query()
+    monkeypatch.setattr(query, "zero_copy", False)
+    monkeypatch.setattr(query, "on_pages", True)
+    count = 2 * COHERENT_MIN
+    monkeypatch.setattr(results, "MIN_POOLED_BYTES", 8 * count)  # points pooled, w not
+    points = np.random.default_rng(33).uniform(-2, 2, (count + 1, 3)).astype(np.float32)[1:]
+    placed = []
+    monkeypatch.setattr(points_module, "on_page", lambda pool, array: placed.append(array) or array)
+    copied = _recording(monkeypatch, "_run_chunks")
+    want = sphere_scene.winding_number(points[:500])
+    got = sphere_scene.winding_number(points)
+    assert not placed and len(copied) == 2
+    np.testing.assert_array_equal(got[:500], want)
+
+
 def test_points_past_a_device_buffer_go_in_chunks(sphere_scene, monkeypatch):
     """Where a whole array would not fit one buffer of the device
     (CL_DEVICE_MAX_MEM_ALLOC_SIZE), in-place runtimes too copy the points
