@@ -83,21 +83,12 @@ def pick_devices(spec: str | None = None) -> tuple[list, list[dict]]:
 
 def devices_or_exit(spec: str | None) -> list:
     """pick_devices, saying what it skipped; exits when no device is left."""
-    quiet_compiler_warnings()
     chosen, skipped = pick_devices(spec)
     for s in skipped:
         say(f"skipping {s['device']}: {s['problem']}")
     if not chosen:
         raise SystemExit("no working OpenCL device to benchmark")
     return chosen
-
-
-def quiet_compiler_warnings() -> None:
-    """Hide pyopencl's "non-empty compiler output" warnings (driver chatter)."""
-    import warnings
-
-    import pyopencl
-    warnings.filterwarnings("ignore", category=pyopencl.CompilerWarning)
 
 
 def say(text: str) -> None:

@@ -12,10 +12,8 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-import warnings
 from pathlib import Path
 
-import pyopencl as cl
 
 from . import devices, scenefile
 from .device import DeviceMemoryError, KernelBuildError, select_device, unregistered
@@ -234,17 +232,12 @@ def main(argv=None) -> int:
     except _UsageError as error:
         print(f"hlbvh-cl: error: {error}", file=sys.stderr)
         return 2
-    # Some drivers (Intel's) log every build, and pyopencl turns the log into
-    # a warning: noise for the command's user, who sees real build errors anyway.
-    # (Within this call only: main() may be called from Python.)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", cl.CompilerWarning)
-        try:
-            return args.run(args)
-        except (ValueError, TypeError, OSError, DeviceMemoryError, KernelBuildError,
-                RuntimeError) as error:  # OSError: files (missing, unreadable, unwritable)
-            print(f"hlbvh-cl: error: {error}", file=sys.stderr)
-            return 2
+    try:
+        return args.run(args)
+    except (ValueError, TypeError, OSError, DeviceMemoryError, KernelBuildError,
+            RuntimeError) as error:  # OSError: files (missing, unreadable, unwritable)
+        print(f"hlbvh-cl: error: {error}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

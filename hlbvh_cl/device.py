@@ -9,6 +9,7 @@ from __future__ import annotations
 import ctypes
 import dataclasses
 import functools
+import logging
 import os
 import re
 import sys
@@ -475,7 +476,7 @@ class Runtime:
         options = ["-I", str(folder), f"-cl-std={std}"]
         options += [f"-D{name}={_define_value(value)}" for name, value in sorted(defines.items())]
         try:
-            return cl.Program(self.context, source).build(options=options)
+            return _quiet_build(cl.Program(self.context, source), options, self.device.cl_device)
         except cl.RuntimeError as error:
             raise KernelBuildError(f"{filename} failed to build for {self.device}:\n{error}") from None
 
@@ -492,6 +493,29 @@ class Runtime:
             raise DeviceMemoryError(
                 f"{what} needs {total / 2**20:.0f} MiB of device memory but {d.id} has "
                 f"{d.global_mem_size / 2**20:.0f} MiB (CL_DEVICE_GLOBAL_MEM_SIZE)")
+
+
+#: Serialises _quiet_build between runtimes: catch_warnings saves and
+#: restores the process's one filter list, which overlapping uses (two
+#: devices building at once) would leave changed.
+_quiet_build_lock = threading.Lock()
+
+_log = logging.getLogger("hlbvh_cl")
+
+
+def _quiet_build(program: cl.Program, options: list, device: cl.Device) -> cl.Program:
+    """program.build(options) without pyopencl's CompilerWarning, which any
+    non-empty build log raises: Intel's runtime logs every build and PoCL its
+    vector-ABI notes, noise for a library's user (a failed build raises with
+    its log).  The log goes to the "hlbvh_cl" logger at DEBUG instead."""
+    with _quiet_build_lock, warnings.catch_warnings():
+        warnings.simplefilter("ignore", cl.CompilerWarning)
+        program = program.build(options=options)
+    if _log.isEnabledFor(logging.DEBUG):
+        log = program.get_build_info(device, cl.program_build_info.LOG).strip()
+        if log:
+            _log.debug("build log (%s):\n%s", " ".join(options), log)
+    return program
 
 
 def _kernel_arg(value):

@@ -116,6 +116,24 @@ def test_compile_error_shows_the_build_log(tmp_path, monkeypatch):
     assert "nope" in str(info.value)  # the compiler's own message is in the log
 
 
+def test_a_build_log_is_logged_not_warned(tmp_path, monkeypatch, caplog):
+    """pyopencl warns (CompilerWarning) on any non-empty build log, which
+    Intel's runtime writes for every build: the library keeps it off its
+    users' screens and on the "hlbvh_cl" logger at DEBUG."""
+    (tmp_path / "hlbvh.h").write_text("")
+    # A unique comment: pyopencl's binary cache would give a built program
+    # back without its source build's log.
+    (tmp_path / "noted.cl").write_text(f"// {tmp_path}\n#warning hlbvh_cl test note\n"
+                                       "__kernel void f(__global int *x) { x[0] = 1; }\n")
+    monkeypatch.setattr(device_module, "kernel_dir", lambda: tmp_path)
+    rt = Runtime(select_device())
+    with warnings.catch_warnings(record=True) as caught, caplog.at_level("DEBUG", "hlbvh_cl"):
+        warnings.simplefilter("always")
+        rt.program("noted.cl")
+    assert [str(w.message) for w in caught] == []
+    assert "hlbvh_cl test note" in caplog.text
+
+
 @pytest.mark.skipif(not (Path(sys.prefix) / "lib" / "libintelocl.so").is_file(),
                     reason="intel-opencl-rt is not installed")
 def test_a_runtime_that_cannot_be_registered_says_why(tmp_path):
