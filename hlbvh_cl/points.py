@@ -48,7 +48,7 @@ from .device import Runtime
 from .instances import InstancedTree
 from .query import (_check_packet_size, _outputs_in_place, _stack_size, _work_group_size,
                     _zero_copy, check_tree, collect)
-from .results import ALIGNMENT, ResultPool, on_page
+from .results import ResultPool, on_page, starts_on_page
 from .tree import Tree
 
 #: Points per kernel launch at most (as query.MAX_RAYS_PER_LAUNCH: a launch
@@ -337,8 +337,7 @@ class PointQuery:
         order, in_place = None, False
         if len(points) >= COHERENT_MIN:
             # (outputs too small for the pool stay off a page: then no copy)
-            if self.on_pages and all(array.ctypes.data % ALIGNMENT == 0
-                                     for array in outputs.values()):
+            if self.on_pages and starts_on_page(*outputs.values()):
                 points = on_page(self._results, points)
             in_place = self._in_place([points, *outputs.values()])
             order = device_order(self.rt, points, FINE_ORDER_BITS, in_place)
@@ -363,8 +362,7 @@ class PointQuery:
         (self.on_pages); and only where the device allows a buffer of each."""
         if any(array.nbytes > self.rt.device.max_mem_alloc_size for array in arrays):
             return False
-        return self.zero_copy or (self.on_pages and all(array.ctypes.data % ALIGNMENT == 0
-                                                        for array in arrays))
+        return self.zero_copy or (self.on_pages and starts_on_page(*arrays))
 
     def _wrap(self, array: np.ndarray, name: str) -> cl.Buffer:
         """The array's own memory as a buffer (in place): read-only for the

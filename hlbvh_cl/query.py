@@ -24,8 +24,7 @@ import pyopencl as cl
 from . import frame, inputs, layout
 from .device import Runtime
 from .profile import PACKET_SIZES
-from .results import ALIGNMENT as RESULT_ALIGNMENT
-from .results import ResultPool
+from .results import ResultPool, starts_on_page
 from .inputs import ALL_BITS
 from .instances import InstancedTree
 from .tree import Tree
@@ -359,8 +358,8 @@ class RayQuery:
                 buffers = dict(self._buffers)
                 transfers += [cl.enqueue_copy(queue, buffers[name], array[part], is_blocking=False)
                               for name, array in arrays.items()]
-            in_place = self.zero_copy or (self.outputs_in_place and all(
-                array[part].ctypes.data % RESULT_ALIGNMENT == 0 for array in outputs.values()))
+            in_place = self.zero_copy or (self.outputs_in_place and starts_on_page(
+                *(array[part] for array in outputs.values())))
             if in_place:
                 buffers.update({name: self._wrap(array[part], cl.mem_flags.WRITE_ONLY)
                                 for name, array in outputs.items()})

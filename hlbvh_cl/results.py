@@ -1,9 +1,10 @@
-"""Host memory for ray query results, recycled once the caller drops them.
+"""Host memory for query results, recycled once the caller drops them.
 
 Each ``intersect`` returns fresh arrays: 32 bytes per ray, 100 MB for 3.1M
-rays.  Memory new to the process costs a page fault per page on first write,
-and on a VM whose host backs guest memory lazily that first write can cost
-as much as the query itself, at random.  So each result array is lent from a block of memory
+rays; the point queries and the hit counts likewise.  Memory new to the
+process costs a page fault per page on first write, and on a VM whose host
+backs guest memory lazily that first write can cost as much as the query
+itself, at random.  So each result array is lent from a block of memory
 that this pool keeps, and the block comes back once that array and every view
 of it are gone.  A loop such as ``hits = scene.intersect(...)`` then
 alternates between two sets of blocks.
@@ -16,7 +17,7 @@ queue on its next request.  Of the returned blocks, the ``keep`` most recent
 are kept, and only those of a size among the last ``keep`` requests: a block
 is only lent again at its own size, so one of a size no longer asked for
 (results of varying length, intersect_all's) would be held for nothing.  The
-pool lives as long as its RayQuery (so its Scene).
+pool lives as long as its RayQuery or PointQuery (so its Scene).
 """
 from __future__ import annotations
 
@@ -90,12 +91,18 @@ class ResultPool:
         self._free = [block for block in self._free if len(block) in asked][-self.keep:]
 
 
+def starts_on_page(*arrays: np.ndarray) -> bool:
+    """Whether every array's memory starts on a page (ALIGNMENT), as a CPU
+    runtime needs to use a host pointer in place (Intel's)."""
+    return all(array.ctypes.data % ALIGNMENT == 0 for array in arrays)
+
+
 def on_page(pool: ResultPool, array: np.ndarray) -> np.ndarray:
     """``array`` itself where it is small or starts on a page, else a copy
     lent from ``pool``, which does: a CPU runtime may use a host pointer in
     place only there (Intel's), and would copy the whole array for every
     buffer made over it, where one copy here serves them all."""
-    if array.nbytes < MIN_POOLED_BYTES or array.ctypes.data % ALIGNMENT == 0:
+    if array.nbytes < MIN_POOLED_BYTES or starts_on_page(array):
         return array
     copy = pool.empty(array.shape, array.dtype)
     copy[...] = array

@@ -602,8 +602,7 @@ def test_points_the_kernels_use_in_place_start_on_a_page(sphere_scene, monkeypat
     assert not copied and len(in_place) == len(POINT_QUERIES)
     for placed, outputs in in_place:
         assert placed is not points and np.array_equal(placed, points)
-        assert all(array.ctypes.data % results.ALIGNMENT == 0
-                   for array in (placed, *outputs.values()))
+        assert results.starts_on_page(placed, *outputs.values())
     for name, array in want.items():
         np.testing.assert_array_equal(got[name], array, err_msg=name)
 
