@@ -6,6 +6,17 @@
 
 #include "node.h"
 
+/* A 16-lane float or 8-lane double is wider than an AVX2 target's
+ * registers, and clang notes, at every helper taking or returning one,
+ * that such an argument would change the ABI (-Wpsabi): hundreds of notes,
+ * which PoCL prints on the process's stderr, about helpers that are inlined
+ * and have no ABI to keep.  (__has_warning: clang's, absent elsewhere.) */
+#if defined(__has_warning)
+#if __has_warning("-Wpsabi")
+#pragma clang diagnostic ignored "-Wpsabi"
+#endif
+#endif
+
 #if PACKET_SIZE == 16
 typedef float16 float_packet;
 typedef int16 int_packet;
