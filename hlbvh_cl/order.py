@@ -217,13 +217,18 @@ def device_order(rt, points: np.ndarray, bits: int = FINE_ORDER_BITS,
                  by_direction: bool = False) -> np.ndarray:
     """coherent_order(points, bits, directions, by_direction) as uint32, computed on rt's
     device: the keys by kernels/order.cl, the stable sort by the library's
-    radix sort (hlbvh_cl.sort) rather than numpy's argsorts on the host.
+    radix sort (hlbvh_cl.sort) rather than numpy's argsorts on the host
+    (still the host's where the points are too many for one device buffer).
     With zero_copy the kernel reads the points (and directions) in place."""
     from .sort import _sorter  # the sort module imports the device layer
     count = len(points)
     order = np.empty(count, np.uint32)
     if count == 0:
         return order
+    if 12 * count > rt.device.max_mem_alloc_size:
+        # the kernel reads each array as one buffer, which the device
+        # refuses past CL_DEVICE_MAX_MEM_ALLOC_SIZE: the host sorts instead
+        return coherent_order(points, bits, directions, by_direction).astype(np.uint32)
     points = np.ascontiguousarray(points, np.float32)
     if directions is not None:
         assert by_direction or 3 * bits + CLASS_BITS <= 32

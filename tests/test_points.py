@@ -4,6 +4,10 @@ force of tests/point_oracle.py, parity ray casting (embreex) on watertight
 meshes, and Open3D / libigl on the bunny."""
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import trimesh
@@ -618,6 +622,13 @@ def test_points_stay_put_when_their_results_are_off_a_page(sphere_scene, monkeyp
     monkeypatch.setattr(query, "on_pages", True)
     count = 2 * COHERENT_MIN
     monkeypatch.setattr(results, "MIN_POOLED_BYTES", 8 * count)  # points pooled, w not
+
+    def off_page(shape, dtype):  # np.empty's, but surely off a page (4 bytes past a 16)
+        dtype = np.dtype(dtype)
+        raw = np.empty(int(np.prod(shape)) * dtype.itemsize + 16, np.uint8)
+        start = -raw.ctypes.data % 16 + 4
+        return raw[start:start + int(np.prod(shape)) * dtype.itemsize].view(dtype).reshape(shape)
+    monkeypatch.setattr(query._results, "empty", off_page)
     points = np.random.default_rng(33).uniform(-2, 2, (count + 1, 3)).astype(np.float32)[1:]
     placed = []
     monkeypatch.setattr(points_module, "on_page", lambda pool, array: placed.append(array) or array)
@@ -650,6 +661,37 @@ def test_points_past_a_device_buffer_go_in_chunks(sphere_scene, monkeypatch):
     assert not in_place and len(copied) == len(POINT_QUERIES)
     for name, array in want.items():
         np.testing.assert_array_equal(got[name], array, err_msg=name)
+
+
+BEYOND_ONE_BUFFER = """
+import numpy as np, hlbvh_cl
+from hlbvh_cl.device import select_device
+n = select_device("pocl").max_mem_alloc_size // 12 + 4096   # rows past one buffer
+tetra = hlbvh_cl.Mesh([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]],
+                      [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+scene = hlbvh_cl.Scene(tetra, device="pocl")
+points = np.full((n, 3), 3.0, np.float32)
+points[::7] = 0.1                                 # inside, the rest far outside
+inside = np.zeros(n, bool)
+inside[::7] = True
+assert np.array_equal(scene.contains(points), inside)
+assert np.array_equal(scene.count_intersections(points, np.float32([1, 0, 0])), inside)
+print("ok")
+"""
+
+
+@pytest.mark.skipif(not any(d.id.startswith("pocl") and d.problem is None
+                            for d in hlbvh_cl.devices()), reason="needs PoCL")
+def test_batches_past_the_runtimes_buffer_limit_are_answered():
+    """A batch whose points (or rays) are more than the runtime allows in
+    one buffer, with the limit the runtime really enforces (PoCL's, made
+    256 MiB by POCL_MEMORY_LIMIT=1, in a child): the order is found on the
+    host and the queries go in chunks, where before the order's one buffer
+    over every point failed with pyopencl's INVALID_BUFFER_SIZE."""
+    env = {**os.environ, "POCL_MEMORY_LIMIT": "1"}
+    done = subprocess.run([sys.executable, "-c", BEYOND_ONE_BUFFER], env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr[-2000:]
 
 
 def test_every_packet_size_gives_the_same_closest_points(meshes, suite_device):
