@@ -14,7 +14,6 @@ import sys
 import time
 from pathlib import Path
 
-
 from . import devices, scenefile
 from .device import DeviceMemoryError, KernelBuildError, select_device, unregistered
 from .render import AO_SAMPLES, MAX_AO_SAMPLES, MAX_IMAGE_SIDE, MAX_SPP, SHADINGS

@@ -507,7 +507,10 @@ def _quiet_build(program: cl.Program, options: list, device: cl.Device) -> cl.Pr
     """program.build(options) without pyopencl's CompilerWarning, which any
     non-empty build log raises: Intel's runtime logs every build and PoCL its
     vector-ABI notes, noise for a library's user (a failed build raises with
-    its log).  The log goes to the "hlbvh_cl" logger at DEBUG instead."""
+    its log).  The log goes to the "hlbvh_cl" logger at DEBUG instead (but
+    for a build pyopencl's binary cache serves: its log is the load's).
+    Python's catch_warnings is process-wide: a filter another thread adds
+    while a program builds (a scene's first query) is dropped with it."""
     with _quiet_build_lock, warnings.catch_warnings():
         warnings.simplefilter("ignore", cl.CompilerWarning)
         program = program.build(options=options)

@@ -157,10 +157,11 @@ def test_the_traversal_kernels_compile_without_warnings(monkeypatch, caplog):
     with caplog.at_level("DEBUG", "hlbvh_cl"):
         for rt, filename, defines in {(rt, f, tuple(sorted(d.items()))) for rt, f, d in built}:
             real(rt, filename, **dict(defines), TEST_NONCE=f"0x{nonce}")
-    # the compiler's diagnostics of the source (Intel's runtime also warns
-    # that it leaves the packet kernels unvectorised, as their vec_type_hint asks)
+    # every compiler warning but Intel's note that it leaves a packet kernel
+    # unvectorised, as its vec_type_hint asks ('warning: kernel "name": ...';
+    # PoCL names the main .cl file by a temporary copy's path)
     warned = [line for line in caplog.text.splitlines()
-              if "warning:" in line and str(kernel_dir()) in line]
+              if "warning:" in line and 'warning: kernel "' not in line]
     assert warned == [], warned[:5]
 
 
