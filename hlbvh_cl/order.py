@@ -44,6 +44,10 @@ CLASS_BITS = 5
 #: 2^18 cells each already hold about one ray of a million.
 DIRECTION_BITS = 9
 
+#: Rows each work-item of kernels/order.cl's key kernels keys at once (as
+#: vectors of that many lanes).
+KEY_ROWS = 8
+
 #: Rays whose lines pass this close to one point, relative to the
 #: coordinates' magnitude, meet there whatever the origins' spacing
 #: (float32 rays aimed at a point miss it by their rounding); an axis of
@@ -249,7 +253,8 @@ def device_order(rt, points: np.ndarray, bits: int = FINE_ORDER_BITS,
                 name, mode = "ray_keys", [np.uint32(by_direction)]
                 key_bits = (2 * DIRECTION_BITS if by_direction else 3 * bits) + CLASS_BITS
             made = rt.run(rt.kernel("order.cl", name, ORDER_BITS=bits,
-                                     DIRECTION_BITS=DIRECTION_BITS), count, *sources,
+                                     DIRECTION_BITS=DIRECTION_BITS, ROWS_PER_ITEM=KEY_ROWS),
+                          -(-count // KEY_ROWS), *sources,
                           np.uint32(count), *lo, *scale, *mode, keys, ids)
             _, values, events = _sorter(rt, np.dtype(np.uint32)).sort(
                 keys, ids, count, key_bits, wait_for=[made])
