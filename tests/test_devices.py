@@ -15,7 +15,7 @@ import pytest
 import hlbvh_cl
 from hlbvh_cl import device as device_module
 from hlbvh_cl import layout, probe
-from hlbvh_cl.device import KernelBuildError, Runtime, devices, runtime, select_device
+from hlbvh_cl.device import KernelBuildError, Runtime, _quiet_build, devices, runtime, select_device
 from hlbvh_cl.paths import kernel_dir
 from hlbvh_cl.profile import SAFEST, Profile, Variant, candidates, profile_name, vector_width
 
@@ -439,7 +439,8 @@ def test_struct_layout_matches_device(device):
     rt = runtime(device)
     out = np.full(len(FIELDS), -1, np.int32)
     buf = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, out.nbytes)
-    program = cl.Program(rt.context, PROBE).build(options=["-I", str(kernel_dir())])
+    program = _quiet_build(cl.Program(rt.context, PROBE), ["-I", str(kernel_dir())],
+                           rt.device.cl_device)
     rt.run(program.struct_layout, 1, buf, local_size=1)
     cl.enqueue_copy(rt.queue, out, buf)
     expected = [layout.STRUCTS[s].itemsize if f is None else layout.STRUCTS[s].fields[f][1]
