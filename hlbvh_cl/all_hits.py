@@ -282,9 +282,9 @@ class AllHitsQuery:
         context, flags = rt.context, cl.mem_flags
         origins, directions, *limits = rays
         # (each whole array one buffer: only where the device allows its size)
-        whole = _whole(query, len(origins)) and all(
-            array.nbytes <= rt.device.max_mem_alloc_size
-            for array in [*rays, *inputs, *outputs.values()] if isinstance(array, np.ndarray))
+        whole = _whole(query, len(origins)) and rt.fits_one_buffer(
+            *(array for array in [*rays, *inputs, *outputs.values()]
+              if isinstance(array, np.ndarray)))
         assert whole or order is None or (offsets is None and not inputs)
         cl.enqueue_copy(queue, self._counters, np.zeros(2, np.int32))
 

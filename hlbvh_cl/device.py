@@ -480,6 +480,12 @@ class Runtime:
         except cl.RuntimeError as error:
             raise KernelBuildError(f"{filename} failed to build for {self.device}:\n{error}") from None
 
+    def fits_one_buffer(self, *arrays: np.ndarray) -> bool:
+        """Whether the device allows one buffer over each array
+        (CL_DEVICE_MAX_MEM_ALLOC_SIZE): where it does not, a query takes
+        the array's rows in chunks instead."""
+        return all(array.nbytes <= self.device.max_mem_alloc_size for array in arrays)
+
     def check_allocation(self, what: str, buffers: dict[str, int]) -> None:
         """Raise DeviceMemoryError before allocating if ``buffers`` cannot fit."""
         d = self.device

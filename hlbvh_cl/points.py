@@ -338,7 +338,7 @@ class PointQuery:
         if len(points) >= COHERENT_MIN:
             # (outputs too small for the pool stay off a page: then no copy)
             if self.on_pages and starts_on_page(*outputs.values()) and \
-                    self._fits([points, *outputs.values()]):
+                    self.rt.fits_one_buffer(points, *outputs.values()):
                 points = on_page(self._results, points)
             in_place = self._in_place([points, *outputs.values()])
             order = device_order(self.rt, points, FINE_ORDER_BITS, in_place)
@@ -361,13 +361,9 @@ class PointQuery:
         """Whether the kernels use these whole arrays themselves
         (USE_HOST_PTR): on zero copy (PoCL), or where each starts on a page
         (self.on_pages); and only where the device allows a buffer of each."""
-        if not self._fits(arrays):
+        if not self.rt.fits_one_buffer(*arrays):
             return False
         return self.zero_copy or (self.on_pages and starts_on_page(*arrays))
-
-    def _fits(self, arrays: list[np.ndarray]) -> bool:
-        """Whether the device allows one buffer over each array."""
-        return all(array.nbytes <= self.rt.device.max_mem_alloc_size for array in arrays)
 
     def _wrap(self, array: np.ndarray, name: str) -> cl.Buffer:
         """The array's own memory as a buffer (in place): read-only for the
