@@ -42,11 +42,15 @@
  * The count also keeps the first KEEP_HITS triangles it hits (in walk
  * order): a ray with no more hits than that needs no second walk, as the
  * fill pass tests those triangles again instead (keep_known).  A count
- * alone is built with KEEP_HITS 0. */
+ * alone is built with KEEP_HITS 0.
+ *
+ * At each node it visits, the walk asks for one ray of a later work-item
+ * (work_item.h's prefetch_ahead). */
 #define KEPT_SLOTS (KEEP_HITS > 0 ? KEEP_HITS : 1) /* arrays of no element are not C */
 typedef struct {
     uint count;
     uint kept[KEPT_SLOTS];
+    RaysAhead* ahead;
 } Hits_ray;
 TRAVERSAL_INLINE void add_hits_ray(Hits_ray* found, uint i)
 {
@@ -59,6 +63,7 @@ TRAVERSAL_INLINE void add_hits_ray(Hits_ray* found, uint i)
 typedef struct {
     int_packet count;
     int_packet kept[KEPT_SLOTS];
+    RaysAhead* ahead;
 } Hits_packet;
 TRAVERSAL_INLINE void add_hits_packet(Hits_packet* found, uint i, int_packet hit)
 {
@@ -71,7 +76,7 @@ TRAVERSAL_INLINE void add_hits_packet(Hits_packet* found, uint i, int_packet hit
 #define QUERY count
 #define QUERY_PATH _ray
 #define QUERY_HIT(s, i, hit, t, u, v) (add_hits_ray(found, i), false)
-#define QUERY_NODE(s, r, n, mask) false
+#define QUERY_NODE(s, r, n, mask) (prefetch_ahead(found->ahead), false)
 #define QUERY_UNORDERED
 #define QUERY_PARAMS , Hits_ray* found
 #define QUERY_ARGS , found
@@ -80,7 +85,7 @@ TRAVERSAL_INLINE void add_hits_packet(Hits_packet* found, uint i, int_packet hit
 #define QUERY count
 #define QUERY_PATH _packet
 #define QUERY_HIT(s, i, hit, t, u, v) (add_hits_packet(found, i, hit), false)
-#define QUERY_NODE(s, r, n, mask) false
+#define QUERY_NODE(s, r, n, mask) (prefetch_ahead(found->ahead), false)
 #define QUERY_UNORDERED
 #define QUERY_PARAMS , Hits_packet* found
 #define QUERY_ARGS , found
@@ -230,7 +235,7 @@ TRAVERSAL_INLINE bool instances_fill(Found_ray* s, const RayData* r, int first,
 #define QUERY_PATH _ray
 #define QUERY_UNORDERED
 #define QUERY_LEAF(s, r, first, count) instances_count(s, r, first, count INSTANCE_ARGS, found)
-#define QUERY_NODE(s, r, n, mask) false
+#define QUERY_NODE(s, r, n, mask) (prefetch_ahead(found->ahead), false)
 #define QUERY_PARAMS INSTANCE_PARAMS, Hits_ray* found
 #define QUERY_ARGS INSTANCE_ARGS, found
 #include "walk.h"
@@ -314,11 +319,12 @@ TRAVERSAL_KERNEL void count_hits_arrays(SCENE_PARAMS, RAY_PARAMS, __global int* 
     uint used = load_rays(ray_count, RAY_ARRAYS, slots, indexed, &lanes, at);
     if (used == 0)
         return;
-    /* two work-items ahead (CPUs run a group's items in order): the next
-     * item's walk alone is too short to hide its successor's misses */
-    if (indexed)
-        prefetch_slots(slots, get_global_id(0) * PACKET_SIZE + 2 * PACKET_SIZE, ray_count,
-                       origins, directions, counts);
+    /* two work-items ahead (CPUs run a group's items in order): the last
+     * rays asked for during this walk still have the next item's walk to
+     * arrive in; only read by slots (else the rays lie in order) */
+    RaysAhead ahead;
+    rays_ahead(&ahead, slots, get_global_id(0) * PACKET_SIZE + 2 * PACKET_SIZE,
+               indexed ? ray_count : 0u, origins, directions, counts);
     int lane_counts[PACKET_SIZE];
     uint lane_kept[KEPT_SLOTS][PACKET_SIZE];
 #if PACKET_SIZE > 1
@@ -330,6 +336,7 @@ TRAVERSAL_KERNEL void count_hits_arrays(SCENE_PARAMS, RAY_PARAMS, __global int* 
         found.count = (int_packet)(0);
         for (int j = 0; j < KEEP_HITS; ++j)
             found.kept[j] = (int_packet)(0);
+        found.ahead = &ahead;
         if (walk_count_packet(&p, nodes, triangles, &s, &found))
             overflow[0] = 1;
         vstore_packet(found.count, 0, lane_counts);
@@ -341,12 +348,14 @@ TRAVERSAL_KERNEL void count_hits_arrays(SCENE_PARAMS, RAY_PARAMS, __global int* 
         for (uint l = 0; l < used; ++l) {
             Hits_ray found;
             found.count = 0;
+            found.ahead = &ahead;
             WALK_RAY(count, &lanes, l, at[l], &found);
             lane_counts[l] = (int)found.count;
             for (uint j = 0; j < LESSER(found.count, (uint)KEEP_HITS); ++j)
                 lane_kept[j][l] = found.kept[j];
         }
     }
+    prefetch_rest(&ahead);
     for (uint l = 0; l < used; ++l) {
         counts[at[l]] = lane_counts[l];
         if (keeping)

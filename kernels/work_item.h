@@ -31,20 +31,53 @@ TRAVERSAL_INLINE void load_records(__global const Ray* rays, uint first, uint us
 /* The rays of a later work-item, at slots[next, next + PACKET_SIZE) (those
  * below ray_count), and their results[slot] it will write, asked for
  * ahead: slots scatter them over the arrays, and each lane's load and store
- * would miss the cache (see load_arrays). */
-TRAVERSAL_INLINE void prefetch_slots(__global const uint* slots, uint next, uint ray_count,
-                                     __global const float* origins,
-                                     __global const float* directions, __global int* results)
+ * would miss the cache (see load_arrays).  One ray at a time, spread over
+ * the walk (a visitor's node hook calls prefetch_ahead): asked all at once,
+ * their lines outnumber the misses a core keeps in flight and many
+ * requests came to nothing (measured slower).  Without PREFETCH it does
+ * nothing. */
+typedef struct {
+    __global const uint* slots;
+    __global const float* origins;
+    __global const float* directions;
+    __global int* results;
+    uint next, end;
+} RaysAhead;
+
+TRAVERSAL_INLINE void rays_ahead(RaysAhead* a, __global const uint* slots, uint next,
+                                 uint ray_count, __global const float* origins,
+                                 __global const float* directions, __global int* results)
+{
+    a->slots = slots;
+    a->origins = origins;
+    a->directions = directions;
+    a->results = results;
+    a->next = next;
+    a->end = next < ray_count ? LESSER(next + PACKET_SIZE, ray_count) : next;
+}
+
+/* Asks for the next ray's lines, if one is left. */
+TRAVERSAL_INLINE void prefetch_ahead(RaysAhead* a)
 {
 #ifdef PREFETCH
-    for (uint i = next; i < LESSER(next + PACKET_SIZE, ray_count); ++i) {
-        uint slot = slots[i];
-        __builtin_prefetch(origins + 3 * (size_t)slot);
-        __builtin_prefetch(origins + 3 * (size_t)slot + 2);
-        __builtin_prefetch(directions + 3 * (size_t)slot);
-        __builtin_prefetch(directions + 3 * (size_t)slot + 2);
-        __builtin_prefetch(results + slot, 1);
+    if (a->next < a->end) {
+        size_t slot = a->slots[a->next++];
+        __builtin_prefetch(a->origins + 3 * slot);
+        __builtin_prefetch(a->origins + 3 * slot + 2);
+        __builtin_prefetch(a->directions + 3 * slot);
+        __builtin_prefetch(a->directions + 3 * slot + 2);
+        __builtin_prefetch(a->results + slot, 1);
     }
+#endif
+}
+
+/* Asks for the rays the walk left (a short walk visits fewer nodes than a
+ * work-item has rays). */
+TRAVERSAL_INLINE void prefetch_rest(RaysAhead* a)
+{
+#ifdef PREFETCH
+    while (a->next < a->end)
+        prefetch_ahead(a);
 #endif
 }
 
