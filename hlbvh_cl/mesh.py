@@ -205,7 +205,10 @@ def _read_with_trimesh(path: Path, file_type: str, gzipped: bool) -> tuple[np.nd
     except (OSError, EOFError, zlib.error) as error:  # zlib: a corrupt .gz
         raise ValueError(f"{path}: cannot read the file: {error}") from None
     try:
-        scene = trimesh.load_scene(source, file_type=file_type, process=False)
+        # maintain_order: an OBJ's vertex rows as the file lists them, unused
+        # ones too, not renumbered by first use
+        keep = {"maintain_order": True} if file_type == "obj" else {}
+        scene = trimesh.load_scene(source, file_type=file_type, process=False, **keep)
         # dump() applies each node's transform to its geometry.
         parts = [g for g in scene.dump() if isinstance(g, trimesh.Trimesh) and len(g.faces)]
     except Exception as error:  # trimesh raises many types for malformed files

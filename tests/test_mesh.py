@@ -75,6 +75,21 @@ def test_every_format_loads_with_its_order_kept(tmp_path, knight, extension, com
         np.testing.assert_array_equal(mesh.faces, knight.faces)
 
 
+def test_an_obj_keeps_its_vertex_rows_used_or_not(tmp_path):
+    """An OBJ's vertices in the file's order, an unused one among them, and
+    faces that name them out of order: each row stays where the file has it
+    (as update_vertices with the file's own vertex array needs), where
+    trimesh by default would drop the unused row and renumber the rest."""
+    rows = [[0, 0, 0], [9, 9, 9], [1, 0, 0], [0, 1, 0], [1, 1, 0]]
+    faces = [[4, 0, 2], [2, 3, 4]]
+    path = tmp_path / "rows.obj"
+    path.write_text("".join(f"v {x} {y} {z}\n" for x, y, z in rows)
+                    + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in faces))
+    mesh = Mesh.load(path)
+    np.testing.assert_array_equal(mesh.vertices, np.float32(rows))
+    np.testing.assert_array_equal(mesh.faces, faces)
+
+
 def test_project_copies_load(knight):
     mesh = Mesh.load(str(MESHES / "knight.ply"))
     np.testing.assert_array_equal(mesh.faces, knight.faces)
