@@ -169,7 +169,9 @@ class Light:
         if direction is None:
             raise ValueError("light.direction is the zero vector")
         object.__setattr__(self, "direction", tuple(float(x) for x in direction))
-        object.__setattr__(self, "intensity", _number("light.intensity", self.intensity, 0.0))
+        # the kernels take it as float32
+        object.__setattr__(self, "intensity", _number("light.intensity", self.intensity, 0.0,
+                                                      float(np.finfo(np.float32).max)))
         object.__setattr__(self, "ambient", _number("light.ambient", self.ambient, 0.0, 1.0))
 
 

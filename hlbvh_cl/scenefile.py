@@ -190,6 +190,10 @@ _RENDER_KEYS = ("width", "height")
 _CAMERA_KEYS = ("eye", "target", "up", "fov_deg")
 _LIGHT_KEYS = ("direction", "intensity", "ambient")
 _GROUND_KEYS = ("y", "size", "color")
+#: fit_height refuses a mesh whose y extent is under this much of its
+#: largest extent: flat, up to rounding.
+FLAT_RATIO = 1e-9
+
 _MESH_KEYS = ("path", "color", "split", "scale", "rotate_deg", "fit_height", "translate",
               "place_on_ground")
 _INSTANCE_KEYS = ("mesh", "scale", "rotate_deg", "translate", "grid", "random_yaw_deg", "seed",
@@ -610,9 +614,12 @@ def _load_mesh(reader: _Reader, spec: _MeshSpec, ground_y: float, step) -> MeshE
     # would slow the build kernels that follow on a CPU device.
     points = np.einsum("ij,kj->ik", points, _rotation(spec.rotate_deg))
     if spec.fit_height is not None:
-        extent = np.ptp(points[used, 1])
-        if not extent > 0:
-            raise reader.error(f"{spec.key}.fit_height", "the mesh is flat in y (height 0)")
+        extent, across = np.ptp(points[used, 1]), np.ptp(points[used], axis=0).max()
+        # flat up to rounding too: a plane turned upright by rotate_deg keeps
+        # a height of cos(90 degrees) = 6e-17 times its size
+        if not extent > FLAT_RATIO * across:
+            raise reader.error(f"{spec.key}.fit_height", f"the mesh is flat in y (height "
+                                                         f"{extent:g}, {across:g} across)")
         points *= spec.fit_height / extent
     points += np.array(spec.translate)
     if spec.place_on_ground:

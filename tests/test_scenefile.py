@@ -225,6 +225,8 @@ MESH = f'\n[[mesh]]\npath = "{KNIGHT}"\n'
     (BASE + MESH + "scale = -1.0\n", "mesh[0].scale", "> 0"),
     (BASE + MESH + "scale = [1.0, 0.0, 1.0]\n", "mesh[0].scale[1]", "> 0"),
     (BASE + MESH + "fit_height = 0\n", "mesh[0].fit_height", "> 0"),
+    (BASE + MESH + "scale = [1.0, 1e-20, 1.0]\nfit_height = 1.0\n", "mesh[0].fit_height",
+     "flat in y"),
     (BASE + MESH + "rotate_deg = 90.0\n", "mesh[0].rotate_deg", "3 numbers"),
     (BASE + MESH + 'place_on_ground = "yes"\n', "mesh[0].place_on_ground", "true or false"),
     (BASE + MESH + "path2 = 1\n", "mesh[0].path2", "unknown key"),

@@ -440,6 +440,7 @@ def test_bad_cameras_are_named(kwargs, words):
 @pytest.mark.parametrize("kwargs, words", [
     ({"direction": (0, 0, 0)}, "zero vector"),
     ({"intensity": -1}, "intensity"),
+    ({"intensity": 1e39}, r"intensity must be a finite number >= 0 and <= 3\.40282e\+38"),
     ({"ambient": 2}, "ambient"),
 ])
 def test_bad_lights_are_named(kwargs, words):
