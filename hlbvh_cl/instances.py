@@ -24,7 +24,7 @@ import numpy as np
 import pyopencl as cl
 
 from . import frame, layout
-from .build import BuildStats, Geometry, build
+from .build import MAX_TRIANGLES, BuildStats, Geometry, build
 from .device import Runtime
 from .inputs import ALL_BITS, as_array, mask_bits
 from .mesh import Mesh
@@ -164,6 +164,11 @@ def _mesh_boxes(meshes: list[Mesh]) -> tuple[np.ndarray, np.ndarray]:
 def build_mesh_trees(rt: Runtime, meshes: list[Mesh], builder: str,
                      morton_bits: int) -> MeshTrees:
     """Each mesh's tree by the usual build, copied into shared buffers."""
+    total = sum(mesh.triangle_count for mesh in meshes)
+    if total > MAX_TRIANGLES:  # each alone may fit; their joined trees not
+        raise ValueError(f"the scene's meshes hold {total} triangles together; at most "
+                         f"{MAX_TRIANGLES} fit the int32 offsets (layout.INSTANCE's node_base "
+                         "and triangle_base) by which instances find their mesh's tree")
     trees, stats, scales = [], [], []
     try:
         for mesh in meshes:

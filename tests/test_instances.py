@@ -394,6 +394,19 @@ def test_bad_masks_and_updates_are_named(small, suite_device):
     assert hits.instance_id[0] == 0  # the scene still holds its instance
 
 
+def test_meshes_whose_joined_trees_pass_int32_are_refused(small, suite_device, monkeypatch):
+    """Each mesh's tree may fit int32 indices while the buffers they are
+    joined into do not (instances find their tree by int32 offsets): a
+    clear error before anything is built, here with the bound lowered to
+    just under the meshes' total."""
+    import hlbvh_cl.instances
+    total = sum(mesh.triangle_count for mesh in small)
+    monkeypatch.setattr(hlbvh_cl.instances, "MAX_TRIANGLES", total - 1)
+    with pytest.raises(ValueError, match=f"the scene's meshes hold {total} triangles together; "
+                                         f"at most {total - 1} fit the int32 offsets"):
+        hlbvh_cl.Scene(small, device=suite_device, instances=[(0, np.eye(3, 4))])
+
+
 def test_negative_masks_are_their_two_s_complement(small, suite_device):
     """Python's ~2 (-3) is every bit but bit 1, in a ray's mask as in a
     scene's: the same hits as 0xFFFFFFFD."""
