@@ -20,6 +20,22 @@ typedef PointData Rays_point;
 /* Dot product spelled out (PoCL calls dot out of line, see GROW_LO). */
 #define DOT3(a, b) ((a).x * (b).x + (a).y * (b).y + (a).z * (b).z)
 
+/* A power of two s that brings m, a squared length (m >= 0), into [1, 4)
+ * as m * s * s, by m's exponent bits: a vector scaled by s keeps its
+ * direction and its ratios to the others exactly.  The solid angle and the
+ * dipole term are ratios of products of three lengths, which underflow
+ * float for a feature under about 1e-13 of the frame (a small mesh in a big
+ * scene): where a squared length is under SCALE_BELOW, they are taken
+ * scaled, which keeps them exact down to the frame's own limit
+ * (docs/queries.md, Range); above it, where scaling would change nothing,
+ * it is not paid for (on every term it slowed the winding walk).  m's exponent is
+ * clamped so that s * s stays finite (m = 0 or subnormal).  The int and
+ * float conversions name the width (as_int and as_float for one, as_int8
+ * and as_float8 for lanes). */
+#define SCALE_BELOW 0x1p-64f
+#define UNIT_SCALE(int_t, AS_INT, AS_FLOAT, m)                                     \
+    AS_FLOAT(((int_t)(127) - ((GROW_HI(AS_INT(m) >> 23, (int_t)(2)) - (int_t)(127)) >> 1)) << 23)
+
 /* What a point walk keeps: the closest triangle so far (tree order, -1:
  * none), its squared distance `reach` (the walk drops boxes farther than
  * it), the closest point on it and its barycentrics (point = (1-u-v)*v0 +
@@ -83,10 +99,19 @@ TRAVERSAL_INLINE uint children_winding(const PointData* q, __global const WideNo
     float_lanes d2 = (dx * dx + dy * dy) + dz * dz;
     float_lanes near = DIPOLE_ROW(radius) * WINDING_BETA;
     int_lanes far = d2 > near * near;
-    float_lanes flux = (DIPOLE_ROW(a_x) * dx + DIPOLE_ROW(a_y) * dy) + DIPOLE_ROW(a_z) * dz;
     /* far lanes have d2 > 0; an unused slot's dipole is 0 (far unless the
      * point sits at its centre 0, and never descended) */
-    float_lanes term = as_float8(as_int8(flux / (d2 * LANES_ROOT(d2))) & far);
+#define FLUX(dx, dy, dz) ((DIPOLE_ROW(a_x) * (dx) + DIPOLE_ROW(a_y) * (dy)) + DIPOLE_ROW(a_z) * (dz))
+    float_lanes term;
+    if (lane_mask(d2 < (float_lanes)(SCALE_BELOW)) == 0) {
+        term = FLUX(dx, dy, dz) / (d2 * LANES_ROOT(d2));
+    } else {  /* a.(s d) / |s d|^3 = a.d / (s^2 |d|^3): see UNIT_SCALE */
+        float_lanes unit = UNIT_SCALE(int_lanes, as_int8, as_float8, d2), unit2 = unit * unit;
+        float_lanes scaled = d2 * unit2;
+        term = FLUX(dx * unit, dy * unit, dz * unit) / (scaled * LANES_ROOT(scaled)) * unit2;
+    }
+#undef FLUX
+    term = as_float8(as_int8(term) & far);
     float4 halves = term.lo + term.hi;
     float2 quarter = halves.lo + halves.hi;
     s->solid_angle += quarter.x + quarter.y;
@@ -105,10 +130,22 @@ TRAVERSAL_INLINE uint children_winding(const PointData* q, __global const WideNo
 
 /* The solid angle the triangle (a, b, c), given relative to the point,
  * subtends (Van Oosterom & Strackee 1983): positive when the point lies
- * behind it (on the side its normal cross(b - a, c - a) points away from). */
+ * behind it (on the side its normal cross(b - a, c - a) points away from);
+ * a tiny one scaled to about unit size first (UNIT_SCALE). */
 TRAVERSAL_INLINE float solid_angle(float3 a, float3 b, float3 c)
 {
-    float la = SQUARE_ROOT(DOT3(a, a)), lb = SQUARE_ROOT(DOT3(b, b)), lc = SQUARE_ROOT(DOT3(c, c));
+    float aa = DOT3(a, a), bb = DOT3(b, b), cc = DOT3(c, c);
+    float m = GROW_HI(GROW_HI(aa, bb), cc);
+    if (m < SCALE_BELOW) {
+        float unit = UNIT_SCALE(int, as_int, as_float, m), unit2 = unit * unit;
+        a *= unit;
+        b *= unit;
+        c *= unit;
+        aa *= unit2;
+        bb *= unit2;
+        cc *= unit2;
+    }
+    float la = SQUARE_ROOT(aa), lb = SQUARE_ROOT(bb), lc = SQUARE_ROOT(cc);
     float det = a.x * (b.y * c.z - b.z * c.y) + a.y * (b.z * c.x - b.x * c.z)
                 + a.z * (b.x * c.y - b.y * c.x);
     float ab = DOT3(a, b), bc = DOT3(b, c), ca = DOT3(c, a);
@@ -134,8 +171,12 @@ TRAVERSAL_INLINE bool winding_leaf(Found_point* s, const PointData* q,
  * NaN.  Ericson's face denominator va + vb + vc is |ab x ac|^2 summed from
  * products of the point's dot products, whose rounding is that of L to the
  * fourth, so the face point's error grows as the ratio shrinks: below
- * THIN_RATIO it is no longer within a few float ulps of the coordinates. */
+ * THIN_RATIO it is no longer within a few float ulps of the coordinates.
+ * A triangle whose L^4 is under THIN_SMALLEST is taken as thin too: those
+ * products then near float's underflow (a tiny triangle in a big scene's
+ * frame), where the ratio test itself reads 0 >= 0. */
 #define THIN_RATIO 1e-2f
+#define THIN_SMALLEST 0x1p-100f
 TRAVERSAL_INLINE bool thin_triangle(float3 ab, float3 ac)
 {
     /* |ab x ac|^2 by Lagrange's identity, and |bc|^2 from the same dots:
@@ -143,7 +184,7 @@ TRAVERSAL_INLINE bool thin_triangle(float3 ab, float3 ac)
     float aa = DOT3(ab, ab), cc = DOT3(ac, ac), ac_dot = DOT3(ab, ac);
     float area2 = aa * cc - ac_dot * ac_dot;
     float longest = GROW_HI(GROW_HI(aa, cc), (aa + cc) - 2.0f * ac_dot);
-    return !(area2 >= THIN_RATIO * longest * longest);
+    return !(area2 >= THIN_RATIO * longest * longest && longest * longest >= THIN_SMALLEST);
 }
 
 /* The closest point on a triangle in float, and in double where the device

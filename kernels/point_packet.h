@@ -249,9 +249,16 @@ TRAVERSAL_INLINE float_packet solid_angle_points(float3 a, float3 b, float3 c,
     float_packet ax = a.x - q->x, ay = a.y - q->y, az = a.z - q->z;
     float_packet bx = b.x - q->x, by = b.y - q->y, bz = b.z - q->z;
     float_packet cx = c.x - q->x, cy = c.y - q->y, cz = c.z - q->z;
-    float_packet la = packet_root((ax * ax + ay * ay) + az * az),
-                 lb = packet_root((bx * bx + by * by) + bz * bz),
-                 lc = packet_root((cx * cx + cy * cy) + cz * cz);
+    float_packet aa = (ax * ax + ay * ay) + az * az, bb = (bx * bx + by * by) + bz * bz,
+                 cc = (cx * cx + cy * cy) + cz * cz;
+    float_packet m = GROW_HI(GROW_HI(aa, bb), cc);
+    if (some_packet(m < (float_packet)(SCALE_BELOW))) {
+        float_packet unit = UNIT_SCALE(int_packet, as_int_packet, as_float_packet, m),
+                     unit2 = unit * unit;
+        ax *= unit, ay *= unit, az *= unit, bx *= unit, by *= unit, bz *= unit;
+        cx *= unit, cy *= unit, cz *= unit, aa *= unit2, bb *= unit2, cc *= unit2;
+    }
+    float_packet la = packet_root(aa), lb = packet_root(bb), lc = packet_root(cc);
     float_packet det = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz)
                        + az * (bx * cy - by * cx);
     float_packet ab = (ax * bx + ay * by) + az * bz, bc = (bx * cx + by * cy) + bz * cz,
@@ -301,10 +308,22 @@ TRAVERSAL_INLINE bool walk_winding_points(const PointPacket* q, __global const W
                              dz = dipole->p_z[c] - q->z;
                 float_packet d2 = (dx * dx + dy * dy) + dz * dz;
                 float near = dipole->radius[c] * WINDING_BETA;
-                float_packet flux = (dipole->a_x[c] * dx + dipole->a_y[c] * dy)
-                                    + dipole->a_z[c] * dz;
+#define FLUX(dx, dy, dz) ((dipole->a_x[c] * (dx) + dipole->a_y[c] * (dy)) + dipole->a_z[c] * (dz))
+                float_packet term;
+                /* a far lane's d2 passes near^2: a cluster this size or
+                 * larger never needs the scaling (one test per child, not a
+                 * lane reduction) */
+                if (near * near >= SCALE_BELOW) {
+                    term = FLUX(dx, dy, dz) / (d2 * packet_root(d2));
+                } else {  /* scaled as children_winding's term */
+                    float_packet unit = UNIT_SCALE(int_packet, as_int_packet, as_float_packet, d2),
+                                 unit2 = unit * unit, scaled = d2 * unit2;
+                    term = FLUX(dx * unit, dy * unit, dz * unit) / (scaled * packet_root(scaled))
+                           * unit2;
+                }
+#undef FLUX
                 int_packet far = active & (d2 > (float_packet)(near * near));
-                s->solid_angle += far ? flux / (d2 * packet_root(d2)) : (float_packet)(0.0f);
+                s->solid_angle += far ? term : (float_packet)(0.0f);
                 uint descend = BITS_OF(active & (d2 <= (float_packet)(near * near)));
                 if (descend != 0) {
                     if (sp == STACK_SIZE + WIDE_ARITY)

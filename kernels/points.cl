@@ -212,7 +212,6 @@ TRAVERSAL_INLINE float mesh_reach(float best, const MeshFrame* f)
  * ignores, and is left out by its lo <= hi test. */
 #define NODE_ROW(row) LOAD_ROW(float_lanes, node->row)
 #define BOX_GAP(lo, hi, q) GROW_HI(GROW_HI((float_lanes)(0.0f), NODE_ROW(lo) - (q)), (q) - NODE_ROW(hi))
-#define ABS_LANES(x) as_float8(as_int8(x) & (int_lanes)(0x7fffffff))
 TRAVERSAL_INLINE uint children_mapped(const PointData* q, __global const WideNode* node,
                                       const Found_point* s, ChildEntries* entry,
                                       const MeshFrame* f)
@@ -244,7 +243,6 @@ TRAVERSAL_INLINE uint children_mapped(const PointData* q, __global const WideNod
     return lane_mask((entry->lanes <= (float_lanes)(s->reach))
                      & (NODE_ROW(lo_x) <= NODE_ROW(hi_x)));
 }
-#undef ABS_LANES
 #undef BOX_GAP
 #undef NODE_ROW
 

@@ -135,8 +135,8 @@ def test_a_build_log_is_logged_not_warned(tmp_path, monkeypatch, caplog):
 
 
 def test_the_traversal_kernels_compile_without_warnings(monkeypatch, caplog):
-    """The programs a scene's queries build (the count's widest packets
-    among them) compile without a warning about their source.  PoCL prints every
+    """The programs a flat and an instanced scene's queries build (the
+    count's widest packets among them) compile without a warning about their source.  PoCL prints every
     warning on the process's stderr (clang's -Wpsabi note at each 16-lane
     helper on an AVX2 target, before packet_lanes.h silenced it).  The
     programs are built again with an extra define, so that neither
@@ -152,6 +152,10 @@ def test_the_traversal_kernels_compile_without_warnings(monkeypatch, caplog):
     scene.count_intersections(origins, np.float32([0.5, 0.5, 0.0]) - origins)
     scene.intersect(origins, np.float32([0.5, 0.5, 0.0]) - origins)
     scene.closest_points(origins)
+    scene.winding_number(origins)
+    placed = hlbvh_cl.Scene([grid_mesh(6)], instances=[(0, np.eye(3, 4))])
+    placed.closest_points(origins)
+    placed.winding_number(origins)
     assert built
     nonce = uuid.uuid4().hex[:12]
     with caplog.at_level("DEBUG", "hlbvh_cl"):

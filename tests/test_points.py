@@ -453,6 +453,53 @@ def test_scaled_frames(scale, suite_device):
     np.testing.assert_array_equal(np.abs(sdf), got.distance)
 
 
+@pytest.mark.parametrize("placed", ["flat", "instanced"])
+@pytest.mark.parametrize("radius", [1e-10, 1e-15, 1e-18])
+def test_a_small_mesh_in_a_big_frame(radius, placed, suite_device):
+    """A closed sphere of the given radius at the origin and a triangle 1
+    away, which sets the scene's frame: the sphere's features are far below
+    the frame's size, where Ericson's products (its edges to the fourth)
+    and the solid angle's and dipoles' (lengths cubed) underflow float
+    unless scaled.  Points inside, just off the faces and outside the
+    sphere, in single points and packets: the nearest distances match the
+    float64 oracle to float's precision of the sphere's size, the winding
+    number tells inside from outside (never NaN), and so the sign of the
+    signed distance is right."""
+    from hlbvh_cl.points import PointQuery
+    vertices, faces = icosphere(1)
+    small = hlbvh_cl.Mesh(vertices.astype(np.float64) * radius, faces)
+    far = hlbvh_cl.Mesh([[1, 0, 0], [1, 1e-3, 0], [1, 0, 1e-3]], [[0, 1, 2]])
+    if placed == "flat":
+        joined = np.vstack([small.vertices, far.vertices])
+        scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(joined, np.vstack([faces, [[42, 43, 44]]]))],
+                               device=suite_device)
+    else:
+        scene = hlbvh_cl.Scene([small, far], device=suite_device,
+                               instances=[(0, np.eye(3, 4)), (1, np.eye(3, 4))])
+    rng = np.random.default_rng(21)
+    corners = small.vertices.astype(np.float64)[faces]
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    on_faces = np.einsum("nk,nkd->nd", rng.dirichlet(np.ones(3), len(faces)), corners)
+    off = rng.choice([-0.05, 0.05], (len(faces), 1)) * radius * normal
+    scattered = rng.normal(0, 1, (200, 3))
+    scattered *= rng.uniform(0, 3, (200, 1)) / np.linalg.norm(scattered, axis=1, keepdims=True)
+    points = np.vstack([on_faces + off, scattered * radius]).astype(np.float32)
+    # icosphere(1)'s faces lie at least 0.93 of the radius from its centre
+    norm = np.linalg.norm(points.astype(np.float64), axis=1) / radius
+    inside, outside = norm < 0.9, norm > 1.05
+    for packet_size in (1, 8):
+        query = PointQuery(scene._runtime, packet_size=packet_size)
+        got = query.closest_points(scene._built_tree(), points)
+        assert_closest_matches(scene, got, points, size=radius)
+        w = query.winding_numbers(scene._built_tree(), points)
+        assert np.isfinite(w).all(), f"packets of {packet_size}"
+        assert np.all(np.abs(w[inside]) > 0.9) and np.all(np.abs(w[outside]) < 0.1), \
+            f"packets of {packet_size}"
+    sdf = scene.signed_distance(points)
+    assert np.all(sdf[inside] < 0) and np.all(sdf[outside] > 0)
+
+
 def test_update_vertices_moves_the_answers(suite_device):
     vertices, faces = icosphere(2)
     scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(vertices, faces)], device=suite_device)
