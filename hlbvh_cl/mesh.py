@@ -77,6 +77,8 @@ def _validate_vertices(vertices) -> np.ndarray:
 
 def _validate_faces(faces, vertex_count: int) -> np.ndarray:
     array = as_array("faces", faces)
+    if array.size == 0:  # [] reads as float64: say it is empty, not float
+        _check_shape("faces", array, "M")
     if array.dtype.kind == "f":
         raise TypeError(f"faces has dtype {array.dtype}: pass integers (e.g. faces.astype(np.int32))")
     if array.dtype.kind not in "iu":

@@ -222,6 +222,7 @@ def test_a_mesh_below_float32_s_normal_range_is_refused():
 @pytest.mark.parametrize("faces, error, words", [
     (np.zeros((2, 4), dtype=int), ValueError, ["faces", "(2, 4)", "(M, 3)"]),
     (np.zeros((0, 3), dtype=int), ValueError, ["faces", "empty"]),
+    ([], ValueError, ["faces", "empty"]),  # numpy reads [] as float64: empty, not a dtype fault
     (np.array([[0, 1, 2], [0, 2, 3]], dtype=float), TypeError, ["faces", "float64", "integers"]),
     (np.ones((2, 3), dtype=bool), TypeError, ["faces", "bool"]),
     ([[0, 1, 2], [0, -2, 3], [-1, 0, 0]], ValueError, ["faces[1]", "-2", "negative"]),
