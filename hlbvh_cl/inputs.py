@@ -307,7 +307,7 @@ def _raise_first_bad_row(source: _Vectors, rows: np.ndarray, shape: tuple,
             what = ("has zero length" if not rows[row].any()
                     else "is too short to invert (subnormal)")
             index = source.index_of(row, shape)
-            raise ValueError(f"{source.label(index)} = {rows[row].tolist()} {what}; "
+            raise ValueError(f"{source.label(index)} = {shown(rows[row])} {what}; "
                              "a direction needs a component of magnitude >= 1.2e-38")
 
 
@@ -366,6 +366,12 @@ def mask_bits(array: np.ndarray, name: str) -> np.ndarray:
         where = f"{name}[{', '.join(str(int(i)) for i in index)}]" if array.ndim else name
         raise ValueError(f"{where} = {int(array[index])} does not fit 32 bits")
     return (array.astype(np.int64) & ALL_BITS).astype(np.uint32)
+
+
+def shown(row: np.ndarray) -> str:
+    """A float32 row as a message shows it: each value in the fewest digits
+    that give it back (0.1, not tolist's 0.10000000149011612)."""
+    return f"[{', '.join(str(value) for value in row)}]"
 
 
 def row_name(name: str, row: int, shape: tuple) -> str:

@@ -267,15 +267,20 @@ def instance_records(transforms: np.ndarray, meshes: np.ndarray, masks: np.ndarr
     with np.errstate(over="ignore"):
         held = (np.isfinite(to_mesh.astype(np.float32)).all(axis=(1, 2))
                 & np.isfinite(to_world.astype(np.float32)).all(axis=(1, 2)))
+    lo, hi = world_boxes(transforms, trees.lo[meshes], trees.hi[meshes])
     if not held.all():  # its instance would be silently missed by every query
         k = int(np.flatnonzero(~held)[0])
-        reach = f" (the instances reach up to {1.0 / top_scale:.3g})" if top_scale < 1 else ""
+        reach = ""
+        if top_scale < 1:  # the top frame is shrunk: name the instance that shrinks it
+            far = int(np.argmax(np.maximum(np.abs(lo), np.abs(hi)).max(axis=1)))
+            who = "it" if far == k else f"instance {far}"
+            reach = (f" ({who} reaches {np.abs([lo[far], hi[far]]).max():.3g} from the "
+                     "origin, which sets the scale of the top frame)")
         raise ValueError(f"instance {k}'s transform does not fit float32: its map into the "
                          f"mesh (or back) overflows in the frames the scene is built in{reach}; "
                          "scale its axes less far apart, or keep the instances within a "
                          "smaller range")
-    check_resolved(*world_boxes(transforms, trees.lo[meshes], trees.hi[meshes]),
-                   lambda k: f"instance {k}'s transform")
+    check_resolved(lo, hi, lambda k: f"instance {k}'s transform")
     records = np.zeros(len(meshes), layout.INSTANCE)
     records["to_mesh"] = to_mesh.reshape(-1, 12)
     records["to_world"] = to_world.reshape(-1, 12)

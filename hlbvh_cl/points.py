@@ -263,7 +263,7 @@ class PointQuery:
             # the limit in the caller's units: a scaled frame's is POINT_RANGE there
             where = (f" in this scene (its frame is scaled by {frame.describe(tree.scale)}, "
                      f"hlbvh_cl/frame.py)" if tree.scale != 1.0 else "")
-            raise ValueError(f"{inputs.row_name('points', row, shape)} = {points[row].tolist()} "
+            raise ValueError(f"{inputs.row_name('points', row, shape)} = {inputs.shown(points[row])} "
                              f"is too far from the origin: point queries take coordinates up to "
                              f"{POINT_RANGE / tree.scale:.3g}{where}, where squared distances "
                              "stay finite in float32")

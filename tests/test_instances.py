@@ -362,6 +362,11 @@ def test_every_hit_and_counts_through_instances(small, suite_device):
     # not singular, but its inverse overflows float32 in the scene's frames
     ([(0, np.eye(3, 4)), (0, np.hstack([np.diag([1e20, 1.0, 1e-20]), np.zeros((3, 1))]))],
      r"instance 1's transform does not fit float32"),
+    # a plain move, refused in the frame that instance 0's 3e38 scale sets: named so
+    ([(0, np.hstack([np.eye(3) * 3e38, np.zeros((3, 1))])),
+      (1, np.hstack([np.eye(3), [[6.0], [0.0], [0.0]]]))],
+     r"instance 1's transform does not fit float32: .* \(instance 0 reaches [0-9.]+e\+38 "
+     r"from the origin, which sets the scale of the top frame\)"),
     # the sphere 2e-12 across at x = 3, where float32's steps are 2.4e-7
     ([(0, np.eye(3, 4)), (0, np.hstack([np.eye(3) * 1e-12, [[3.0], [0.0], [0.0]]]))],
      r"instance 1's transform makes its mesh too small for its place in the world: it spans "
