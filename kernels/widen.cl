@@ -145,7 +145,8 @@ inline int choose_slots(__global const FlatNode *nodes, int node, uint *slots)
 }
 
 /* For the level's wide nodes [level_first, level_first + level_count):
- * slots[WIDE_ARITY * w + k] and interior_count[i] (i = w - level_first). */
+ * slots[WIDE_ARITY * w + k] and interior_count[i] (i = w - level_first).  Slot
+ * indices are size_t, as WIDE_ARITY * w passes int's range from 2^28 wide nodes. */
 __kernel void choose_wide_slots(int level_first, int level_count, __global const int *source,
                                 __global const FlatNode *nodes, __global uint *slots,
                                 __global uint *interior_count)
@@ -159,7 +160,7 @@ __kernel void choose_wide_slots(int level_first, int level_count, __global const
     uint interior = 0;
     for (int k = 0; k < WIDE_ARITY; ++k) {
         uint slot = k < used ? chosen[k] : NO_SLOT;
-        slots[WIDE_ARITY * w + k] = slot;
+        slots[(size_t)WIDE_ARITY * w + k] = slot;
         if (slot != NO_SLOT && slot_is_interior(nodes, slot))
             ++interior;
     }
@@ -181,7 +182,7 @@ __kernel void link_wide_children(int level_first, int level_count, int next_firs
     int next = next_first + (int)interior_offset[i];
     first_child[w] = next;
     for (int k = 0; k < WIDE_ARITY; ++k) {
-        uint slot = slots[WIDE_ARITY * w + k];
+        uint slot = slots[(size_t)WIDE_ARITY * w + k];
         if (slot != NO_SLOT && slot_is_interior(nodes, slot))
             source[next++] = slot_child(nodes, slot);
     }
@@ -198,7 +199,7 @@ __kernel void write_wide_nodes(int wide_count, __global const uint *slots,
     WideNode out;
     int next = first_child[w];
     for (int k = 0; k < WIDE_ARITY; ++k) {
-        uint slot = slots[WIDE_ARITY * w + k];
+        uint slot = slots[(size_t)WIDE_ARITY * w + k];
         Aabb box = aabb_empty();
         int child = EMPTY_CHILD;
         uint count = 0;
