@@ -45,7 +45,14 @@ GROUPS = {
     "all_hits": ("all_hits",),
     "instances": ("instances",),
     "instance_points": ("instance_points",),
+    # Oclgrind reports itself as a GPU; what the CPU profile adds on it
+    # (packets with prefetches, all-hits writing the rays' arrays in place)
+    "cpu_profile": ("packets", "all_hits"),
 }
+
+#: The profile (hlbvh_cl/profile.py) each group's child is forced to; the
+#: others run with the one the device gets.
+PROFILE_OF = {"cpu_profile": "cpu"}
 
 MODES = ("optimised", "uninitialized")
 
@@ -250,6 +257,9 @@ def case_all_hits(uninitialized: bool) -> dict:
     from hlbvh_cl.all_hits import AllHitsQuery
     from hlbvh_cl.query import RayQuery
     query = AllHitsQuery(RayQuery(case.scene._runtime, packet_size=8))
+    if not case.scene._runtime.profile.gpu:  # the CPU profile's arrays in place, as meant
+        from hlbvh_cl.all_hits import _whole
+        assert _whole(query.query, len(targets) * 8)
     near = np.repeat(origins, 8, axis=0) + np.float32(0.01) * np.tile(
         np.eye(8, 3, dtype=np.float32), (len(targets), 1))
     aims = (np.repeat(targets, 8, axis=0) - near).astype(np.float32)
@@ -465,6 +475,12 @@ def uninitialized_mode() -> None:
     4. Its handling of sincos()'s pointer argument aborts for private memory
        ("Work item needed to access private memory!"), so the ambient
        occlusion render (shade.cl, ao_rays) is left to the optimised mode.
+    5. It shadows a CL_MEM_USE_HOST_PTR buffer as all uninitialised, even
+       over an initialised array (a 3-line kernel reading one shows it), where
+       a COPY_HOST_PTR one over the same array reads clean.  Such a buffer's
+       host array is written into it once when it is made, so Oclgrind sees
+       what a COPY_HOST_PTR buffer would give it (the CPU profile's all-hits
+       queries read the rays' arrays in place).
     """
     import pyopencl as cl
     copy = cl.enqueue_copy
@@ -494,10 +510,18 @@ def uninitialized_mode() -> None:
 
     kept = []
 
+    queues = {}
+
     class KeptBuffer(cl.Buffer):
-        def __init__(self, *args, **kwargs):
-            super().__init__(*args, **kwargs)
+        def __init__(self, context, flags, size=0, hostbuf=None):
+            super().__init__(context, flags, size, hostbuf)
             kept.append(self)
+            if hostbuf is not None and flags & cl.mem_flags.USE_HOST_PTR:
+                if context.int_ptr not in queues:
+                    queues[context.int_ptr] = cl.CommandQueue(context)
+                queue = queues[context.int_ptr]
+                copy(queue, self, np.ascontiguousarray(hostbuf).reshape(-1).view(np.uint8),
+                     is_blocking=True)
 
     cl.enqueue_copy, cl.enqueue_fill_buffer, cl.Buffer = enqueue_copy, enqueue_fill_buffer, \
         KeptBuffer
@@ -584,6 +608,8 @@ def child_job(mode: str, group: str, out: Path) -> dict:
     # OCLGRIND_BUILD_OPTIONS, so a program built in one mode would run in the other
     env = package_environment(**CHECKS, HLBVH_CL_DEVICE=DEVICE.id, PYOPENCL_NO_CACHE="1")
     env.pop("OCLGRIND_BUILD_OPTIONS", None)
+    if group in PROFILE_OF:
+        env["HLBVH_CL_PROFILE"] = PROFILE_OF[group]
     if mode == "uninitialized":
         env.update(OCLGRIND_UNINITIALIZED="1", OCLGRIND_BUILD_OPTIONS=UNOPTIMISED)
     else:
