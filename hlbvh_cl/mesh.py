@@ -15,6 +15,7 @@ import errno
 import gzip
 import io
 import os
+import re
 import zlib
 from pathlib import Path
 
@@ -26,6 +27,15 @@ from .inputs import as_array
 MESH_EXTENSIONS = ("ply", "obj", "off", "stl", "glb")
 
 _INT32_LIMIT = 2**31
+
+#: An OBJ's material lines.  trimesh splits an OBJ at each ``usemtl`` into
+#: parts, each with its own copy of the vertices and the faces regrouped by
+#: material; without them the file is one part in its own order.
+_OBJ_MATERIALS = re.compile(rb"(?m)^[ \t]*(?:usemtl|mtllib)\b[^\r\n]*")
+
+#: An OBJ face line with a vertex index of 0 (OBJ counts from 1, or back
+#: from -1), which trimesh would read as the first vertex.
+_OBJ_ZERO_INDEX = re.compile(rb"(?m)^[ \t]*f[ \t][^\r\n#]*?[ \t][+-]?0+(?=[/ \t\r]|$)")
 
 
 def _check_shape(name: str, array: np.ndarray, rows: str) -> None:
@@ -162,8 +172,11 @@ class Mesh:
     def load(cls, path) -> "Mesh":
         """Read a PLY, OBJ, OFF, STL or GLB file (or any of them as ``.gz``).
 
-        Vertex and face order are kept where the format allows (trimesh may
-        still merge an STL's vertices).  A file with several meshes (a GLB
+        Vertex and face order are kept where the format allows: an STL's
+        vertices may be merged, and a PLY or OFF file that mixes triangles
+        with larger polygons lists its triangles first, then the others, each
+        split into a fan (trimesh groups faces by size).  An OBJ keeps both
+        orders whatever its materials.  A file with several meshes (a GLB
         scene, an OBJ with several objects) becomes one mesh, with each part's
         transform applied.
         """
@@ -206,6 +219,8 @@ def _read_with_trimesh(path: Path, file_type: str, gzipped: bool) -> tuple[np.nd
             source = io.BytesIO(path.read_bytes())
     except (OSError, EOFError, zlib.error) as error:  # zlib: a corrupt .gz
         raise ValueError(f"{path}: cannot read the file: {error}") from None
+    if file_type == "obj":
+        source = io.BytesIO(_obj_geometry(path, source.getvalue()))
     try:
         # maintain_order: an OBJ's vertex rows as the file lists them, unused
         # ones too, not renumbered by first use
@@ -216,18 +231,36 @@ def _read_with_trimesh(path: Path, file_type: str, gzipped: bool) -> tuple[np.nd
     except Exception as error:  # trimesh raises many types for malformed files
         reason = str(error) or type(error).__name__
         raise ValueError(f"{path}: trimesh cannot read it as {file_type.upper()}: {reason}") from None
+    declared = _ply_element_counts(source.getvalue()) if file_type == "ply" else {}
+    read = {"vertex": sum(len(p.vertices) for p in parts), "face": sum(len(p.faces) for p in parts)}
+    # a polygon is one triangle or more: fewer than the header's count means
+    # trimesh stopped early (it does on a cut ASCII PLY, and says nothing)
+    if declared.get("face", 0) > 0 and any(read[name] < declared.get(name, 0) for name in read):
+        faces, vertices = declared.get("face", 0), declared.get("vertex", 0)
+        raise ValueError(f"{path}: its PLY header declares {faces:,} face{'s' * (faces != 1)} "
+                         f"and {vertices:,} vertices, but trimesh read {read['face']:,} "
+                         f"triangle{'s' * (read['face'] != 1)} and {read['vertex']:,} vertices: "
+                         "the file is cut short or its header's counts are wrong")
     if not parts:
-        declared = _ply_element_counts(source.getvalue()) if file_type == "ply" else {}
-        if declared.get("face", 0) > 0:
-            faces, vertices = declared["face"], declared.get("vertex", 0)
-            raise ValueError(f"{path}: its PLY header declares {faces:,} face{'s' * (faces != 1)} "
-                             f"and {vertices:,} vertices, but trimesh read no triangle: the "
-                             f"file is cut short or its header's counts are wrong")
         raise ValueError(f"{path}: the file holds no triangles")
     offsets = np.cumsum([0] + [len(p.vertices) for p in parts[:-1]])
     vertices = np.concatenate([np.asarray(p.vertices) for p in parts])
     faces = np.concatenate([np.asarray(p.faces, dtype=np.int64) + o for p, o in zip(parts, offsets)])
     return vertices, faces
+
+
+def _obj_geometry(path: Path, data: bytes) -> bytes:
+    """An OBJ's text as trimesh should read it: without its material lines
+    (_OBJ_MATERIALS), after refusing a face with vertex index 0."""
+    zero = _OBJ_ZERO_INDEX.search(data)
+    if zero:
+        line = data.count(b"\n", 0, zero.start()) + 1
+        end = data.find(b"\n", zero.start())
+        text = data[zero.start():end if end >= 0 else len(data)]
+        text = text.decode("utf-8", "replace").split("#")[0].strip()
+        raise ValueError(f"{path}: line {line}: {text!r} has vertex index 0; OBJ indices count "
+                         "from 1 (or back from -1 for the last vertex)")
+    return _OBJ_MATERIALS.sub(b"", data)
 
 
 def _ply_element_counts(data: bytes) -> dict[str, int]:

@@ -90,6 +90,20 @@ def test_an_obj_keeps_its_vertex_rows_used_or_not(tmp_path):
     np.testing.assert_array_equal(mesh.faces, faces)
 
 
+def test_an_obj_with_materials_keeps_its_rows_and_face_order(tmp_path):
+    """trimesh splits an OBJ per material, each part a copy of the vertices
+    with its faces grouped by material; the file's order, which prim_id and
+    update_vertices count on, is kept all the same."""
+    (tmp_path / "two.mtl").write_text("newmtl red\nKd 1 0 0\nnewmtl blue\nKd 0 0 1\n")
+    rows = [[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [2, 0, 0]]
+    path = tmp_path / "two.obj"
+    path.write_text("mtllib two.mtl\n" + "".join(f"v {x} {y} {z}\n" for x, y, z in rows)
+                    + "usemtl red\nf 1 2 3\nusemtl blue\nf 2 4 3\n  usemtl red\nf 2 5 4\n")
+    mesh = Mesh.load(path)
+    np.testing.assert_array_equal(mesh.vertices, np.float32(rows))
+    np.testing.assert_array_equal(mesh.faces, [[0, 1, 2], [1, 3, 2], [1, 4, 3]])
+
+
 def test_project_copies_load(knight):
     mesh = Mesh.load(str(MESHES / "knight.ply"))
     np.testing.assert_array_equal(mesh.faces, knight.faces)

@@ -277,20 +277,40 @@ def test_file_without_triangles(tmp_path):
     assert "points.ply" in str(caught.value)
 
 
-def test_a_ply_whose_header_counts_are_wrong_says_so(tmp_path):
-    """trimesh reads no triangle from a PLY whose header claims more vertices
-    than the file holds; the error names the header's counts, not an empty
-    mesh."""
-    path = tmp_path / "huge.ply"
-    path.write_text("ply\nformat ascii 1.0\nelement vertex 1000000000000\nproperty float x\n"
-                    "property float y\nproperty float z\nelement face 1\n"
-                    "property list uchar int vertex_indices\nend_header\n"
-                    "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")
+PLY_HEADER = ("ply\nformat ascii 1.0\nelement vertex {vertices}\nproperty float x\n"
+              "property float y\nproperty float z\nelement face {faces}\n"
+              "property list uchar int vertex_indices\nend_header\n")
+
+
+@pytest.mark.parametrize("vertices, faces, read", [
+    # trimesh reads nothing when the header claims more vertices than there are
+    ("1,000,000,000,000", "1", "0 triangles and 0 vertices"),
+    # and stops, silently, where an ASCII file is cut within its faces
+    ("3", "5", "1 triangle and 3 vertices"),
+])
+def test_a_ply_whose_header_counts_are_wrong_says_so(tmp_path, vertices, faces, read):
+    """A PLY holding fewer vertices or faces than its header declares is
+    refused with the header's counts and what was read, not loaded as what
+    little trimesh could read."""
+    path = tmp_path / "cut.ply"
+    path.write_text(PLY_HEADER.format(vertices=vertices.replace(",", ""), faces=faces)
+                    + "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")
     with pytest.raises(ValueError) as caught:
         Mesh.load(path)
+    plural = "s" * (faces != "1")
     assert str(caught.value) == (
-        f"{path}: its PLY header declares 1 face and 1,000,000,000,000 vertices, but trimesh "
-        "read no triangle: the file is cut short or its header's counts are wrong")
+        f"{path}: its PLY header declares {faces} face{plural} and {vertices} vertices, but "
+        f"trimesh read {read}: the file is cut short or its header's counts are wrong")
+
+
+def test_an_obj_face_with_vertex_index_0_is_refused(tmp_path):
+    """OBJ counts vertices from 1; trimesh would read 0 as the first vertex."""
+    path = tmp_path / "zero.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3  # 0 in a comment\nf 2/1 3/0 0/2\n")
+    with pytest.raises(ValueError) as caught:
+        Mesh.load(path)
+    assert str(caught.value) == (f"{path}: line 5: 'f 2/1 3/0 0/2' has vertex index 0; OBJ "
+                                 "indices count from 1 (or back from -1 for the last vertex)")
 
 
 def test_bad_data_in_a_file_names_the_file(tmp_path):
