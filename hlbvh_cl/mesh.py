@@ -219,6 +219,9 @@ def _read_with_trimesh(path: Path, file_type: str, gzipped: bool) -> tuple[np.nd
             source = io.BytesIO(path.read_bytes())
     except (OSError, EOFError, zlib.error) as error:  # zlib: a corrupt .gz
         raise ValueError(f"{path}: cannot read the file: {error}") from None
+    except MemoryError:
+        raise ValueError(f"{path}: too large to read into this process's memory "
+                         f"({path.stat().st_size:,} bytes on disk)") from None
     if file_type == "obj":
         source = io.BytesIO(_obj_geometry(path, source.getvalue()))
     try:

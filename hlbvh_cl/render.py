@@ -110,6 +110,16 @@ def default_colors(count: int) -> list[tuple[float, float, float]]:
 _REAL = (int, float, np.integer, np.floating)
 
 
+def real_number(name: str, value) -> float:
+    """float(value), with a ValueError for an integer beyond float's range
+    (TOML and Python integers have no bound)."""
+    try:
+        return float(value)
+    except OverflowError:
+        raise ValueError(f"{name} must be a finite number, got an integer of "
+                         f"{value.bit_length()} bits, beyond float's range") from None
+
+
 def _vector3(name: str, value) -> np.ndarray:
     if as_array(name, value).dtype.kind not in "fiu":  # not bool, nor e.g. timedelta64
         raise TypeError(f"{name} must be 3 numbers [x, y, z], got {value!r}")
@@ -194,7 +204,7 @@ class Camera:
         eye, target, up = (_vector3(name, getattr(self, name)) for name in ("eye", "target", "up"))
         if isinstance(self.fov_deg, bool) or not isinstance(self.fov_deg, _REAL):
             raise TypeError(f"fov_deg must be a number, got {type(self.fov_deg).__name__}")
-        fov = float(self.fov_deg)
+        fov = real_number("fov_deg", self.fov_deg)
         if not 0.0 < fov < 180.0:
             raise ValueError(f"fov_deg must be > 0 and < 180, got {self.fov_deg}")
         problem = view_problem(eye, target, up)
@@ -252,7 +262,7 @@ def _number(name: str, value, low: float, high: float | None = None,
             low_open: bool = False) -> float:
     if isinstance(value, bool) or not isinstance(value, _REAL):
         raise TypeError(f"{name} must be a number, got {type(value).__name__}")
-    number = float(value)
+    number = real_number(name, value)
     too_low = number <= low if low_open else number < low
     if not math.isfinite(number) or too_low or (high is not None and number > high):
         bound = f"{'>' if low_open else '>='} {low:g}" + (f" and <= {high:g}" if high is not None
@@ -371,8 +381,7 @@ def shade_params(settings: RenderSettings, light: Light, bounds_lo, bounds_hi) -
     record["light_direction"] = light.direction
     record["light_intensity"] = light.intensity
     record["ambient"] = light.ambient
-    up = np.asarray(settings.camera.up)
-    record["sky_up"] = up / np.linalg.norm(up)
+    record["sky_up"] = unit(np.asarray(settings.camera.up, np.float64))
     record["sky_horizon"] = SKY_HORIZON
     record["sky_zenith"] = SKY_ZENITH
     record["ray_offset"] = ray_offset(lo, hi)

@@ -91,6 +91,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import sys
 import time
 import tomllib
@@ -231,7 +232,11 @@ class _Reader:
                low_open: bool = False, high_open: bool = False) -> float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise self.error(key, f"expected a number, got {_describe(value)}")
-        number = float(value)
+        try:
+            number = float(value)
+        except OverflowError:  # a TOML integer has no bound
+            raise self.error(key, f"expected a finite number, got an integer of "
+                                  f"{value.bit_length()} bits, beyond float's range") from None
         if not math.isfinite(number):
             raise self.error(key, f"expected a finite number, got {value}")
         too_low = low is not None and (number <= low if low_open else number < low)
@@ -340,8 +345,11 @@ def load(path, device=None, builder: str = "hlbvh", morton_bits: int = 30) -> Lo
     meshes = [mesh for mesh, _ in geometries]
     placements = description.placements()
     if placements:
-        scene = Scene(meshes, instances=placements, device=device, builder=builder,
-                      morton_bits=morton_bits)
+        try:
+            scene = Scene(meshes, instances=placements, device=device, builder=builder,
+                          morton_bits=morton_bits)
+        except ValueError as error:  # a check only the built frames can make
+            raise _name_the_entry(description, error) from None
     else:  # a flat scene, as the file says: each mesh drawn once as it is
         scene = Scene(meshes, device=device, builder=builder, morton_bits=morton_bits)
     return LoadedScene(scene=scene, camera=description.camera, light=description.light,
@@ -349,6 +357,24 @@ def load(path, device=None, builder: str = "hlbvh", morton_bits: int = 30) -> Lo
                        height=description.height, path=description.path,
                        load_seconds=loaded - started,
                        build_seconds=time.perf_counter() - loaded)
+
+
+def _name_the_entry(description: SceneDescription, error: ValueError) -> ValueError:
+    """The Scene's error about its instance k as a SceneFileError naming the
+    [[instance]] table (and copy) that made it; other errors as they are."""
+    found = re.match(r"instance (\d+)'s ", str(error))
+    if not found:
+        return error
+    k = int(found.group(1))
+    copies = np.cumsum([len(entry.transforms) for entry in description.instances])
+    entry = int(np.searchsorted(copies, k, side="right"))
+    if entry == len(copies):
+        key = "ground"
+    else:
+        copy = k - (int(copies[entry - 1]) if entry else 0)
+        several = len(description.instances[entry].transforms) > 1
+        key = f"instance[{entry}]" + (f", copy {copy}" if several else "")
+    return SceneFileError(f"{_Reader(description.path).label}: {key}: {error}")
 
 
 def read(path) -> SceneDescription:
@@ -426,7 +452,8 @@ def _read_light(reader: _Reader, value) -> Light:
                                              "light.direction"), np.float64))
     if direction is None:
         raise reader.error("light.direction", "is the zero vector")
-    intensity = reader.number(table.get("intensity", 1.0), "light.intensity", low=0.0)
+    intensity = reader.number(table.get("intensity", 1.0), "light.intensity", low=0.0,
+                              high=float(np.finfo(np.float32).max))
     ambient = reader.number(table.get("ambient", 0.15), "light.ambient", low=0.0, high=1.0)
     return Light(direction=tuple(float(x) for x in direction), intensity=intensity,
                  ambient=ambient)

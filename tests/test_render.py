@@ -234,6 +234,17 @@ def test_samples_per_pixel_average_jittered_samples(scene, renderer, geometry):
 
 # -- determinism, chunks, reuse -----------------------------------------------------------
 
+@pytest.mark.parametrize("length", [1e300, 1e-200])
+def test_the_length_of_up_changes_nothing(scene, renderer, length):
+    """up is a direction: the sky's gradient (along up) too is the same for
+    any length, with no overflow to NaN at 1e300 or underflow at 1e-200."""
+    import dataclasses
+    camera = dataclasses.replace(CAMERA, up=tuple(length * np.asarray(CAMERA.up)))
+    image = renderer.render(CAMERA, 40, 30)
+    assert (image == image[0, 0]).all(axis=2).sum() > 10  # some sky in view
+    assert np.array_equal(renderer.render(camera, 40, 30), image)
+
+
 @pytest.mark.parametrize("options", [{}, {"spp": 4}, {"shading": "ao", "ao_samples": 4, "spp": 2}])
 def test_renders_are_deterministic(scene, renderer, options):
     first = renderer.render(CAMERA, 40, 30, **options)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from hlbvh_cl.scenefile import MAX_INSTANCES, SceneFileError, read
+from hlbvh_cl.scenefile import MAX_INSTANCES, SceneFileError, load, read
 
 SCENES = Path(__file__).resolve().parent.parent / "scenes"
 KNIGHT = SCENES / "meshes" / "knight.ply"
@@ -313,6 +313,19 @@ def test_errors_name_the_file_and_the_key(tmp_path, text, key, words):
     assert "field.toml" in message
     assert f": {key}: " in message
     assert words in message
+
+
+def test_a_map_only_the_build_refuses_names_its_table(tmp_path, suite_device):
+    """A scale of 1e-300 on one axis passes read()'s checks (the map is not
+    singular), but its inverse overflows float32 in the scene's frames, which
+    only the Scene finds: its error still names the file and the table."""
+    text = instance("mesh = 0\ntranslate = [[0.0, 0.0, 0.0], [4.0, 0.0, 0.0]]\n")
+    text += "[[instance]]\nmesh = 0\nscale = [1e-300, 1.0, 1.0]\n"
+    path = write(tmp_path, text, name="field.toml")
+    assert len(read(path).placements()) == 3
+    with pytest.raises(SceneFileError, match=r"field\.toml: instance\[1\]: instance 2's transform "
+                                             "does not fit float32"):
+        load(path, device=suite_device)
 
 
 def test_too_many_copies_over_several_tables(tmp_path, monkeypatch):

@@ -269,6 +269,18 @@ def test_corrupt_file(tmp_path, name, content):
     assert name in str(caught.value)
 
 
+def test_a_file_too_large_for_memory_is_named(tmp_path, monkeypatch):
+    path = tmp_path / "huge.ply"
+    path.write_bytes(b"ply\n" + b"\0" * 1000)
+
+    def out_of_memory(self):
+        raise MemoryError
+    monkeypatch.setattr(type(path), "read_bytes", out_of_memory)
+    with pytest.raises(ValueError, match=r"huge\.ply: too large to read into this process's "
+                                         r"memory \(1,004 bytes on disk\)"):
+        Mesh.load(path)
+
+
 def test_file_without_triangles(tmp_path):
     path = tmp_path / "points.ply"
     trimesh.PointCloud(QUAD).export(path)
@@ -450,6 +462,8 @@ def test_bad_colors_and_light_are_named(scene, renderer):
     ({"eye": (0, 0), "target": (0, 0, 1)}, "eye"),
     ({"eye": (0, 0, 0), "target": (0, 0, 1), "fov_deg": 180}, "fov_deg"),
     ({"eye": (0, 0, 0), "target": (0, 0, 1), "fov_deg": 0}, "fov_deg"),
+    ({"eye": (0, 0, 0), "target": (0, 0, 1), "fov_deg": 10**400},
+     "fov_deg must be a finite number, got an integer of 1329 bits, beyond float's range"),
     ({"eye": (0, 0, -1e39), "target": (0, 0, 0)}, r"eye \[0.0, 0.0, -1e\+39\] does not fit float32"),
     ({"eye": (-1e308, 0, 0), "target": (1e308, 0, 0)}, "eye .* does not fit float32"),
 ])
@@ -462,6 +476,7 @@ def test_bad_cameras_are_named(kwargs, words):
     ({"direction": (0, 0, 0)}, "zero vector"),
     ({"intensity": -1}, "intensity"),
     ({"intensity": 1e39}, r"intensity must be a finite number >= 0 and <= 3\.40282e\+38"),
+    ({"intensity": 10**400}, "intensity must be a finite number, got an integer of 1329 bits"),
     ({"ambient": 2}, "ambient"),
 ])
 def test_bad_lights_are_named(kwargs, words):
