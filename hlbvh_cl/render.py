@@ -29,7 +29,14 @@ brute-force oracle):
   p + offset * n along l hits anything (t in [0, inf)), else 1; V = 1 when
   shadows=False.  p = origin + t * direction, offset = max(1e-4 * D,
   2^-16 * M), D the diagonal of the scene's bounding box and M its largest
-  absolute coordinate.  A miss shows the sky:
+  absolute coordinate.  (That box is the tree's root box: for an instanced
+  scene, the box around its instances' world boxes, which can be looser than
+  the geometry, so its depth and ao images differ a little from those of the
+  same geometry placed flat.  Limits of float32: p's error grows with the
+  distance from the eye, so a camera about 1e6 times an object's size away
+  from it shows shadow acne there; and an object about 1e4 times its size
+  from the origin loses its shadow to the 2^-16 * M offset.)  A miss shows
+  the sky:
   mix(SKY_HORIZON, SKY_ZENITH, clamp(unit(d) . unit(camera.up), 0, 1)).
 - "normals": (n + 1) / 2; black on a miss.
 - "depth": (far - |t * d|) / (far - near) clamped to [0, 1], where near and
