@@ -110,7 +110,7 @@ def _cmd_render(args) -> int:
     width = args.width or loaded.width
     height = args.height or loaded.height
     options = dict(shading=args.shading, shadows=not args.no_shadows, spp=args.spp,
-                   ao_samples=args.ao_samples)
+                   ao_samples=args.ao_samples or AO_SAMPLES)
     # A one-pixel render first: it compiles (or loads from the cache) every
     # kernel the render uses, so the real render's times are its own.
     warm_started = time.perf_counter()
@@ -192,8 +192,20 @@ def _integer_in(low: int, high: int):
     return parse
 
 
+def _check_combinations(args) -> None:
+    """Refuses an option that the others make meaningless, rather than
+    ignoring it."""
+    if args.command == "devices" and args.no_fallback and not args.require:
+        raise _UsageError("--no-fallback applies to --require ID, which is missing")
+    if args.command == "render":
+        if args.ao_samples is not None and args.shading != "ao":
+            raise _UsageError(f"--ao-samples applies to --shading ao, not {args.shading}")
+        if args.no_shadows and args.shading != "diffuse":
+            raise _UsageError(f"--no-shadows applies to --shading diffuse, not {args.shading}")
+
+
 def main(argv=None) -> int:
-    parser = _Parser(prog="hlbvh-cl", description=__doc__.split("\n\n")[0])
+    parser = _Parser(prog="hlbvh-cl", description=__doc__.split("\n\n")[0].replace("``", ""))
     sub = parser.add_subparsers(dest="command", required=True)
     listing = sub.add_parser("devices", help="list OpenCL devices")
     listing.add_argument("--require", metavar="ID", default=None,
@@ -222,12 +234,14 @@ def main(argv=None) -> int:
     render.add_argument("--shading", default="diffuse", choices=SHADINGS)
     render.add_argument("--spp", type=_integer_in(1, MAX_SPP), default=1,
                         help="samples per pixel (default 1)")
-    render.add_argument("--ao-samples", type=_integer_in(1, MAX_AO_SAMPLES), default=AO_SAMPLES,
-                        help=f"ambient-occlusion rays per sample (default {AO_SAMPLES})")
+    render.add_argument("--ao-samples", type=_integer_in(1, MAX_AO_SAMPLES), default=None,
+                        help=f"with --shading ao: ambient-occlusion rays per sample "
+                             f"(default {AO_SAMPLES})")
     render.add_argument("--no-shadows", action="store_true", help="diffuse shading without shadows")
     render.set_defaults(run=_cmd_render)
     try:
         args = parser.parse_args(argv)
+        _check_combinations(args)
     except _UsageError as error:
         print(f"hlbvh-cl: error: {error}", file=sys.stderr)
         return 2

@@ -586,7 +586,8 @@ class Renderer:
     """Renders a Scene through a Camera.
 
     ``colors`` holds one RGB triple (0..1) per mesh (by default PALETTE,
-    cycled) and ``light`` a Light; both may be reassigned between renders.
+    cycled) and ``light`` a Light; both may be reassigned between renders,
+    None giving the defaults again.
     ``stats`` describes the last render ({} before one): image size and
     options, primary_rays and secondary_rays (shadow or AO rays launched,
     one per pixel and pass), and device milliseconds per stage ("camera",
@@ -618,8 +619,9 @@ class Renderer:
         than a second.  The formulas are in this module's docstring."""
         settings = RenderSettings.check(camera, width, height, shading, shadows, spp,
                                         ao_samples, ao_distance)
-        colors = check_colors(self.colors, len(self.scene.meshes))
-        light = check_light(self.light)
+        count = len(self.scene.meshes)
+        colors = check_colors(default_colors(count) if self.colors is None else self.colors, count)
+        light = check_light(Light() if self.light is None else self.light)
         scene = self.scene
         with scene._lock:  # no rebuild or refit while the tree is read
             if self._pipeline is None:

@@ -4,6 +4,7 @@ import sys
 import warnings
 from pathlib import Path
 
+import pytest
 
 from hlbvh_cl.cli import main
 
@@ -32,6 +33,18 @@ def test_user_mistakes_give_one_line_and_exit_2(tmp_path, capsys):
     assert main(["render", str(tmp_path / "folder.toml"), "-o", str(tmp_path / "x.png")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("hlbvh-cl: error:") and "folder.toml" in err and "\n" not in err
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["devices", "--no-fallback"], "--no-fallback applies to --require ID, which is missing"),
+    (["render", "s.toml", "-o", "x.png", "--ao-samples", "4"],
+     "--ao-samples applies to --shading ao, not diffuse"),
+    (["render", "s.toml", "-o", "x.png", "--shading", "depth", "--no-shadows"],
+     "--no-shadows applies to --shading diffuse, not depth"),
+])
+def test_an_option_the_others_make_meaningless_is_refused(capsys, argv, words):
+    assert main(argv) == 2
+    assert capsys.readouterr().err.strip() == f"hlbvh-cl: error: {words}"
 
 
 def test_main_leaves_the_callers_warning_filters_alone():

@@ -454,6 +454,16 @@ def test_bad_colors_and_light_are_named(scene, renderer):
         renderer.colors, renderer.light = COLORS, LIGHT
 
 
+def test_colors_and_light_of_none_are_the_defaults(scene, renderer):
+    """As in the constructor: None, reassigned, gives the defaults again."""
+    defaults = hlbvh_cl.Renderer(scene).render(CAMERA, 8, 6)
+    try:
+        renderer.colors, renderer.light = None, None
+        assert np.array_equal(renderer.render(CAMERA, 8, 6), defaults)
+    finally:
+        renderer.colors, renderer.light = COLORS, LIGHT
+
+
 @pytest.mark.parametrize("kwargs, words", [
     ({"eye": (0, 0, 0), "target": (0, 0, 0)}, "equals eye"),
     ({"eye": (0, 0, 0), "target": (0, 1, 0)}, "parallel"),
