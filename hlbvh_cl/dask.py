@@ -385,7 +385,12 @@ def intersect_all(scene: Scene, origins, directions=None, tmin=0.0, tmax=np.inf,
                      verb="count_intersections", limits=limits).astype(np.int64)
     if max_hits is not None:
         counts = da.minimum(counts, max_hits)
-    offsets = da.concatenate([da.zeros(1, np.int64), da.cumsum(counts.reshape(-1))])
+    counts = counts.reshape(-1)
+    # dask's cumsum fails to merge an empty chunk with the next; they add nothing
+    filled = tuple(size for size in counts.chunks[0] if size)
+    if filled and len(filled) < len(counts.chunks[0]):
+        counts = counts.rechunk((filled,))
+    offsets = da.concatenate([da.zeros(1, dtype=np.int64), da.cumsum(counts)])
     return AllHits(offsets=offsets, shape=tuple(lead),
                    **{name: hits[name] for name in HIT_LIST.names})
 

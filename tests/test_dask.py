@@ -142,6 +142,22 @@ def test_dask_local_scheduler_matches_one_process(meshes, suite_device):
     assert travel.cached_count() == 0  # the scene itself served the tasks: none rebuilt
 
 
+@pytest.mark.parametrize("chunks", [(700, 0, 500), (0, 1200), (1200, 0)])
+def test_every_hit_over_empty_chunks_has_the_local_offsets(meshes, suite_device, chunks):
+    """Rays chunked with empty chunks (a filter's leftovers): the offsets
+    and counts are the local ones, int64 as there, not float64."""
+    scene = _scene(meshes, suite_device.id)
+    origins, directions = _rays(scene, 1200)
+    local = scene.intersect_all(origins, directions)
+    spread = hd.intersect_all(scene, da.from_array(origins, chunks=(chunks, 3)),
+                              da.from_array(directions, chunks=(chunks, 3)))
+    for name in ("offsets", "counts", "ray_index", "t"):
+        got = getattr(spread, name).compute(scheduler="threads")
+        assert got.dtype == getattr(local, name).dtype, name
+        np.testing.assert_array_equal(got, getattr(local, name), err_msg=name)
+    assert local.t.size > 100
+
+
 # ---------------------------------------------------------------- on a cluster
 
 @pytest.fixture(scope="module")
