@@ -35,14 +35,15 @@ class BufferPool:
         self._returned: dict[int, int] = {}          # id of a free buffer -> when it came back
         self._clock = 0
         self._budget = 0                             # KEEP_BUILDS x the largest build's bytes
-        self._lock = threading.Lock()  # clear() may come from a finalizer in any thread
+        self._lock = threading.Lock()
+        self._clear_pending = False  # clear() asked for while the lock was held (_locked)
         self._taken: list[cl.Buffer] | None = None  # during a build: every buffer it took
         self._kept: set[int] = set()                # ... and the ids of those it keeps
 
     def take(self, nbytes: int) -> cl.Buffer:
         """A READ_WRITE buffer of max(4, nbytes) bytes, recycled when one is free."""
         nbytes = max(4, int(nbytes))
-        with self._lock:
+        with self._locked():
             free = self._free.get(nbytes)
             buffer = free.pop() if free else None
             if buffer is not None:
@@ -55,7 +56,7 @@ class BufferPool:
 
     def give(self, *buffers: cl.Buffer | None) -> None:
         """Hand buffers back; the caller must not use them again."""
-        with self._lock:
+        with self._locked():
             self._clock += 1
             for buffer in buffers:
                 if buffer is not None and id(buffer) not in self._returned:  # not twice
@@ -89,7 +90,7 @@ class BufferPool:
     def _evict(self) -> None:
         """Drop the buffers returned longest ago until the free bytes fit the
         budget."""
-        with self._lock:
+        with self._locked():
             excess = self.free_bytes - self._budget
             if excess <= 0:
                 return
@@ -105,8 +106,33 @@ class BufferPool:
 
     def clear(self) -> None:
         """Drop every free buffer (a Scene that goes away calls this, so that
-        its last build's scratch does not outlive it)."""
+        its last build's scratch does not outlive it).
+
+        It never waits for the lock: a Scene's finalizer calls it, in any
+        thread, and the garbage collector may run that finalizer inside a
+        locked section of this very pool, in the same thread, where waiting
+        would deadlock.  Where the lock is held, the holder drops the buffers
+        as it leaves its section (_locked)."""
+        self._clear_pending = True
+        if self._lock.acquire(blocking=False):
+            try:
+                self._drop_pending()
+            finally:
+                self._lock.release()
+
+    @contextmanager
+    def _locked(self):
+        """The lock, for a section that applies a clear() asked for meanwhile
+        before it lets go."""
         with self._lock:
+            try:
+                yield
+            finally:
+                self._drop_pending()
+
+    def _drop_pending(self) -> None:
+        if self._clear_pending:  # (lock held)
+            self._clear_pending = False
             self._free, self._returned, self._budget = {}, {}, 0
 
     @property

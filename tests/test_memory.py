@@ -148,6 +148,34 @@ def test_a_scene_that_goes_away_takes_its_scratch_with_it():
     assert pool.free_bytes == 0
 
 
+#: A Scene only the cyclic garbage collector frees, collected while the pool's
+#: lock is held in the same thread, as a collection set off by an allocation
+#: inside the pool would: its finalizer's clear() must not wait for the lock.
+COLLECTED_IN_THE_POOL = """
+import gc, sys
+import hlbvh_cl
+scene = hlbvh_cl.Scene([hlbvh_cl.Mesh.load(sys.argv[1])])
+scene.cycle = scene
+pool = scene._runtime.pool
+scene.rebuild()
+held = pool.free_bytes
+del scene
+with pool._locked():
+    gc.collect()
+    print(held, pool.free_bytes)
+print(pool.free_bytes)
+"""
+
+
+def test_a_scene_collected_inside_the_pool_empties_it_without_a_deadlock():
+    done = subprocess.run([sys.executable, "-c", COLLECTED_IN_THE_POOL, str(MESH_DIR / "knight.ply")],
+                          capture_output=True, text=True, stdin=subprocess.DEVNULL, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    (held, during), (after,) = (line.split() for line in done.stdout.splitlines())
+    # kept while the section runs, dropped as it lets go of the lock
+    assert int(held) > 0 and int(during) == int(held) and int(after) == 0, done.stdout
+
+
 # -- the result pool: result arrays lent and lent again ---------------------------
 
 BIG = MIN_POOLED_BYTES // 4  # float32 elements that make a pooled request
