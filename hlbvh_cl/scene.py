@@ -112,6 +112,7 @@ class Scene:
         self._scale = frame.scale_for(max(self._largest))  # the tree's frame (hlbvh_cl.frame)
         self._geometry = Geometry.upload(rt, frame.to_frame(vertices, self._scale),
                                          faces, first_face)
+        self._stale_vertices = False  # the device's vertices lag self.meshes (_build)
         # the runtime's pool keeps this scene's build scratch for its rebuilds; not beyond it
         weakref.finalize(self, rt.pool.clear)
         self._build()
@@ -162,21 +163,36 @@ class Scene:
             if self._two_level is not None:
                 self._tree, self._stats = self._two_level.build_top()
             else:
+                if self._stale_vertices:  # all of them again, in the frame they now need
+                    self._scale = frame.scale_for(max(self._largest))
+                    vertices = np.concatenate([m.vertices for m in self.meshes])
+                    cl.enqueue_copy(rt.queue, self._geometry.vertices,
+                                    frame.to_frame(vertices, self._scale))
+                    self._stale_vertices = False
                 self._tree, self._stats = build(rt, self._geometry, self.builder,
                                                 self.morton_bits, self._scale)
 
-    def _build_or_undo(self, undo, meshes: bool = False) -> None:
-        """The tree over changed content (its meshes' trees too with
-        `meshes`), or when the build rejects that content (a ValueError,
-        such as a map that overflows float32 in the built frames) the tree
-        over the content as it was, `undo` restoring it, and the error
-        raised: a rejected change leaves the scene as it was."""
+    def _change(self, apply, undo, meshes: bool = False) -> None:
+        """`apply` a change of content, then build the tree over it (its
+        meshes' trees too with `meshes`).  When the build rejects that
+        content (a ValueError, such as a map that overflows float32 in the
+        built frames), `undo` restores the content as it was, its tree is
+        built again, and the error raised: a rejected change leaves the scene
+        as it was.  Anything else (Ctrl-C) that stops a change once begun
+        drops the tree, so that no query answers for the content it replaced."""
         build = self.rebuild if meshes else self._build
         try:
-            build()
+            try:
+                apply()
+                build()
+            except ValueError:
+                undo()
+                build()
+                raise
         except ValueError:
-            undo()
-            build()
+            raise
+        except BaseException:
+            self._drop_tree()
             raise
 
     def __reduce__(self):
@@ -278,8 +294,10 @@ class Scene:
         with self._lock:
             self._changing()
             previous = self._two_level.transforms.copy()
-            self._two_level.transforms[ids] = maps
-            self._build_or_undo(lambda: setattr(self._two_level, "transforms", previous))
+
+            def apply():
+                self._two_level.transforms[ids] = maps
+            self._change(apply, lambda: setattr(self._two_level, "transforms", previous))
 
     def update_vertices(self, geom_id: int, vertices) -> None:
         """Replace mesh ``geom_id``'s vertex positions (same count) and refit
@@ -306,32 +324,32 @@ class Scene:
             self._changing()
             meshes = self.meshes[:geom_id] + (moved,) + self.meshes[geom_id + 1:]
             if self._two_level is not None:  # the mesh's own tree is built anew, then the top
-                previous, self.meshes = self.meshes, meshes
-                self._build_or_undo(lambda: setattr(self, "meshes", previous), meshes=True)
+                previous = self.meshes
+                self._change(lambda: setattr(self, "meshes", meshes),
+                             lambda: setattr(self, "meshes", previous), meshes=True)
                 return
             largest = list(self._largest)
             largest[geom_id] = frame.largest_used(moved.vertices, moved.faces)
-            # the meshes follow the device's vertices from here on, whatever fails below
-            self.meshes, self._largest = meshes, largest
             tree = self._tree
-            if tree is None or frame.scale_for(max(largest) * self._scale) != 1.0:
-                # out of this frame (or no tree since a failed rebuild): build anew
-                self._scale = frame.scale_for(max(largest))
-                vertices = np.concatenate([m.vertices for m in self.meshes])
-                cl.enqueue_copy(rt.queue, self._geometry.vertices,
-                                frame.to_frame(vertices, self._scale))
-                self.rebuild()
-                return
             try:
+                # the meshes are new from here on, whatever fails below; until
+                # the upload is done, a build uploads them all (_build)
+                self._stale_vertices = True
+                self.meshes, self._largest = meshes, largest
+                if tree is None or frame.scale_for(max(largest) * self._scale) != 1.0:
+                    # out of this frame (or no tree since a failed rebuild): build anew
+                    self.rebuild()
+                    return
                 upload = cl.enqueue_copy(rt.queue, self._geometry.vertices,
                                          frame.to_frame(moved.vertices, self._scale),
                                          dst_offset=int(self._vertex_offsets[geom_id]) * 12,
                                          is_blocking=False)
+                self._stale_vertices = False
                 events = refit(rt, tree, self._geometry.vertices, wait_for=[upload])
                 tree.bounds_lo, tree.bounds_hi = tree.read_root_box(rt.queue,
                                                                     wait_for=events[-1:])
-            except BaseException:  # Ctrl-C, a failed build of refit.cl: the boxes are
-                rt.queue.finish()  # part old, part new, so no query may use them
+            except BaseException:  # Ctrl-C, a failed refit or build: the meshes are new
+                rt.queue.finish()  # and the boxes old or part old, so no query may use them
                 self._drop_tree()
                 raise
             self._stats = dataclasses.replace(self._stats, refit_ms={

@@ -175,6 +175,49 @@ def test_a_failed_buffer_reservation_does_not_break_later_queries(monkeypatch):
     assert np.array_equal(query.intersect(tree, origins[:8], directions[:8]).t, expected)
 
 
+def test_ctrl_c_just_after_a_change_leaves_no_answer_for_the_old_content(monkeypatch):
+    """A KeyboardInterrupt once set_transforms or update_vertices has put
+    the new content in the scene, before its tree is rebuilt or refit: the
+    scene then holds (and pickles) the new content, so queries must say to
+    rebuild rather than answer for the old one; a rebuild answers for the
+    new."""
+    import pytest
+
+    import hlbvh_cl.scene as scene_module
+    from shapes import grid_mesh
+
+    grid = grid_mesh(4)
+    moved = grid.vertices + np.float32([0.0, 0.0, 2.0])
+    lifted = np.hstack([np.eye(3), [[0.0], [0.0], [2.0]]])
+    origins = np.float32([[0.3, 0.4, -3.0], [0.6, 0.2, -3.0]])
+    directions = np.tile(np.float32([[0.0, 0.0, 1.0]]), (2, 1))
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    cases = {  # a change, and what it interrupts once the content is in
+        "set_transforms": (lambda s: s.set_transforms(0, lifted), "_build"),
+        "instanced update_vertices": (lambda s: s.update_vertices(0, moved), "rebuild"),
+        "flat update_vertices": (lambda s: s.update_vertices(0, moved), None),
+    }
+    for name, (change, step) in cases.items():
+        instanced = name != "flat update_vertices"
+        scene = (hlbvh_cl.Scene([grid], instances=[(0, np.eye(3, 4))]) if instanced
+                 else hlbvh_cl.Scene([grid]))
+        assert np.allclose(scene.intersect(origins, directions).t, 3.0)
+        with monkeypatch.context() as patch:
+            if step:
+                patch.setattr(scene, step, interrupted)
+            else:  # the first step after the meshes are replaced: is the new frame the same?
+                patch.setattr(scene_module.frame, "scale_for", interrupted)
+            with pytest.raises(KeyboardInterrupt):
+                change(scene)
+        with pytest.raises(RuntimeError):
+            scene.intersect(origins, directions)
+        scene.rebuild()
+        assert np.allclose(scene.intersect(origins, directions).t, 5.0), name
+
+
 def test_a_failed_rebuild_or_refit_leaves_a_scene_that_says_so_and_recovers(monkeypatch):
     """A build that raises leaves no half-made tree: queries and renders say
     to rebuild, and update_vertices builds anew.  A refit that raises leaves
