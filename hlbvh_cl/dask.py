@@ -33,6 +33,7 @@ import threading
 import weakref
 from collections import OrderedDict
 from collections.abc import Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 import dask
@@ -97,12 +98,20 @@ class _Shipped:
     def __dask_tokenize__(self):
         return ("hlbvh_cl.dask.scene", self.spec.key)
 
-    def scene(self) -> Scene:
+    @contextmanager
+    def scene(self):
+        """The scene a task queries, for as long as it queries it.  A scene
+        changed since the graph was made answers for its old content, as
+        workers do: the Scene itself only while it holds that content, its
+        lock held from the check to the task's end (its queries hold it
+        throughout anyway), so that no change comes in between."""
         local = self._scene
-        # a scene changed since the graph was made answers for its old content, as workers do
-        if local is not None and local._travel_spec().key == self.spec.key:
-            return local
-        return _task_scene(self.spec)
+        if local is not None:
+            with local._lock:
+                if local._travel_spec().key == self.spec.key:
+                    yield local
+                    return
+        yield _task_scene(self.spec)
 
 
 _views: OrderedDict = OrderedDict()
@@ -283,8 +292,8 @@ def _ray_block(*blocks, names, own, starts, verb, limits, block_id=None):
         if name in given:
             limits = dict(limits, **{name: given[name][..., 0]})
     rays = (given["rays"], None) if "rays" in given else (given["origins"], given["directions"])
-    scene = shipped.scene()
-    result = _call(getattr(scene, verb), offsets, own, *rays, **limits)
+    with shipped.scene() as scene:
+        result = _call(getattr(scene, verb), offsets, own, *rays, **limits)
     if verb == "intersect_all":  # its hits, each with its ray's index in the whole array
         out = np.empty(len(result), HIT_LIST)
         for name in HIT_LIST.names:
@@ -399,7 +408,8 @@ def intersect_all(scene: Scene, origins, directions=None, tmin=0.0, tmax=np.inf,
 
 def _point_block(points, shipped, *, names, own, starts, verb, options, block_id=None):
     offsets = tuple(s[i] for s, i in zip(starts, block_id or ()))
-    result = _call(getattr(shipped.scene(), verb), offsets, own, points, **options)
+    with shipped.scene() as scene:
+        result = _call(getattr(scene, verb), offsets, own, points, **options)
     return _records(result, CLOSEST) if verb == "closest_points" else result
 
 
@@ -456,16 +466,17 @@ def _renderer(scene: Scene, colors: np.ndarray, light) -> Renderer:
 
 def _render_frames(shipped, cameras, paths, colors, light, options) -> list:
     """One task: its frames rendered, each returned or written to its path."""
-    renderer = _renderer(shipped.scene(), colors, light)
     out = []
-    for camera, path in zip(cameras, paths):
-        image = renderer.render(camera, **options)
-        if path is None:
-            out.append(image)
-        else:
-            import imageio.v3 as iio
-            iio.imwrite(path, image)
-            out.append(path)
+    with shipped.scene() as scene:  # every frame of the task of one content
+        renderer = _renderer(scene, colors, light)
+        for camera, path in zip(cameras, paths):
+            image = renderer.render(camera, **options)
+            if path is None:
+                out.append(image)
+            else:
+                import imageio.v3 as iio
+                iio.imwrite(path, image)
+                out.append(path)
     return out
 
 

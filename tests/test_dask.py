@@ -114,14 +114,44 @@ def test_a_process_tasks_share_one_view_of_a_shipped_scene(meshes, suite_device)
     the tasks of one process share one, its buffers and its renderers."""
     spec = _scene(meshes, suite_device.id)._travel_spec()
     try:
-        first, second = hd._Shipped(spec).scene(), hd._Shipped(spec).scene()
-        assert first is second
+        with hd._Shipped(spec).scene() as first, hd._Shipped(spec).scene() as second:
+            assert first is second
         colors = np.ones((1, 3))
         assert hd._renderer(first, colors, None) is hd._renderer(second, colors, None)
     finally:  # later tests count the scenes this process restores
         hd._views.clear()
         hd._renderers.clear()
         travel.clear()
+
+
+def test_a_task_on_the_scene_itself_holds_off_changes_until_it_ends(meshes, suite_device):
+    """In the process that made the graph, a task queries the Scene itself
+    while it holds the graph's content; a change from another thread waits
+    for the task, rather than come between its check and its query (which
+    gave dask's local threads chunks of both contents)."""
+    import threading
+    scene = _scene(meshes, suite_device.id)
+    origins, directions = _rays(scene, 200)
+    before = scene.intersect(origins, directions).t
+    shipped = hd._Shipped(scene._travel_spec(), scene)
+    changed = threading.Event()
+
+    def change():
+        scene.update_vertices(0, scene.meshes[0].vertices * np.float32(1.5))
+        changed.set()
+    with shipped.scene() as task_scene:
+        assert task_scene is scene
+        thread = threading.Thread(target=change)
+        thread.start()
+        assert not changed.wait(1.0), "the change came in while the task held the scene"
+        np.testing.assert_array_equal(task_scene.intersect(origins, directions).t, before)
+    thread.join(60)
+    assert changed.is_set()
+    with shipped.scene() as task_scene:  # changed since: a view of the graph's content
+        assert task_scene is not scene
+        np.testing.assert_array_equal(task_scene.intersect(origins, directions).t, before)
+    hd._views.clear()
+    travel.clear()
 
 
 def test_dask_local_scheduler_matches_one_process(meshes, suite_device):
