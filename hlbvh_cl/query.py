@@ -35,6 +35,29 @@ from .tree import Tree
 #: flight, at most two) is answered within a second.
 MAX_RAYS_PER_LAUNCH = 1 << 20
 
+#: A launch's time is its rays' cost, which a scene of many overlapping
+#: instances makes far higher: a batch's first launches take at most
+#: FIRST_LAUNCH rays, and later ones as many as the launches done so far say
+#: LAUNCH_SECONDS allow (LaunchSizes).
+FIRST_LAUNCH = 1 << 16
+LAUNCH_SECONDS = 0.25
+
+
+class LaunchSizes:
+    """Items per launch for a batch: FIRST_LAUNCH while no launch has ended,
+    then what the last one ended took per item allows in LAUNCH_SECONDS,
+    always within [1, most]."""
+
+    def __init__(self, most: int):
+        self.most = most
+        self.size = min(most, FIRST_LAUNCH)
+
+    def ended(self, event, items: int) -> None:
+        """A launch of ``items`` items has ended (its profiled event)."""
+        seconds = (event.profile.end - event.profile.start) * 1e-9
+        fits = LAUNCH_SECONDS * items / seconds if seconds > 0 else self.most
+        self.size = int(max(1, min(self.most, fits)))
+
 
 #: Stack sizes are rounded up to a multiple of this so that few program
 #: variants get compiled.
@@ -346,11 +369,15 @@ class RayQuery:
         # The queue runs in order, so each chunk's inputs wait for the last
         # chunk's results; only the final read blocks.  (pyopencl's events of
         # non-blocking copies wait when they are dropped: keep them.)
-        events, transfers = [], []
-        for start in range(0, count, chunk):
+        events, transfers, launched = [], [], []
+        sizes, start = LaunchSizes(chunk), 0
+        while start < count:
             if len(events) >= 2:  # at most two launches in flight: Ctrl-C waits for few
                 self.rt.wait(events[-2:-1])
-            part = slice(start, min(start + chunk, count))
+                sizes.ended(events[-2], launched[-2])
+            part = slice(start, min(start + sizes.size, count))
+            start = part.stop
+            launched.append(part.stop - part.start)
             if self.zero_copy:
                 buffers = {name: self._wrap(array[part], cl.mem_flags.READ_ONLY)
                            for name, array in arrays.items()}

@@ -363,6 +363,43 @@ def test_batches_split_into_chunks_equal_one_launch(zero_copy):
     assert 0 < a.hit.mean() < 1
 
 
+@pytest.mark.parametrize("zero_copy", [True, False], ids=["in-place", "device-copies"])
+def test_launches_sized_by_their_cost_equal_one_launch(zero_copy, monkeypatch):
+    """Launches of varying sizes (query.LaunchSizes: a small first one, then
+    what each costs allows, here a few rays) give the results of one."""
+    from hlbvh_cl import query as query_module
+    case = scene_case("bunny_small")
+    origins, directions = random_rays(case, 3000, seed=13)
+    whole = RayQuery(case.scene._runtime)
+    expected = whole.intersect(case.scene._tree, origins, directions)
+    monkeypatch.setattr(query_module, "FIRST_LAUNCH", 1000)
+    monkeypatch.setattr(query_module, "LAUNCH_SECONDS", 1e-6)  # a launch's worth: a few rays
+    varied = RayQuery(case.scene._runtime)
+    varied.zero_copy = zero_copy
+    got = varied.intersect(case.scene._tree, origins, directions)
+    for field in ("t", "prim_id", "geom_id", "u", "v", "normal", "points"):
+        np.testing.assert_array_equal(getattr(got, field), getattr(expected, field))
+
+
+class _Ended:
+    """A profiled event that took `seconds`."""
+    def __init__(self, seconds):
+        self.profile = type("Profile", (), {"start": 0, "end": int(seconds * 1e9)})
+
+
+def test_launch_sizes_follow_the_cost_per_item():
+    from hlbvh_cl.query import FIRST_LAUNCH, LAUNCH_SECONDS, LaunchSizes
+    sizes = LaunchSizes(1 << 20)
+    assert sizes.size == min(1 << 20, FIRST_LAUNCH)
+    sizes.ended(_Ended(4 * LAUNCH_SECONDS), 1000)  # slow: a quarter of those next
+    assert sizes.size == 250
+    sizes.ended(_Ended(1e-6), 1000)  # fast: as many as allowed
+    assert sizes.size == 1 << 20
+    sizes.ended(_Ended(1e6), 10)  # ever so slow: one at a time, not none
+    assert sizes.size == 1
+    assert LaunchSizes(100).size == 100  # never past the most
+
+
 # -- deep trees and the traversal stack -------------------------------------------
 
 def morton_chain_mesh(duplicates: int = 16384) -> hlbvh_cl.Mesh:
