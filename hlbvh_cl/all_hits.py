@@ -43,7 +43,8 @@ from .order import (COHERENT_MIN, RAY_ORDER_BITS, concurrent_rays, device_order,
 from .instances import InstancedTree
 from .profile import PACKET_SIZES
 from .results import on_page
-from .query import RayQuery, _into_frame, _masked, _stack_size, caller_t, collect, scene_args
+from .query import (LaunchSizes, RayQuery, _into_frame, _masked, _stack_size, caller_t, collect,
+                    scene_args)
 from .tree import Tree
 
 #: Hits one fill launch writes at most (one ray with more still goes alone):
@@ -321,18 +322,19 @@ class AllHitsQuery:
             buffers = [wrap(array, flags.READ_WRITE) for array in outputs.values()]
         # launches in flight: their events, and what ends them (results put
         # back); they hold what the kernels read or write
-        flight: list[tuple[list, object, tuple]] = []
+        flight: list[tuple[list, object, tuple, int]] = []
+        sizes = LaunchSizes(rays_per_launch)
 
         def retire(count):
             while len(flight) > count:
-                waited, put_back, _ = flight.pop(0)
+                waited, put_back, _, rays = flight.pop(0)
                 rt.wait(waited)
+                sizes.ended(waited[0], rays)
                 put_back()
         try:
             # results copied back go through buffers of HITS_PER_LAUNCH slots
             max_slots = None if whole else HITS_PER_LAUNCH
-            for start, stop in _chunks(offsets, rays_per_launch, len(origins), max_slots):
-                retire(1)
+            for start, stop in _chunks(offsets, sizes, len(origins), max_slots):
                 if whole:
                     args = [*whole_rays, wrap(order[start:stop], flags.READ_ONLY), np.uint32(1),
                             *segments, *whole_inputs, *buffers]
@@ -364,7 +366,10 @@ class AllHitsQuery:
                                   local_size=query.work_group_size)
                 done = [launched, *(collect(queue, out[name], part, False)
                                     for name, part in parts.items())]
-                flight.append((done, put_back, (args, out)))
+                flight.append((done, put_back, (args, out), stop - start))
+                # before the next run is cut: at most one left in flight, none
+                # until the first has ended and sized the runs after it
+                retire(1 if sizes.measured else 0)
             retire(0)
             if whole:
                 rt.wait([collect(queue, buffer, array, True)
@@ -420,15 +425,19 @@ def _coherent_order(query: RayQuery, rays) -> np.ndarray | None:
                         by_direction=concurrent_rays(origins, directions))
 
 
-def _chunks(offsets: np.ndarray | None, max_rays: int, count: int,
+def _chunks(offsets: np.ndarray | None, max_rays: int | LaunchSizes, count: int,
             max_slots: int | None = HITS_PER_LAUNCH):
-    """(start, stop) runs of the `count` rays with at most max_rays rays and
-    (unless one ray has more) max_slots slots (None: any number), where ray
-    r has slots [offsets[r], offsets[r + 1]) (None: one each); runs without
-    slots are skipped."""
+    """(start, stop) runs of the `count` rays with at most max_rays rays (a
+    LaunchSizes: its size as each run is made) and (unless one ray has more)
+    max_slots slots (None: any number), where ray r has slots
+    [offsets[r], offsets[r + 1]) (None: one each); runs without slots are
+    skipped."""
     start = 0
     max_slots = max_slots or count + (int(offsets[-1]) if offsets is not None else 0) + 1
+    sizes = max_rays if isinstance(max_rays, LaunchSizes) else None
     while start < count:
+        if sizes is not None:
+            max_rays = sizes.size
         if offsets is None:
             stop = min(start + max_rays, start + max_slots, count)
         else:

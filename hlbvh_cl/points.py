@@ -46,7 +46,7 @@ from . import frame, inputs, layout
 from .order import COHERENT_MIN, FINE_ORDER_BITS, device_order, put_rows, take_rows
 from .device import Runtime
 from .instances import InstancedTree
-from .query import (_check_packet_size, _outputs_in_place, _stack_size, _work_group_size,
+from .query import (LaunchSizes, _check_packet_size, _outputs_in_place, _stack_size, _work_group_size,
                     _zero_copy, check_tree, collect)
 from .results import ResultPool, on_page, starts_on_page
 from .tree import Tree
@@ -54,6 +54,10 @@ from .tree import Tree
 #: Points per kernel launch at most (as query.MAX_RAYS_PER_LAUNCH: a launch
 #: ends soon, so that Ctrl-C is answered quickly).
 MAX_POINTS_PER_LAUNCH = 1 << 18
+
+#: Points in a batch's first launches (query.LaunchSizes), fewer than rays
+#: as a point's walk costs more than a ray's.
+FIRST_LAUNCH = 1 << 13
 
 #: Largest coordinate magnitude of a query point in the tree's frame: the
 #: kernels square distances in float32, which stay finite below 2^127.
@@ -376,12 +380,13 @@ class PointQuery:
         buffers = {name: self._wrap(array, name)
                    for name, array in {"input": points, **outputs}.items()}
         cl.enqueue_copy(self.rt.queue, self._overflow, np.zeros(1, np.int32))
-        events, held = [], []
-        for start in range(0, count, chunk):
-            if len(events) >= 2:
-                self.rt.wait(events[-2:-1])
-            held.append(self._wrap(order[start:start + chunk], "slots"))
-            events.append(launch(min(chunk, count - start), buffers, held[-1], 1))
+        held = []
+        sizes, start = LaunchSizes(chunk, FIRST_LAUNCH), 0
+        while start < count:
+            stop = min(start + sizes.next(self.rt), count)
+            held.append(self._wrap(order[start:stop], "slots"))
+            sizes.launched(launch(stop - start, buffers, held[-1], 1), stop - start)
+            start = stop
         held += [collect(self.rt.queue, buffers[name], array, True)
                  for name, array in outputs.items()]
         self._check_overflow()
@@ -393,18 +398,19 @@ class PointQuery:
             self._reserve({name: array.itemsize * (array.size // max(1, len(array)))
                            for name, array in arrays.items()})
         cl.enqueue_copy(queue, self._overflow, np.zeros(1, np.int32))
-        events, transfers = [], []
-        for start in range(0, count, chunk):
-            if len(events) >= 2:
-                self.rt.wait(events[-2:-1])
-            part = slice(start, min(start + chunk, count))
+        transfers = []
+        sizes, start = LaunchSizes(chunk, FIRST_LAUNCH), 0
+        while start < count:
+            part = slice(start, min(start + sizes.next(self.rt), count))
+            start = part.stop
             if self.zero_copy:
                 buffers = {name: self._wrap(array[part], name) for name, array in arrays.items()}
             else:
                 buffers = self._buffers
                 transfers.append(cl.enqueue_copy(queue, buffers["input"], points[part],
                                                  is_blocking=False))
-            events.append(launch(part.stop - part.start, buffers, self._no_slots, 0))
+            sizes.launched(launch(part.stop - part.start, buffers, self._no_slots, 0),
+                           part.stop - part.start)
             transfers += [collect(queue, buffers[name], array[part], self.zero_copy)
                           for name, array in outputs.items()]
         self._check_overflow()

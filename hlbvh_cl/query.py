@@ -44,19 +44,37 @@ LAUNCH_SECONDS = 0.25
 
 
 class LaunchSizes:
-    """Items per launch for a batch: FIRST_LAUNCH while no launch has ended,
-    then what the last one ended took per item allows in LAUNCH_SECONDS,
-    always within [1, most]."""
+    """Items per launch for a batch: `first` (FIRST_LAUNCH by default) for
+    the first launch, then what the last one ended took per item allows in
+    LAUNCH_SECONDS, always within [1, most].  ``next`` paces the launches:
+    at most two in flight (Ctrl-C waits for those), and the second only once
+    the first has ended and sized it."""
 
-    def __init__(self, most: int):
+    def __init__(self, most: int, first: int | None = None):
         self.most = most
-        self.size = min(most, FIRST_LAUNCH)
+        self.size = min(most, FIRST_LAUNCH if first is None else first)
+        self.measured = False
+        self._launches: list[tuple[object, int]] = []  # (event, items) of each
+
+    def next(self, rt) -> int:
+        """Waits for the launch two back (the first, while none has been
+        measured) and gives the next launch's size."""
+        count = len(self._launches)
+        if count >= 2 or (count == 1 and not self.measured):
+            event, items = self._launches[max(0, count - 2)]
+            rt.wait([event])
+            self.ended(event, items)
+        return self.size
+
+    def launched(self, event, items: int) -> None:
+        self._launches.append((event, items))
 
     def ended(self, event, items: int) -> None:
         """A launch of ``items`` items has ended (its profiled event)."""
         seconds = (event.profile.end - event.profile.start) * 1e-9
         fits = LAUNCH_SECONDS * items / seconds if seconds > 0 else self.most
         self.size = int(max(1, min(self.most, fits)))
+        self.measured = True
 
 
 #: Stack sizes are rounded up to a multiple of this so that few program
@@ -369,15 +387,11 @@ class RayQuery:
         # The queue runs in order, so each chunk's inputs wait for the last
         # chunk's results; only the final read blocks.  (pyopencl's events of
         # non-blocking copies wait when they are dropped: keep them.)
-        events, transfers, launched = [], [], []
+        events, transfers = [], []
         sizes, start = LaunchSizes(chunk), 0
         while start < count:
-            if len(events) >= 2:  # at most two launches in flight: Ctrl-C waits for few
-                self.rt.wait(events[-2:-1])
-                sizes.ended(events[-2], launched[-2])
-            part = slice(start, min(start + sizes.size, count))
+            part = slice(start, min(start + sizes.next(self.rt), count))
             start = part.stop
-            launched.append(part.stop - part.start)
             if self.zero_copy:
                 buffers = {name: self._wrap(array[part], cl.mem_flags.READ_ONLY)
                            for name, array in arrays.items()}
@@ -393,6 +407,7 @@ class RayQuery:
             steps = {name: (limits[name] if name in limits else buffers[name],
                             np.uint32(name in arrays)) for name in ("tmin", "tmax", "mask")}
             events.append(launch(part.stop - part.start, buffers, steps))
+            sizes.launched(events[-1], part.stop - part.start)
             transfers += [collect(queue, buffers[name], array[part], in_place)
                           for name, array in outputs.items()]
         counters = np.zeros(2, np.int32)

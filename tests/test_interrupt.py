@@ -45,6 +45,11 @@ if sys.argv[2] == "crowd_intersect":  # each ray crosses 100 overlapping instanc
     crowd = hlbvh_cl.Scene([mesh], instances=[(0, np.hstack([np.eye(3), s])) for s in shifts])
     jobs["crowd_intersect"] = (lambda: crowd.intersect(origins, directions),
                                lambda: [crowd.intersect(origins[few], directions[few]).t])
+if sys.argv[2] == "crowd_closest_points":
+    shifts = rng.uniform(-0.01, 0.01, (100, 3, 1)) * (hi - lo)[:, None]
+    crowd = hlbvh_cl.Scene([mesh], instances=[(0, np.hstack([np.eye(3), s])) for s in shifts])
+    jobs["crowd_closest_points"] = (lambda: crowd.closest_points(origins),
+                                    lambda: [crowd.closest_points(origins[few]).distance])
 one_job, small_job = jobs[sys.argv[2]]
 reference = small_job()
 print("ready", flush=True)
@@ -64,7 +69,8 @@ except KeyboardInterrupt:
 
 
 @pytest.mark.parametrize("job", ["render", "intersect", "count_intersections", "intersect_all",
-                                 "closest_points", "signed_distance", "crowd_intersect"])
+                                 "closest_points", "signed_distance", "crowd_intersect",
+                                 "crowd_closest_points"])
 def test_ctrl_c_stops_a_long_job_within_a_second(job):
     mesh = HERE.parent / "scenes" / "meshes" / "bunny.ply"
     child = subprocess.Popen([sys.executable, "-c", CHILD, str(mesh), job],

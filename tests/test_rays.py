@@ -381,6 +381,30 @@ def test_launches_sized_by_their_cost_equal_one_launch(zero_copy, monkeypatch):
         np.testing.assert_array_equal(getattr(got, field), getattr(expected, field))
 
 
+def test_every_query_sized_by_its_cost_equals_one_launch(monkeypatch):
+    """The same for all-hits (count and fill passes) and the point queries,
+    whose batches this size go in Morton order (indexed launches)."""
+    from hlbvh_cl import points as points_module
+    from hlbvh_cl import query as query_module
+    case = scene_case("bunny_small")
+    scene = case.scene
+    origins, directions = random_rays(case, 3000, seed=14)
+    lo, hi = scene.meshes[0].bounds
+    near = (lo + np.random.default_rng(15).uniform(-0.2, 1.2, (3000, 3)) * (hi - lo))
+    calls = {"count_intersections": lambda: [scene.count_intersections(origins, directions)],
+             "intersect_all": lambda: [getattr(scene.intersect_all(origins, directions), name)
+                                       for name in ("offsets", "t", "prim_id")],
+             "closest_points": lambda: [scene.closest_points(near).distance],
+             "signed_distance": lambda: [scene.signed_distance(near)]}
+    expected = {name: call() for name, call in calls.items()}
+    monkeypatch.setattr(query_module, "FIRST_LAUNCH", 1000)
+    monkeypatch.setattr(points_module, "FIRST_LAUNCH", 1000)
+    monkeypatch.setattr(query_module, "LAUNCH_SECONDS", 1e-6)
+    for name, call in calls.items():
+        for got, want in zip(call(), expected[name]):
+            np.testing.assert_array_equal(got, want, err_msg=name)
+
+
 class _Ended:
     """A profiled event that took `seconds`."""
     def __init__(self, seconds):
