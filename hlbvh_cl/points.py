@@ -46,8 +46,8 @@ from . import frame, inputs, layout
 from .order import COHERENT_MIN, FINE_ORDER_BITS, device_order, put_rows, take_rows
 from .device import Runtime
 from .instances import InstancedTree
-from .query import (LaunchSizes, _check_packet_size, _outputs_in_place, _stack_size, _work_group_size,
-                    _zero_copy, check_tree, collect)
+from .query import (LaunchSizes, _check_packet_size, _outputs_in_place, _stack_size,
+                    _work_group_size, _zero_copy, check_tree, collect)
 from .results import ResultPool, on_page, starts_on_page
 from .tree import Tree
 
@@ -55,8 +55,8 @@ from .tree import Tree
 #: ends soon, so that Ctrl-C is answered quickly).
 MAX_POINTS_PER_LAUNCH = 1 << 18
 
-#: Points in a batch's first launches (query.LaunchSizes), fewer than rays
-#: as a point's walk costs more than a ray's.
+#: Points in a batch's first launch (query.LaunchSizes), fewer than rays as
+#: a point's walk costs more than a ray's.
 FIRST_LAUNCH = 1 << 13
 
 #: Largest coordinate magnitude of a query point in the tree's frame: the

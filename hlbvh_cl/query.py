@@ -36,8 +36,8 @@ from .tree import Tree
 MAX_RAYS_PER_LAUNCH = 1 << 20
 
 #: A launch's time is its rays' cost, which a scene of many overlapping
-#: instances makes far higher: a batch's first launches take at most
-#: FIRST_LAUNCH rays, and later ones as many as the launches done so far say
+#: instances makes far higher: a batch's first launch takes at most
+#: FIRST_LAUNCH rays, and each later one as many as the last to end says
 #: LAUNCH_SECONDS allow (LaunchSizes).
 FIRST_LAUNCH = 1 << 16
 LAUNCH_SECONDS = 0.25
