@@ -121,7 +121,10 @@ def _forget() -> int:
 def _warm(scene, camera: hlbvh_cl.Camera, rays: np.ndarray) -> None:
     """A small render and trace of ``scene`` (a Scene, or what hlbvh_cl.dask
     ships): every kernel the rounds run gets compiled."""
-    scene = scene if isinstance(scene, hlbvh_cl.Scene) else scene.scene()
+    if not isinstance(scene, hlbvh_cl.Scene):
+        with scene.scene() as shipped:
+            _warm(shipped, camera, rays)
+        return
     hlbvh_cl.Renderer(scene).render(camera, 16, 16)
     scene.intersect(rays)
 
