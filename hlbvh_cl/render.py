@@ -117,7 +117,7 @@ def default_colors(count: int) -> list[tuple[float, float, float]]:
 _REAL = (int, float, np.integer, np.floating)
 
 
-def real_number(name: str, value) -> float:
+def _real_number(name: str, value) -> float:
     """float(value), with a ValueError for an integer beyond float's range
     (TOML and Python integers have no bound)."""
     try:
@@ -211,7 +211,7 @@ class Camera:
         eye, target, up = (_vector3(name, getattr(self, name)) for name in ("eye", "target", "up"))
         if isinstance(self.fov_deg, bool) or not isinstance(self.fov_deg, _REAL):
             raise TypeError(f"fov_deg must be a number, got {type(self.fov_deg).__name__}")
-        fov = real_number("fov_deg", self.fov_deg)
+        fov = _real_number("fov_deg", self.fov_deg)
         if not 0.0 < fov < 180.0:
             raise ValueError(f"fov_deg must be > 0 and < 180, got {self.fov_deg}")
         problem = view_problem(eye, target, up)
@@ -269,7 +269,7 @@ def _number(name: str, value, low: float, high: float | None = None,
             low_open: bool = False) -> float:
     if isinstance(value, bool) or not isinstance(value, _REAL):
         raise TypeError(f"{name} must be a number, got {type(value).__name__}")
-    number = real_number(name, value)
+    number = _real_number(name, value)
     too_low = number <= low if low_open else number < low
     if not math.isfinite(number) or too_low or (high is not None and number > high):
         bound = f"{'>' if low_open else '>='} {low:g}" + (f" and <= {high:g}" if high is not None
