@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import pyopencl as cl
 
+from . import selection
 from .hugepages import advise_huge_pages
 from .paths import cache_root, kernel_dir
 from .pool import BufferPool
@@ -185,6 +186,44 @@ def _type_name(device_type: int) -> str:
     return "other"
 
 
+def _load_error(library: Path) -> str | None:
+    """Why ``library`` cannot be loaded, in the dynamic loader's own words,
+    or None when it loads.  (The ICD loader drops a runtime that fails to
+    load without a word; loading it again here gets the reason.)"""
+    try:
+        ctypes.CDLL(str(library))
+    except OSError as error:
+        text = str(error)
+        if "tbb" in text:
+            # Open3D bundles an older oneTBB; once loaded, it is the one every
+            # later library binds to (docs/devices.md, "Import order").
+            text += (" (a library loaded earlier in this process brought an older oneTBB, as "
+                     "Open3D does: call hlbvh_cl.devices() before importing it)")
+        return text
+    return None
+
+
+def _unloadable_runtimes(known: Path) -> list[str]:
+    """The runtimes the ICD loader was told of (the .icd files of
+    $OCL_ICD_VENDORS, else /etc/OpenCL/vendors) whose library fails to
+    load, each with the loader's words; ``known`` (Intel's, reported on its
+    own) left out."""
+    folder = Path(os.environ.get("OCL_ICD_VENDORS") or "/etc/OpenCL/vendors")
+    icds = [folder] if folder.is_file() else sorted(folder.glob("*.icd")) if folder.is_dir() else []
+    found = []
+    for icd in icds:
+        try:
+            library = icd.read_text(errors="replace").strip()
+        except OSError:
+            continue
+        if not library or Path(library) == known:
+            continue
+        error = _load_error(Path(library))
+        if error:
+            found.append(f"the runtime of {icd} ({library}) fails to load: {error}")
+    return found
+
+
 _devices_cache: list[Device] | None = None
 
 
@@ -214,10 +253,12 @@ def devices() -> list[Device]:
                     name=d.name.strip(), type=_type_name(d.type), driver_version=d.driver_version,
                     compute_units=d.max_compute_units, global_mem_size=d.global_mem_size,
                     max_mem_alloc_size=d.max_mem_alloc_size, cl_device=d))
-        if "OCL_ICD_VENDORS" in os.environ and (Path(sys.prefix) / "lib" / "libintelocl.so").is_file() \
-                and not unregistered and not any(d.id.startswith("intel") for d in found):
+        intel = Path(sys.prefix) / "lib" / "libintelocl.so"
+        if "OCL_ICD_VENDORS" in os.environ and intel.is_file() and not unregistered \
+                and not any(d.id.startswith("intel") for d in found):
             unregistered.append("Intel's CPU runtime was registered but the ICD loader did not "
-                                "list it (libintelocl.so or a library it needs failed to load)")
+                                f"list it: {_load_error(intel) or 'it loads, but lists no device'}")
+        unregistered.extend(_unloadable_runtimes(intel))
         for note in unregistered:
             warnings.warn(f"hlbvh_cl: {note}", RuntimeWarning, stacklevel=2)
         ordered = sorted(found, key=lambda d: d.simulator)  # stable: platform order otherwise
@@ -225,56 +266,27 @@ def devices() -> list[Device]:
     return list(_devices_cache)
 
 
-def _match(spec, available: list[Device], source: str) -> Device:
-    if isinstance(spec, Device):
-        return spec
-    if isinstance(spec, bool) or not isinstance(spec, (int, str)):
-        raise TypeError(f"{source} must be a device id, an index or a name substring, "
-                        f"got {type(spec).__name__}")
-    listing = "; ".join(str(d) for d in available)
-    if isinstance(spec, int):
-        if not 0 <= spec < len(available):
-            raise ValueError(f"{source}={spec} is out of range: {len(available)} device(s): {listing}")
-        return available[spec]
-    text = spec.strip().lower()
-    if text.isdigit():
-        return _match(int(text), available, source)
-    for d in available:
-        if d.id == text:
-            return d
-    matches = [d for d in available
-               if text and (text in d.id or text in d.name.lower() or text in d.platform.lower())]
-    if not matches:
-        missing = "".join(f"; not registered: {note}" for note in unregistered)
-        raise ValueError(f"{source}={spec!r} matches no OpenCL device; present: {listing}"
-                         f"{missing}")
-    if len(matches) == 1:
-        return matches[0]
-    # A name may match several devices (PyPI's and Debian's PoCL): take the
-    # one whose kernels run, at full width if possible, and fastest.
-    working = [d for d in matches if d.problem is None]
-    if not working:
-        return matches[0]
-    return max(working, key=lambda d: (not d.verdict.failures, d.verdict.mrays_per_s or 0.0))
-
-
 def select_device(device=None) -> Device:
     """Pick a device: the argument, then $HLBVH_CL_DEVICE, then the default:
     a GPU, else the CPU runtime that traced fastest in its probe, else any
-    other device; never a simulator or a device whose kernels fail."""
+    other device; never a simulator or a device whose kernels fail.  The
+    rules a spec follows are hlbvh_cl.selection's: an index, an id, a
+    runtime (``"pocl"``, ``"intel"``), a type (``"cpu"``, ``"gpu"``), or a
+    name substring that names one runtime's devices only."""
     available = devices()
     if not available:
-        raise RuntimeError(f"hlbvh_cl found no OpenCL platform on this machine: {_INSTALL_HINT}")
+        raise RuntimeError(f"hlbvh_cl found no OpenCL platform on this machine: {_INSTALL_HINT}"
+                           + "".join(f"; not listed: {note}" for note in unregistered))
+    if isinstance(device, Device):
+        return device
     if device is not None:
-        return _match(device, available, "device")
+        return selection.choose(device, available, "device", unregistered)
     env = os.environ.get("HLBVH_CL_DEVICE")
     if env:
-        return _match(env, available, "HLBVH_CL_DEVICE")
-    for wanted in ("gpu", "cpu", "accelerator", "other"):
-        working = [d for d in available
-                   if d.type == wanted and not d.simulator and d.problem is None]
-        if working:
-            return max(working, key=lambda d: d.verdict.mrays_per_s or 0.0)
+        return selection.choose(env, available, "HLBVH_CL_DEVICE", unregistered)
+    chosen = selection.default(available)
+    if chosen is not None:
+        return chosen
     skipped = "; ".join(f"{d.id}: {d.skipped_because}" for d in available)
     raise RuntimeError(f"no OpenCL device here can run hlbvh_cl's kernels ({skipped}); "
                        f"{_INSTALL_HINT}. On Debian/Ubuntu, the distribution's PoCL (apt-get "

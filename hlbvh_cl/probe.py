@@ -22,6 +22,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
+import logging
 import os
 import signal
 import subprocess
@@ -58,6 +59,7 @@ class Verdict:
         return "; ".join(f"{v.name}: {reason}" for v, reason in self.failures) or "no variant"
 
 
+_log = logging.getLogger("hlbvh_cl")
 _lock = threading.RLock()
 _memory: dict[str, dict] = {}
 _warned: set = set()
@@ -126,6 +128,8 @@ def _run_child(device_id: str, profile: Profile, variant: Variant | None) -> dic
     """Runs the probe of one variant (or only the target query) in a child
     process; returns {"target": ..., "ok": ..., "reason": ..., ...}, with
     "transient": True when a timeout or an outside signal ended it."""
+    _log.info("probing %s (%s profile) with kernel variant %s in a child process", device_id,
+              profile.name, variant.name if variant else "(the compiler's target)")
     command = [sys.executable, "-m", "hlbvh_cl.probe_child", device_id, profile.name]
     if variant is not None:
         command.append(variant.name)
