@@ -224,15 +224,58 @@ def _unloadable_runtimes(known: Path) -> list[str]:
     return found
 
 
+#: The process that listed the devices: OpenCL runtimes keep worker threads
+#: and locks that a fork() does not carry into the child (check_process).
+_listed_in: int | None = None
+
+
+class ForkedProcessError(RuntimeError):
+    """OpenCL was started in a parent process, and this one is its fork."""
+
+
+def check_process() -> None:
+    """Raise ForkedProcessError in a process forked after hlbvh_cl started
+    OpenCL in its parent.  The child inherits the runtimes' state but not
+    their worker threads, so its first enqueue or wait would block for ever
+    (PoCL and Intel's runtime both do; a fresh context in the child does too
+    on PoCL).  Called before any lock or OpenCL call that a query takes."""
+    if _listed_in is not None and _listed_in != os.getpid():
+        raise ForkedProcessError(
+            f"hlbvh_cl: this process was forked from process {_listed_in} after that one had "
+            "started OpenCL, whose runtimes do not survive fork() (the call would hang). Start "
+            "workers with 'spawn': multiprocessing.get_context('spawn').Pool(...), or "
+            "torch.utils.data.DataLoader(..., multiprocessing_context='spawn'); a Scene pickles "
+            "and is built again in each worker. Or let only the workers use hlbvh_cl "
+            "(docs/dask.md, 'Worker processes').")
+
+
+class ProcessLock:
+    """A re-entrant lock that refuses a forked process before it waits
+    (check_process): a thread of the parent that held it at the fork left
+    it held for ever in the child.  A Scene's lock, taken by every call."""
+
+    def __init__(self):
+        self._lock = threading.RLock()
+
+    def __enter__(self):
+        check_process()
+        self._lock.acquire()
+        return self
+
+    def __exit__(self, *exc_info):
+        self._lock.release()
+
+
 _devices_cache: list[Device] | None = None
 
 
 def devices() -> list[Device]:
     """Every OpenCL device present, in platform order, simulators last (an
     index such as device=0 then never picks one)."""
-    global _devices_cache
+    global _devices_cache, _listed_in
     if _devices_cache is None:
         _register_intel_cpu_runtime()
+        _listed_in = os.getpid()
         try:
             platforms = cl.get_platforms()
         except cl.Error:
@@ -441,6 +484,7 @@ class Runtime:
         ints and floats become int32 and float32 arguments.  ``local_size``
         (by default group_size) is capped at what the kernel allows
         (largest_group); the kernels take any group size."""
+        check_process()
         local_size = min(local_size or self.group_size, self.largest_group(kernel))
         values = [_kernel_arg(a) for a in args]
         columns, rows = work_items if isinstance(work_items, tuple) else (work_items, None)
@@ -462,6 +506,7 @@ class Runtime:
         one waits on its future, which a signal interrupts.  Blocking (not
         polling) matters: a CPU runtime may run work on the waiting thread
         (Intel's does), and polling would leave it a core short."""
+        check_process()
         events = [event for event in events if event is not None]
         if not events:
             return
@@ -565,6 +610,7 @@ def runtime(device=None) -> Runtime:
     """The shared runtime of a device (selected as in :func:`select_device`)
     in its current profile."""
     chosen = select_device(device)
+    check_process()
     key = (chosen.id, chosen.profile.name)
     with _runtimes_lock:
         rt = _runtimes.get(key)
@@ -577,6 +623,7 @@ def runtime(device=None) -> Runtime:
 def install_runtime(device: Device, profile: Profile, variant: Variant) -> Runtime:
     """A runtime with a fixed variant, shared as runtime(device) (the probe's
     child runs its candidate this way)."""
+    check_process()
     rt = Runtime(device, profile, variant)
     with _runtimes_lock:
         _runtimes[(device.id, profile.name)] = rt

@@ -5,7 +5,6 @@ tree is built by hlbvh_cl.build (Lauterbach et al. 2009, Pantaleoni & Luebke
 from __future__ import annotations
 
 import dataclasses
-import threading
 import time
 import weakref
 from collections.abc import Sequence
@@ -15,7 +14,7 @@ import pyopencl as cl
 
 from . import frame, travel
 from .build import BUILDERS, BuildStats, Geometry, build, check_fits
-from .device import event_ms, runtime
+from .device import ProcessLock, event_ms, runtime
 from .mesh import Mesh, _validate_vertices
 from .morton import key_dtype
 from .all_hits import AllHitsQuery, wide_count_packets
@@ -74,7 +73,7 @@ class Scene:
         key_dtype(morton_bits)
         self.builder = builder
         self.morton_bits = morton_bits
-        self._lock = threading.RLock()
+        self._lock = ProcessLock()
         self._runtime = rt = runtime(device)
         # what pickling ships (hlbvh_cl.travel): the device as asked for
         self._device_spec = device if device is None or isinstance(device, str) else rt.device.id
@@ -230,7 +229,7 @@ class Scene:
         first (_own), so that no change reaches another holder."""
         view = object.__new__(type(self))
         view.__dict__.update(self.__dict__)
-        view._lock = threading.RLock()
+        view._lock = ProcessLock()
         view._query = view._points = view._all_hits = None  # buffers of its own
         view._shared = True
         return view
