@@ -3,20 +3,32 @@
     hlbvh-cl devices                        list the OpenCL devices and their ids
     hlbvh-cl info SCENE.toml                load a scene file, build its BVH, print the stats
     hlbvh-cl render SCENE.toml -o out.png   render a scene file to an image, print the times
+    hlbvh-cl render bunny.ply -o out.png    a mesh file alone: on a ground, framed
+    hlbvh-cl --version
 
 A user's mistake (a bad scene file or option, an unknown device) ends with a
-one-line error and exit code 2, never a traceback.
+one-line error and exit code 2, never a traceback; Ctrl-C with one line and
+exit code 130.  A step that takes more than a second (a first run probes
+devices and compiles kernels) says so on stderr.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
+import threading
 import sys
 import time
 from pathlib import Path
 
-from . import devices, scenefile
+from . import __version__, devices, scenefile
 from .device import DeviceMemoryError, KernelBuildError, select_device, unregistered
 from .render import AO_SAMPLES, MAX_AO_SAMPLES, MAX_IMAGE_SIDE, MAX_SPP, SHADINGS
+
+#: What a slow first run is doing (_stage).
+_PROBING = "probing the OpenCL devices in child processes (once per device and driver)"
+_BUILDING = "loading the scene and building its BVH (kernels compile on a first run)"
+
+_DEVICE_HELP = "device id, index, runtime (pocl, intel), type (cpu, gpu) or name (default: auto)"
 
 #: Image formats the render command writes (through imageio).
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -46,7 +58,7 @@ def _cmd_devices(args) -> int:
         print(f"{d.id:10s} {d.type:4s} {d.name} [{d.platform}, driver {d.driver_version}, "
               f"{d.compute_units} compute units, profile {d.profile.name}] {_device_state(d)}")
     for note in unregistered:
-        print(f"not registered: {note}")
+        print(f"not listed: {note}")
     usable = [d for d in found if d.skipped_because is None]
     print(f"default: {select_device().id if usable else 'none (no device runs the kernels)'}")
     if args.require:
@@ -72,7 +84,10 @@ def _instances(scene) -> str:
 
 
 def _cmd_info(args) -> int:
-    loaded = scenefile.load(args.scene, args.device, args.builder, args.morton_bits)
+    with _stage(_PROBING):
+        select_device(args.device)
+    with _stage(_BUILDING):
+        loaded = scenefile.load(args.scene, args.device, args.builder, args.morton_bits)
     scene = loaded.scene
     if args.repeat > 1:  # the first build pays for kernel compilation
         for _ in range(args.repeat - 1):
@@ -102,9 +117,11 @@ def _cmd_render(args) -> int:
                          f"{', '.join(IMAGE_SUFFIXES)}")
     if not output.parent.is_dir():
         raise ValueError(f"cannot write {output}: folder {output.parent} does not exist")
-    select_device(args.device)  # an unknown device fails before the scene loads
+    with _stage(_PROBING):
+        select_device(args.device)  # an unknown device fails before the scene loads
     started = time.perf_counter()
-    loaded = scenefile.load(args.scene, args.device)
+    with _stage(_BUILDING):
+        loaded = scenefile.load(args.scene, args.device)
     scene, renderer = loaded.scene, loaded.renderer()
     build_wall = loaded.build_seconds
     width = args.width or loaded.width
@@ -114,9 +131,12 @@ def _cmd_render(args) -> int:
     # A one-pixel render first: it compiles (or loads from the cache) every
     # kernel the render uses, so the real render's times are its own.
     warm_started = time.perf_counter()
-    renderer.render(loaded.camera, 1, 1, **options)
+    with _stage("compiling the render kernels (cached after a first run)"):
+        renderer.render(loaded.camera, 1, 1, **options)
     render_compile = time.perf_counter() - warm_started
-    image = renderer.render(loaded.camera, width, height, progress=sys.stderr.isatty(), **options)
+    bar = sys.stderr.isatty()  # a tqdm bar on a terminal; else one line if it takes a while
+    with contextlib.nullcontext() if bar else _stage(f"rendering {width}x{height}"):
+        image = renderer.render(loaded.camera, width, height, progress=bar, **options)
     written_started = time.perf_counter()
     _write_image(output, image)
     written = time.perf_counter() - written_started
@@ -153,6 +173,21 @@ def _cmd_render(args) -> int:
     print(f"write        {written:7.2f} s   {output}")
     print(f"total        {time.perf_counter() - started:7.2f} s")
     return 0
+
+
+@contextlib.contextmanager
+def _stage(what: str, after_s: float = 1.0):
+    """Says on stderr what the command is doing when a step takes longer
+    than ``after_s`` (a first run probes devices and compiles kernels for
+    minutes); quiet when it is quick.  Results stay on stdout."""
+    timer = threading.Timer(after_s, lambda: print(f"hlbvh-cl: {what} ...", file=sys.stderr,
+                                                   flush=True))
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()
 
 
 def _count(n: int) -> str:
@@ -206,6 +241,7 @@ def _check_combinations(args) -> None:
 
 def main(argv=None) -> int:
     parser = _Parser(prog="hlbvh-cl", description=__doc__.split("\n\n")[0].replace("``", ""))
+    parser.add_argument("--version", action="version", version=f"hlbvh-cl {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     listing = sub.add_parser("devices", help="list OpenCL devices")
     listing.add_argument("--require", metavar="ID", default=None,
@@ -214,15 +250,15 @@ def main(argv=None) -> int:
                          help="with --require: the device must run its fastest kernel variant")
     listing.set_defaults(run=_cmd_devices)
     info = sub.add_parser("info", help="build a scene file's BVH and print its stats")
-    info.add_argument("scene")
-    info.add_argument("--device", default=None, help="device id, index or name (default: auto)")
+    info.add_argument("scene", help="a .toml scene file, or a mesh file (.ply, .obj, ...)")
+    info.add_argument("--device", default=None, help=_DEVICE_HELP)
     info.add_argument("--builder", default="hlbvh", choices=["hlbvh", "lbvh"])
     info.add_argument("--morton-bits", type=int, default=30, choices=[30, 63])
     info.add_argument("--repeat", type=_integer_in(1, 1000), default=2,
                       help="builds to run; the stats are the last one's (default 2)")
     info.set_defaults(run=_cmd_info)
-    render = sub.add_parser("render", help="render a scene file to an image (PNG, JPEG, ...)")
-    render.add_argument("scene")
+    render = sub.add_parser("render", help="render a scene or mesh file to an image (PNG, JPEG, ...)")
+    render.add_argument("scene", help="a .toml scene file, or a mesh file (.ply, .obj, ...)")
     render.add_argument("-o", "--output", required=True, metavar="IMAGE",
                         help=f"image file to write ({', '.join(IMAGE_SUFFIXES)})")
     side = _integer_in(1, MAX_IMAGE_SIDE)
@@ -230,7 +266,7 @@ def main(argv=None) -> int:
                         help="image width in pixels (default: the scene file's)")
     render.add_argument("--height", type=side, default=None,
                         help="image height in pixels (default: the scene file's)")
-    render.add_argument("--device", default=None, help="device id, index or name (default: auto)")
+    render.add_argument("--device", default=None, help=_DEVICE_HELP)
     render.add_argument("--shading", default="diffuse", choices=SHADINGS)
     render.add_argument("--spp", type=_integer_in(1, MAX_SPP), default=1,
                         help="samples per pixel (default 1)")
@@ -245,12 +281,17 @@ def main(argv=None) -> int:
     except _UsageError as error:
         print(f"hlbvh-cl: error: {error}", file=sys.stderr)
         return 2
+    except SystemExit as done:  # --help, --version
+        return done.code or 0
     try:
         return args.run(args)
     except (ValueError, TypeError, OSError, DeviceMemoryError, KernelBuildError,
             RuntimeError) as error:  # OSError: files (missing, unreadable, unwritable)
         print(f"hlbvh-cl: error: {error}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("hlbvh-cl: interrupted", file=sys.stderr)
+        return 130  # 128 + SIGINT, as a shell reports it
 
 
 if __name__ == "__main__":

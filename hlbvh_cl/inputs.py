@@ -93,21 +93,50 @@ def unmasked(name: str, value):
     return value
 
 
+#: What a real-valued input may hold, for the messages.
+REAL_DTYPES = ("float32 (used as it is), or float64, float16, bfloat16 or integers (converted "
+               "to float32)")
+
+
+def _from_tensor(value):
+    """A PyTorch tensor as numpy reads it: detached (results carry no
+    gradient, and numpy refuses a tensor that requires one), on the CPU,
+    and bfloat16, which numpy has no type for, widened to float32 (exact).
+    Anything else is returned as it is."""
+    if type(value).__module__.partition(".")[0] != "torch" or not hasattr(value, "detach"):
+        return value
+    value = value.detach()
+    if value.device.type != "cpu":
+        value = value.cpu()
+    if str(value.dtype) == "torch.bfloat16":
+        value = value.float()
+    return value.numpy()
+
+
 def as_array(name: str, value) -> np.ndarray:
-    """``value`` as a numpy array (unmasked), or the ValueError naming
-    ``name`` when it is ragged (nested lists of unequal lengths)."""
+    """``value`` as a numpy array (unmasked; a PyTorch tensor detached and on
+    the CPU; bfloat16, as JAX's ml_dtypes gives it, as float32), or the
+    ValueError naming ``name`` when it is ragged (nested lists of unequal
+    lengths) or cannot be read as an array."""
     unmasked(name, value)
+    value = _from_tensor(value)
     try:
-        return np.asarray(value)
+        array = np.asarray(value)
     except (ValueError, TypeError) as error:
-        raise ValueError(f"{name} is not a rectangular array: {error}") from None
+        ragged = isinstance(value, (list, tuple)) or "inhomogeneous" in str(error)
+        what = "is not a rectangular array" if ragged else "cannot be read as a numpy array"
+        raise ValueError(f"{name} {what}: {error}") from None
+    if array.dtype.name == "bfloat16":
+        return array.astype(np.float32)
+    return array
 
 
 def numeric_array(name: str, value) -> np.ndarray:
     """``value`` as a numpy array of real numbers, or the error naming ``name``."""
     array = as_array(name, value)
     if array.dtype.kind not in "fiu":  # not bool, nor timedelta64 (a numpy integer)
-        raise TypeError(f"{name} must hold real numbers (float32/float64), got dtype {array.dtype}")
+        raise TypeError(f"{name} must hold real numbers, got dtype {array.dtype}; expected "
+                        f"{REAL_DTYPES}")
     return array
 
 

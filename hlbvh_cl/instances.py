@@ -104,7 +104,17 @@ def check_instances(instances, mesh_count: int) -> tuple[np.ndarray, np.ndarray]
             raise ValueError(f"instances[{k}][1] (transform) has shape {array.shape} and dtype "
                              f"{array.dtype}, expected a (3, 4) or (4, 4) array of numbers")
         transforms[k, :len(array)] = array
-    return meshes, check_transforms(transforms, lambda k: f"instances[{k}][1]")
+    maps = check_transforms(transforms, lambda k: f"instances[{k}][1]")
+    unplaced = np.setdiff1d(np.arange(mesh_count), meshes)
+    if len(unplaced):
+        # Only instances are drawn: a mesh none places would vanish silently.
+        listed = ", ".join(str(i) for i in unplaced[:8]) + (", ..." if len(unplaced) > 8 else "")
+        first = int(unplaced[0])
+        raise ValueError(f"no instance places mesh{'es' * (len(unplaced) > 1)} {listed}: with "
+                         "instances, a Scene holds only what they place, so it would be missing; "
+                         f"add an instance such as ({first}, np.eye(4)) to keep a mesh where it "
+                         "lies, or leave it out of meshes")
+    return meshes, maps
 
 
 def check_masks(masks, count: int, what: str) -> np.ndarray:

@@ -122,9 +122,15 @@ class Mesh:
     vertices: (N, 3) array of any real float (or integer) dtype, stored as
     float32; faces: (M, 3) integer vertex indices, stored as int32.  Lists
     are accepted.  Both arrays are copied and stored read-only.
+
+    ``Mesh(other)`` takes the arrays of another library's triangle mesh: a
+    trimesh.Trimesh (``vertices``, ``faces``) or an Open3D TriangleMesh
+    (``vertices``, ``triangles``).
     """
 
-    def __init__(self, vertices, faces, name: str | None = None):
+    def __init__(self, vertices, faces=None, name: str | None = None):
+        if faces is None:
+            vertices, faces = _mesh_arrays(vertices)
         self._vertices = _validate_vertices(vertices)
         self._faces = _validate_faces(faces, len(self._vertices))
         self.name = name
@@ -192,6 +198,21 @@ class Mesh:
             return cls(vertices, faces, name=name.rsplit(".", 1)[0])
         except (ValueError, TypeError) as error:
             raise ValueError(f"{path}: {error}") from None
+
+
+def _mesh_arrays(mesh) -> tuple:
+    """(vertices, faces) of another library's mesh object, for Mesh(mesh)."""
+    kind = type(mesh).__name__
+    if kind == "Scene" and hasattr(mesh, "dump"):  # trimesh.Scene: several meshes, placed
+        raise TypeError("Mesh(mesh) got a trimesh.Scene, which holds several meshes: pass "
+                        "scene.to_geometry() (trimesh >= 4.4) or scene.dump(concatenate=True), "
+                        "or read the file with hlbvh_cl.Mesh.load")
+    for faces_name in ("faces", "triangles"):  # trimesh, Open3D
+        if hasattr(mesh, "vertices") and hasattr(mesh, faces_name):
+            return mesh.vertices, getattr(mesh, faces_name)
+    raise TypeError(f"Mesh(vertices, faces) is missing faces; one argument alone must be a mesh "
+                    f"object with vertices and faces (a trimesh.Trimesh) or vertices and "
+                    f"triangles (an Open3D TriangleMesh), got {kind}")
 
 
 def _file_type(path: Path) -> tuple[str, bool]:

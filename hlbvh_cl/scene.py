@@ -49,8 +49,9 @@ class Scene:
 
     ``instances``: (mesh_index, transform) pairs, each transform a (3, 4) or
     (4, 4) affine map from the mesh's coordinates to the world's (mirrors and
-    non-uniform scales included).  Only the instances are in the scene then;
-    each mesh gets its own tree, shared by all its instances, under a top
+    non-uniform scales included).  Only the instances are in the scene then
+    (a mesh no instance places is an error, not silently left out); each
+    mesh gets its own tree, shared by all its instances, under a top
     tree over the instances (hlbvh_cl.instances), and hits carry
     ``instance_id``.  ``masks``: a 32-bit mask per instance (per mesh
     without instances), default all bits; a ray query's ``mask`` skips the

@@ -4,6 +4,8 @@ ground, a camera, a light.
 ``read(path)`` parses one with tomllib into a SceneDescription whose meshes
 are already loaded, split and transformed; ``load(path)`` also builds its
 Scene and returns a LoadedScene (scene, camera, light, colours, image size).
+Both also take a mesh file (``bunny.ply``: Mesh.load's formats) and make a
+scene of that one mesh on a ground, framed by a camera (read_mesh).
 
 Schema (every table and key is listed here; any other key is an error)::
 
@@ -63,7 +65,7 @@ the ground's y when it is a number, and 0 when there is no ground or its y is
 Instances: a file with no [[instance]] table draws each mesh once, where its
 own keys put it.  A file with any draws only instances: each mesh, shaped
 by its keys as above, is a prototype built once however many copies draw it
-(a mesh no instance names is not drawn), and the ground is one more mesh
+(a mesh no instance names is an error: it would be missing), and the ground is one more mesh
 drawn once where it lies.  Copy k of an instance maps a prototype point p to
 Ry(yaw_k) R S p + position_k: S the table's scale, R its rotate_deg (the
 mesh's rotation convention), Ry(yaw_k) a turn about +y by the random yaw
@@ -101,7 +103,7 @@ from pathlib import Path
 import numpy as np
 
 from .instances import check_resolved, check_transforms
-from .mesh import Mesh
+from .mesh import MESH_EXTENSIONS, Mesh
 from .render import Camera, Light, Renderer, unit, view_problem
 from .scene import Scene
 from .split import split_edges
@@ -377,14 +379,50 @@ def _name_the_entry(description: SceneDescription, error: ValueError) -> ValueEr
     return SceneFileError(f"{_Reader(description.path).label}: {key}: {error}")
 
 
+#: The image size, view and ground of a mesh file read as a scene (read_mesh).
+MESH_VIEW = {"width": 1280, "height": 720, "fov_deg": 45.0, "from": (0.0, 0.35, 1.0)}
+
+
+def read_mesh(path) -> SceneDescription:
+    """A mesh file (Mesh.load's formats) as a scene: the mesh in the default
+    colour on a ground square at its lowest point, lit by the default
+    light, seen at MESH_VIEW's size from the front (+z) and a little above
+    (y up, as the Stanford meshes are), far enough back that its bounding
+    sphere fills the view's height."""
+    path = Path(os.fspath(path))
+    mesh = Mesh.load(path)
+    lo, hi = mesh.bounds
+    centre, radius = (lo + hi) / 2, max(float(np.linalg.norm(hi - lo)) / 2, 1e-30)
+    distance = radius / math.sin(math.radians(MESH_VIEW["fov_deg"]) / 2)
+    eye = centre + distance * unit(np.array(MESH_VIEW["from"]))
+    camera = Camera(tuple(eye), tuple(centre), fov_deg=MESH_VIEW["fov_deg"])
+    reader = _Reader(path)
+    ground = _make_ground(reader, {"y": None, "size": None, "color": _DEFAULT_COLOR}, lo, hi)
+    return SceneDescription(path=path, width=MESH_VIEW["width"], height=MESH_VIEW["height"],
+                            camera=camera, light=Light(),
+                            meshes=[MeshEntry(mesh=mesh, color=_DEFAULT_COLOR, path=path)],
+                            ground=ground)
+
+
+def is_mesh_file(path) -> bool:
+    """Whether ``path`` names a mesh file by its extension (a .gz too)."""
+    suffixes = [suffix.lower() for suffix in Path(os.fspath(path)).suffixes]
+    if suffixes[-1:] == [".gz"]:
+        suffixes = suffixes[:-1]
+    return bool(suffixes) and suffixes[-1][1:] in MESH_EXTENSIONS
+
+
 def read(path) -> SceneDescription:
-    """Read a TOML scene file (schema in this module's docstring).
+    """Read a TOML scene file (schema in this module's docstring); a mesh
+    file (``bunny.ply``) is read as a scene of that mesh (read_mesh).
 
     Raises FileNotFoundError if the scene file itself is missing and
     SceneFileError (a ValueError) for anything wrong inside it, including
     missing or unreadable mesh files.
     """
     path = Path(os.fspath(path))
+    if is_mesh_file(path):
+        return read_mesh(path)
     reader = _Reader(path)
     try:
         with open(path, "rb") as file:
@@ -392,7 +430,9 @@ def read(path) -> SceneDescription:
     except tomllib.TOMLDecodeError as error:
         raise SceneFileError(f"{reader.label}: TOML syntax error: {error}") from None
     except UnicodeDecodeError as error:
-        raise SceneFileError(f"{reader.label}: not UTF-8 text: {error}") from None
+        raise SceneFileError(f"{reader.label}: not UTF-8 text, so not a TOML scene file (expected "
+                             f"a .toml scene file, or a mesh file: "
+                             f"{', '.join('.' + e for e in MESH_EXTENSIONS)}): {error}") from None
     except (IsADirectoryError, PermissionError) as error:
         raise SceneFileError(f"{reader.label}: cannot read the scene file: "
                              f"{error.strerror}") from None
@@ -554,6 +594,12 @@ def _read_instance_specs(reader: _Reader, value, mesh_count: int) -> list[_Insta
             place_on_ground=reader.boolean(table.get("place_on_ground", False),
                                            f"{key}.place_on_ground"),
         ))
+    drawn = {spec.mesh for spec in specs}
+    for mesh in range(mesh_count):
+        if mesh not in drawn:
+            raise reader.error(f"mesh[{mesh}]", "no [[instance]] table draws it, and a file with "
+                                                "[[instance]] tables draws only instances: add "
+                                                f"one with mesh = {mesh}, or remove the table")
     return specs
 
 

@@ -57,3 +57,67 @@ def test_console_script_runs(suite_device):
     done = subprocess.run([sys.executable, "-m", "hlbvh_cl", "devices"], capture_output=True,
                           text=True, timeout=120)
     assert done.returncode == 0 and suite_device.id in done.stdout
+
+
+def test_version_needs_no_command(capsys):
+    import hlbvh_cl
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"hlbvh-cl {hlbvh_cl.__version__}"
+
+
+def test_a_mesh_file_renders_as_a_scene_of_that_mesh(tmp_path, capsys, suite_device):
+    """`hlbvh-cl render bunny.ply` frames the mesh on a ground (scenefile.read_mesh)."""
+    import imageio.v3 as iio
+    import numpy as np
+    import trimesh
+    mesh = tmp_path / "ball.ply"
+    trimesh.creation.icosphere(subdivisions=2).export(mesh)
+    out = tmp_path / "ball.png"
+    assert main(["render", str(mesh), "-o", str(out), "--width", "64", "--height", "48",
+                 "--device", suite_device.id]) == 0
+    assert "ball.ply: 2 meshes" in capsys.readouterr().out  # the ball and its ground
+    image = iio.imread(out)
+    assert image.shape == (48, 64, 3)
+    # framed: the ball (lit grey, off the sky's blue-white) covers the centre
+    centre = image[18:30, 26:38].astype(int)
+    assert (np.abs(centre[..., 2] - centre[..., 0]) < 8).all()
+    assert main(["info", str(mesh), "--repeat", "1", "--device", suite_device.id]) == 0
+    assert "triangles  322" in capsys.readouterr().out  # 320 + the ground's 2
+
+
+def test_a_file_neither_toml_nor_mesh_says_what_is_expected(tmp_path, capsys):
+    binary = tmp_path / "scan.bin"
+    binary.write_bytes(bytes([0xF3, 0x00, 0xFF, 0x80]) * 64)
+    assert main(["render", str(binary), "-o", str(tmp_path / "x.png")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "not UTF-8 text, so not a TOML scene file (expected a .toml scene file, or a mesh " \
+           "file: .ply, .obj" in err and "\n" not in err
+
+
+def test_a_slow_step_says_what_it_does_and_a_quick_one_is_quiet(capsys):
+    import time
+    from hlbvh_cl.cli import _stage
+    with _stage("compiling", after_s=0.05):
+        time.sleep(0.3)
+    with _stage("quick", after_s=5.0):
+        pass
+    assert capsys.readouterr().err == "hlbvh-cl: compiling ...\n"
+
+
+def test_ctrl_c_ends_a_render_with_one_line_and_exit_130(tmp_path, suite_device):
+    """SIGINT during a long render: no traceback, the shell's code for it."""
+    import os
+    import signal
+    import time
+    done_marker = tmp_path / "never.png"
+    command = [sys.executable, "-m", "hlbvh_cl", "render", str(SCENES / "bunny_small.toml"),
+               "-o", str(done_marker), "--width", "4096", "--height", "4096", "--spp", "64",
+               "--device", suite_device.id]
+    child = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    time.sleep(8)  # past start-up, into the build or the render
+    child.send_signal(signal.SIGINT)
+    out, err = child.communicate(timeout=120)
+    assert child.returncode == 130, err[-2000:]
+    assert err.strip().splitlines()[-1] == "hlbvh-cl: interrupted" and "Traceback" not in err
+    assert not done_marker.exists()

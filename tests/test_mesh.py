@@ -126,3 +126,24 @@ def test_a_scene_of_several_meshes_is_concatenated_with_its_transforms(tmp_path,
     # Compare the corners as sorted sets: the parts' order is the file's business.
     np.testing.assert_allclose(np.unique(got.round(5), axis=0), np.unique(expected.round(5), axis=0),
                                atol=1e-5)
+
+
+def test_another_librarys_mesh_is_taken_whole():
+    """Mesh(trimesh_mesh) and Mesh(open3d_mesh): their arrays, as given."""
+    sphere = trimesh.creation.icosphere(subdivisions=1)
+    mesh = Mesh(sphere)
+    np.testing.assert_array_equal(mesh.vertices, sphere.vertices.astype(np.float32))
+    np.testing.assert_array_equal(mesh.faces, sphere.faces)
+    assert Mesh(sphere, name="ball").name == "ball"
+    with pytest.raises(TypeError, match="got a trimesh.Scene, which holds several meshes"):
+        Mesh(trimesh.Scene([sphere]))
+    with pytest.raises(TypeError, match=r"Mesh\(vertices, faces\) is missing faces; .* got ndarray"):
+        Mesh(QUAD)
+
+
+def test_an_open3d_mesh_is_taken_whole():
+    o3d = pytest.importorskip("open3d")
+    box = o3d.geometry.TriangleMesh.create_box()
+    mesh = Mesh(box)
+    np.testing.assert_array_equal(mesh.vertices, np.asarray(box.vertices, np.float32))
+    np.testing.assert_array_equal(mesh.faces, np.asarray(box.triangles))

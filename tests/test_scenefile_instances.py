@@ -182,19 +182,6 @@ translate = [[10.0, 0.0, 0.0], [14.0, 0.0, -8.0]]
     assert scene.ground.y == -1.0
 
 
-def test_a_mesh_without_instances_is_kept_but_not_drawn(tmp_path):
-    scene = read(write(tmp_path, BASE + KNIGHT_MESH + BUNNY_MESH + """
-[ground]
-
-[[instance]]
-mesh = 1
-translate = [[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]]
-"""))
-    assert len(scene.meshes) == 2
-    assert [mesh for mesh, _ in scene.placements()] == [1, 1, 2]
-    assert scene.drawn_triangle_count == 2 * 3674 + 2
-
-
 def test_a_file_without_instances_has_no_placements():
     scene = read(SCENES / "bunny_small.toml")
     assert scene.instances == [] and scene.placements() == []
@@ -465,3 +452,12 @@ def test_instanced_file_renders_like_its_flat_twin(twins):
     assert np.isin(drawn, [0, 1]).mean() > 0.08  # the copies fill a good part of the picture
     differ = np.abs(images[0].astype(int) - images[1].astype(int)).max(axis=2) > 2
     assert differ.mean() < 0.01
+
+
+def test_a_mesh_no_instance_draws_is_an_error(tmp_path):
+    """A file with [[instance]] tables draws only instances: a [[mesh]] none
+    names would be missing from the picture without a word."""
+    text = BASE + KNIGHT_MESH + BUNNY_MESH + "\n[[instance]]\nmesh = 1\n"
+    with pytest.raises(SceneFileError, match=r"scene.toml: mesh\[0\]: no \[\[instance\]\] table "
+                                             r"draws it.*add one with mesh = 0, or remove"):
+        read(write(tmp_path, text))

@@ -575,3 +575,91 @@ def test_ragged_inputs_odd_scalars_and_far_cameras_are_named(suite_device):
                                          r"from the origin for this scene: its frame is scaled "
                                          r"by 2\^"):
         hlbvh_cl.Renderer(tiny).render(far, 8, 6)
+
+
+def test_a_mesh_no_instance_places_is_an_error(meshes):
+    """With instances a Scene holds only what they place: a mesh none places
+    would be missing without a word."""
+    bunny = meshes["bunny_small"]
+    quad = Mesh(QUAD, QUAD_FACES)
+    with pytest.raises(ValueError, match=r"no instance places meshes 0, 2: .* add an instance "
+                                         r"such as \(0, np.eye\(4\)\)"):
+        Scene([bunny, quad, bunny], instances=[(1, np.eye(4))])
+    scene = Scene([bunny, quad], instances=[(0, np.eye(4)), (1, np.eye(4))])
+    assert len(scene.transforms) == 2
+
+
+class _Tensor:
+    """What as_array reads of a PyTorch tensor, for machines without torch:
+    numpy() refuses a tensor that requires grad, and bfloat16 has no numpy
+    type, as torch's does."""
+    __module__ = "torch"
+
+    class _Device:
+        type = "cpu"
+
+    device = _Device()
+
+    def __init__(self, array, requires_grad=False, dtype="torch.float32"):
+        self.array, self.requires_grad, self.dtype = array, requires_grad, dtype
+
+    def detach(self):
+        return _Tensor(self.array, False, self.dtype)
+
+    def float(self):
+        return _Tensor(self.array.astype(np.float32), self.requires_grad)
+
+    def numpy(self):
+        if self.requires_grad:
+            raise RuntimeError("Can't call numpy() on Tensor that requires grad.")
+        if self.dtype == "torch.bfloat16":
+            raise TypeError("Got unsupported ScalarType BFloat16")
+        return self.array
+
+    def __array__(self, dtype=None, copy=None):
+        return self.numpy()
+
+
+def _tensor_kinds():
+    """(name, make) pairs: make(array, requires_grad, bfloat16) gives a tensor."""
+    kinds = [("stand-in", lambda a, grad, bf16: _Tensor(
+        a, grad, "torch.bfloat16" if bf16 else "torch.float32"))]
+    try:
+        import torch
+    except ImportError:
+        return kinds
+
+    def real(array, grad, bf16):
+        tensor = torch.tensor(array, dtype=torch.bfloat16 if bf16 else torch.float32)
+        return tensor.requires_grad_(grad)
+    return kinds + [("torch", real)]
+
+
+@pytest.mark.parametrize("kind, make", _tensor_kinds())
+def test_tensors_that_require_grad_or_hold_bfloat16_are_read(kind, make, meshes):
+    """Results carry no gradient, so a tensor that requires one is read as
+    its values; bfloat16 widens to float32 exactly."""
+    scene = Scene([Mesh(QUAD, QUAD_FACES)])
+    origins = np.array([[0.25, 0.5, 1.0], [0.75, 0.25, 2.0]], np.float32)
+    down = np.array([[0.0, 0.0, -1.0]] * 2, np.float32)
+    expected = scene.intersect(origins, down).t
+    np.testing.assert_array_equal(scene.intersect(make(origins, True, False), down).t, expected)
+    np.testing.assert_array_equal(scene.intersect(make(origins, False, True), down).t, expected)
+    vertices = make(np.asarray(QUAD, np.float32), True, False)
+    np.testing.assert_array_equal(Mesh(vertices, QUAD_FACES).vertices, QUAD)
+
+
+def test_the_dtype_message_lists_every_accepted_kind():
+    scene = Scene([Mesh(QUAD, QUAD_FACES)])
+    with pytest.raises(TypeError) as raised:
+        scene.intersect(np.array([[1, 2, 3]], dtype="U1"), [[0, 0, -1]])
+    assert "float32 (used as it is), or float64, float16, bfloat16 or integers" in \
+        str(raised.value)
+    # an object numpy cannot read is not called ragged
+    with pytest.raises(ValueError, match="origins cannot be read as a numpy array"):
+        scene.intersect(_Unreadable(), [[0, 0, -1]])
+
+
+class _Unreadable:
+    def __array__(self, dtype=None, copy=None):
+        raise TypeError("no numpy view of this")
