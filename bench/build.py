@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 import hlbvh_cl
-import hlbvh_cl.scenefile
+import hlbvh_cl.io.scenefile
 
 from . import plots
 from .common import (MESHES, SCENES, arguments, cpu_seconds, devices_or_exit, finish,
@@ -65,7 +65,7 @@ class Case:
     def make_scene(self, device_id: str, builder: str):
         """The scene, built once, and the seconds spent reading files."""
         if self.meshes is None:
-            loaded = hlbvh_cl.scenefile.load(self.path, device=device_id, builder=builder)
+            loaded = hlbvh_cl.io.scenefile.load(self.path, device=device_id, builder=builder)
             return loaded.scene, loaded.load_seconds
         return hlbvh_cl.Scene(self.meshes, device=device_id, builder=builder), 0.0
 

@@ -1,16 +1,16 @@
 """Work spread over a local Dask cluster against the same work in one
-process: what hlbvh_cl.dask costs.
+process: what hlbvh_cl.distributed.dask costs.
 
     python -m bench.cluster [--quick] [--devices pocl] [--repeats N] [--docs] [--no-progress]
 
-  a. frames: hlbvh_cl.dask.render_frames of F frames (the scene file's
+  a. frames: hlbvh_cl.distributed.dask.render_frames of F frames (the scene file's
      camera turned about its target, W x H, diffuse with shadows, one task a
      frame) on a LocalCluster of 1 and of 2 worker processes with one thread
      each, against one process that builds the Scene and renders the same
      frames with a Renderer.  A cluster round starts with nothing of the
      scene on the workers: it ships the scene (a scatter to every worker),
      each worker builds it, renders its frames, and the images come back.
-  b. rays: hlbvh_cl.dask.intersect over C chunks of R camera rays (tiles of
+  b. rays: hlbvh_cl.distributed.dask.intersect over C chunks of R camera rays (tiles of
      rows of one image) that da.map_blocks makes on the workers; each
      chunk's hits are reduced where they were traced (hits, and a sum of
      prim ids), so little comes back.  One process: a Scene built, then the
@@ -18,7 +18,7 @@ process: what hlbvh_cl.dask costs.
   c. overhead per task: N tasks that do nothing, submitted and gathered, on
      each warm cluster.
 
-The clusters' workers start with hlbvh_cl.dask.WORKER_CONFIG (glibc's own
+The clusters' workers start with hlbvh_cl.distributed.dask.WORKER_CONFIG (glibc's own
 memory trimming, as docs/dask.md advises).  Starting a cluster is not timed,
 nor is compiling the kernels: every process first builds the scene, renders
 and traces a little (once per process), and then forgets the scene.  Rounds alternate between one process and the
@@ -39,7 +39,7 @@ from dataclasses import asdict, dataclass, replace
 import numpy as np
 
 import hlbvh_cl
-import hlbvh_cl.scenefile
+import hlbvh_cl.io.scenefile
 from hlbvh_cl import travel
 
 from . import common
@@ -110,7 +110,7 @@ def _noop(x):
 def _forget() -> int:
     """On a worker: drop the scenes and renderers it built, so that the next
     round builds again.  Returns how many scenes it held."""
-    import hlbvh_cl.dask as hd
+    import hlbvh_cl.distributed.dask as hd
     held = travel.cached_count()
     travel.clear()
     with hd._renderers_lock:
@@ -119,7 +119,7 @@ def _forget() -> int:
 
 
 def _warm(scene, camera: hlbvh_cl.Camera, rays: np.ndarray) -> None:
-    """A small render and trace of ``scene`` (a Scene, or what hlbvh_cl.dask
+    """A small render and trace of ``scene`` (a Scene, or what hlbvh_cl.distributed.dask
     ships): every kernel the rounds run gets compiled."""
     if not isinstance(scene, hlbvh_cl.Scene):
         with scene.scene() as shipped:
@@ -140,7 +140,7 @@ class Work:
 
     def __init__(self, config: Config, device: str):
         self.config, self.device = config, device
-        description = hlbvh_cl.scenefile.read(SCENES / config.scene)
+        description = hlbvh_cl.io.scenefile.read(SCENES / config.scene)
         geometries = description.geometries()
         self.meshes = [m for m, _ in geometries]
         self.colors = [c for _, c in geometries]
@@ -174,7 +174,7 @@ class Work:
 
     # the cluster
     def frames_there(self, client) -> list:
-        import hlbvh_cl.dask as hd
+        import hlbvh_cl.distributed.dask as hd
         return hd.render_frames(self.scene, self.cameras, *self.config.resolution, client,
                                 colors=self.colors, light=self.light, progress=False)
 
@@ -182,7 +182,7 @@ class Work:
         import dask
         import dask.array as da
 
-        import hlbvh_cl.dask as hd
+        import hlbvh_cl.distributed.dask as hd
         width, height = self.config.image
         rays = da.map_blocks(tile_rays, self.pinhole, width, height, self.rows,
                              chunks=((self.rows,) * self.config.chunks, (width,), (6,)),
@@ -197,7 +197,7 @@ class Work:
         if client is None:
             _warm(self.scene, self.cameras[0], rays)
             return
-        import hlbvh_cl.dask as hd
+        import hlbvh_cl.distributed.dask as hd
         shipped = hd._ship(self.scene, client)
         client.gather([client.submit(_warm, shipped, self.cameras[0], rays, workers=[w],
                                      allow_other_workers=False, pure=False)
@@ -207,7 +207,7 @@ class Work:
     def record_ms(self, repeats: int = 3) -> float:
         """The ms a chunk's hits take to become one record array (the dask
         path's copy, which one process does not make), here."""
-        import hlbvh_cl.dask as hd
+        import hlbvh_cl.distributed.dask as hd
         hits = self.scene.intersect(tile_rays(self.pinhole, *self.config.image, self.rows,
                                               (0, 0, 0)))
         times = []
@@ -218,7 +218,7 @@ class Work:
         return summary(times)["median"]
 
     def forget(self, client) -> None:
-        import hlbvh_cl.dask as hd
+        import hlbvh_cl.distributed.dask as hd
         client.run(_forget)
         with hd._scattered_lock:
             hd._scattered.pop(self.scene, None)
@@ -229,7 +229,7 @@ class Work:
 def cluster_round(work: Work, client, part: str) -> dict:
     """One round on the cluster from nothing of the scene there: the ship
     timed apart, then the part's work (which finds the scene shipped)."""
-    import hlbvh_cl.dask as hd
+    import hlbvh_cl.distributed.dask as hd
     work.forget(client)
     elapsed = stopwatch()
     hd._ship(work.scene, client)
@@ -246,7 +246,7 @@ def bench_workers(work: Work, workers: int, repeats: int, bar) -> dict:
     import dask
     from distributed import Client, LocalCluster
 
-    import hlbvh_cl.dask as hd
+    import hlbvh_cl.distributed.dask as hd
     out = {"workers": workers}
     with dask.config.set(hd.WORKER_CONFIG):
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,

@@ -51,7 +51,7 @@ from pathlib import Path
 import numpy as np
 
 import hlbvh_cl
-import hlbvh_cl.scenefile
+import hlbvh_cl.io.scenefile
 
 from . import common, peers, plots, trace
 from .common import (BENCH, MESHES, SCENES, arguments, devices_or_exit, finish, machine_info,
@@ -483,7 +483,7 @@ def _time_rays(participants: list, rays, repeats: int) -> tuple[dict, dict]:
 
 def bench_identity(config: Config, device_ids: list[str]) -> dict:
     """The scene file's meshes flat and as instances under identity transforms."""
-    description = hlbvh_cl.scenefile.read(SCENES / config.scene)
+    description = hlbvh_cl.io.scenefile.read(SCENES / config.scene)
     meshes = [m for m, _ in description.geometries()]
     rays = trace.primary_rays(description.camera, *config.resolution)
     built = []

@@ -2,7 +2,7 @@
 shadows), as the original report timed its renders (python -m bench's table).
 
 Measuring scene files on a device (time_renders):
-  1. hlbvh_cl.scenefile.load reads each file and builds it once: reading is
+  1. hlbvh_cl.io.scenefile.load reads each file and builds it once: reading is
      ``load_s``, and that first build pays for compiling the build kernels;
   2. a 1x1 render compiles the render kernels;
   3. one rebuild + render of each warms up;
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-import hlbvh_cl.scenefile
+import hlbvh_cl.io.scenefile
 
 from .common import cpu_seconds, stopwatch, summary
 
@@ -74,7 +74,7 @@ class _SceneTiming:
     def __init__(self, path: Path, device_id: str, width: int, height: int, builder: str):
         self.path, self.width, self.height, self.builder = path, width, height, builder
         elapsed = stopwatch()
-        loaded = hlbvh_cl.scenefile.load(path, device=device_id, builder=builder)
+        loaded = hlbvh_cl.io.scenefile.load(path, device=device_id, builder=builder)
         self.load_s = loaded.load_seconds
         self.first_build_s = elapsed() - self.load_s
         self.scene, self.camera, self.renderer = loaded.scene, loaded.camera, loaded.renderer()

@@ -36,7 +36,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 import hlbvh_cl
-import hlbvh_cl.scenefile
+import hlbvh_cl.io.scenefile
 
 from . import plots
 from .common import (MESHES, SCENES, arguments, bounds, devices_or_exit, finish, fit_exponent,
@@ -160,7 +160,7 @@ def scene_file_case(filename: str, device_id: str) -> SceneCase:
     """The scene file's meshes and camera, built on ``device_id`` on the way
     (that device then uses the built scene)."""
     elapsed = stopwatch()
-    loaded = hlbvh_cl.scenefile.load(SCENES / filename, device=device_id)
+    loaded = hlbvh_cl.io.scenefile.load(SCENES / filename, device=device_id)
     seconds = elapsed() - loaded.load_seconds
     meshes = list(loaded.scene.meshes)
     solid = [m for m in meshes if np.ptp(m.vertices, axis=0).min() > 0] or meshes  # no ground

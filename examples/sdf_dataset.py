@@ -106,10 +106,10 @@ def main(argv=None) -> list[dict]:
     import dask
     from distributed import Client, LocalCluster, progress
 
-    import hlbvh_cl.dask
+    import hlbvh_cl.distributed.dask
     cluster = None
     if args.scheduler is None:
-        with dask.config.set(hlbvh_cl.dask.WORKER_CONFIG):
+        with dask.config.set(hlbvh_cl.distributed.dask.WORKER_CONFIG):
             cluster = LocalCluster(n_workers=args.workers, threads_per_worker=1,
                                    processes=True, dashboard_address=":0")
     try:

@@ -10,16 +10,17 @@
     scene.update_vertices(0, moved_vertices)          # refit on the device
     camera = hlbvh_cl.Camera(eye, target)
     image = hlbvh_cl.Renderer(scene).render(camera, 640, 480)   # (480, 640, 3) uint8
-    loaded = hlbvh_cl.scenefile.load("scenes/reference.toml")   # a scene file, built
+    loaded = hlbvh_cl.io.scenefile.load("scenes/reference.toml")   # a scene file, built
 """
-from . import scenefile
-from .all_hits import AllHits
-from .build import BuildStats
-from .device import Device, DeviceMemoryError, KernelBuildError, devices
+from .io import scenefile
+from .query.all_hits import AllHits
+from .build.pipeline import BuildStats
+from .device.discovery import Device, devices
+from .device.runtime import DeviceMemoryError, KernelBuildError
 from .mesh import Mesh
-from .points import ClosestPoints
-from .query import Hits
-from .render import Camera, Light, Renderer
+from .query.points import ClosestPoints
+from .query.rays import Hits
+from .render.renderer import Camera, Light, Renderer
 from .scene import Scene
 
 __all__ = ["AllHits", "BuildStats", "Camera", "ClosestPoints", "Device", "DeviceMemoryError",

@@ -20,9 +20,12 @@ import sys
 import time
 from pathlib import Path
 
-from . import __version__, devices, scenefile
-from .device import DeviceMemoryError, KernelBuildError, select_device, unregistered
-from .render import AO_SAMPLES, MAX_AO_SAMPLES, MAX_IMAGE_SIDE, MAX_SPP, SHADINGS
+from . import __version__
+from . import devices
+from .io import scenefile
+from .device.discovery import select_device, unregistered
+from .device.runtime import DeviceMemoryError, KernelBuildError
+from .render.renderer import AO_SAMPLES, MAX_AO_SAMPLES, MAX_IMAGE_SIDE, MAX_SPP, SHADINGS
 
 #: What a slow first run is doing (_stage).
 _PROBING = "probing the OpenCL devices in child processes (once per device and driver)"
@@ -78,7 +81,7 @@ def _instances(scene) -> str:
     """An instanced scene in a few words: its instances, the triangles its
     meshes' trees hold and the triangles its instances place."""
     stored = sum(m.triangle_count for m in scene.meshes)
-    placed = sum(scene.meshes[m].triangle_count for m in scene._two_level.instance_meshes)
+    placed = sum(scene.meshes[m].triangle_count for m in scene.instance_meshes)
     return (f"{len(scene.transforms):,} instances, {stored:,} triangles stored, "
             f"{placed:,} placed")
 

@@ -21,12 +21,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .inputs import as_array
+from .core import inputs
 
 #: file extensions Mesh.load understands (each may also end in .gz)
 MESH_EXTENSIONS = ("ply", "obj", "off", "stl", "glb")
 
-_INT32_LIMIT = 2**31
 
 #: An OBJ's material lines.  trimesh splits an OBJ at each ``usemtl`` into
 #: parts, each with its own copy of the vertices and the faces regrouped by
@@ -36,84 +35,6 @@ _OBJ_MATERIALS = re.compile(rb"(?m)^[ \t]*(?:usemtl|mtllib)\b[^\r\n]*")
 #: An OBJ face line with a vertex index of 0 (OBJ counts from 1, or back
 #: from -1), which trimesh would read as the first vertex.
 _OBJ_ZERO_INDEX = re.compile(rb"(?m)^[ \t]*f[ \t][^\r\n#]*?[ \t][+-]?0+(?=[/ \t\r]|$)")
-
-
-def _check_shape(name: str, array: np.ndarray, rows: str) -> None:
-    if array.size == 0:
-        raise ValueError(f"{name} is empty (shape {array.shape}): a mesh needs at least one "
-                         f"{'vertex' if name == 'vertices' else 'triangle'}")
-    if array.ndim != 2 or array.shape[1] != 3:
-        raise ValueError(f"{name} has shape {array.shape}, expected ({rows}, 3)")
-
-
-def _first_row(mask: np.ndarray) -> int:
-    """Index of the first row of a (rows, 3) boolean mask with any True."""
-    return int(np.flatnonzero(mask.any(axis=1))[0])
-
-
-def _validate_vertices(vertices) -> np.ndarray:
-    array = as_array("vertices", vertices)
-    if array.dtype.kind not in "fiu":
-        raise TypeError(f"vertices has dtype {array.dtype}, expected real numbers (float32 "
-                        f"preferred; any float or integer dtype is converted)")
-    _check_shape("vertices", array, "N")
-    if array.shape[0] >= _INT32_LIMIT:
-        raise ValueError(f"vertices has {array.shape[0]} rows; at most 2**31 - 1 fit int32 indices")
-    if array.dtype.kind == "f":
-        finite = np.isfinite(array)
-        if not finite.all():
-            row = _first_row(~finite)
-            raise ValueError(f"vertices[{row}] = {array[row].tolist()} is not finite (NaN or inf)")
-    with np.errstate(over="ignore"):
-        converted = np.array(array, dtype=np.float32, order="C", copy=True)
-    overflow = ~np.isfinite(converted)
-    if overflow.any():
-        row = _first_row(overflow)
-        raise ValueError(f"vertices[{row}] = {array[row].tolist()} overflows float32 "
-                         f"(|x| > {np.finfo(np.float32).max:.3g})")
-    if array.dtype.kind == "f":
-        # a mesh whose every coordinate is below float32's normal range would
-        # round to subnormals or 0: its shape lost, it would be missed silently
-        largest = np.abs(array).max(axis=1)
-        row = int(np.argmax(largest))
-        if 0 < largest[row] < np.finfo(np.float32).tiny:
-            raise ValueError(f"vertices are all below float32's normal range (the largest, "
-                             f"vertices[{row}] = {array[row].tolist()}, is under "
-                             f"{np.finfo(np.float32).tiny:.3g}): in float32 the mesh would "
-                             "lose its shape; scale it up")
-    converted.flags.writeable = False
-    return converted
-
-
-def _validate_faces(faces, vertex_count: int) -> np.ndarray:
-    array = as_array("faces", faces)
-    if array.size == 0:  # [] reads as float64: say it is empty, not float
-        _check_shape("faces", array, "M")
-    if array.dtype.kind == "f":
-        raise TypeError(f"faces has dtype {array.dtype}: pass integers (e.g. faces.astype(np.int32))")
-    if array.dtype.kind not in "iu":
-        raise TypeError(f"faces has dtype {array.dtype}, expected integer vertex indices")
-    _check_shape("faces", array, "M")
-    if array.shape[0] >= _INT32_LIMIT:
-        raise ValueError(f"faces has {array.shape[0]} rows; at most 2**31 - 1 fit int32 ids")
-    if array.dtype.kind == "i":
-        negative = array < 0
-        if negative.any():
-            row = _first_row(negative)
-            raise ValueError(f"faces[{row}] = {array[row].tolist()}: index "
-                             f"{int(array[row][negative[row]][0])} is negative")
-    too_large = array >= min(vertex_count, _INT32_LIMIT)
-    if too_large.any():
-        row = _first_row(too_large)
-        value = int(array[row][too_large[row]][0])
-        if value >= _INT32_LIMIT:
-            raise ValueError(f"faces[{row}] = {array[row].tolist()}: index {value} does not fit "
-                             f"int32 (>= 2**31)")
-        raise ValueError(f"faces[{row}] = {array[row].tolist()}: index {value} is out of range "
-                         f"for {vertex_count} vertices (expected 0 <= index < {vertex_count})")
-    converted = np.array(array, dtype=np.int32, order="C", copy=True)
-    converted.flags.writeable = False
-    return converted
 
 
 class Mesh:
@@ -131,8 +52,8 @@ class Mesh:
     def __init__(self, vertices, faces=None, name: str | None = None):
         if faces is None:
             vertices, faces = _mesh_arrays(vertices)
-        self._vertices = _validate_vertices(vertices)
-        self._faces = _validate_faces(faces, len(self._vertices))
+        self._vertices = inputs.mesh_vertices(vertices)
+        self._faces = inputs.mesh_faces(faces, len(self._vertices))
         self.name = name
         self._bounds: tuple[np.ndarray, np.ndarray] | None = None
 

@@ -1,9 +1,10 @@
 """Scene: meshes on one device and one BVH over all of them, with the verbs
 an accelerator needs (intersect, occluded, update_vertices, rebuild).  The
-tree is built by hlbvh_cl.build (Lauterbach et al. 2009, Pantaleoni & Luebke
-2010, Karras 2012); rendering is hlbvh_cl.render's Renderer."""
+tree is built by hlbvh_cl.build.pipeline (Lauterbach et al. 2009, Pantaleoni & Luebke
+2010, Karras 2012); rendering is hlbvh_cl.render.renderer's Renderer."""
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 import weakref
@@ -12,17 +13,30 @@ from collections.abc import Sequence
 import numpy as np
 import pyopencl as cl
 
-from . import frame, travel
-from .build import BUILDERS, BuildStats, Geometry, build, check_fits
-from .device import ProcessLock, event_ms, runtime
-from .mesh import Mesh, _validate_vertices
-from .morton import key_dtype
-from .all_hits import AllHitsQuery, wide_count_packets
-from .inputs import ALL_BITS, as_array
-from .instances import TwoLevel, check_instances, check_masks, check_transforms
-from .points import PointQuery
-from .query import RayQuery
-from .refit import refit
+from .core import frame
+from . import travel
+from .build.pipeline import BUILDERS, BuildStats, Geometry, build, check_fits
+from .device.discovery import ProcessLock
+from .device.runtime import Runtime, event_ms, runtime
+from .mesh import Mesh
+from .build.morton import key_dtype
+from .query.all_hits import AllHitsQuery, wide_count_packets
+from .core import inputs
+from .core.inputs import ALL_BITS, as_array
+from .build.instances import InstancedTree, TwoLevel, check_instances, check_masks, check_transforms
+from .query.points import PointQuery
+from .query.rays import RayQuery
+from .build.refit import refit
+from .core.tree import Tree
+
+
+@dataclasses.dataclass(frozen=True)
+class Built:
+    """A built scene as Scene.borrow() lends it: valid while borrowed."""
+
+    runtime: Runtime         # its device's runtime (hlbvh_cl.device.runtime)
+    tree: Tree | InstancedTree  # the tree queries walk (an instanced scene's top tree)
+    spec: travel.SceneSpec   # what the scene pickles as: its content key and arguments
 
 
 def _as_meshes(meshes) -> tuple[Mesh, ...]:
@@ -52,7 +66,7 @@ class Scene:
     non-uniform scales included).  Only the instances are in the scene then
     (a mesh no instance places is an error, not silently left out); each
     mesh gets its own tree, shared by all its instances, under a top
-    tree over the instances (hlbvh_cl.instances), and hits carry
+    tree over the instances (hlbvh_cl.build.instances), and hits carry
     ``instance_id``.  ``masks``: a 32-bit mask per instance (per mesh
     without instances), default all bits; a ray query's ``mask`` skips the
     geometry whose mask shares no bit with the ray's, as in Embree.  A
@@ -109,7 +123,7 @@ class Scene:
                                 zip(self.meshes, self._vertex_offsets[:-1])])
         vertices = np.concatenate([m.vertices for m in self.meshes])
         self._largest = [frame.largest_used(m.vertices, m.faces) for m in self.meshes]
-        self._scale = frame.scale_for(max(self._largest))  # the tree's frame (hlbvh_cl.frame)
+        self._scale = frame.scale_for(max(self._largest))  # the tree's frame (hlbvh_cl.core.frame)
         self._geometry = Geometry.upload(rt, frame.to_frame(vertices, self._scale),
                                          faces, first_face)
         self._stale_vertices = False  # the device's vertices lag self.meshes (_build)
@@ -121,6 +135,31 @@ class Scene:
     def device(self):
         """The hlbvh_cl.Device the scene lives on."""
         return self._runtime.device
+
+    @contextlib.contextmanager
+    def borrow(self):
+        """The one way into a built scene for the layers above it (the
+        renderer, Dask, the CLI, the probe, the tests): a Built record of its
+        runtime, its tree and what it pickles as, valid inside the ``with``,
+        which holds the scene's lock so that no rebuild, refit or change
+        comes in between.  Raises RuntimeError where the last rebuild
+        failed (no tree)."""
+        with self._lock:
+            yield Built(self._runtime, self._built_tree(), self._travel_spec())
+
+    def view(self) -> Scene:
+        """Another Scene object over this one's trees, which it shares until
+        either changes; the one that changes first builds trees of its own
+        (copy on write), so that no change reaches another holder.
+        Unpickling hands out these (hlbvh_cl.travel)."""
+        with self._lock:
+            return self._view()
+
+    @property
+    def instance_meshes(self) -> np.ndarray | None:
+        """int32 (K,): the mesh each instance places (a copy); None without
+        instances."""
+        return self._two_level.instance_meshes.copy() if self._instanced else None
 
     @property
     def stats(self) -> BuildStats:
@@ -136,7 +175,7 @@ class Scene:
         The old tree is released first, so a rebuild needs no more device
         memory than the first build (which check_fits accounted for), and
         the new one reuses its buffers and the last build's scratch
-        (hlbvh_cl.pool)."""
+        (hlbvh_cl.device.pool)."""
         with self._lock:
             if self._own():  # a view builds its own trees: that is the rebuild
                 return
@@ -304,14 +343,14 @@ class Scene:
         the tree's boxes on the device; the topology is kept, and with it
         stats.sah_cost (of the tree as built).  (Unless the move takes the
         scene's largest coordinate across 2^24 or 2^-24 from the frame it was
-        built in: then it is rebuilt in a new frame, hlbvh_cl.frame.)"""
+        built in: then it is rebuilt in a new frame, hlbvh_cl.core.frame.)"""
         if isinstance(geom_id, bool) or not isinstance(geom_id, (int, np.integer)):
             raise TypeError(f"geom_id must be an int, got {type(geom_id).__name__}")
         if not 0 <= geom_id < len(self.meshes):
             raise ValueError(f"geom_id {geom_id} is out of range: the scene has "
                              f"{len(self.meshes)} mesh(es)")
         old = self.meshes[geom_id]
-        positions = _validate_vertices(vertices)
+        positions = inputs.mesh_vertices(vertices)
         if len(positions) != old.vertex_count:
             raise ValueError(f"vertices has {len(positions)} rows but mesh {geom_id} has "
                              f"{old.vertex_count} vertices; update_vertices keeps the topology")
@@ -362,7 +401,7 @@ class Scene:
         leading shape.  Rays are origins and directions (..., 3), which
         broadcast (one origin (3,) for many directions), or packed (..., 6)
         in ``origins`` alone; tmin and tmax are scalars or broadcast to the
-        rays (hlbvh_cl.inputs); ``mask``, a 32-bit integer or one per ray,
+        rays (hlbvh_cl.core.inputs); ``mask``, a 32-bit integer or one per ray,
         skips the geometry whose mask shares no bit with it."""
         with self._lock:
             hits = self._ray_query().intersect(self._built_tree(), origins, directions, tmin,
@@ -423,7 +462,7 @@ class Scene:
     def winding_number(self, points) -> np.ndarray:
         """float32: the generalized winding number of each point (1 inside a
         closed outward-oriented surface, -1 inside an inward-oriented one, 0
-        outside, fractional near the holes of an open one; hlbvh_cl.points).
+        outside, fractional near the holes of an open one; hlbvh_cl.query.points).
         With instances: the sum over them of each mesh's own winding number
         at the point mapped into it, negated for a mirroring map (on closed
         meshes the flattened scene's)."""
@@ -433,7 +472,7 @@ class Scene:
     def signed_distance(self, points) -> np.ndarray:
         """float32: the distance to the surface, negative inside, i.e. where
         |winding number| >= 0.5, whichever way the faces turn (on an open mesh
-        that closes each hole minimally; see hlbvh_cl.points)."""
+        that closes each hole minimally; see hlbvh_cl.query.points)."""
         with self._lock:
             return self._point_query().signed_distance(self._built_tree(), points)
 

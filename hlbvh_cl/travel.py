@@ -6,7 +6,7 @@ A Scene pickles as a SceneSpec: its meshes (arrays and names), its instances
 the device it was asked for (the spec as the caller gave it, never OpenCL
 objects).  Unpickling looks the spec's content key up in the cache and
 builds the Scene only when it is not there, so a worker of a cluster
-(hlbvh_cl.dask) that runs a thousand tasks on one scene builds it once.
+(hlbvh_cl.distributed.dask) that runs a thousand tasks on one scene builds it once.
 Each unpickling gets a Scene object of its own, a view over the cached
 scene's trees (Scene._view): a view that changes (update_vertices,
 set_transforms, rebuild) first builds trees of its own, so no change
@@ -74,19 +74,19 @@ _building: dict = {}
 
 
 def restore(spec: SceneSpec, scene_class):
-    """A view (Scene._view) of the Scene of ``spec``: the cached one, or a
+    """A view (Scene.view) of the Scene of ``spec``: the cached one, or a
     new one built (by ``scene_class``) and cached.  Concurrent restores of
     one spec build it once (the others wait).  The cached scene itself is
     never handed out, so it never changes."""
     with _cache_lock:
         if spec.key in _cache:
             _cache.move_to_end(spec.key)
-            return _cache[spec.key]._view()
+            return _cache[spec.key].view()
         lock = _building.setdefault(spec.key, threading.Lock())
     with lock:
         with _cache_lock:
             if spec.key in _cache:
-                return _cache[spec.key]._view()
+                return _cache[spec.key].view()
         try:
             args, kwargs = spec.arguments()
             scene = scene_class(*args, **kwargs)
@@ -99,7 +99,7 @@ def restore(spec: SceneSpec, scene_class):
             _building.pop(spec.key, None)
             while len(_cache) > CACHE_SIZE:
                 _cache.popitem(last=False)
-        return scene._view()
+        return scene.view()
 
 
 def cached_count() -> int:

@@ -1,10 +1,14 @@
 """The suite runs on PoCL's CPU device unless HLBVH_CL_DEVICE says otherwise.
-Tree invariants are checked where trees are made: tests/invariants.py's
+Tree invariants are checked where trees are made: tests/support/invariants.py's
 check_tree, which the build tests call."""
 import os
+import sys
 from pathlib import Path
 
 import pytest
+
+# tests/support: the oracles, shapes and helpers every room's tests import
+sys.path.insert(0, str(Path(__file__).resolve().parent / "support"))
 
 os.environ.setdefault("HLBVH_CL_DEVICE", "pocl")
 
@@ -25,7 +29,7 @@ def pytest_report_header(config):
 def suite_device():
     """The device this run tests: the one $HLBVH_CL_DEVICE names (tests name
     it through this, never a vendor of their own)."""
-    from hlbvh_cl.device import select_device
+    from hlbvh_cl.device.discovery import select_device
     return select_device(os.environ["HLBVH_CL_DEVICE"])
 
 

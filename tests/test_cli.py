@@ -7,8 +7,9 @@ from pathlib import Path
 import pytest
 
 from hlbvh_cl.cli import main
+import places
 
-SCENES = Path(__file__).resolve().parent.parent / "scenes"
+SCENES = places.SCENES
 
 
 def test_devices_lists_and_requires_the_suite_device(capsys, suite_device):

@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 from hlbvh_cl.cli import main
-from hlbvh_cl import scenefile
+from hlbvh_cl.io import scenefile
+import places
 
-SCENES = Path(__file__).resolve().parent.parent / "scenes"
+SCENES = places.SCENES
 BUNNY = str(SCENES / "bunny_small.toml")
 
 

@@ -25,7 +25,7 @@ count = 8_000_000
 origins = ((lo + hi) / 2 + rng.uniform(-0.5, 0.5, (count, 3)) * (hi - lo)).astype(np.float32)
 directions = rng.normal(size=(count, 3)).astype(np.float32)
 small = renderer.render(camera, 32, 24)  # compiles every kernel first
-few = slice(0, 2000)  # more than a Morton-ordered batch's least (hlbvh_cl.order)
+few = slice(0, 2000)  # more than a Morton-ordered batch's least (hlbvh_cl.query.order)
 jobs = {  # (the long job, the same query on a few rays or points, as arrays)
     "render": (lambda: renderer.render(camera, 2048, 1536, shading="ao", ao_samples=64, spp=4),
                lambda: [renderer.render(camera, 32, 24)]),

@@ -1,6 +1,6 @@
 """Memory reuse: the buffer pool that recycles scratch and trees between
-builds (hlbvh_cl.pool), the result pool that lends result arrays
-(hlbvh_cl.results), huge-page advice for large buffers (hlbvh_cl.hugepages),
+builds (hlbvh_cl.device.pool), the result pool that lends result arrays
+(hlbvh_cl.query.results), huge-page advice for large buffers (hlbvh_cl.device.hugepages),
 and the ray query's own buffers: reused, grown, sized from device memory,
 used in place or written in place.
 """
@@ -16,20 +16,22 @@ import pyopencl as cl
 import pytest
 
 import hlbvh_cl
-from hlbvh_cl import Mesh, Scene
-from hlbvh_cl import query as query_module
-from hlbvh_cl.device import runtime
-from hlbvh_cl.hugepages import HUGE_PAGE, MIN_ADVISED_BYTES, advise_huge_pages
-from hlbvh_cl.pool import KEEP_BUILDS, BufferPool
-from hlbvh_cl.query import RayQuery
-from hlbvh_cl.results import MIN_POOLED_BYTES, ResultPool, starts_on_page
+from hlbvh_cl import Mesh
+from hlbvh_cl import Scene
+from hlbvh_cl.query import rays as query_module
+from hlbvh_cl.device.runtime import runtime
+from hlbvh_cl.device.hugepages import HUGE_PAGE, MIN_ADVISED_BYTES, advise_huge_pages
+from hlbvh_cl.device.pool import KEEP_BUILDS, BufferPool
+from hlbvh_cl.query.rays import RayQuery
+from hlbvh_cl.query.results import MIN_POOLED_BYTES, ResultPool, starts_on_page
 from ray_cases import assert_matches_oracle, random_rays, scene_case
 from shapes import grid_mesh
+import places
 
 
 # -- the buffer pool: scratch and trees between builds ----------------------------
 
-MESH_DIR = Path(__file__).resolve().parent.parent / "scenes" / "meshes"
+MESH_DIR = places.MESHES
 
 
 @pytest.fixture
@@ -318,10 +320,10 @@ ADVISED_BUFFER = """
 import sys
 import numpy as np
 import pyopencl as cl
-sys.path.insert(0, sys.argv[1])
+sys.path[:0] = sys.argv[1:3]
 from test_memory import _huge_kib_at
-from hlbvh_cl.device import runtime
-from hlbvh_cl.hugepages import HUGE_PAGE, MIN_ADVISED_BYTES
+from hlbvh_cl.device.runtime import runtime
+from hlbvh_cl.device.hugepages import HUGE_PAGE, MIN_ADVISED_BYTES
 rt = runtime()
 if not rt.huge_pages:
     print("not advised", rt.device.id)
@@ -344,9 +346,9 @@ mapped.base.release(rt.queue)
 @pytest.mark.skipif(not sys.platform.startswith("linux") or not _thp_on_request(),
                     reason="needs Linux with transparent huge pages on request")
 def test_an_advised_buffer_is_backed_by_huge_pages_and_keeps_its_data():
-    here = Path(__file__).resolve().parent
-    done = subprocess.run([sys.executable, "-c", ADVISED_BUFFER, str(here)], capture_output=True,
-                          text=True, cwd=here.parent, stdin=subprocess.DEVNULL, timeout=300)
+    done = subprocess.run([sys.executable, "-c", ADVISED_BUFFER, str(places.TESTS),
+                           str(places.SUPPORT)],
+                          capture_output=True, text=True, cwd=places.REPO, stdin=subprocess.DEVNULL, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     result = done.stdout.split()
     if result[:2] == ["not", "advised"]:

@@ -9,8 +9,9 @@ import trimesh
 
 from hlbvh_cl.mesh import Mesh
 from shapes import QUAD, QUAD_FACES
+import places
 
-MESHES = Path(__file__).resolve().parent.parent / "scenes" / "meshes"
+MESHES = places.MESHES
 
 def test_arrays_are_converted_and_read_only():
     mesh = Mesh(QUAD, QUAD_FACES.astype(np.uint64), name="quad")

@@ -17,8 +17,9 @@ import numpy as np
 import pytest
 
 import hlbvh_cl
-from hlbvh_cl.device import ForkedProcessError
+from hlbvh_cl.device.discovery import ForkedProcessError
 
+import places
 import workers
 from children import package_environment
 from shapes import grid_mesh
@@ -120,7 +121,7 @@ def test_workers_forked_before_the_parent_starts_opencl_use_it(suite_device):
         "with multiprocessing.get_context('fork').Pool(2) as pool:\n"
         f"    print(pool.map_async(work, [[0, 1], [2, 3]]).get(timeout={ANSWER_S}))\n")
     env = package_environment()
-    env["PYTHONPATH"] = os.pathsep.join([os.path.dirname(__file__), env["PYTHONPATH"]])
+    env["PYTHONPATH"] = os.pathsep.join([str(places.SUPPORT), env["PYTHONPATH"]])
     done = subprocess.run([sys.executable, "-c", script, suite_device.id], env=env,
                           capture_output=True, text=True, timeout=2 * ANSWER_S)
     assert done.returncode == 0, done.stderr[-3000:]

@@ -11,6 +11,7 @@ import pytest
 
 import hlbvh_cl
 from shapes import grid_mesh
+import places
 
 MESHES = "scenes/meshes"
 SECONDS = 20.0
@@ -28,7 +29,7 @@ def _rays(scene, count, seed):
 @pytest.fixture(scope="module")
 def scenes():
     from pathlib import Path
-    root = Path(__file__).resolve().parent.parent / MESHES
+    root = places.REPO / MESHES
     bunny = hlbvh_cl.Mesh.load(root / "bunny_small.ply")
     teapot = hlbvh_cl.Mesh.load(root / "teapot.ply")
     return [hlbvh_cl.Scene([bunny, grid_mesh(3)]), hlbvh_cl.Scene([teapot])]

@@ -14,12 +14,13 @@ import pytest
 import trimesh
 
 import hlbvh_cl
-from hlbvh_cl import DeviceMemoryError, Scene
-from hlbvh_cl import inputs as inputs_module
-from hlbvh_cl.build import Geometry, build
-from hlbvh_cl.device import Runtime, runtime
+from hlbvh_cl import DeviceMemoryError
+from hlbvh_cl import Scene
+from hlbvh_cl.core import inputs as inputs_module
+from hlbvh_cl.build.pipeline import Geometry, build
+from hlbvh_cl.device.runtime import Runtime, runtime
 from hlbvh_cl.mesh import Mesh
-from hlbvh_cl.query import RayQuery
+from hlbvh_cl.query.rays import RayQuery
 from invariants import check_tree
 from ray_cases import scene_case
 from render_scene import CAMERA, COLORS, LIGHT, renderer, scene  # noqa: F401 (fixtures)
@@ -146,7 +147,7 @@ def test_bad_rows_are_named_in_every_part_of_a_large_batch(monkeypatch, which, r
 def test_bad_tree_and_chunk_size():
     case = scene_case("cube")
     q = RayQuery(case.scene._runtime)
-    with pytest.raises(TypeError, match="tree must be a hlbvh_cl.tree.Tree"):
+    with pytest.raises(TypeError, match="tree must be a hlbvh_cl.core.tree.Tree"):
         q.intersect("tree", GOOD_O, GOOD_D)
     with pytest.raises(ValueError, match="max_rays_per_launch must be >= 1"):
         RayQuery(case.scene._runtime, max_rays_per_launch=0)
@@ -402,7 +403,7 @@ def test_more_vertices_than_int32_indices_reach_are_refused(monkeypatch, meshes)
     """The meshes' faces are joined into one int32 index array: a scene
     whose vertex total passes that raises, naming the count, before any
     upload (the limit is lowered here: 2**31 vertices take 24 GiB)."""
-    from hlbvh_cl import build as build_module
+    from hlbvh_cl.build import pipeline as build_module
     from hlbvh_cl import scene as scene_module
     uploads = []
     monkeypatch.setattr(scene_module.Geometry, "upload", lambda *a: uploads.append(a))

@@ -1,0 +1,196 @@
+"""The build pipeline: bounds -> Morton codes -> radix sort -> radix tree with
+its boxes (+ SAH collapse) -> SAH top over clusters -> flat binary tree ->
+8-wide tree (Lauterbach et al. 2009 and Pantaleoni & Luebke 2010 for the
+HLBVH, Karras 2012 for the radix tree, Wald et al. 2008 for the wide nodes).
+
+Every stage runs on the device; this module only sequences them, sizes the
+buffers (failing before any allocation when the device is too small) and
+collects per-stage times from profiling events.  Its one product is a Tree
+and its BuildStats: everything else, the binary tree included, is scratch.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import pyopencl as cl
+
+from ..core import layout
+from .bounds import scene_bounds
+from ..device.runtime import Runtime, event_ms
+from .flatten import box_area, flatten_nodes
+from .morton import key_dtype, morton_codes
+from .radix_tree import RadixTree, RadixTreeMetrics, build_radix_tree
+from .sah_top import BYTES_PER_CLUSTER, build_top, max_clusters
+from ..parallel.radix_sort import sorter
+from ..core.tree import Tree
+from .widen import widen
+
+BUILDERS = ("hlbvh", "lbvh")
+STAGES = ("bounds", "morton", "sort", "radix_tree", "sah_top", "flatten", "widen")
+MAX_TRIANGLES = 2**30  # node indices are int32 (2n - 1 of them must fit)
+MAX_VERTICES = 2**31 - 1  # the meshes' faces are joined into one int32 index array
+
+
+@dataclass
+class Geometry:
+    """The scene's meshes on the device, concatenated.  Kept between builds
+    so that refits and rebuilds need no upload but the moved vertices."""
+
+    vertices: cl.Buffer        # float32[V*3]
+    faces: cl.Buffer           # int32[M*3], indices into the concatenated vertices
+    mesh_first_face: cl.Buffer  # int32[G]
+    vertex_count: int
+    triangle_count: int
+    mesh_count: int
+
+    @classmethod
+    def upload(cls, rt: Runtime, vertices: np.ndarray, faces: np.ndarray,
+               mesh_first_face: np.ndarray) -> "Geometry":
+        flags = cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR
+        return cls(cl.Buffer(rt.context, flags, hostbuf=np.ascontiguousarray(vertices, np.float32)),
+                   cl.Buffer(rt.context, flags, hostbuf=np.ascontiguousarray(faces, np.int32)),
+                   cl.Buffer(rt.context, flags,
+                             hostbuf=np.ascontiguousarray(mesh_first_face, np.int32)),
+                   len(vertices), len(faces), len(mesh_first_face))
+
+
+def build_memory(vertex_count: int, triangle_count: int, morton_bits: int) -> dict[str, int]:
+    """Bytes of every device buffer a build holds at its peak."""
+    n = triangle_count
+    key = key_dtype(morton_bits).itemsize
+    return {
+        "vertices": vertex_count * 12, "faces": n * 12, "centroids": n * 16,
+        "morton keys (x2 for the sort)": 2 * n * key, "primitive ids (x2 for the sort)": 2 * n * 4,
+        "radix tree links": (6 * n - 5) * 4,
+        "radix tree walk (far ends, arrival counts)": 3 * max(1, n - 1) * 4,
+        "radix tree boxes": (2 * n - 1) * layout.AABB.itemsize,
+        "radix tree costs, heights, flags": (2 * n - 1) * 8 + 2 * n * 4,
+        "scans": 2 * (n + 1) * 4,
+        "flat nodes": max(1, n - 1) * layout.FLAT_NODE.itemsize,
+        "triangles": n * layout.TRIANGLE.itemsize, "triangle refs": n * layout.TRIANGLE_REF.itemsize,
+        "triangle vertex ids": n * 12,
+        "SAH top (clusters)": max_clusters(n) * BYTES_PER_CLUSTER,
+    }
+
+
+def check_fits(rt: Runtime, vertex_count: int, triangle_count: int, morton_bits: int) -> None:
+    if vertex_count > MAX_VERTICES:
+        raise ValueError(f"the scene has {vertex_count} vertices over all its meshes; at most "
+                         f"{MAX_VERTICES} fit the int32 face indices they are joined by")
+    if triangle_count > MAX_TRIANGLES:
+        raise ValueError(f"the scene has {triangle_count} triangles; at most {MAX_TRIANGLES} fit "
+                         "int32 node indices")
+    rt.check_allocation(f"building a BVH over {triangle_count:,} triangles",
+                        build_memory(vertex_count, triangle_count, morton_bits))
+
+
+@dataclass(frozen=True)
+class BuildStats:
+    """What one build made and what it took; a refit replaces only refit_ms.
+
+    nodes, leaves, depth and sah_cost (C_t = C_i = 1, relative to the root's
+    area) describe the binary tree as built; a refit keeps its topology and
+    these fields, though the boxes move.  clusters is the SAH top's input
+    (1 for lbvh).  wide_nodes and wide_depth describe the 8-wide tree that
+    traversal reads.  times_ms holds the device milliseconds of each stage
+    (STAGES), device_ms their sum and wall_ms the host's whole build.
+    refit_ms is None, or after update_vertices the device milliseconds of
+    its upload and refit and its wall time: {"upload", "refit", "wall"}.
+    """
+
+    builder: str
+    morton_bits: int
+    triangles: int
+    nodes: int
+    leaves: int
+    depth: int
+    sah_cost: float
+    clusters: int
+    wide_nodes: int
+    wide_depth: int
+    times_ms: dict
+    device_ms: float
+    wall_ms: float
+    refit_ms: dict | None = None
+
+
+def build(rt: Runtime, geometry: Geometry, builder: str = "hlbvh", morton_bits: int = 30,
+          scale: float = 1.0) -> tuple[Tree, BuildStats]:
+    """Build the Tree over ``geometry`` (its coordinates multiplied by
+    ``scale``, hlbvh_cl.core.frame) and its BuildStats.  Every stage's scratch,
+    the binary tree included, goes back to the runtime's pool when the
+    build ends.  Builds on one runtime are serialised: they share the
+    sorter's scratch buffers."""
+    if builder not in BUILDERS:
+        raise ValueError(f"builder must be one of {BUILDERS}, got {builder!r}")
+    started = time.perf_counter()
+    with rt.build_lock, rt.pool.build():
+        tree, stats, stage_events = _build(rt, geometry, builder, morton_bits, scale)
+    times = {name: event_ms(events) for name, events in stage_events.items()}
+    return tree, BuildStats(**stats, times_ms=times, device_ms=sum(times.values()),
+                            wall_ms=(time.perf_counter() - started) * 1e3)
+
+
+def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int, scale: float):
+    dtype = key_dtype(morton_bits)
+    n = geometry.triangle_count
+    check_fits(rt, geometry.vertex_count, n, morton_bits)
+    hlbvh = builder == "hlbvh"
+    stage_events: dict[str, list] = {name: [] for name in STAGES}
+    buf = rt.pool.take
+
+    bounds, centroids, inverse_extent = buf(2 * layout.AABB.itemsize), buf(n * 16), buf(16)
+    stage_events["bounds"] = scene_bounds(rt, geometry.vertices, geometry.faces, n, bounds,
+                                          centroids, inverse_extent)
+
+    keys, primitive_ids = buf(n * dtype.itemsize), buf(n * 4)
+    stage_events["morton"] = morton_codes(rt, centroids, n, bounds, inverse_extent, keys,
+                                          primitive_ids, morton_bits,
+                                          wait_for=stage_events["bounds"][-1:])
+
+    # The result may sit in the sorter's scratch, which the next build on this
+    # runtime reuses: nothing sorted outlives this build (refits use refs).
+    keys, primitive_ids, stage_events["sort"] = sorter(rt, dtype).sort(
+        keys, primitive_ids, n, morton_bits, wait_for=stage_events["morton"][-1:])
+
+    radix, metrics = RadixTree.allocate(rt, n), RadixTreeMetrics.allocate(rt, n)
+    triangles, refs = buf(n * layout.TRIANGLE.itemsize), buf(n * layout.TRIANGLE_REF.itemsize)
+    vertex_ids = buf(n * 12)
+    rt.pool.keep(triangles, refs, vertex_ids)
+    stage_events["radix_tree"] = build_radix_tree(
+        rt, keys, morton_bits, geometry.vertices, geometry.faces, primitive_ids,
+        geometry.mesh_first_face, geometry.mesh_count, radix, metrics, triangles, refs,
+        vertex_ids, collapse_leaves=hlbvh, wait_for=stage_events["sort"][-1:])
+
+    top = None
+    if hlbvh and n > 1:
+        top, stage_events["sah_top"] = build_top(rt, keys, morton_bits, radix, metrics,
+                                                 wait_for=stage_events["radix_tree"][-1:])
+
+    last = (stage_events["sah_top"] or stage_events["radix_tree"])[-1:]
+    # the binary tree: scratch, read only by widen
+    bvh2, bvh2_count, leaf_count, root_box, depth, cost, stage_events["flatten"] = \
+        flatten_nodes(rt, keys, morton_bits, radix, metrics, top, use_clusters=hlbvh,
+                      wait_for=last)
+    nodes, levels, stage_events["widen"] = widen(rt, bvh2, bvh2_count,
+                                                 wait_for=stage_events["flatten"][-1:])
+
+    scene_box = np.empty(2, layout.AABB)
+    cl.enqueue_copy(rt.queue, scene_box, bounds)
+    rt.queue.finish()
+
+    tree = Tree(nodes=nodes, triangles=triangles, refs=refs, vertex_ids=vertex_ids,
+                node_count=levels[-1][0] + levels[-1][1], levels=levels, triangle_count=n,
+                bounds_lo=scene_box[0]["lo"].copy(), bounds_hi=scene_box[0]["hi"].copy(),
+                scale=scale)
+    root_area = box_area(root_box)
+    stats = {
+        "builder": builder, "morton_bits": morton_bits, "triangles": n, "nodes": bvh2_count,
+        "leaves": leaf_count, "depth": depth,
+        "sah_cost": cost / root_area if root_area > 0 else float(leaf_count),
+        "clusters": top.cluster_count if top else 1, "wide_nodes": tree.node_count,
+        "wide_depth": tree.depth,
+    }
+    return tree, stats, stage_events

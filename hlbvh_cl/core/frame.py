@@ -1,0 +1,62 @@
+"""The frame a scene is built and traced in: its coordinates times a power of two.
+
+The kernels compute in float32 with products of two and three coordinates
+(box areas, the SAH, Woop's edge functions and their double refinement):
+coordinates near 1e-20 underflow there and near 1e20 overflow, so hits go
+missing or come back with t = inf.  A scene whose largest coordinate lies
+outside [2^-24, 2^24] is therefore built in a frame scaled by 2^k, which
+brings it to [0.5, 1); ray origins take the same 2^k on their way in, and
+each direction a power of two of its own (hlbvh_cl/query.py, into_frame), by
+which t is divided back.  Multiplying by a power of two is exact (barring
+subnormal results), and every float operation commutes with it, so the hits
+are the user's own: t, u, v and the unit normal.  Other scenes keep a scale
+of 1 and nothing is copied.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+#: Largest coordinate magnitudes traced as given; others are rescaled.
+SAFE_RANGE = (2.0**-24, 2.0**24)
+
+
+def scale_for(largest: float) -> float:
+    """The power of two by which a scene whose largest coordinate magnitude
+    is ``largest`` is built: 1 inside SAFE_RANGE (or for an all-zero scene),
+    else the one that brings ``largest`` to [0.5, 1)."""
+    if largest == 0.0 or SAFE_RANGE[0] <= largest <= SAFE_RANGE[1]:
+        return 1.0
+    return 2.0 ** -math.frexp(largest)[1]
+
+
+def largest_magnitude(points: np.ndarray) -> float:
+    return float(np.abs(points).max()) if points.size else 0.0
+
+
+def used_vertices(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """The vertices some face references (the array itself when all are):
+    one that no face uses must not set a frame or a box, where a far one
+    would scale every triangle into float32's underflow."""
+    used = np.zeros(len(vertices), bool)
+    used[np.asarray(faces).ravel()] = True
+    return vertices if used.all() else vertices[used]
+
+
+def largest_used(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """largest_magnitude of used_vertices."""
+    return largest_magnitude(used_vertices(vertices, faces))
+
+
+def to_frame(points: np.ndarray, scale: float) -> np.ndarray:
+    """float32 ``points`` times ``scale`` (exact; through float64, where a
+    scale like 2^140 is representable).  The array itself when scale is 1."""
+    if scale == 1.0:
+        return points
+    with np.errstate(over="ignore"):  # an overflow becomes inf, which callers report
+        return (points.astype(np.float64) * scale).astype(np.float32)
+
+
+def describe(scale: float) -> str:
+    return f"2^{round(math.log2(scale))}"

@@ -1,0 +1,179 @@
+/* One ray as traversal uses it: its origin, inverse direction and limits
+ * for the slab test (Kay & Kajiya 1986, near planes by the direction's signs
+ * as Williams et al. 2005), and the shear of Woop, Benthin & Wald 2013
+ * ("Watertight Ray/Triangle Intersection", JCGT 2(1)) for the triangle
+ * test, computed once per ray.  Also the single-ray path's vocabulary
+ * (suffix _ray) that the generic triangle test and walk are written in. */
+#ifndef RAY_H
+#define RAY_H
+
+#include "query/node.h"
+#include "query/ray_class.h"
+
+#ifndef PACKET_SIZE
+#error "PACKET_SIZE must be defined (-D PACKET_SIZE=...)"
+#endif
+
+/* Everything about a ray that traversal reuses at each node and triangle. */
+/* Instanced scenes (instance.h) map rays by their direction, and test
+ * instances against their masks. */
+#if defined(cl_khr_fp64) || defined(INSTANCES)
+#define RAY_DIRECTION
+#endif
+
+typedef struct {
+    float ox, oy, oz;           /* origin */
+#ifdef RAY_DIRECTION
+    float dx, dy, dz;           /* direction, for the refined t (triangle.h), mapping */
+#endif
+#ifdef INSTANCES
+    uint mask;                  /* the ray's mask (instance.h) */
+#endif
+    float inv_x, inv_y, inv_z;  /* 1/direction; +-INFINITY for a +-0 component */
+    float tmin, tmax;
+    /* Woop et al. 2013: the axis of largest |direction| becomes z
+     * (kz), the other two (kx, ky) follow cyclically; the shear
+     * (sx, sy, sz) maps the ray onto the +z axis through the origin. */
+    int kx, ky, kz;
+    float sx, sy, sz;
+    float okx, oky, okz;        /* origin, permuted */
+    /* Byte offsets (plane_row) of the rows of planes through which the ray
+     * enters the children's boxes on each axis: the lo planes where the
+     * inverse direction is positive, the hi planes where its sign bit is set
+     * (Williams et al. 2005).  The exit planes are at offset ^ ROW_BYTES. */
+    int near_x, near_y, near_z;
+} RayData;
+
+/* The helpers that fill a RayData or a Hit write it through a pointer rather
+ * than return it: a returned struct goes through a noalias (sret) pointer,
+ * and inlining that leaves llvm.experimental.noalias.scope.decl calls,
+ * which Oclgrind cannot run. */
+TRAVERSAL_INLINE void prepare_ray(RayData* ray, float3 origin, float3 direction, float tmin,
+                                  float tmax)
+{
+    RayData r;
+    float d[3] = {direction.x, direction.y, direction.z};
+    r.ox = origin.x;
+    r.oy = origin.y;
+    r.oz = origin.z;
+#ifdef RAY_DIRECTION
+    r.dx = d[0];
+    r.dy = d[1];
+    r.dz = d[2];
+#endif
+    /* IEEE division: 1/+0 = +inf, 1/-0 = -inf, which the slab test relies on. */
+    r.inv_x = 1.0f / d[0];
+    r.inv_y = 1.0f / d[1];
+    r.inv_z = 1.0f / d[2];
+    r.tmin = tmin;
+    r.tmax = tmax;
+
+    float ax = ABS_FLOAT(d[0]), ay = ABS_FLOAT(d[1]), az = ABS_FLOAT(d[2]);
+    r.kz = SHEAR_AXIS(ax, ay, az);
+    r.kx = r.kz == 2 ? 0 : r.kz + 1;
+    r.ky = r.kx == 2 ? 0 : r.kx + 1;
+    /* Components picked by indexing (a load from the private array) rather
+     * than by ?: chains, which x86 compiled into branches that mispredict
+     * on incoherent rays, where kz is random (measured faster). */
+    float dkz = d[r.kz];
+    r.sx = d[r.kx] / dkz;
+    r.sy = d[r.ky] / dkz;
+    r.sz = 1.0f / dkz;
+    float o[3] = {r.ox, r.oy, r.oz};
+    r.okx = o[r.kx];
+    r.oky = o[r.ky];
+    r.okz = o[r.kz];
+    r.near_x = LO_X_ROW + (SIGN_BIT(r.inv_x) ? ROW_BYTES : 0);
+    r.near_y = LO_Y_ROW + (SIGN_BIT(r.inv_y) ? ROW_BYTES : 0);
+    r.near_z = LO_Z_ROW + (SIGN_BIT(r.inv_z) ? ROW_BYTES : 0);
+    *ray = r;
+}
+
+/* The rays one work-item traces, one lane each (PACKET_SIZE of them), as
+ * loaded: lanes past the last ray repeat it (a packet pays nothing for them
+ * and they are not written back). */
+typedef struct {
+    float origin[3][PACKET_SIZE];
+    float direction[3][PACKET_SIZE];
+    float tmin[PACKET_SIZE];
+    float tmax[PACKET_SIZE];
+#ifdef INSTANCES
+    uint mask[PACKET_SIZE];  /* set by the instanced kernels (traverse.cl) */
+#endif
+} RayLanes;
+
+TRAVERSAL_INLINE void set_lane(RayLanes* lanes, uint l, float3 origin, float3 direction,
+                               float tmin, float tmax)
+{
+    lanes->origin[0][l] = origin.x;
+    lanes->origin[1][l] = origin.y;
+    lanes->origin[2][l] = origin.z;
+    lanes->direction[0][l] = direction.x;
+    lanes->direction[1][l] = direction.y;
+    lanes->direction[2][l] = direction.z;
+    lanes->tmin[l] = tmin;
+    lanes->tmax[l] = tmax;
+}
+
+TRAVERSAL_INLINE void prepare_lane(RayData* ray, const RayLanes* lanes, uint l)
+{
+    prepare_ray(ray, (float3)(lanes->origin[0][l], lanes->origin[1][l], lanes->origin[2][l]),
+                (float3)(lanes->direction[0][l], lanes->direction[1][l], lanes->direction[2][l]),
+                lanes->tmin[l], lanes->tmax[l]);
+#ifdef INSTANCES
+    ray->mask = lanes->mask[l];
+#endif
+}
+
+/* ---- the single-ray path's vocabulary (see walk.h): one lane, scalars */
+typedef RayData Rays_ray;
+typedef float real_ray;
+typedef int flags_ray;       /* a scalar compare: 1 or 0 */
+#ifdef cl_khr_fp64
+typedef double wide_ray;
+#endif
+#define some_ray(flags) (flags)
+#define every_ray(flags) (flags)
+#define to_double_ray(x) ((double)(x))
+#define to_float_ray(x) ((float)(x))
+#define bits_ray(x) as_int(x)
+
+/* What a walk keeps for its query: the triangle hit (tree order, -1: none),
+ * its t, u, v, and the limit beyond which nothing counts. */
+typedef struct {
+    int index;
+    float t, u, v, limit;
+#ifdef INSTANCES
+    int instance;  /* whose mesh holds triangle `index` (instance.h) */
+#endif
+} Found_ray;
+#define reach_ray(s) ((s)->limit)  /* the farthest the walk still looks */
+#define update_reach_ray(s)
+
+/* Woop et al.'s inside test: the three edge functions do not straddle 0.
+ * Bitwise | and & rather than || and &&: one branch instead of up to six,
+ * which the sign pattern of rejected triangles mispredicts (measured
+ * faster). */
+TRAVERSAL_INLINE int inside_ray(float e_u, float e_v, float e_w)
+{
+    return !(((e_u < 0.0f) | (e_v < 0.0f) | (e_w < 0.0f))
+             & ((e_u > 0.0f) | (e_v > 0.0f) | (e_w > 0.0f)));
+}
+
+/* The slab test of a wide node's WIDE_ARITY child boxes at once, one vector
+ * lane per child, within the walk's limit: the children met as a bit mask,
+ * and where the ray enters each. */
+#define NODE_ROW(offset) LOAD_ROW(float_lanes, plane_row(node, offset))
+TRAVERSAL_INLINE uint children_ray(const RayData* r, __global const WideNode* node,
+                                   const Found_ray* s, ChildEntries* entry)
+{
+    return lane_mask(SLAB_TEST(float_lanes, NODE_ROW, r, (float_lanes)(r->tmin),
+                               (float_lanes)(s->limit), entry->lanes));
+}
+#undef NODE_ROW
+
+#define PATH_SUFFIX _ray
+#include "query/triangle.h"
+#undef PATH_SUFFIX
+
+#endif /* RAY_H */

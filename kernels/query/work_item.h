@@ -1,0 +1,145 @@
+/* What one work-item of a ray query reads and writes: which rays it traces
+ * (PACKET_SIZE consecutive ones), loaded into RayLanes from Ray records or
+ * from numpy-shaped arrays, and a closest hit as a Hit record with its unit
+ * geometric normal. */
+#ifndef WORK_ITEM_H
+#define WORK_ITEM_H
+
+#include "query/ray.h"
+#include "query/triangle.h"
+
+/* Work-item i traces rays [i * PACKET_SIZE, ...) : how many of them exist
+ * (0 for the items past the end), and the first one. */
+TRAVERSAL_INLINE uint packet_rays(uint ray_count, uint* first)
+{
+    *first = get_global_id(0) * PACKET_SIZE;
+    return *first < ray_count ? LESSER((uint)PACKET_SIZE, ray_count - *first) : 0;
+}
+
+/* The rays as Ray records (the renderer's); lanes past `used` repeat the
+ * last ray. */
+TRAVERSAL_INLINE void load_records(__global const Ray* rays, uint first, uint used,
+                                   RayLanes* lanes)
+{
+    for (uint l = 0; l < PACKET_SIZE; ++l) {
+        __global const Ray* ray = rays + first + LESSER(l, used - 1);
+        set_lane(lanes, l, LOAD_XYZ(ray->origin), LOAD_XYZ(ray->direction), ray->tmin,
+                 ray->tmax);
+    }
+}
+
+/* The rays of a later work-item, at slots[next, next + PACKET_SIZE) (those
+ * below ray_count), and their results[slot] it will write, asked for
+ * ahead: slots scatter them over the arrays, and each lane's load and store
+ * would miss the cache (see load_arrays).  One ray at a time, spread over
+ * the walk (a visitor's node hook calls prefetch_ahead): asked all at once,
+ * their lines outnumber the misses a core keeps in flight and many
+ * requests came to nothing (measured slower).  Without PREFETCH it does
+ * nothing. */
+typedef struct {
+    __global const uint* slots;
+    __global const float* origins;
+    __global const float* directions;
+    __global int* results;
+    uint next, end;
+} RaysAhead;
+
+TRAVERSAL_INLINE void rays_ahead(RaysAhead* a, __global const uint* slots, uint next,
+                                 uint ray_count, __global const float* origins,
+                                 __global const float* directions, __global int* results)
+{
+    a->slots = slots;
+    a->origins = origins;
+    a->directions = directions;
+    a->results = results;
+    a->next = next;
+    a->end = next < ray_count ? LESSER(next + PACKET_SIZE, ray_count) : next;
+}
+
+/* Asks for the next ray's lines, if one is left. */
+TRAVERSAL_INLINE void prefetch_ahead(RaysAhead* a)
+{
+#ifdef PREFETCH
+    if (a->next < a->end) {
+        size_t slot = a->slots[a->next++];
+        __builtin_prefetch(a->origins + 3 * slot);
+        __builtin_prefetch(a->origins + 3 * slot + 2);
+        __builtin_prefetch(a->directions + 3 * slot);
+        __builtin_prefetch(a->directions + 3 * slot + 2);
+        __builtin_prefetch(a->results + slot, 1);
+    }
+#endif
+}
+
+/* Asks for the rays the walk left (a short walk visits fewer nodes than a
+ * work-item has rays). */
+TRAVERSAL_INLINE void prefetch_rest(RaysAhead* a)
+{
+#ifdef PREFETCH
+    while (a->next < a->end)
+        prefetch_ahead(a);
+#endif
+}
+
+/* Lane l's ray from slot at[l] of the arrays load_arrays reads. */
+TRAVERSAL_INLINE void load_arrays_at(const uint* at, __global const float* origins,
+                                     __global const float* directions,
+                                     __global const float* tmin, uint tmin_step,
+                                     __global const float* tmax, uint tmax_step,
+                                     RayLanes* lanes)
+{
+    for (uint l = 0; l < PACKET_SIZE; ++l) {
+        uint i = at[l];
+        set_lane(lanes, l, LOAD_XYZ(origins + 3 * (size_t)i), LOAD_XYZ(directions + 3 * (size_t)i),
+                 tmin[i * tmin_step], tmax[i * tmax_step]);
+    }
+}
+
+/* The rays as the arrays numpy users hand in (query.py): origins and
+ * directions packed (x, y, z) per ray, tmin[i * tmin_step], tmax[i *
+ * tmax_step] (step 0: every ray the same limit).  Results go to one array
+ * per field, so that the host neither packs records nor picks fields out of
+ * them (measured: that repacking took as long as tracing camera rays). */
+TRAVERSAL_INLINE void load_arrays(uint first, uint used, __global const float* origins,
+                                  __global const float* directions, __global const float* tmin,
+                                  uint tmin_step, __global const float* tmax, uint tmax_step,
+                                  RayLanes* lanes)
+{
+#ifdef PREFETCH
+    /* The next work-item's rays (CPUs run a group's items in order): between
+     * two work-items' loads lie thousands of random reads, and the hardware
+     * prefetcher loses the stream (measured faster).  Past the last ray this
+     * asks for memory the kernel never reads, which a prefetch may: it never
+     * faults. */
+    for (uint offset = 0; offset < 3 * PACKET_SIZE * sizeof(float); offset += 64) {
+        __builtin_prefetch((__global const char*)(origins + 3 * ((size_t)first + PACKET_SIZE)) + offset);
+        __builtin_prefetch((__global const char*)(directions + 3 * ((size_t)first + PACKET_SIZE)) + offset);
+    }
+#endif
+    uint at[PACKET_SIZE];
+    for (uint l = 0; l < PACKET_SIZE; ++l)
+        at[l] = first + LESSER(l, used - 1);
+    load_arrays_at(at, origins, directions, tmin, tmin_step, tmax, tmax_step, lanes);
+}
+
+/* One ray's closest hit as a Hit record (a miss: t = INFINITY, ids -1, the
+ * rest 0) from the tree-order index of the triangle hit (-1: none). */
+TRAVERSAL_INLINE void make_hit(Hit* out, int index, float t, float u, float v,
+                               __global const Triangle* triangles,
+                               __global const TriangleRef* refs)
+{
+    bool found = index >= 0;
+    float3 normal = found ? unit_normal(triangles + index) : (float3)(0.0f);
+    Hit hit;
+    hit.t = found ? t : INFINITY;
+    hit.geom_id = found ? refs[index].geom_id : -1;
+    hit.prim_id = found ? refs[index].prim_id : -1;
+    hit.u = found ? u : 0.0f;
+    hit.v = found ? v : 0.0f;
+    hit.normal[0] = normal.x;
+    hit.normal[1] = normal.y;
+    hit.normal[2] = normal.z;
+    *out = hit;
+}
+
+#endif /* WORK_ITEM_H */

@@ -1,0 +1,209 @@
+"""Finite coordinates of any magnitude (issue 22): a scene at 1e-30 or 1e30
+gives the hits a float64 brute force gives, never t = inf, a NaN normal or u, v
+outside [0, 1], and a tree as deep as the same scene at 1.  Scenes outside
+[2^-24, 2^24] are built in a frame scaled by a power of two
+(hlbvh_cl/frame.py), which is exact: at a power-of-two scale the hits are
+those of the unscaled scene, bit for bit."""
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+import trimesh
+
+import hlbvh_cl
+from hlbvh_cl.core import frame
+from oracle import brute_force_intersect
+
+
+def sphere_and_ground():
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    ground = trimesh.creation.box(extents=(4.0, 0.2, 4.0))
+    ground.apply_translation((0.0, -1.2, 0.0))
+    return [(np.asarray(m.vertices, np.float64), np.asarray(m.faces)) for m in (sphere, ground)]
+
+
+def rays(count, rng):
+    """Rays from a shell around the scene towards points near it; most hit."""
+    origins = rng.normal(size=(count, 3))
+    origins *= 3.0 / np.linalg.norm(origins, axis=1, keepdims=True)
+    targets = rng.uniform(-1.3, 1.3, (count, 3))
+    return origins, targets - origins
+
+
+def scene_at(scale, **kwargs):
+    return hlbvh_cl.Scene([hlbvh_cl.Mesh(v * scale, f) for v, f in sphere_and_ground()], **kwargs)
+
+
+@pytest.mark.parametrize("scale", [1e-30, 1e-20, 1e-19, 1e-10, 1e10, 1e20, 1e30, 3e37])
+def test_hits_at_any_scale_match_float64(scale):
+    rng = np.random.default_rng(7)
+    scene = scene_at(scale)
+    origins, directions = rays(2000, rng)
+    origins = (origins * scale).astype(np.float32)
+    directions = (directions * scale).astype(np.float32)
+    hits = scene.intersect(origins, directions)
+    meshes = scene.meshes
+    vertices = np.concatenate([m.vertices for m in meshes])
+    faces = np.concatenate([meshes[0].faces, meshes[1].faces + meshes[0].vertex_count])
+    expected = brute_force_intersect(vertices, faces, origins, directions)
+    hit = hits.hit
+    assert hit.sum() > 1000
+    assert np.array_equal(hit, expected["t"] < np.inf)
+    assert np.all(np.isfinite(hits.t[hit])) and np.all(np.isfinite(hits.normal[hit]))
+    np.testing.assert_allclose(hits.t[hit], expected["t"][hit], rtol=1e-5)
+    assert np.all((hits.u[hit] >= 0) & (hits.u[hit] <= 1) & (hits.v[hit] >= 0) & (hits.v[hit] <= 1))
+    np.testing.assert_allclose(np.linalg.norm(hits.normal[hit], axis=1), 1.0, rtol=1e-5)
+    assert np.array_equal(scene.occluded(origins, directions), hit)
+
+
+@pytest.mark.parametrize("exponent", [-100, -60, 70, 100])
+def test_a_power_of_two_scale_changes_nothing(exponent):
+    """The same scene at 2^k: the same tree (depth, SAH cost) and the same
+    hits, bit for bit, t included (origins and directions scale alike)."""
+    rng = np.random.default_rng(8)
+    origins, directions = (a.astype(np.float32) for a in rays(3000, rng))
+    scale = 2.0 ** exponent
+    plain, scaled = scene_at(1.0), scene_at(scale)
+    assert scaled._tree.scale != 1.0 and plain._tree.scale == 1.0
+    for key in ("depth", "nodes", "leaves", "sah_cost"):
+        assert getattr(scaled.stats, key) == getattr(plain.stats, key), key
+    expected = plain.intersect(origins, directions)
+    got = scaled.intersect((origins.astype(np.float64) * scale).astype(np.float32),
+                           (directions.astype(np.float64) * scale).astype(np.float32))
+    for name in ("t", "prim_id", "geom_id", "u", "v", "normal"):
+        assert np.array_equal(getattr(got, name), getattr(expected, name)), name
+
+
+def test_renders_at_any_scale_are_the_same_image():
+    camera = hlbvh_cl.Camera((0.0, 1.0, 4.0), (0.0, -0.3, 0.0))
+    expected = hlbvh_cl.Renderer(scene_at(1.0)).render(camera, 32, 24, shading="ao", ao_samples=2)
+    for scale in (2.0**-90, 2.0**90):
+        far = hlbvh_cl.Camera(tuple(np.multiply(camera.eye, scale)),
+                              tuple(np.multiply(camera.target, scale)))
+        image = hlbvh_cl.Renderer(scene_at(scale)).render(far, 32, 24, shading="ao",
+                                                         ao_samples=2, ao_distance=None)
+        assert np.array_equal(image, expected)
+
+
+def test_update_vertices_across_frames():
+    """Moving a mesh to 1e30 and back rebuilds in the frame each needs; the
+    hits follow the float64 brute force each time."""
+    rng = np.random.default_rng(9)
+    scene = scene_at(1.0)
+    (v, f), _ = sphere_and_ground()
+    for scale in (1e30, 1e-3, 1.0):
+        scene.update_vertices(0, v * scale + [0.0, 2.0 * scale, 0.0])
+        assert scene._tree.scale == frame.scale_for(
+            max(np.abs(m.vertices).max() for m in scene.meshes))
+        origins = np.tile([[0.0, 10.0 * scale, 0.0]], (50, 1)).astype(np.float32)
+        directions = np.tile([[0.0, -1.0, 0.0]], (50, 1)).astype(np.float32)
+        directions[:, 0] = rng.uniform(-0.04, 0.04, 50)
+        hits = scene.intersect(origins, directions)
+        expected = brute_force_intersect(scene.meshes[0].vertices, scene.meshes[0].faces,
+                                         origins, directions)
+        assert np.all(hits.geom_id == 0)
+        np.testing.assert_allclose(hits.t, expected["t"], rtol=1e-5)
+
+
+@pytest.mark.parametrize("scale, length", [(1e38 / 4, 1.0), (1e-30, 1e6), (1e-30, 1e-20),
+                                           (1e30, 1e-6), (1.0, 1e-30)])
+def test_directions_of_any_length_in_a_scene_of_any_scale(scale, length):
+    """Directions need not scale with the scene: unit directions in a scene
+    near float32's largest, long or short ones in tiny or huge scenes (so
+    long as t itself, about scale / length, is a normal float32)."""
+    rng = np.random.default_rng(10)
+    scene = scene_at(scale)
+    origins, directions = rays(1000, rng)
+    origins = (origins * scale).astype(np.float32)
+    directions = (directions / np.linalg.norm(directions, axis=1, keepdims=True)
+                  * length).astype(np.float32)
+    hits = scene.intersect(origins, directions, tmax=np.float32(3e38))
+    meshes = scene.meshes
+    vertices = np.concatenate([m.vertices for m in meshes])
+    faces = np.concatenate([meshes[0].faces, meshes[1].faces + meshes[0].vertex_count])
+    expected = brute_force_intersect(vertices, faces, origins, directions)
+    assert hits.hit.sum() > 400
+    assert np.array_equal(hits.hit, expected["t"] < np.inf)
+    np.testing.assert_allclose(hits.t[hits.hit], expected["t"][hits.hit], rtol=1e-5)
+    limit = expected["t"][hits.hit].max() * 0.5  # a tmax that cuts some hits off
+    assert np.array_equal(scene.occluded(origins, directions, tmax=limit),
+                          expected["t"] <= limit)
+
+
+@pytest.mark.parametrize("scale, distance", [(1.0, 1e20), (1.0, 30.0), (1e10, 3e10),
+                                             (1e-10, 1e3)])
+def test_a_hit_past_float32s_t_is_found_and_its_t_refused(scale, distance):
+    """A direction so short that its hit's t passes float32's largest value:
+    the hit is found (occluded, counts), and the queries that return t name
+    the ray rather than give t = inf or miss it.  Rays whose t fits beside
+    it (near 1e37) keep their hits, scaled or not."""
+    scene = scene_at(scale)
+    origins = np.array([[0.0, 0.0, distance]] * 3, np.float32)
+    directions = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, -distance * 1e-37],
+                           [0.0, 0.0, -distance * 1e-39]], np.float32)
+    expected = brute_force_intersect(scene.meshes[0].vertices, scene.meshes[0].faces,
+                                     origins[:2], directions[:2])
+    assert np.isfinite(expected["t"]).all()
+    assert scene.occluded(origins, directions).tolist() == [True, True, True]
+    assert scene.count_intersections(origins, directions).tolist() == [2, 2, 2]
+    hits = scene.intersect(origins[:2], directions[:2])
+    np.testing.assert_allclose(hits.t, expected["t"], rtol=1e-5)
+    for query in (scene.intersect, scene.intersect_all):
+        with pytest.raises(ValueError, match=r"directions\[2\] = .* too short .* past float32"):
+            query(origins, directions)
+
+
+@pytest.mark.parametrize("scale", [1e-30, 1.0])
+def test_a_point_too_far_is_refused_with_the_limit_that_holds(scale):
+    """The limit the point queries' error quotes is in the caller's units:
+    a point at half of it is answered, one at twice it refused.  (A scene
+    at 1e30 has no such limit within float32: its frame is scaled down.)"""
+    scene = scene_at(scale)
+    far = np.array([[0.0, 0.0, 3e38]], np.float32)
+    with pytest.raises(ValueError, match=r"points\[0\] = .* too far .* up to ([0-9.e+-]+)") as error:
+        scene.closest_points(far)
+    limit = float(re.search(r"up to ([0-9.e+-]+)", str(error.value)).group(1))
+    near = scene.closest_points(np.array([[0.0, 0.0, limit / 2]], np.float32))
+    assert np.isfinite(near.distance).all() and near.prim_id[0] >= 0
+    with pytest.raises(ValueError, match="too far"):
+        scene.signed_distance(np.array([[0.0, 0.0, limit * 2]], np.float32))
+    assert np.isfinite(scene_at(1e30).closest_points(far).distance).all()
+
+
+def test_a_ray_the_frame_cannot_hold_is_named():
+    scene = scene_at(1e-30)
+    origins = np.array([[0.0, 0.0, 3e-30], [3e30, 0.0, 0.0]], np.float32)
+    directions = np.array([[0.0, 0.0, -1e-30], [-1.0, 0.0, 0.0]], np.float32)
+    with pytest.raises(ValueError, match=r"origins\[1\] .*overflows float32 once multiplied by 2\^"):
+        scene.intersect(origins, directions)
+
+
+def test_the_frame_is_one_where_coordinates_are_ordinary():
+    assert frame.scale_for(0.0) == 1.0
+    assert frame.scale_for(1e-7) == 1.0 and frame.scale_for(1e7) == 1.0
+    for largest in (1e-30, 3e-8, 2.0**24 * 1.01, 1e30, 3.4e38):
+        scaled = largest * frame.scale_for(largest)
+        assert 0.5 <= scaled < 1.0
+
+
+@pytest.mark.parametrize("far", [1e20, 1e30, 3e38])
+def test_a_vertex_no_face_uses_does_not_set_the_frame(far):
+    """A mesh with an unused vertex far out (a leftover of an export): the
+    frame follows the triangles, so the hits are those of the mesh without
+    it, from the start and after update_vertices moves the vertex out."""
+    rng = np.random.default_rng(12)
+    (v, f), _ = sphere_and_ground()
+    origins, directions = rays(200, rng)
+    expected = hlbvh_cl.Scene([hlbvh_cl.Mesh(v, f)]).intersect(origins, directions)
+    assert expected.hit.sum() > 100
+    with_far = np.vstack([v, [[far, -far, far]]])
+    scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(with_far, f)])
+    np.testing.assert_array_equal(scene.intersect(origins, directions).t, expected.t)
+    scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(np.vstack([v, [[0.0, 0.0, 0.0]]]), f)])
+    scene.update_vertices(0, with_far)
+    np.testing.assert_array_equal(scene.intersect(origins, directions).t, expected.t)
+    instanced = hlbvh_cl.Scene([hlbvh_cl.Mesh(with_far, f)],
+                               instances=[(0, np.hstack([np.eye(3), np.zeros((3, 1))]))])
+    np.testing.assert_array_equal(instanced.intersect(origins, directions).t, expected.t)

@@ -1,0 +1,82 @@
+"""The wide tree (hlbvh_cl/widen.py, kernels/widen.cl) and its refit
+(kernels/refit.cl), checked in numpy by tests/invariants.py against the
+scene's own triangles."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import hlbvh_cl
+from hlbvh_cl.build.widen import widen
+from invariants import check_tree
+from shapes import grid_mesh
+import places
+
+MESHES = places.MESHES
+
+
+def _mesh(name):
+    return hlbvh_cl.Mesh.load(MESHES / f"{name}.ply")
+
+
+def _one_triangle():
+    return hlbvh_cl.Mesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]])
+
+
+
+
+SCENES = {
+    "one triangle": lambda: [_one_triangle()],
+    "two triangles": lambda: [hlbvh_cl.Mesh([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]],
+                                            [[0, 1, 2], [1, 3, 2]])],
+    "grid": lambda: [grid_mesh(6)],
+    "knight": lambda: [_mesh("knight")],
+    "bunny_small + teapot": lambda: [_mesh("bunny_small"), _mesh("teapot")],
+}
+
+
+@pytest.mark.parametrize("builder", ["hlbvh", "lbvh"])
+@pytest.mark.parametrize("name", list(SCENES))
+def test_wide_tree_invariants(name, builder):
+    scene = hlbvh_cl.Scene(SCENES[name](), builder=builder)
+    check_tree(scene)
+    times = scene.stats.times_ms
+    assert times["widen"] >= 0
+    assert scene.stats.device_ms == pytest.approx(sum(times.values()))
+
+
+def test_rebuilds_give_the_same_wide_tree():
+    scene = hlbvh_cl.Scene([_mesh("knight")])
+    q = scene._runtime.queue
+    first = scene._tree.read_nodes(q).tobytes()
+    scene.rebuild()
+    check_tree(scene)
+    assert scene._tree.read_nodes(q).tobytes() == first
+
+
+def test_update_vertices_refits_the_wide_tree():
+    """After a refit the topology stays and every box is again the exact
+    union of what it holds (the moved triangles); moving them back gives the
+    built tree, bit for bit."""
+    knight = _mesh("knight")
+    scene = hlbvh_cl.Scene([knight, _mesh("teapot")])
+    q = scene._runtime.queue
+    before = scene._tree.read_nodes(q)
+    v = knight.vertices.astype(np.float64)
+    moved = v * 1.3 + 0.1 * np.sin(5 * v[:, [2, 0, 1]]) * np.ptp(v, axis=0)
+    scene.update_vertices(0, moved)
+    after = check_tree(scene)["nodes"]
+    assert np.array_equal(before["child"], after["child"])
+    assert np.array_equal(before["count"], after["count"])
+    assert not np.array_equal(before["lo_x"], after["lo_x"]), "the boxes should have moved"
+    scene.update_vertices(0, knight.vertices)
+    check_tree(scene)
+    assert scene._tree.read_nodes(q).tobytes() == before.tobytes()
+
+
+def test_a_tree_without_nodes_is_refused():
+    scene = hlbvh_cl.Scene([_one_triangle()])
+    with pytest.raises(ValueError, match="0 nodes"):
+        widen(scene._runtime, scene._tree.nodes, 0)

@@ -1,0 +1,252 @@
+"""Ray packets (kernels/traverse.cl, PACKET_SIZE): on CPUs a work-item traces
+8 consecutive rays together when they share direction signs and the axis of
+the watertight test, and one by one otherwise.  Every packet size must give
+the oracle's answers (tests/oracle.py), including watertightness; these
+tests use rays that do form packets, and check that they do.
+"""
+from __future__ import annotations
+
+
+import numpy as np
+import pytest
+
+import hlbvh_cl
+from hlbvh_cl.query.rays import PACKET_SIZES, RayQuery
+from ray_cases import (MESHES, _interior_points, _unique_edges, assert_matches_oracle, random_rays,
+                       scene_case)
+
+
+def packet_keys(directions: np.ndarray) -> np.ndarray:
+    """What prepare_packet compares between lanes: the axis of largest |d|
+    (kz, ties as the kernel breaks them) and the sign bits of the direction."""
+    a = np.abs(directions)
+    kz = np.where((a[:, 0] >= a[:, 1]) & (a[:, 0] >= a[:, 2]), 0, np.where(a[:, 1] >= a[:, 2], 1, 2))
+    return kz * 8 + (np.signbit(directions) * [1, 2, 4]).sum(axis=1)
+
+
+def coherent_fraction(directions: np.ndarray, packet_size: int) -> float:
+    """Fraction of the whole packets whose lanes prepare_packet accepts."""
+    whole = len(directions) // packet_size * packet_size
+    keys = packet_keys(directions[:whole]).reshape(-1, packet_size)
+    return float(np.mean(np.all(keys == keys[:, :1], axis=1)))
+
+
+def expected_packets(directions: np.ndarray, packet_size: int) -> int:
+    """Work-items whose rays the kernel should trace as one packet: a last,
+    part-full packet repeats its last ray in the lanes past the end."""
+    keys = packet_keys(directions)
+    pad = -len(keys) % packet_size
+    keys = np.concatenate([keys, np.repeat(keys[-1:], pad)]).reshape(-1, packet_size)
+    return int(np.sum(np.all(keys == keys[:, :1], axis=1)))
+
+
+def traced(q: RayQuery, query: str, case, origins, directions, **limits):
+    """q's query, checking that the kernel formed exactly the packets expected."""
+    q.count_packets = True
+    result = getattr(q, query)(case.scene._tree, origins, directions, **limits)
+    expected = expected_packets(directions, q.packet_size) if q.packet_size > 1 else 0
+    assert q.last_packets == expected
+    return result
+
+
+def camera_rays(case, width: int, height: int):
+    """Row-major pinhole rays (40 degrees) from outside the box, looking at its centre."""
+    centre = (case.lo + case.hi) / 2
+    eye = centre + np.array([0.2, 0.3, 1.0]) / np.linalg.norm([0.2, 0.3, 1.0]) * 1.3 * case.extent
+    forward = (centre - eye) / np.linalg.norm(centre - eye)
+    right = np.cross(forward, [0.0, 1.0, 0.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    half = np.tan(np.radians(20.0))
+    x = (2 * (np.arange(width) + 0.5) / width - 1) * half * width / height
+    y = (1 - 2 * (np.arange(height) + 0.5) / height) * half
+    directions = (forward + x[None, :, None] * right + y[:, None, None] * up).reshape(-1, 3)
+    origins = np.broadcast_to(eye, directions.shape)
+    return origins.astype(np.float32), directions.astype(np.float32)
+
+
+def query(case, packet_size: int) -> RayQuery:
+    return RayQuery(case.scene._runtime, packet_size=packet_size)
+
+
+@pytest.mark.parametrize("packet_size", PACKET_SIZES)
+@pytest.mark.parametrize("name", ["knight", "bunny_small", "teapot", "cube"])
+def test_camera_rays_match_oracle(name, packet_size):
+    case = scene_case(name)
+    origins, directions = camera_rays(case, 48, 32)
+    if packet_size > 1:  # most rays go in packets, some one by one (kz changes across the view)
+        assert 0.5 < coherent_fraction(directions, packet_size) < 1.0
+    q = query(case, packet_size)
+    hits = traced(q, "intersect", case, origins, directions)
+    assert_matches_oracle(case, hits, origins, directions)
+    assert 0.1 < hits.hit.mean(), "the camera should see the mesh"
+    np.testing.assert_array_equal(traced(q, "occluded", case, origins, directions), hits.hit)
+    # per-ray limits that vary within packets: a tmax that cuts off about half
+    # of the hits, and a tmin that skips the nearest surface of some rays
+    rng = np.random.default_rng(3)
+    tmax = np.where(hits.hit, hits.t * rng.uniform(0.5, 1.5, len(hits)), np.inf).astype(np.float32)
+    cut = traced(q, "intersect", case, origins, directions, tmax=tmax)
+    assert_matches_oracle(case, cut, origins, directions, tmax=tmax)
+    assert 0 < cut.hit.sum() < hits.hit.sum()
+    np.testing.assert_array_equal(traced(q, "occluded", case, origins, directions, tmax=tmax),
+                                  cut.hit)
+    tmin = np.where(hits.hit & (rng.random(len(hits)) < 0.5), hits.t * 1.001, 0).astype(np.float32)
+    beyond = traced(q, "intersect", case, origins, directions, tmin=tmin)
+    assert_matches_oracle(case, beyond, origins, directions, tmin=tmin)
+    assert np.any(beyond.t[tmin > 0] > hits.t[tmin > 0])  # some rays went on to a farther surface
+
+
+@pytest.mark.parametrize("packet_size", [8, 16])
+@pytest.mark.parametrize("mixed", [False, True], ids=["coherent", "mixed"])
+def test_partial_and_mixed_packets_match_oracle(packet_size, mixed):
+    """Ray counts that leave the last packet part-full, on camera rays, and on
+    packets whose lanes mix coherent and random rays (traced one by one)."""
+    case = scene_case("knight")
+    origins, directions = camera_rays(case, 24, 16)
+    if mixed:
+        wild_o, wild_d = random_rays(case, len(origins), seed=9)
+        every_fifth = np.arange(len(origins)) % 5 == 0
+        origins, directions = origins.copy(), directions.copy()
+        origins[every_fifth], directions[every_fifth] = wild_o[every_fifth], wild_d[every_fifth]
+    q = query(case, packet_size)
+    for count in (1, packet_size - 1, packet_size + 1, 3 * packet_size + 5, len(origins)):
+        o, d = origins[:count], directions[:count]
+        hits = traced(q, "intersect", case, o, d)
+        assert_matches_oracle(case, hits, o, d)
+        np.testing.assert_array_equal(traced(q, "occluded", case, o, d), hits.hit)
+    if not mixed:
+        assert q.last_packets > 0
+
+
+@pytest.mark.parametrize("packet_size", [8, 16])
+@pytest.mark.parametrize("name", ["knight", "armadillo"])
+def test_rays_from_inside_in_packets_always_hit(name, packet_size):
+    """test_watertight's rays at vertices and edge midpoints, ordered so that
+    they form packets."""
+    mesh = hlbvh_cl.Mesh.load(MESHES / f"{name}.ply")
+    scene = hlbvh_cl.Scene([mesh])
+    q = RayQuery(scene._runtime, packet_size=packet_size)
+    vertices = mesh.vertices.astype(np.float64)
+    edges = _unique_edges(mesh.faces)
+    midpoints = (vertices[edges[:, 0]] + vertices[edges[:, 1]]) / 2
+    for origin in _interior_points(mesh, 2, seed=4):
+        for what, points in (("vertices", vertices), ("edge midpoints", midpoints)):
+            directions = (points - origin).astype(np.float32)
+            directions = directions[np.any(directions != 0, axis=1)]
+            directions = directions[np.argsort(packet_keys(directions), kind="stable")]
+            assert coherent_fraction(directions, packet_size) > 0.6
+            origins = np.repeat(origin[None].astype(np.float32), len(directions), 0)
+            q.count_packets = True
+            hits = q.intersect(scene._tree, origins, directions)
+            assert q.last_packets == expected_packets(directions, packet_size)
+            missed = np.flatnonzero(~hits.hit)
+            assert len(missed) == 0, (f"{name}: {len(missed)} of {len(directions)} rays from "
+                                      f"inside aimed at {what} escaped (first: directions "
+                                      f"{directions[missed[:3]].tolist()})")
+            assert q.occluded(scene._tree, origins, directions).all()
+
+
+@pytest.mark.parametrize("zero", [0.0, -0.0], ids=["+0", "-0"])
+@pytest.mark.parametrize("name", ["cube", "knight"])
+def test_axis_parallel_packets_match_oracle(name, zero):
+    """Packets of rays along -z whose x and y components are 0 (the inverse
+    direction is infinite, and the interval test of a node's children meets
+    0 * inf) and whose origins sit on a lattice through the mesh's bounds,
+    so lanes start on box planes, and spread so that part of each packet
+    misses: every answer is the oracle's, and the rays do form packets."""
+    case = scene_case(name)
+    steps = np.linspace(0.0, 1.0, 16)
+    x, y = np.meshgrid(case.lo[0] + steps * (case.hi[0] - case.lo[0]) * 1.25,
+                       case.lo[1] + steps * (case.hi[1] - case.lo[1]))
+    origins = np.stack([x.ravel(), y.ravel(), np.full(x.size, case.hi[2] + 1.0)], axis=1)
+    origins = origins.astype(np.float32)
+    directions = np.tile(np.array([zero, zero, -1.0], np.float32), (len(origins), 1))
+    q = query(case, 8)
+    hits = traced(q, "intersect", case, origins, directions)
+    assert q.last_packets == len(origins) // 8
+    assert_matches_oracle(case, hits, origins, directions)
+    assert 0 < hits.hit.sum() < len(origins)
+    np.testing.assert_array_equal(traced(q, "occluded", case, origins, directions), hits.hit)
+
+
+def _strip(x0: float, z: float, n: int = 8) -> hlbvh_cl.Mesh:
+    """The unit grid x in [x0, x0 + n], y in [-n, n] at height z."""
+    vertices = [(x0 + i, j, z) for i in range(n + 1) for j in range(-n, n + 1)]
+    at = lambda i, j: i * (2 * n + 1) + j + n  # noqa: E731
+    faces = []
+    for i in range(n):
+        for j in range(-n, n):
+            faces += [[at(i, j), at(i + 1, j), at(i + 1, j + 1)],
+                      [at(i, j), at(i + 1, j + 1), at(i, j + 1)]]
+    return hlbvh_cl.Mesh(np.array(vertices, float), faces, name="strip")
+
+
+@pytest.mark.parametrize("packet_size", [8, 16])
+@pytest.mark.parametrize("sign", [1.0, -1.0], ids=["+0", "-0"])
+def test_packets_with_zero_components_on_a_node_plane(sign, packet_size):
+    """Lanes whose direction is 0 along x and whose origins lie on the
+    plane x = x0 where a strip of triangles starts (the box of a node's child
+    starts there): each such lane ignores that plane, and must still hit
+    the strip's edge, in packets where other lanes move along x (the
+    packet's interval ray must keep the child; kernels/packet.h).  With +0
+    some lanes start far apart along z, so the interval ray's origins move;
+    with -0 none move."""
+    zero = np.float32(0.0) * np.float32(sign)
+    if sign > 0:
+        scene = hlbvh_cl.Scene([_strip(0.0, -7.0)])
+        lanes = [((0, .5, -10), (zero, 0, 1))] * 4 + [((0, .5, 0), (.5, 0, 1))] * 2 \
+            + [((0, .5, 10), (zero, 0, 1))] * 2
+    else:
+        scene = hlbvh_cl.Scene([_strip(3.0, -7.0)])
+        lanes = [((3, .5, -10), (zero, 0, 1))] * 4 + [((3, .5, -10), (-.5, 0, 1))] * 4
+    origins = np.array([o for o, _ in lanes] * (packet_size // 8), np.float32)
+    directions = np.array([d for _, d in lanes] * (packet_size // 8), np.float32)
+    assert (np.signbit(directions[:, 0]) == (sign < 0)).all()  # one packet class
+    want = np.array([3.0 if d[0] == 0 and o[2] == -10 else np.inf for o, d in lanes]
+                    * (packet_size // 8), np.float32)
+    tree = scene._built_tree()
+    for size in (1, packet_size):
+        q = RayQuery(scene._runtime, packet_size=size)
+        q.count_packets = True
+        hits = q.intersect(tree, origins, directions)
+        assert q.last_packets == (1 if size > 1 else 0)
+        np.testing.assert_array_equal(hits.t, want, err_msg=f"packets of {size}")
+        np.testing.assert_array_equal(q.occluded(tree, origins, directions), want < np.inf)
+
+
+STEPS = """#include "query/packet.h"
+__kernel void steps(__global const float* x, __global float* up, __global float* down)
+{
+    size_t i = get_global_id(0);
+    up[i] = float_above(x[i]);
+    down[i] = float_below(x[i]);
+}
+"""
+
+
+def test_float_steps_are_nextafter(suite_device):
+    """packet.h's float_above and float_below (the packet box's one-ulp
+    growth, by the bits) give C's nextafter toward +inf and -inf bit for bit,
+    as numpy computes it: zeros of both signs, subnormals, the largest
+    floats, infinities and NaN."""
+    import pyopencl as cl
+    from hlbvh_cl.device.runtime import _quiet_build, runtime
+    from hlbvh_cl.core.paths import kernel_dir
+    rt = runtime(suite_device)
+    options = ["-I", str(kernel_dir())] + [f"-D{name}={value}" for name, value in
+                                           {**rt.variant.defines, "PACKET_SIZE": 8}.items()]
+    program = _quiet_build(cl.Program(rt.context, STEPS), options, rt.device.cl_device)
+    big, tiny = np.finfo(np.float32).max, np.finfo(np.float32).smallest_subnormal
+    x = np.array([0.0, -0.0, tiny, -tiny, 2 * tiny, 1.17549435e-38, -5e-39, 1.0, -1.0, 3.5,
+                  -2.75e10, big, -big, np.inf, -np.inf, np.nan], np.float32)
+    flags = cl.mem_flags
+    source = cl.Buffer(rt.context, flags.READ_ONLY | flags.COPY_HOST_PTR, hostbuf=x)
+    up, down = (cl.Buffer(rt.context, flags.WRITE_ONLY, x.nbytes) for _ in range(2))
+    program.steps(rt.queue, (len(x),), None, source, up, down)
+    for buffer, toward in ((up, np.inf), (down, -np.inf)):
+        got = np.empty_like(x)
+        cl.enqueue_copy(rt.queue, got, buffer)
+        with np.errstate(over="ignore"):  # FLT_MAX steps to inf
+            want = np.nextafter(x, np.float32(toward))
+        same = (got.view(np.int32) == want.view(np.int32)) | (np.isnan(got) & np.isnan(want))
+        assert same.all(), (toward, x[~same], got[~same], want[~same])
