@@ -112,9 +112,7 @@ def _forget() -> int:
     round builds again.  Returns how many scenes it held."""
     import hlbvh_cl.distributed.dask as hd
     held = travel.cached_count()
-    travel.clear()
-    with hd._renderers_lock:
-        hd._renderers.clear()
+    hd.forget()
     return held
 
 
@@ -131,8 +129,7 @@ def _warm(scene, camera: hlbvh_cl.Camera, rays: np.ndarray) -> None:
 
 def _builds_ms() -> list[float]:
     """On a worker: the build wall ms of each scene it holds."""
-    with travel._cache_lock:
-        return [float(s.stats.wall_ms) for s in travel._cache.values()]
+    return [float(s.stats.wall_ms) for s in travel.cached_scenes()]
 
 
 class Work:
@@ -198,7 +195,7 @@ class Work:
             _warm(self.scene, self.cameras[0], rays)
             return
         import hlbvh_cl.distributed.dask as hd
-        shipped = hd._ship(self.scene, client)
+        shipped = hd.ship(self.scene, client)
         client.gather([client.submit(_warm, shipped, self.cameras[0], rays, workers=[w],
                                      allow_other_workers=False, pure=False)
                        for w in client.scheduler_info()["workers"]])
@@ -213,15 +210,14 @@ class Work:
         times = []
         for _ in range(repeats):
             elapsed = stopwatch()
-            hd._records(hits, hd.HITS)
+            hd.records(hits, hd.HITS)
             times.append(elapsed() * 1e3)
         return summary(times)["median"]
 
     def forget(self, client) -> None:
         import hlbvh_cl.distributed.dask as hd
         client.run(_forget)
-        with hd._scattered_lock:
-            hd._scattered.pop(self.scene, None)
+        hd.unship(self.scene)
 
 
 # ---------------------------------------------------------------- rounds
@@ -232,7 +228,7 @@ def cluster_round(work: Work, client, part: str) -> dict:
     import hlbvh_cl.distributed.dask as hd
     work.forget(client)
     elapsed = stopwatch()
-    hd._ship(work.scene, client)
+    hd.ship(work.scene, client)
     ship_s = elapsed()
     answer = work.frames_there(client) if part == "frames" else work.rays_there(client)
     total_s = elapsed()
@@ -360,7 +356,7 @@ def format_results(results: dict, markdown: bool = False) -> str:
     if not markdown:
         return "\n\n".join([table(h, rows, title) for title, h, rows in tables]
                            + _notes(results))
-    from .report import _md_table
+    from .report import md_table
     machine = results["machine"]
     lines = [f"<!-- begin {SECTION} -->", "", "## Dask cluster", "",
              f"Measured on {machine['date']} with `{results['command']}` (bench/cluster.py; its "
@@ -371,7 +367,7 @@ def format_results(results: dict, markdown: bool = False) -> str:
              "share the same cores: no speed-up is to be had here, and what the figures show "
              "is the cost of spreading the work.", ""]
     for title, headers, rows in tables:
-        lines += [f"{title}:", "", _md_table(headers, rows), ""]
+        lines += [f"{title}:", "", md_table(headers, rows), ""]
     lines += _notes(results) + ["", "*JSON: `cluster.json`*", "", f"<!-- end {SECTION} -->"]
     return "\n".join(lines) + "\n"
 

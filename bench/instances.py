@@ -674,7 +674,7 @@ def format_results(results: dict, markdown: bool = False) -> str:
     if not markdown:
         return "\n\n".join([table(h, rows, title) for title, h, rows in tables]
                            + _failures(results))
-    from .report import _md_table
+    from .report import md_table
     machine = results["machine"]
     lines = [f"<!-- begin {SECTION} -->", "", "## Instancing", "",
              f"Measured on {machine['date']} with `{results['command']}` (bench/instances.py; "
@@ -683,7 +683,7 @@ def format_results(results: dict, markdown: bool = False) -> str:
              + " at the start; above 2 means other processes ran too.", "",
              "![instancing](../docs/bench_instances.png)", ""]
     for title, headers, rows in tables:
-        lines += [f"{title}:", "", _md_table(headers, rows), ""]
+        lines += [f"{title}:", "", md_table(headers, rows), ""]
     lines += [f"- {f}" for f in _failures(results)]
     lines += ["", "*JSON: `instances.json`*", "", f"<!-- end {SECTION} -->"]
     return "\n".join(lines) + "\n"
@@ -695,7 +695,7 @@ def write_section(path: Path, text: str) -> Path:
 
 def plot(results: dict, path: Path) -> Path:
     """One panel per part, the targets drawn in red."""
-    plt = plots._pyplot()
+    plt = plots.pyplot()
     figure, axes = plt.subplots(2, 2, figsize=(13, 9))
     (top, frame), (memory, speed) = axes
     for ax in axes.ravel():
@@ -724,7 +724,7 @@ def plot(results: dict, path: Path) -> Path:
         frame.set_xticks(range(len(names)), [n.replace(" ", "\n", 1) for n in names], fontsize=7)
         frame.set(yscale="log", ylabel="ms per frame (median)",
                   title=f"b. LiDAR frame: {b['movers']:,} movers, {b['rays']:,} rays")
-        plots._plain_log(frame)
+        plots.plain_log(frame)
 
     c = results.get("memory")
     rows = [(d, r) for d, r in (c or {}).get("results", {}).items() if r.get("ratio")]
@@ -759,10 +759,10 @@ def plot(results: dict, path: Path) -> Path:
         speed.set_xticks(range(len(bars)), [n.replace(" ", "\n") for n, _ in bars], fontsize=6)
         speed.set(yscale="log", ylabel="Mrays/s (median)",
                   title="d. camera rays, numpy in and out")
-        plots._plain_log(speed)
+        plots.plain_log(speed)
         from matplotlib.ticker import NullFormatter
         speed.yaxis.set_minor_formatter(NullFormatter())  # a decade's labels crowd
-    return plots._save(figure, path)
+    return plots.save(figure, path)
 
 
 # ---------------------------------------------------------------- the command

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 
-def _pyplot():
+def pyplot():
     """matplotlib.pyplot on the Agg backend (no display needed)."""
     import matplotlib
     matplotlib.use("Agg")
@@ -16,16 +16,16 @@ def _pyplot():
     return plt
 
 
-def _save(figure, path: Path) -> Path:
+def save(figure, path: Path) -> Path:
     path = Path(path)
     figure.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path, dpi=100)
-    _pyplot().close(figure)
+    pyplot().close(figure)
     return path
 
 
-def _plain_log(axes, *, x: bool = False, y: bool = True) -> None:
+def plain_log(axes, *, x: bool = False, y: bool = True) -> None:
     """Log axes labelled with plain numbers (0.1, 2, 20) rather than powers of ten."""
     from matplotlib.ticker import FuncFormatter, NullFormatter
     plain = FuncFormatter(lambda value, _: f"{value:g}")
@@ -62,7 +62,7 @@ def _throughput(axes, groups: list, names: list[str]) -> None:
                     ha="right", rotation_mode="anchor")
     axes.set(ylabel="closest hit, Mrays/s (median, min-max)", yscale="log",
              title="ray throughput, the same rays for all (numpy in, numpy out)")
-    _plain_log(axes)
+    plain_log(axes)
     axes.legend(fontsize=7, ncol=2)
 
 
@@ -83,7 +83,7 @@ def _stages(axes, bars: list) -> None:
 def build(results: dict, path: Path) -> Path:
     """Build time against triangles (each device and builder), and the
     stages of the scene file's build."""
-    plt = _pyplot()
+    plt = pyplot()
     figure, (scaling, stages) = plt.subplots(1, 2, figsize=(13, 5))
     for device_id, result in results["devices"].items():
         for builder, marker in (("hlbvh", "o"), ("lbvh", "s")):
@@ -94,17 +94,17 @@ def build(results: dict, path: Path) -> Path:
                           label=f"{device_id} {builder}")
     scaling.set(xscale="log", yscale="log", xlabel="triangles", ylabel="build wall time, ms",
                 title="build time (median of the rebuilds, min-max)")
-    _plain_log(scaling, x=True)
+    plain_log(scaling, x=True)
     scaling.legend(fontsize=8)
     _stages(stages, [(f"{d}\n{r['builder']}", r) for d, result in results["devices"].items()
                      for r in result["cases"] if r["kind"] == "scene"])
-    return _save(figure, path)
+    return save(figure, path)
 
 
 def trace(results: dict, path: Path) -> Path:
     """Closest-hit throughput of every participant per workload, and the
     scaling series' time against triangles."""
-    plt = _pyplot()
+    plt = pyplot()
     figure, (speed, scaling) = plt.subplots(1, 2, figsize=(15, 5.5),
                                             gridspec_kw={"width_ratios": [2, 1]})
     names = [n for n, p in results["participants"].items() if p["available"]]
@@ -120,15 +120,15 @@ def trace(results: dict, path: Path) -> Path:
                       label=name + (f" (alpha {alpha:.3f})" if alpha is not None else ""))
     scaling.set(xscale="log", yscale="log", xlabel="triangles", ylabel="closest hit, wall ms",
                 title=f"scaling: {data['workload']},\none surface tessellated finer")
-    _plain_log(scaling, x=True)
+    plain_log(scaling, x=True)
     scaling.legend(fontsize=8)
-    return _save(figure, path)
+    return save(figure, path)
 
 
 def suite(results: dict, path: Path) -> Path:
     """The report's table against ours (its Figure 1), the build stages of
     the last build case, and ray throughput."""
-    plt = _pyplot()
+    plt = pyplot()
     figure, (table, stages, speed) = plt.subplots(1, 3, figsize=(20, 5.5),
                                                   gridspec_kw={"width_ratios": [1, 1, 1.6]})
     data = results["table"]
@@ -148,7 +148,7 @@ def suite(results: dict, path: Path) -> Path:
     width, height = data["resolution"]
     table.set(xscale="log", yscale="log", xlabel="triangles", ylabel="build + render, s",
               title=f"time ~ triangles^alpha, {width}x{height}, diffuse + shadows")
-    _plain_log(table, x=True)
+    plain_log(table, x=True)
     table.legend(fontsize=7)
     last = results["config"]["build_cases"][-1] if results["config"]["build_cases"] else None
     _stages(stages, [(f"{d}\n{r['builder']}", r) for d, rows in results["build"].items()
@@ -156,4 +156,4 @@ def suite(results: dict, path: Path) -> Path:
     names = list(dict.fromkeys(n for s in results["trace"]["scenes"] for n in s["participants"]))
     _throughput(speed, [(f"{s['name']}\n{w['name']}", w) for s in results["trace"]["scenes"]
                         for w in s["workloads"]], names)
-    return _save(figure, path)
+    return save(figure, path)

@@ -521,7 +521,7 @@ def format_results(results: dict, markdown: bool = False) -> str:
                   "each answer against ours (distances and t relative to the box diagonal)"),
             table(memory_headers, memory_rows,
                   f"intersect_all memory, {memory['case'] if memory else '-'}")] + failed)
-    from .report import _md_table
+    from .report import md_table
     return "\n".join([f"<!-- begin {SECTION} -->", "", "## Point and multi-hit queries", "",
                       f"Measured on {results['machine']['date']} with `{results['command']}` "
                       f"(bench/queries.py; its docstring says how), load average "
@@ -533,7 +533,7 @@ def format_results(results: dict, markdown: bool = False) -> str:
                       f"{results['config']['repeats']} calls; trimesh ran on the first "
                       f"{results['config']['few_rays']:,} rays only. Target: the issue's factor "
                       "over the fastest peer (or Open3D for the ray queries).", "",
-                      _md_table(speed_headers, speed, left=3), "",
+                      md_table(speed_headers, speed, left=3), "",
                       "Agreement with ours on the same items (distances and t over the box "
                       "diagonal; signs where both are more than 1e-3 of it from the surface). "
                       "Open3D signs by counting a ray's crossings, libigl (pseudonormal) and "
@@ -541,10 +541,10 @@ def format_results(results: dict, markdown: bool = False) -> str:
                       "(signed volume " + ", ".join(f"{c['name']} {c['signed_volume']:.3g}"
                                                     for c in results["cases"])
                       + ") or that is not closed, their signs differ by design.",
-                      "", _md_table(["case", "query", "workload", *others], gaps, left=3), "",
+                      "", md_table(["case", "query", "workload", *others], gaps, left=3), "",
                       f"intersect_all memory on {memory['case'] if memory else '-'}, child "
                       f"process, peak RSS growth over the output's nbytes (target < "
-                      f"{MEMORY_TARGET:g}x):", "", _md_table(memory_headers, memory_rows), "",
+                      f"{MEMORY_TARGET:g}x):", "", md_table(memory_headers, memory_rows), "",
                       *[f"- {f}" for f in failed], "", "*JSON: `queries.json`*", "",
                       f"<!-- end {SECTION} -->"]) + "\n"
 
@@ -557,7 +557,7 @@ def write_section(path: Path, text: str) -> Path:
 def plot(results: dict, path: Path) -> Path:
     """Rates of every participant per case, query and workload; and our
     speed over the target's peer with the target drawn."""
-    plt = plots._pyplot()
+    plt = plots.pyplot()
     figure, (speed, ratio) = plt.subplots(2, 1, figsize=(14, 9))
     rows = _rows(results)
     names = [n for n, p in results["participants"].items() if p["available"]]
@@ -571,7 +571,7 @@ def plot(results: dict, path: Path) -> Path:
                       label=name)
     speed.set_xticks(range(len(rows)), labels, fontsize=6)
     speed.set(yscale="log", ylabel="M items/s (median)", title="query rates, same items for all")
-    plots._plain_log(speed)
+    plots.plain_log(speed)
     speed.legend(fontsize=7, ncol=3)
     devices = [n for n, p in results["participants"].items() if p["kind"] == "device"]
     for i, device in enumerate(devices):
@@ -584,7 +584,7 @@ def plot(results: dict, path: Path) -> Path:
     ratio.set(ylabel="ours / target peer", title="our speed over the fastest peer "
               "(Open3D for the ray queries); red: the issue's target")
     ratio.legend(fontsize=7)
-    return plots._save(figure, path)
+    return plots.save(figure, path)
 
 
 # ---------------------------------------------------------------- the command

@@ -33,7 +33,7 @@ def _times(value, digits: int = 1) -> str:
     return "-" if value is None else f"{value:,.{digits}f}x"
 
 
-def _md_table(headers: list[str], rows: list[list], left: int = 1) -> str:
+def md_table(headers: list[str], rows: list[list], left: int = 1) -> str:
     """A markdown table; the first ``left`` columns left-aligned, the others right."""
     align = ["---"] * left + ["---:"] * (len(headers) - left)
     lines = ["| " + " | ".join(headers) + " |", "| " + " | ".join(align) + " |"]
@@ -138,8 +138,8 @@ def _devices_section(suite: dict) -> list[str]:
                      " / ".join(f"{b} {_num(x, 2)}" for b, x in (compiled.get("build") or {})
                                 .items()) or "-", _num(compiled.get("render"), 2)])
     out = [f"## {SECTIONS[1]}", "",
-           _md_table(["device", "name", "platform", "driver", "compute units",
-                      "compile s: build", "compile s: render"], rows, left=4), "",
+           md_table(["device", "name", "platform", "driver", "compute units",
+                     "compile s: build", "compile s: render"], rows, left=4), "",
            "Compile: seconds the first use of the kernels took beyond a warm run (first build "
            "minus the median rebuild, per builder; a 1x1 render), compiled or loaded from the "
            "on-disk caches. Kept out of every other figure.", "",
@@ -155,8 +155,8 @@ def _devices_section(suite: dict) -> list[str]:
                          *[_num(r["times_ms"][s]["median"], 1) for s in stages],
                          _num(r["times_ms"]["device"]["median"], 1),
                          spread(r["times_ms"]["wall"]), _num(r["cores_used"], 2)])
-    out += [_md_table(["device", "case", "builder", "triangles", *stages, "device", "wall",
-                       "cores"], rows, left=3), "",
+    out += [md_table(["device", "case", "builder", "triangles", *stages, "device", "wall",
+                      "cores"], rows, left=3), "",
             _json_key('`build["<device>"][i].times_ms.<stage>`, `.refit`, `.cores_used`'),
             "", "### Ray throughput", "",
             "Closest-hit and any-hit queries, numpy arrays in and out, Mrays/s, median "
@@ -165,8 +165,8 @@ def _devices_section(suite: dict) -> list[str]:
              spread(r["occluded_mrays"], digits=2)]
             for s in suite["trace"]["scenes"] for w in s["workloads"]
             for d in suite["devices"] if (r := w["results"].get(d))]
-    out += [_md_table(["device", "scene", "rays", "count", "closest hit", "any hit"], rows,
-                      left=3), "",
+    out += [md_table(["device", "scene", "rays", "count", "closest hit", "any hit"], rows,
+                     left=3), "",
             _json_key('`trace.scenes[i].workloads[j].results["<device>"]`')]
     reference = suite["reference"]
     width, height = reference["resolution"]
@@ -177,8 +177,8 @@ def _devices_section(suite: dict) -> list[str]:
     out += ["", "### The reference scene", "",
             f"`{reference['scene']}` at {width}x{height}, diffuse shading with shadows: "
             "`Scene.rebuild()` then `Renderer.render()`, seconds; reading the file (load) apart.",
-            "", _md_table(["device", "triangles", "build", "render", "build + render",
-                           "render Mrays/s", "cores", "load", "vs report's 40 s"], rows), "",
+            "", md_table(["device", "triangles", "build", "render", "build + render",
+                          "render Mrays/s", "cores", "load", "vs report's 40 s"], rows), "",
             _json_key('`reference.devices["<device>"]`')]
     for device_id, r in reference["devices"].items():
         if "image_vs" in r:
@@ -219,7 +219,7 @@ def _table_section(suite: dict) -> list[str]:
             row += [spread(r["times_s"]["total_s"], digits=3) + (" ‡" if few else "")
                     if r else "-", _times(r["speedup"] if r else None)]
         rows.append(row)
-    out += [_md_table(headers, rows), "",
+    out += [md_table(headers, rows), "",
             f"‡ fewer than {LOW_CORES} cores busy on average during the timed runs.", "",
             _json_key('`table.devices["<device>"].rows[i]`, `table.report_times_s`')]
     out += [f"- {d}: alpha = **{e['alpha']:.3f}** (least squares in log-log over the report's "
@@ -243,10 +243,10 @@ def _peers_section(suite: dict) -> list[str]:
            "In the same run and on the same rays as our devices (bench/peers.py); primary rays "
            "through a pinhole camera, incoherent rays from a sphere around the objects to random "
            "points of their box (bench/trace.py). Peers see the scene's meshes as one.", "",
-           _md_table(["peer", "version", "what", "available"],
-                     [[n, p["version"] or "-", p["label"],
-                       "yes" if p["available"] else f"no: {p['problem']}"]
-                      for n, p in suite["peers"].items()], left=3)]
+           md_table(["peer", "version", "what", "available"],
+                    [[n, p["version"] or "-", p["label"],
+                      "yes" if p["available"] else f"no: {p['problem']}"]
+                     for n, p in suite["peers"].items()], left=3)]
     for i, scene in enumerate(suite["trace"]["scenes"]):
         workloads = scene["workloads"]
         headers = ["participant", "build s"]
@@ -258,7 +258,7 @@ def _peers_section(suite: dict) -> list[str]:
         out += ["", f"### `{scene['name']}` ({scene['triangles']:,} triangles)", "",
                 "Mrays/s, median (min-max); build: seconds from the arrays to a structure ready "
                 "to trace (ours: `Scene(meshes)`, kernels compiled before).", "",
-                _md_table(headers, rows), ""]
+                md_table(headers, rows), ""]
         for w in workloads:
             differing = [f"{n} on {r['disagreement']['intersect'] * w['rays']:.0f} ray(s)"
                          for n, r in w["results"].items() if max(r["disagreement"].values()) > 0]
@@ -273,7 +273,7 @@ def _peers_section(suite: dict) -> list[str]:
                                       for w in workloads for q in ("intersect", "occluded")]
                     for d, p in pairs]
             out += ["", "Our Mrays/s over the peer's (> 1x: ours is faster):", "",
-                    _md_table(headers, rows)]
+                    md_table(headers, rows)]
         out += ["", _json_key(f'`trace.scenes[{i}].workloads[j].results["<participant>"]`, '
                               f'`.ratios["<device>"]["<peer>"]`, `.build_times_s`')]
     return out
@@ -296,8 +296,8 @@ def _tree_section(suite: dict) -> list[str]:
                   _num(v["nodes"], 3), "", "", "", *[_times(v["mrays"].get(w), 2)
                                                      for w in workloads]]
                  for r in entries if (v := r.get("vs_lbvh"))]
-    return out + [_md_table(["device", "scene", "builder", "SAH cost", "nodes", "leaves", "depth",
-                             "build ms", *workloads], rows, left=3), "",
+    return out + [md_table(["device", "scene", "builder", "SAH cost", "nodes", "leaves", "depth",
+                            "build ms", *workloads], rows, left=3), "",
                   _json_key('`tree_quality["<device>"][i]`')]
 
 
@@ -329,7 +329,7 @@ def markdown(suite: dict, links: dict) -> str:
     return "\n".join(line for part in parts for line in part) + "\n"
 
 
-def _kept_sections(path: Path) -> str:
+def kept_sections(path: Path) -> str:
     """The sections other benches write into RESULTS.md (bench/queries.py),
     each between "<!-- begin NAME -->" and "<!-- end NAME -->": kept as they are."""
     import re
@@ -355,5 +355,5 @@ def write_all(suite: dict, json_path: Path | None, plot_path: Path,
     links = {"plot": link(plot_path),
              "json": f"[`{link(json_path)}`]({link(json_path)})" if json_path else
              "`bench/results/suite.json`, written by each run (not committed)"}
-    markdown_path.write_text(markdown(suite, links) + _kept_sections(markdown_path))
+    markdown_path.write_text(markdown(suite, links) + kept_sections(markdown_path))
     return written + [markdown_path]

@@ -20,7 +20,9 @@ from .device.runtime import DeviceMemoryError, KernelBuildError
 from .mesh import Mesh
 from .query.points import ClosestPoints
 from .query.rays import Hits
-from .render.renderer import Camera, Light, Renderer
+from .render.camera import Camera
+from .render.light import Light
+from .render.renderer import Renderer
 from .scene import Scene
 
 __all__ = ["AllHits", "BuildStats", "Camera", "ClosestPoints", "Device", "DeviceMemoryError",

@@ -25,9 +25,11 @@ from . import devices
 from .io import scenefile
 from .device.discovery import select_device, unregistered
 from .device.runtime import DeviceMemoryError, KernelBuildError
-from .render.renderer import AO_SAMPLES, MAX_AO_SAMPLES, MAX_IMAGE_SIDE, MAX_SPP, SHADINGS
+from .render.camera import MAX_IMAGE_SIDE
+from .render.integrators import SHADINGS
+from .render.settings import AO_SAMPLES, MAX_AO_SAMPLES, MAX_SPP
 
-#: What a slow first run is doing (_stage).
+#: What a slow first run is doing (stage).
 _PROBING = "probing the OpenCL devices in child processes (once per device and driver)"
 _BUILDING = "loading the scene and building its BVH (kernels compile on a first run)"
 
@@ -37,7 +39,7 @@ _DEVICE_HELP = "device id, index, runtime (pocl, intel), type (cpu, gpu) or name
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
 
-def _device_state(d) -> str:
+def device_state(d) -> str:
     """What the kernel probe found for a device, in one line."""
     if d.simulator:
         return f"a simulator: used only when named (device='{d.id}'), never by default"
@@ -59,7 +61,7 @@ def _cmd_devices(args) -> int:
         return 1
     for d in found:
         print(f"{d.id:10s} {d.type:4s} {d.name} [{d.platform}, driver {d.driver_version}, "
-              f"{d.compute_units} compute units, profile {d.profile.name}] {_device_state(d)}")
+              f"{d.compute_units} compute units, profile {d.profile.name}] {device_state(d)}")
     for note in unregistered:
         print(f"not listed: {note}")
     usable = [d for d in found if d.skipped_because is None]
@@ -87,9 +89,9 @@ def _instances(scene) -> str:
 
 
 def _cmd_info(args) -> int:
-    with _stage(_PROBING):
+    with stage(_PROBING):
         select_device(args.device)
-    with _stage(_BUILDING):
+    with stage(_BUILDING):
         loaded = scenefile.load(args.scene, args.device, args.builder, args.morton_bits)
     scene = loaded.scene
     if args.repeat > 1:  # the first build pays for kernel compilation
@@ -120,10 +122,10 @@ def _cmd_render(args) -> int:
                          f"{', '.join(IMAGE_SUFFIXES)}")
     if not output.parent.is_dir():
         raise ValueError(f"cannot write {output}: folder {output.parent} does not exist")
-    with _stage(_PROBING):
+    with stage(_PROBING):
         select_device(args.device)  # an unknown device fails before the scene loads
     started = time.perf_counter()
-    with _stage(_BUILDING):
+    with stage(_BUILDING):
         loaded = scenefile.load(args.scene, args.device)
     scene, renderer = loaded.scene, loaded.renderer()
     build_wall = loaded.build_seconds
@@ -134,11 +136,11 @@ def _cmd_render(args) -> int:
     # A one-pixel render first: it compiles (or loads from the cache) every
     # kernel the render uses, so the real render's times are its own.
     warm_started = time.perf_counter()
-    with _stage("compiling the render kernels (cached after a first run)"):
+    with stage("compiling the render kernels (cached after a first run)"):
         renderer.render(loaded.camera, 1, 1, **options)
     render_compile = time.perf_counter() - warm_started
     bar = sys.stderr.isatty()  # a tqdm bar on a terminal; else one line if it takes a while
-    with contextlib.nullcontext() if bar else _stage(f"rendering {width}x{height}"):
+    with contextlib.nullcontext() if bar else stage(f"rendering {width}x{height}"):
         image = renderer.render(loaded.camera, width, height, progress=bar, **options)
     written_started = time.perf_counter()
     _write_image(output, image)
@@ -179,7 +181,7 @@ def _cmd_render(args) -> int:
 
 
 @contextlib.contextmanager
-def _stage(what: str, after_s: float = 1.0):
+def stage(what: str, after_s: float = 1.0):
     """Says on stderr what the command is doing when a step takes longer
     than ``after_s`` (a first run probes devices and compiles kernels for
     minutes); quiet when it is quick.  Results stay on stdout."""

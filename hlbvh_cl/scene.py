@@ -344,8 +344,7 @@ class Scene:
         stats.sah_cost (of the tree as built).  (Unless the move takes the
         scene's largest coordinate across 2^24 or 2^-24 from the frame it was
         built in: then it is rebuilt in a new frame, hlbvh_cl.core.frame.)"""
-        if isinstance(geom_id, bool) or not isinstance(geom_id, (int, np.integer)):
-            raise TypeError(f"geom_id must be an int, got {type(geom_id).__name__}")
+        geom_id = inputs.integer("geom_id", geom_id)
         if not 0 <= geom_id < len(self.meshes):
             raise ValueError(f"geom_id {geom_id} is out of range: the scene has "
                              f"{len(self.meshes)} mesh(es)")

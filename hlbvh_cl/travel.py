@@ -8,7 +8,7 @@ objects).  Unpickling looks the spec's content key up in the cache and
 builds the Scene only when it is not there, so a worker of a cluster
 (hlbvh_cl.distributed.dask) that runs a thousand tasks on one scene builds it once.
 Each unpickling gets a Scene object of its own, a view over the cached
-scene's trees (Scene._view): a view that changes (update_vertices,
+scene's trees (Scene.view): a view that changes (update_vertices,
 set_transforms, rebuild) first builds trees of its own, so no change
 reaches the cache or another holder, as with any copy.
 """
@@ -106,6 +106,21 @@ def cached_count() -> int:
     """How many scenes the cache holds (for tests)."""
     with _cache_lock:
         return len(_cache)
+
+
+def cached_scenes() -> list:
+    """Views (Scene.view) of the scenes the cache holds, the least recently
+    used first: for benchmarks and tests that read them (their stats, say);
+    the cached scenes themselves are never handed out."""
+    with _cache_lock:
+        return [scene.view() for scene in _cache.values()]
+
+
+def building_keys() -> set[str]:
+    """The content keys of the scenes that restore is building now (for
+    tests: a build that failed leaves none behind)."""
+    with _cache_lock:
+        return set(_building)
 
 
 def clear() -> None:

@@ -18,10 +18,10 @@ MESH_DIR = Path(__file__).resolve().parent.parent / "scenes" / "meshes"
 def pytest_report_header(config):
     """What this run ran on: every device with its probe's verdict."""
     import hlbvh_cl
-    from hlbvh_cl.cli import _device_state
+    from hlbvh_cl.cli import device_state
     lines = [f"hlbvh_cl target: {os.environ['HLBVH_CL_DEVICE']}, profile "
              f"{os.environ.get('HLBVH_CL_PROFILE') or 'by device type'}"]
-    lines += [f"  {d.id} ({d.type}) {d.name}: {_device_state(d)}" for d in hlbvh_cl.devices()]
+    lines += [f"  {d.id} ({d.type}) {d.name}: {device_state(d)}" for d in hlbvh_cl.devices()]
     return lines
 
 

@@ -6,12 +6,12 @@ import json
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 
 import hlbvh_cl
 from hlbvh_cl.io import scenefile
+import built
 import places
 
 ROOT = places.REPO
@@ -52,7 +52,8 @@ def test_camera_rays_are_the_renderers_primary_rays():
     image computed from their hits is the rendered one, pixel for pixel."""
     meshes = [hlbvh_cl.Mesh.load(ROOT / "scenes/meshes/teapot.ply")]
     scene = hlbvh_cl.Scene(meshes)
-    lo, hi = scene._tree.bounds_lo, scene._tree.bounds_hi
+    tree = built.tree(scene)
+    lo, hi = tree.bounds_lo, tree.bounds_hi
     camera = hlbvh_cl.Camera((lo + hi) / 2 + (hi - lo) * [0.4, 0.6, 1.8], (lo + hi) / 2,
                              fov_deg=35)
     width, height = 37, 23
@@ -131,14 +132,14 @@ def test_a_failed_buffer_reservation_does_not_break_later_queries(monkeypatch):
     from shapes import grid_mesh
 
     scene = hlbvh_cl.Scene([grid_mesh(4)])
-    query = RayQuery(scene._runtime)
+    query = RayQuery(built.runtime(scene))
     query.zero_copy = False  # the device-buffer path (GPUs, Intel's CPU runtime)
-    tree = scene._built_tree()
+    tree = built.tree(scene)
     origins = np.float32([[0.3, 0.4, -3.0]] * 64)
     directions = np.tile(np.float32([[0.0, 0.0, 1.0]]), (64, 1))
     expected = query.intersect(tree, origins[:8], directions[:8]).t
     with monkeypatch.context() as patch:
-        patch.setattr(type(scene._runtime), "check_allocation",
+        patch.setattr(type(built.runtime(scene)), "check_allocation",
                       lambda *args, **kwargs: (_ for _ in ()).throw(KeyboardInterrupt()))
         with pytest.raises(KeyboardInterrupt):
             query.intersect(tree, origins, directions)

@@ -2,7 +2,6 @@
 import subprocess
 import sys
 import warnings
-from pathlib import Path
 
 import pytest
 
@@ -97,10 +96,10 @@ def test_a_file_neither_toml_nor_mesh_says_what_is_expected(tmp_path, capsys):
 
 def test_a_slow_step_says_what_it_does_and_a_quick_one_is_quiet(capsys):
     import time
-    from hlbvh_cl.cli import _stage
-    with _stage("compiling", after_s=0.05):
+    from hlbvh_cl.cli import stage
+    with stage("compiling", after_s=0.05):
         time.sleep(0.3)
-    with _stage("quick", after_s=5.0):
+    with stage("quick", after_s=5.0):
         pass
     assert capsys.readouterr().err == "hlbvh-cl: compiling ...\n"
 

@@ -2,7 +2,6 @@
 printed, and a user's mistakes reported in one line with exit code 2."""
 import subprocess
 import sys
-from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np

@@ -24,6 +24,7 @@ from hlbvh_cl.device.hugepages import HUGE_PAGE, MIN_ADVISED_BYTES, advise_huge_
 from hlbvh_cl.device.pool import KEEP_BUILDS, BufferPool
 from hlbvh_cl.query.rays import RayQuery
 from hlbvh_cl.query.results import MIN_POOLED_BYTES, ResultPool, starts_on_page
+import built
 from ray_cases import assert_matches_oracle, random_rays, scene_case
 from shapes import grid_mesh
 import places
@@ -110,10 +111,10 @@ def test_scratch_comes_back_after_an_error(pool):
 def test_rebuild_reuses_the_old_tree_and_answers_as_a_fresh_scene():
     mesh = Mesh.load(MESH_DIR / "bunny_small.ply")
     scene = Scene([mesh])
-    old = scene._tree
+    old = built.tree(scene)
     old_buffers = {old.nodes.int_ptr, old.triangles.int_ptr, old.refs.int_ptr}
     scene.rebuild()
-    new = scene._tree
+    new = built.tree(scene)
     assert old.released and not new.released
     assert {new.nodes.int_ptr, new.triangles.int_ptr, new.refs.int_ptr} == old_buffers
 
@@ -132,9 +133,9 @@ def test_rebuild_reuses_the_old_tree_and_answers_as_a_fresh_scene():
 
 def test_a_released_tree_cannot_be_queried():
     scene = Scene([Mesh.load(MESH_DIR / "knight.ply")])
-    old = scene._tree
+    old = built.tree(scene)
     scene.rebuild()
-    query = scene._ray_query()
+    query = RayQuery(built.runtime(scene))
     with pytest.raises(ValueError, match="released when its Scene rebuilt"):
         query.intersect(old, np.zeros((1, 3)), np.ones((1, 3)))
 
@@ -142,7 +143,7 @@ def test_a_released_tree_cannot_be_queried():
 def test_a_scene_that_goes_away_takes_its_scratch_with_it():
     import gc
     scene = Scene([Mesh.load(MESH_DIR / "knight.ply")])
-    pool = scene._runtime.pool
+    pool = built.runtime(scene).pool
     scene.rebuild()
     assert pool.free_bytes > 0  # the last build's scratch, kept for the next rebuild
     del scene
@@ -158,7 +159,9 @@ import gc, sys
 import hlbvh_cl
 scene = hlbvh_cl.Scene([hlbvh_cl.Mesh.load(sys.argv[1])])
 scene.cycle = scene
-pool = scene._runtime.pool
+with scene.borrow() as lent:
+    pool = lent.runtime.pool
+del lent
 scene.rebuild()
 held = pool.free_bytes
 del scene
@@ -239,7 +242,7 @@ def test_blocks_of_several_sizes_and_held_results():
             held.pop(0)
         for value, older in held:
             assert np.all(older == value)
-    assert len(pool._free) <= pool.keep
+    assert len(pool.held) <= pool.keep
 
 
 def test_a_block_of_a_size_no_longer_asked_for_is_let_go():
@@ -250,7 +253,7 @@ def test_a_block_of_a_size_no_longer_asked_for_is_let_go():
     del big
     gc.collect()
     held = [pool.empty(BIG, np.float32) for _ in range(3)]  # the big size falls out
-    assert len(held) == 3 and [len(block) for block in pool._free] == []
+    assert len(held) == 3 and [len(block) for block in pool.held] == []
 
 
 def test_small_results_are_plain_arrays():
@@ -259,7 +262,8 @@ def test_small_results_are_plain_arrays():
 
 def test_held_hits_survive_later_queries():
     scene = hlbvh_cl.Scene([grid_mesh()])
-    lo, hi = scene._tree.bounds_lo, scene._tree.bounds_hi
+    tree = built.tree(scene)
+    lo, hi = tree.bounds_lo, tree.bounds_hi
     count = MIN_POOLED_BYTES // 4 + 10
 
     def rays(seed):
@@ -361,22 +365,22 @@ def test_an_advised_buffer_is_backed_by_huge_pages_and_keeps_its_data():
 def test_buffers_are_reused_and_only_grow():
     """Where the kernels cannot use the numpy arrays in place (GPUs)."""
     case = scene_case("cube")
-    q = RayQuery(case.scene._runtime)
+    q = RayQuery(built.runtime(case.scene))
     q.zero_copy = False
     origins, directions = random_rays(case, 300, seed=13)
-    q.intersect(case.scene._tree, origins, directions)
-    buffers = dict(q._buffers)
-    q.intersect(case.scene._tree, origins[:100], directions[:100])
-    q.occluded(case.scene._tree, origins[:200], directions[:200])
-    assert q._buffers == buffers
-    q.intersect(case.scene._tree, np.repeat(origins, 4, 0), np.repeat(directions, 4, 0))
-    assert q._buffers["origins"] is not buffers["origins"]
+    q.intersect(built.tree(case.scene), origins, directions)
+    buffers = dict(q.engine.reused)
+    q.intersect(built.tree(case.scene), origins[:100], directions[:100])
+    q.occluded(built.tree(case.scene), origins[:200], directions[:200])
+    assert all(q.engine.reused[name] is buffer for name, buffer in buffers.items())
+    q.intersect(built.tree(case.scene), np.repeat(origins, 4, 0), np.repeat(directions, 4, 0))
+    assert q.engine.reused["origins"] is not buffers["origins"]
 
 
 def test_chunk_size_follows_device_memory():
     case = scene_case("cube")
-    q = RayQuery(case.scene._runtime)
-    d = case.scene._runtime.device
+    q = RayQuery(built.runtime(case.scene))
+    d = built.runtime(case.scene).device
     buffers = {**query_module.RAY_ARRAYS, **query_module.HIT_ARRAYS,
                **query_module.OCCLUDED_ARRAYS}
     assert q.max_rays_per_launch <= query_module.MAX_RAYS_PER_LAUNCH
@@ -393,18 +397,18 @@ def test_results_written_in_place_equal_read_back_results(chunk):
     case = scene_case("knight")
     count = MIN_POOLED_BYTES // 4 + 1000
     origins, directions = random_rays(case, count, seed=16)
-    copied = RayQuery(case.scene._runtime)
+    copied = RayQuery(built.runtime(case.scene))
     copied.zero_copy, copied.outputs_in_place = False, False
-    written = RayQuery(case.scene._runtime, max_rays_per_launch=chunk)
+    written = RayQuery(built.runtime(case.scene), max_rays_per_launch=chunk)
     written.zero_copy, written.outputs_in_place = False, True
-    expected = copied.intersect(case.scene._tree, origins, directions)
-    got = written.intersect(case.scene._tree, origins, directions)
+    expected = copied.intersect(built.tree(case.scene), origins, directions)
+    got = written.intersect(built.tree(case.scene), origins, directions)
     for field in ("t", "prim_id", "geom_id", "u", "v", "normal"):
         assert starts_on_page(getattr(got, field))
         np.testing.assert_array_equal(getattr(got, field), getattr(expected, field))
     assert 0 < got.hit.mean() < 1
-    np.testing.assert_array_equal(written.occluded(case.scene._tree, origins, directions),
-                                  copied.occluded(case.scene._tree, origins, directions))
+    np.testing.assert_array_equal(written.occluded(built.tree(case.scene), origins, directions),
+                                  copied.occluded(built.tree(case.scene), origins, directions))
 
 
 def test_in_place_queries_take_any_array_layout():
@@ -414,24 +418,24 @@ def test_in_place_queries_take_any_array_layout():
     case = scene_case("knight")
     count = MIN_POOLED_BYTES // 4 + 1000
     origins, directions = random_rays(case, count, seed=15)
-    in_place = RayQuery(case.scene._runtime)
+    in_place = RayQuery(built.runtime(case.scene))
     in_place.zero_copy = True
-    copied = RayQuery(case.scene._runtime)
+    copied = RayQuery(built.runtime(case.scene))
     copied.zero_copy = False
-    expected = copied.intersect(case.scene._tree, origins, directions)
+    expected = copied.intersect(built.tree(case.scene), origins, directions)
     raw = np.zeros(origins.nbytes + 5, np.uint8)
     unaligned = raw[1:1 + origins.nbytes].view(np.float32).reshape(origins.shape)  # 1-byte offset
     unaligned[:] = origins
     frozen = directions.copy()
     frozen.flags.writeable = False
-    got = in_place.intersect(case.scene._tree, unaligned, frozen)
-    in_place.intersect(case.scene._tree, origins[::-1].copy(), directions[::-1].copy())
+    got = in_place.intersect(built.tree(case.scene), unaligned, frozen)
+    in_place.intersect(built.tree(case.scene), origins[::-1].copy(), directions[::-1].copy())
     for field in ("t", "prim_id", "geom_id", "u", "v", "normal"):
         np.testing.assert_array_equal(getattr(got, field), getattr(expected, field))
     # one array as both origins and directions, and two overlapping views
     points = np.ascontiguousarray(origins[:500])
-    np.testing.assert_array_equal(in_place.intersect(case.scene._tree, points, points).t,
-                                  copied.intersect(case.scene._tree, points, points.copy()).t)
+    np.testing.assert_array_equal(in_place.intersect(built.tree(case.scene), points, points).t,
+                                  copied.intersect(built.tree(case.scene), points, points.copy()).t)
     rows = np.ascontiguousarray(origins[:750])
-    overlapping = in_place.intersect(case.scene._tree, rows[:500], rows[250:])
+    overlapping = in_place.intersect(built.tree(case.scene), rows[:500], rows[250:])
     assert_matches_oracle(case, overlapping, rows[:500].copy(), rows[250:].copy())

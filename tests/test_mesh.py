@@ -1,7 +1,6 @@
 """Mesh: arrays converted and kept read-only, and loading every supported
 file format (bad arrays and bad files: test_validation.py)."""
 import gzip
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -72,8 +72,10 @@ def test_every_entry_in_a_forked_child_fails_fast(scene):
                 outcome.append(f"{name}: ForkedProcessError")
             except BaseException as error:
                 outcome.append(f"{name}: {type(error).__name__}")
-        os.write(write, "\n".join(outcome).encode())
-        os._exit(0)
+        try:
+            os.write(write, "\n".join(outcome).encode())
+        finally:  # gone at once, as after fork it must be: no exit handlers, no pytest of its own
+            os.kill(os.getpid(), signal.SIGKILL)
     os.close(write)
     ready, _, _ = select.select([read], [], [], ANSWER_S)
     if not ready:

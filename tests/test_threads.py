@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import hlbvh_cl
+import built
 from shapes import grid_mesh
 import places
 
@@ -19,7 +20,8 @@ SECONDS = 20.0
 
 def _rays(scene, count, seed):
     rng = np.random.default_rng(seed)
-    lo, hi = scene._tree.bounds_lo, scene._tree.bounds_hi
+    tree = built.tree(scene)
+    lo, hi = tree.bounds_lo, tree.bounds_hi
     centre, size = (lo + hi) / 2, float(np.max(hi - lo))
     origins = centre + rng.normal(size=(count, 3)) * size
     targets = centre + rng.normal(size=(count, 3)) * size * 0.2
@@ -28,7 +30,6 @@ def _rays(scene, count, seed):
 
 @pytest.fixture(scope="module")
 def scenes():
-    from pathlib import Path
     root = places.REPO / MESHES
     bunny = hlbvh_cl.Mesh.load(root / "bunny_small.ply")
     teapot = hlbvh_cl.Mesh.load(root / "teapot.ply")
@@ -39,7 +40,8 @@ def _calls(scene, k):
     """The calls the threads make on a scene, each with a fixed input."""
     origins, directions = _rays(scene, 20000, k)
     points = origins[:5000] * np.float32(0.3) + directions[:5000] * np.float32(0.1)
-    lo, hi = scene._tree.bounds_lo, scene._tree.bounds_hi
+    tree = built.tree(scene)
+    lo, hi = tree.bounds_lo, tree.bounds_hi
     eye = (lo + hi) / 2 + (hi - lo) * [0.2, 0.9, 1.4]
     camera = hlbvh_cl.Camera(eye, (lo + hi) / 2)
     renderer = hlbvh_cl.Renderer(scene)
@@ -131,8 +133,8 @@ def test_views_of_one_scene_make_its_dipoles_once(monkeypatch):
     serial answer."""
     scene = hlbvh_cl.Scene([grid_mesh(3)])
     points = np.random.default_rng(0).uniform(-1, 2, (2000, 3)).astype(np.float32)
-    views = [scene._view() for _ in range(2)]
-    rt = scene._runtime
+    views = [scene.view() for _ in range(2)]
+    rt = built.runtime(scene)
     made, kernel = [], rt.kernel
 
     def slow_kernel(file, name, **defines):

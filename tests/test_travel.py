@@ -13,6 +13,8 @@ import trimesh
 import hlbvh_cl
 from hlbvh_cl import travel
 
+import built
+
 
 def _sphere(scale=1.0):
     m = trimesh.creation.icosphere(subdivisions=2)
@@ -38,7 +40,7 @@ def _kinds(device):
 
 def _rays(scene, count=2000, seed=0):
     rng = np.random.default_rng(seed)
-    tree = scene._tree
+    tree = built.tree(scene)
     lo, hi = tree.bounds_lo / tree.scale, tree.bounds_hi / tree.scale
     centre, size = (lo + hi) / 2, float(np.max(hi - lo))
     origins = (centre + rng.normal(size=(count, 3)) * size * 2).astype(np.float32)
@@ -136,13 +138,15 @@ def test_the_device_travels_as_asked(device, suite_device):
     if device is not None and not suite_device.id.startswith(device):
         pytest.skip("the suite's device is another")
     scene = hlbvh_cl.Scene([_box()], device=device)
-    assert scene._travel_spec().device == device
+    with scene.borrow() as lent:
+        assert lent.spec.device == device
 
 
 def test_a_restore_that_fails_leaves_nothing_behind(suite_device):
     """A restore whose build raises (a device gone, Ctrl-C) takes its
     per-spec lock entry away with it, so failures do not pile up."""
-    spec = hlbvh_cl.Scene([_box()], device=suite_device)._travel_spec()
+    with hlbvh_cl.Scene([_box()], device=suite_device).borrow() as lent:
+        spec = lent.spec
 
     def failing(*args, **kwargs):
         raise KeyboardInterrupt
@@ -150,4 +154,4 @@ def test_a_restore_that_fails_leaves_nothing_behind(suite_device):
     for _ in range(3):
         with pytest.raises(KeyboardInterrupt):
             travel.restore(spec, failing)
-    assert spec.key not in travel._building
+    assert spec.key not in travel.building_keys()

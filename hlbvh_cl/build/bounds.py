@@ -1,4 +1,4 @@
-"""Stage 1 host side: scene and centroid bounds, and the centroids (kernels/bounds.cl)."""
+"""Stage 1 host side: scene and centroid bounds, and the centroids (kernels/build/bounds.cl)."""
 from __future__ import annotations
 
 import pyopencl as cl

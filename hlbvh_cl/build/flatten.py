@@ -1,4 +1,4 @@
-"""Stage 6 host side (kernels/flatten.cl): the radix tree's surviving nodes,
+"""Stage 6 host side (kernels/build/flatten.cl): the radix tree's surviving nodes,
 with the SAH top above them, compacted into a flat binary tree (two child
 boxes per node, Aila & Laine 2009), which widen.py collapses into the wide
 tree; the flat tree is the build's scratch."""

@@ -1,7 +1,7 @@
 """Two-level scenes: each mesh's own tree, built once by the usual pipeline
 (hlbvh_cl.build.pipeline), and a top tree over the instances' world boxes, built by
-the same pipeline (kernels/instance.h has the rays' traversal side,
-kernels/points.cl the point queries').
+the same pipeline (kernels/query/walk/instance_leaf.h has the rays' traversal side,
+kernels/query/points.cl the point queries').
 
 An instance is a mesh under an affine map (object -> world), with a 32-bit
 mask.  Many instances share their mesh's tree.  The top tree is built over
@@ -373,7 +373,7 @@ class InstancedTree:
         return self.top.bounds_hi
 
     def scene_args(self, masks: cl.Buffer, mask_step: int) -> tuple:
-        """The SCENE_PARAMS of kernels built with INSTANCES (traverse.cl)."""
+        """The SCENE_PARAMS of kernels built with INSTANCES (query/rays.cl)."""
         return (self.top.nodes, self.top.triangles, self.top.refs, self.instances, masks,
                 np.uint32(mask_step), self.meshes.nodes, self.meshes.triangles, self.meshes.refs)
 

@@ -1,4 +1,4 @@
-"""Stage 2 host side: Morton codes of triangle centroids (kernels/morton.cl)."""
+"""Stage 2 host side: Morton codes of triangle centroids (kernels/build/morton.cl)."""
 from __future__ import annotations
 
 import numpy as np

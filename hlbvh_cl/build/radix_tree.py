@@ -1,5 +1,5 @@
 """Stage 4 host side: the binary radix tree with its boxes, SAH costs and
-collapse decisions, in one bottom-up pass (kernels/radix_tree.cl; Karras
+collapse decisions, in one bottom-up pass (kernels/build/radix_tree.cl; Karras
 2012's tree, built as Apetrei 2014 does)."""
 from __future__ import annotations
 
@@ -77,7 +77,7 @@ def build_radix_tree(rt, keys: cl.Buffer, bits: int, vertices: cl.Buffer, faces:
     defines = dict(MORTON_BITS=bits, COLLAPSE_LEAVES=int(collapse_leaves), **rt.handoff_defines)
     ready = [cleared]
     if not defines["ACQUIRE_RELEASE"]:
-        # The OpenCL 1.2 handoff stores with atomic_xchg (kernels/handoff.h),
+        # The OpenCL 1.2 handoff stores with atomic_xchg (kernels/build/handoff.h),
         # and Oclgrind's uninitialised-value check takes the old word for part
         # of the new one (MemCheckUninitialized::SimpleOrAtomic), so the words
         # handed on start defined: a fill these devices (GPUs, Oclgrind) make

@@ -1,4 +1,4 @@
-"""Refit host side (kernels/refit.cl): new boxes for a finished Tree after
+"""Refit host side (kernels/build/refit.cl): new boxes for a finished Tree after
 its vertices moved, the topology kept.  One launch per level of wide nodes,
 from the deepest up, so that no node waits on another (a build computes its
 boxes as it makes the radix tree instead: Karras 2012, radix_tree.py)."""

@@ -1,4 +1,4 @@
-"""Stage 5 host side: the HLBVH's SAH top over Morton clusters (kernels/sah_top.cl)."""
+"""Stage 5 host side: the HLBVH's SAH top over Morton clusters (kernels/build/sah_top.cl)."""
 from __future__ import annotations
 
 from dataclasses import dataclass

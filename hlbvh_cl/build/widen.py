@@ -1,4 +1,4 @@
-"""Build stage 7 host side (kernels/widen.cl): the binary tree collapsed into
+"""Build stage 7 host side (kernels/build/widen.cl): the binary tree collapsed into
 the 8-wide nodes that traversal reads, level by level from the root
 (Dammertz et al. 2008, "Shallow Bounding Volume Hierarchies"; Wald, Benthin
 & Boulos 2008, "Getting Rid of Packets").  The levels come out breadth-first,

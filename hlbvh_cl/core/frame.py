@@ -6,7 +6,7 @@ coordinates near 1e-20 underflow there and near 1e20 overflow, so hits go
 missing or come back with t = inf.  A scene whose largest coordinate lies
 outside [2^-24, 2^24] is therefore built in a frame scaled by 2^k, which
 brings it to [0.5, 1); ray origins take the same 2^k on their way in, and
-each direction a power of two of its own (hlbvh_cl/query.py, into_frame), by
+each direction a power of two of its own (hlbvh_cl/query/rays.py, into_frame), by
 which t is divided back.  Multiplying by a power of two is exact (barring
 subnormal results), and every float operation commutes with it, so the hits
 are the user's own: t, u, v and the unit normal.  Other scenes keep a scale

@@ -84,6 +84,100 @@ def _name_row(source: "_Vectors", row: int, shape: tuple) -> str:
     return f"{source.label(index)} = {source.values(index)}"
 
 
+# -- scalar arguments: one check each for integers, numbers, vectors -----------
+#
+# The API, the renderer and scene files all check their scalar arguments here.
+# An error carries the argument's name, what was expected and what was got,
+# so that each caller words it its own way: "width must be an integer >= 1
+# and <= 16384, got 0" (str of the error), or a scene file's
+# "scene.toml: render.width: expected an integer >= 1 and <= 16384, got 0".
+
+#: What a number may be: not a bool, nor a complex (np.number), whose
+#: imaginary part float() would drop.
+REAL = (int, float, np.integer, np.floating)
+
+
+class _Bad:
+    def __init__(self, name: str, expected: str, got: str):
+        super().__init__(f"{name} must be {expected}, got {got}")
+        self.name, self.expected, self.got = name, expected, got
+
+
+class BadType(_Bad, TypeError):
+    """An argument of the wrong kind (a string for a number, say)."""
+
+
+class BadValue(_Bad, ValueError):
+    """An argument of the right kind but out of range, or not finite."""
+
+
+def describe(value) -> str:
+    """A value as an error shows it: its kind and a short repr."""
+    kinds = {bool: "a boolean", int: "an integer", float: "a number", str: "a string",
+             list: "an array", tuple: "an array", dict: "a table"}
+    kind = next((name for t, name in kinds.items() if type(value) is t), type(value).__name__)
+    shown = repr(value)
+    return f"{kind} {shown if len(shown) <= 40 else shown[:37] + '...'}"
+
+
+def _bounds(low, high, low_open: bool = False, high_open: bool = False) -> str:
+    parts = []
+    if low is not None:
+        parts.append(f"{'>' if low_open else '>='} {low:g}")
+    if high is not None:
+        parts.append(f"{'<' if high_open else '<='} {high:g}")
+    return "".join(f" {part}" if i == 0 else f" and {part}" for i, part in enumerate(parts))
+
+
+def integer(name: str, value, low: int | None = None, high: int | None = None) -> int:
+    """``value`` as an int: a Python or numpy integer (not a bool) within
+    [low, high]; else BadType or BadValue naming ``name``."""
+    expected = "an integer" + _bounds(low, high)
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise BadType(name, expected, describe(value))
+    if (low is not None and value < low) or (high is not None and value > high):
+        raise BadValue(name, expected, str(value))
+    return int(value)
+
+
+def number(name: str, value, low: float | None = None, high: float | None = None,
+           low_open: bool = False, high_open: bool = False) -> float:
+    """``value`` as a finite float: a real number (not a bool nor a complex)
+    within the bounds (open where asked); else BadType or BadValue naming
+    ``name``.  A Python or TOML integer past float's range is refused by
+    name, not by an OverflowError."""
+    expected = "a finite number" + _bounds(low, high, low_open, high_open)
+    if isinstance(value, bool) or not isinstance(value, REAL):
+        raise BadType(name, "a number", describe(value))
+    try:
+        result = float(value)
+    except OverflowError:  # integers have no bound
+        raise BadValue(name, "a finite number", f"an integer of {value.bit_length()} bits, "
+                                                "beyond float's range") from None
+    too_low = low is not None and (result <= low if low_open else result < low)
+    too_high = high is not None and (result >= high if high_open else result > high)
+    if not math.isfinite(result) or too_low or too_high:
+        raise BadValue(name, expected, str(value))
+    return result
+
+
+def vector3(name: str, value, low: float | None = None, high: float | None = None,
+            low_open: bool = False) -> np.ndarray:
+    """Three numbers [x, y, z] (a list, tuple or array) as float64 (3,),
+    each checked by ``number`` as ``name[k]`` (so a bad element is named);
+    a masked, ragged or non-numeric array, or another count, is an error
+    naming ``name``."""
+    array = as_array(name, value)  # masked and ragged arrays, tensors
+    listed = isinstance(value, (list, tuple))
+    if array.dtype.kind not in "fiuO" and not (listed and len(value) == 3):
+        raise BadType(name, "3 numbers [x, y, z]", describe(value))
+    if len(value if listed else array.reshape(-1)) != 3 or (not listed and array.ndim != 1):
+        raise BadValue(name, "3 numbers [x, y, z]", describe(value))
+    items = value if listed else array.tolist()
+    return np.array([number(f"{name}[{k}]", item, low, high, low_open)
+                     for k, item in enumerate(items)], np.float64)
+
+
 def unmasked(name: str, value):
     """``value``, unless it is a masked array with masked entries: np.asarray
     would drop the mask and keep what it hides."""

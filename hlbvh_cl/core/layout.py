@@ -1,8 +1,10 @@
-"""numpy mirror of kernels/hlbvh.h: the one place Python restates its structs.
+"""numpy mirror of the kernels' structs (HEADERS): the one place Python
+restates them.
 
-The constants are parsed from the header itself, so they exist once.
-tests/test_devices.py compiles a probe kernel that reports sizeof/offsetof on
-the device and checks them against these dtypes.
+The constants are parsed from the headers themselves, so they exist once.
+tests/device/test_devices.py compiles a probe kernel that includes each header
+and reports sizeof/offsetof on the device, and checks them against these
+dtypes.
 """
 from __future__ import annotations
 
@@ -13,7 +15,8 @@ import numpy as np
 from .paths import kernel_dir
 
 #: The headers this module mirrors, named from the kernels' root.
-HEADERS = ("core/hlbvh.h",)
+HEADERS = ("core/aabb.h", "core/tree.h", "build/config.h", "build/flat_node.h",
+           "query/records.h", "render/camera.h", "render/tiles.h", "render/integrators/direct.h")
 
 
 def header_text() -> str:
@@ -81,7 +84,7 @@ SHADE_PARAMS = np.dtype([
     ("ao_distance", np.float32), ("ao_weight", np.float32),
 ])
 
-#: name in hlbvh.h -> dtype, for the layout test
+#: name in HEADERS -> dtype, for the layout test
 STRUCTS = {"Aabb": AABB, "FlatNode": FLAT_NODE, "WideNode": WIDE_NODE,
            "WideDipoles": WIDE_DIPOLES, "Triangle": TRIANGLE,
            "TriangleRef": TRIANGLE_REF, "Instance": INSTANCE, "Ray": RAY, "Hit": HIT, "PinholeCamera": PINHOLE_CAMERA,

@@ -142,7 +142,7 @@ class Device:
         """The ``-cl-std`` under which this device's compiler offers
         acquire-release atomics at device scope (OpenCL C 2.0, or 3.0 with
         those two optional features), or None for an OpenCL C 1.2 compiler
-        (kernels/handoff.h)."""
+        (kernels/build/handoff.h)."""
         try:
             versions = {(v.version >> 22, (v.version >> 12) & 0x3FF)
                         for v in self.cl_device.get_info(cl.device_info.OPENCL_C_ALL_VERSIONS)}

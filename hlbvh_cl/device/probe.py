@@ -13,7 +13,7 @@ process.  Verdicts are kept on disk per device, driver and kernel sources, so
 a machine pays for each once.  Compiled programs land in pyopencl's and the
 driver's caches, so the caller's own builds then load them.
 
-The child (hlbvh_cl.device.probe_child) also reports what its compiler targets (kernels/target_probe.cl)
+The child (hlbvh_cl.device.probe_child) also reports what its compiler targets (kernels/device/probe.cl)
 and, for a variant that passes, the speed of camera rays on a 20K-triangle
 mesh, which ranks devices for the default choice.
 """

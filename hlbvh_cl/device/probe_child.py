@@ -53,7 +53,8 @@ def _probe_variant(rt) -> dict:
     import trimesh
 
     from ..mesh import Mesh
-    from ..render.renderer import Camera, Renderer
+    from ..render.camera import Camera
+    from ..render.renderer import Renderer
     from ..query.rays import RayQuery
     from ..scene import Scene
 

@@ -8,7 +8,7 @@ chosen from the device's type and can be forced with ``HLBVH_CL_PROFILE`` on
 any device, so that the GPU path is tested where there is no GPU.
 
 A *variant* is how the kernels are compiled within a profile: the packet width
-and whether compiler builtins may be used (kernels/hlbvh.h, HAS_BUILTIN).  The
+and whether compiler builtins may be used (kernels/core/portable.h, HAS_BUILTIN).  The
 candidates are listed fastest first and end in the safest one, one ray per
 work-item in plain OpenCL C; hlbvh_cl.device.probe tries them in a child process and
 keeps the first that builds, runs and gives the right hits.
@@ -81,7 +81,7 @@ def profile_name(device_type: str) -> str:
 def vector_width(target: dict) -> int:
     """Float lanes of the vector registers the device's compiler targets.
 
-    Read from the compiler's own predefined macros (kernels/target_probe.cl):
+    Read from the compiler's own predefined macros (kernels/device/probe.cl):
     PoCL's Clang defines __AVX512F__ only when it really emits AVX-512, where
     its runtime may report 16-wide vectors for a CPU it compiles for as
     znver3.  Compilers that reveal no target (SPIR front ends such as Intel's

@@ -126,7 +126,7 @@ class Runtime:
 
     @property
     def handoff_defines(self) -> dict:
-        """ACQUIRE_RELEASE for the bottom-up kernels (kernels/handoff.h):
+        """ACQUIRE_RELEASE for the bottom-up kernels (kernels/build/handoff.h):
         1 where the device's compiler offers acquire-release atomics; their
         programs are then built for that OpenCL C version."""
         return {"ACQUIRE_RELEASE": int(self.device.acquire_release_std is not None)}
@@ -215,7 +215,7 @@ class Runtime:
         options = ["-I", str(folder), f"-cl-std={std}"]
         options += [f"-D{name}={_define_value(value)}" for name, value in sorted(defines.items())]
         try:
-            return _quiet_build(cl.Program(self.context, source), options, self.device.cl_device)
+            return quiet_build(cl.Program(self.context, source), options, self.device.cl_device)
         except cl.RuntimeError as error:
             raise KernelBuildError(f"{filename} failed to build for {self.device}:\n{error}") from None
 
@@ -240,7 +240,7 @@ class Runtime:
                 f"{d.global_mem_size / 2**20:.0f} MiB (CL_DEVICE_GLOBAL_MEM_SIZE)")
 
 
-#: Serialises _quiet_build between runtimes: catch_warnings saves and
+#: Serialises quiet_build between runtimes: catch_warnings saves and
 #: restores the process's one filter list, which overlapping uses (two
 #: devices building at once) would leave changed.
 _quiet_build_lock = threading.Lock()
@@ -248,7 +248,7 @@ _quiet_build_lock = threading.Lock()
 _log = logging.getLogger("hlbvh_cl")
 
 
-def _quiet_build(program: cl.Program, options: list, device: cl.Device) -> cl.Program:
+def quiet_build(program: cl.Program, options: list, device: cl.Device) -> cl.Program:
     """program.build(options) without pyopencl's CompilerWarning, which any
     non-empty build log raises: Intel's runtime logs every build and PoCL its
     vector-ABI notes, noise for a library's user (a failed build raises with
@@ -300,6 +300,14 @@ def runtime(device=None) -> Runtime:
             rt = Runtime(chosen)
             _runtimes[key] = rt
     return rt
+
+
+def forget_runtimes() -> None:
+    """Forgets this process's shared runtimes: runtime() makes a fresh one
+    for each device from here on, which builds its programs anew (scenes
+    made before keep the runtimes they hold)."""
+    with _runtimes_lock:
+        _runtimes.clear()
 
 
 def install_runtime(device: Device, profile: Profile, variant: Variant) -> Runtime:

@@ -21,6 +21,9 @@ client (the given one, else the current default), else as one key of the
 graph.  Either way it travels as its SceneSpec (hlbvh_cl.travel) and is built
 where a task first needs it, once per process.  Scattering to every worker
 rather than one keeps a copy where a killed worker's tasks are rerun.
+ship does this ahead of the queries; unship (on the client) and forget (in
+a worker) drop what a process keeps of it, so that the next use ships and
+builds it again (bench/cluster.py times rounds from nothing that way).
 
 Bad input raises the error the Scene method raises, naming the row by its
 index in the whole array: a chunk's error is renamed from the chunk's index.
@@ -47,8 +50,10 @@ from ..query.all_hits import HIT_FIELDS as ALL_HIT_FIELDS
 from ..query.all_hits import AllHits, check_max_hits
 from ..query.points import CLOSEST_FIELDS, ClosestPoints, check_max_distance
 from ..query.rays import HIT_FIELDS, Hits
-from ..render.renderer import (AO_SAMPLES, Camera, Light, Renderer, RenderSettings, check_colors, check_light,
-                     default_colors)
+from ..render.camera import Camera
+from ..render.light import Light, check_light
+from ..render.renderer import Renderer, check_settings
+from ..render.settings import AO_SAMPLES, check_colors, default_colors
 from ..query.results import ResultPool
 from ..scene import Scene
 
@@ -85,7 +90,7 @@ RENDERERS = 4
 
 # ---------------------------------------------------------------- the scene in a graph
 
-class _Shipped:
+class Shipped:
     """A scene as tasks get it.  In the process that made it, the Scene
     itself; pickled, its SceneSpec alone, built where a task asks for it
     (hlbvh_cl.travel: once per process)."""
@@ -94,7 +99,7 @@ class _Shipped:
         self.spec, self._scene = spec, scene
 
     def __reduce__(self):
-        return (_Shipped, (self.spec,))
+        return (Shipped, (self.spec,))
 
     def __dask_tokenize__(self):
         return ("hlbvh_cl.distributed.dask.scene", self.spec.key)
@@ -122,7 +127,7 @@ _views_lock = threading.Lock()
 def _task_scene(spec: travel.SceneSpec) -> Scene:
     """The one Scene that this process's tasks use for ``spec``: a view
     (hlbvh_cl.travel) that they share, as they only query it, so that they
-    share its query buffers and renderers (_renderer) too, as tasks on one
+    share its query buffers and renderers (task_renderer) too, as tasks on one
     scene object would."""
     with _views_lock:
         if spec.key in _views:
@@ -152,16 +157,18 @@ _scattered: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 _scattered_lock = threading.Lock()
 
 
-def _ship(scene, client):
-    """What the tasks take as the scene: a one-key Delayed, or on a cluster a
-    future of it scattered to every worker.  A scene is scattered once per
-    client and content, and stays while the scene lives.  Each scatter gets
-    a key of its own: a key used again while the cluster still releases its
-    last use can be lost."""
+def ship(scene, client=None):
+    """What the tasks take as the scene (a Shipped): a one-key Delayed, or
+    on a cluster (``client``) a future of it scattered to every worker.  A
+    scene is scattered once per client and content, and stays while the
+    scene lives (or until unship); the queries ship it themselves, so a
+    call of one's own only scatters it sooner (a benchmark times the
+    scatter apart).  Each scatter gets a key of its own: a key used again
+    while the cluster still releases its last use can be lost."""
     if not isinstance(scene, Scene):
         raise TypeError(f"scene must be a hlbvh_cl.Scene, got {type(scene).__name__}")
     with scene.borrow() as built:
-        shipped = _Shipped(built.spec, scene)
+        shipped = Shipped(built.spec, scene)
     if client is None:
         return dask.delayed(shipped, pure=True)
     with _scattered_lock:
@@ -171,6 +178,26 @@ def _ship(scene, client):
             future = client.scatter(shipped, broadcast=True, hash=False)
             held[client.id] = (shipped.spec.key, future)
         return future
+
+
+def unship(scene) -> None:
+    """Forget the futures ``scene`` was scattered as (ship): the next query
+    on a cluster scatters it again."""
+    with _scattered_lock:
+        _scattered.pop(scene, None)
+
+
+def forget() -> None:
+    """Drop what this process keeps of the scenes its tasks were shipped:
+    their shared views, their renderers (task_renderer) and the scenes
+    hlbvh_cl.travel cached, so that the next task on a scene builds it
+    again.  Run on a worker (client.run(forget)), a benchmark's next round
+    starts from nothing of the scene there."""
+    with _views_lock:
+        _views.clear()
+    with _renderers_lock:
+        _renderers.clear()
+    travel.clear()
 
 
 # ---------------------------------------------------------------- inputs
@@ -267,9 +294,10 @@ _record_pool = ResultPool()
 RECORD_ROWS = 1 << 14
 
 
-def _records(result, dtype: np.dtype) -> np.ndarray:
-    """A dataclass of arrays (Hits, ClosestPoints) as one record array, lent
-    by a pool (hlbvh_cl.query.results) as the queries' own results are: a chunk's
+def records(result, dtype: np.dtype) -> np.ndarray:
+    """A dataclass of arrays (Hits, ClosestPoints) as one record array of
+    ``dtype`` (HITS, CLOSEST), as a chunk's task returns it; lent by a pool
+    (hlbvh_cl.query.results) as the queries' own results are: a chunk's
     record array is large, and fresh memory costs a page fault per page."""
     scalar = next(name for name in dtype.names if dtype[name].shape == ())
     shape = getattr(result, scalar).shape
@@ -302,7 +330,7 @@ def _ray_block(*blocks, names, own, starts, verb, limits, block_id=None):
             out[name] = getattr(result, name)
         out["ray_index"] += offsets[0] * int(np.prod(result.shape[1:], dtype=np.int64))
         return out
-    return _records(result, HITS) if verb == "intersect" else result
+    return records(result, HITS) if verb == "intersect" else result
 
 
 def _ray_inputs(origins, directions, tmin, tmax, mask):
@@ -335,7 +363,7 @@ def _ray_query(verb: str, dtype: np.dtype, scene, origins, directions, tmin, tma
                client):
     client = _current_client(client)
     arrays, lead, limits = _ray_inputs(origins, directions, tmin, tmax, mask)
-    return _blocks(_ray_block, arrays, _ship(scene, client), dtype, len(lead), verb=verb,
+    return _blocks(_ray_block, arrays, ship(scene, client), dtype, len(lead), verb=verb,
                    limits=limits)
 
 
@@ -380,7 +408,7 @@ def intersect_all(scene: Scene, origins, directions=None, tmin=0.0, tmax=np.inf,
     whole = len(lead) + 1  # axes of a full-rank array; only axis 0 of those stays chunked
     arrays = {name: a.rechunk({k: -1 for k in range(a.ndim) if k != a.ndim - whole})
               for name, a in arrays.items()}
-    shipped = _ship(scene, client)
+    shipped = ship(scene, client)
     pairs = []
     for array in arrays.values():
         pairs += [array, tuple(range(whole - array.ndim, whole))]
@@ -412,13 +440,13 @@ def _point_block(points, shipped, *, names, own, starts, verb, options, block_id
     offsets = tuple(s[i] for s, i in zip(starts, block_id or ()))
     with shipped.scene() as scene:
         result = _call(getattr(scene, verb), offsets, own, points, **options)
-    return _records(result, CLOSEST) if verb == "closest_points" else result
+    return records(result, CLOSEST) if verb == "closest_points" else result
 
 
 def _point_query(verb: str, dtype: np.dtype, scene, points, client, **options):
     client = _current_client(client)
     array = vectors("points", points)
-    return _blocks(_point_block, {"points": array}, _ship(scene, client), dtype,
+    return _blocks(_point_block, {"points": array}, ship(scene, client), dtype,
                    array.ndim - 1, verb=verb, options=options)
 
 
@@ -451,9 +479,10 @@ _renderers: OrderedDict = OrderedDict()
 _renderers_lock = threading.Lock()
 
 
-def _renderer(scene: Scene, colors: np.ndarray, light) -> Renderer:
-    """This process's Renderer of ``scene`` with these colours and light:
-    made once, as its pipeline compiles kernels and allocates buffers."""
+def task_renderer(scene: Scene, colors: np.ndarray, light) -> Renderer:
+    """This process's Renderer of ``scene`` with these colours and light, as
+    render_frames' tasks use it: made once (the last RENDERERS kept), as its
+    pipeline compiles kernels and allocates buffers."""
     key = (id(scene), colors.tobytes(), light)
     with _renderers_lock:
         if key in _renderers:
@@ -470,9 +499,9 @@ def _render_frames(shipped, cameras, paths, colors, light, options) -> list:
     """One task: its frames rendered, each returned or written to its path."""
     out = []
     with shipped.scene() as scene:  # every frame of the task of one content
-        renderer = _renderer(scene, colors, light)
+        shared = task_renderer(scene, colors, light)
         for camera, path in zip(cameras, paths):
-            image = renderer.render(camera, **options)
+            image = shared.render(camera, **options)
             if path is None:
                 out.append(image)
             else:
@@ -504,7 +533,7 @@ def render_frames(scene: Scene, cameras, width: int, height: int, client=None, o
     options = dict(width=width, height=height, shading=shading, shadows=shadows, spp=spp,
                    ao_samples=ao_samples, ao_distance=ao_distance)
     for camera in cameras[:1]:  # the errors a local render raises, before any task
-        RenderSettings.check(camera, **options)
+        check_settings(camera, **options)
     if not isinstance(scene, Scene):
         raise TypeError(f"scene must be a hlbvh_cl.Scene, got {type(scene).__name__}")
     colors = check_colors(default_colors(len(scene.meshes)) if colors is None else colors,
@@ -521,7 +550,7 @@ def render_frames(scene: Scene, cameras, width: int, height: int, client=None, o
     if not cameras:
         return []
     client = _current_client(client)
-    shipped = _ship(scene, client)
+    shipped = ship(scene, client)
     groups = [slice(k, k + frames_per_task) for k in range(0, len(cameras), frames_per_task)]
     if client is not None:
         token = dask.base.tokenize(shipped.key, list(cameras), paths, colors, light, options)

@@ -104,9 +104,12 @@ import numpy as np
 
 from ..build.instances import check_resolved, check_transforms
 from ..mesh import MESH_EXTENSIONS, Mesh
-from ..render.renderer import Camera, Light, Renderer, unit, view_problem
+from ..render.camera import Camera, unit, view_problem
+from ..render.light import Light
+from ..render.renderer import Renderer
 from ..scene import Scene
 from .split import split_edges
+from ..core import inputs
 
 Color = tuple[float, float, float]
 Vec3 = tuple[float, float, float]
@@ -215,59 +218,43 @@ class _Reader:
 
     def table(self, value, key: str, known: tuple[str, ...]) -> dict:
         if not isinstance(value, dict):
-            raise self.error(key, f"expected a table, got {_describe(value)}")
+            raise self.error(key, f"expected a table, got {inputs.describe(value)}")
         for name in value:
             if name not in known:
                 where = f"{key}.{name}" if key else name
                 raise self.error(where, f"unknown key (expected one of: {', '.join(known)})")
         return value
 
+    def checked(self, check, key: str, *args, **kwargs):
+        """``check(key, ...)`` of hlbvh_cl.core.inputs, its error worded for
+        the file: "scene.toml: key: expected ..., got ..."."""
+        try:
+            return check(key, *args, **kwargs)
+        except (inputs.BadType, inputs.BadValue) as error:
+            raise self.error(error.name, f"expected {error.expected}, got {error.got}") from None
+
     def integer(self, value, key: str, minimum: int, maximum: int | None = None) -> int:
-        bound = f"an integer >= {minimum}" + (f" and <= {maximum}" if maximum is not None else "")
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise self.error(key, f"expected {bound}, got {_describe(value)}")
-        if value < minimum or (maximum is not None and value > maximum):
-            raise self.error(key, f"expected {bound}, got {value}")
-        return value
+        return self.checked(inputs.integer, key, value, minimum, maximum)
 
     def number(self, value, key: str, low: float | None = None, high: float | None = None,
                low_open: bool = False, high_open: bool = False) -> float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise self.error(key, f"expected a number, got {_describe(value)}")
-        try:
-            number = float(value)
-        except OverflowError:  # a TOML integer has no bound
-            raise self.error(key, f"expected a finite number, got an integer of "
-                                  f"{value.bit_length()} bits, beyond float's range") from None
-        if not math.isfinite(number):
-            raise self.error(key, f"expected a finite number, got {value}")
-        too_low = low is not None and (number <= low if low_open else number < low)
-        too_high = high is not None and (number >= high if high_open else number > high)
-        if too_low or too_high:
-            parts = []
-            if low is not None:
-                parts.append(f"{'>' if low_open else '>='} {low:g}")
-            if high is not None:
-                parts.append(f"{'<' if high_open else '<='} {high:g}")
-            raise self.error(key, f"expected a number {' and '.join(parts)}, got {value}")
-        return number
+        return self.checked(inputs.number, key, value, low, high, low_open, high_open)
 
     def vector3(self, value, key: str, low: float | None = None, low_open: bool = False,
                 high: float | None = None) -> Vec3:
-        if not isinstance(value, list) or len(value) != 3:
-            raise self.error(key, f"expected 3 numbers [x, y, z], got {_describe(value)}")
-        return tuple(self.number(x, f"{key}[{n}]", low=low, low_open=low_open, high=high)
-                     for n, x in enumerate(value))
+        if not isinstance(value, list):  # an array in TOML; inputs.vector3 takes tuples too
+            raise self.error(key, f"expected 3 numbers [x, y, z], got {inputs.describe(value)}")
+        return tuple(self.checked(inputs.vector3, key, value, low, high, low_open).tolist())
 
     def color(self, value, key: str) -> Color:
         if not isinstance(value, list) or len(value) != 3:
             raise self.error(key, f"expected an RGB colour [r, g, b] with values 0..1, "
-                                  f"got {_describe(value)}")
+                                  f"got {inputs.describe(value)}")
         return self.vector3(value, key, low=0.0, high=1.0)
 
     def boolean(self, value, key: str) -> bool:
         if not isinstance(value, bool):
-            raise self.error(key, f"expected true or false, got {_describe(value)}")
+            raise self.error(key, f"expected true or false, got {inputs.describe(value)}")
         return value
 
     def scale(self, value, key: str) -> Vec3:
@@ -278,16 +265,8 @@ class _Reader:
     def pair(self, value, key: str, read) -> tuple:
         """Two values [x, z], each checked by read(item, key)."""
         if not isinstance(value, list) or len(value) != 2:
-            raise self.error(key, f"expected 2 values [x, z], got {_describe(value)}")
+            raise self.error(key, f"expected 2 values [x, z], got {inputs.describe(value)}")
         return tuple(read(item, f"{key}[{n}]") for n, item in enumerate(value))
-
-
-def _describe(value) -> str:
-    kinds = {bool: "a boolean", int: "an integer", float: "a number", str: "a string",
-             list: "an array", dict: "a table"}
-    kind = next((name for t, name in kinds.items() if type(value) is t), type(value).__name__)
-    shown = repr(value)
-    return f"{kind} {shown if len(shown) <= 40 else shown[:37] + '...'}"
 
 
 @dataclass
@@ -517,7 +496,7 @@ def _read_ground(reader: _Reader, value) -> dict:
 
 def _read_mesh_specs(reader: _Reader, value, folder: Path) -> list[_MeshSpec]:
     if not isinstance(value, list) or not value:
-        raise reader.error("mesh", f"expected one or more [[mesh]] tables, got {_describe(value)}")
+        raise reader.error("mesh", f"expected one or more [[mesh]] tables, got {inputs.describe(value)}")
     specs = []
     for index, item in enumerate(value):
         key = f"mesh[{index}]"
@@ -525,7 +504,7 @@ def _read_mesh_specs(reader: _Reader, value, folder: Path) -> list[_MeshSpec]:
         if "path" not in table:
             raise reader.error(f"{key}.path", "missing (required)")
         if not isinstance(table["path"], str) or not table["path"]:
-            raise reader.error(f"{key}.path", f"expected a file name, got {_describe(table['path'])}")
+            raise reader.error(f"{key}.path", f"expected a file name, got {inputs.describe(table['path'])}")
         scale = reader.scale(table.get("scale", 1.0), f"{key}.scale")
         fit_height = table.get("fit_height")
         if fit_height is not None:
@@ -548,7 +527,7 @@ def _read_mesh_specs(reader: _Reader, value, folder: Path) -> list[_MeshSpec]:
 def _read_instance_specs(reader: _Reader, value, mesh_count: int) -> list[_InstanceSpec]:
     if not isinstance(value, list) or not value:
         raise reader.error("instance", f"expected one or more [[instance]] tables, "
-                                       f"got {_describe(value)}")
+                                       f"got {inputs.describe(value)}")
     specs = []
     total = 0
     for index, item in enumerate(value):
@@ -559,7 +538,7 @@ def _read_instance_specs(reader: _Reader, value, mesh_count: int) -> list[_Insta
         mesh = table["mesh"]
         if isinstance(mesh, bool) or not isinstance(mesh, int):
             raise reader.error(f"{key}.mesh", f"expected the index of a [[mesh]] table, counting "
-                                              f"from 0, got {_describe(mesh)}")
+                                              f"from 0, got {inputs.describe(mesh)}")
         if not 0 <= mesh < mesh_count:
             raise reader.error(f"{key}.mesh", f"no [[mesh]] table {mesh}: the file has "
                                               f"{mesh_count} (mesh[0] to mesh[{mesh_count - 1}])")
@@ -611,7 +590,7 @@ def _read_positions(reader: _Reader, value, key: str) -> np.ndarray:
     if isinstance(value, list) and len(value) == 3:
         return np.array([reader.vector3(value, key)], dtype=np.float64)
     raise reader.error(key, f"expected a position [x, y, z] or a list of them, "
-                            f"got {_describe(value)}")
+                            f"got {inputs.describe(value)}")
 
 
 def _read_grid(reader: _Reader, value, key: str, room: int) -> tuple[np.ndarray, np.ndarray]:

@@ -13,21 +13,17 @@ face f are output faces f*k*k ... (f+1)*k*k - 1, wound like their parent.
 """
 from __future__ import annotations
 
-import numbers
 
 import numpy as np
 
+from ..core import inputs
 from ..mesh import Mesh
 
 _INT32_MAX = 2**31 - 1
 
 
 def _check_k(k) -> int:
-    if isinstance(k, bool) or not isinstance(k, numbers.Integral):
-        raise ValueError(f"k must be an integer >= 1 (edges per input edge), got {k!r}")
-    if k < 1:
-        raise ValueError(f"k must be an integer >= 1 (edges per input edge), got {k}")
-    return int(k)
+    return inputs.integer("k (edges per input edge)", k, 1)
 
 
 def _grid(k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -1,9 +1,9 @@
-"""Stable LSD radix sort of (key, value) pairs on the device (kernels/radix_sort.cl).
+"""Stable LSD radix sort of (key, value) pairs on the device (kernels/parallel/radix_sort.cl).
 
 Keys are uint32 or uint64 (Morton codes), values uint32 (primitive ids).
 Each pass sorts one digit of at most RADIX_BITS bits: per-work-group digit
 histograms, an exclusive scan of the digit-major histogram matrix
-(hlbvh_cl/scan.py), then a stable scatter.  Only ceil(key_bits / RADIX_BITS)
+(hlbvh_cl/parallel/scan.py), then a stable scatter.  Only ceil(key_bits / RADIX_BITS)
 passes run: bits above ``key_bits`` cost nothing.
 """
 from __future__ import annotations
@@ -83,6 +83,14 @@ class RadixSorter:
         self._scratch_keys: cl.Buffer | None = None
         self._scratch_values: cl.Buffer | None = None
         self._scratch_capacity = 0
+
+    @property
+    def scratch_keys(self) -> cl.Buffer | None:
+        """The scratch buffer of keys (the ping-pong's other half, which
+        holds the result after an odd number of passes): None before the
+        first sort of more than one pair; it grows only for a sort of more
+        pairs than it holds, and later sorts reuse it."""
+        return self._scratch_keys
 
     def _kernel(self, name: str, group_size: int) -> cl.Kernel:
         return self.rt.kernel(KERNEL_FILE, name, KEY_TYPE=_KEY_TYPES[self.key_dtype],

@@ -1,4 +1,4 @@
-"""Exclusive prefix sum of a uint32 device buffer, in place (kernels/scan.cl).
+"""Exclusive prefix sum of a uint32 device buffer, in place (kernels/parallel/scan.cl).
 
 Reduce-then-scan over a device-chosen number of tiles: one work-group per
 tile, and the tile sums are few enough for a single work-group to scan.
@@ -30,13 +30,15 @@ MAX_COUNT = 2**31
 
 
 @dataclass
-class _ScanPlan:
+class ScanPlan:
+    """How exclusive_scan runs on one runtime (see plan)."""
+
     group_size: int
     max_tiles: int
     tile_sums: cl.Buffer  # max_tiles + 1 uint32, reused by every call
 
 
-_plans: "weakref.WeakKeyDictionary[Runtime, _ScanPlan]" = weakref.WeakKeyDictionary()
+_plans: "weakref.WeakKeyDictionary[Runtime, ScanPlan]" = weakref.WeakKeyDictionary()
 _plans_lock = threading.Lock()
 
 
@@ -54,10 +56,13 @@ def _fitting_group_size(rt: Runtime, group_size: int) -> int:
     return group_size
 
 
-def _plan(rt: Runtime) -> _ScanPlan:
+def plan(rt: Runtime) -> ScanPlan:
+    """The scan's plan on ``rt``, made on first use and kept for the
+    runtime's life: its work-group size, its most tiles, and the buffer of
+    tile sums that every call on ``rt`` reuses."""
     with _plans_lock:
-        plan = _plans.get(rt)
-        if plan is None:
+        found = _plans.get(rt)
+        if found is None:
             d = rt.device
             if not rt.profile.gpu:
                 group_size = CPU_GROUP_SIZE
@@ -67,9 +72,9 @@ def _plan(rt: Runtime) -> _ScanPlan:
                 max_tiles = GPU_TILES_PER_COMPUTE_UNIT * d.compute_units
             group_size = _fitting_group_size(rt, min(group_size, d.cl_device.max_work_group_size))
             tile_sums = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 4 * (max_tiles + 1))
-            plan = _ScanPlan(group_size, max_tiles, tile_sums)
-            _plans[rt] = plan
-    return plan
+            found = ScanPlan(group_size, max_tiles, tile_sums)
+            _plans[rt] = found
+    return found
 
 
 def _check_args(buf, n) -> int:
@@ -100,10 +105,10 @@ def exclusive_scan(rt: Runtime, buf: cl.Buffer, n: int, wait_for=None) -> list[c
     if n == 0:
         return [cl.enqueue_fill_buffer(queue, buf, np.uint32(0), 0, 4, wait_for=wait_for)]
 
-    plan = _plan(rt)
-    wg = plan.group_size
+    chosen = plan(rt)
+    wg = chosen.group_size
     kernel = lambda name: rt.kernel(KERNEL_FILE, name, SCAN_GROUP_SIZE=wg)  # noqa: E731
-    tiles = max(1, min(plan.max_tiles, n // (wg * MIN_PER_ITEM)))
+    tiles = max(1, min(chosen.max_tiles, n // (wg * MIN_PER_ITEM)))
     per_item = math.ceil(n / (tiles * wg))
     tiles = math.ceil(n / (wg * per_item))  # no empty tiles
 
@@ -113,9 +118,9 @@ def exclusive_scan(rt: Runtime, buf: cl.Buffer, n: int, wait_for=None) -> list[c
 
     size = (tiles * wg,)
     reduce = kernel("scan_reduce_tiles")(queue, size, (wg,), buf, np.uint32(n),
-                                         np.uint32(per_item), plan.tile_sums, wait_for=wait_for)
-    scan_sums = kernel("scan_tile_sums")(queue, (wg,), (wg,), plan.tile_sums, np.uint32(tiles),
+                                         np.uint32(per_item), chosen.tile_sums, wait_for=wait_for)
+    scan_sums = kernel("scan_tile_sums")(queue, (wg,), (wg,), chosen.tile_sums, np.uint32(tiles),
                                          np.uint32(math.ceil(tiles / wg)), wait_for=[reduce])
     rescan = kernel("scan_tiles")(queue, size, (wg,), buf, np.uint32(n), np.uint32(per_item),
-                                  plan.tile_sums, wait_for=[scan_sums])
+                                  chosen.tile_sums, wait_for=[scan_sums])
     return [reduce, scan_sums, rescan]

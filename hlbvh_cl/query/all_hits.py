@@ -1,4 +1,4 @@
-"""Every hit along each ray, and hit counts (kernels/all_hits.cl): two
+"""Every hit along each ray, and hit counts (kernels/query/all_hits.cl): two
 visitors of the one walk of the wide tree.
 
 intersect_all runs two passes over the rays.  The count pass gives each ray's
@@ -39,14 +39,16 @@ import pyopencl as cl
 
 from ..core import inputs
 from ..device import probe
-from .order import (COHERENT_MIN, RAY_ORDER_BITS, concurrent_rays, device_order, put_rows,
-                    take_rows)
+from .order import COHERENT_MIN, RAY_ORDER_BITS, concurrent_rays, device_order
 from ..build.instances import InstancedTree
 from ..device.profile import PACKET_SIZES
 from .results import on_page
-from .rays import (LaunchSizes, RayQuery, into_frame, masked, stack_size, caller_t, collect,
-                    scene_args)
+from .engine import Batch, check_tree, kernel_defines
+from .rays import RayQuery, caller_t, into_frame, masked, scene_args
+from ..core.paths import kernel_of
 from ..core.tree import Tree
+
+KERNEL = kernel_of(__name__)
 
 #: Hits one fill launch writes at most (one ray with more still goes alone):
 #: bounds the device buffers where results are copied back.
@@ -64,7 +66,7 @@ COPIED_RAYS_PER_LAUNCH = 1 << 16
 #: bounded.
 INDEXED_COPY_MAX = 1 << 22
 
-#: Hit triangles the count pass keeps per ray (kernels/all_hits.cl): a ray
+#: Hit triangles the count pass keeps per ray (kernels/query/all_hits.cl): a ray
 #: with no more hits skips the fill pass's walk (which runs in the caller's
 #: order, where rays seldom make packets).  A uint32 each, for every ray,
 #: while the fill runs.
@@ -104,10 +106,7 @@ class AllHits:
 def check_max_hits(max_hits) -> int | None:
     if max_hits is None:
         return None
-    if isinstance(max_hits, bool) or not isinstance(max_hits, (int, np.integer)):
-        raise TypeError(f"max_hits must be an int or None, got {type(max_hits).__name__}")
-    if max_hits < 1:
-        raise ValueError(f"max_hits must be >= 1 (or None for every hit), got {max_hits}")
+    max_hits = inputs.integer("max_hits (None for every hit)", max_hits, 1)
     # no ray has more hits than a count holds (int32): a larger k keeps them all
     return min(int(max_hits), np.iinfo(np.int32).max)
 
@@ -138,24 +137,16 @@ def wide_count_packets(query: RayQuery) -> int:
 
 class AllHitsQuery:
     """count_intersections and intersect_all on one device, with a RayQuery's
-    device choices (zero copy, work-group size, kernel variant, rays per
-    launch) and its result pool; the count pass with `count_packet_size`
-    rays per work-item (None: the query's)."""
+    device choices (work-group size, kernel variant), its result pool and
+    its launch engine (hlbvh_cl.query.engine); the count pass with
+    `count_packet_size` rays per work-item (None: the query's)."""
 
     def __init__(self, query: RayQuery, count_packet_size: int | None = None):
         self.query = query
         self.rt = query.rt
         self.count_packet_size = count_packet_size or query.packet_size
+        self.engine = query.engine
         self._lock = threading.Lock()
-        self._outputs: dict[str, cl.Buffer] = {}
-        self._row_bytes: dict[str, int] = {}  # of each output's rows
-        self._capacity = 0
-        # int32 [0]: a walk overflowed its stack; [1]: the fill pass found
-        # fewer hits than the count pass
-        self._counters = cl.Buffer(self.rt.context, cl.mem_flags.READ_WRITE, 8)
-        # stands for a buffer argument a launch does not use (no slots, no
-        # kept triangles)
-        self._unused = cl.Buffer(self.rt.context, cl.mem_flags.READ_ONLY, 4)
 
     # -- public queries ---------------------------------------------------
 
@@ -165,7 +156,7 @@ class AllHitsQuery:
         with tmin <= t <= tmax (``mask`` as RayQuery.intersect)."""
         rays, _, batch = _rays(origins, directions, tmin, tmax, mask, tree)
         with self._lock:
-            counts = self._count(tree, self._placed(rays), self.query._results.empty)
+            counts = self._count(tree, self._placed(rays), self.query.results.empty)
         return counts.reshape(batch.shape)
 
     def intersect_all(self, tree: Tree, origins, directions=None, tmin=0.0, tmax=np.inf,
@@ -175,7 +166,7 @@ class AllHitsQuery:
         RayQuery.intersect)."""
         max_hits = check_max_hits(max_hits)
         rays, t_factor, batch = _rays(origins, directions, tmin, tmax, mask, tree)
-        pool = self.query._results
+        pool = self.query.results
         with self._lock:
             rays = self._placed(rays)
             # each ray's count, and on flat scenes its first hits, which spare
@@ -197,49 +188,49 @@ class AllHitsQuery:
 
     # -- internals ----------------------------------------------------------
 
-    def _kernel(self, tree: Tree, name: str, keep: bool = True,
+    def kernel(self, tree: Tree, name: str, keep: bool = True,
                 packet: int | None = None) -> tuple[cl.Kernel, int]:
-        """all_hits.cl's kernel `name` for `tree`, compiled as RayQuery._kernel
-        compiles traverse.cl, and its rays per work-item: on flat trees
-        `packet` (None: the query's variant's), one ray on instanced ones.
-        Without `keep` a count keeps no hit (KEEP_HITS 0)."""
+        """all_hits.cl's kernel `name` for `tree`, and its rays per
+        work-item: on flat trees `packet` (None: the query's variant's), one
+        ray on instanced ones.  Without `keep` a count keeps no hit
+        (KEEP_HITS 0)."""
         packet = 1 if isinstance(tree, InstancedTree) else packet or self.query.packet_size
-        defines = {"STACK_SIZE": stack_size(tree), "PACKET_SIZE": packet,
-                   "KEEP_HITS": KEEP_HITS if keep else 0, **self.query.variant.defines,
-                   **self.rt.prefetch_defines}
-        if isinstance(tree, InstancedTree):
-            defines["INSTANCES"] = 1
-        return self.rt.kernel("query/all_hits.cl", name, **defines), packet
+        defines = kernel_defines(self.rt, tree, self.query.variant, packet,
+                                 KEEP_HITS=KEEP_HITS if keep else 0)
+        return self.rt.kernel(KERNEL, name, **defines), packet
 
     def _count(self, tree, rays, empty, keep=False):
         """int32 counts of the rays, from `empty`; with `keep`, (counts,
         known): on flat scenes also each ray's first KEEP_HITS hit
         triangles, uint32 (rays, KEEP_HITS) (the fill pass tests them again
         instead of walking), else None.  Big batches run in class and
-        Morton order, read by slots (_launches)."""
+        Morton order (_launches)."""
         count = len(rays[0])
         outputs = {"counts": empty(count, np.int32)}
         if keep and not isinstance(tree, InstancedTree):
             outputs["known"] = empty((count, KEEP_HITS), np.uint32)
         results = (outputs["counts"], outputs.get("known")) if keep else outputs["counts"]
         keep = "known" in outputs
-        if not (count and self.query._check_tree(tree)):
+        if not (count and check_tree(self.rt, tree)):
             outputs["counts"][:] = 0
             return results
-        kernel, packet = self._kernel(tree, "count_hits_arrays", keep, self.count_packet_size)
-        # not keeping: the kernel writes no known triangle (a stand-in buffer)
-        tail = [np.uint32(1)] if keep else [self._unused, np.uint32(0)]
-        self._launches(tree, kernel, packet, rays, _coherent_order(self.query, rays), None,
-                       [], outputs, tail)
+        kernel, packet = self.kernel(tree, "count_hits_arrays", keep, self.count_packet_size)
+
+        def launch(n, run):
+            # not keeping: the kernel writes no known triangle (a stand-in buffer)
+            tail = [np.uint32(1)] if keep else [self.engine.unused, np.uint32(0)]
+            outs = [run.buffers[name] for name in outputs]
+            return self._launch(kernel, packet, tree, n, run, [], [*outs, *tail])
+        self._launches(rays, _coherent_order(self.query, rays), None, {}, outputs, launch)
         return results
 
     def _placed(self, rays: tuple) -> tuple:
         """The rays' arrays (_rays's) on pages (results.on_page) where the
-        kernels would use them in place off zero copy (_whole): one copy
+        kernels would use them in place off zero copy (whole_arrays): one copy
         serves the order's buffers and each pass's."""
-        if self.query.zero_copy or not _whole(self.query, len(rays[0])):
+        if self.engine.zero_copy or not whole_arrays(self.query, len(rays[0])):
             return rays
-        return tuple(on_page(self.query._results, array) for array in rays)
+        return tuple(on_page(self.query.results, array) for array in rays)
 
     def _fill(self, tree, rays, offsets, known, outputs, t_factor, batch) -> None:
         """The hits into `outputs` (HIT_FIELDS and ray_index), ray r's in
@@ -247,163 +238,64 @@ class AllHitsQuery:
         t_factor and batch: _rays's (t back in the caller's units).
         The rays go in their own order: most only have their known triangles
         tested again, and the results then land in order."""
-        kernel, packet = self._kernel(tree, "fill_hits_arrays")
+        kernel, packet = self.kernel(tree, "fill_hits_arrays")
         counts, triangles = known
-        inputs = [counts, triangles, np.uint32(1)] if triangles is not None else \
-            [self._unused, self._unused, np.uint32(0)]
-        self._launches(tree, kernel, packet, rays, None, offsets, inputs, outputs, [])
+        inputs = {} if triangles is None else {"counts": counts, "known": triangles}
+
+        def launch(n, run):
+            b = run.buffers
+            given = [b["counts"], b["known"], np.uint32(1)] if inputs else \
+                [self.engine.unused, self.engine.unused, np.uint32(0)]
+            return self._launch(kernel, packet, tree, n, run, [*run.segments, *given],
+                                [b[name] for name in outputs])
+        self._launches(rays, None, offsets, inputs, outputs, launch)
         if t_factor is not None:  # back from the frame
             t, ray_index = outputs["t"], outputs["ray_index"]
-            for start, stop in _chunks(offsets, self.query.max_rays_per_launch, len(t_factor)):
+            step = self.query.max_rays_per_launch
+            for start in range(0, len(t_factor), step):
+                stop = min(start + step, len(t_factor))
                 part = slice(int(offsets[start]), int(offsets[stop]))
                 caller_t(t[part], t_factor, ray_index[part], batch)
 
-    def _launches(self, tree, kernel, packet, rays, order, offsets, inputs, outputs,
-                  tail) -> None:
-        """Runs `kernel` (`packet` rays per work-item) over the rays: its
-        arguments are the scene (query.scene_args, with the masks), the rays
-        and their slots (RAY_PARAMS in kernels/all_hits.cl), the offsets of
-        the rays' output segments and the first ray (the fill kernel:
-        `offsets`, the prefix sum of each ray's slots; None: one slot per
-        ray, the count kernel), the `inputs` (arrays of a row per ray, or
-        arguments as they are), the `outputs` (a row per ray, or the
-        segments' slots), the `tail` arguments, the counters and the ray
-        count.
+    def _launch(self, kernel, packet, tree, n, run, inputs, outputs) -> cl.Event:
+        """One launch of a pass: the scene (scene_args, with the rays'
+        masks), the rays (RAY_PARAMS in kernels/query/all_hits.cl), then the
+        pass's inputs and outputs, the counters and the ray count."""
+        b, steps = run.buffers, run.steps
+        return self.rt.run(kernel, -(-n // packet), *scene_args(tree, *steps["mask"]),
+                           b["origins"], b["directions"], *steps["tmin"], *steps["tmax"],
+                           run.slots, run.indexed, *inputs, *outputs, self.engine.counters,
+                           np.uint32(n), local_size=self.query.work_group_size)
 
-        They go in chunks of rays (_chunks), runs of `order` (None: as
-        given).  Where _whole holds (CPU devices) and the device allows a
-        buffer of each whole array, each launch reads and writes the whole
-        arrays in place by its rays' slots (USE_HOST_PTR: the runtime's own
-        copy at most, which _placed spares it); elsewhere (GPUs, big batches
-        off zero copy, outputs too big for one buffer) the host takes each
-        chunk's rays in that order and puts its results back, and the rays
-        go up and the results come back through buffers reused between
-        chunks, so that a device holds one chunk's copy, not the whole
-        arrays'."""
-        query, rt, queue = self.query, self.rt, self.rt.queue
-        context, flags = rt.context, cl.mem_flags
-        origins, directions, *limits = rays
-        # (each whole array one buffer: only where the device allows its size)
-        whole = _whole(query, len(origins)) and rt.fits_one_buffer(
-            *(array for array in [*rays, *inputs, *outputs.values()]
-              if isinstance(array, np.ndarray)))
-        assert whole or order is None or (offsets is None and not inputs)
-        cl.enqueue_copy(queue, self._counters, np.zeros(2, np.int32))
+    def _launches(self, rays, order, offsets, inputs, outputs, launch) -> None:
+        """A pass over the rays (the engine's launches), in `order` (None: as
+        given), with each ray's `inputs` rows, writing `outputs` (a row per
+        ray, or with `offsets` ray r's segment [offsets[r], offsets[r + 1])).
 
-        def wrap(array, access):  # the array's own memory (in place) or a copy of it
-            host = flags.USE_HOST_PTR if whole else flags.COPY_HOST_PTR
-            return cl.Buffer(context, access | host, hostbuf=array)
-        scalars = {id(value): wrap(np.full(1, value, value.dtype), flags.READ_ONLY)
-                   for value in limits if value.ndim == 0}
-
-        def ray_args(rows):  # the rays' arrays, or some rows of them: RAY_PARAMS but the slots
-            def part(array):
-                return array[rows] if isinstance(rows, slice) else take_rows(array, rows)
-            stepped = [[wrap(value[rows], flags.READ_ONLY), np.uint32(1)]
-                       if value.ndim else [scalars[id(value)], np.uint32(0)]
-                       for value in limits]  # tmin, tmax, mask
-            return (scene_args(tree, *stepped[2]), [
-                wrap(part(origins), flags.READ_ONLY), wrap(part(directions), flags.READ_ONLY),
-                *stepped[0], *stepped[1]])
-        # at most two launches in flight (Ctrl-C waits for few), and chunks small
-        # enough, where the rays are copied per chunk, that the copies stay small
-        rays_per_launch = query.max_rays_per_launch if whole else \
-            min(query.max_rays_per_launch, COPIED_RAYS_PER_LAUNCH)
-        if whole:
-            scene, whole_rays = ray_args(slice(None))
-            if order is None:
-                order = np.arange(len(origins), dtype=np.uint32)
-            # the segments' offsets index the whole output arrays: base and
-            # first ray 0
-            segments = [] if offsets is None else \
-                [wrap(offsets, flags.READ_ONLY), np.int64(0), np.int64(0)]
-            whole_inputs = [wrap(value, flags.READ_ONLY) if isinstance(value, np.ndarray)
-                            else value for value in inputs]
-            # read too: the fill kernel sorts the hits in its segments
-            buffers = [wrap(array, flags.READ_WRITE) for array in outputs.values()]
-        # launches in flight: their events, and what ends them (results put
-        # back); they hold what the kernels read or write
-        flight: list[tuple[list, object, tuple, int]] = []
-        sizes = LaunchSizes(rays_per_launch)
-
-        def retire(count):
-            while len(flight) > count:
-                waited, put_back, _, rays = flight.pop(0)
-                rt.wait(waited)
-                sizes.ended(waited[0], rays)
-                put_back()
-        try:
-            # results copied back go through buffers of HITS_PER_LAUNCH slots
-            max_slots = None if whole else HITS_PER_LAUNCH
-            for start, stop in _chunks(offsets, sizes, len(origins), max_slots):
-                if whole:
-                    args = [*whole_rays, wrap(order[start:stop], flags.READ_ONLY), np.uint32(1),
-                            *segments, *whole_inputs, *buffers]
-                    put_back, parts, out = (lambda: None), {}, {}
-                else:
-                    rows = slice(start, stop) if order is None else order[start:stop]
-                    first, last = (start, stop) if offsets is None else \
-                        (int(offsets[start]), int(offsets[stop]))
-                    scene, args = ray_args(rows)
-                    args += [self._unused, np.uint32(0)]
-                    if offsets is not None:
-                        args += [wrap(offsets[start:stop + 1], flags.READ_ONLY),
-                                 np.int64(first), np.int64(start)]
-                    args += [wrap(value[start:stop], flags.READ_ONLY)
-                             if isinstance(value, np.ndarray) else value for value in inputs]
-                    # a taken chunk's results land in rows of their own first
-                    parts = {name: array[first:last] if order is None
-                             else np.empty((stop - start, *array.shape[1:]), array.dtype)
-                             for name, array in outputs.items()}
-                    out = self._reserve(outputs, last - first)
-                    args += list(out.values())
-
-                    def put_back(rows=rows, parts=parts):
-                        if order is not None:
-                            for name, part in parts.items():
-                                put_rows(outputs[name], rows, part)
-                launched = rt.run(kernel, -(-(stop - start) // packet), *scene, *args, *tail,
-                                  self._counters, np.uint32(stop - start),
-                                  local_size=query.work_group_size)
-                done = [launched, *(collect(queue, out[name], part, False)
-                                    for name, part in parts.items())]
-                flight.append((done, put_back, (args, out), stop - start))
-                # before the next run is cut: at most one left in flight, none
-                # until the first has ended and sized the runs after it
-                retire(1 if sizes.measured else 0)
-            retire(0)
-            if whole:
-                rt.wait([collect(queue, buffer, array, True)
-                         for buffer, array in zip(buffers, outputs.values())])
-            counters = np.zeros(2, np.int32)
-            rt.wait([cl.enqueue_copy(queue, counters, self._counters, is_blocking=False)])
-        except BaseException:  # launches in flight may still write: let them end
-            queue.finish()
-            raise
-        if counters[0]:
-            raise RuntimeError("ray traversal overflowed its stack (sized from Tree.depth): "
-                               "the tree is deeper than its depth field says")
+        Where whole_arrays holds (CPU devices) and the device allows a buffer of
+        each whole array, each launch reads and writes the whole arrays in
+        place by its rays' slots (the runtime's own copy at most, which
+        _placed spares it); elsewhere (GPUs, big batches off zero copy,
+        arrays too big for one buffer) each launch's rays go up and its
+        results come back, in chunks of at most COPIED_RAYS_PER_LAUNCH rays
+        and HITS_PER_LAUNCH hits, so that a device holds one chunk's
+        copy, not the whole arrays'."""
+        origins, directions, tmin, tmax, mask = rays
+        arrays = [array for array in [*rays, *inputs.values(), *outputs.values()]
+                  if array.ndim]
+        whole = whole_arrays(self.query, len(origins)) and self.rt.fits_one_buffer(*arrays)
+        counters = self.engine.run(Batch(
+            len(origins), {"origins": origins, "directions": directions, **inputs}, outputs,
+            stepped={"tmin": tmin, "tmax": tmax, "mask": mask}, order=order, whole=whole,
+            segments=offsets, max_rows=None if whole else HITS_PER_LAUNCH,
+            most=None if whole else min(self.query.max_rays_per_launch,
+                                        COPIED_RAYS_PER_LAUNCH)), launch)
         if counters[1]:
             raise RuntimeError("hlbvh_cl internal error: intersect_all's fill pass found fewer "
                                "hits than its count pass")
 
-    def _reserve(self, outputs: dict, slots: int) -> dict[str, cl.Buffer]:
-        """Grow-only device buffers for `slots` rows of each output (copied
-        back after each launch)."""
-        self._row_bytes.update({name: array.itemsize * int(np.prod(array.shape[1:]))
-                                for name, array in outputs.items()})
-        if slots > self._capacity or any(name not in self._outputs for name in outputs):
-            capacity = max(slots, min(HITS_PER_LAUNCH, 2 * self._capacity), self._capacity)
-            sizes = {name: capacity * self._row_bytes[name] for name in {*self._outputs, *outputs}}
-            self._outputs = {}
-            self.rt.check_allocation("all-hits buffers", sizes)
-            self._outputs = {name: cl.Buffer(self.rt.context, cl.mem_flags.READ_WRITE, size)
-                             for name, size in sizes.items()}
-            self._capacity = capacity
-        return {name: self._outputs[name] for name in outputs}
 
-
-def _whole(query: RayQuery, count: int) -> bool:
+def whole_arrays(query: RayQuery, count: int) -> bool:
     """Whether launches over `count` rays read and write the whole arrays in
     place by slots (_launches): on CPU devices, off zero copy only up to
     INDEXED_COPY_MAX rays (a runtime that copies a host pointer it cannot
@@ -420,32 +312,7 @@ def _coherent_order(query: RayQuery, rays) -> np.ndarray | None:
     origins, directions = rays[:2]
     if len(origins) < COHERENT_MIN:
         return None
-    # read in place where the launches read them so (_whole)
-    return device_order(query.rt, origins, RAY_ORDER_BITS, _whole(query, len(origins)),
+    # read in place where the launches read them so (whole_arrays)
+    return device_order(query.rt, origins, RAY_ORDER_BITS, whole_arrays(query, len(origins)),
                         directions=directions,
                         by_direction=concurrent_rays(origins, directions))
-
-
-def _chunks(offsets: np.ndarray | None, max_rays: int | LaunchSizes, count: int,
-            max_slots: int | None = HITS_PER_LAUNCH):
-    """(start, stop) runs of the `count` rays with at most max_rays rays (a
-    LaunchSizes: its size as each run is made) and (unless one ray has more)
-    max_slots slots (None: any number), where ray r has slots
-    [offsets[r], offsets[r + 1]) (None: one each); runs without slots are
-    skipped."""
-    start = 0
-    max_slots = max_slots or count + (int(offsets[-1]) if offsets is not None else 0) + 1
-    sizes = max_rays if isinstance(max_rays, LaunchSizes) else None
-    while start < count:
-        if sizes is not None:
-            max_rays = sizes.size
-        if offsets is None:
-            stop = min(start + max_rays, start + max_slots, count)
-        else:
-            bound = int(np.searchsorted(offsets, offsets[start] + max_slots, "right")) - 1
-            stop = min(start + max_rays, count, max(bound, start + 1))
-            if offsets[stop] == offsets[start]:
-                start = stop
-                continue
-        yield start, stop
-        start = stop

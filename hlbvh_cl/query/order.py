@@ -3,7 +3,7 @@ order of their points (query points, or ray origins), so that consecutive
 work-items walk much the same nodes and triangles, which stay in cache
 (the ray sorting of Pharr et al. 1997 and Garanzha & Loop 2010, in its
 simplest form).  Rays are sorted by the class of their direction first
-(kernels/ray_class.h: the axis and signs a packet's rays must share), then
+(kernels/query/rays/ray_class.h: the axis and signs a packet's rays must share), then
 by origin, or by direction where the lines of rays from scattered origins
 nearly meet at one point (rays aimed at one target: concurrent_rays), as
 rays of nearly one direction then lie along nearly one line.  Points come in
@@ -24,7 +24,7 @@ COHERENT_MIN = 1024
 ORDER_BITS = 5
 
 #: Bits per axis for queries walked in packets (point queries,
-#: kernels/point_packet.h): a packet's consecutive points must lie close
+#: kernels/query/points/point_packet.h): a packet's consecutive points must lie close
 #: together, not merely in one of 2^15 cells.
 FINE_ORDER_BITS = 10
 
@@ -44,7 +44,7 @@ CLASS_BITS = 5
 #: 2^18 cells each already hold about one ray of a million.
 DIRECTION_BITS = 9
 
-#: Rows each work-item of kernels/order.cl's key kernels keys at once (as
+#: Rows each work-item of kernels/query/order.cl's key kernels keys at once (as
 #: vectors of that many lanes).
 KEY_ROWS = 8
 
@@ -68,24 +68,6 @@ def _spread_bits(cells: np.ndarray) -> np.ndarray:
     return (x | (x << 2)) & 0x09249249
 
 
-def take_rows(points: np.ndarray, order: np.ndarray) -> np.ndarray:
-    """points[order] for float32 (N, 3) points, gathering each row as one
-    12-byte item rather than three floats (numpy's fancy indexing of an
-    (N, 3) array goes element by element)."""
-    rows = np.ascontiguousarray(points).view(np.dtype((np.void, 12))).reshape(-1)
-    return np.take(rows, order).view(np.float32).reshape(-1, 3)
-
-
-def put_rows(out: np.ndarray, order: np.ndarray, values: np.ndarray) -> None:
-    """out[order] = values, as take_rows's inverse: rows of 2-D arrays moved
-    as one item each (numpy scatters an (N, 3) array element by element)."""
-    if out.ndim == 2:
-        item = np.dtype((np.void, out.itemsize * out.shape[1]))
-        out = out.view(item).reshape(-1)
-        values = np.ascontiguousarray(values).view(item).reshape(-1)
-    out[order] = values
-
-
 def _cell_scales(points: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray]:
     """Per axis, float32, the points' least coordinate and the scale that
     maps their extent onto cells 0 .. 2^bits - 1 (0 on a flat axis)."""
@@ -104,7 +86,7 @@ def _cell_scales(points: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray]
 
 
 def ray_classes(directions: np.ndarray) -> np.ndarray:
-    """uint32 class of each float32 (N, 3) direction (kernels/ray_class.h):
+    """uint32 class of each float32 (N, 3) direction (kernels/query/rays/ray_class.h):
     kz * 8, plus 1, 2, 4 for a sign bit set in x, y, z."""
     a = np.abs(directions)
     kz = np.where((a[:, 0] >= a[:, 1]) & (a[:, 0] >= a[:, 2]), 0,
@@ -154,7 +136,7 @@ def direction_keys(directions: np.ndarray) -> np.ndarray:
     """uint32 2-D Morton code of each float32 direction's cell on its cube
     face (DIRECTION_BITS per coordinate): the face coordinates are its two
     other components over its largest one, kz's (ray_classes), in [-1, 1].
-    As kernels/order.cl's ray_keys computes it, in float32."""
+    As kernels/query/order.cl's ray_keys computes it, in float32."""
     a = np.abs(directions)
     kz = (ray_classes(directions) >> 3).astype(np.intp)
     rows = np.arange(len(directions))
@@ -220,7 +202,7 @@ def device_order(rt, points: np.ndarray, bits: int = FINE_ORDER_BITS,
                  zero_copy: bool = False, directions: np.ndarray | None = None,
                  by_direction: bool = False) -> np.ndarray:
     """coherent_order(points, bits, directions, by_direction) as uint32, computed on rt's
-    device: the keys by kernels/order.cl, the stable sort by the library's
+    device: the keys by kernels/query/order.cl, the stable sort by the library's
     radix sort (hlbvh_cl.parallel.radix_sort) rather than numpy's argsorts on the host
     (still the host's where the points are too many for one device buffer).
     With zero_copy the kernel reads the points (and directions) in place."""

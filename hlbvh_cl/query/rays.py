@@ -1,9 +1,9 @@
 """Ray queries on a finished Tree: closest hit and any hit, as a stack-based
-walk of its 8-wide nodes (kernels/traverse.cl; Wald, Benthin & Boulos 2008,
+walk of its 8-wide nodes (kernels/query/rays.cl; Wald, Benthin & Boulos 2008,
 and the watertight ray-triangle test of Woop, Benthin & Wald 2013), one ray or one small
 packet of rays per work-item.  A query never builds or changes the tree.
 
-Conventions, shared with tests/oracle.py:
+Conventions, shared with tests/support/oracle.py:
   - a ray hits at distance t when tmin <= t <= tmax, with t in units of the
     direction's length (directions are not normalised);
   - tmin must be >= 0 and finite (as Embree's tnear), tmax >= tmin (may be inf);
@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,65 +22,23 @@ import pyopencl as cl
 
 from ..core import frame
 from ..core import inputs
-from ..core import layout
 from ..device.runtime import Runtime
 from ..device.profile import PACKET_SIZES
-from .results import ResultPool, starts_on_page
+from .engine import (Batch, Engine, check_tree, engine_setting, kernel_defines,
+                     work_group_size)
+from .results import ResultPool
 from ..core.inputs import ALL_BITS
 from ..build.instances import InstancedTree
+from ..core.paths import kernel_of
 from ..core.tree import Tree
+
+KERNEL = kernel_of(__name__)
 
 
 #: Rays per kernel launch at most: enough to fill any device, few enough that
 #: a launch ends soon, so that Ctrl-C (which waits for the launches in
 #: flight, at most two) is answered within a second.
 MAX_RAYS_PER_LAUNCH = 1 << 20
-
-#: A launch's time is its rays' cost, which a scene of many overlapping
-#: instances makes far higher: a batch's first launch takes at most
-#: FIRST_LAUNCH rays, and each later one as many as the last to end says
-#: LAUNCH_SECONDS allow (LaunchSizes).
-FIRST_LAUNCH = 1 << 16
-LAUNCH_SECONDS = 0.25
-
-
-class LaunchSizes:
-    """Items per launch for a batch: `first` (FIRST_LAUNCH by default) for
-    the first launch, then what the last one ended took per item allows in
-    LAUNCH_SECONDS, always within [1, most].  ``next`` paces the launches:
-    at most two in flight (Ctrl-C waits for those), and the second only once
-    the first has ended and sized it."""
-
-    def __init__(self, most: int, first: int | None = None):
-        self.most = most
-        self.size = min(most, FIRST_LAUNCH if first is None else first)
-        self.measured = False
-        self._launches: list[tuple[object, int]] = []  # (event, items) of each
-
-    def next(self, rt) -> int:
-        """Waits for the launch two back (the first, while none has been
-        measured) and gives the next launch's size."""
-        count = len(self._launches)
-        if count >= 2 or (count == 1 and not self.measured):
-            event, items = self._launches[max(0, count - 2)]
-            rt.wait([event])
-            self.ended(event, items)
-        return self.size
-
-    def launched(self, event, items: int) -> None:
-        self._launches.append((event, items))
-
-    def ended(self, event, items: int) -> None:
-        """A launch of ``items`` items has ended (its profiled event)."""
-        seconds = (event.profile.end - event.profile.start) * 1e-9
-        fits = LAUNCH_SECONDS * items / seconds if seconds > 0 else self.most
-        self.size = int(max(1, min(self.most, fits)))
-        self.measured = True
-
-
-#: Stack sizes are rounded up to a multiple of this so that few program
-#: variants get compiled.
-STACK_GRANULE = 16
 
 
 @dataclass
@@ -107,51 +64,8 @@ class Hits:
         return self.geom_id >= 0
 
 
-def zero_copy(rt: Runtime) -> bool:
-    """Whether queries hand the kernels the numpy arrays themselves
-    (CL_MEM_USE_HOST_PTR) instead of device copies.
-
-    Only on PoCL's CPU device, where a device copy is just two memcpys and
-    zero copy measured faster.  Intel's CPU runtime measured the other way,
-    and a GPU's memory is its own.
-    """
-    return (not rt.profile.gpu and rt.device.id.startswith("pocl")
-            and bool(rt.device.cl_device.host_unified_memory))
-
-
-def outputs_in_place(rt: Runtime) -> bool:
-    """Whether queries that copy the rays to the device let the kernels write
-    the results straight into the result arrays (CL_MEM_USE_HOST_PTR),
-    which the result pool starts on a page (results.ALIGNMENT; Intel's CPU
-    runtime uses a host pointer in place only there).
-
-    On Intel's CPU runtime, where the rays' own arrays measured slower in
-    place (a caller's arrays seldom start on a page, zero_copy) but the
-    results written in place measured faster, with the same results.
-    """
-    return rt.device.id.startswith("intel") and not rt.profile.gpu
-
-
-def work_group_size(rt: Runtime) -> int:
-    """Work-items per group for the traversal kernels.
-
-    PoCL's speed hardly depends on it, nor does Intel's CPU runtime's up to
-    8.  At 16 and more Intel would pack 16 rays into SIMD lanes (much slower:
-    divergence), which the kernels' vec_type_hint now prevents, but 8 stays
-    the safe choice.  GPUs want at least a warp/wavefront.
-    """
-    d = rt.device
-    if rt.profile.gpu:
-        size = 64
-    elif d.id.startswith("intel"):
-        size = 8
-    else:
-        size = 16
-    return min(size, d.cl_device.max_work_group_size)
-
-
 #: Device buffers of the numpy-facing queries, bytes per ray: the inputs, then
-#: one buffer per field of the results (kernels/traverse.cl's *_arrays kernels).
+#: one buffer per field of the results (kernels/query/rays.cl's *_arrays kernels).
 RAY_ARRAYS = {"origins": 12, "directions": 12, "tmin": 4, "tmax": 4, "mask": 4}
 #: Hits' fields: dtype and values per ray.
 HIT_FIELDS = {"t": (np.float32, 1), "geom_id": (np.int32, 1), "prim_id": (np.int32, 1),
@@ -164,27 +78,24 @@ OCCLUDED_ARRAYS = {"occluded": 1}
 def check_packet_size(packet_size) -> int:
     """A packet_size argument (queries per work-item) as an int of
     PACKET_SIZES, else TypeError / ValueError."""
-    if isinstance(packet_size, bool) or not isinstance(packet_size, (int, np.integer)):
-        raise TypeError(f"packet_size must be an int, got {type(packet_size).__name__}")
+    packet_size = inputs.integer("packet_size", packet_size)
     if packet_size not in PACKET_SIZES:
         raise ValueError(f"packet_size must be one of {PACKET_SIZES}, got {packet_size!r}")
     return int(packet_size)
 
 
 class RayQuery:
-    """Closest-hit and any-hit queries on one device.
-
-    On PoCL the kernels work on the numpy arrays in place (``zero_copy``);
-    elsewhere device buffers for rays and results are reused between calls and
-    only grow, and on Intel's CPU runtime the kernels write the results into
-    their (page-aligned) arrays directly (``outputs_in_place``).  The host
-    memory of results the caller has dropped is reused too (ResultPool).
-    Rays go up and results come back as the numpy arrays themselves (one
-    buffer per field, no packing on the host).  ``max_rays_per_launch`` caps
-    the rays per kernel launch (bigger batches are split into chunks); by
-    default it follows the device's memory limits.  ``packet_size`` is the
-    rays each work-item traces (PACKET_SIZES; by default the runtime's kernel
-    variant's): every size gives the same hits, ties aside.
+    """Closest-hit and any-hit queries on one device, through the launch
+    engine (hlbvh_cl.query.engine: zero copy on PoCL, device buffers reused
+    between calls elsewhere, results written in place on Intel's CPU
+    runtime).  The host memory of results the caller has dropped is reused
+    too (ResultPool).  Rays go up and results come back as the numpy arrays
+    themselves (one buffer per field, no packing on the host).
+    ``max_rays_per_launch`` caps the rays per kernel launch (bigger batches
+    are split into chunks); by default it follows the device's memory
+    limits.  ``packet_size`` is the rays each work-item traces
+    (PACKET_SIZES; by default the runtime's kernel variant's): every size
+    gives the same hits, ties aside.
     """
 
     def __init__(self, rt: Runtime, max_rays_per_launch: int | None = None,
@@ -197,30 +108,30 @@ class RayQuery:
         #: the device cannot run gives way to a smaller one, with a warning)
         self.variant = rt.packet_variant(check_packet_size(packet_size))
         self.packet_size = self.variant.packet_size
-        self.max_rays_per_launch = self._chunk_size(max_rays_per_launch)
-        self._capacity = 0
-        self._buffers: dict[str, cl.Buffer] = {}
-        # int32 [0]: a traversal overflowed its stack; [1]: packets traced as
-        # packets (only counted with count_packets)
-        self._counters = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 8)
-        self._scalars = {name: cl.Buffer(rt.context, cl.mem_flags.READ_ONLY, 4)
-                         for name in ("tmin", "tmax", "mask")}
-        cl.enqueue_copy(rt.queue, self._scalars["mask"], np.full(1, ALL_BITS, np.uint32))
-        #: whether the kernels read the rays and write the results in the
-        #: numpy arrays themselves (zero_copy); else the rays go up and the
-        #: results come back through device buffers reused between calls
-        self.zero_copy = zero_copy(rt)
-        #: without zero_copy: whether the kernels write the results into the
-        #: numpy arrays themselves when these start on a page (outputs_in_place)
-        self.outputs_in_place = not self.zero_copy and outputs_in_place(rt)
-        self._lock = threading.Lock()
-        self._results = ResultPool()
-        #: device time of the last query's kernels, milliseconds
-        self.last_kernel_ms = 0.0
+        #: the launches of the numpy-facing queries (hlbvh_cl.query.engine)
+        self.engine = Engine(rt, self._chunk_size(max_rays_per_launch))
+        #: the host memory of results, lent and recycled (results.ResultPool)
+        self.results = ResultPool()
+        # the renderer's device-buffer entry points: every ray sees all (mask)
+        self._all_bits = cl.Buffer(rt.context, cl.mem_flags.READ_ONLY, 4)
+        cl.enqueue_copy(rt.queue, self._all_bits, np.full(1, ALL_BITS, np.uint32))
         #: for tests: count the work-items whose rays were traced as one packet
         #: (kernels built with COUNT_PACKETS) into last_packets
         self.count_packets = False
         self.last_packets: int | None = None
+
+    zero_copy = engine_setting(
+        "zero_copy", "Whether the kernels use the callers' arrays in place (the engine's "
+        "choice for the device; settable, for tests of each path).")
+    outputs_in_place = engine_setting(
+        "outputs_in_place", "Off zero copy: whether results that start on a page are written "
+        "in place (the engine's choice; settable, for tests of each path).")
+    max_rays_per_launch = engine_setting("most", "Rays per kernel launch at most.")
+
+    @property
+    def last_kernel_ms(self) -> float:
+        """Device time of the last query's kernels, milliseconds."""
+        return self.engine.last_kernel_ms
 
     def _chunk_size(self, requested: int | None) -> int:
         d = self.rt.device
@@ -229,11 +140,7 @@ class RayQuery:
                    d.global_mem_size // 4 // per_ray)  # leave room for the tree
         size = min(MAX_RAYS_PER_LAUNCH, fits)
         if requested is not None:
-            if isinstance(requested, bool) or not isinstance(requested, (int, np.integer)):
-                raise TypeError(f"max_rays_per_launch must be an int, got {type(requested).__name__}")
-            if requested < 1:
-                raise ValueError(f"max_rays_per_launch must be >= 1, got {requested}")
-            size = min(size, int(requested))
+            size = min(size, inputs.integer("max_rays_per_launch", requested, 1))
         return max(1, size)
 
     # -- public queries ---------------------------------------------------
@@ -245,19 +152,20 @@ class RayQuery:
         whose mask shares no bit with its own (``mask``: scalar or per ray)."""
         batch = masked(inputs.rays(origins, directions, tmin, tmax), mask, tree)
         count = len(batch)
-        hits = Hits(**{name: self._results.empty((count, n) if n > 1 else count, dtype)
+        hits = Hits(**{name: self.results.empty((count, n) if n > 1 else count, dtype)
                        for name, (dtype, n) in HIT_FIELDS.items()})
         batch, t_factor = into_frame(batch, tree)
-        if count and self._check_tree(tree):
+        if count and check_tree(self.rt, tree):
             kernel = self._kernel(tree, "intersect_closest_arrays", self.count_packets)
 
-            def launch(n, b, steps):
-                return self.rt.run(kernel, self._work_items(n, tree),
+            def launch(n, run):
+                b, steps = run.buffers, run.steps
+                return self.rt.run(kernel, self._work_items(n),
                                    *scene_args(tree, *steps["mask"]), b["origins"],
                                    b["directions"], *steps["tmin"], *steps["tmax"], b["t"],
                                    b["geom_id"], b["prim_id"], b["u"], b["v"], b["normal"],
-                                   b["points"], b["instance_id"], self._counters, np.uint32(n),
-                                   local_size=self.work_group_size)
+                                   b["points"], b["instance_id"], self.engine.counters,
+                                   np.uint32(n), local_size=self.work_group_size)
             self._run(batch, launch, {name: getattr(hits, name) for name in HIT_ARRAYS})
             if t_factor is not None:  # back from the frame
                 hit = np.flatnonzero(hits.prim_id >= 0)
@@ -278,17 +186,18 @@ class RayQuery:
         """bool in the rays' leading shape: whether anything is hit with
         tmin <= t <= tmax (stops at the first hit); ``mask`` as intersect."""
         batch, _ = into_frame(masked(inputs.rays(origins, directions, tmin, tmax), mask, tree),
-                               tree)
+                              tree)
         count = len(batch)
-        result = self._results.empty(count, np.uint8)
-        if count and self._check_tree(tree):
+        result = self.results.empty(count, np.uint8)
+        if count and check_tree(self.rt, tree):
             kernel = self._kernel(tree, "intersect_any_arrays", self.count_packets)
 
-            def launch(n, b, steps):
-                return self.rt.run(kernel, self._work_items(n, tree),
+            def launch(n, run):
+                b, steps = run.buffers, run.steps
+                return self.rt.run(kernel, self._work_items(n),
                                    *scene_args(tree, *steps["mask"]), b["origins"],
                                    b["directions"], *steps["tmin"], *steps["tmax"],
-                                   b["occluded"], self._counters, np.uint32(n),
+                                   b["occluded"], self.engine.counters, np.uint32(n),
                                    local_size=self.work_group_size)
             self._run(batch, launch, {"occluded": result})
         return result.view(bool).reshape(batch.shape)  # the kernel writes 0 or 1
@@ -304,8 +213,8 @@ class RayQuery:
         flag beforehand and raises if a traversal set it."""
         self._require_triangles(tree)
         kernel = self._kernel(tree, "intersect_closest")
-        return self.rt.run(kernel, self._work_items(count, tree),
-                           *scene_args(tree, self._scalars["mask"], 0), rays, hits, overflow,
+        return self.rt.run(kernel, self._work_items(count),
+                           *scene_args(tree, self._all_bits, 0), rays, hits, overflow,
                            np.uint32(count), wait_for=wait_for, local_size=self.work_group_size)
 
     def enqueue_occluded(self, tree: Tree, rays: cl.Buffer, occluded: cl.Buffer, count: int,
@@ -314,151 +223,38 @@ class RayQuery:
         where ray i hits anything."""
         self._require_triangles(tree)
         kernel = self._kernel(tree, "intersect_any")
-        return self.rt.run(kernel, self._work_items(count, tree),
-                           *scene_args(tree, self._scalars["mask"], 0), rays, occluded, overflow,
+        return self.rt.run(kernel, self._work_items(count),
+                           *scene_args(tree, self._all_bits, 0), rays, occluded, overflow,
                            np.uint32(count), wait_for=wait_for, local_size=self.work_group_size)
 
     # -- internals ----------------------------------------------------------
 
-    def _kernel(self, tree: Tree, name: str,
-                count_packets: bool = False) -> cl.Kernel:
+    def _kernel(self, tree: Tree, name: str, count_packets: bool = False) -> cl.Kernel:
         """The traversal kernel `name` for `tree` (an instanced one's walks
-        its top tree, kernels/instance.h)."""
-        defines = {"STACK_SIZE": stack_size(tree), "PACKET_SIZE": self.packet_size,
-                   **self.variant.defines, **self.rt.prefetch_defines}
-        if isinstance(tree, InstancedTree):
-            defines["INSTANCES"] = 1
-        if count_packets:
-            defines["COUNT_PACKETS"] = 1
-        return self.rt.kernel("query/rays.cl", name, **defines)
+        its top tree, kernels/query/rays/instance.h)."""
+        extra = {"COUNT_PACKETS": 1} if count_packets else {}
+        return self.rt.kernel(KERNEL, name, **kernel_defines(self.rt, tree, self.variant,
+                                                              self.packet_size, **extra))
 
-    def _work_items(self, rays: int, tree=None) -> int:
+    def _work_items(self, rays: int) -> int:
         """Work-items that trace `rays` rays, packet_size rays each."""
         return -(-rays // self.packet_size)
 
     def _require_triangles(self, tree: Tree) -> None:
-        if not self._check_tree(tree):
+        if not check_tree(self.rt, tree):
             raise ValueError("the tree holds no triangle: there is nothing to trace rays against")
 
-    def _check_tree(self, tree: Tree) -> bool:
-        return check_tree(self.rt, tree)
-
-    def _reserve(self, count: int) -> None:
-        """Grow-only device buffers for `count` rays per launch."""
-        if count <= self._capacity:
-            return
-        capacity = min(self.max_rays_per_launch, max(count, 2 * self._capacity))
-        sizes = {**RAY_ARRAYS, **HIT_ARRAYS, **OCCLUDED_ARRAYS}
-        # release the old ones before allocating, and hold none if that fails
-        self._buffers, self._capacity = {}, 0
-        self.rt.check_allocation("ray query buffers",
-                                 {name: capacity * size for name, size in sizes.items()})
-        self._buffers = {name: cl.Buffer(self.rt.context, cl.mem_flags.READ_WRITE,
-                                         capacity * size) for name, size in sizes.items()}
-        self._capacity = capacity
-
-    def _run(self, batch: inputs.Rays, launch, outputs) -> None:
-        """Runs ``launch(n, buffers, limits)`` over chunks of at most
-        max_rays_per_launch rays; the results land in the arrays of
-        ``outputs`` (in place, or read back from the device buffers)."""
-        with self._lock:  # one query at a time: the buffers are shared
-            try:
-                self._run_locked(batch, launch, outputs)
-            except BaseException:
-                # Ctrl-C, or an error: the launches in flight (at most two)
-                # may still write into the caller's arrays (zero copy) and the
-                # shared buffers; let them end before anyone reuses those.
-                self.rt.queue.finish()
-                raise
-
-    def _run_locked(self, batch: inputs.Rays, launch, outputs) -> None:
-        queue, chunk = self.rt.queue, self.max_rays_per_launch
-        count = len(batch)
-        if not self.zero_copy:
-            self._reserve(min(count, chunk))
-        cl.enqueue_copy(queue, self._counters, np.zeros(2, np.int32))
-        # per-ray arrays go chunk by chunk; a scalar limit is one value, step 0
-        arrays = {"origins": batch.origins, "directions": batch.directions}
-        limits = {}
-        for name, limit in (("tmin", batch.tmin), ("tmax", batch.tmax), ("mask", batch.mask)):
-            if limit.ndim:
-                arrays[name] = limit
-            else:
-                cl.enqueue_copy(queue, self._scalars[name], np.full(1, limit, limit.dtype))
-                limits[name] = self._scalars[name]
-        # The queue runs in order, so each chunk's inputs wait for the last
-        # chunk's results; only the final read blocks.  (pyopencl's events of
-        # non-blocking copies wait when they are dropped: keep them.)
-        events, transfers = [], []
-        sizes, start = LaunchSizes(chunk), 0
-        while start < count:
-            part = slice(start, min(start + sizes.next(self.rt), count))
-            start = part.stop
-            if self.zero_copy:
-                buffers = {name: self._wrap(array[part], cl.mem_flags.READ_ONLY)
-                           for name, array in arrays.items()}
-            else:
-                buffers = dict(self._buffers)
-                transfers += [cl.enqueue_copy(queue, buffers[name], array[part], is_blocking=False)
-                              for name, array in arrays.items()]
-            in_place = self.zero_copy or (self.outputs_in_place and starts_on_page(
-                *(array[part] for array in outputs.values())))
-            if in_place:
-                buffers.update({name: self._wrap(array[part], cl.mem_flags.WRITE_ONLY)
-                                for name, array in outputs.items()})
-            steps = {name: (limits[name] if name in limits else buffers[name],
-                            np.uint32(name in arrays)) for name in ("tmin", "tmax", "mask")}
-            events.append(launch(part.stop - part.start, buffers, steps))
-            sizes.launched(events[-1], part.stop - part.start)
-            transfers += [collect(queue, buffers[name], array[part], in_place)
-                          for name, array in outputs.items()]
-        counters = np.zeros(2, np.int32)
-        self.rt.wait([cl.enqueue_copy(queue, counters, self._counters, is_blocking=False)])
-        self.last_kernel_ms = sum((e.profile.end - e.profile.start) * 1e-6 for e in events)
+    def _run(self, batch: inputs.Rays, launch, outputs: dict) -> None:
+        """The launches over the rays (the engine's chunks), the results
+        into the arrays of ``outputs``."""
+        counters = self.engine.run(Batch(
+            len(batch), {"origins": batch.origins, "directions": batch.directions}, outputs,
+            stepped={"tmin": batch.tmin, "tmax": batch.tmax, "mask": batch.mask}), launch)
         self.last_packets = int(counters[1]) if self.count_packets else None
-        if counters[0]:
-            raise RuntimeError("ray traversal overflowed its stack (sized from Tree.depth): "
-                               "the tree is deeper than its depth field says")
-
-    def _wrap(self, array: np.ndarray, access) -> cl.Buffer:
-        """A buffer over the array's own memory (CL_MEM_USE_HOST_PTR)."""
-        return cl.Buffer(self.rt.context, access | cl.mem_flags.USE_HOST_PTR, hostbuf=array)
-
-
-def collect(queue: cl.CommandQueue, buffer: cl.Buffer, array: np.ndarray,
-            in_place: bool) -> cl.Event:
-    """Enqueues what brings a launch's results from ``buffer`` into ``array``:
-    where the kernel wrote the array itself (a USE_HOST_PTR buffer over it),
-    a map of the buffer, which makes them visible without a copy; else a
-    copy back.  The caller keeps the event: pyopencl's events of non-blocking
-    copies wait when they are dropped."""
-    if in_place:
-        mapped, event = cl.enqueue_map_buffer(queue, buffer, cl.map_flags.READ, 0, array.shape,
-                                              array.dtype, is_blocking=False)
-        mapped.base.release(queue)
-        return event
-    return cl.enqueue_copy(queue, array, buffer, is_blocking=False)
-
-
-def check_tree(rt: Runtime, tree: Tree) -> bool:
-    """Validates a tree for a query on ``rt``; False when it holds no
-    triangle (every query misses)."""
-    if not isinstance(tree, (Tree, InstancedTree)):
-        raise TypeError(f"tree must be a hlbvh_cl.core.tree.Tree, got {type(tree).__name__}")
-    if tree.released:
-        raise ValueError("this Tree was released when its Scene rebuilt")
-    if tree.triangle_count == 0:
-        return False
-    if tree.nodes.context != rt.context:
-        raise ValueError(f"tree lives on another OpenCL context than this query "
-                         f"({rt.device.id}); build it with the same runtime")
-    if tree.depth < 1 or tree.node_count < 1:
-        raise ValueError(f"tree is malformed: depth={tree.depth}, node_count={tree.node_count}")
-    return True
 
 
 def scene_args(tree, masks: cl.Buffer, mask_step) -> tuple:
-    """A traversal kernel's SCENE_PARAMS (traverse.cl) for ``tree``: a flat
+    """A traversal kernel's SCENE_PARAMS (query/rays.cl) for ``tree``: a flat
     tree's nodes, triangles and refs (rays' masks are applied before, by
     masked); an instanced one's levels, instances and the rays' masks."""
     if isinstance(tree, InstancedTree):
@@ -484,18 +280,6 @@ def masked(batch: inputs.Rays, mask, tree) -> inputs.Rays:
     return dataclasses.replace(batch, tmax=tmax)
 
 
-def stack_size(tree: Tree) -> int:
-    """A stack that cannot overflow: a wide node pushes at most WIDE_ARITY - 1
-    children, and only those of the nodes on the path to the current one stay
-    on the stack.  Sized from the tree's depth, so that a tree whose depth is
-    wrong overflows (and raises) instead of being trusted in part."""
-    return _round_up((layout.WIDE_ARITY - 1) * max(1, int(tree.depth)), STACK_GRANULE)
-
-
-def _round_up(value: int, multiple: int) -> int:
-    return (value + multiple - 1) // multiple * multiple
-
-
 def into_frame(batch: inputs.Rays, tree) -> tuple[inputs.Rays, np.ndarray | None]:
     """The (checked) rays in the frame of a tree built at a scale other than 1
     (hlbvh_cl.core.frame), and the factor per ray that turns the frame's t back
@@ -515,7 +299,7 @@ def into_frame(batch: inputs.Rays, tree) -> tuple[inputs.Rays, np.ndarray | None
     if not finite.all():
         raise ValueError(f"{batch.name_origin(int(np.argmin(finite)))} overflows float32 once "
                          f"multiplied by {frame.describe(scale)}, the scale of this scene's "
-                         "frame (hlbvh_cl/frame.py)")
+                         "frame (hlbvh_cl/core/frame.py)")
     _, exponent = np.frexp(np.abs(batch.directions).max(axis=1))
     per_ray = np.ldexp(1.0, -exponent)
     if scale == 1.0:

@@ -65,6 +65,13 @@ class ResultPool:
         weakref.finalize(lease, self._returned.put, block)
         return np.asarray(lease).view(dtype).reshape(shape)
 
+    @property
+    def held(self) -> list[np.ndarray]:
+        """The blocks kept for reuse now (a copy of the list)."""
+        with self._lock:
+            self._collect()
+            return list(self._free)
+
     def clear(self) -> None:
         """Drops the blocks held for reuse (lent ones stay with their arrays)."""
         with self._lock:

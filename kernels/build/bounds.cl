@@ -11,7 +11,9 @@
  * loop measured far slower on PoCL) and interleaved on GPUs (coalescing):
  * STRIDED_SLICES selects.
  */
-#include "core/hlbvh.h"
+#include "core/portable.h"
+#include "core/aabb.h"
+#include "build/mesh.h"
 
 __kernel void reduce_triangle_bounds(__global const float *vertices, __global const int *faces,
                                      int triangle_count, __global Aabb *partial_geometry,

@@ -1,4 +1,4 @@
-/* The winding-number walk's dipoles (WideDipoles, hlbvh.h; Barill et al.
+/* The winding-number walk's dipoles (WideDipoles, core/tree.h; Barill et al.
  * 2018, sec. 3.2, order 1), one per child of every wide node, computed
  * bottom-up one launch per level of wide nodes from the deepest up, as
  * refit.cl computes boxes: when a level runs, every child node it reads is
@@ -6,7 +6,9 @@
  * node's lanes: p the area-weighted mean of theirs, a their sum, and a
  * radius that holds each lane's ball, max(|p - p_i| + r_i).
  */
-#include "core/hlbvh.h"
+#include "core/portable.h"
+#include "core/spelled.h"
+#include "core/tree.h"
 
 #pragma OPENCL FP_CONTRACT OFF
 
@@ -98,7 +100,7 @@ inline void node_dipole(__global const WideNode* nodes, __global const WideDipol
  * whose child nodes (deeper levels) already have their dipoles.  The tree
  * starts at nodes[node_base] and triangles[triangle_base], its dipoles at
  * dipoles[node_base]: one tree among the meshes' trees of a two-level scene
- * (hlbvh_cl/instances.py's MeshTrees), its indices its own; 0 and 0 for a
+ * (hlbvh_cl/build/instances.py's MeshTrees), its indices its own; 0 and 0 for a
  * flat scene's one tree. */
 __kernel void dipoles_level(int level_first, int level_count, int node_base, int triangle_base,
                             __global const WideNode* nodes, __global const Triangle* triangles,

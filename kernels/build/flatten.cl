@@ -7,7 +7,11 @@
  * slot points at a run of triangles in sorted (Morton) order, the order in
  * which radix_tree.cl stored them.
  */
-#include "core/hlbvh.h"
+#include "core/portable.h"
+#include "core/aabb.h"
+#include "core/tree.h"
+#include "build/config.h"
+#include "build/flat_node.h"
 
 
 inline int spans_clusters(__global const morton_t *keys, int first, int last)

@@ -19,6 +19,8 @@
 #ifndef HANDOFF_H
 #define HANDOFF_H
 
+#include "core/aabb.h"
+
 #if ACQUIRE_RELEASE
 
 /* The number of walkers that arrived at this node before this one. */

@@ -5,7 +5,9 @@
  * uneven scale give with 30 bits.  Equal codes are left equal: the radix sort
  * is stable over primitive indices and emission breaks ties on the index.
  */
-#include "core/hlbvh.h"
+#include "core/portable.h"
+#include "core/aabb.h"
+#include "build/config.h"
 
 /* The kernel works on the three axes at once in vector lanes (x, y, z, and
  * an unused w): PoCL runs it as written, so this is fewer instructions
@@ -56,7 +58,7 @@ __kernel void morton_codes(__global const float4 *centroids, int triangle_count,
     float4 lo = (float4)(box.lo[0], box.lo[1], box.lo[2], 0.0f);
     /* A flat axis (all centroids equal) quantises to cell 0.  select and
      * clamp spelled with ?: (PoCL calls them out of line: see GROW_LO in
-     * hlbvh.h); a NaN still goes to 0, as clamp's fmax sends it. */
+     * core/spelled.h); a NaN still goes to 0, as clamp's fmax sends it. */
     float4 scale = AXIS_CELLS * inverse_extent[0];
     float4 cell = (centroids[face] - lo) * scale;
     cell = cell > 0.0f ? cell : (float4)(0.0f);

@@ -19,18 +19,22 @@
  * Karras's number of a node is its parent's split if it is a left child, and
  * that split + 1 if it is a right child: its range ends at, or starts at, its
  * own number.  So the walker names each node as soon as it knows the node's
- * range (tests/test_radix_tree.py checks the arrays against a top-down
+ * range (tests/build/test_radix_tree.py checks the arrays against a top-down
  * build from Karras's definition).
  *
  * On the way the walker evaluates the SAH bottom-up (cost = C_t A(node) +
  * cost(left) + cost(right), or C_i N A(node) as a leaf) so that, with
  * COLLAPSE_LEAVES, subtrees of at most MAX_LEAF_SIZE triangles become leaves
  * where the SAH says a leaf costs at most COLLAPSE_COST_RATIO times as much
- * (hlbvh.h).  A kernel before the walk (lay_out_leaves) lays the triangles
+ * (build/config.h).  A kernel before the walk (lay_out_leaves) lays the triangles
  * out in leaf (sorted) order, with their (mesh, face) refs and vertex ids,
  * and sets up the leaves the walkers start from.
  */
-#include "core/hlbvh.h"
+#include "core/portable.h"
+#include "core/aabb.h"
+#include "core/tree.h"
+#include "build/config.h"
+#include "build/mesh.h"
 #include "build/handoff.h"
 
 /* Intel's CPU compiler runs these kernels 16 work-items to a vector, and a

@@ -8,7 +8,10 @@
  * its child's lanes.  Boxes are min/max of the same floats as a build's, so
  * a refit of unmoved vertices gives back the built tree bit for bit.
  */
-#include "core/hlbvh.h"
+#include "core/portable.h"
+#include "core/aabb.h"
+#include "core/tree.h"
+#include "build/mesh.h"
 
 /* The boxes below come back through a pointer, not as a return value: a
  * returned struct is written through a noalias (sret) pointer, and inlining

@@ -9,7 +9,9 @@
  * level in parallel (split_top_level), which also writes each top node's box
  * and the tree's depth; sum_top_cost then adds up its SAH cost.
  */
-#include "core/hlbvh.h"
+#include "core/portable.h"
+#include "core/aabb.h"
+#include "build/config.h"
 
 
 /* Isolating one huge cluster is tried only this near the root. */
@@ -98,7 +100,7 @@ __kernel void gather_clusters(__global const uint *scan, int n, __global const i
     cluster_height[c] = height[root];
 }
 
-/* GROW_LO / GROW_HI (hlbvh.h) on float4s. */
+/* GROW_LO / GROW_HI (core/spelled.h) on float4s. */
 inline float4 grow_lo(float4 acc, float4 value)
 {
     return GROW_LO(acc, value);
@@ -135,6 +137,34 @@ inline float4 areas_of(float4 d0, float4 d1, float4 d2)
     float4 dz = (float4)(d0.z, d1.z, d2.z, 0.0f);
     int4 valid = dx >= 0.0f & dy >= 0.0f & dz >= 0.0f;
     return select((float4)(0.0f), 2.0f * (dx * dy + dy * dz + dz * dx), valid);
+}
+
+/* A sweep over a node's bins, the three axes side by side (lane a for axis
+ * a): per axis the box of the bins swept so far, and their count. */
+typedef struct {
+    float4 lo0, lo1, lo2, hi0, hi1, hi2, size;
+} Sweep;
+
+inline void sweep_start(Sweep *s)
+{
+    s->lo0 = s->lo1 = s->lo2 = (float4)(INFINITY);
+    s->hi0 = s->hi1 = s->hi2 = (float4)(-INFINITY);
+    s->size = (float4)(0.0f);
+}
+
+/* Bin b added to the sweep (bin_lo, bin_hi and bin_size as
+ * split_clusters'); the areas of the swept boxes, per axis. */
+inline float4 sweep_bin(Sweep *s, float4 (*bin_lo)[TOP_SAH_BINS], float4 (*bin_hi)[TOP_SAH_BINS],
+                        const float4 *bin_size, int b)
+{
+    s->lo0 = grow_lo(s->lo0, bin_lo[0][b]);
+    s->hi0 = grow_hi(s->hi0, bin_hi[0][b]);
+    s->lo1 = grow_lo(s->lo1, bin_lo[1][b]);
+    s->hi1 = grow_hi(s->hi1, bin_hi[1][b]);
+    s->lo2 = grow_lo(s->lo2, bin_lo[2][b]);
+    s->hi2 = grow_hi(s->hi2, bin_hi[2][b]);
+    s->size += bin_size[b];
+    return areas_of(s->hi0 - s->lo0, s->hi1 - s->lo1, s->hi2 - s->lo2);
 }
 
 /* The bin of a record's centre on each axis (.xyz).  The bounds are int4s:
@@ -332,32 +362,23 @@ inline int split_clusters(__global const ClusterRecord *records, __global Cluste
 
     /* Both sweeps run the three axes side by side, lane a for axis a: the
      * per-bin work is a few vector ops instead of three scalar passes. */
-#define GROW_BY_BIN(b)                                                                    \
-    (lo0 = grow_lo(lo0, bin_lo[0][b]), hi0 = grow_hi(hi0, bin_hi[0][b]),                  \
-     lo1 = grow_lo(lo1, bin_lo[1][b]), hi1 = grow_hi(hi1, bin_hi[1][b]),                  \
-     lo2 = grow_lo(lo2, bin_lo[2][b]), hi2 = grow_hi(hi2, bin_hi[2][b]), size += bin_size[b])
     float4 right_area[TOP_SAH_BINS], right_size[TOP_SAH_BINS];
-    float4 lo0 = (float4)(INFINITY), lo1 = lo0, lo2 = lo0;
-    float4 hi0 = (float4)(-INFINITY), hi1 = hi0, hi2 = hi0;
-    float4 size = (float4)(0.0f);
+    Sweep sweep;
+    sweep_start(&sweep);
     for (int b = bins - 1; b > 0; --b) {
-        GROW_BY_BIN(b);
-        right_area[b] = areas_of(hi0 - lo0, hi1 - lo1, hi2 - lo2);
-        right_size[b] = size;
+        right_area[b] = sweep_bin(&sweep, bin_lo, bin_hi, bin_size, b);
+        right_size[b] = sweep.size;
     }
     /* An axis whose centroids coincide has no split (all in bin 0). */
     int4 usable_axis = inv_extent != 0.0f;
     float4 axis_cost = (float4)(INFINITY);
     int4 axis_bin = (int4)(0);
-    lo0 = lo1 = lo2 = (float4)(INFINITY);
-    hi0 = hi1 = hi2 = (float4)(-INFINITY);
-    size = (float4)(0.0f);
+    sweep_start(&sweep);
     for (int b = 0; b < bins - 1; ++b) {
-        GROW_BY_BIN(b);
-        float4 cost = size * areas_of(hi0 - lo0, hi1 - lo1, hi2 - lo2) +
-                      right_size[b + 1] * right_area[b + 1];
+        float4 area = sweep_bin(&sweep, bin_lo, bin_hi, bin_size, b);
+        float4 cost = sweep.size * area + right_size[b + 1] * right_area[b + 1];
         /* Strict <: per axis the first bin of least cost, as a scalar scan. */
-        int4 better = usable_axis & (size != 0.0f) & (right_size[b + 1] != 0.0f) &
+        int4 better = usable_axis & (sweep.size != 0.0f) & (right_size[b + 1] != 0.0f) &
                       (cost < axis_cost);
         axis_cost = select(axis_cost, cost, better);
         axis_bin = select(axis_bin, (int4)(b), better);
@@ -409,7 +430,6 @@ inline int split_clusters(__global const ClusterRecord *records, __global Cluste
     }
     return middle;
 }
-#undef GROW_BY_BIN
 
 /* One task of split_top_level, and its whole subtree if it is serial. */
 inline void split_task(TopTask task, int level, int serial_depth, __global TopTask *next_tasks,

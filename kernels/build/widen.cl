@@ -9,7 +9,7 @@
  * Packets"; Embree's BVH4/BVH8 builders open the largest child the same way).
  * Every interior slot left over is a wide node of the next level.
  *
- * Levels are made top-down, one launch per kernel and level (hlbvh_cl/widen.py):
+ * Levels are made top-down, one launch per kernel and level (hlbvh_cl/build/widen.py):
  *   choose_wide_slots   the slots of each node of the level, and how many are interior
  *   (exclusive scan of those counts)
  *   link_wide_children  the next level's BVH2 nodes, and where each node's children start
@@ -20,7 +20,10 @@
  * A slot is named by the BVH2 child slot it copies: 2 * node + side (side 0
  * left, 1 right), or NO_SLOT.
  */
-#include "core/hlbvh.h"
+#include "core/portable.h"
+#include "core/aabb.h"
+#include "core/tree.h"
+#include "build/flat_node.h"
 
 #define NO_SLOT 0xffffffffu
 

@@ -1,5 +1,5 @@
 /* Reports what the device's compiler targets, from its own predefined
- * macros (hlbvh_cl/profile.py, vector_width): a runtime's reported vector
+ * macros (hlbvh_cl/device/profile.py, vector_width): a runtime's reported vector
  * width can differ from the instructions its compiler emits. */
 __kernel void compile_target(__global int *out)
 {

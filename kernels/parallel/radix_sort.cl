@@ -4,7 +4,7 @@
  * at most.  Per pass (Satish, Harris & Garland 2009, "Designing Efficient
  * Sorting Algorithms for Manycore GPUs", the digit-major histogram layout):
  *   1. radix_histogram: every work-group counts the digits of its tile;
- *   2. an exclusive scan (kernels/scan.cl) of the digit-major histogram matrix
+ *   2. an exclusive scan (parallel/scan.cl) of the digit-major histogram matrix
  *      [digit][group] makes entry (d, g) the number of keys with a
  *      smaller digit plus those with digit d in earlier groups: the first
  *      output slot of digit d for group g;

@@ -1,9 +1,10 @@
 /* Every hit along a ray: two visitors of the one walk of the wide tree
- * (walk.h), one that counts the hits and one that stores them sorted by t,
- * into the ray's own segment of the output (hlbvh_cl/all_hits.py runs the
- * count pass, sizes the segments by a prefix sum, then runs the fill pass).
- * The triangle test is traverse.cl's (triangle.h) with OWN_EDGES, so that a
- * ray through a shared edge or vertex counts its crossing once.
+ * (query/walk/walk.h), traced by query/rays/trace.h, one that counts the
+ * hits and one that stores them sorted by t, into the ray's own segment of
+ * the output (hlbvh_cl/query/all_hits.py runs the count pass, sizes the
+ * segments by a prefix sum, then runs the fill pass).  The triangle test is
+ * rays.cl's (query/rays/triangle.h) with OWN_EDGES, so that a ray through a
+ * shared edge or vertex counts its crossing once.
  *
  * Kernels
  *   count_hits_arrays  counts[i] = number of hits of ray i in [tmin, tmax],
@@ -14,7 +15,7 @@
  *                      known triangles tested again where they are all its
  *                      hits, else found by a walk; and its index
  *
- * Conventions are traverse.cl's (tmin <= t <= tmax, no culling, degenerate
+ * Conventions are rays.cl's (tmin <= t <= tmax, no culling, degenerate
  * triangles never hit, hit = (1-u-v)*v0 + u*v1 + v*v2).
  *
  * A launch's rays are its arrays' first ray_count slots, or the slots the
@@ -22,18 +23,18 @@
  * results go to its own slot (counts) or its own segment (hits).
  *
  * Compile-time parameters (-D): STACK_SIZE, PREFETCH and INSTANCES as
- * traverse.cl.  PACKET_SIZE: both kernels trace packets of that many rays
- * on flat scenes (walk.h's packet path with the counting or the filling
- * visitor, each lane into its own segment); instanced scenes take one ray
- * per work-item (PACKET_SIZE 1).
+ * rays.cl.  PACKET_SIZE: both kernels trace packets of that many rays on
+ * flat scenes (the packet path with the counting or the filling visitor,
+ * each lane into its own segment); instanced scenes take one ray per
+ * work-item (PACKET_SIZE 1).
  */
 #if PACKET_SIZE != 1 && defined(INSTANCES)
 #error "all_hits.cl traces one ray per work-item on instanced scenes (PACKET_SIZE 1)"
 #endif
 #define OWN_EDGES
-#include "query/ray.h"
-#include "query/work_item.h"
-#include "query/instance.h"
+#include "core/portable.h"
+#include "query/rays/work_item.h"
+#include "query/rays/instance.h"
 
 /* Counting: every hit adds one to each lane it hits (a ray's hit flag is
  * 1, a packet lane's -1); the limit stays tmax and the walk never ends
@@ -47,24 +48,58 @@
  * At each node it visits, the walk asks for one ray of a later work-item
  * (work_item.h's prefetch_ahead). */
 #define KEPT_SLOTS (KEEP_HITS > 0 ? KEEP_HITS : 1) /* arrays of no element are not C */
+
+/* The work-item's counts and kept triangles, one lane each, and the rays it
+ * asks for ahead. */
+typedef struct {
+    int count[PACKET_SIZE];
+    uint kept[KEPT_SLOTS][PACKET_SIZE];
+    RaysAhead* ahead;
+} HitCounts;
+
+/* A walk's count (the trace's state for the count): one ray's, */
 typedef struct {
     uint count;
     uint kept[KEPT_SLOTS];
     RaysAhead* ahead;
 } Hits_ray;
-TRAVERSAL_INLINE void add_hits_ray(Hits_ray* found, uint i)
+
+TRAVERSAL_INLINE void start_hits_ray(Hits_ray* found, const HitCounts* out)
+{
+    found->count = 0;
+    found->ahead = out->ahead;
+}
+
+TRAVERSAL_INLINE void add_hits_ray(Hits_ray* found, uint i, int hit)
 {
     if (found->count < KEEP_HITS)
         found->kept[found->count] = i;
     ++found->count;
 }
+
+TRAVERSAL_INLINE void store_hits_ray(const Hits_ray* found, HitCounts* out, uint l)
+{
+    out->count[l] = (int)found->count;
+    for (uint j = 0; j < LESSER(found->count, (uint)KEEP_HITS); ++j)
+        out->kept[j][l] = found->kept[j];
+}
+
 #if PACKET_SIZE > 1
-#include "query/packet.h"
+/* ... and a packet's, one lane each. */
 typedef struct {
     int_packet count;
     int_packet kept[KEPT_SLOTS];
     RaysAhead* ahead;
 } Hits_packet;
+
+TRAVERSAL_INLINE void start_hits_packet(Hits_packet* found, const HitCounts* out)
+{
+    found->count = (int_packet)(0);
+    for (int j = 0; j < KEEP_HITS; ++j)
+        found->kept[j] = (int_packet)(0);
+    found->ahead = out->ahead;
+}
+
 TRAVERSAL_INLINE void add_hits_packet(Hits_packet* found, uint i, int_packet hit)
 {
     for (int j = 0; j < KEEP_HITS; ++j)
@@ -72,31 +107,34 @@ TRAVERSAL_INLINE void add_hits_packet(Hits_packet* found, uint i, int_packet hit
                                                                   : found->kept[j];
     found->count -= hit;
 }
+
+TRAVERSAL_INLINE void store_hits_packet(const Hits_packet* found, HitCounts* out, uint l)
+{
+    vstore_packet(found->count, 0, out->count);
+    for (int j = 0; j < KEEP_HITS; ++j)
+        vstore_packet(found->kept[j], 0, (int*)out->kept[j]);
+}
 #endif
+
 #define QUERY count
-#define QUERY_PATH _ray
-#define QUERY_HIT(s, i, hit, t, u, v) (add_hits_ray(found, i), false)
-#define QUERY_NODE(s, r, n, mask) (prefetch_ahead(found->ahead), false)
+#define QUERY_STATE Hits
+#define QUERY_OUT HitCounts
+#define QUERY_BEGIN(out, l) PATH(start_hits)(state, out)
+#define QUERY_HIT(s, i, hit, t, u, v) (PATH(add_hits)(state, i, hit), false)
+#define QUERY_NODE(s, r, n, mask) (prefetch_ahead(state->ahead), false)
+#define QUERY_END(s, out, l) PATH(store_hits)(state, out, l)
 #define QUERY_UNORDERED
-#define QUERY_PARAMS , Hits_ray* found
-#define QUERY_ARGS , found
-#include "query/walk.h"
-#if PACKET_SIZE > 1
-#define QUERY count
-#define QUERY_PATH _packet
-#define QUERY_HIT(s, i, hit, t, u, v) (add_hits_packet(found, i, hit), false)
-#define QUERY_NODE(s, r, n, mask) (prefetch_ahead(found->ahead), false)
-#define QUERY_UNORDERED
-#define QUERY_PARAMS , Hits_packet* found
-#define QUERY_ARGS , found
-#include "query/walk.h"
-#endif
+#include "query/rays/trace.h"
 
 /* Whether hit (t, i, k) comes before the stored hit j: by t, ties by
  * triangle index, then by instance. */
-#define BEFORE(t, i, k, out_t, index, instance, j)                                      \
-    ((t) < (out_t)[j]                                                                  \
-     || ((t) == (out_t)[j] && ((i) < (index)[j] || ((i) == (index)[j] && (k) < (instance)[j]))))
+TRAVERSAL_INLINE bool hit_before(float t, int i, int k, __global const float* out_t,
+                                 __global const int* index, __global const int* instance,
+                                 uint j)
+{
+    return t < out_t[j]
+           || (t == out_t[j] && (i < index[j] || (i == index[j] && k < instance[j])));
+}
 
 /* Inserts the hit of triangle i (of instance k, -1 in a flat scene) into
  * the ray's sorted segment of `capacity` slots, of which *kept are used
@@ -111,13 +149,13 @@ TRAVERSAL_INLINE void keep_hit(float* limit, int i, int k, float t, float u, flo
 {
     uint j = *kept;
     if (j == capacity) {
-        if (!BEFORE(t, i, k, out_t, index, instance, j - 1u))
+        if (!hit_before(t, i, k, out_t, index, instance, j - 1u))
             return;
         --j;
     } else {
         ++*kept;
     }
-    for (; j > 0 && BEFORE(t, i, k, out_t, index, instance, j - 1u); --j) {
+    for (; j > 0 && hit_before(t, i, k, out_t, index, instance, j - 1u); --j) {
         out_t[j] = out_t[j - 1u];
         out_u[j] = out_u[j - 1u];
         out_v[j] = out_v[j - 1u];
@@ -133,43 +171,66 @@ TRAVERSAL_INLINE void keep_hit(float* limit, int i, int k, float t, float u, flo
         *limit = out_t[capacity - 1u];
 }
 
-/* Filling: each hit goes into the ray's segment (keep_hit); the triangle's
+/* Filling: each hit goes into its ray's segment (keep_hit); the triangle's
  * index among the meshes' triangles (its tree-order index plus `base`, the
- * first of its mesh's tree) waits in the prim_id slot until the walk ends,
- * its instance `owner` (-1: none) in the instance_id slot. */
-#define FILL_PARAMS                                                                     \
-    , __global float *out_t, __global float *out_u, __global float *out_v,               \
-        __global int *out_index, __global int *out_instance, uint *kept, uint capacity
-#define FILL_ARGS , out_t, out_u, out_v, out_index, out_instance, kept, capacity
-#define QUERY fill
-#define QUERY_PATH _ray
-#define QUERY_HIT(s, i, hit, t, u, v)                                                    \
-    (keep_hit(&(s)->limit, (int)(i) + base, owner, t, u, v, out_t, out_u, out_v,          \
-              out_index, out_instance, kept, capacity),                                 \
-     false)
-#define QUERY_NODE(s, r, n, mask) false
-#define QUERY_PARAMS FILL_PARAMS, int base, int owner
-#define QUERY_ARGS FILL_ARGS, base, owner
-#include "query/walk.h"
-
-#if PACKET_SIZE > 1
-/* A packet's segments: each lane's first output slot, its capacity (0 for
- * lanes that repeat the last ray or have no hit: they keep nothing) and
- * how many it holds. */
+ * first of its mesh's tree: 0 on a flat scene) waits in the prim_id slot
+ * until the walk ends, its instance `owner` (-1: none) in the instance_id
+ * slot.  The work-item's segments: the output arrays, and per lane its
+ * segment's start, its capacity (0 for lanes that repeat the last ray or
+ * have nothing to find: they keep nothing) and how many hits it holds. */
 typedef struct {
+    __global float *t, *u, *v;
+    __global int *index, *instance;
     size_t start[PACKET_SIZE];
     uint capacity[PACKET_SIZE];
     uint kept[PACKET_SIZE];
 } Segments;
 
+/* A walk's segment (the trace's state for the fill): one ray's, */
+typedef struct {
+    __global float *t, *u, *v;
+    __global int *index, *instance;
+    uint* kept;
+    uint capacity;
+} Fill_ray;
+
+TRAVERSAL_INLINE void start_fill_ray(Fill_ray* f, Segments* g, uint l)
+{
+    size_t at = g->start[l];
+    f->t = g->t + at;
+    f->u = g->u + at;
+    f->v = g->v + at;
+    f->index = g->index + at;
+    f->instance = g->instance + at;
+    f->kept = g->kept + l;
+    f->capacity = g->capacity[l];
+}
+
+TRAVERSAL_INLINE void keep_hits_ray(Found_ray* s, int i, int owner, int hit, float t, float u,
+                                    float v, Fill_ray* f)
+{
+    keep_hit(&s->limit, i, owner, t, u, v, f->t, f->u, f->v, f->index, f->instance, f->kept,
+             f->capacity);
+}
+
+#if PACKET_SIZE > 1
+/* ... and a packet's: every lane's. */
+typedef struct {
+    Segments* g;
+} Fill_packet;
+
+TRAVERSAL_INLINE void start_fill_packet(Fill_packet* f, Segments* g, uint l)
+{
+    f->g = g;
+}
+
 /* keep_hit for each lane that hits triangle i, into its own segment; the
  * lanes whose segment fills take their new limits. */
-TRAVERSAL_INLINE void keep_hits(Found_packet* s, int i, int_packet hit, float_packet t,
-                                float_packet u, float_packet v, __global float* out_t,
-                                __global float* out_u, __global float* out_v,
-                                __global int* out_index, __global int* out_instance,
-                                Segments* g)
+TRAVERSAL_INLINE void keep_hits_packet(Found_packet* s, int i, int owner, int_packet hit,
+                                       float_packet t, float_packet u, float_packet v,
+                                       Fill_packet* f)
 {
+    Segments* g = f->g;
     int flags[PACKET_SIZE];
     float ts[PACKET_SIZE], us[PACKET_SIZE], vs[PACKET_SIZE], limit[PACKET_SIZE];
     vstore_packet(hit, 0, flags);
@@ -181,76 +242,25 @@ TRAVERSAL_INLINE void keep_hits(Found_packet* s, int i, int_packet hit, float_pa
         if (flags[l] == 0 || g->capacity[l] == 0)
             continue;
         size_t at = g->start[l];
-        keep_hit(limit + l, i, -1, ts[l], us[l], vs[l], out_t + at, out_u + at, out_v + at,
-                 out_index + at, out_instance + at, g->kept + l, g->capacity[l]);
+        keep_hit(limit + l, i, owner, ts[l], us[l], vs[l], g->t + at, g->u + at, g->v + at,
+                 g->index + at, g->instance + at, g->kept + l, g->capacity[l]);
     }
     s->limit = vload_packet(0, limit);
     update_reach_packet(s);
 }
+#endif
 
 #define QUERY fill
-#define QUERY_PATH _packet
-#define QUERY_HIT(s, i, hit, t, u, v)                                                    \
-    (keep_hits(s, (int)(i), hit, t, u, v, out_t, out_u, out_v, out_index, out_instance,   \
-               segments),                                                               \
-     false)
-#define QUERY_NODE(s, r, n, mask) false
-#define QUERY_PARAMS                                                                    \
-    , __global float *out_t, __global float *out_u, __global float *out_v,               \
-        __global int *out_index, __global int *out_instance, Segments *segments
-#define QUERY_ARGS , out_t, out_u, out_v, out_index, out_instance, segments
-#include "query/walk.h"
-#endif
-
-#ifdef INSTANCES
-/* The top tree's leaves: each visible instance's mesh walked by the flat
- * visitor with the walk's state (a full segment's limit prunes the next
- * instances too). */
-TRAVERSAL_INLINE bool instances_count(Found_ray* s, const RayData* r, int first,
-                                      uint count INSTANCE_PARAMS, Hits_ray* found)
-{
-    for (uint i = (uint)first; i < (uint)first + count; ++i) {
-        INSTANCE_AT(i);
-        RayData mapped;
-        if (instance_ray(&mapped, in, r))
-            *mesh_overflow |= walk_count_ray(&mapped, MESH_TREE(in), s, found);
-    }
-    return false;
-}
-
-TRAVERSAL_INLINE bool instances_fill(Found_ray* s, const RayData* r, int first,
-                                     uint count INSTANCE_PARAMS FILL_PARAMS)
-{
-    for (uint i = (uint)first; i < (uint)first + count; ++i) {
-        INSTANCE_AT(i);
-        RayData mapped;
-        if (instance_ray(&mapped, in, r))
-            *mesh_overflow |= walk_fill_ray(&mapped, MESH_TREE(in), s FILL_ARGS,
-                                            in->triangle_base, top_refs[i].prim_id);
-    }
-    return false;
-}
-
-#define QUERY count_top
-#define QUERY_PATH _ray
-#define QUERY_UNORDERED
-#define QUERY_LEAF(s, r, first, count) instances_count(s, r, first, count INSTANCE_ARGS, found)
-#define QUERY_NODE(s, r, n, mask) (prefetch_ahead(found->ahead), false)
-#define QUERY_PARAMS INSTANCE_PARAMS, Hits_ray* found
-#define QUERY_ARGS INSTANCE_ARGS, found
-#include "query/walk.h"
-
-#define QUERY fill_top
-#define QUERY_PATH _ray
-#define QUERY_LEAF(s, r, first, count) instances_fill(s, r, first, count INSTANCE_ARGS FILL_ARGS)
-#define QUERY_NODE(s, r, n, mask) false
-#define QUERY_PARAMS INSTANCE_PARAMS FILL_PARAMS
-#define QUERY_ARGS INSTANCE_ARGS FILL_ARGS
-#include "query/walk.h"
-#endif
-
-/* See traverse.cl's TRAVERSAL_KERNEL. */
-#define TRAVERSAL_KERNEL __kernel __attribute__((LANES_HINT))
+#define QUERY_STATE Fill
+#define QUERY_OUT Segments
+#define QUERY_BEGIN(out, l) PATH(start_fill)(state, out, l)
+#define QUERY_LANE(out, l) ((out)->capacity[l] != 0)
+#define QUERY_HIT(s, i, hit, t, u, v) \
+    (PATH(keep_hits)(s, (int)(i) + base, owner, hit, t, u, v, state), false)
+#define QUERY_PARAMS , int base, int owner
+#define QUERY_ARGS , base, owner
+#define QUERY_MESH_ARGS(in, id) , (in)->triangle_base, id
+#include "query/rays/trace.h"
 
 /* The rays as numpy arrays (work_item.h's load_arrays), and which slots a
  * launch's rays take: ray i of the launch slot i, or where `indexed` slot
@@ -262,48 +272,39 @@ TRAVERSAL_INLINE bool instances_fill(Found_ray* s, const RayData* r, int first,
         __global const float *tmin, const uint tmin_step, __global const float *tmax,    \
         const uint tmax_step, __global const uint *slots, const uint indexed
 
-/* The work-item's rays into lanes and their slots into at (lanes past the
- * last repeat it); how many exist (0 past the end). */
-TRAVERSAL_INLINE uint load_rays(uint ray_count, RAY_PARAMS, RayLanes* lanes, uint* at)
+/* On a two-level scene the rays' masks too, by slot (SCENE_PARAMS' ray_masks). */
+#ifdef INSTANCES
+#define MASK_PARAMS , __global const uint *ray_masks, const uint mask_step
+#define MASK_ARGS , ray_masks, mask_step
+#else
+#define MASK_PARAMS
+#define MASK_ARGS
+#endif
+
+/* The rays a work-item takes (lanes past the last repeat it), and their
+ * slots. */
+typedef struct {
+    RayLanes lanes;
+    uint at[PACKET_SIZE];
+} ItemRays;
+
+/* The work-item's rays; how many exist (0 past the end). */
+TRAVERSAL_INLINE uint load_rays(uint ray_count, RAY_PARAMS, ItemRays* item MASK_PARAMS)
 {
     uint first, used = packet_rays(ray_count, &first);
     if (used == 0)
         return 0;
     for (uint l = 0; l < PACKET_SIZE; ++l) {
         uint i = first + LESSER(l, used - 1u);
-        at[l] = indexed ? slots[i] : i;
+        item->at[l] = indexed ? slots[i] : i;
     }
-    load_arrays_at(at, RAY_ARRAYS, lanes);
+    load_arrays_at(item->at, RAY_ARRAYS, &item->lanes);
+#ifdef INSTANCES
+    for (uint l = 0; l < PACKET_SIZE; ++l)
+        item->lanes.mask[l] = ray_masks[item->at[l] * mask_step];
+#endif
     return used;
 }
-
-/* Walks one ray (lane `lane` of lanes, at slot `at`) with `query`'s walk of the
- * flat tree, or of the top tree of an instanced scene, with the walk's
- * extra arguments `args` (one expression, or a macro naming several: OpenCL C
- * has no variadic macros, 6.9); sets overflow[0] if a stack ran out. */
-#ifndef INSTANCES
-#define WALK_RAY(query, lanes, lane, at, args)                                           \
-    do {                                                                                 \
-        RayData r_;                                                                      \
-        prepare_lane(&r_, lanes, lane);                                                   \
-        Found_ray s_ = {-1, INFINITY, 0.0f, 0.0f, r_.tmax};                              \
-        if (CONCAT(CONCAT(walk_, query), _ray)(&r_, nodes, triangles, &s_, args))        \
-            overflow[0] = 1;                                                             \
-    } while (0)
-#else
-#define WALK_RAY(query, lanes, lane, at, args)                                           \
-    do {                                                                                 \
-        load_masks(lanes, at, 1, ray_masks, mask_step);                                  \
-        RayData r_;                                                                      \
-        prepare_lane(&r_, lanes, lane);                                                   \
-        Found_ray s_ = {-1, INFINITY, 0.0f, 0.0f, r_.tmax};                              \
-        bool nested_ = false;                                                            \
-        if (CONCAT(CONCAT(walk_, query), _top_ray)(&r_, top_nodes, top_triangles, &s_,    \
-                                                   TOP_ARGS(&nested_), args)              \
-            || nested_)                                                                  \
-            overflow[0] = 1;                                                             \
-    } while (0)
-#endif
 
 /* counts[slot] = the number of hits of each ray in [tmin, tmax], and with
  * `keeping` its first min(count, KEEP_HITS) hit triangles (tree order, in
@@ -314,9 +315,8 @@ TRAVERSAL_KERNEL void count_hits_arrays(SCENE_PARAMS, RAY_PARAMS, __global int* 
                                         __global uint* kept, const uint keeping,
                                         __global int* overflow, const uint ray_count)
 {
-    RayLanes lanes;
-    uint at[PACKET_SIZE];
-    uint used = load_rays(ray_count, RAY_ARRAYS, slots, indexed, &lanes, at);
+    ItemRays rays;
+    uint used = load_rays(ray_count, RAY_ARRAYS, slots, indexed, &rays MASK_ARGS);
     if (used == 0)
         return;
     /* two work-items ahead (CPUs run a group's items in order): the last
@@ -325,42 +325,15 @@ TRAVERSAL_KERNEL void count_hits_arrays(SCENE_PARAMS, RAY_PARAMS, __global int* 
     RaysAhead ahead;
     rays_ahead(&ahead, slots, get_global_id(0) * PACKET_SIZE + 2 * PACKET_SIZE,
                indexed ? ray_count : 0u, origins, directions, counts);
-    int lane_counts[PACKET_SIZE];
-    uint lane_kept[KEPT_SLOTS][PACKET_SIZE];
-#if PACKET_SIZE > 1
-    Packet p;
-    if (prepare_packet(&lanes, &p)) {
-        Found_packet s = {(int_packet)(-1), (float_packet)(INFINITY), (float_packet)(0.0f),
-                          (float_packet)(0.0f), p.tmax, packet_max(p.tmax)};
-        Hits_packet found;
-        found.count = (int_packet)(0);
-        for (int j = 0; j < KEEP_HITS; ++j)
-            found.kept[j] = (int_packet)(0);
-        found.ahead = &ahead;
-        if (walk_count_packet(&p, nodes, triangles, &s, &found))
-            overflow[0] = 1;
-        vstore_packet(found.count, 0, lane_counts);
-        for (int j = 0; j < KEEP_HITS; ++j)
-            vstore_packet(found.kept[j], 0, (int*)lane_kept[j]);
-    } else
-#endif
-    {
-        for (uint l = 0; l < used; ++l) {
-            Hits_ray found;
-            found.count = 0;
-            found.ahead = &ahead;
-            WALK_RAY(count, &lanes, l, at[l], &found);
-            lane_counts[l] = (int)found.count;
-            for (uint j = 0; j < LESSER(found.count, (uint)KEEP_HITS); ++j)
-                lane_kept[j][l] = found.kept[j];
-        }
-    }
+    HitCounts found;
+    found.ahead = &ahead;
+    trace_count(&rays.lanes, used, SCENE_TREES, overflow, &found);
     prefetch_rest(&ahead);
     for (uint l = 0; l < used; ++l) {
-        counts[at[l]] = lane_counts[l];
+        counts[rays.at[l]] = found.count[l];
         if (keeping)
-            for (int j = 0; j < LESSER(lane_counts[l], KEEP_HITS); ++j)
-                kept[(size_t)at[l] * KEEP_HITS + j] = lane_kept[j][l];
+            for (int j = 0; j < LESSER(found.count[l], KEEP_HITS); ++j)
+                kept[(size_t)rays.at[l] * KEEP_HITS + j] = found.kept[j][l];
     }
 }
 
@@ -403,75 +376,46 @@ TRAVERSAL_KERNEL void fill_hits_arrays(SCENE_PARAMS, RAY_PARAMS, __global const 
         __global int* geom_out, __global int* instance_out, __global long* ray_out,
         __global int* overflow, const uint ray_count)
 {
-    RayLanes lanes;
-    uint at[PACKET_SIZE];
-    uint used = load_rays(ray_count, RAY_ARRAYS, slots, indexed, &lanes, at);
+    ItemRays rays;
+    uint used = load_rays(ray_count, RAY_ARRAYS, slots, indexed, &rays MASK_ARGS);
     if (used == 0)
         return;
-    size_t start[PACKET_SIZE];
-    uint capacity[PACKET_SIZE], kept[PACKET_SIZE];
+    Segments g;
+    g.t = t_out;
+    g.u = u_out;
+    g.v = v_out;
+    g.index = prim_out;
+    g.instance = instance_out;
+    uint capacity[PACKET_SIZE];
     bool walk = false;
     for (uint l = 0; l < PACKET_SIZE; ++l) {
-        uint i = at[l];
-        start[l] = (size_t)(offsets[i] - base);
+        uint i = rays.at[l];
+        g.start[l] = (size_t)(offsets[i] - base);
         capacity[l] = l < used ? (uint)(offsets[i + 1] - offsets[i]) : 0u;
-        kept[l] = 0;
+        g.kept[l] = 0;
 #ifndef INSTANCES
         if (keeping && capacity[l] != 0 && counts[i] <= KEEP_HITS) {
-            size_t j = start[l];
-            keep_known(&lanes, l, triangles, known + (size_t)i * KEEP_HITS, (uint)counts[i],
-                       t_out + j, u_out + j, v_out + j, prim_out + j,
-                       instance_out + j, kept + l, capacity[l]);
-            continue;
+            size_t j = g.start[l];
+            keep_known(&rays.lanes, l, triangles, known + (size_t)i * KEEP_HITS, (uint)counts[i],
+                       t_out + j, u_out + j, v_out + j, prim_out + j, instance_out + j,
+                       g.kept + l, capacity[l]);
         }
 #endif
-        walk |= capacity[l] != 0;
+        /* lanes filled already, or with nothing to find: none walked one by
+         * one (QUERY_LANE), and out of a packet's reach */
+        bool walks = capacity[l] != 0 && g.kept[l] == 0;
+        g.capacity[l] = walks ? capacity[l] : 0u;
+        if (!walks)
+            rays.lanes.tmax[l] = -INFINITY;
+        walk |= walks;
     }
-#if PACKET_SIZE > 1
-    Packet p;
-    if (!walk) {
-    } else if (prepare_packet(&lanes, &p)) {
-        Segments g;
-        for (uint l = 0; l < PACKET_SIZE; ++l) {
-            /* lanes filled already, or with nothing to find: out of reach */
-            bool walks = capacity[l] != 0 && kept[l] == 0;
-            g.start[l] = start[l];
-            g.capacity[l] = walks ? capacity[l] : 0u;
-            g.kept[l] = kept[l];
-            if (!walks)
-                lanes.tmax[l] = -INFINITY;
-        }
-        Found_packet s = {(int_packet)(-1), (float_packet)(INFINITY), (float_packet)(0.0f),
-                          (float_packet)(0.0f), vload_packet(0, lanes.tmax), 0.0f};
-        update_reach_packet(&s);
-        if (walk_fill_packet(&p, nodes, triangles, &s, t_out, u_out, v_out, prim_out,
-                             instance_out, &g))
-            overflow[0] = 1;
-        for (uint l = 0; l < PACKET_SIZE; ++l)
-            kept[l] = g.kept[l];
-    } else
-#endif
-    {
-        for (uint l = 0; l < used; ++l) {
-            if (capacity[l] == 0 || kept[l] != 0)  /* nothing to find, or filled */
-                continue;
-            size_t j = start[l];
-#ifndef INSTANCES
-#define SEGMENT t_out + j, u_out + j, v_out + j, prim_out + j, instance_out + j, kept + l, \
-                capacity[l], 0, -1
-#else
-#define SEGMENT t_out + j, u_out + j, v_out + j, prim_out + j, instance_out + j, kept + l, \
-                capacity[l]
-#endif
-            WALK_RAY(fill, &lanes, l, at[l], SEGMENT);
-#undef SEGMENT
-        }
-    }
+    if (walk)
+        trace_fill(&rays.lanes, used, SCENE_TREES, overflow, &g, 0, -1);
     for (uint l = 0; l < used; ++l) {
-        if (kept[l] != capacity[l])
+        if (g.kept[l] != capacity[l])
             overflow[1] = 1;
-        for (size_t j = start[l]; j < start[l] + kept[l]; ++j) {
-            ray_out[j] = first_ray + at[l];
+        for (size_t j = g.start[l]; j < g.start[l] + g.kept[l]; ++j) {
+            ray_out[j] = first_ray + rays.at[l];
             TriangleRef ref = refs[prim_out[j]];
             prim_out[j] = ref.prim_id;
 #ifdef INSTANCES

@@ -1,17 +1,15 @@
-/* The order a batch of queries runs in (hlbvh_cl/order.py): the Morton code
- * of each point's cell in a 2^ORDER_BITS grid over the batch's box, whose
- * sort on the device (radix_sort.cl) gives the order.  A ray's key has its
- * class (ray_class.h) above its origin's code, or above its direction's
- * (rays whose lines nearly meet at a point: order.py's concurrent_rays), so
- * that the rays of a class run together, as packets need.  The cells are
- * computed as order.py's numpy reference computes them, in float32 without
- * contraction, so both give the same keys (but for a direction whose face
- * coordinate rounds across a cell's edge: OpenCL's division may round
- * differently from numpy's).
+/* The order a batch of queries runs in (hlbvh_cl/query/order.py): the
+ * Morton code of each point's cell in a 2^ORDER_BITS grid over the batch's
+ * box, whose sort on the device (parallel/radix_sort.cl) gives the order.  A
+ * ray's key has its class (query/rays/ray_class.h) above its origin's code,
+ * or above its direction's (rays whose lines nearly meet at a point:
+ * order.py's concurrent_rays), so that the rays of a class run together, as
+ * packets need.  The cells are computed as order.py's numpy reference
+ * computes them, in float32 without contraction, so both give the same keys
+ * (but for a direction whose face coordinate rounds across a cell's edge:
+ * OpenCL's division may round differently from numpy's).
  */
-#include "core/hlbvh.h"
-
-#pragma OPENCL FP_CONTRACT OFF
+#include "core/portable.h" /* contraction off, as the numpy reference */
 
 #if ORDER_BITS < 1 || ORDER_BITS > 10
 #error "ORDER_BITS must be 1..10"
@@ -84,7 +82,7 @@ inline rows_u cell_of(rows_f v, int top)
     return as_rows_u(convert_rows_i(fmin(v, (float)top)));
 }
 
-/* The low 10 bits of v with two zero bits after each (morton.cl's). */
+/* The low 10 bits of v with two zero bits after each (build/morton.cl's). */
 inline rows_u spread_cell(rows_u v)
 {
     v = (v | (v << 16)) & 0x030000ffu;
@@ -129,7 +127,7 @@ inline rows_u face_cell(rows_f face)
 inline rows_u ray_class(rows_f x, rows_f y, rows_f z, rows_u* face_key)
 {
     rows_f ax = fabs(x), ay = fabs(y), az = fabs(z);
-    /* ray_class.h's SHEAR_AXIS, per lane (ties to the lower axis): -1
+    /* ray_class.h's shear_axis, per lane (ties to the lower axis): -1
      * where kz is 0, resp. 1, else 0 */
     rows_i k0 = ax >= ay & ax >= az;
     rows_i k1 = ~k0 & (ay >= az);

@@ -4,21 +4,25 @@
  *   primary_rays  one ray per pixel of the pass of `rows` rows from row
  *                 first_row of a width x height image (pixels row-major from
  *                 the top-left one), in tile order: over the 2D range of
- *                 pixel_in_pass (hlbvh.h)
+ *                 pixel_in_pass (render/tiles.h)
  *
  * Pixel (x, y), y counting down from the top row, is the square
  * [x, x + 1] x [y, y + 1]; a sample at (x + jx, y + jy) maps to the image
  * plane as sx = 2 (x + jx) / width - 1, sy = 1 - 2 (y + jy) / height
- * (scenefile.py's convention, which takes the pixel centre, jx = jy = 0.5).
- * With `jitter` set, (jx, jy) = (random_unit(pixel, sample, 0),
- * random_unit(pixel, sample, 1)) (hlbvh.h), so a render with several samples
- * per pixel is the same every time.
+ * (hlbvh_cl/io/scenefile.py's convention, which takes the pixel centre,
+ * jx = jy = 0.5).  With `jitter` set, (jx, jy) = (random_unit(pixel, sample,
+ * 0), random_unit(pixel, sample, 1)) (render/random.h), so a render with
+ * several samples per pixel is the same every time.
  *
- * Tile order (hlbvh.h) keeps a CPU ray packet's rays next to each other on
- * the image, hence coherent.  (Before packets, 4x4 to 32x32 pixel tiles were
- * no faster than row-major order on PoCL.)
+ * Tile order (render/tiles.h) keeps a CPU ray packet's rays next to each
+ * other on the image, hence coherent.  (Before packets, 4x4 to 32x32 pixel
+ * tiles were no faster than row-major order on PoCL.)
  */
-#include "core/hlbvh.h"
+#include "core/portable.h"
+#include "query/records.h"
+#include "render/camera.h"
+#include "render/tiles.h"
+#include "render/random.h"
 
 __kernel void primary_rays(const PinholeCamera camera, const uint width, const uint height,
                            const uint first_row, const uint rows, const uint sample,

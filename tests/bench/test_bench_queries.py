@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 from bench_support import ROOT, check_json
-from oracle import _chunks, _moller_trumbore, _prepare
+from oracle import chunks, moller_trumbore, prepare
 
 pytest.importorskip("matplotlib")
 
@@ -55,13 +55,13 @@ def winding_number(vertices, faces, points) -> np.ndarray:
 
 
 def hit_counts(vertices, faces, origins, directions) -> np.ndarray:
-    """Hits along each ray (t >= 0), tests/oracle.py's Moller-Trumbore in float64."""
-    o, d, tmin, tmax, v0, e1, e2, _, valid = _prepare(vertices, faces, origins, directions,
+    """Hits along each ray (t >= 0), tests/support/oracle.py's Moller-Trumbore in float64."""
+    o, d, tmin, tmax, v0, e1, e2, _, valid = prepare(vertices, faces, origins, directions,
                                                      0.0, np.inf)
     counts = np.zeros(len(o), np.int64)
-    for rays, tris in _chunks(len(o), len(v0)):
-        hit = _moller_trumbore(o[rays], d[rays], v0[tris], e1[tris], e2[tris], valid[tris],
-                               tmin[rays], tmax[rays])[3]
+    for rays, tris in chunks(len(o), len(v0)):
+        hit = moller_trumbore(o[rays], d[rays], v0[tris], e1[tris], e2[tris], valid[tris],
+                              tmin[rays], tmax[rays])[3]
         counts[rays] += hit.sum(axis=1)
     return counts
 
@@ -167,7 +167,7 @@ def test_the_results_section_replaces_its_copy_and_survives_the_suite_report(tmp
     written = path.read_text()
     assert written.count("<!-- begin queries -->") == 1 and "second" in written
     assert "first" not in written and written.startswith("# suite\n")
-    assert "second" in report._kept_sections(path)
+    assert "second" in report.kept_sections(path)
 
 
 def test_quick_run_writes_agreeing_answers_and_ratios(suite_device, tmp_path, capsys):

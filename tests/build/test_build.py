@@ -3,7 +3,6 @@ against numpy, refit against fresh builds, and the Scene's errors."""
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import numpy as np
 import pyopencl as cl
@@ -20,6 +19,7 @@ from hlbvh_cl.device.runtime import Runtime, runtime
 from hlbvh_cl.build.morton import morton_codes
 from hlbvh_cl.io import scenefile
 
+import built
 from invariants import check_tree
 import places
 
@@ -153,7 +153,7 @@ def test_refit_matches_fresh_build(meshes, builder):
     rng = np.random.default_rng(3)
     parts = [meshes["knight"], meshes["bunny_small"]]
     scene = Scene(parts, builder=builder)
-    nodes_before = scene._tree.read_nodes(scene._runtime.queue)
+    nodes_before = built.tree(scene).read_nodes(built.runtime(scene).queue)
     moved = parts[1].vertices * 1.5 + rng.normal(scale=0.01, size=parts[1].vertices.shape)
     moved += [0.3, -2.0, 0.1]
     scene.update_vertices(1, moved)
@@ -165,7 +165,7 @@ def test_refit_matches_fresh_build(meshes, builder):
     fresh_derived = check_tree(fresh)
     assert np.array_equal(derived["root_lo"], fresh_derived["root_lo"])
     assert np.array_equal(derived["root_hi"], fresh_derived["root_hi"])
-    np.testing.assert_array_equal(scene._tree.bounds_lo, derived["root_lo"])
+    np.testing.assert_array_equal(built.tree(scene).bounds_lo, derived["root_lo"])
     # rebuild gives a tree over the moved vertices too
     scene.rebuild()
     check_tree(scene)
@@ -194,38 +194,38 @@ def test_rebuilds_are_bit_for_bit_the_same(builder):
     description = scenefile.read(scenes / "bunny_small.toml")
     scene = Scene([mesh for mesh, _ in description.geometries()], builder=builder)
     first_cost = scene.stats.sah_cost
-    first_nodes = scene._tree.read_nodes(scene._runtime.queue).tobytes()
+    first_nodes = built.tree(scene).read_nodes(built.runtime(scene).queue).tobytes()
     for _ in range(300):
         scene.rebuild()
         assert scene.stats.sah_cost == first_cost
-    assert scene._tree.read_nodes(scene._runtime.queue).tobytes() == first_nodes
+    assert built.tree(scene).read_nodes(built.runtime(scene).queue).tobytes() == first_nodes
 
 
 @pytest.mark.parametrize("builder", ["hlbvh", "lbvh"])
 def test_every_device_builds_the_same_tree(meshes, builder):
     """One code path: every working device (the simulator aside: slow)
     builds the bunny's tree bit for bit alike, with the same SAH cost.  No
-    kernel lets its compiler fuse multiply-adds (hlbvh.h), which would pick
+    kernel lets its compiler fuse multiply-adds (core/portable.h), which would pick
     other SAH splits on a device that fuses."""
     from hlbvh_cl import devices
     ids = [d.id for d in devices() if d.problem is None and not d.simulator]
     if len(ids) < 2:
         pytest.skip("one device here")
-    built = {}
+    trees = {}
     for device in ids:
         scene = Scene([meshes["bunny"]], device=device, builder=builder)
-        built[device] = (scene.stats.sah_cost,
-                         scene._tree.read_nodes(scene._runtime.queue).tobytes())
-    first = built[ids[0]]
-    assert all(tree == first for tree in built.values()), sorted(
-        (device, cost) for device, (cost, _) in built.items())
+        trees[device] = (scene.stats.sah_cost,
+                         built.tree(scene).read_nodes(built.runtime(scene).queue).tobytes())
+    first = trees[ids[0]]
+    assert all(tree == first for tree in trees.values()), sorted(
+        (device, cost) for device, (cost, _) in trees.items())
 
 
 @pytest.mark.parametrize("builder", ["hlbvh", "lbvh"])
 def test_both_handoffs_give_the_same_tree(meshes, builder, monkeypatch):
     """The bottom-up walkers hand results on with acquire-release atomics
     where the compiler has them, else (OpenCL C 1.2: GPUs, Oclgrind) through
-    an atomic per word (kernels/handoff.h).  Here, on the suite's device, the
+    an atomic per word (kernels/build/handoff.h).  Here, on the suite's device, the
     second path runs with real concurrency and must build and refit the same
     trees as the first, bit for bit."""
     if runtime().device.acquire_release_std is None:
@@ -239,10 +239,10 @@ def test_both_handoffs_give_the_same_tree(meshes, builder, monkeypatch):
         monkeypatch.setattr(Runtime, "handoff_defines",
                             property(lambda self, a=acquire_release: {"ACQUIRE_RELEASE": a}))
         scene = Scene(parts, builder=builder)
-        built = scene._tree.read_nodes(scene._runtime.queue).tobytes()
+        fresh = built.tree(scene).read_nodes(built.runtime(scene).queue).tobytes()
         scene.update_vertices(1, moved)
-        refit = scene._tree.read_nodes(scene._runtime.queue).tobytes()
-        results.append((built, refit, scene.stats.sah_cost, scene.stats.depth))
+        refit = built.tree(scene).read_nodes(built.runtime(scene).queue).tobytes()
+        results.append((fresh, refit, scene.stats.sah_cost, scene.stats.depth))
     assert results[0] == results[1]
 
 

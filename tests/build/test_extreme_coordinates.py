@@ -2,7 +2,7 @@
 gives the hits a float64 brute force gives, never t = inf, a NaN normal or u, v
 outside [0, 1], and a tree as deep as the same scene at 1.  Scenes outside
 [2^-24, 2^24] are built in a frame scaled by a power of two
-(hlbvh_cl/frame.py), which is exact: at a power-of-two scale the hits are
+(hlbvh_cl/core/frame.py), which is exact: at a power-of-two scale the hits are
 those of the unscaled scene, bit for bit."""
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ import trimesh
 
 import hlbvh_cl
 from hlbvh_cl.core import frame
+import built
 from oracle import brute_force_intersect
 
 
@@ -66,7 +67,7 @@ def test_a_power_of_two_scale_changes_nothing(exponent):
     origins, directions = (a.astype(np.float32) for a in rays(3000, rng))
     scale = 2.0 ** exponent
     plain, scaled = scene_at(1.0), scene_at(scale)
-    assert scaled._tree.scale != 1.0 and plain._tree.scale == 1.0
+    assert built.tree(scaled).scale != 1.0 and built.tree(plain).scale == 1.0
     for key in ("depth", "nodes", "leaves", "sah_cost"):
         assert getattr(scaled.stats, key) == getattr(plain.stats, key), key
     expected = plain.intersect(origins, directions)
@@ -95,7 +96,7 @@ def test_update_vertices_across_frames():
     (v, f), _ = sphere_and_ground()
     for scale in (1e30, 1e-3, 1.0):
         scene.update_vertices(0, v * scale + [0.0, 2.0 * scale, 0.0])
-        assert scene._tree.scale == frame.scale_for(
+        assert built.tree(scene).scale == frame.scale_for(
             max(np.abs(m.vertices).max() for m in scene.meshes))
         origins = np.tile([[0.0, 10.0 * scale, 0.0]], (50, 1)).astype(np.float32)
         directions = np.tile([[0.0, -1.0, 0.0]], (50, 1)).astype(np.float32)

@@ -1,4 +1,4 @@
-"""Instanced scenes (hlbvh_cl.build.instances, kernels/instance.h) against the same
+"""Instanced scenes (hlbvh_cl.build.instances, kernels/query/walk/instance_leaf.h) against the same
 scene flattened with its transforms baked in: a float64 numpy brute force on
 small meshes, Embree on the bunny; masks against a filtered brute force;
 invariants of both levels; and the errors bad instances get."""
@@ -14,42 +14,12 @@ import pytest
 import trimesh
 
 import hlbvh_cl
+from hlbvh_cl.query.rays import RayQuery
+import built
+from instance_cases import flattened, random_transforms, rotation
 from invariants import check_tree
 from oracle import brute_force_all_hits, brute_force_intersect, brute_force_occluded
 from point_oracle import brute_force_closest, brute_force_winding, closest_on_triangles
-
-
-def _rotation(rng) -> np.ndarray:
-    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
-    return q * np.sign(np.diag(r))
-
-
-def _transforms(rng, count: int, spread: float = 4.0) -> np.ndarray:
-    """(count, 3, 4) maps: rotated, non-uniformly scaled, every third one
-    mirrored, some overlapping (spread is about two mesh sizes)."""
-    maps = np.empty((count, 3, 4))
-    for k in range(count):
-        linear = _rotation(rng) @ np.diag(rng.uniform(0.5, 2.0, 3))
-        if k % 3 == 0:
-            linear[:, 0] *= -1
-        maps[k, :, :3] = linear
-        maps[k, :, 3] = rng.uniform(-spread, spread, 3)
-    return maps
-
-
-def _flattened(meshes, instance_meshes, maps):
-    """float64 vertices and faces of every instance, concatenated, with the
-    (instance, face) of each flattened triangle."""
-    vertices, faces, owner, prim, offset = [], [], [], [], 0
-    for k, (m, a) in enumerate(zip(instance_meshes, maps)):
-        mesh = meshes[m]
-        vertices.append(mesh.vertices.astype(np.float64) @ a[:, :3].T + a[:, 3])
-        faces.append(mesh.faces + offset)
-        owner.append(np.full(mesh.triangle_count, k))
-        prim.append(np.arange(mesh.triangle_count))
-        offset += mesh.vertex_count
-    return (np.concatenate(vertices), np.concatenate(faces), np.concatenate(owner),
-            np.concatenate(prim))
 
 
 def _rays_at_centroids(rng, vertices, faces, count: int, reach: float = 15.0):
@@ -82,7 +52,7 @@ def _small_meshes():
 
 def _check_against_oracle(scene, meshes, instance_meshes, maps, rng, count=3000, mask=None,
                           visible=None):
-    vertices, faces, owner, prim = _flattened(meshes, instance_meshes, maps)
+    vertices, faces, owner, prim = flattened(meshes, instance_meshes, maps)
     origins, directions = _rays_at_centroids(rng, vertices, faces, count)
     keep = np.ones(len(faces), bool) if visible is None else visible[owner]
     hits = scene.intersect(origins, directions, mask=mask)
@@ -113,7 +83,7 @@ def small():
 def test_mirrored_scaled_rotated_overlapping_instances_match_the_brute_force(small,
                                                                               suite_device):
     rng = np.random.default_rng(25)
-    maps = _transforms(rng, 12, spread=2.0)
+    maps = random_transforms(rng, 12, spread=2.0)
     instance_meshes = np.arange(12) % 2
     scene = hlbvh_cl.Scene(small, device=suite_device,
                            instances=[(int(m), a) for m, a in zip(instance_meshes, maps)])
@@ -126,7 +96,7 @@ def test_coherent_rays_trace_as_packets_through_rotated_instances(small, suite_d
     where a rotation splits their direction signs, one ray at a time; the
     same hits as the brute force either way."""
     rng = np.random.default_rng(31)
-    maps = _transforms(rng, 10, spread=2.0)
+    maps = random_transforms(rng, 10, spread=2.0)
     instance_meshes = np.arange(10) % 2
     scene = hlbvh_cl.Scene(small, device=suite_device,
                            instances=[(int(m), a) for m, a in zip(instance_meshes, maps)])
@@ -134,14 +104,11 @@ def test_coherent_rays_trace_as_packets_through_rotated_instances(small, suite_d
     directions = np.stack(np.broadcast_arrays(side[:, None], side[None, :], -1.0), axis=-1)
     directions = directions.reshape(-1, 3).astype(np.float32)
     origins = np.array([0.3, -0.2, 9.0], np.float32)
-    query = scene._ray_query()
+    query = RayQuery(built.runtime(scene))  # the query a scene makes, counting packets
     query.count_packets = True
-    try:
-        hits = scene.intersect(origins, directions)
-        packets = query.last_packets
-    finally:
-        query.count_packets = False
-    vertices, faces, owner, prim = _flattened(small, instance_meshes, maps)
+    hits = query.intersect(built.tree(scene), origins, directions)
+    packets = query.last_packets
+    vertices, faces, owner, prim = flattened(small, instance_meshes, maps)
     want = brute_force_intersect(vertices, faces, np.broadcast_to(origins, directions.shape),
                                  directions)
     found = want["prim"] >= 0
@@ -158,14 +125,14 @@ def test_coherent_rays_trace_as_packets_through_rotated_instances(small, suite_d
 
 def test_4x4_transforms_and_set_transforms(small, suite_device):
     rng = np.random.default_rng(7)
-    maps = _transforms(rng, 6)
+    maps = random_transforms(rng, 6)
     four = np.tile(np.eye(4), (6, 1, 1))
     four[:, :3] = maps
     scene = hlbvh_cl.Scene(small, device=suite_device,
                            instances=[(k % 2, four[k]) for k in range(6)])
     np.testing.assert_array_equal(scene.transforms, maps)
     _check_against_oracle(scene, small, np.arange(6) % 2, maps, rng, count=1000)
-    moved = _transforms(rng, 3, spread=6.0)
+    moved = random_transforms(rng, 3, spread=6.0)
     scene.set_transforms([1, 4, 5], moved)
     maps[[1, 4, 5]] = moved
     _check_against_oracle(scene, small, np.arange(6) % 2, maps, rng, count=1000)
@@ -176,7 +143,7 @@ def test_4x4_transforms_and_set_transforms(small, suite_device):
 
 def test_instance_masks_against_a_filtered_oracle(small, suite_device):
     rng = np.random.default_rng(3)
-    maps = _transforms(rng, 8)
+    maps = random_transforms(rng, 8)
     masks = np.array([1, 2, 4, 8, 3, 5, 0xFFFFFFFF, 0x80000000], np.uint32)
     instance_meshes = np.arange(8) % 2
     scene = hlbvh_cl.Scene(small, device=suite_device, masks=masks,
@@ -185,7 +152,7 @@ def test_instance_masks_against_a_filtered_oracle(small, suite_device):
         _check_against_oracle(scene, small, instance_meshes, maps, rng, count=800,
                               mask=ray_mask, visible=(masks & np.uint32(ray_mask)) != 0)
     # per-ray masks: each ray against only what it sees
-    vertices, faces, owner, _ = _flattened(small, instance_meshes, maps)
+    vertices, faces, owner, _ = flattened(small, instance_meshes, maps)
     origins, directions = _rays_at_centroids(rng, vertices, faces, 600)
     ray_masks = rng.choice([1, 2, 4, 8, 0], len(origins)).astype(np.uint32)
     hits = scene.intersect(origins, directions, mask=ray_masks)
@@ -203,7 +170,7 @@ def test_mesh_masks_of_a_flat_scene(small, suite_device):
     the masks' making, which hits do not report: instance_id -1)."""
     scene = hlbvh_cl.Scene(small, device=suite_device, masks=[1, 2])
     rng = np.random.default_rng(4)
-    vertices, faces, owner, prim = _flattened(small, np.arange(2), np.tile(np.eye(3, 4),
+    vertices, faces, owner, prim = flattened(small, np.arange(2), np.tile(np.eye(3, 4),
                                                                            (2, 1, 1)))
     origins, directions = _rays_at_centroids(rng, vertices, faces, 500)
     for ray_mask in (1, 2, 3):
@@ -241,10 +208,10 @@ def test_bunny_instances_agree_with_embree(meshes, suite_device):
     embreex = pytest.importorskip("embreex.rtcore_scene")
     bunny = meshes["bunny"]
     rng = np.random.default_rng(5)
-    maps = _transforms(rng, 20, spread=0.4)
+    maps = random_transforms(rng, 20, spread=0.4)
     scene = hlbvh_cl.Scene([bunny], device=suite_device,
                            instances=[(0, a) for a in maps])
-    vertices, faces, owner, prim = _flattened([bunny], np.zeros(20, int), maps)
+    vertices, faces, owner, prim = flattened([bunny], np.zeros(20, int), maps)
     reference = embreex.EmbreeScene()
     from embreex.mesh_construction import TriangleMesh
     TriangleMesh(reference, vertices.astype(np.float32)[faces])
@@ -269,10 +236,10 @@ def test_bunny_instances_agree_with_embree(meshes, suite_device):
 
 def test_both_levels_hold_their_invariants(small, suite_device):
     rng = np.random.default_rng(9)
-    maps = _transforms(rng, 40, spread=20.0)
+    maps = random_transforms(rng, 40, spread=20.0)
     scene = hlbvh_cl.Scene(small, device=suite_device,
                            instances=[(k % 2, a) for k, a in enumerate(maps)])
-    tree, queue = scene._tree, scene._runtime.queue
+    tree, queue = built.tree(scene), built.runtime(scene).queue
     # the top: one proxy triangle per instance spanning its world box
     tris, _ = tree.top.read_triangles(queue)
     proxies = np.stack([tris["v0"], tris["v1"], tris["v2"]], axis=1)
@@ -280,8 +247,8 @@ def test_both_levels_hold_their_invariants(small, suite_device):
     proxy_vertices = np.empty((40, 3, 3), np.float32)
     proxy_vertices[refs["prim_id"]] = proxies / np.float32(tree.top.scale)
     proxy_mesh = hlbvh_cl.Mesh(proxy_vertices.reshape(-1, 3), np.arange(120).reshape(-1, 3))
-    check_tree(SimpleNamespace(_runtime=scene._runtime, _tree=tree.top, meshes=[proxy_mesh],
-                               stats=scene.stats, builder=scene.builder))
+    check_tree(SimpleNamespace(meshes=[proxy_mesh], stats=scene.stats, builder=scene.builder),
+               tree.top, queue)
     # each world box holds its instance's mapped vertices
     lo, hi = proxy_vertices[:, 0], proxy_vertices[:, 1]
     for k, a in enumerate(maps):
@@ -304,8 +271,8 @@ def test_both_levels_hold_their_invariants(small, suite_device):
                                triangle_count=mesh.triangle_count, node_count=count,
                                levels=trees.levels[m], depth=len(trees.levels[m]),
                                scale=trees.scales[m])
-        check_tree(SimpleNamespace(_runtime=scene._runtime, _tree=view, meshes=[mesh],
-                                   stats=trees.stats[m], builder=scene.builder))
+        check_tree(SimpleNamespace(meshes=[mesh], stats=trees.stats[m], builder=scene.builder),
+                   view, queue)
 
 
 def test_every_hit_and_counts_through_instances(small, suite_device):
@@ -314,12 +281,12 @@ def test_every_hit_and_counts_through_instances(small, suite_device):
     the same hits per ray as sets of (instance, face), t to 1e-5 where well
     conditioned; max_hits keeps the nearest."""
     rng = np.random.default_rng(17)
-    maps = _transforms(rng, 8, spread=1.5)
+    maps = random_transforms(rng, 8, spread=1.5)
     instance_meshes = np.arange(8) % 2
     masks = np.array([1, 1, 2, 1, 3, 1, 2, 1], np.uint32)
     scene = hlbvh_cl.Scene(small, device=suite_device, masks=masks,
                            instances=[(int(m), a) for m, a in zip(instance_meshes, maps)])
-    vertices, faces, owner, prim = _flattened(small, instance_meshes, maps)
+    vertices, faces, owner, prim = flattened(small, instance_meshes, maps)
     origins, directions = _rays_at_centroids(rng, vertices, faces, 1500)
     keep = ((masks & 1) != 0)[owner]
     index = np.flatnonzero(keep)
@@ -482,7 +449,7 @@ def test_an_instance_too_small_for_its_place_is_refused_but_a_flattened_one_is_t
         across[:, 2] = 0.0
         origins = (np.array(place) + across + (0.0, 0.0, 3 * reach)).astype(np.float32)
         directions = np.tile(np.float32([0.0, 0.0, -1.0]), (len(origins), 1))
-        vertices, faces, _, _ = _flattened([sphere], [0], transform[None])
+        vertices, faces, _, _ = flattened([sphere], [0], transform[None])
         expected = brute_force_intersect(vertices, faces, origins.astype(np.float64),
                                          directions.astype(np.float64))
         got = scene.intersect(origins, directions)
@@ -522,7 +489,7 @@ def test_an_interrupted_rebuild_of_the_meshes_is_named_until_rebuilt(small, suit
 # -- point queries ---------------------------------------------------------------
 
 def _counts_first(meshes, instance_meshes) -> np.ndarray:
-    """The first flattened face of each instance (_flattened's order)."""
+    """The first flattened face of each instance (flattened's order)."""
     counts = [meshes[m].triangle_count for m in instance_meshes]
     return np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
 
@@ -530,7 +497,7 @@ def _counts_first(meshes, instance_meshes) -> np.ndarray:
 def _near_surface(rng, vertices, faces, count: int, offsets) -> np.ndarray:
     """Points on random flattened triangles, moved along their normals by
     each of ``offsets`` in turn."""
-    from test_points import surface_samples
+    from point_cases import surface_samples
     on, normal, _ = surface_samples(rng, vertices, faces, count)
     return on + np.resize(np.asarray(offsets, np.float64), count)[:, None] * normal
 
@@ -543,7 +510,7 @@ def _assert_closest_matches(got, points, meshes, instance_meshes, maps, max_dist
     its normal, and the ids where the nearest face is unique by a margin.
     ``instance_id``: the instances as the flattened scene numbers them, where
     ``got`` reports none (a masked flat scene: its meshes)."""
-    vertices, faces, owner, prim = _flattened(meshes, instance_meshes, maps)
+    vertices, faces, owner, prim = flattened(meshes, instance_meshes, maps)
     instance_id = got.instance_id if instance_id is None else instance_id
     points64 = np.asarray(points, np.float64)
     want = brute_force_closest(vertices, faces, points64)
@@ -587,10 +554,10 @@ def _point_scene(small, device, count: int, spread: float, seed: int):
     is far from tight)."""
     rng = np.random.default_rng(seed)
     stretched = np.zeros((2, 3, 4))
-    stretched[0, :, :3] = _rotation(rng) @ np.diag([4.0, 0.25, 1.0])
-    stretched[1, :, :3] = _rotation(rng) @ np.diag([-0.2, 3.0, 1.5])
+    stretched[0, :, :3] = rotation(rng) @ np.diag([4.0, 0.25, 1.0])
+    stretched[1, :, :3] = rotation(rng) @ np.diag([-0.2, 3.0, 1.5])
     stretched[:, :, 3] = rng.uniform(-spread, spread, (2, 3))
-    maps = np.concatenate([_transforms(rng, count, spread=spread), stretched])
+    maps = np.concatenate([random_transforms(rng, count, spread=spread), stretched])
     instance_meshes = np.arange(len(maps)) % 2
     scene = hlbvh_cl.Scene(small, device=device,
                            instances=[(int(m), a) for m, a in zip(instance_meshes, maps)])
@@ -599,7 +566,7 @@ def _point_scene(small, device, count: int, spread: float, seed: int):
 
 def test_closest_points_through_instances_match_the_brute_force(small, suite_device):
     scene, instance_meshes, maps, rng = _point_scene(small, suite_device, 12, 2.0, 41)
-    vertices, faces, owner, _ = _flattened(small, instance_meshes, maps)
+    vertices, faces, owner, _ = flattened(small, instance_meshes, maps)
     points = np.concatenate([
         rng.uniform(-5, 5, (1500, 3)),
         _near_surface(rng, vertices, faces, 600, [1e-3, -1e-3, 0.05, -0.05, 0.0, 0.3])])
@@ -623,7 +590,7 @@ def test_winding_numbers_and_signs_through_overlapping_instances(small, suite_de
     flattened scene's (a mirrored copy winds the other way, so where it
     overlaps an unmirrored one their windings cancel, as they do flattened)."""
     scene, instance_meshes, maps, rng = _point_scene(small, suite_device, 12, 2.0, 43)
-    vertices, faces, _, _ = _flattened(small, instance_meshes, maps)
+    vertices, faces, _, _ = flattened(small, instance_meshes, maps)
     points = np.concatenate([rng.uniform(-5, 5, (1500, 3)),
                              _near_surface(rng, vertices, faces, 500, [1e-3, -1e-3])])
     points = points.astype(np.float32)
@@ -651,7 +618,7 @@ def _watertight_instances(device, seed):
     meshes = [hlbvh_cl.Mesh(sphere.vertices, sphere.faces, name="sphere"),
               hlbvh_cl.Mesh(box.vertices, box.faces, name="box")]
     rng = np.random.default_rng(seed)
-    maps = _transforms(rng, 8)
+    maps = random_transforms(rng, 8)
     cells = np.stack(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij"), -1).reshape(-1, 3)
     maps[:, :, 3] = cells * 2.5
     instance_meshes = np.arange(8) % 2
@@ -661,9 +628,9 @@ def _watertight_instances(device, seed):
 
 
 def test_signs_agree_with_parity_on_watertight_instances(suite_device):
-    from test_points import parity_inside
+    from point_cases import parity_inside
     scene, meshes, instance_meshes, maps, rng = _watertight_instances(suite_device, 47)
-    vertices, faces, _, _ = _flattened(meshes, instance_meshes, maps)
+    vertices, faces, _, _ = flattened(meshes, instance_meshes, maps)
     points = rng.uniform(-5, 5, (4000, 3)).astype(np.float32)
     expected = parity_inside(vertices, faces, points.astype(np.float64))
     nearest = scene.closest_points(points).distance
@@ -682,8 +649,8 @@ def test_signs_agree_with_parity_on_watertight_instances(suite_device):
 
 def test_signs_hold_1e_6_off_instanced_surfaces(suite_device):
     scene, meshes, instance_meshes, maps, rng = _watertight_instances(suite_device, 53)
-    from test_points import assert_signs_off_the_surface, surface_samples
-    vertices, faces, owner, _ = _flattened(meshes, instance_meshes, maps)
+    from point_cases import assert_signs_off_the_surface, surface_samples
+    vertices, faces, owner, _ = flattened(meshes, instance_meshes, maps)
     on, normal, chosen = surface_samples(rng, vertices, faces, 1500)
     # both meshes are convex: outward is away from the copy's centre (a
     # mirrored copy's normals point inward)
@@ -721,7 +688,7 @@ def test_point_queries_of_a_masked_flat_scene(small, suite_device):
     identity = np.tile(np.eye(3, 4), (2, 1, 1))
     assert _assert_closest_matches(b, points, small, np.arange(2), identity,
                                    instance_id=b.geom_id) > 300
-    vertices, faces, _, _ = _flattened(small, np.arange(2), identity)
+    vertices, faces, _, _ = flattened(small, np.arange(2), identity)
     expected = brute_force_winding(vertices, faces, points)
     np.testing.assert_allclose(masked.winding_number(points), expected, atol=0.05)
     decided = np.abs(np.abs(expected) - 0.5) > 0.1
@@ -735,28 +702,28 @@ def test_mesh_dipoles_are_made_once_and_follow_the_meshes(small, suite_device):
     query: set_transforms keeps it (the meshes stand), a mesh's new vertices
     drop it with the trees they replace."""
     rng = np.random.default_rng(61)
-    maps = _transforms(rng, 6, spread=2.0)
+    maps = random_transforms(rng, 6, spread=2.0)
     instance_meshes = np.arange(6) % 2
     scene = hlbvh_cl.Scene(small, device=suite_device,
                            instances=[(int(m), a) for m, a in zip(instance_meshes, maps)])
     points = rng.uniform(-4, 4, (800, 3)).astype(np.float32)
 
     def check():
-        vertices, faces, _, _ = _flattened(scene.meshes, instance_meshes, maps)
+        vertices, faces, _, _ = flattened(scene.meshes, instance_meshes, maps)
         np.testing.assert_allclose(scene.winding_number(points),
                                    brute_force_winding(vertices, faces, points), atol=0.05)
 
-    trees = scene._tree.meshes
+    trees = built.tree(scene).meshes
     assert trees.dipoles is None
     check()
     dipoles = trees.dipoles
     assert dipoles is not None
-    maps[[0, 3]] = _transforms(rng, 2, spread=2.0)
+    maps[[0, 3]] = random_transforms(rng, 2, spread=2.0)
     scene.set_transforms([0, 3], maps[[0, 3]])
-    assert scene._tree.meshes is trees and trees.dipoles is dipoles
+    assert built.tree(scene).meshes is trees and trees.dipoles is dipoles
     check()
     scene.update_vertices(1, scene.meshes[1].vertices * np.float32(1.5))
-    assert trees.dipoles is None and scene._tree.meshes.dipoles is None
+    assert trees.dipoles is None and built.tree(scene).meshes.dipoles is None
     check()
     assert _assert_closest_matches(scene.closest_points(points), points, scene.meshes,
                                    instance_meshes, maps) > 150
@@ -765,7 +732,7 @@ def test_mesh_dipoles_are_made_once_and_follow_the_meshes(small, suite_device):
 def test_reach_scales_bound_the_shrinking_of_distances():
     from hlbvh_cl.build.instances import reach_scales
     rng = np.random.default_rng(67)
-    linear = np.stack([_rotation(rng) @ np.diag(rng.uniform(0.1, 3.0, 3)) @ _rotation(rng)
+    linear = np.stack([rotation(rng) @ np.diag(rng.uniform(0.1, 3.0, 3)) @ rotation(rng)
                        for _ in range(50)] + [np.diag([2.0, 0.5, -1.0])])
     scales = reach_scales(linear)
     assert scales.dtype == np.float32 and scales[-1] == 4.0

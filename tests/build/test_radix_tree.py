@@ -1,4 +1,4 @@
-"""Stage 4 (kernels/radix_tree.cl) against an oracle written here from the
+"""Stage 4 (kernels/build/radix_tree.cl) against an oracle written here from the
 definition of Karras's (2012) binary radix tree: top-down, each node over the
 sorted keys [first, last] splits where its keys first differ at the highest
 bit (equal keys told apart by their index), and is numbered by Karras's rule

@@ -1,15 +1,15 @@
-"""The wide tree (hlbvh_cl/widen.py, kernels/widen.cl) and its refit
-(kernels/refit.cl), checked in numpy by tests/invariants.py against the
+"""The wide tree (hlbvh_cl/build/widen.py, kernels/build/widen.cl) and its refit
+(kernels/build/refit.cl), checked in numpy by tests/support/invariants.py against the
 scene's own triangles."""
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 import hlbvh_cl
 from hlbvh_cl.build.widen import widen
+import built
 from invariants import check_tree
 from shapes import grid_mesh
 import places
@@ -49,11 +49,11 @@ def test_wide_tree_invariants(name, builder):
 
 def test_rebuilds_give_the_same_wide_tree():
     scene = hlbvh_cl.Scene([_mesh("knight")])
-    q = scene._runtime.queue
-    first = scene._tree.read_nodes(q).tobytes()
+    q = built.runtime(scene).queue
+    first = built.tree(scene).read_nodes(q).tobytes()
     scene.rebuild()
     check_tree(scene)
-    assert scene._tree.read_nodes(q).tobytes() == first
+    assert built.tree(scene).read_nodes(q).tobytes() == first
 
 
 def test_update_vertices_refits_the_wide_tree():
@@ -62,8 +62,8 @@ def test_update_vertices_refits_the_wide_tree():
     built tree, bit for bit."""
     knight = _mesh("knight")
     scene = hlbvh_cl.Scene([knight, _mesh("teapot")])
-    q = scene._runtime.queue
-    before = scene._tree.read_nodes(q)
+    q = built.runtime(scene).queue
+    before = built.tree(scene).read_nodes(q)
     v = knight.vertices.astype(np.float64)
     moved = v * 1.3 + 0.1 * np.sin(5 * v[:, [2, 0, 1]]) * np.ptp(v, axis=0)
     scene.update_vertices(0, moved)
@@ -73,10 +73,10 @@ def test_update_vertices_refits_the_wide_tree():
     assert not np.array_equal(before["lo_x"], after["lo_x"]), "the boxes should have moved"
     scene.update_vertices(0, knight.vertices)
     check_tree(scene)
-    assert scene._tree.read_nodes(q).tobytes() == before.tobytes()
+    assert built.tree(scene).read_nodes(q).tobytes() == before.tobytes()
 
 
 def test_a_tree_without_nodes_is_refused():
     scene = hlbvh_cl.Scene([_one_triangle()])
     with pytest.raises(ValueError, match="0 nodes"):
-        widen(scene._runtime, scene._tree.nodes, 0)
+        widen(built.runtime(scene), built.tree(scene).nodes, 0)

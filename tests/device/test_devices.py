@@ -1,7 +1,7 @@
 """Devices: listing and selection, program caching and build errors; the
 profiles and kernel variants that the probe chooses in a child process
-(hlbvh_cl.device.profile, hlbvh_cl.device.probe); and hlbvh_cl/layout.py against
-kernels/hlbvh.h on every device.  test_targets.py reruns the correctness
+(hlbvh_cl.device.profile, hlbvh_cl.device.probe); and hlbvh_cl/core/layout.py against
+kernels/core/portable.h on every device.  test_targets.py reruns the correctness
 modules on every other device and profile."""
 import os
 import sys
@@ -18,9 +18,11 @@ from hlbvh_cl.device import runtime as device_module
 from hlbvh_cl.core import layout
 from hlbvh_cl.device import probe
 from hlbvh_cl.device.discovery import devices, select_device
-from hlbvh_cl.device.runtime import KernelBuildError, Runtime, _quiet_build, runtime
+from hlbvh_cl.device.runtime import KernelBuildError, Runtime, quiet_build, runtime
 from hlbvh_cl.core.paths import kernel_dir
 from hlbvh_cl.device.profile import SAFEST, Profile, Variant, candidates, profile_name, vector_width
+
+import built
 
 
 # -- listing, selection, programs ---------------------------------------------------
@@ -144,10 +146,10 @@ def test_the_traversal_kernels_compile_without_warnings(monkeypatch, caplog):
     pyopencl's nor PoCL's binary cache hands back a program without its log."""
     import uuid
     from shapes import grid_mesh
-    built = []
+    requested = []
     real = Runtime.program
     monkeypatch.setattr(Runtime, "program", lambda self, filename, **defines: (
-        built.append((self, filename, defines)), real(self, filename, **defines))[1])
+        requested.append((self, filename, defines)), real(self, filename, **defines))[1])
     scene = hlbvh_cl.Scene(grid_mesh(6))
     origins = np.random.default_rng(5).uniform(-1, 2, (2048, 3)).astype(np.float32)
     scene.count_intersections(origins, np.float32([0.5, 0.5, 0.0]) - origins)
@@ -157,10 +159,10 @@ def test_the_traversal_kernels_compile_without_warnings(monkeypatch, caplog):
     placed = hlbvh_cl.Scene([grid_mesh(6)], instances=[(0, np.eye(3, 4))])
     placed.closest_points(origins)
     placed.winding_number(origins)
-    assert built
+    assert requested
     nonce = uuid.uuid4().hex[:12]
     with caplog.at_level("DEBUG", "hlbvh_cl"):
-        for rt, filename, defines in {(rt, f, tuple(sorted(d.items()))) for rt, f, d in built}:
+        for rt, filename, defines in {(rt, f, tuple(sorted(d.items()))) for rt, f, d in requested}:
             real(rt, filename, **dict(defines), TEST_NONCE=f"0x{nonce}")
     # every compiler warning but Intel's note that it leaves a packet kernel
     # unvectorised, as its vec_type_hint asks ('warning: kernel "name": ...';
@@ -423,8 +425,8 @@ def test_a_requested_packet_the_device_cannot_run_gives_way(fresh_probes, monkey
     process, which goes on."""
     from hlbvh_cl.query.rays import RayQuery
     device = fresh_probes
-    real_target = probe._target
-    monkeypatch.setattr(probe, "_target", lambda *args: {**real_target(*args), "avx512": True})
+    monkeypatch.setattr(probe, "candidates",  # the candidates for a target that claims it
+                        lambda profile, target: candidates(profile, {**target, "avx512": True}))
     monkeypatch.setenv("HLBVH_CL_PROBE_FAULT", "packet16:abort")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -460,7 +462,7 @@ def test_every_profile_gives_the_same_hits(monkeypatch, suite_device):
     for name in ("cpu", "gpu"):
         monkeypatch.setenv("HLBVH_CL_PROFILE", name)
         scene = hlbvh_cl.Scene([mesh], device=suite_device)
-        assert scene._runtime.profile.name == name
+        assert built.runtime(scene).profile.name == name
         results[name] = scene.intersect(origins, directions)
     assert results["gpu"].hit.any()
     for field in ("t", "prim_id", "geom_id", "u", "v", "normal"):
@@ -544,8 +546,8 @@ def test_struct_layout_matches_device(device):
     rt = runtime(device)
     out = np.full(len(FIELDS), -1, np.int32)
     buf = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, out.nbytes)
-    program = _quiet_build(cl.Program(rt.context, PROBE), ["-I", str(kernel_dir())],
-                           rt.device.cl_device)
+    program = quiet_build(cl.Program(rt.context, PROBE), ["-I", str(kernel_dir())],
+                          rt.device.cl_device)
     rt.run(program.struct_layout, 1, buf, local_size=1)
     cl.enqueue_copy(rt.queue, out, buf)
     expected = [layout.STRUCTS[s].itemsize if f is None else layout.STRUCTS[s].fields[f][1]

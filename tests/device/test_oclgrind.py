@@ -50,7 +50,7 @@ GROUPS = {
     "cpu_profile": ("packets", "all_hits"),
 }
 
-#: The profile (hlbvh_cl/profile.py) each group's child is forced to; the
+#: The profile (hlbvh_cl/device/profile.py) each group's child is forced to; the
 #: others run with the one the device gets.
 PROFILE_OF = {"cpu_profile": "cpu"}
 
@@ -106,14 +106,14 @@ COHERENT_BLOCKS = [
 
 
 def Oracle(scene):
-    """What tests/ray_cases.py's assert_matches_oracle reads, for a scene
+    """What tests/support/ray_cases.py's assert_matches_oracle reads, for a scene
     already built (on Oclgrind) over its current vertices."""
     from ray_cases import SceneCase
     return SceneCase(scene.meshes, scene=scene)
 
 
 def rays(oracle):
-    """The coherent blocks, then random rays (tests/ray_cases.py's)."""
+    """The coherent blocks, then random rays (tests/support/ray_cases.py's)."""
     from ray_cases import random_rays
     u, v = (grid.ravel() for grid in np.meshgrid(np.linspace(0, 1, 16), np.linspace(0, 1, 4)))
     origins = [np.tile(origin, (BLOCK, 1)) for origin, _ in COHERENT_BLOCKS]
@@ -165,16 +165,17 @@ def case_packets(uninitialized: bool) -> dict:
     Without packets of 16 in the uninitialized mode (see uninitialized_mode)."""
     import hlbvh_cl
     from hlbvh_cl.query.rays import RayQuery
+    import built
     scene = hlbvh_cl.Scene(tiny_meshes())
     for packet_size in (1, 8) if uninitialized else (1, 8, 16):
-        query = RayQuery(scene._runtime, packet_size=packet_size)
+        query = RayQuery(built.runtime(scene), packet_size=packet_size)
         # a variant the runtime found wrong on this device gives way to a
         # smaller packet: that would leave this size untested
         assert query.packet_size == packet_size, \
             f"packets of {packet_size} gave way to {query.packet_size} on Oclgrind"
         query.count_packets = True
-        check_queries(functools.partial(query.intersect, scene._tree),
-                      functools.partial(query.occluded, scene._tree), Oracle(scene),
+        check_queries(functools.partial(query.intersect, built.tree(scene)),
+                      functools.partial(query.occluded, built.tree(scene)), Oracle(scene),
                       f"packets of {packet_size}")
         if packet_size > 1:  # the coherent blocks went as packets (with tmax, by occluded)
             assert query.last_packets >= len(COHERENT_BLOCKS) * BLOCK // packet_size
@@ -194,13 +195,14 @@ def case_render(uninitialized: bool) -> dict:
 def case_points(uninitialized: bool) -> dict:
     """Closest points (with and without max_distance), winding numbers and
     signed distances on the tiny scene, one point per work-item and in
-    packets of 8 (kernels/point_packet.h), against the float64 brute force
-    (tests/point_oracle.py); a batch in Morton order over whole arrays (the
+    packets of 8 (kernels/query/points/point_packet.h), against the float64 brute force
+    (tests/support/point_oracle.py); a batch in Morton order over whole arrays (the
     indexed launches, with COHERENT_MIN lowered for the simulator's sake);
     then the same after a refit, whose dipoles are made anew."""
     import hlbvh_cl
     from hlbvh_cl.query import points as point_module
     from hlbvh_cl.query.points import PointQuery
+    import built
     from point_oracle import brute_force_closest, brute_force_winding
     point_module.COHERENT_MIN = 32
     scene = hlbvh_cl.Scene(tiny_meshes())
@@ -212,7 +214,8 @@ def case_points(uninitialized: bool) -> dict:
                                 scene.meshes[1].faces + scene.meshes[0].vertex_count])
         winding = brute_force_winding(vertices, faces, points)
         for packet_size in (1, 8):
-            query, tree = PointQuery(scene._runtime, packet_size=packet_size), scene._built_tree()
+            query = PointQuery(built.runtime(scene), packet_size=packet_size)
+            tree = built.tree(scene)
             label = f"{step}, packets of {packet_size}"
             for max_distance, batch in ((np.inf, points), (0.3, points[:20])):
                 got = query.closest_points(tree, batch, max_distance=max_distance)
@@ -240,8 +243,9 @@ def case_all_hits(uninitialized: bool) -> dict:
     import trimesh
 
     import hlbvh_cl
+    import built
     from ray_cases import SceneCase, random_rays
-    from test_all_hits import assert_matches_brute_force
+    from all_hits_cases import assert_matches_brute_force
     sphere = trimesh.creation.icosphere(subdivisions=1)
     case = SceneCase([hlbvh_cl.Mesh(sphere.vertices, sphere.faces, name="sphere")])
     origins, directions = random_rays(case, 40, seed=3)
@@ -256,27 +260,27 @@ def case_all_hits(uninitialized: bool) -> dict:
     # another and aim at one vertex (one direction sign pattern)
     from hlbvh_cl.query.all_hits import AllHitsQuery
     from hlbvh_cl.query.rays import RayQuery
-    query = AllHitsQuery(RayQuery(case.scene._runtime, packet_size=8))
-    if not case.scene._runtime.profile.gpu:  # the CPU profile's arrays in place, as meant
-        from hlbvh_cl.query.all_hits import _whole
-        assert _whole(query.query, len(targets) * 8)
+    query = AllHitsQuery(RayQuery(built.runtime(case.scene), packet_size=8))
+    if not built.runtime(case.scene).profile.gpu:  # the CPU profile's arrays in place, as meant
+        from hlbvh_cl.query.all_hits import whole_arrays
+        assert whole_arrays(query.query, len(targets) * 8)
     near = np.repeat(origins, 8, axis=0) + np.float32(0.01) * np.tile(
         np.eye(8, 3, dtype=np.float32), (len(targets), 1))
     aims = (np.repeat(targets, 8, axis=0) - near).astype(np.float32)
-    counts = query.count(case.scene._built_tree(), near, aims)
+    counts = query.count(built.tree(case.scene), near, aims)
     assert counts.tolist() == [2] * len(near), counts
     # and filling in packets: the hits one ray per work-item finds
-    one = AllHitsQuery(RayQuery(case.scene._runtime, packet_size=1))
+    one = AllHitsQuery(RayQuery(built.runtime(case.scene), packet_size=1))
     for max_hits in (None, 1):
-        got = query.intersect_all(case.scene._built_tree(), near, aims, max_hits=max_hits)
-        want = one.intersect_all(case.scene._built_tree(), near, aims, max_hits=max_hits)
+        got = query.intersect_all(built.tree(case.scene), near, aims, max_hits=max_hits)
+        want = one.intersect_all(built.tree(case.scene), near, aims, max_hits=max_hits)
         for name in ("offsets", "t", "u", "v", "prim_id", "geom_id"):
             assert np.array_equal(getattr(got, name), getattr(want, name)), (max_hits, name)
     # a batch counted in Morton order (COHERENT_MIN lowered for the
     # simulator's sake), read by slots, through stacked plates: rays with
     # more hits than the count pass keeps walk again among rays that do not
     from hlbvh_cl.query import all_hits
-    from test_all_hits import plates
+    from all_hits_cases import plates
     all_hits.COHERENT_MIN = 32
     layers = all_hits.KEEP_HITS + 2
     stack = SceneCase([plates(layers)])
@@ -299,7 +303,7 @@ def case_all_hits(uninitialized: bool) -> dict:
     far = (targets[0] * rng.uniform(2, 6, (48, 1)) + rng.uniform(-0.3, 0.3, (48, 3)))
     far, aims = far.astype(np.float32), (targets[0] - far).astype(np.float32)
     assert concurrent_rays(far, aims)
-    counts = query.count(case.scene._built_tree(), far, aims)
+    counts = query.count(built.tree(case.scene), far, aims)
     assert counts.tolist() == [2] * len(far), counts
     return {}
 
@@ -311,11 +315,12 @@ def case_instances(uninitialized: bool) -> dict:
     scene flattened; then again after set_transforms."""
     import hlbvh_cl
     from hlbvh_cl.query.rays import RayQuery
+    import built
     from oracle import brute_force_intersect, brute_force_occluded
-    from test_instances import _flattened, _transforms
+    from instance_cases import flattened, random_transforms
     meshes = tiny_meshes()
     rng = np.random.default_rng(5)
-    maps = _transforms(rng, 5, spread=1.5)
+    maps = random_transforms(rng, 5, spread=1.5)
     masks = np.array([1, 3, 2, 1, 3], np.uint32)
     scene = hlbvh_cl.Scene(meshes, masks=masks,
                            instances=[(k % 2, a) for k, a in enumerate(maps)])
@@ -324,24 +329,24 @@ def case_instances(uninitialized: bool) -> dict:
     directions = np.concatenate([grid.reshape(-1, 3), rng.normal(size=(32, 3))]).astype(np.float32)
     origins = np.broadcast_to(np.float32([0.1, 0.2, 6.0]), directions.shape)
     for step in ("built", "moved"):
-        vertices, faces, owner, prim = _flattened(meshes, np.arange(5) % 2, maps)
+        vertices, faces, owner, prim = flattened(meshes, np.arange(5) % 2, maps)
         keep = (masks & 1 != 0)[owner]
         want = brute_force_intersect(vertices, faces[keep], origins, directions)
         found = want["prim"] >= 0
         assert found.sum() > 20, "the rays should hit the instances"
         for packet_size in (1, 8):
-            query = RayQuery(scene._runtime, packet_size=packet_size)
-            hits = query.intersect(scene._tree, origins, directions, mask=1)
+            query = RayQuery(built.runtime(scene), packet_size=packet_size)
+            hits = query.intersect(built.tree(scene), origins, directions, mask=1)
             label = f"{step}, packets of {packet_size}"
             assert (hits.geom_id >= 0).tolist() == found.tolist(), label
             index = np.flatnonzero(keep)[want["prim"][found]]
             assert hits.instance_id[found].tolist() == owner[index].tolist(), label
             assert hits.prim_id[found].tolist() == prim[index].tolist(), label
             assert np.allclose(hits.t[found], want["t"][found], rtol=1e-4), label
-            occluded = query.occluded(scene._tree, origins, directions, mask=1)
+            occluded = query.occluded(built.tree(scene), origins, directions, mask=1)
             assert occluded.tolist() == brute_force_occluded(
                 vertices, faces[keep], origins, directions).tolist(), label
-        maps[1:3] = _transforms(rng, 2, spread=1.5)
+        maps[1:3] = random_transforms(rng, 2, spread=1.5)
         scene.set_transforms([1, 2], maps[1:3])
     return {}
 
@@ -354,15 +359,15 @@ def case_instance_points(uninitialized: bool) -> dict:
     after set_transforms, over the meshes' dipoles made the first time."""
     import hlbvh_cl
     from point_oracle import brute_force_closest, brute_force_winding
-    from test_instances import _flattened, _transforms
+    from instance_cases import flattened, random_transforms
     meshes = tiny_meshes()
     rng = np.random.default_rng(7)
-    maps = _transforms(rng, 4, spread=1.5)
+    maps = random_transforms(rng, 4, spread=1.5)
     scene = hlbvh_cl.Scene(meshes, masks=np.array([1, 2, 1, 0], np.uint32),
                            instances=[(k % 2, a) for k, a in enumerate(maps)])
     points = rng.uniform(-2.5, 2.5, (40, 3)).astype(np.float32)
     for step in ("built", "moved"):
-        vertices, faces, owner, prim = _flattened(meshes, np.arange(4) % 2, maps)
+        vertices, faces, owner, prim = flattened(meshes, np.arange(4) % 2, maps)
         want = brute_force_closest(vertices, faces, points)
         for max_distance in (np.inf, 0.3):
             got = scene.closest_points(points, max_distance=max_distance)
@@ -379,13 +384,13 @@ def case_instance_points(uninitialized: bool) -> dict:
         sdf = scene.signed_distance(points)
         clear = np.abs(np.abs(winding) - 0.5) > 0.15
         assert np.array_equal((sdf < 0)[clear], (np.abs(winding) >= 0.5)[clear]), step
-        maps[1:3] = _transforms(rng, 2, spread=1.5)
+        maps[1:3] = random_transforms(rng, 2, spread=1.5)
         scene.set_transforms([1, 2], maps[1:3])
     return {}
 
 
 def case_sort(uninitialized: bool) -> dict:
-    """The radix sort (tests/test_sort.py): 30-bit keys over two work-groups,
+    """The radix sort (tests/parallel/test_sort.py): 30-bit keys over two work-groups,
     with many equal keys (stability), and 63-bit keys."""
     import pyopencl as cl
 
@@ -412,14 +417,14 @@ def case_sort(uninitialized: bool) -> dict:
 
 
 def case_scan(uninitialized: bool) -> dict:
-    """The exclusive scan (tests/test_scan.py): one work-group's input, and
+    """The exclusive scan (tests/parallel/test_scan.py): one work-group's input, and
     one that takes every tile kernel."""
     import pyopencl as cl
 
     from hlbvh_cl.parallel import scan
     from hlbvh_cl.device.runtime import runtime
     rt = runtime()
-    plan = scan._plan(rt)
+    plan = scan.plan(rt)
     for n in (5, plan.group_size * scan.MIN_PER_ITEM + 3):
         values = np.random.default_rng(n).integers(0, 100, n + 1, dtype=np.uint32)
         buf = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR,
@@ -474,7 +479,7 @@ def uninitialized_mode() -> None:
        its stale shadow.  Every buffer is kept alive here.
     4. Its handling of sincos()'s pointer argument aborts for private memory
        ("Work item needed to access private memory!"), so the ambient
-       occlusion render (shade.cl, ao_rays) is left to the optimised mode.
+       occlusion render (render/integrators/direct.cl, ao_rays) is left to the optimised mode.
     5. It shadows a CL_MEM_USE_HOST_PTR buffer as all uninitialised, even
        over an initialised array (a 3-line kernel reading one shows it), where
        a COPY_HOST_PTR one over the same array reads clean.  Such a buffer's

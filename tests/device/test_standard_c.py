@@ -53,18 +53,19 @@ def _kernel_copies(folder: Path, prelude: str) -> set:
     the kernels, in `folder`, with `prelude` before each file; returns the
     set of kernel files they built."""
     shutil.copytree(kernel_dir(), folder)
-    for source in folder.glob("*.cl"):
+    for source in folder.rglob("*.cl"):
         source.write_text(prelude + source.read_text())
     device_module.kernel_dir = lambda: folder
-    device_module._runtimes = {}  # fresh runtimes, nothing cached
+    device_module.forget_runtimes()  # fresh runtimes, nothing cached
     built = set()
-    build = device_module.Runtime._build
+    program = device_module.Runtime.program
 
-    def recording(self, filename, defines):
+    def recording(self, filename, **defines):
+        # a fresh runtime builds each program the first time it is asked for
         built.add(filename)
-        return build(self, filename, defines)
+        return program(self, filename, **defines)
 
-    device_module.Runtime._build = recording
+    device_module.Runtime.program = recording
     return built
 
 
@@ -198,7 +199,8 @@ def _finished(case_children, case: str) -> Path:
     assert done.returncode == 0, f"the {case} case exited with {done.returncode}:\n" \
                                  f"{done.stderr[-6000:]}"
     built = set(json.loads((folders[case] / "built.json").read_text()))
-    every = {path.name for path in kernel_dir().glob("*.cl")} - PROBE_ONLY
+    every = {path.relative_to(kernel_dir()).as_posix()
+             for path in kernel_dir().rglob("*.cl")} - PROBE_ONLY
     assert every - built == set(), "kernel files this test never built"
     return folders[case]
 

@@ -112,16 +112,15 @@ def test_a_scene_tokenizes_by_its_content_without_pickling(meshes, suite_device,
 def test_a_process_tasks_share_one_view_of_a_shipped_scene(meshes, suite_device):
     """Unpickled copies are Scene objects of their own (hlbvh_cl.travel), but
     the tasks of one process share one, its buffers and its renderers."""
-    spec = _scene(meshes, suite_device.id)._travel_spec()
+    with _scene(meshes, suite_device.id).borrow() as built:
+        spec = built.spec
     try:
-        with hd._Shipped(spec).scene() as first, hd._Shipped(spec).scene() as second:
+        with hd.Shipped(spec).scene() as first, hd.Shipped(spec).scene() as second:
             assert first is second
         colors = np.ones((1, 3))
-        assert hd._renderer(first, colors, None) is hd._renderer(second, colors, None)
+        assert hd.task_renderer(first, colors, None) is hd.task_renderer(second, colors, None)
     finally:  # later tests count the scenes this process restores
-        hd._views.clear()
-        hd._renderers.clear()
-        travel.clear()
+        hd.forget()
 
 
 def test_a_task_on_the_scene_itself_holds_off_changes_until_it_ends(meshes, suite_device):
@@ -133,7 +132,8 @@ def test_a_task_on_the_scene_itself_holds_off_changes_until_it_ends(meshes, suit
     scene = _scene(meshes, suite_device.id)
     origins, directions = _rays(scene, 200)
     before = scene.intersect(origins, directions).t
-    shipped = hd._Shipped(scene._travel_spec(), scene)
+    with scene.borrow() as built:
+        shipped = hd.Shipped(built.spec, scene)
     changed = threading.Event()
 
     def change():
@@ -150,12 +150,12 @@ def test_a_task_on_the_scene_itself_holds_off_changes_until_it_ends(meshes, suit
     with shipped.scene() as task_scene:  # changed since: a view of the graph's content
         assert task_scene is not scene
         np.testing.assert_array_equal(task_scene.intersect(origins, directions).t, before)
-    hd._views.clear()
-    travel.clear()
+    hd.forget()
 
 
 def test_dask_local_scheduler_matches_one_process(meshes, suite_device):
-    assert hd._current_client() is None  # this test runs before any cluster of this module
+    with pytest.raises(ValueError):  # no default client: this test runs before any cluster
+        distributed.default_client()   # of this module, so dask's local scheduler runs it
     scene = _scene(meshes, suite_device.id)
     origins, directions = _rays(scene, 5000)
     hits = hd.intersect(scene, da.from_array(origins, chunks=(1200, 3)), directions)
@@ -301,7 +301,7 @@ def test_bad_input_raises_the_local_error_on_the_client(client, meshes, suite_de
         hd.intersect(scene, origins, da.zeros((10, 4), chunks=5))
     with pytest.raises(ValueError, match="tmin = 2.0 is greater than tmax = 1.0"):
         hd.occluded(scene, origins, directions, tmin=2.0, tmax=1.0)
-    with pytest.raises(ValueError, match="width must be between"):
+    with pytest.raises(ValueError, match="width must be an integer >= 1 and <= 16384, got 0"):
         hd.render_frames(scene, [hlbvh_cl.Camera((0, 0, 1), (0, 0, 0))], 0, 10, client)
 
 

@@ -1,7 +1,6 @@
 """TOML scene files: the project's scenes, transforms, the ground, and errors."""
 import shutil
 import tomllib
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,7 +13,7 @@ import places
 SCENES = places.SCENES
 SCENE_FILES = sorted(SCENES.glob("*.toml"))
 # Files whose meshes are drawn where they lie; an instanced file's camera
-# looks over copies instead (tests/test_scenefile_instances.py).
+# looks over copies instead (tests/io/test_scenefile_instances.py).
 FLAT_SCENE_FILES = [p for p in SCENE_FILES if "instance" not in tomllib.loads(p.read_text())]
 KNIGHT = SCENES / "meshes" / "knight.ply"
 

@@ -1,7 +1,5 @@
 """Scene files with [[instance]] tables: copies, their transforms, the ground,
 errors, and an instanced scene hit like its copies baked into separate meshes."""
-import tomllib
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -43,7 +43,7 @@ def check_scan(rt, values: np.ndarray) -> None:
 
 def interesting_sizes(rt) -> list[int]:
     """Sizes around every block boundary the plan can produce on this device."""
-    plan = scan._plan(rt)
+    plan = scan.plan(rt)
     wg = plan.group_size
     single_group = wg * scan.MIN_PER_ITEM  # above this, tiles + tile-sum scan + rescan
     bounds = {wg, single_group, 2 * single_group, plan.max_tiles * single_group}
@@ -75,9 +75,9 @@ def test_wraps_modulo_2_pow_32(rt):
 
 def test_scratch_is_reused(rt):
     scan.exclusive_scan(rt, cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 4 * 200_001), 200_000)
-    before = scan._plan(rt).tile_sums
+    before = scan.plan(rt).tile_sums
     check_scan(rt, np.ones(300_000, dtype=np.uint32))
-    assert scan._plan(rt).tile_sums is before
+    assert scan.plan(rt).tile_sums is before
 
 
 @settings(max_examples=40, deadline=None)

@@ -130,7 +130,7 @@ def test_sorter_reuses_scratch_and_handles_prefixes(rt):
     sorter = RadixSorter(rt, np.uint32)
     big = random_keys(300_000, np.uint32, 30, seed=12)
     sort_on_device(rt, sorter, big, np.arange(big.size, dtype=np.uint32), 30)
-    scratch = sorter._scratch_keys
+    scratch = sorter.scratch_keys
     # A shorter sort in longer buffers: only the first n pairs take part.
     small = random_keys(1000, np.uint32, 30, seed=13)
     padded = np.concatenate([small, np.zeros(500, np.uint32)])
@@ -141,7 +141,7 @@ def test_sorter_reuses_scratch_and_handles_prefixes(rt):
     got = np.empty(small.size, np.uint32)
     cl.enqueue_copy(rt.queue, got, out_values, wait_for=events).wait()
     np.testing.assert_array_equal(got, expected_order(small, 30))
-    assert sorter._scratch_keys is scratch
+    assert sorter.scratch_keys is scratch
 
 
 def test_bad_inputs_to_sort_pairs():

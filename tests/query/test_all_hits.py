@@ -1,5 +1,5 @@
-"""Scene.intersect_all and Scene.count_intersections (kernels/all_hits.cl)
-against the float64 brute force (tests/oracle.py), exact crossing counts
+"""Scene.intersect_all and Scene.count_intersections (kernels/query/all_hits.cl)
+against the float64 brute force (tests/support/oracle.py), exact crossing counts
 through shared edges and vertices of closed meshes, and Open3D's
 RaycastingScene on the bunny."""
 from __future__ import annotations
@@ -11,8 +11,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import hlbvh_cl
-from oracle import brute_force_all_hits
-from ray_cases import EDGE_TOLERANCE, T_RTOL, UV_ATOL, SceneCase, cube_mesh, random_rays
+import built
+from all_hits_cases import assert_matches_brute_force, plates
+from ray_cases import SceneCase, cube_mesh, random_rays
 
 
 def icosphere(subdivisions: int = 2, radius: float = 1.0, name="sphere") -> hlbvh_cl.Mesh:
@@ -57,38 +58,28 @@ def tiny_scene_meshes():
     return [icosphere(2), hlbvh_cl.Mesh(ground.vertices, ground.faces, name="ground")]
 
 
-def assert_matches_brute_force(case: SceneCase, origins, directions, tmin=0.0, tmax=np.inf,
-                               max_hits=None):
-    """intersect_all against the oracle on the rays that float32 cannot
-    decide otherwise (no triangle boundary within EDGE_TOLERANCE, no two hits
-    within T_RTOL); returns how many rays were compared."""
-    got = case.scene.intersect_all(origins, directions, tmin, tmax, max_hits=max_hits)
-    want = brute_force_all_hits(case.vertices, case.faces, origins, directions, tmin, tmax)
-    counts = case.scene.count_intersections(origins, directions, tmin, tmax)
-    expected_counts = counts if max_hits is None else np.minimum(counts, max_hits)
-    np.testing.assert_array_equal(got.counts, expected_counts)
-    assert got.offsets[0] == 0 and got.offsets.dtype == np.int64
-    np.testing.assert_array_equal(got.ray_index, np.repeat(np.arange(len(origins)), got.counts))
-    # sorted by t within each ray
-    same = got.ray_index[1:] == got.ray_index[:-1]
-    assert (got.t[1:][same] >= got.t[:-1][same]).all()
-    clear = (want["margin"] > EDGE_TOLERANCE) & (want["gap"] > 10 * T_RTOL)
-    prim = case.first_face[got.geom_id] + got.prim_id
-    for r in np.flatnonzero(clear):
-        mine = slice(got.offsets[r], got.offsets[r + 1])
-        full = slice(want["offsets"][r], want["offsets"][r + 1])
-        n = full.stop - full.start if max_hits is None else min(max_hits, full.stop - full.start)
-        theirs = slice(full.start, full.start + n)
-        np.testing.assert_array_equal(prim[mine], want["prim"][theirs], f"ray {r}")
-        np.testing.assert_allclose(got.t[mine], want["t"][theirs], rtol=T_RTOL, err_msg=f"ray {r}")
-        np.testing.assert_allclose(got.u[mine], want["u"][theirs], atol=UV_ATOL)
-        np.testing.assert_allclose(got.v[mine], want["v"][theirs], atol=UV_ATOL)
-    return int(clear.sum()), got
-
-
 @pytest.fixture(scope="module")
 def tiny():
     return SceneCase(tiny_scene_meshes())
+
+
+def as_the_scene_makes(scene):
+    """A RayQuery and the AllHitsQuery over it that ``scene`` would make
+    for itself (Scene.intersect_all: count passes in wide_count_packets),
+    and the tree they walk: a test may change their settings, as it may not
+    the scene's own."""
+    from hlbvh_cl.query.all_hits import AllHitsQuery, wide_count_packets
+    from hlbvh_cl.query.rays import RayQuery
+    query = RayQuery(built.runtime(scene))
+    return query, AllHitsQuery(query, wide_count_packets(query)), built.tree(scene)
+
+
+def recording(monkeypatch, engine) -> list:
+    """The Batch of each of ``engine``'s runs (which still run)."""
+    batches, run = [], engine.run
+    monkeypatch.setattr(engine, "run",
+                        lambda batch, launch: batches.append(batch) or run(batch, launch))
+    return batches
 
 
 def test_random_rays_match_brute_force(tiny):
@@ -295,7 +286,7 @@ def test_scaled_frame_gives_the_callers_t():
     meshes = tiny_scene_meshes()
     big = [hlbvh_cl.Mesh(m.vertices.astype(np.float64) * scale, m.faces) for m in meshes]
     small_scene, big_scene = hlbvh_cl.Scene(meshes), hlbvh_cl.Scene(big)
-    assert big_scene._built_tree().scale != 1.0
+    assert built.tree(big_scene).scale != 1.0
     case = SceneCase(meshes, scene=small_scene)
     origins, directions = random_rays(case, 300, seed=9)
     small = small_scene.intersect_all(origins, directions)
@@ -355,24 +346,23 @@ def test_small_chunks_give_the_same_hits(tiny, monkeypatch, copies):
     whole = tiny.scene.intersect_all(origins, directions, tmax=tmax)
     counts = tiny.scene.count_intersections(origins, directions, tmax=tmax)
     assert whole.counts.max() >= 3
+    query, every, tree = as_the_scene_makes(tiny.scene)
+    batches = recording(monkeypatch, every.engine)
     if copies:
-        monkeypatch.setattr(tiny.scene._ray_query(), "zero_copy", False)
+        monkeypatch.setattr(query, "zero_copy", False)
         monkeypatch.setattr(all_hits, "INDEXED_COPY_MAX", 0)
-        copied, buffer = [], cl.Buffer  # the launches' buffers made as copies
-        monkeypatch.setattr(all_hits.cl, "Buffer", lambda *args, **named: copied.append(
-            args[1] & cl.mem_flags.COPY_HOST_PTR) or buffer(*args, **named))
     monkeypatch.setattr(all_hits, "HITS_PER_LAUNCH", 2)
     monkeypatch.setattr(all_hits, "COPIED_RAYS_PER_LAUNCH", 5)
-    monkeypatch.setattr(tiny.scene._ray_query(), "max_rays_per_launch", 7)
-    chunked = tiny.scene.intersect_all(origins, directions, tmax=tmax)
+    monkeypatch.setattr(query, "max_rays_per_launch", 7)
+    chunked = every.intersect_all(tree, origins, directions, tmax=tmax)
     for name in ("offsets", "ray_index", "t", "u", "v", "prim_id", "geom_id"):
         np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name), name)
-    np.testing.assert_array_equal(tiny.scene.count_intersections(origins, directions, tmax=tmax),
-                                  counts)
-    first = tiny.scene.intersect_all(origins, directions, tmax=tmax, max_hits=2)
+    np.testing.assert_array_equal(every.count(tree, origins, directions, tmax=tmax), counts)
+    first = every.intersect_all(tree, origins, directions, tmax=tmax, max_hits=2)
     np.testing.assert_array_equal(first.counts, np.minimum(counts, 2))
-    if copies:
-        assert any(copied), "the chunks were not copied"
+    # each pass over the whole arrays by slots (CPU devices), or each chunk copied
+    whole = not copies and not query.rt.profile.gpu
+    assert batches and all(batch.whole == whole for batch in batches)
 
 
 def test_outputs_bigger_than_a_device_buffer_come_back_in_chunks(tiny, monkeypatch):
@@ -384,19 +374,24 @@ def test_outputs_bigger_than_a_device_buffer_come_back_in_chunks(tiny, monkeypat
     from hlbvh_cl.query import all_hits
     origins, directions = random_rays(tiny, 3000, seed=51)
     want = tiny.scene.intersect_all(origins, directions)
-    rt = tiny.scene._ray_query().rt
+    query, every, tree = as_the_scene_makes(tiny.scene)
+    rt = query.rt
     limit = want.ray_index.nbytes // 4
     assert limit < origins.nbytes  # no whole array fits: the count pass copies too
     monkeypatch.setattr(rt, "device", dataclasses.replace(rt.device, max_mem_alloc_size=limit))
     # chunks whose buffers fit: 32 bytes of kept hits a ray, 8 of ray_index a hit
     monkeypatch.setattr(all_hits, "COPIED_RAYS_PER_LAUNCH", limit // 64)
     monkeypatch.setattr(all_hits, "HITS_PER_LAUNCH", limit // 16)
-    reserved = []  # the slots each copied launch's result buffers hold
-    reserve = all_hits.AllHitsQuery._reserve
-    monkeypatch.setattr(all_hits.AllHitsQuery, "_reserve", lambda self, outputs, slots:
-                        reserved.append(slots) or reserve(self, outputs, slots))
-    got = tiny.scene.intersect_all(origins, directions)
-    assert len(reserved) > 2 and max(reserved) <= limit // 8
+    made, buffer = [], cl.Buffer  # the bytes of every buffer the passes make
+
+    def recorded(context, flags, size=0, hostbuf=None):
+        made.append(size if hostbuf is None else hostbuf.nbytes)
+        return buffer(context, flags, size, hostbuf)
+    monkeypatch.setattr(cl, "Buffer", recorded)
+    batches = recording(monkeypatch, every.engine)
+    got = every.intersect_all(tree, origins, directions)
+    assert len(batches) == 2 and not any(batch.whole for batch in batches)
+    assert len(made) > 2 and max(made) <= limit
     for name in ("offsets", "ray_index", "t", "u", "v", "prim_id", "geom_id"):
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name), name)
 
@@ -406,9 +401,8 @@ def test_rays_the_kernels_read_in_place_start_on_a_page(tiny, monkeypatch):
     whole ray arrays in place: big arrays that do not start on a page are
     copied once onto one (a runtime such as Intel's would otherwise copy
     them for each buffer), and the hits are those of zero copy."""
-    from hlbvh_cl.query import all_hits
     from hlbvh_cl.query.results import ALIGNMENT, MIN_POOLED_BYTES, starts_on_page
-    query = tiny.scene._ray_query()
+    query, every, tree = as_the_scene_makes(tiny.scene)
     if query.rt.profile.gpu:
         pytest.skip("GPUs take each chunk's rays (device copies)")
     count = MIN_POOLED_BYTES // 12 + 4097
@@ -417,25 +411,22 @@ def test_rays_the_kernels_read_in_place_start_on_a_page(tiny, monkeypatch):
     tmax = np.random.default_rng(42).uniform(0.5, 3, count).astype(np.float32)
     assert origins.ctypes.data % ALIGNMENT and directions.ctypes.data % ALIGNMENT
     monkeypatch.setattr(query, "zero_copy", True)
-    want = tiny.scene.intersect_all(origins, directions, tmax=tmax)
+    want = every.intersect_all(tree, origins, directions, tmax=tmax)
     monkeypatch.setattr(query, "zero_copy", False)
-    read = []  # the ray arrays each pass was given
-    launches = all_hits.AllHitsQuery._launches
-    monkeypatch.setattr(all_hits.AllHitsQuery, "_launches",
-                        lambda self, tree, kernel, packet, rays, *rest: read.append(rays)
-                        or launches(self, tree, kernel, packet, rays, *rest))
-    reserved = []  # launches that copied their results back (none should)
-    monkeypatch.setattr(all_hits.AllHitsQuery, "_reserve", lambda self, *args:
-                        reserved.append(args) or pytest.fail("a pass copied its results"))
-    got = tiny.scene.intersect_all(origins, directions, tmax=tmax)
-    assert not reserved
+    batches = recording(monkeypatch, every.engine)  # what each pass was given
+    reserved = []  # launches that copied their rays or results (none should)
+    monkeypatch.setattr(every.engine, "reserve", lambda sizes:
+                        reserved.append(sizes) or pytest.fail("a pass copied its rays"))
+    got = every.intersect_all(tree, origins, directions, tmax=tmax)
+    assert not reserved and all(batch.whole for batch in batches)
+    read = [[batch.inputs["origins"], batch.inputs["directions"], *batch.stepped.values()]
+            for batch in batches]
     big = [a for rays in read for a in rays if a.nbytes >= MIN_POOLED_BYTES]
     assert len(read) == 2 and len(big) == 4  # each pass's origins and directions
     assert starts_on_page(*big)
     for name in ("offsets", "ray_index", "t", "u", "v", "prim_id", "geom_id"):
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name), name)
-    np.testing.assert_array_equal(tiny.scene.count_intersections(origins, directions, tmax=tmax),
-                                  want.counts)
+    np.testing.assert_array_equal(every.count(tree, origins, directions, tmax=tmax), want.counts)
 
 
 def test_scenes_count_in_packets_twice_their_querys_on_cpus(tiny, monkeypatch):
@@ -445,19 +436,20 @@ def test_scenes_count_in_packets_twice_their_querys_on_cpus(tiny, monkeypatch):
     in its query's."""
     from hlbvh_cl.query import all_hits
     from hlbvh_cl.device import probe
-    query = tiny.scene._ray_query()
+    from hlbvh_cl.query.rays import RayQuery
+    query = RayQuery(built.runtime(tiny.scene))  # configured as the scene's own
     rt, wider = query.rt, 2 * query.packet_size
     wide = not rt.profile.gpu and query.packet_size > 1 and wider <= 16 and \
         probe.usable(rt.device, rt.profile, query.variant.with_packet(wider)) is None
-    built = []  # each kernel the passes ran, with its rays per work-item
-    kernel = all_hits.AllHitsQuery._kernel
-    monkeypatch.setattr(all_hits.AllHitsQuery, "_kernel", lambda self, tree, name, *args:
-                        built.append((name, kernel(self, tree, name, *args)[1])) or
+    ran = []  # each kernel the passes ran, with its rays per work-item
+    kernel = all_hits.AllHitsQuery.kernel
+    monkeypatch.setattr(all_hits.AllHitsQuery, "kernel", lambda self, tree, name, *args:
+                        ran.append((name, kernel(self, tree, name, *args)[1])) or
                         kernel(self, tree, name, *args))
     origins, directions = random_rays(tiny, 200, seed=61)
     tiny.scene.intersect_all(origins, directions)
     counting = wider if wide else query.packet_size
-    assert built == [("count_hits_arrays", counting), ("fill_hits_arrays", query.packet_size)]
+    assert ran == [("count_hits_arrays", counting), ("fill_hits_arrays", query.packet_size)]
 
 
 @pytest.mark.parametrize("copies", [None, "gpu", "big"])
@@ -470,8 +462,7 @@ def test_big_batches_traced_in_morton_order_answer_in_the_callers_order(tiny, mo
     the whole arrays (CPU devices), and rays taken per launch with the
     results put back (device copies: on GPUs, forced with `copies`, and for
     batches over INDEXED_COPY_MAX off zero copy)."""
-    from hlbvh_cl.query import all_hits
-    from hlbvh_cl.query import order
+    from hlbvh_cl.query import all_hits, engine, order
     from hlbvh_cl.query.order import COHERENT_MIN
     traced = []  # the orders the big batches were traced in
     monkeypatch.setattr(all_hits, "device_order",
@@ -480,12 +471,13 @@ def test_big_batches_traced_in_morton_order_answer_in_the_callers_order(tiny, mo
     count = 2 * COHERENT_MIN + 37
     origins, directions = random_rays(tiny, count, seed=31)
     tmax = np.random.default_rng(32).uniform(0.5, 3, count).astype(np.float32)
-    query = tiny.scene._ray_query()
+    query, every, tree = as_the_scene_makes(tiny.scene)
     monkeypatch.setattr(query, "max_rays_per_launch", 700)
     monkeypatch.setattr(all_hits, "COPIED_RAYS_PER_LAUNCH", 300)
     taken = []  # the launches whose rays the host took
-    monkeypatch.setattr(all_hits, "take_rows",
-                        lambda array, rows: taken.append(len(rows)) or order.take_rows(array, rows))
+    take_rows = engine.take_rows
+    monkeypatch.setattr(engine, "take_rows",
+                        lambda array, rows: taken.append(len(rows)) or take_rows(array, rows))
     if copies:
         monkeypatch.setattr(query, "zero_copy", False)
     if copies == "gpu":
@@ -494,9 +486,9 @@ def test_big_batches_traced_in_morton_order_answer_in_the_callers_order(tiny, mo
     if copies == "big":
         monkeypatch.setattr(all_hits, "INDEXED_COPY_MAX", count - 1)
     for max_hits in (None, 2):
-        whole = tiny.scene.intersect_all(origins, directions, tmax=tmax, max_hits=max_hits)
-        parts = [tiny.scene.intersect_all(origins[i:i + 500], directions[i:i + 500],
-                                          tmax=tmax[i:i + 500], max_hits=max_hits)
+        whole = every.intersect_all(tree, origins, directions, tmax=tmax, max_hits=max_hits)
+        parts = [every.intersect_all(tree, origins[i:i + 500], directions[i:i + 500],
+                                     tmax=tmax[i:i + 500], max_hits=max_hits)
                  for i in range(0, count, 500)]
         assert whole.counts.max() >= 3 - (max_hits == 2)
         np.testing.assert_array_equal(whole.counts, np.concatenate([p.counts for p in parts]))
@@ -504,8 +496,8 @@ def test_big_batches_traced_in_morton_order_answer_in_the_callers_order(tiny, mo
             np.testing.assert_array_equal(getattr(whole, name),
                                           np.concatenate([getattr(p, name) for p in parts]), name)
         np.testing.assert_array_equal(whole.ray_index, np.repeat(np.arange(count), whole.counts))
-    np.testing.assert_array_equal(tiny.scene.count_intersections(origins, directions, tmax=tmax),
-                                  tiny.scene.intersect_all(origins, directions, tmax=tmax).counts)
+    np.testing.assert_array_equal(every.count(tree, origins, directions, tmax=tmax),
+                                  every.intersect_all(tree, origins, directions, tmax=tmax).counts)
     assert len(traced) == 4 and all((o != np.arange(count)).any() for o in traced)
     # CPU devices read the whole arrays by slots, up to INDEXED_COPY_MAX rays
     assert bool(taken) == (copies is not None or query.rt.profile.gpu)
@@ -533,7 +525,7 @@ def test_properties(tiny, seed, k, window):
 
 @pytest.mark.parametrize("packet_size", [1, 8, 16])
 def test_count_packets_cross_shared_edges_once(packet_size):
-    """Counting in packets (kernels/all_hits.cl: walk.h's packet path with
+    """Counting in packets (kernels/query/all_hits.cl: walk.h's packet path with
     the counting visitor) keeps one crossing per shared edge and vertex: a
     big batch (Morton order; packets of nearby rays that share their
     direction signs) aimed at a closed grid's inner vertices and cell
@@ -555,13 +547,13 @@ def test_count_packets_cross_shared_edges_once(packet_size):
     jitter[:, 2] = 0
     origins = np.repeat(targets, copies, axis=0) + [0.3, 0.2, -5] + jitter
     aims = np.repeat(targets, copies, axis=0)
-    query = AllHitsQuery(RayQuery(scene._runtime, packet_size=packet_size))
+    query = AllHitsQuery(RayQuery(built.runtime(scene), packet_size=packet_size))
     directions = (aims - origins).astype(np.float32)
-    counts = query.count(scene._built_tree(), origins.astype(np.float32), directions)
+    counts = query.count(built.tree(scene), origins.astype(np.float32), directions)
     assert counts.tolist() == [2] * len(origins)
     case = SceneCase([grid_box(n)])
     random_origins, random_directions = random_rays(case, 2 * COHERENT_MIN, seed=12)
-    got = query.count(scene._built_tree(), random_origins, random_directions)
+    got = query.count(built.tree(scene), random_origins, random_directions)
     np.testing.assert_array_equal(got, scene.intersect_all(random_origins,
                                                             random_directions).counts)
 
@@ -573,7 +565,7 @@ def test_rays_aimed_at_one_point_count_each_crossing_once(packet_size, monkeypat
     several triangles) run ordered by direction (hlbvh_cl.query.order's
     concurrent_rays), so that a packet's rays lie along nearly one line but
     start up to 80 units apart along it: the packet's interval ray is
-    taken from origins moved along their rays (kernels/packet.h).  Every ray
+    taken from origins moved along their rays (kernels/query/rays/packet.h).  Every ray
     enters and leaves the grid once, and crosses each face of a wide slab
     below it that it starts under."""
     from hlbvh_cl.query import all_hits
@@ -588,7 +580,7 @@ def test_rays_aimed_at_one_point_count_each_crossing_once(packet_size, monkeypat
     slab = cube_mesh()
     slab = hlbvh_cl.Mesh(slab.vertices * [80, 80, 10] + [-40, -40, -40], slab.faces, name="slab")
     scene = hlbvh_cl.Scene([grid_box(n), slab])
-    query = AllHitsQuery(RayQuery(scene._runtime, packet_size=packet_size))
+    query = AllHitsQuery(RayQuery(built.runtime(scene), packet_size=packet_size))
     rng = np.random.default_rng(14)
     count = COHERENT_MIN + 300
     for target in ([1.0, 2.0, 0.0], [1.5, 2.0, 0.0], [2.5, 1.5, 0.0]):
@@ -598,7 +590,7 @@ def test_rays_aimed_at_one_point_count_each_crossing_once(packet_size, monkeypat
         depth[np.abs(depth - 40) < 0.01] += 0.05
         origins = (target + depth[:, None] * slant).astype(np.float32)
         directions = (np.float32(target) - origins).astype(np.float32)
-        counts = query.count(scene._built_tree(), origins, directions)
+        counts = query.count(built.tree(scene), origins, directions)
         want = 2 + (origins[:, 2] < -30) + (origins[:, 2] < -40)
         assert (want > 2).any() and (want == 2).any()
         np.testing.assert_array_equal(counts, want, err_msg=str(target))
@@ -621,26 +613,17 @@ def test_fill_packets_give_the_hits_of_one_ray(tiny, max_hits):
     origins = np.concatenate([np.broadcast_to(np.float32([0.05, 0.1, 4.0]), camera.shape),
                               origins]).astype(np.float32)
     directions = np.concatenate([camera, directions]).astype(np.float32)
-    tree = tiny.scene._built_tree()
-    want = AllHitsQuery(RayQuery(tiny.scene._runtime, packet_size=1)).intersect_all(
+    tree = built.tree(tiny.scene)
+    want = AllHitsQuery(RayQuery(built.runtime(tiny.scene), packet_size=1)).intersect_all(
         tree, origins, directions, max_hits=max_hits)
     assert (want.counts[:len(camera)] >= min(2, max_hits or 2)).sum() > 100, \
         "camera rays should cross the sphere"
     for packet_size in (8, 16):
-        got = AllHitsQuery(RayQuery(tiny.scene._runtime, packet_size=packet_size)).intersect_all(
+        got = AllHitsQuery(RayQuery(built.runtime(tiny.scene), packet_size=packet_size)).intersect_all(
             tree, origins, directions, max_hits=max_hits)
         for name in ("offsets", "ray_index", "t", "u", "v", "prim_id", "geom_id", "instance_id"):
             np.testing.assert_array_equal(getattr(got, name), getattr(want, name),
                                           err_msg=f"packets of {packet_size}: {name}")
-
-
-def plates(count: int = 9) -> hlbvh_cl.Mesh:
-    """`count` squares [-1, 1]^2 stacked at z = 0, 1, ..., two triangles each."""
-    vertices = np.array([[x, y, z] for z in range(count) for x, y in
-                         ((-1, -1), (1, -1), (1, 1), (-1, 1))], float)
-    faces = np.array([[q, q + 1, q + 2] for q in range(0, 4 * count, 4)]
-                     + [[q, q + 2, q + 3] for q in range(0, 4 * count, 4)])
-    return hlbvh_cl.Mesh(vertices, faces, name="plates")
 
 
 @pytest.mark.parametrize("max_hits", [None, 2, 6])

@@ -4,7 +4,6 @@ rays that graze an edge; such disagreements must stay below 1e-4 of the rays.
 """
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -1,7 +1,7 @@
-"""Ray packets (kernels/traverse.cl, PACKET_SIZE): on CPUs a work-item traces
+"""Ray packets (kernels/query/rays.cl, PACKET_SIZE): on CPUs a work-item traces
 8 consecutive rays together when they share direction signs and the axis of
 the watertight test, and one by one otherwise.  Every packet size must give
-the oracle's answers (tests/oracle.py), including watertightness; these
+the oracle's answers (tests/support/oracle.py), including watertightness; these
 tests use rays that do form packets, and check that they do.
 """
 from __future__ import annotations
@@ -12,7 +12,8 @@ import pytest
 
 import hlbvh_cl
 from hlbvh_cl.query.rays import PACKET_SIZES, RayQuery
-from ray_cases import (MESHES, _interior_points, _unique_edges, assert_matches_oracle, random_rays,
+import built
+from ray_cases import (MESHES, interior_points, unique_edges, assert_matches_oracle, random_rays,
                        scene_case)
 
 
@@ -43,7 +44,7 @@ def expected_packets(directions: np.ndarray, packet_size: int) -> int:
 def traced(q: RayQuery, query: str, case, origins, directions, **limits):
     """q's query, checking that the kernel formed exactly the packets expected."""
     q.count_packets = True
-    result = getattr(q, query)(case.scene._tree, origins, directions, **limits)
+    result = getattr(q, query)(built.tree(case.scene), origins, directions, **limits)
     expected = expected_packets(directions, q.packet_size) if q.packet_size > 1 else 0
     assert q.last_packets == expected
     return result
@@ -66,7 +67,7 @@ def camera_rays(case, width: int, height: int):
 
 
 def query(case, packet_size: int) -> RayQuery:
-    return RayQuery(case.scene._runtime, packet_size=packet_size)
+    return RayQuery(built.runtime(case.scene), packet_size=packet_size)
 
 
 @pytest.mark.parametrize("packet_size", PACKET_SIZES)
@@ -125,11 +126,11 @@ def test_rays_from_inside_in_packets_always_hit(name, packet_size):
     they form packets."""
     mesh = hlbvh_cl.Mesh.load(MESHES / f"{name}.ply")
     scene = hlbvh_cl.Scene([mesh])
-    q = RayQuery(scene._runtime, packet_size=packet_size)
+    q = RayQuery(built.runtime(scene), packet_size=packet_size)
     vertices = mesh.vertices.astype(np.float64)
-    edges = _unique_edges(mesh.faces)
+    edges = unique_edges(mesh.faces)
     midpoints = (vertices[edges[:, 0]] + vertices[edges[:, 1]]) / 2
-    for origin in _interior_points(mesh, 2, seed=4):
+    for origin in interior_points(mesh, 2, seed=4):
         for what, points in (("vertices", vertices), ("edge midpoints", midpoints)):
             directions = (points - origin).astype(np.float32)
             directions = directions[np.any(directions != 0, axis=1)]
@@ -137,13 +138,13 @@ def test_rays_from_inside_in_packets_always_hit(name, packet_size):
             assert coherent_fraction(directions, packet_size) > 0.6
             origins = np.repeat(origin[None].astype(np.float32), len(directions), 0)
             q.count_packets = True
-            hits = q.intersect(scene._tree, origins, directions)
+            hits = q.intersect(built.tree(scene), origins, directions)
             assert q.last_packets == expected_packets(directions, packet_size)
             missed = np.flatnonzero(~hits.hit)
             assert len(missed) == 0, (f"{name}: {len(missed)} of {len(directions)} rays from "
                                       f"inside aimed at {what} escaped (first: directions "
                                       f"{directions[missed[:3]].tolist()})")
-            assert q.occluded(scene._tree, origins, directions).all()
+            assert q.occluded(built.tree(scene), origins, directions).all()
 
 
 @pytest.mark.parametrize("zero", [0.0, -0.0], ids=["+0", "-0"])
@@ -188,7 +189,7 @@ def test_packets_with_zero_components_on_a_node_plane(sign, packet_size):
     plane x = x0 where a strip of triangles starts (the box of a node's child
     starts there): each such lane ignores that plane, and must still hit
     the strip's edge, in packets where other lanes move along x (the
-    packet's interval ray must keep the child; kernels/packet.h).  With +0
+    packet's interval ray must keep the child; kernels/query/rays/packet.h).  With +0
     some lanes start far apart along z, so the interval ray's origins move;
     with -0 none move."""
     zero = np.float32(0.0) * np.float32(sign)
@@ -204,9 +205,9 @@ def test_packets_with_zero_components_on_a_node_plane(sign, packet_size):
     assert (np.signbit(directions[:, 0]) == (sign < 0)).all()  # one packet class
     want = np.array([3.0 if d[0] == 0 and o[2] == -10 else np.inf for o, d in lanes]
                     * (packet_size // 8), np.float32)
-    tree = scene._built_tree()
+    tree = built.tree(scene)
     for size in (1, packet_size):
-        q = RayQuery(scene._runtime, packet_size=size)
+        q = RayQuery(built.runtime(scene), packet_size=size)
         q.count_packets = True
         hits = q.intersect(tree, origins, directions)
         assert q.last_packets == (1 if size > 1 else 0)
@@ -214,7 +215,7 @@ def test_packets_with_zero_components_on_a_node_plane(sign, packet_size):
         np.testing.assert_array_equal(q.occluded(tree, origins, directions), want < np.inf)
 
 
-STEPS = """#include "query/packet.h"
+STEPS = """#include "query/rays/packet.h"
 __kernel void steps(__global const float* x, __global float* up, __global float* down)
 {
     size_t i = get_global_id(0);
@@ -225,17 +226,17 @@ __kernel void steps(__global const float* x, __global float* up, __global float*
 
 
 def test_float_steps_are_nextafter(suite_device):
-    """packet.h's float_above and float_below (the packet box's one-ulp
+    """query/rays/packet.h's float_above and float_below (the packet box's one-ulp
     growth, by the bits) give C's nextafter toward +inf and -inf bit for bit,
     as numpy computes it: zeros of both signs, subnormals, the largest
     floats, infinities and NaN."""
     import pyopencl as cl
-    from hlbvh_cl.device.runtime import _quiet_build, runtime
+    from hlbvh_cl.device.runtime import quiet_build, runtime
     from hlbvh_cl.core.paths import kernel_dir
     rt = runtime(suite_device)
     options = ["-I", str(kernel_dir())] + [f"-D{name}={value}" for name, value in
                                            {**rt.variant.defines, "PACKET_SIZE": 8}.items()]
-    program = _quiet_build(cl.Program(rt.context, STEPS), options, rt.device.cl_device)
+    program = quiet_build(cl.Program(rt.context, STEPS), options, rt.device.cl_device)
     big, tiny = np.finfo(np.float32).max, np.finfo(np.float32).smallest_subnormal
     x = np.array([0.0, -0.0, tiny, -tiny, 2 * tiny, 1.17549435e-38, -5e-39, 1.0, -1.0, 3.5,
                   -2.75e10, big, -big, np.inf, -np.inf, np.nan], np.float32)

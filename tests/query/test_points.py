@@ -1,6 +1,6 @@
-"""Point queries (hlbvh_cl/points.py, kernels/points.cl): closest points,
+"""Point queries (hlbvh_cl/query/points.py, kernels/query/points.cl): closest points,
 winding numbers, signed distance and inside, against the float64 brute
-force of tests/point_oracle.py, parity ray casting (embreex) on watertight
+force of tests/support/point_oracle.py, parity ray casting (embreex) on watertight
 meshes, and Open3D / libigl on the bunny."""
 from __future__ import annotations
 
@@ -15,6 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import hlbvh_cl
+import built
+from point_cases import assert_signs_off_the_surface, parity_inside, surface_samples
 from point_oracle import brute_force_closest, brute_force_winding
 
 #: Distances agree with the float64 oracle to this much of the scene's size
@@ -90,8 +92,8 @@ def assert_near(got, expected, tolerance):
 
 
 def _all_distances(vertices, faces, points):
-    from point_oracle import _triangles, closest_on_triangles
-    a, b, c = _triangles(vertices, faces)
+    from point_oracle import triangle_corners, closest_on_triangles
+    a, b, c = triangle_corners(vertices, faces)
     return closest_on_triangles(np.asarray(points, np.float64), a, b, c)[0]
 
 
@@ -168,11 +170,12 @@ def _edges_or_face_distance(points, a, b, c):
     """(P, F) float64 distances from points to triangles, independent of
     Ericson's regions: the nearest of the three edges, or the plane where
     the point's projection falls inside (barycentrics by least squares)."""
-    from point_oracle import _segment
+    from point_oracle import closest_on_segment
     p = np.asarray(points, np.float64)[:, None, :]
     a, b, c = (np.asarray(x, np.float64)[None] for x in (a, b, c))
-    best = np.minimum(np.minimum(_segment(a, b - a, p)[0], _segment(a, c - a, p)[0]),
-                      _segment(b, c - b, p)[0])
+    best = np.minimum(np.minimum(closest_on_segment(a, b - a, p)[0],
+                                 closest_on_segment(a, c - a, p)[0]),
+                      closest_on_segment(b, c - b, p)[0])
     ab, ac, ap = b - a, c - a, p - a
     gram = np.stack([np.stack([(ab * ab).sum(-1), (ab * ac).sum(-1)], -1),
                      np.stack([(ac * ab).sum(-1), (ac * ac).sum(-1)], -1)], -2)
@@ -209,8 +212,8 @@ def test_degenerate_and_thin_triangles_and_far_points(case, suite_device):
     scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(vertices, [[0, 1, 2]])], device=suite_device)
     expected = _edges_or_face_distance(points, *vertices[None, :, :].transpose(1, 0, 2))[:, 0]
     for packet_size in (1, 8):
-        got = PointQuery(scene._runtime, packet_size=packet_size).closest_points(
-            scene._built_tree(), points)
+        got = PointQuery(built.runtime(scene), packet_size=packet_size).closest_points(
+            built.tree(scene), points)
         assert np.all(got.prim_id == 0), (case, packet_size)
         np.testing.assert_allclose(got.distance, expected, rtol=1e-5, atol=1e-6,
                                    err_msg=f"{case}, packets of {packet_size}")
@@ -246,8 +249,8 @@ def test_points_just_off_slivers_are_exact(suite_device, placed):
                   + 1e-4 * rng.choice([-1.0, 1.0], (2000, 1)) * normal).astype(np.float32)
         expected = _edges_or_face_distance(points, *corners[:, None, :])[:, 0]
         for packet_size in (1, 8):
-            got = PointQuery(scene._runtime, packet_size=packet_size).closest_points(
-                scene._built_tree(), points)
+            got = PointQuery(built.runtime(scene), packet_size=packet_size).closest_points(
+                built.tree(scene), points)
             np.testing.assert_allclose(got.distance, expected, rtol=0, atol=1e-5,
                                        err_msg=f"height {height}, packets of {packet_size}")
 
@@ -280,8 +283,8 @@ def test_slivers_match_the_oracle(suite_device):
     scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(vertices, faces)], device=suite_device)
     size = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
     for packet_size in (1, 8):
-        got = PointQuery(scene._runtime, packet_size=packet_size).closest_points(
-            scene._built_tree(), points)
+        got = PointQuery(built.runtime(scene), packet_size=packet_size).closest_points(
+            built.tree(scene), points)
         np.testing.assert_allclose(got.distance, expected, rtol=0, atol=DISTANCE_TOLERANCE * size,
                                    err_msg=f"packets of {packet_size}")
 
@@ -312,15 +315,6 @@ def test_winding_numbers_match_brute_force(sphere_scene):
     assert np.array_equal(got >= 0.5, expected >= 0.5)
 
 
-def parity_inside(vertices, faces, points):
-    """Inside by parity ray casting (embreex through trimesh), three
-    directions voting."""
-    pytest.importorskip("embreex")
-    mesh = trimesh.Trimesh(vertices, faces, process=False)
-    assert mesh.is_watertight
-    return mesh.contains(points)
-
-
 def watertight(name, meshes, device):
     """A watertight mesh (an icosphere or one of the project's), and its scene."""
     if name == "icosphere":
@@ -347,32 +341,6 @@ def test_sign_agrees_with_parity_on_watertight_meshes(name, meshes, suite_device
     assert np.array_equal(scene.contains(points)[clear], expected[clear])
 
 
-def surface_samples(rng, vertices, faces, count):
-    """Points on ``count`` distinct random triangles, away from their edges
-    (float64), those triangles' unit normals cross(v1 - v0, v2 - v0), and
-    which triangles they are."""
-    chosen = rng.choice(len(faces), count, replace=False)
-    tri = np.asarray(vertices, np.float64)[faces[chosen]]
-    on = np.einsum("fk,fkd->fd", rng.dirichlet((4, 4, 4), count), tri)
-    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    return on, normal / np.linalg.norm(normal, axis=1, keepdims=True), chosen
-
-
-def assert_signs_off_the_surface(scene, on, outward, least):
-    """Points 1e-6 outside and inside the surface points ``on`` (along the
-    unit ``outward`` directions) get their side's sign from signed_distance
-    and contains: those that float32 rounding leaves truly off the surface,
-    at least ``least`` of each side."""
-    for sign in (1, -1):
-        points = (on + sign * 1e-6 * outward).astype(np.float32)
-        side = np.einsum("fd,fd->f", points.astype(np.float64) - on, outward)
-        off = side * sign > 2e-7
-        assert off.sum() > least
-        sdf = scene.signed_distance(points[off])
-        assert np.all(np.sign(sdf) == sign), f"{(np.sign(sdf) != sign).sum()} flipped signs"
-        assert np.all(scene.contains(points[off]) == (sign < 0))
-
-
 @pytest.mark.parametrize("name", ["icosphere", "bunny_small"])
 def test_sign_is_right_1e_6_off_the_surface(name, meshes, suite_device):
     vertices, faces, scene = watertight(name, meshes, suite_device)
@@ -384,7 +352,7 @@ def test_bunny_agrees_with_open3d_and_libigl(meshes, suite_device):
     o3d = pytest.importorskip("open3d")
     igl = pytest.importorskip("igl")
     # the bunny's faces wind inward (negative volume), so its winding numbers
-    # are near -1 inside: inside is |w| >= 0.5 (hlbvh_cl/points.py)
+    # are near -1 inside: inside is |w| >= 0.5 (hlbvh_cl/query/points.py)
     mesh = meshes["bunny"]
     scene = hlbvh_cl.Scene([mesh], device=suite_device)
     lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
@@ -439,7 +407,7 @@ def test_scaled_frames(scale, suite_device):
     vertices, faces = icosphere(2)
     scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(vertices.astype(np.float64) * scale, faces)],
                            device=suite_device)
-    assert scene._built_tree().scale != 1.0
+    assert built.tree(scene).scale != 1.0
     rng = np.random.default_rng(11)
     points = (rng.uniform(-2, 2, (1000, 3)) * scale).astype(np.float32)
     got = scene.closest_points(points)
@@ -489,10 +457,10 @@ def test_a_small_mesh_in_a_big_frame(radius, placed, suite_device):
     norm = np.linalg.norm(points.astype(np.float64), axis=1) / radius
     inside, outside = norm < 0.9, norm > 1.05
     for packet_size in (1, 8):
-        query = PointQuery(scene._runtime, packet_size=packet_size)
-        got = query.closest_points(scene._built_tree(), points)
+        query = PointQuery(built.runtime(scene), packet_size=packet_size)
+        got = query.closest_points(built.tree(scene), points)
         assert_closest_matches(scene, got, points, size=radius)
-        w = query.winding_numbers(scene._built_tree(), points)
+        w = query.winding_numbers(built.tree(scene), points)
         assert np.isfinite(w).all(), f"packets of {packet_size}"
         assert np.all(np.abs(w[inside]) > 0.9) and np.all(np.abs(w[outside]) < 0.1), \
             f"packets of {packet_size}"
@@ -548,9 +516,9 @@ def test_array_likes(sphere_scene):
 def test_chunks_give_the_same_answers(sphere_scene):
     from hlbvh_cl.query.points import PointQuery
     points = np.random.default_rng(13).uniform(-2, 2, (1000, 3)).astype(np.float32)
-    tree = sphere_scene._built_tree()
-    whole = PointQuery(sphere_scene._runtime)
-    small = PointQuery(sphere_scene._runtime, max_points_per_launch=97)
+    tree = built.tree(sphere_scene)
+    whole = PointQuery(built.runtime(sphere_scene))
+    small = PointQuery(built.runtime(sphere_scene), max_points_per_launch=97)
     a, b = whole.closest_points(tree, points), small.closest_points(tree, points)
     for field in ("distance", "prim_id", "points", "normal"):
         np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
@@ -581,18 +549,16 @@ def test_big_batches_answer_in_place(sphere_scene):
     alone in a small batch, in its own row, also with a flat axis (all z
     equal), repeated points and extents down to a denormal."""
     from hlbvh_cl.query.order import COHERENT_MIN, coherent_order
+    from hlbvh_cl.query.points import PointQuery
     rng = np.random.default_rng(21)
     count = 3 * COHERENT_MIN
     points = rng.uniform(-2, 2, (count, 3)).astype(np.float32)
     points[:, 2] = 0.25
     points[::7] = points[3]
-    small = sphere_scene._point_query().max_points_per_launch
-    sphere_scene._point_query().max_points_per_launch = 1000
-    try:
-        whole = sphere_scene.closest_points(points)
-        sdf = sphere_scene.signed_distance(points)
-    finally:
-        sphere_scene._point_query().max_points_per_launch = small
+    query = PointQuery(built.runtime(sphere_scene))  # as the scene's own, in launches of 1000
+    query.max_points_per_launch = 1000
+    whole = query.closest_points(built.tree(sphere_scene), points)
+    sdf = query.signed_distance(built.tree(sphere_scene), points)
     pieces = [sphere_scene.closest_points(points[i:i + 500]) for i in range(0, count, 500)]
     for name in ("distance", "prim_id", "geom_id", "u", "v", "normal", "points"):
         assert np.array_equal(getattr(whole, name),
@@ -608,8 +574,29 @@ def test_big_batches_answer_in_place(sphere_scene):
 POINT_QUERIES = ("closest_points", "winding_number", "signed_distance", "contains")
 
 
+class _Through:
+    """A scene's point queries (Scene's methods) through a PointQuery of its
+    runtime on its tree, as the scene runs them through its own."""
+
+    def __init__(self, scene, query):
+        self.query, self.tree = query, built.tree(scene)
+
+    def closest_points(self, points):
+        return self.query.closest_points(self.tree, points)
+
+    def winding_number(self, points):
+        return self.query.winding_numbers(self.tree, points)
+
+    def signed_distance(self, points):
+        return self.query.signed_distance(self.tree, points)
+
+    def contains(self, points):
+        return np.abs(self.winding_number(points)) >= 0.5
+
+
 def _answers(scene, points) -> dict:
-    """Every point query's answer (closest_points's fields) on ``points``."""
+    """Every point query's answer (closest_points's fields) on ``points``,
+    from a Scene, or a _Through one."""
     answers = {}
     for query in POINT_QUERIES:
         got = getattr(scene, query)(points)
@@ -621,40 +608,42 @@ def _answers(scene, points) -> dict:
     return answers
 
 
-def _recording(monkeypatch, name: str) -> list:
-    """The (points, outputs) of each PointQuery.<name> call (_run_indexed,
-    _run_chunks), which still runs."""
-    from hlbvh_cl.query.points import PointQuery
-    calls, run = [], getattr(PointQuery, name)
-    monkeypatch.setattr(PointQuery, name, lambda self, points, *rest:
-                        calls.append((points, rest[-1])) or run(self, points, *rest))
-    return calls
+def _recording(monkeypatch, query) -> list:
+    """The Batch of each of ``query``'s engine runs (which still run):
+    batch.whole says whether the kernels used the whole arrays in place."""
+    batches, run = [], query.engine.run
+    monkeypatch.setattr(query.engine, "run",
+                        lambda batch, launch: batches.append(batch) or run(batch, launch))
+    return batches
 
 
 def test_points_the_kernels_use_in_place_start_on_a_page(sphere_scene, monkeypatch):
     """Off zero copy, on a CPU runtime that uses host memory in place only
-    where it starts on a page (Intel's: PointQuery.on_pages), big batches
+    where it starts on a page (Intel's: Engine.outputs_in_place), big batches
     run in place: the points are copied onto a page once, the results are
     lent on pages, and every answer is the copied path's."""
     from hlbvh_cl.query import results
     from hlbvh_cl.query.order import COHERENT_MIN
-    query = sphere_scene._point_query()
+    from hlbvh_cl.query.points import PointQuery
+    query = PointQuery(built.runtime(sphere_scene))  # as the scene's own
+    scene = _Through(sphere_scene, query)
     if query.rt.profile.gpu:
         pytest.skip("GPUs take device copies of the points")
     monkeypatch.setattr(results, "MIN_POOLED_BYTES", 4096)  # this batch's arrays pooled
     count = 2 * COHERENT_MIN
     points = np.random.default_rng(31).uniform(-2, 2, (count + 1, 3)).astype(np.float32)[1:]
     assert points.ctypes.data % results.ALIGNMENT  # off the page its array starts on
-    monkeypatch.setattr(query, "zero_copy", False)
-    monkeypatch.setattr(query, "on_pages", False)
-    want = _answers(sphere_scene, points)
-    monkeypatch.setattr(query, "on_pages", True)
-    in_place, copied = _recording(monkeypatch, "_run_indexed"), _recording(monkeypatch, "_run_chunks")
-    got = _answers(sphere_scene, points)
-    assert not copied and len(in_place) == len(POINT_QUERIES)
-    for placed, outputs in in_place:
+    monkeypatch.setattr(query.engine, "zero_copy", False)
+    monkeypatch.setattr(query.engine, "outputs_in_place", False)
+    want = _answers(scene, points)
+    monkeypatch.setattr(query.engine, "outputs_in_place", True)
+    batches = _recording(monkeypatch, query)
+    got = _answers(scene, points)
+    assert len(batches) == len(POINT_QUERIES) and all(batch.whole for batch in batches)
+    for batch in batches:
+        placed = batch.inputs["input"]
         assert placed is not points and np.array_equal(placed, points)
-        assert results.starts_on_page(placed, *outputs.values())
+        assert results.starts_on_page(placed, *batch.outputs.values())
     for name, array in want.items():
         np.testing.assert_array_equal(got[name], array, err_msg=name)
 
@@ -666,9 +655,10 @@ def test_points_stay_put_when_their_results_are_off_a_page(sphere_scene, monkeyp
     from hlbvh_cl.query import points as points_module
     from hlbvh_cl.query import results
     from hlbvh_cl.query.order import COHERENT_MIN
-    query = sphere_scene._point_query()
-    monkeypatch.setattr(query, "zero_copy", False)
-    monkeypatch.setattr(query, "on_pages", True)
+    query = points_module.PointQuery(built.runtime(sphere_scene))  # as the scene's own
+    scene = _Through(sphere_scene, query)
+    monkeypatch.setattr(query.engine, "zero_copy", False)
+    monkeypatch.setattr(query.engine, "outputs_in_place", True)
     count = 2 * COHERENT_MIN
     monkeypatch.setattr(results, "MIN_POOLED_BYTES", 8 * count)  # points pooled, w not
 
@@ -677,14 +667,14 @@ def test_points_stay_put_when_their_results_are_off_a_page(sphere_scene, monkeyp
         raw = np.empty(int(np.prod(shape)) * dtype.itemsize + 16, np.uint8)
         start = -raw.ctypes.data % 16 + 4
         return raw[start:start + int(np.prod(shape)) * dtype.itemsize].view(dtype).reshape(shape)
-    monkeypatch.setattr(query._results, "empty", off_page)
+    monkeypatch.setattr(query.results, "empty", off_page)
     points = np.random.default_rng(33).uniform(-2, 2, (count + 1, 3)).astype(np.float32)[1:]
     placed = []
     monkeypatch.setattr(points_module, "on_page", lambda pool, array: placed.append(array) or array)
-    copied = _recording(monkeypatch, "_run_chunks")
-    want = sphere_scene.winding_number(points[:500])
-    got = sphere_scene.winding_number(points)
-    assert not placed and len(copied) == 2
+    batches = _recording(monkeypatch, query)
+    want = scene.winding_number(points[:500])
+    got = scene.winding_number(points)
+    assert not placed and [batch.whole for batch in batches] == [False, False]
     np.testing.assert_array_equal(got[:500], want)
 
 
@@ -695,19 +685,21 @@ def test_points_past_a_device_buffer_go_in_chunks(sphere_scene, monkeypatch):
     answers."""
     import dataclasses
     from hlbvh_cl.query.order import COHERENT_MIN
-    query = sphere_scene._point_query()
+    from hlbvh_cl.query.points import PointQuery
+    query = PointQuery(built.runtime(sphere_scene))  # as the scene's own
+    scene = _Through(sphere_scene, query)
     count = 2 * COHERENT_MIN
     points = np.random.default_rng(32).uniform(-2, 2, (count, 3)).astype(np.float32)
-    want = _answers(sphere_scene, points)
-    monkeypatch.setattr(query, "on_pages", True)
+    want = _answers(scene, points)
+    monkeypatch.setattr(query.engine, "outputs_in_place", True)
     monkeypatch.setattr(query, "max_points_per_launch", 100)
-    monkeypatch.setattr(query, "_buffers", {})  # made again within the limit
+    monkeypatch.setattr(query.engine, "reused", {})  # made again within the limit
     limit = points.nbytes // 2
     monkeypatch.setattr(query.rt, "device", dataclasses.replace(query.rt.device,
                                                                 max_mem_alloc_size=limit))
-    in_place, copied = _recording(monkeypatch, "_run_indexed"), _recording(monkeypatch, "_run_chunks")
-    got = _answers(sphere_scene, points)
-    assert not in_place and len(copied) == len(POINT_QUERIES)
+    batches = _recording(monkeypatch, query)
+    got = _answers(scene, points)
+    assert len(batches) == len(POINT_QUERIES) and not any(batch.whole for batch in batches)
     for name, array in want.items():
         np.testing.assert_array_equal(got[name], array, err_msg=name)
 
@@ -745,7 +737,7 @@ def test_batches_past_the_runtimes_buffer_limit_are_answered():
 
 def test_every_packet_size_gives_the_same_closest_points(meshes, suite_device):
     """Closest points walked one per work-item and in packets of 8 and 16
-    (kernels/point_packet.h), on a batch big enough to run in Morton order
+    (kernels/query/points/point_packet.h), on a batch big enough to run in Morton order
     (whole arrays read and written in place where zero copy), uniform in the
     box and near the surface: each matches the brute force, and the sizes
     agree exactly, ties included (they resolve in tree order).  Winding
@@ -768,8 +760,8 @@ def test_every_packet_size_gives_the_same_closest_points(meshes, suite_device):
     winding = brute_force_winding(vertices, faces, points)
     answers = {}
     for packet_size in (1, 8, 16):
-        query = PointQuery(scene._runtime, packet_size=packet_size)
-        tree = scene._built_tree()
+        query = PointQuery(built.runtime(scene), packet_size=packet_size)
+        tree = built.tree(scene)
         got = query.closest_points(tree, points)
         assert assert_closest_matches(scene, got, points, size=size) > count
         w = query.winding_numbers(tree, points)
@@ -787,10 +779,10 @@ def test_every_packet_size_gives_the_same_closest_points(meshes, suite_device):
         # the same terms as one point's walk, summed in another order
         np.testing.assert_allclose(w, first[1], rtol=0, atol=1e-5)
     # a lane's sum does not depend on the other points of its packet
-    query = PointQuery(scene._runtime)
-    w = query.winding_numbers(scene._built_tree(), points)
+    query = PointQuery(built.runtime(scene))
+    w = query.winding_numbers(built.tree(scene), points)
     for part in (slice(None, None, 3), slice(1, None, 2)):
-        np.testing.assert_array_equal(query.winding_numbers(scene._built_tree(), points[part]),
+        np.testing.assert_array_equal(query.winding_numbers(built.tree(scene), points[part]),
                                       w[part])
 
 
@@ -811,7 +803,7 @@ def test_morton_order_uses_every_bit(bits):
 
 @pytest.mark.parametrize("bits", [5, 10])
 def test_device_order_is_the_numpy_order(bits, suite_device):
-    """device_order (Morton keys in kernels/order.cl, the library's radix
+    """device_order (Morton keys in kernels/query/order.cl, the library's radix
     sort) gives exactly numpy's stable coherent_order: random points, a flat
     axis, repeats, a denormal extent, coordinates up to 3e38, one point."""
     from hlbvh_cl.device.runtime import runtime
@@ -833,7 +825,7 @@ def test_device_order_is_the_numpy_order(bits, suite_device):
 
 
 def test_ray_classes_follow_the_packet_rules():
-    """A ray's class (kernels/ray_class.h): kz * 8, the axis of the largest
+    """A ray's class (kernels/query/rays/ray_class.h): kz * 8, the axis of the largest
     direction component with ties to the lower axis, plus 1, 2, 4 for a
     negative x, y, z, -0 included."""
     from hlbvh_cl.query.order import ray_classes
@@ -903,7 +895,7 @@ def test_concurrent_rays_are_rays_aimed_at_one_point():
 
 
 def test_device_ray_order_is_the_numpy_order(suite_device):
-    """device_order with directions (ray_keys in kernels/order.cl: the
+    """device_order with directions (ray_keys in kernels/query/order.cl: the
     class above the origin's code, a 32-bit key) gives exactly numpy's
     coherent_order; the classes come out in order, and rays of one origin
     keep their order within a class (a LiDAR's scan)."""

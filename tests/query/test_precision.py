@@ -1,7 +1,7 @@
 """Precision of the hit distance t (issue 22): relative error <= 1e-6 against
 float64, whatever the ratio of triangle size to hit distance.  Woop's float t
 loses precision on triangles large compared with the hit distance; the kernel
-refines t in double (kernels/traverse.cl, refine_t).  The oracle computes t in
+refines t in double (kernels/query/rays.cl, refine_t).  The oracle computes t in
 float64 from the same float32 inputs the kernel sees.  Every test runs on
 packet sizes 1, 8 and 16 with coherent rays, so that packets form.
 """
@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 
 import hlbvh_cl
 from hlbvh_cl.query.rays import RayQuery
+import built
 from oracle import brute_force_intersect
 
 TOLERANCE = 1e-6
@@ -31,8 +32,8 @@ def plane_t(v0, v1, v2, origins, directions):
 
 def trace(mesh, origins, directions, packet_size):
     scene = hlbvh_cl.Scene([mesh])
-    q = RayQuery(scene._runtime, packet_size=packet_size)
-    return q.intersect(scene._tree, np.asarray(origins, np.float32),
+    q = RayQuery(built.runtime(scene), packet_size=packet_size)
+    return q.intersect(built.tree(scene), np.asarray(origins, np.float32),
                        np.asarray(directions, np.float32))
 
 

@@ -1,5 +1,5 @@
-"""Ray semantics (hlbvh_cl.query.rays, kernels/traverse.cl): closest hit and any
-hit against the float64 brute-force oracle (tests/ray_cases.py), tmin/tmax,
+"""Ray semantics (hlbvh_cl.query.rays, kernels/query/rays.cl): closest hit and any
+hit against the float64 brute-force oracle (tests/support/ray_cases.py), tmin/tmax,
 misses, hits.points, several meshes, refit, input forms and chunks, and
 trees deeper than the stack.  Packets, watertightness and precision have
 their own modules (test_packets, test_watertight, test_precision); bad input
@@ -16,8 +16,9 @@ import hlbvh_cl
 from hlbvh_cl.query.rays import RayQuery
 from hlbvh_cl.core.tree import Tree
 from hlbvh_cl.build.widen import widen
+import built
 from oracle import brute_force_intersect, brute_force_occluded
-from ray_cases import (MESH_MAKERS, MESHES, T_RTOL, SceneCase, _near_edge_or_limit, _scene_cache,
+from ray_cases import (MESH_MAKERS, MESHES, T_RTOL, SceneCase, near_edge_or_limit, scene_cache,
                        assert_matches_oracle, random_rays, scene_case)
 
 
@@ -124,7 +125,7 @@ def test_occluded_with_tmax_matches_oracle(name):
     occluded = case.scene.occluded(origins, directions, tmax=tmax)
     ref = brute_force_occluded(case.vertices, case.faces, origins, directions, 0.0, tmax.astype(np.float32))
     for i in np.flatnonzero(occluded != ref):
-        assert _near_edge_or_limit(case, origins[i], directions[i], 0.0, float(np.float32(tmax[i])))
+        assert near_edge_or_limit(case, origins[i], directions[i], 0.0, float(np.float32(tmax[i])))
     cut = case.scene.intersect(origins, directions, tmax=tmax)
     np.testing.assert_array_equal(occluded, cut.hit)
     assert np.all(cut.t[cut.hit] <= tmax.astype(np.float32)[cut.hit])
@@ -350,33 +351,34 @@ def test_batches_split_into_chunks_equal_one_launch(zero_copy):
     rng = np.random.default_rng(12)
     tmin = rng.uniform(0, 0.2, len(origins))
     tmax = tmin + rng.uniform(0.5, 3, len(origins))
-    whole = RayQuery(case.scene._runtime)
-    chunked = RayQuery(case.scene._runtime, max_rays_per_launch=777)
+    whole = RayQuery(built.runtime(case.scene))
+    chunked = RayQuery(built.runtime(case.scene), max_rays_per_launch=777)
     chunked.zero_copy = zero_copy
     assert chunked.max_rays_per_launch == 777 and whole.max_rays_per_launch >= 5000
-    a = whole.intersect(case.scene._tree, origins, directions, tmin, tmax)
-    b = chunked.intersect(case.scene._tree, origins, directions, tmin, tmax)
+    a = whole.intersect(built.tree(case.scene), origins, directions, tmin, tmax)
+    b = chunked.intersect(built.tree(case.scene), origins, directions, tmin, tmax)
     for field in ("t", "prim_id", "geom_id", "u", "v", "normal"):
         np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
-    np.testing.assert_array_equal(whole.occluded(case.scene._tree, origins, directions, tmin, tmax),
-                                  chunked.occluded(case.scene._tree, origins, directions, tmin, tmax))
+    tree = built.tree(case.scene)
+    np.testing.assert_array_equal(whole.occluded(tree, origins, directions, tmin, tmax),
+                                  chunked.occluded(tree, origins, directions, tmin, tmax))
     assert 0 < a.hit.mean() < 1
 
 
 @pytest.mark.parametrize("zero_copy", [True, False], ids=["in-place", "device-copies"])
 def test_launches_sized_by_their_cost_equal_one_launch(zero_copy, monkeypatch):
-    """Launches of varying sizes (query.LaunchSizes: a small first one, then
+    """Launches of varying sizes (engine.LaunchSizes: a small first one, then
     what each costs allows, here a few rays) give the results of one."""
-    from hlbvh_cl.query import rays as query_module
+    from hlbvh_cl.query import engine
     case = scene_case("bunny_small")
     origins, directions = random_rays(case, 3000, seed=13)
-    whole = RayQuery(case.scene._runtime)
-    expected = whole.intersect(case.scene._tree, origins, directions)
-    monkeypatch.setattr(query_module, "FIRST_LAUNCH", 1000)
-    monkeypatch.setattr(query_module, "LAUNCH_SECONDS", 1e-6)  # a launch's worth: a few rays
-    varied = RayQuery(case.scene._runtime)
+    whole = RayQuery(built.runtime(case.scene))
+    expected = whole.intersect(built.tree(case.scene), origins, directions)
+    monkeypatch.setattr(engine, "FIRST_LAUNCH", 1000)
+    monkeypatch.setattr(engine, "LAUNCH_SECONDS", 1e-6)  # a launch's worth: a few rays
+    varied = RayQuery(built.runtime(case.scene))
     varied.zero_copy = zero_copy
-    got = varied.intersect(case.scene._tree, origins, directions)
+    got = varied.intersect(built.tree(case.scene), origins, directions)
     for field in ("t", "prim_id", "geom_id", "u", "v", "normal", "points"):
         np.testing.assert_array_equal(getattr(got, field), getattr(expected, field))
 
@@ -384,8 +386,8 @@ def test_launches_sized_by_their_cost_equal_one_launch(zero_copy, monkeypatch):
 def test_every_query_sized_by_its_cost_equals_one_launch(monkeypatch):
     """The same for all-hits (count and fill passes) and the point queries,
     whose batches this size go in Morton order (indexed launches)."""
+    from hlbvh_cl.query import engine
     from hlbvh_cl.query import points as points_module
-    from hlbvh_cl.query import rays as query_module
     case = scene_case("bunny_small")
     scene = case.scene
     origins, directions = random_rays(case, 3000, seed=14)
@@ -397,9 +399,9 @@ def test_every_query_sized_by_its_cost_equals_one_launch(monkeypatch):
              "closest_points": lambda: [scene.closest_points(near).distance],
              "signed_distance": lambda: [scene.signed_distance(near)]}
     expected = {name: call() for name, call in calls.items()}
-    monkeypatch.setattr(query_module, "FIRST_LAUNCH", 1000)
+    monkeypatch.setattr(engine, "FIRST_LAUNCH", 1000)
     monkeypatch.setattr(points_module, "FIRST_LAUNCH", 1000)
-    monkeypatch.setattr(query_module, "LAUNCH_SECONDS", 1e-6)
+    monkeypatch.setattr(engine, "LAUNCH_SECONDS", 1e-6)
     for name, call in calls.items():
         for got, want in zip(call(), expected[name]):
             np.testing.assert_array_equal(got, want, err_msg=name)
@@ -412,7 +414,7 @@ class _Ended:
 
 
 def test_launch_sizes_follow_the_cost_per_item():
-    from hlbvh_cl.query.rays import FIRST_LAUNCH, LAUNCH_SECONDS, LaunchSizes
+    from hlbvh_cl.query.engine import FIRST_LAUNCH, LAUNCH_SECONDS, LaunchSizes
     sizes = LaunchSizes(1 << 20)
     assert sizes.size == min(1 << 20, FIRST_LAUNCH)
     sizes.ended(_Ended(4 * LAUNCH_SECONDS), 1000)  # slow: a quarter of those next
@@ -443,18 +445,18 @@ def morton_chain_mesh(duplicates: int = 16384) -> hlbvh_cl.Mesh:
 def test_a_tree_deeper_than_64_traces_within_its_stack(packet_size):
     """Every profile sizes its private stack from the tree's depth: a built
     tree of depth > 64 neither overflows nor loses a hit."""
-    case = _scene_cache.setdefault("chain", SceneCase([morton_chain_mesh()], "lbvh", 63))
+    case = scene_cache.setdefault("chain", SceneCase([morton_chain_mesh()], "lbvh", 63))
     assert case.scene.stats.depth > 64
     centres = case.vertices[case.faces].mean(axis=1)
     chain = centres[:63]  # one ray down onto each triangle of the chain, then some at random
     rng = np.random.default_rng(5)
     origins = np.concatenate([chain + [0, 0, 1], rng.uniform(0, 1, (200, 3)) + [0, 0, 1]])
     directions = np.concatenate([np.tile([0.0, 0, -1], (63, 1)), rng.normal(size=(200, 3))])
-    q = RayQuery(case.scene._runtime, packet_size=packet_size)
-    hits = q.intersect(case.scene._tree, origins, directions)  # raises if the stack overflows
+    q = RayQuery(built.runtime(case.scene), packet_size=packet_size)
+    hits = q.intersect(built.tree(case.scene), origins, directions)  # raises if the stack overflows
     assert hits.hit[:63].all()
     assert_matches_oracle(case, hits, origins, directions)
-    np.testing.assert_array_equal(q.occluded(case.scene._tree, origins, directions), hits.hit)
+    np.testing.assert_array_equal(q.occluded(built.tree(case.scene), origins, directions), hits.hit)
 
 
 @pytest.mark.parametrize("packet_size", [1, 8])
@@ -466,7 +468,7 @@ def test_stack_is_sized_from_the_tree_depth_and_overflow_raises(packet_size):
     import pyopencl as cl
     from hlbvh_cl.core import layout
 
-    rt = scene_case("cube").scene._runtime
+    rt = built.runtime(scene_case("cube").scene)
     levels = 40
     z = np.arange(1, levels + 1, dtype=np.float32)  # triangle k at z = k + 1
     tris = np.zeros(levels, layout.TRIANGLE)

@@ -2,7 +2,7 @@
 dimensions kept in the results, one origin broadcast to many directions,
 Open3D's packed (..., 6) rays, and array-likes of any numeric kind.  Each
 form is checked against the same rays given as plain (R, 3) float32 rows,
-whose answers tests/test_rays.py checks against the float64 oracle."""
+whose answers tests/query/test_rays.py checks against the float64 oracle."""
 from __future__ import annotations
 
 import numpy as np

@@ -7,13 +7,12 @@ Interior points are found with the float64 oracle, not with the kernels.
 """
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 import hlbvh_cl
-from ray_cases import _interior_points, _unique_edges
+from ray_cases import interior_points, unique_edges
 import places
 
 MESHES = places.MESHES
@@ -32,10 +31,10 @@ def closed(request):
 def test_rays_from_inside_always_hit(closed):
     mesh, scene = closed
     vertices = mesh.vertices.astype(np.float64)
-    edges = _unique_edges(mesh.faces)
+    edges = unique_edges(mesh.faces)
     midpoints = (vertices[edges[:, 0]] + vertices[edges[:, 1]]) / 2
     rng = np.random.default_rng(1)
-    for origin in _interior_points(mesh, INTERIOR_POINTS, seed=2):
+    for origin in interior_points(mesh, INTERIOR_POINTS, seed=2):
         targets = {
             "vertices": vertices,
             "edge midpoints": midpoints,

@@ -1,7 +1,7 @@
-"""The renderer (hlbvh_cl/render.py, kernels/camera.cl, kernels/shade.cl)
-against images rebuilt here from the documented definitions (render.py's
+"""The renderer (hlbvh_cl/render/, kernels/render/camera.cl, kernels/render/integrators/direct.cl)
+against images rebuilt here from the documented definitions (hlbvh_cl/render/integrators/direct.py's
 docstring, scenefile.py's camera convention) with the float64 brute-force
-oracle (tests/oracle.py) in place of the BVH.  Bad arguments: test_validation.py.
+oracle (tests/support/oracle.py) in place of the BVH.  Bad arguments: test_validation.py.
 
 The device works in float32 and the oracle in float64, so a pixel whose ray
 grazes a triangle's edge, or whose shadow / AO ray grazes one, may go either
@@ -15,8 +15,11 @@ import numpy as np
 import pytest
 
 import hlbvh_cl
-from hlbvh_cl.render import renderer as render_module
+from hlbvh_cl.render import integrators, settings as render_settings
+from hlbvh_cl.render.integrators import direct
+from hlbvh_cl.render.renderer import Pipeline, check_settings
 from hlbvh_cl.query.rays import PACKET_SIZES, RayQuery
+import built
 from oracle import brute_force_intersect, brute_force_occluded
 from render_scene import CAMERA, COLORS, LIGHT, render_meshes, renderer, scene  # noqa: F401
 
@@ -25,7 +28,7 @@ LEVELS = 1                # 8-bit levels a matching pixel may be off by
 MAX_DIFFERENT = 0.01      # fraction of pixels that may differ by more
 
 
-# -- the scene (tests/render_scene.py) as float64 arrays -----------------------------
+# -- the scene (tests/support/render_scene.py) as float64 arrays -----------------------------
 
 @pytest.fixture(scope="module")
 def geometry():
@@ -99,7 +102,7 @@ def sky(directions, camera):
     unit = directions / np.linalg.norm(directions, axis=1, keepdims=True)
     up = np.asarray(camera.up) / np.linalg.norm(camera.up)
     s = np.clip(unit @ up, 0, 1)[:, None]
-    horizon, zenith = np.asarray(render_module.SKY_HORIZON), np.asarray(render_module.SKY_ZENITH)
+    horizon, zenith = np.asarray(direct.SKY_HORIZON), np.asarray(direct.SKY_ZENITH)
     return (1 - s) * horizon + s * zenith
 
 
@@ -158,7 +161,7 @@ def test_diffuse_without_shadows_matches_the_oracle(scene, renderer, geometry):
 
 
 # Sizes whose widths and heights are not multiples of the pixel tiles that
-# rays are traced in (hlbvh.h, pixel_in_pass: last bands of 1, 2 and 3 rows,
+# rays are traced in (render/tiles.h, pixel_in_pass: last bands of 1, 2 and 3 rows,
 # last columns of 1, 2 and 3), as well as one that is.
 @pytest.mark.parametrize("width, height", [(WIDTH, HEIGHT), (50, 37), (33, 17), (3, 5), (21, 19),
                                            (13, 30)])
@@ -196,7 +199,7 @@ def test_ambient_occlusion_matches_the_oracle(scene, renderer, geometry):
     eye, directions = camera_rays(CAMERA, WIDTH, HEIGHT)
     h = primary_hits(geometry, eye, directions)
     lo, hi = scene_box(geometry)
-    reach = render_module.AO_DISTANCE_SCALE * np.linalg.norm(hi - lo)
+    reach = direct.AO_DISTANCE_SCALE * np.linalg.norm(hi - lo)
     pixels = np.flatnonzero(h["hit"])
     n = h["normal"][pixels]
     # Duff et al. 2017's basis around n, then Malley's cosine-weighted directions
@@ -256,12 +259,12 @@ def test_renders_are_deterministic(scene, renderer, options):
 def test_rendering_in_row_chunks_gives_the_same_image(scene, renderer, options):
     whole = renderer.render(CAMERA, 50, 37, **options)
     # at most 3 rows of 50 pixels per launch: 13 chunks, the last one short
-    small = render_module._Pipeline(scene._runtime, RayQuery(scene._runtime, max_rays_per_launch=170))
+    rt = built.runtime(scene)
+    small = Pipeline(rt, RayQuery(rt, max_rays_per_launch=170))
     assert small.chunk_rows(50, 37) == 3
-    settings = render_module.RenderSettings.check(CAMERA, 50, 37, options.get("shading", "diffuse"),
-                                                  True, options.get("spp", 1),
-                                                  options.get("ao_samples", 16), None)
-    chunked = small.render(scene._tree, settings, np.asarray(COLORS, np.float32), LIGHT)
+    settings = check_settings(CAMERA, 50, 37, options.get("shading", "diffuse"), True,
+                              options.get("spp", 1), options.get("ao_samples", 16), None)
+    chunked = small.render(built.tree(scene), settings, np.asarray(COLORS, np.float32), LIGHT)
     assert np.array_equal(chunked, whole)
 
 
@@ -269,19 +272,20 @@ def test_rendering_in_row_chunks_gives_the_same_image(scene, renderer, options):
 def test_every_packet_size_renders_the_same_image(scene, options):
     # 50 x 37: tiles cut short at the right and bottom edges; a packet of 8 is
     # half a tile, one of 16 a whole one (the runtime's kernel variant)
-    settings = render_module.RenderSettings.check(CAMERA, 50, 37, options.get("shading", "diffuse"),
-                                                  True, 1, options.get("ao_samples", 16), None)
+    settings = check_settings(CAMERA, 50, 37, options.get("shading", "diffuse"), True, 1,
+                              options.get("ao_samples", 16), None)
     images = {}
+    rt, tree = built.runtime(scene), built.tree(scene)
     for size in PACKET_SIZES:
-        renderer = render_module._Pipeline(scene._runtime, RayQuery(scene._runtime, packet_size=size))
-        images[size] = renderer.render(scene._tree, settings, np.asarray(COLORS, np.float32), LIGHT)
+        renderer = Pipeline(rt, RayQuery(rt, packet_size=size))
+        images[size] = renderer.render(tree, settings, np.asarray(COLORS, np.float32), LIGHT)
     assert images[1].shape == (37, 50, 3) and images[1].std() > 0
     for size, image in images.items():
         assert np.array_equal(image, images[1]), f"packet size {size} renders another image"
 
 
 def test_every_mode_gives_an_image_of_the_asked_size(scene, renderer):
-    for shading in render_module.SHADINGS:
+    for shading in integrators.SHADINGS:
         image = renderer.render(CAMERA, 33, 17, shading=shading, ao_samples=2)
         assert image.shape == (17, 33, 3) and image.dtype == np.uint8
         assert len(np.unique(image.reshape(-1, 3), axis=0)) >= 5
@@ -294,7 +298,7 @@ def test_every_mode_gives_an_image_of_the_asked_size(scene, renderer):
 def test_default_colors_and_light():
     meshes = render_meshes()
     plain = hlbvh_cl.Renderer(hlbvh_cl.Scene(meshes))
-    assert plain.colors == [render_module.PALETTE[i] for i in range(len(meshes))]
+    assert plain.colors == [render_settings.PALETTE[i] for i in range(len(meshes))]
     assert np.allclose(np.linalg.norm(plain.light.direction), 1.0)
     image = plain.render(CAMERA, 20, 15)
     assert image.shape == (15, 20, 3)

@@ -3,7 +3,6 @@ package of the checkout, not of the install), and the numbers of a JSON tree."""
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 import places
 
 ROOT = places.REPO

@@ -10,7 +10,7 @@ import numpy as np
 
 from hlbvh_cl.core import layout
 from hlbvh_cl.core.frame import to_frame
-from hlbvh_cl.query.rays import stack_size
+from hlbvh_cl.query.engine import stack_size
 
 ARITY = layout.WIDE_ARITY
 
@@ -22,15 +22,19 @@ def _lane_boxes(nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
-def check_tree(scene) -> dict:
+def check_tree(scene, tree=None, queue=None) -> dict:
     """Assert every invariant of ``scene``'s tree; return what was derived:
     every triangle in exactly one leaf, the refs a permutation matching the
     meshes, every lane's box exactly the union of what it holds (so a node's
     box contains its children's), every node reached once and level by level
     as ``levels`` says, the depth and the stats right, and a traversal stack
-    that cannot overflow."""
-    q = scene._runtime.queue
-    tree = scene._tree
+    that cannot overflow.  ``tree`` read on ``queue``: another tree to check
+    against ``scene``'s meshes, stats and builder (by default the scene's
+    own, borrowed)."""
+    if tree is None:
+        with scene.borrow() as built:
+            tree, queue = built.tree, built.runtime.queue
+    q = queue
     nodes = tree.read_nodes(q)
     tris, refs = tree.read_triangles(q)
     n = tree.triangle_count

@@ -24,7 +24,7 @@ import numpy as np
 CHUNK_ELEMENTS = 1 << 19
 
 
-def _prepare(vertices, faces, origins, directions, tmin, tmax):
+def prepare(vertices, faces, origins, directions, tmin, tmax):
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
     origins = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
@@ -41,7 +41,7 @@ def _prepare(vertices, faces, origins, directions, tmin, tmax):
     return origins, directions, tmin, tmax, v0, edge1, edge2, normal, valid
 
 
-def _chunks(ray_count: int, tri_count: int):
+def chunks(ray_count: int, tri_count: int):
     tri_step = max(1, min(tri_count, CHUNK_ELEMENTS))
     ray_step = max(1, CHUNK_ELEMENTS // tri_step)
     for r in range(0, ray_count, ray_step):
@@ -49,7 +49,7 @@ def _chunks(ray_count: int, tri_count: int):
             yield slice(r, min(r + ray_step, ray_count)), slice(f, min(f + tri_step, tri_count))
 
 
-def _moller_trumbore(o, d, v0, edge1, edge2, valid, tmin, tmax):
+def moller_trumbore(o, d, v0, edge1, edge2, valid, tmin, tmax):
     """t, u, v and hit mask for rays (R) x triangles (F), all (R, F)."""
     pvec = np.cross(d[:, None, :], edge2[None, :, :])
     det = np.einsum("fk,rfk->rf", edge1, pvec)
@@ -71,16 +71,16 @@ def brute_force_intersect(vertices, faces, origins, directions, tmin=0.0, tmax=n
 
     tmin and tmax are scalars or one value per ray.
     """
-    o, d, tmin, tmax, v0, edge1, edge2, normal, valid = _prepare(
+    o, d, tmin, tmax, v0, edge1, edge2, normal, valid = prepare(
         vertices, faces, origins, directions, tmin, tmax)
     count = len(o)
     best_t = np.full(count, np.inf)
     best_prim = np.full(count, -1, dtype=np.int64)
     best_u = np.zeros(count)
     best_v = np.zeros(count)
-    for rays, tris in _chunks(count, len(v0)):
-        t, u, v, hit = _moller_trumbore(o[rays], d[rays], v0[tris], edge1[tris], edge2[tris],
-                                        valid[tris], tmin[rays], tmax[rays])
+    for rays, tris in chunks(count, len(v0)):
+        t, u, v, hit = moller_trumbore(o[rays], d[rays], v0[tris], edge1[tris], edge2[tris],
+                                       valid[tris], tmin[rays], tmax[rays])
         t = np.where(hit, t, np.inf)
         local = np.argmin(t, axis=1)  # first minimum: the lowest index among ties
         rows = np.arange(len(local))
@@ -100,12 +100,12 @@ def brute_force_intersect(vertices, faces, origins, directions, tmin=0.0, tmax=n
 
 def brute_force_occluded(vertices, faces, origins, directions, tmin=0.0, tmax=np.inf) -> np.ndarray:
     """True for every ray that hits any triangle with tmin <= t <= tmax."""
-    o, d, tmin, tmax, v0, edge1, edge2, _, valid = _prepare(
+    o, d, tmin, tmax, v0, edge1, edge2, _, valid = prepare(
         vertices, faces, origins, directions, tmin, tmax)
     occluded = np.zeros(len(o), dtype=bool)
-    for rays, tris in _chunks(len(o), len(v0)):
-        *_, hit = _moller_trumbore(o[rays], d[rays], v0[tris], edge1[tris], edge2[tris],
-                                   valid[tris], tmin[rays], tmax[rays])
+    for rays, tris in chunks(len(o), len(v0)):
+        *_, hit = moller_trumbore(o[rays], d[rays], v0[tris], edge1[tris], edge2[tris],
+                                  valid[tris], tmin[rays], tmax[rays])
         occluded[rays] |= hit.any(axis=1)
     return occluded
 
@@ -118,14 +118,14 @@ def brute_force_all_hits(vertices, faces, origins, directions, tmin=0.0, tmax=np
     meets within [tmin, tmax] (hit or not), and ``gap``: the smallest
     relative difference between consecutive hits' t.  Rays with a small
     margin may go either way in float32; with a small gap may swap order."""
-    o, d, tmin, tmax, v0, edge1, edge2, _, valid = _prepare(
+    o, d, tmin, tmax, v0, edge1, edge2, _, valid = prepare(
         vertices, faces, origins, directions, tmin, tmax)
     count = len(o)
     rays, prims, ts, us, vs = [], [], [], [], []
     margin = np.full(count, np.inf)
-    for rows, tris in _chunks(count, len(v0)):
-        t, u, v, hit = _moller_trumbore(o[rows], d[rows], v0[tris], edge1[tris], edge2[tris],
-                                        valid[tris], tmin[rows], tmax[rows])
+    for rows, tris in chunks(count, len(v0)):
+        t, u, v, hit = moller_trumbore(o[rows], d[rows], v0[tris], edge1[tris], edge2[tris],
+                                       valid[tris], tmin[rows], tmax[rows])
         with np.errstate(invalid="ignore"):
             crossed = np.isfinite(t) & (t >= tmin[rows, None]) & (t <= tmax[rows, None])
             distance = np.minimum(np.minimum(np.abs(u), np.abs(v)), np.abs(1 - u - v))

@@ -16,13 +16,13 @@ import numpy as np
 CHUNK_ELEMENTS = 1 << 18
 
 
-def _triangles(vertices, faces):
+def triangle_corners(vertices, faces):
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int64)
     return v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
 
 
-def _segment(a, ab, p):
+def closest_on_segment(a, ab, p):
     """Squared distance from p to the segment a + s ab, s in [0, 1], and s."""
     length2 = np.einsum("...k,...k->...", ab, ab)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -73,7 +73,8 @@ def closest_on_triangles(p, a, b, c):
     normal = np.cross(ab, ac)
     degenerate = np.broadcast_to(~np.any(normal != 0, axis=-1), shape)
     if degenerate.any():
-        e = [_segment(a_, ab, p), _segment(a_, ac, p), _segment(b_, (c - b)[None], p)]
+        e = [closest_on_segment(a_, ab, p), closest_on_segment(a_, ac, p),
+             closest_on_segment(b_, (c - b)[None], p)]
         best = np.minimum(np.minimum(e[0][0], e[1][0]), e[2][0])
         dist2 = np.where(degenerate, best, dist2)
     return dist2, u, v
@@ -81,7 +82,7 @@ def closest_on_triangles(p, a, b, c):
 
 def brute_force_closest(vertices, faces, points, max_distance=np.inf) -> dict:
     """distance, index (-1: none within max_distance), u, v, points."""
-    a, b, c = _triangles(vertices, faces)
+    a, b, c = triangle_corners(vertices, faces)
     points = np.asarray(points, np.float64).reshape(-1, 3)
     count = len(points)
     best = np.full(count, np.inf)
@@ -111,7 +112,7 @@ def brute_force_closest(vertices, faces, points, max_distance=np.inf) -> dict:
 
 def brute_force_winding(vertices, faces, points) -> np.ndarray:
     """The exact generalized winding number of each point, float64."""
-    a, b, c = _triangles(vertices, faces)
+    a, b, c = triangle_corners(vertices, faces)
     points = np.asarray(points, np.float64).reshape(-1, 3)
     out = np.zeros(len(points))
     step = max(1, CHUNK_ELEMENTS // max(1, len(a)))

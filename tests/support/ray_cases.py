@@ -1,5 +1,5 @@
 """Scenes, rays and the comparison with the float64 brute-force oracle
-(tests/oracle.py) that the ray tests share (test_rays, test_packets,
+(tests/support/oracle.py) that the ray tests share (test_rays, test_packets,
 test_watertight, test_memory, test_validation, test_oclgrind).
 
 Agreement is exact for hit/miss, prim_id and geom_id, except where float32
@@ -9,7 +9,6 @@ exceptions are recomputed in float64 here, never assumed.
 """
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 
@@ -91,13 +90,13 @@ class SceneCase:
         return out
 
 
-_scene_cache: dict[str, SceneCase] = {}
+scene_cache: dict[str, SceneCase] = {}
 
 
 def scene_case(name: str) -> SceneCase:
-    if name not in _scene_cache:
-        _scene_cache[name] = SceneCase([MESH_MAKERS[name]()])
-    return _scene_cache[name]
+    if name not in scene_cache:
+        scene_cache[name] = SceneCase([MESH_MAKERS[name]()])
+    return scene_cache[name]
 
 
 # -- rays ---------------------------------------------------------------------
@@ -137,7 +136,7 @@ def _pair_test(case: SceneCase, origins, directions, prims):
     return t, np.where(np.isfinite(margin), margin, -np.inf)
 
 
-def _near_edge_or_limit(case, origin, direction, tmin, tmax) -> bool:
+def near_edge_or_limit(case, origin, direction, tmin, tmax) -> bool:
     """Whether some triangle is hit or missed only by float32 rounding: the ray
     passes within EDGE_TOLERANCE (barycentric) of it, or its t is within
     T_RTOL of tmin or tmax."""
@@ -162,7 +161,7 @@ def assert_matches_oracle(case: SceneCase, hits: Hits, origins, directions, tmin
 
     # hit / miss
     for i in np.flatnonzero(hits.hit != ref_hit):
-        assert _near_edge_or_limit(case, origins[i], directions[i], tmin_all[i], tmax_all[i]), (
+        assert near_edge_or_limit(case, origins[i], directions[i], tmin_all[i], tmax_all[i]), (
             f"ray {i}: kernel {'hits' if hits.hit[i] else 'misses'}, oracle "
             f"{'hits' if ref_hit[i] else 'misses'}, and no triangle is within rounding")
 
@@ -208,7 +207,7 @@ def _signed_volume(vertices, faces) -> float:
     return float(np.einsum("ij,ij->i", v0, np.cross(v1, v2)).sum() / 6)
 
 
-def _interior_points(mesh: hlbvh_cl.Mesh, count: int, seed: int) -> np.ndarray:
+def interior_points(mesh: hlbvh_cl.Mesh, count: int, seed: int) -> np.ndarray:
     """Points that the oracle sees inside: from each, the first triangle hit in
     every one of 9 random directions is seen from its back (inner) side."""
     vertices = mesh.vertices.astype(np.float64)
@@ -240,6 +239,6 @@ def _interior_points(mesh: hlbvh_cl.Mesh, count: int, seed: int) -> np.ndarray:
     return np.array(found)
 
 
-def _unique_edges(faces: np.ndarray) -> np.ndarray:
+def unique_edges(faces: np.ndarray) -> np.ndarray:
     edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     return np.unique(np.sort(edges, axis=1), axis=0)

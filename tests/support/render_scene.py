@@ -3,7 +3,6 @@ camera, light and colours, and the module-scoped `scene` and `renderer`
 fixtures that test_render and test_validation import."""
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest

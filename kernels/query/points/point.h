@@ -8,8 +8,7 @@
 #ifndef POINT_H
 #define POINT_H
 
-#include "query/node.h"
-#include "query/triangle.h"
+#include "query/walk/node.h"
 
 /* The query point, in the tree's frame. */
 typedef struct {
@@ -40,7 +39,7 @@ typedef PointData Rays_point;
  * none), its squared distance `reach` (the walk drops boxes farther than
  * it), the closest point on it and its barycentrics (point = (1-u-v)*v0 +
  * u*v1 + v*v2); or the winding walk's sum of solid angles (4 pi times the
- * winding number).  In a two-level scene (points.cl) the squared distance
+ * winding number).  In a two-level scene (instance.h) the squared distance
  * is `best`, in the top frame, with the instance that holds the triangle
  * (its index then counts from its mesh's first triangle), and `reach` is
  * the bound in the frame of the tree being walked. */
@@ -54,42 +53,60 @@ typedef struct {
     int instance;
 #endif
 } Found_point;
-#define reach_point(s) ((s)->reach)
+TRAVERSAL_INLINE float reach_point(const Found_point* s) { return s->reach; }
 
 /* A walk's start: nothing found, squared reach `reach`. */
+TRAVERSAL_INLINE void start_point(Found_point* s, float reach)
+{
 #ifdef INSTANCES
-#define POINT_START(reach) {-1, reach, 0.0f, 0.0f, 0.0f, reach, -1}
+    Found_point start = {-1, reach, 0.0f, 0.0f, 0.0f, reach, -1};
 #else
-#define POINT_START(reach) {-1, reach, 0.0f, 0.0f, 0.0f}
+    Found_point start = {-1, reach, 0.0f, 0.0f, 0.0f};
 #endif
+    *s = start;
+}
 
 /* Squared distance from the point to each child's box, one lane each
- * (0 inside); the children within the reach as a mask.  An unused slot's
- * empty box (lo = +inf > hi = -inf) is left out by its lo <= hi test, as
- * its distance (+inf) does not exceed an infinite reach. */
+ * (0 inside).  (Row macros: they name a node's field.) */
 #define NODE_ROW(row) LOAD_ROW(float_lanes, node->row)
 #define BOX_GAP(lo, hi, q) GROW_HI(GROW_HI((float_lanes)(0.0f), NODE_ROW(lo) - (q)), (q) - NODE_ROW(hi))
-TRAVERSAL_INLINE uint children_point(const PointData* q, __global const WideNode* node,
-                                     const Found_point* s, ChildEntries* entry)
+TRAVERSAL_INLINE float_lanes box_distance2(const PointData* q, __global const WideNode* node)
 {
     float_lanes dx = BOX_GAP(lo_x, hi_x, q->x);
     float_lanes dy = BOX_GAP(lo_y, hi_y, q->y);
     float_lanes dz = BOX_GAP(lo_z, hi_z, q->z);
-    entry->lanes = (dx * dx + dy * dy) + dz * dz;
+    return (dx * dx + dy * dy) + dz * dz;
+}
+#undef BOX_GAP
+
+/* The children within the reach (box_distance2) as a mask.  An unused
+ * slot's empty box (lo = +inf > hi = -inf) is left out by its lo <= hi
+ * test, as its distance (+inf) does not exceed an infinite reach. */
+TRAVERSAL_INLINE uint children_point(const PointData* q, __global const WideNode* node,
+                                     const Found_point* s, ChildEntries* entry)
+{
+    entry->lanes = box_distance2(q, node);
     return lane_mask((entry->lanes <= (float_lanes)(s->reach))
                      & (NODE_ROW(lo_x) <= NODE_ROW(hi_x)));
 }
-#undef BOX_GAP
 
 /* Barill et al. 2018, sec. 3: a cluster whose centre lies farther than
  * BETA times its radius from the point counts by its dipole alone. */
 #define WINDING_BETA 2.0f
 
+#define DIPOLE_ROW(row) LOAD_ROW(float_lanes, dipole->row)
+
+/* The children's dipole fluxes a.d, one lane each. */
+TRAVERSAL_INLINE float_lanes dipole_flux(__global const WideDipoles* dipole, float_lanes dx,
+                                         float_lanes dy, float_lanes dz)
+{
+    return (DIPOLE_ROW(a_x) * dx + DIPOLE_ROW(a_y) * dy) + DIPOLE_ROW(a_z) * dz;
+}
+
 /* The winding walk's node test: the children far enough from the point
  * (Barill's |q - p| > beta r) add their dipole's solid angle a.(p - q) /
  * |p - q|^3 to the sum and are not descended; the others (used slots) are,
  * in any order: the walk is unordered (QUERY_UNORDERED), so no entry is set. */
-#define DIPOLE_ROW(row) LOAD_ROW(float_lanes, dipole->row)
 TRAVERSAL_INLINE uint children_winding(const PointData* q, __global const WideNode* node,
                                        __global const WideDipoles* dipole, Found_point* s,
                                        ChildEntries* entry)
@@ -101,16 +118,15 @@ TRAVERSAL_INLINE uint children_winding(const PointData* q, __global const WideNo
     int_lanes far = d2 > near * near;
     /* far lanes have d2 > 0; an unused slot's dipole is 0 (far unless the
      * point sits at its centre 0, and never descended) */
-#define FLUX(dx, dy, dz) ((DIPOLE_ROW(a_x) * (dx) + DIPOLE_ROW(a_y) * (dy)) + DIPOLE_ROW(a_z) * (dz))
     float_lanes term;
     if (lane_mask(d2 < (float_lanes)(SCALE_BELOW)) == 0) {
-        term = FLUX(dx, dy, dz) / (d2 * LANES_ROOT(d2));
+        term = dipole_flux(dipole, dx, dy, dz) / (d2 * lanes_root(d2));
     } else {  /* a.(s d) / |s d|^3 = a.d / (s^2 |d|^3): see UNIT_SCALE */
         float_lanes unit = UNIT_SCALE(int_lanes, as_int8, as_float8, d2), unit2 = unit * unit;
         float_lanes scaled = d2 * unit2;
-        term = FLUX(dx * unit, dy * unit, dz * unit) / (scaled * LANES_ROOT(scaled)) * unit2;
+        term = dipole_flux(dipole, dx * unit, dy * unit, dz * unit) / (scaled * lanes_root(scaled))
+               * unit2;
     }
-#undef FLUX
     term = as_float8(as_int8(term) & far);
     float4 halves = term.lo + term.hi;
     float2 quarter = halves.lo + halves.hi;
@@ -201,7 +217,7 @@ TRAVERSAL_INLINE bool thin_triangle(float3 ab, float3 ac)
 #else
 #define THIN(ab, ac) thin_triangle(ab, ac)
 #endif
-#include "query/closest_corners.h"
+#include "query/points/closest_corners.h"
 #undef REAL
 #undef REAL3
 #undef CORNERS
@@ -211,7 +227,7 @@ TRAVERSAL_INLINE bool thin_triangle(float3 ab, float3 ac)
 #define REAL3 double3
 #define CORNERS(name) CONCAT(name, _double)
 #define THIN(ab, ac) false
-#include "query/closest_corners.h"
+#include "query/points/closest_corners.h"
 #undef REAL
 #undef REAL3
 #undef CORNERS

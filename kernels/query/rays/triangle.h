@@ -7,7 +7,7 @@
 #ifndef TRIANGLE_H
 #define TRIANGLE_H
 
-#include "query/node.h"
+#include "query/walk/node.h"
 
 /* Watertightness needs each edge function to be computed the same way by the
  * two triangles that share the edge; a fused multiply-add would round the two
@@ -25,33 +25,6 @@ TRAVERSAL_INLINE void geometric_normal(__global const Triangle* tri, float* nx, 
     *nz = e1x * e2y - e1y * e2x;
 }
 
-/* w at unit length, scaled by its largest component first so that tiny or
- * huge vectors neither underflow nor overflow the squared length; a zero
- * vector (the normal of a zero-area triangle, which a closest-point query
- * can find) stays zero. */
-TRAVERSAL_INLINE float3 unit_vector(float3 w)
-{
-    float largest = GROW_HI(GROW_HI(ABS_FLOAT(w.x), ABS_FLOAT(w.y)), ABS_FLOAT(w.z));
-    if (largest == 0.0f)
-        return w;
-    w = w * (1.0f / largest);
-    return w * (1.0f / SQUARE_ROOT(w.x * w.x + w.y * w.y + w.z * w.z));
-}
-
-/* The unit geometric normal of the triangle (a, b, c), as geometric_normal
- * computes it (see unit_vector). */
-TRAVERSAL_INLINE float3 corners_normal(float3 a, float3 b, float3 c)
-{
-    float3 e1 = b - a, e2 = c - a;
-    return unit_vector((float3)(e1.y * e2.z - e1.z * e2.y, e1.z * e2.x - e1.x * e2.z,
-                                e1.x * e2.y - e1.y * e2.x));
-}
-
-TRAVERSAL_INLINE float3 unit_normal(__global const Triangle* tri)
-{
-    return corners_normal(LOAD_XYZ(tri->v0), LOAD_XYZ(tri->v1), LOAD_XYZ(tri->v2));
-}
-
 #ifdef cl_khr_fp64
 /* Woop's t = (e_u*Az + e_v*Bz + e_w*Cz)/det is float arithmetic on the
  * sheared vertices: when the triangle is large compared with the hit
@@ -62,7 +35,7 @@ TRAVERSAL_INLINE float3 unit_normal(__global const Triangle* tri)
  * only the plane's own rounding (~1e-16 relative) is left.  The edge test
  * still decides inside/outside (watertightness).  Both paths evaluate these
  * expressions in the same order (no contraction, FP_CONTRACT OFF above), so
- * single rays and packets give identical t. */
+ * single rays and packets give identical t: macros, for both paths' types. */
 #define REFINE_NUM(vx, vy, vz, ox, oy, oz, nx, ny, nz) \
     ((((vx) - (ox)) * (nx) + ((vy) - (oy)) * (ny)) + ((vz) - (oz)) * (nz))
 #define REFINE_DEN(dx, dy, dz, nx, ny, nz) (((dx) * (nx) + (dy) * (ny)) + (dz) * (nz))

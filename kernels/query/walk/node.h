@@ -6,10 +6,9 @@
 #ifndef NODE_H
 #define NODE_H
 
-#include "core/hlbvh.h"
-
-/* Traversal arithmetic as written, never fused: see triangle.h. */
-#pragma OPENCL FP_CONTRACT OFF
+#include "core/portable.h"
+#include "core/spelled.h"
+#include "core/tree.h"
 
 #ifdef cl_khr_fp64
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
@@ -24,6 +23,12 @@ typedef float8 float_lanes;
 typedef int8 int_lanes;
 #define LANES_HINT vec_type_hint(float8)
 
+/* A query kernel.  The kernels already compute in vectors (a node's
+ * children); the hint keeps Intel's CPU compiler from also packing
+ * work-items into SIMD lanes, which measured slower (its default is to
+ * vectorise whenever the group size allows). */
+#define TRAVERSAL_KERNEL __kernel __attribute__((LANES_HINT))
+
 /* PoCL's inliner stops just short of the traversal loop and the triangle
  * test (measured slower on camera rays); every helper here is small or
  * called in one place, so inline them all. */
@@ -33,7 +38,8 @@ typedef int8 int_lanes;
  * multiple of 4 * WIDE_ARITY bytes within the node, and nodes and buffers
  * at multiples of its size (buffers are aligned to at least the largest
  * built-in type, 128 bytes), so the load is aligned.  A plain load rather
- * than vload8, which PoCL 3.0 calls out of line (see GROW_LO in hlbvh.h). */
+ * than vload8, which PoCL 3.0 calls out of line (core/spelled.h).  A macro:
+ * it names the row's type. */
 #define LOAD_ROW(type, row) (*(__global const type*)(row))
 
 /* The plane row (lo_x, hi_x, lo_y, hi_y, lo_z or hi_z) that starts `offset`
@@ -64,16 +70,19 @@ TRAVERSAL_INLINE __global const float* plane_row(__global const WideNode* node, 
  * exposes it: PoCL calls sqrt on vectors out of line, and the winding
  * walk's dipole and solid-angle terms took a call each (measured slower).
  * Both round correctly, as sqrtf does, so the results are the same. */
+TRAVERSAL_INLINE float8 lanes_root(float8 v)
+{
 #if HAS_BUILTIN(__builtin_ia32_sqrtps256)
-#define LANES_ROOT(v) __builtin_ia32_sqrtps256(v)
+    return __builtin_ia32_sqrtps256(v);
 #else
-#define LANES_ROOT(v) sqrt(v)
+    return sqrt(v);
 #endif
+}
 
 /* Sign bit and absolute value by their bits (PoCL: see LOAD_ROW). */
-#define SIGN_BIT(x) (as_uint(x) >> 31)
-#define ABS_FLOAT(x) as_float(as_uint(x) & 0x7fffffffu)
-#define ABS_LANES(x) as_float8(as_int8(x) & (int8)(0x7fffffff))
+TRAVERSAL_INLINE uint sign_bit(float x) { return as_uint(x) >> 31; }
+TRAVERSAL_INLINE float abs_float(float x) { return as_float(as_uint(x) & 0x7fffffffu); }
+TRAVERSAL_INLINE float8 abs_lanes(float8 x) { return as_float8(as_int8(x) & (int8)(0x7fffffff)); }
 
 /* Ize 2013: scaling the exit distance by 1 + 2*gamma(3) makes the slab test
  * conservative under float rounding.  We use gamma(5) (gamma(n) = n*eps /
@@ -144,14 +153,6 @@ TRAVERSAL_INLINE uint lane_mask(int_lanes hit)
 #define HAVE_BIT_BUILTINS
 #endif
 
-/* Whether a non-zero mask has one bit set.  LLVM turns the classic test
- * into llvm.ctpop, which Oclgrind cannot run, hence the plain spelling. */
-#ifdef PLAIN_OPENCL
-#define ONE_BIT(mask) (bit_count(mask) == 1)
-#else
-#define ONE_BIT(mask) (((mask) & ((mask) - 1u)) == 0)
-#endif
-
 TRAVERSAL_INLINE int lowest_slot(uint mask)
 {
 #ifdef HAVE_BIT_BUILTINS
@@ -184,8 +185,20 @@ TRAVERSAL_INLINE int bit_count(uint mask)
 #endif
 }
 
-/* PATH(name): the name in the path being instantiated (PATH_SUFFIX _ray or
- * _packet), for the headers written once for both (triangle.h, walk.h). */
+/* Whether a non-zero mask has one bit set.  LLVM turns the classic test
+ * into llvm.ctpop, which Oclgrind cannot run, hence the plain spelling. */
+TRAVERSAL_INLINE bool one_bit(uint mask)
+{
+#ifdef PLAIN_OPENCL
+    return bit_count(mask) == 1;
+#else
+    return (mask & (mask - 1u)) == 0;
+#endif
+}
+
+/* PATH(name): the name in the path being instantiated (PATH_SUFFIX: _ray,
+ * _packet, _point or _points), for the headers written once for every path
+ * (walk.h, query/rays/triangle.h).  Token pasting: macros. */
 #define CONCAT_(a, b) a##b
 #define CONCAT(a, b) CONCAT_(a, b)
 #define PATH(name) CONCAT(name, PATH_SUFFIX)

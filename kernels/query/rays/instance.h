@@ -1,27 +1,36 @@
-/* Two-level scenes: a top tree whose leaves hold instances (hlbvh.h's
- * Instance), each a mesh's own tree under an affine map, as Embree's and
- * Mitsuba's instances (and pbrt-v4's TransformedPrimitive).  The walk of the
- * top tree is the one walk (walk.h) with a leaf visitor that maps the ray
- * into each instance's mesh frame and walks that mesh's tree with the same
- * query state: the ray is mapped, not renormalised, so t, the limit and
- * every hit found so far mean the same in both frames.  This header maps
- * rays (two_level.h has the maps themselves); the visitors live with their
- * queries (traverse.cl, all_hits.cl).
+/* Two-level scenes, the rays' side: a top tree whose leaves hold instances
+ * (core/tree.h's Instance), each a mesh's own tree under an affine map, as
+ * Embree's and Mitsuba's instances (and pbrt-v4's TransformedPrimitive).
+ * The walk of the top tree is the one walk (query/walk/walk.h) whose leaves
+ * (query/walk/instance_leaf.h) map the rays into each instance's mesh frame
+ * and walk that mesh's tree with the same query state (trace.h): the ray is
+ * mapped, not renormalised, so t, the limit and every hit found so far mean
+ * the same in both frames.  This header maps rays (query/walk/two_level.h
+ * has the maps themselves) and gives the ray kernels their scene parameters.
  * A packet of rays is mapped lane by lane and walks the mesh's tree as a
  * packet when its mapped rays still share their direction signs
  * (prepare_packet), else one ray at a time. */
 #ifndef INSTANCE_H
 #define INSTANCE_H
 
-#include "query/ray.h"
-#include "query/triangle.h"
-#include "query/two_level.h"
+#include "query/normals.h"
+#include "query/rays/ray.h"
+#if PACKET_SIZE > 1
+#include "query/rays/packet.h"
+#endif
+#include "query/walk/two_level.h"
 
 #ifdef INSTANCES
+/* What a path's rays become in an instance's frame (map_instance_ray,
+ * map_instance_packet): one ray prepared for the mesh's tree, a packet's
+ * lanes for prepare_packet. */
+typedef RayData Mapped_ray;
+typedef RayLanes Mapped_packet;
+
 /* Whether the ray sees the instance ((ray mask & instance mask) != 0, as
  * Embree), and if so the ray in the instance's mesh frame, prepared for its
  * tree (*out). */
-TRAVERSAL_INLINE bool instance_ray(RayData* out, __global const Instance* in, const RayData* r)
+TRAVERSAL_INLINE bool map_instance_ray(RayData* out, __global const Instance* in, const RayData* r)
 {
     if ((in->mask & r->mask) == 0)
         return false;
@@ -40,7 +49,8 @@ TRAVERSAL_INLINE bool instance_ray(RayData* out, __global const Instance* in, co
  * (or for one-by-one walks where it turns them down); the lanes whose mask
  * hides the instance get tmin = inf, which no box or triangle meets.  False
  * when the instance is hidden from every lane. */
-TRAVERSAL_INLINE bool instance_lanes(RayLanes* out, __global const Instance* in, const Packet* p)
+TRAVERSAL_INLINE bool map_instance_packet(RayLanes* out, __global const Instance* in,
+                                         const Packet* p)
 {
     int_packet seen = (p->mask & (int_packet)((int)in->mask)) != (int_packet)(0);
     if (!some_packet(seen))
@@ -82,13 +92,16 @@ TRAVERSAL_INLINE float3 instance_normal(__global const Instance* in, float3 n)
 #endif /* INSTANCES (the map) */
 
 /* The scene a ray kernel traces, as its first parameters (SCENE_PARAMS;
- * SCENE_ARGS passes them on; hlbvh_cl/query.py's scene_args gives them). */
+ * SCENE_ARGS passes them on; hlbvh_cl/query/rays.py's scene_args gives
+ * them), and the trees its trace walks (SCENE_TREES, trace.h's trace_QUERY).
+ * Macros: parameter lists (a kernel cannot take a struct of pointers). */
 #ifndef INSTANCES
 /* A flat scene: one tree over every mesh's triangles. */
 #define SCENE_PARAMS                                                                    \
     __global const WideNode *nodes, __global const Triangle *triangles,                  \
         __global const TriangleRef *refs
 #define SCENE_ARGS nodes, triangles, refs
+#define SCENE_TREES nodes, triangles
 #else
 /* A two-level scene: the top tree over the instances, the instances, the
  * rays' masks (ray_masks[i * mask_step]: step 0, one mask for all) and the
@@ -101,6 +114,7 @@ TRAVERSAL_INLINE float3 instance_normal(__global const Instance* in, float3 n)
         __global const TriangleRef *refs
 #define SCENE_ARGS top_nodes, top_triangles, top_refs, instances, ray_masks, mask_step, nodes, \
                    triangles, refs
+#define SCENE_TREES top_nodes, top_triangles, top_refs, instances, nodes, triangles
 
 /* The rays' masks into the lanes (lanes past `used` repeat the last). */
 TRAVERSAL_INLINE void load_masks(RayLanes* lanes, uint first, uint used,

@@ -7,20 +7,20 @@
 #ifndef RAY_H
 #define RAY_H
 
-#include "query/node.h"
-#include "query/ray_class.h"
+#include "query/walk/node.h"
+#include "query/rays/ray_class.h"
 
 #ifndef PACKET_SIZE
 #error "PACKET_SIZE must be defined (-D PACKET_SIZE=...)"
 #endif
 
-/* Everything about a ray that traversal reuses at each node and triangle. */
 /* Instanced scenes (instance.h) map rays by their direction, and test
  * instances against their masks. */
 #if defined(cl_khr_fp64) || defined(INSTANCES)
 #define RAY_DIRECTION
 #endif
 
+/* Everything about a ray that traversal reuses at each node and triangle. */
 typedef struct {
     float ox, oy, oz;           /* origin */
 #ifdef RAY_DIRECTION
@@ -68,8 +68,8 @@ TRAVERSAL_INLINE void prepare_ray(RayData* ray, float3 origin, float3 direction,
     r.tmin = tmin;
     r.tmax = tmax;
 
-    float ax = ABS_FLOAT(d[0]), ay = ABS_FLOAT(d[1]), az = ABS_FLOAT(d[2]);
-    r.kz = SHEAR_AXIS(ax, ay, az);
+    float ax = abs_float(d[0]), ay = abs_float(d[1]), az = abs_float(d[2]);
+    r.kz = shear_axis(ax, ay, az);
     r.kx = r.kz == 2 ? 0 : r.kz + 1;
     r.ky = r.kx == 2 ? 0 : r.kx + 1;
     /* Components picked by indexing (a load from the private array) rather
@@ -83,9 +83,9 @@ TRAVERSAL_INLINE void prepare_ray(RayData* ray, float3 origin, float3 direction,
     r.okx = o[r.kx];
     r.oky = o[r.ky];
     r.okz = o[r.kz];
-    r.near_x = LO_X_ROW + (SIGN_BIT(r.inv_x) ? ROW_BYTES : 0);
-    r.near_y = LO_Y_ROW + (SIGN_BIT(r.inv_y) ? ROW_BYTES : 0);
-    r.near_z = LO_Z_ROW + (SIGN_BIT(r.inv_z) ? ROW_BYTES : 0);
+    r.near_x = LO_X_ROW + (sign_bit(r.inv_x) ? ROW_BYTES : 0);
+    r.near_y = LO_Y_ROW + (sign_bit(r.inv_y) ? ROW_BYTES : 0);
+    r.near_z = LO_Z_ROW + (sign_bit(r.inv_z) ? ROW_BYTES : 0);
     *ray = r;
 }
 
@@ -98,7 +98,7 @@ typedef struct {
     float tmin[PACKET_SIZE];
     float tmax[PACKET_SIZE];
 #ifdef INSTANCES
-    uint mask[PACKET_SIZE];  /* set by the instanced kernels (traverse.cl) */
+    uint mask[PACKET_SIZE];  /* set by the instanced kernels (instance.h's load_masks) */
 #endif
 } RayLanes;
 
@@ -129,14 +129,14 @@ TRAVERSAL_INLINE void prepare_lane(RayData* ray, const RayLanes* lanes, uint l)
 typedef RayData Rays_ray;
 typedef float real_ray;
 typedef int flags_ray;       /* a scalar compare: 1 or 0 */
+TRAVERSAL_INLINE bool some_ray(int flags) { return flags != 0; }
+TRAVERSAL_INLINE bool every_ray(int flags) { return flags != 0; }
+TRAVERSAL_INLINE int bits_ray(float x) { return as_int(x); }
 #ifdef cl_khr_fp64
 typedef double wide_ray;
+TRAVERSAL_INLINE double to_double_ray(float x) { return (double)x; }
+TRAVERSAL_INLINE float to_float_ray(double x) { return (float)x; }
 #endif
-#define some_ray(flags) (flags)
-#define every_ray(flags) (flags)
-#define to_double_ray(x) ((double)(x))
-#define to_float_ray(x) ((float)(x))
-#define bits_ray(x) as_int(x)
 
 /* What a walk keeps for its query: the triangle hit (tree order, -1: none),
  * its t, u, v, and the limit beyond which nothing counts. */
@@ -147,8 +147,20 @@ typedef struct {
     int instance;  /* whose mesh holds triangle `index` (instance.h) */
 #endif
 } Found_ray;
-#define reach_ray(s) ((s)->limit)  /* the farthest the walk still looks */
-#define update_reach_ray(s)
+
+/* A walk's start: no hit, the limit the ray's tmax. */
+TRAVERSAL_INLINE void start_ray(Found_ray* s, const RayData* r)
+{
+    Found_ray start = {-1, INFINITY, 0.0f, 0.0f, r->tmax};
+#ifdef INSTANCES
+    start.instance = -1;
+#endif
+    *s = start;
+}
+
+/* The farthest the walk still looks: the limit. */
+TRAVERSAL_INLINE float reach_ray(const Found_ray* s) { return s->limit; }
+TRAVERSAL_INLINE void update_reach_ray(Found_ray* s) {}
 
 /* Woop et al.'s inside test: the three edge functions do not straddle 0.
  * Bitwise | and & rather than || and &&: one branch instead of up to six,
@@ -163,7 +175,7 @@ TRAVERSAL_INLINE int inside_ray(float e_u, float e_v, float e_w)
 /* The slab test of a wide node's WIDE_ARITY child boxes at once, one vector
  * lane per child, within the walk's limit: the children met as a bit mask,
  * and where the ray enters each. */
-#define NODE_ROW(offset) LOAD_ROW(float_lanes, plane_row(node, offset))
+#define NODE_ROW(offset) LOAD_ROW(float_lanes, plane_row(node, offset)) /* SLAB_TEST's PLANE */
 TRAVERSAL_INLINE uint children_ray(const RayData* r, __global const WideNode* node,
                                    const Found_ray* s, ChildEntries* entry)
 {
@@ -173,7 +185,7 @@ TRAVERSAL_INLINE uint children_ray(const RayData* r, __global const WideNode* no
 #undef NODE_ROW
 
 #define PATH_SUFFIX _ray
-#include "query/triangle.h"
+#include "query/rays/triangle.h"
 #undef PATH_SUFFIX
 
 #endif /* RAY_H */

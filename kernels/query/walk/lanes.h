@@ -1,10 +1,10 @@
 /* PACKET_SIZE queries per work-item, one vector lane each: the vector
- * types and the folds over lanes that ray packets (packet.h) and point
- * packets (point_packet.h) share. */
-#ifndef PACKET_LANES_H
-#define PACKET_LANES_H
+ * types and the folds over lanes that ray packets (query/rays/packet.h) and
+ * point packets (query/points/point_packet.h) share. */
+#ifndef LANES_H
+#define LANES_H
 
-#include "query/node.h"
+#include "query/walk/node.h"
 
 /* A 16-lane float or 8-lane double is wider than an AVX2 target's
  * registers, and clang notes, at every helper taking or returning one,
@@ -46,7 +46,10 @@ typedef double8 wide_packet;
 #endif
 
 /* |v| of every lane, by its bits (PoCL: see LOAD_ROW). */
-#define ABS_PACKET(v) as_float_packet(as_int_packet(v) & (int_packet)(0x7fffffff))
+TRAVERSAL_INLINE float_packet abs_packet(float_packet v)
+{
+    return as_float_packet(as_int_packet(v) & (int_packet)(0x7fffffff));
+}
 
 /* Folds a packet's lanes to one with f: the halves first, then theirs.
  * GROW_LO / GROW_HI give the least / greatest lane of lanes that are never
@@ -61,6 +64,7 @@ typedef double8 wide_packet;
 #endif
 #define OR(a, b) ((a) | (b))
 #define AND(a, b) ((a) & (b))
+/* A macro: it names its types by token pasting and takes the fold, itself a macro. */
 #define FOLD_LANES(type, v, f)   \
     type##8 a = HALVES(v, f);    \
     type##4 b = f(a.lo, a.hi);   \
@@ -72,13 +76,13 @@ TRAVERSAL_INLINE float packet_max(float_packet v) { FOLD_LANES(float, v, GROW_HI
 TRAVERSAL_INLINE int packet_or(int_packet v) { FOLD_LANES(int, v, OR); }
 TRAVERSAL_INLINE int packet_and(int_packet v) { FOLD_LANES(int, v, AND); }
 
-/* sqrt of every lane (LANES_ROOT, a half at a time for 16 lanes). */
+/* sqrt of every lane (lanes_root, a half at a time for 16 lanes). */
 TRAVERSAL_INLINE float_packet packet_root(float_packet v)
 {
 #if PACKET_SIZE == 16
-    return (float16)(LANES_ROOT(v.lo), LANES_ROOT(v.hi));
+    return (float16)(lanes_root(v.lo), lanes_root(v.hi));
 #else
-    return LANES_ROOT(v);
+    return lanes_root(v);
 #endif
 }
 
@@ -102,4 +106,4 @@ TRAVERSAL_INLINE bool every_packet(int_packet v)
 #endif
 }
 
-#endif /* PACKET_LANES_H */
+#endif /* LANES_H */

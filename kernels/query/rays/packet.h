@@ -13,8 +13,8 @@
 #ifndef PACKET_H
 #define PACKET_H
 
-#include "query/ray.h"
-#include "query/packet_lanes.h"
+#include "query/rays/ray.h"
+#include "query/walk/lanes.h"
 
 /* RayData of PACKET_SIZE rays, one lane each, with the fields the packet
  * shares kept scalar. */
@@ -52,7 +52,10 @@ typedef struct {
 #define INTERVAL_SLACK 0x1p-19f
 
 /* Lanes that are infinite or NaN, from the exponent's bits. */
-#define NOT_FINITE(v) ((as_int_packet(v) & (int_packet)(0x7f800000)) == (int_packet)(0x7f800000))
+TRAVERSAL_INLINE int_packet not_finite(float_packet v)
+{
+    return (as_int_packet(v) & (int_packet)(0x7f800000)) == (int_packet)(0x7f800000);
+}
 
 /* The lanes' extent on each axis, summed. */
 TRAVERSAL_INLINE float packet_spread(const float_packet* v)
@@ -65,7 +68,7 @@ TRAVERSAL_INLINE float packet_spread(const float_packet* v)
 
 /* The interval ray's origins (o, directions d) into `moved`, and each
  * lane's `move`: rays along nearly one line but starting apart (rays aimed
- * at one point, ordered by direction: hlbvh_cl/order.py) would make an
+ * at one point, ordered by direction: hlbvh_cl/query/order.py) would make an
  * interval ray as wide as their origins are apart (Boulos et al. 2007 bound
  * the origins as given); moved along their rays, by `move` times their
  * directions, onto the plane across kz through the middle of the lanes' kz
@@ -84,13 +87,13 @@ TRAVERSAL_INLINE float3 interval_origins(const Packet* p, const float_packet* o,
 {
     float mid = 0.5f * (packet_min(o[p->kz]) + packet_max(o[p->kz]));
     *move = (mid - o[p->kz]) * p->sz;
-    int_packet wild = NOT_FINITE(*move);
+    int_packet wild = not_finite(*move);
     float error[3];
     for (int k = 0; k < 3; ++k) {
         float_packet step = *move * d[k];
         moved[k] = k == p->kz ? (float_packet)(mid) : o[k] + step;
-        wild |= NOT_FINITE(moved[k]);
-        error[k] = 0x1p-21f * packet_max(ABS_PACKET(o[k]) + ABS_PACKET(step));
+        wild |= not_finite(moved[k]);
+        error[k] = 0x1p-21f * packet_max(abs_packet(o[k]) + abs_packet(step));
     }
     if (some_packet(wild) || !(packet_spread(moved) < packet_spread(o))) {
         for (int k = 0; k < 3; ++k)
@@ -201,7 +204,7 @@ TRAVERSAL_INLINE bool prepare_packet(const RayLanes* in, Packet* p)
     p->far_ox = neg_x.s0 ? o_hi_x : o_lo_x;
     p->far_oy = neg_y.s0 ? o_hi_y : o_lo_y;
     p->far_oz = neg_z.s0 ? o_hi_z : o_lo_z;
-    p->slack = INTERVAL_SLACK * packet_max(ABS_PACKET(move));
+    p->slack = INTERVAL_SLACK * packet_max(abs_packet(move));
     p->tmin_lo = packet_min(p->tmin - move);
     p->least_move = packet_min(move);
     return true;
@@ -223,8 +226,20 @@ typedef struct {
     int_packet instance;  /* whose mesh holds each lane's triangle (instance.h) */
 #endif
 } Found_packet;
-#define reach_packet(s) ((s)->reach)
-#define update_reach_packet(s) ((s)->reach = packet_max((s)->limit))
+
+TRAVERSAL_INLINE float reach_packet(const Found_packet* s) { return s->reach; }
+TRAVERSAL_INLINE void update_reach_packet(Found_packet* s) { s->reach = packet_max(s->limit); }
+
+/* A walk's start: no hit in any lane, each lane's limit its tmax. */
+TRAVERSAL_INLINE void start_packet(Found_packet* s, const Packet* p)
+{
+    Found_packet start = {(int_packet)(-1), (float_packet)(INFINITY), (float_packet)(0.0f),
+                          (float_packet)(0.0f), p->tmax, packet_max(p->tmax)};
+#ifdef INSTANCES
+    start.instance = (int_packet)(-1);
+#endif
+    *s = start;
+}
 
 /* inside_ray's test, written as the lanes where all three are >= 0 or all
  * are <= 0.  It differs from inside_ray only in a lane with a NaN.
@@ -263,7 +278,7 @@ TRAVERSAL_INLINE float_lanes exit_bound(float_lanes offset, float inv_lo, float 
  * so every child some lane's test keeps is kept.  A NaN (0 * inf) bound is
  * ignored, as in SLABS_MEET, which only widens the interval; an unused
  * slot's -inf exit grows to NaN, and no lane meets it. */
-#define NODE_ROW(offset) LOAD_ROW(float_lanes, plane_row(node, offset))
+#define NODE_ROW(offset) LOAD_ROW(float_lanes, plane_row(node, offset)) /* as ray.h's */
 TRAVERSAL_INLINE uint children_interval(const Packet* p, __global const WideNode* node,
                                         float reach)
 {
@@ -279,7 +294,7 @@ TRAVERSAL_INLINE uint children_interval(const Packet* p, __global const WideNode
                 exit_bound(NODE_ROW(p->near_y ^ ROW_BYTES) - p->far_oy, p->inv_lo_y,
                            p->inv_hi_y)),
         exit_bound(NODE_ROW(p->near_z ^ ROW_BYTES) - p->far_oz, p->inv_lo_z, p->inv_hi_z));
-    return lane_mask(entry <= exit + (INTERVAL_SLACK * ABS_LANES(exit) + (float_lanes)(p->slack)));
+    return lane_mask(entry <= exit + (INTERVAL_SLACK * abs_lanes(exit) + (float_lanes)(p->slack)));
 }
 #undef NODE_ROW
 
@@ -289,7 +304,7 @@ TRAVERSAL_INLINE uint children_interval(const Packet* p, __global const WideNode
  * goes in without a branch: whether the interval test's candidate is kept
  * is close to a coin toss on incoherent packets, and its branch
  * mispredicted (measured slower). */
-#define CHILD_PLANE(offset) (plane_row(node, offset)[c])
+#define CHILD_PLANE(offset) (plane_row(node, offset)[c]) /* SLAB_TEST's PLANE */
 TRAVERSAL_INLINE uint children_packet(const Packet* p, __global const WideNode* node,
                                       const Found_packet* s, ChildEntries* entry)
 {
@@ -307,7 +322,7 @@ TRAVERSAL_INLINE uint children_packet(const Packet* p, __global const WideNode* 
 #undef CHILD_PLANE
 
 #define PATH_SUFFIX _packet
-#include "query/triangle.h"
+#include "query/rays/triangle.h"
 #undef PATH_SUFFIX
 
 #endif /* PACKET_H */

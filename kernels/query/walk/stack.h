@@ -6,7 +6,7 @@
 #ifndef STACK_H
 #define STACK_H
 
-#include "query/node.h"
+#include "query/walk/node.h"
 
 #ifndef STACK_SIZE
 #error "STACK_SIZE must be defined (-D STACK_SIZE=...)"
@@ -132,7 +132,7 @@ TRAVERSAL_INLINE int next_item(__global const WideNode* n, uint mask,
         return STACK_FULL;
     if (mask == 0) {
         prefetch_child(n, near, nodes, triangles);
-    } else if (ONE_BIT(mask)) {
+    } else if (one_bit(mask)) {
         /* two: push the farther */
         int far = lowest_slot(mask);
         prefetch_child(n, near, nodes, triangles);

@@ -1,28 +1,34 @@
-/* Shading: closest hits -> colours, plus the shadow or ambient-occlusion rays
- * that decide the rest of each colour, and the resolve that adds it.
- * hlbvh_cl/render.py documents the formulas; in short, with n the hit's
- * geometric normal turned towards the viewer and a the mesh's colour:
+/* The direct integrator (hlbvh_cl/render/integrators/direct.py, which
+ * documents the formulas): closest hits -> colours, plus the shadow or
+ * ambient-occlusion rays that decide the rest of each colour, and the
+ * resolve that adds it.  In short, with n the hit's geometric normal turned
+ * towards the viewer and a the mesh's colour:
  *   diffuse  a * (ambient + intensity * max(n.l, 0) * visible(l)), sky on a miss
  *   normals  (n + 1) / 2, black on a miss
  *   depth    (far - distance) / (far - near) clamped to [0, 1], black on a miss
  *   ao       a * (fraction of ao rays that meet nothing), sky on a miss
+ * One function per mode (shade_diffuse ... shade_ao), chosen at compile time.
  *
- * Kernels (one work-item per pixel of the current pass; ao_rays and
- * encode_image over pixel_in_pass's 2D range, hlbvh.h, the others 1D in ray
- * order)
+ * Kernels (one work-item per pixel of the current pass; ao_rays over
+ * pixel_in_pass's 2D range, render/tiles.h, the others 1D in ray order)
  *   shade_hits      adds to accum what needs no further ray; for diffuse with
  *                   SHADOWS writes each pixel's shadow ray (an empty ray
  *                   where none is needed) and the light it would let through
  *                   to `pending`; for ao writes a / ao_samples to `pending`
  *   ao_rays         the k-th ambient-occlusion ray of every pixel
  *   add_unoccluded  accum += pending where the shadow or AO ray hit nothing
- *   encode_image    accum / samples -> 8-bit RGB, gamma-encoded (2) for diffuse and ao
+ * The film (render/film.cl) encodes the sums.
  *
  * Compile-time parameters (-D)
  *   SHADING  one of the SHADING_* names below
  *   SHADOWS  1: diffuse shading traces shadow rays; 0: every light is visible
  */
-#include "core/hlbvh.h"
+#include "core/portable.h"
+#include "core/spelled.h"
+#include "query/records.h"
+#include "render/integrators/direct.h"
+#include "render/tiles.h"
+#include "render/random.h"
 
 #define SHADING_DIFFUSE 1
 #define SHADING_NORMALS 2
@@ -32,17 +38,27 @@
 #if !defined(SHADING) || !defined(SHADOWS)
 #error "SHADING and SHADOWS must be defined (-D SHADING=SHADING_DIFFUSE -D SHADOWS=1)"
 #endif
-#if SHADING != SHADING_DIFFUSE && SHADING != SHADING_NORMALS && SHADING != SHADING_DEPTH \
-    && SHADING != SHADING_AO
+
+/* The mode's function, and whether it defers light to a secondary ray. */
+#if SHADING == SHADING_DIFFUSE
+#define SHADE shade_diffuse
+#define DEFERS SHADOWS
+#elif SHADING == SHADING_NORMALS
+#define SHADE shade_normals
+#define DEFERS 0
+#elif SHADING == SHADING_DEPTH
+#define SHADE shade_depth
+#define DEFERS 0
+#elif SHADING == SHADING_AO
+#define SHADE shade_ao
+#define DEFERS 1
+#else
 #error "SHADING must be SHADING_DIFFUSE, SHADING_NORMALS, SHADING_DEPTH or SHADING_AO"
 #endif
 
-/* Radiance modes end with a display gamma; normals and depth are data. */
-#define ENCODE_GAMMA (SHADING == SHADING_DIFFUSE || SHADING == SHADING_AO)
-
 /* PoCL 3.0 calls vload3, vstore3, dot, fmax and other builtins out of line
- * (see GROW_LO in hlbvh.h; perf showed most of shade_hits' time in such
- * calls), so most are spelled out (LOAD_XYZ, store3, dot3).  dot3 adds the
+ * (core/spelled.h; perf showed most of shade_hits' time in such calls), so
+ * most are spelled out (LOAD_XYZ, store3, dot3).  dot3 adds the
  * products in dot's order, and apart from them, which in one expression
  * could fuse into fmas. */
 inline void store3(__global float* p, float3 v)
@@ -62,7 +78,7 @@ inline float dot3(float3 a, float3 b)
  * reports no hit, so a pixel that needs no secondary ray costs one node.  It
  * takes the direction of its neighbours' rays (the light's, for shadows):
  * CPU traversal traces 8 rays as one packet only when their directions share
- * signs and dominant axis (traverse.cl), and an odd empty ray would send its
+ * signs and dominant axis (query/rays.cl), and an odd empty ray would send its
  * whole packet down the one-ray-at-a-time path. */
 inline void write_empty_ray(__global Ray* ray, float3 direction)
 {
@@ -108,6 +124,81 @@ inline float3 sky(const ShadeParams* params, float3 direction)
     return horizon + rise; /* mix, unfused (see dot3) */
 }
 
+/* What a primary ray's closest hit (or miss) gives: `colour` now, and
+ * `deferred`, added later where its secondary ray proves free. */
+typedef struct {
+    float3 colour;
+    float3 deferred;
+} Shaded;
+
+/* What each mode reads of one primary ray: the ray, its closest hit, its
+ * direction, and where its secondary ray goes. */
+typedef struct {
+    __global const Ray* ray;
+    __global const Hit* hit;
+    float3 direction;
+    __global const float* albedo;  /* RGB per geom_id */
+    const ShadeParams* params;
+    __global Ray* secondary;
+} Primary;
+
+inline Shaded shade_diffuse(const Primary* p)
+{
+    Shaded out = {(float3)(0.0f), (float3)(0.0f)};
+    float3 light = LOAD_XYZ(p->params->light_direction);
+    if (p->hit->geom_id < 0) {
+        out.colour = sky(p->params, p->direction);
+        if (SHADOWS)
+            write_empty_ray(p->secondary, light);
+        return out;
+    }
+    float3 n = facing_normal(p->hit, p->direction);
+    float3 base = LOAD_XYZ(p->albedo + 3 * p->hit->geom_id);
+    float cosine = dot3(n, light);
+    cosine = cosine > 0.0f ? cosine : 0.0f; /* fmax(cosine, 0), a NaN to 0 too */
+    float3 direct = base * (p->params->light_intensity * cosine);
+    out.colour = base * p->params->ambient;
+    if (!SHADOWS) {
+        out.colour += direct;
+    } else if (cosine > 0.0f && p->params->light_intensity > 0.0f) {
+        out.deferred = direct;
+        write_ray(p->secondary, secondary_origin(p->ray, p->hit, n, p->params), light, INFINITY);
+    } else {
+        write_empty_ray(p->secondary, light);
+    }
+    return out;
+}
+
+inline Shaded shade_normals(const Primary* p)
+{
+    Shaded out = {(float3)(0.0f), (float3)(0.0f)};
+    if (p->hit->geom_id >= 0)
+        out.colour = 0.5f * (facing_normal(p->hit, p->direction) + 1.0f);
+    return out;
+}
+
+inline Shaded shade_depth(const Primary* p)
+{
+    Shaded out = {(float3)(0.0f), (float3)(0.0f)};
+    if (p->hit->geom_id >= 0) {
+        float distance = p->hit->t * length(p->direction);
+        out.colour = (float3)(clamp((p->params->depth_far - distance)
+                                    / (p->params->depth_far - p->params->depth_near), 0.0f, 1.0f));
+    }
+    return out;
+}
+
+/* The colour ao_rays' rays carry; they are written by ao_rays, per AO sample. */
+inline Shaded shade_ao(const Primary* p)
+{
+    Shaded out = {(float3)(0.0f), (float3)(0.0f)};
+    if (p->hit->geom_id < 0)
+        out.colour = sky(p->params, p->direction);
+    else
+        out.deferred = LOAD_XYZ(p->albedo + 3 * p->hit->geom_id) * p->params->ao_weight;
+    return out;
+}
+
 __kernel void shade_hits(__global const Ray* rays,
                          __global const Hit* hits,
                          __global const float* albedo,    /* RGB per geom_id */
@@ -121,53 +212,13 @@ __kernel void shade_hits(__global const Ray* rays,
     uint gid = get_global_id(0);
     if (gid >= ray_count)
         return;
-    __global const Ray* ray = rays + gid;
-    __global const Hit* hit = hits + gid;
-    float3 direction = LOAD_XYZ(ray->direction);
-    float3 colour = (float3)(0.0f);
-    float3 deferred = (float3)(0.0f);  /* added later if the secondary ray is free */
-
-    if (hit->geom_id < 0) {
-#if SHADING == SHADING_DIFFUSE || SHADING == SHADING_AO
-        colour = sky(&params, direction);
-#endif
-#if SHADING == SHADING_DIFFUSE && SHADOWS
-        write_empty_ray(secondary + gid, LOAD_XYZ(params.light_direction));
-#endif
-    } else {
-        float3 n = facing_normal(hit, direction);
-#if SHADING == SHADING_DIFFUSE
-        float3 base = LOAD_XYZ(albedo + 3 * hit->geom_id);
-        float3 light = LOAD_XYZ(params.light_direction);
-        float cosine = dot3(n, light);
-        cosine = cosine > 0.0f ? cosine : 0.0f; /* fmax(cosine, 0), a NaN to 0 too */
-        float3 direct = base * (params.light_intensity * cosine);
-        colour = base * params.ambient;
-#if SHADOWS
-        if (cosine > 0.0f && params.light_intensity > 0.0f) {
-            deferred = direct;
-            write_ray(secondary + gid, secondary_origin(ray, hit, n, &params), light, INFINITY);
-        } else {
-            write_empty_ray(secondary + gid, light);
-        }
-#else
-        colour += direct;
-#endif
-#elif SHADING == SHADING_NORMALS
-        colour = 0.5f * (n + 1.0f);
-#elif SHADING == SHADING_DEPTH
-        float distance = hit->t * length(direction);
-        colour = (float3)(clamp((params.depth_far - distance)
-                                / (params.depth_far - params.depth_near), 0.0f, 1.0f));
-#elif SHADING == SHADING_AO
-        deferred = LOAD_XYZ(albedo + 3 * hit->geom_id) * params.ao_weight;
-#endif
-    }
-#if (SHADING == SHADING_DIFFUSE && SHADOWS) || SHADING == SHADING_AO
-    pending[gid] = (float4)(deferred, 0.0f);
-#endif
+    Primary primary = {rays + gid, hits + gid, LOAD_XYZ(rays[gid].direction), albedo, &params,
+                       secondary + gid};
+    Shaded shaded = SHADE(&primary);
+    if (DEFERS)
+        pending[gid] = (float4)(shaded.deferred, 0.0f);
     float4 before = sample == 0 ? (float4)(0.0f) : accum[gid];
-    accum[gid] = before + (float4)(colour, 0.0f);
+    accum[gid] = before + (float4)(shaded.colour, 0.0f);
 }
 
 /* Orthonormal basis around a unit n: Duff et al. 2017, "Building an
@@ -226,33 +277,4 @@ __kernel void add_unoccluded(__global const uchar* occluded,
     if (gid >= ray_count || occluded[gid])
         return;
     accum[gid] += pending[gid];
-}
-
-/* RGB of the pixel of ray i (pixel_in_pass's 2D range) = round(255 *
- * encode(clamp(accum[i] * scale, 0, 1))), encode = sqrt for radiance
- * (display gamma 2), the identity for data views. */
-__kernel void encode_image(__global const float4* accum,
-                           const uint width,
-                           const uint first_row,
-                           const uint rows,
-                           const float scale,          /* 1 / samples per pixel */
-                           __global uchar* image)      /* the whole image */
-{
-    uint gid;
-    uint2 at;
-    if (!pixel_in_pass(get_global_id(0), get_global_id(1), width, rows, &gid, &at))
-        return;
-    /* fmin(fmax(value, 0), 1), which turns a NaN into 0 too, spelled with
-     * ?: as are the stores (PoCL: see store3) */
-    float3 value = accum[gid].xyz * scale;
-    value = value > 0.0f ? value : (float3)(0.0f);
-    value = value < 1.0f ? value : (float3)(1.0f);
-#if ENCODE_GAMMA
-    value = sqrt(value);  /* gamma 2: looks as 2.2 does, and pow measured far slower on PoCL */
-#endif
-    uchar3 rgb = convert_uchar3(value * 255.0f + 0.5f);
-    __global uchar* pixel = image + 3 * (size_t)((first_row + at.y) * width + at.x);
-    pixel[0] = rgb.x;
-    pixel[1] = rgb.y;
-    pixel[2] = rgb.z;
 }

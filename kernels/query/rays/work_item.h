@@ -1,12 +1,17 @@
 /* What one work-item of a ray query reads and writes: which rays it traces
  * (PACKET_SIZE consecutive ones), loaded into RayLanes from Ray records or
- * from numpy-shaped arrays, and a closest hit as a Hit record with its unit
- * geometric normal. */
+ * from numpy-shaped arrays; the hits its walks leave, one lane each
+ * (HitLanes); and a closest hit as a Hit record with its unit geometric
+ * normal. */
 #ifndef WORK_ITEM_H
 #define WORK_ITEM_H
 
-#include "query/ray.h"
-#include "query/triangle.h"
+#include "query/records.h"
+#include "query/normals.h"
+#include "query/rays/ray.h"
+#if PACKET_SIZE > 1
+#include "query/rays/packet.h"
+#endif
 
 /* Work-item i traces rays [i * PACKET_SIZE, ...) : how many of them exist
  * (0 for the items past the end), and the first one. */
@@ -95,7 +100,7 @@ TRAVERSAL_INLINE void load_arrays_at(const uint* at, __global const float* origi
     }
 }
 
-/* The rays as the arrays numpy users hand in (query.py): origins and
+/* The rays as the arrays numpy users hand in (hlbvh_cl/query/rays.py): origins and
  * directions packed (x, y, z) per ray, tmin[i * tmin_step], tmax[i *
  * tmax_step] (step 0: every ray the same limit).  Results go to one array
  * per field, so that the host neither packs records nor picks fields out of
@@ -121,6 +126,54 @@ TRAVERSAL_INLINE void load_arrays(uint first, uint used, __global const float* o
         at[l] = first + LESSER(l, used - 1);
     load_arrays_at(at, origins, directions, tmin, tmin_step, tmax, tmax_step, lanes);
 }
+
+/* The hits of a work-item's rays as their walks leave them (Found_ray,
+ * Found_packet), one lane each: the triangle's tree-order index (-1: none),
+ * its t, u, v, and on a two-level scene its instance. */
+typedef struct {
+    int index[PACKET_SIZE];
+    float t[PACKET_SIZE], u[PACKET_SIZE], v[PACKET_SIZE];
+#ifdef INSTANCES
+    int instance[PACKET_SIZE];
+#endif
+} HitLanes;
+
+/* A walk's index (and instance) into lane l of out, or a packet's into
+ * every lane: what an any-hit query reports. */
+TRAVERSAL_INLINE void store_index_ray(const Found_ray* s, HitLanes* out, uint l)
+{
+    out->index[l] = s->index;
+#ifdef INSTANCES
+    out->instance[l] = s->instance;
+#endif
+}
+
+/* ... and its t, u, v: what a closest-hit query reports. */
+TRAVERSAL_INLINE void store_hit_ray(const Found_ray* s, HitLanes* out, uint l)
+{
+    store_index_ray(s, out, l);
+    out->t[l] = s->t;
+    out->u[l] = s->u;
+    out->v[l] = s->v;
+}
+
+#if PACKET_SIZE > 1
+TRAVERSAL_INLINE void store_index_packet(const Found_packet* s, HitLanes* out, uint l)
+{
+    vstore_packet(s->index, 0, out->index);
+#ifdef INSTANCES
+    vstore_packet(s->instance, 0, out->instance);
+#endif
+}
+
+TRAVERSAL_INLINE void store_hit_packet(const Found_packet* s, HitLanes* out, uint l)
+{
+    store_index_packet(s, out, l);
+    vstore_packet(s->t, 0, out->t);
+    vstore_packet(s->u, 0, out->u);
+    vstore_packet(s->v, 0, out->v);
+}
+#endif
 
 /* One ray's closest hit as a Hit record (a miss: t = INFINITY, ids -1, the
  * rest 0) from the tree-order index of the triangle hit (-1: none). */

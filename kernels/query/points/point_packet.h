@@ -1,6 +1,6 @@
 /* Point packets: one work-item walks PACKET_SIZE query points together, one
  * vector lane each, as ray packets do (packet.h; Wald et al. 2001).  The
- * points run in Morton order (hlbvh_cl/order.py), so a work-item's points
+ * points run in Morton order (hlbvh_cl/query/order.py), so a work-item's points
  * lie close together and look for their closest triangles among much the
  * same nodes: the walk, the stack and the child sort are paid once for
  * them, and each box and triangle is measured against every lane at once.
@@ -13,8 +13,9 @@
 #ifndef POINT_PACKET_H
 #define POINT_PACKET_H
 
-#include "query/packet_lanes.h"
-#include "query/point.h"
+#include "query/walk/lanes.h"
+#include "query/points/point.h"
+#include "query/walk/stack.h"
 
 /* The query points, one lane each, and the box around them. */
 typedef struct {
@@ -30,7 +31,15 @@ typedef struct {
     float_packet best, u, v, solid_angle;
     float reach;
 } Found_points;
-#define reach_points(s) ((s)->reach)
+TRAVERSAL_INLINE float reach_points(const Found_points* s) { return s->reach; }
+
+/* A walk's start: nothing found in any lane, squared reach `reach`. */
+TRAVERSAL_INLINE void start_points(Found_points* s, float reach)
+{
+    Found_points start = {(int_packet)(-1), (float_packet)(reach), (float_packet)(0.0f),
+                          (float_packet)(0.0f), (float_packet)(0.0f), reach};
+    *s = start;
+}
 
 /* The packet of the points at slots at[lane] of points. */
 TRAVERSAL_INLINE void load_point_packet(__global const float* points, const uint* at,
@@ -51,13 +60,19 @@ TRAVERSAL_INLINE void load_point_packet(__global const float* points, const uint
     q->hi_z = packet_max(q->z);
 }
 
+/* Each lane's distance to the interval [lo, hi] (0 inside). */
+TRAVERSAL_INLINE float_packet lane_gap(float lo, float hi, float_packet q)
+{
+    return GROW_HI(GROW_HI((float_packet)(0.0f), lo - q), q - hi);
+}
+
 /* The children some lane may find a triangle in, nearer than its best: the
  * lanes' box culls them all at once, then each left is measured per lane.
- * Entries are the least lane distance (children none reach stay +inf). */
+ * Entries are the least lane distance (children none reach stay +inf).
+ * (Row macros: they name a node's field.) */
 #define NODE_ROW(row) LOAD_ROW(float_lanes, node->row)
 #define BOX_GAP(lo, hi, q_lo, q_hi)                                                       \
     GROW_HI(GROW_HI((float_lanes)(0.0f), NODE_ROW(lo) - (q_hi)), (q_lo) - NODE_ROW(hi))
-#define LANE_GAP(lo, hi, q) GROW_HI(GROW_HI((float_packet)(0.0f), (lo) - (q)), (q) - (hi))
 TRAVERSAL_INLINE uint children_points(const PointPacket* q, __global const WideNode* node,
                                       const Found_points* s, ChildEntries* entry)
 {
@@ -70,9 +85,9 @@ TRAVERSAL_INLINE uint children_points(const PointPacket* q, __global const WideN
     uint mask = 0;
     for (; rest != 0; rest &= rest - 1u) {
         int c = lowest_slot(rest);
-        float_packet dx = LANE_GAP(node->lo_x[c], node->hi_x[c], q->x);
-        float_packet dy = LANE_GAP(node->lo_y[c], node->hi_y[c], q->y);
-        float_packet dz = LANE_GAP(node->lo_z[c], node->hi_z[c], q->z);
+        float_packet dx = lane_gap(node->lo_x[c], node->hi_x[c], q->x);
+        float_packet dy = lane_gap(node->lo_y[c], node->hi_y[c], q->y);
+        float_packet dz = lane_gap(node->lo_z[c], node->hi_z[c], q->z);
         float_packet d2 = (dx * dx + dy * dy) + dz * dz;
         int_packet near = d2 <= s->best;
         if (some_packet(near)) {
@@ -82,19 +97,24 @@ TRAVERSAL_INLINE uint children_points(const PointPacket* q, __global const WideN
     }
     return mask;
 }
-#undef LANE_GAP
 #undef BOX_GAP
 #undef NODE_ROW
 
 /* segment_point per lane: the point of segment a + w ab nearest to each. */
-#define DOT_LANES(e, px, py, pz) (((e).x * (px) + (e).y * (py)) + (e).z * (pz))
+/* dot(e, p) for each lane's p. */
+TRAVERSAL_INLINE float_packet dot_lanes(float3 e, float_packet px, float_packet py,
+                                        float_packet pz)
+{
+    return (e.x * px + e.y * py) + e.z * pz;
+}
+
 TRAVERSAL_INLINE float_packet segment_points(float3 a, float3 ab, const PointPacket* q,
                                              float_packet* w)
 {
     float length2 = DOT3(ab, ab);
     float_packet along = (float_packet)(0.0f);
     if (length2 > 0.0f)
-        along = DOT_LANES(ab, q->x - a.x, q->y - a.y, q->z - a.z) / length2;
+        along = dot_lanes(ab, q->x - a.x, q->y - a.y, q->z - a.z) / length2;
     along = GROW_LO(GROW_HI(along, (float_packet)(0.0f)), (float_packet)(1.0f));
     *w = along;
     float_packet dx = q->x - (a.x + along * ab.x), dy = q->y - (a.y + along * ab.y),
@@ -128,7 +148,7 @@ TRAVERSAL_INLINE float_packet sliver_packet(float3 a, float3 b, float3 c, const 
  * the chain tests first.  The degenerate triangle's fallback runs only when
  * a lane left in the face region has barycentrics out of range.  A sliver
  * goes lane by lane in double where the device has it (sliver_packet). */
-#define PICK(cond, value, was) ((cond) ? (value) : (was))
+#define PICK(cond, value, was) ((cond) ? (value) : (was)) /* ints and floats alike */
 TRAVERSAL_INLINE float_packet closest_on_corners_packet(float3 a, float3 b, float3 c,
                                                         const PointPacket* q,
                                                         float_packet* u_out,
@@ -142,9 +162,9 @@ TRAVERSAL_INLINE float_packet closest_on_corners_packet(float3 a, float3 b, floa
     float_packet apx = q->x - a.x, apy = q->y - a.y, apz = q->z - a.z;
     float_packet bpx = q->x - b.x, bpy = q->y - b.y, bpz = q->z - b.z;
     float_packet cpx = q->x - c.x, cpy = q->y - c.y, cpz = q->z - c.z;
-    float_packet d1 = DOT_LANES(ab, apx, apy, apz), d2 = DOT_LANES(ac, apx, apy, apz);
-    float_packet d3 = DOT_LANES(ab, bpx, bpy, bpz), d4 = DOT_LANES(ac, bpx, bpy, bpz);
-    float_packet d5 = DOT_LANES(ab, cpx, cpy, cpz), d6 = DOT_LANES(ac, cpx, cpy, cpz);
+    float_packet d1 = dot_lanes(ab, apx, apy, apz), d2 = dot_lanes(ac, apx, apy, apz);
+    float_packet d3 = dot_lanes(ab, bpx, bpy, bpz), d4 = dot_lanes(ac, bpx, bpy, bpz);
+    float_packet d5 = dot_lanes(ab, cpx, cpy, cpz), d6 = dot_lanes(ac, cpx, cpy, cpz);
     float_packet vc = d1 * d4 - d3 * d2, vb = d5 * d2 - d1 * d6, va = d3 * d6 - d5 * d4;
     float_packet inv = 1.0f / (va + vb + vc);
     float_packet u = vb * inv, v = vc * inv;
@@ -214,7 +234,6 @@ TRAVERSAL_INLINE float_packet closest_on_corners_packet(float3 a, float3 b, floa
                  dz = q->z - ((a.z + u * ab.z) + v * ac.z);
     return (dx * dx + dy * dy) + dz * dz;
 }
-#undef DOT_LANES
 
 /* closest_leaf for every lane: a triangle nearer than a lane's best becomes
  * that lane's (at the best itself while it has none or when it comes first
@@ -273,8 +292,23 @@ TRAVERSAL_INLINE float_packet solid_angle_points(float3 a, float3 b, float3 c,
 #else
 #define LANE_BITS (int8)(1, 2, 4, 8, 16, 32, 64, 128)
 #endif
-#define LANES_OF(bits) (((int_packet)(bits) & LANE_BITS) != (int_packet)(0))
-#define BITS_OF(flags) ((uint)packet_or((flags) & LANE_BITS))
+TRAVERSAL_INLINE int_packet lanes_of(uint bits)
+{
+    return ((int_packet)(bits) & LANE_BITS) != (int_packet)(0);
+}
+
+TRAVERSAL_INLINE uint bits_of(int_packet flags)
+{
+    return (uint)packet_or(flags & LANE_BITS);
+}
+
+/* A child's dipole flux a.d for each lane's d. */
+TRAVERSAL_INLINE float_packet dipole_flux_points(__global const WideDipoles* dipole, int c,
+                                                 float_packet dx, float_packet dy,
+                                                 float_packet dz)
+{
+    return (dipole->a_x[c] * dx + dipole->a_y[c] * dy) + dipole->a_z[c] * dz;
+}
 
 /* The winding walk of a packet, each lane's sum made as the one-point walk
  * makes it: at a node, a child far from a lane (Barill's |q - p| > beta r)
@@ -295,9 +329,9 @@ TRAVERSAL_INLINE bool walk_winding_points(const PointPacket* q, __global const W
     int sp = 0;
     int index = 0;       /* the node or leaf walked now, */
     uint count = 0;      /* its triangles (0: a node) */
-    uint lanes = BITS_OF((int_packet)(-1));  /* and the lanes summing there */
+    uint lanes = bits_of((int_packet)(-1));  /* and the lanes summing there */
     for (;;) {
-        int_packet active = LANES_OF(lanes);
+        int_packet active = lanes_of(lanes);
         if (count == 0) {
             __global const WideNode* node = nodes + index;
             __global const WideDipoles* dipole = dipoles + index;
@@ -308,23 +342,21 @@ TRAVERSAL_INLINE bool walk_winding_points(const PointPacket* q, __global const W
                              dz = dipole->p_z[c] - q->z;
                 float_packet d2 = (dx * dx + dy * dy) + dz * dz;
                 float near = dipole->radius[c] * WINDING_BETA;
-#define FLUX(dx, dy, dz) ((dipole->a_x[c] * (dx) + dipole->a_y[c] * (dy)) + dipole->a_z[c] * (dz))
                 float_packet term;
                 /* a far lane's d2 passes near^2: a cluster this size or
                  * larger never needs the scaling (one test per child, not a
                  * lane reduction) */
                 if (near * near >= SCALE_BELOW) {
-                    term = FLUX(dx, dy, dz) / (d2 * packet_root(d2));
+                    term = dipole_flux_points(dipole, c, dx, dy, dz) / (d2 * packet_root(d2));
                 } else {  /* scaled as children_winding's term */
                     float_packet unit = UNIT_SCALE(int_packet, as_int_packet, as_float_packet, d2),
                                  unit2 = unit * unit, scaled = d2 * unit2;
-                    term = FLUX(dx * unit, dy * unit, dz * unit) / (scaled * packet_root(scaled))
-                           * unit2;
+                    term = dipole_flux_points(dipole, c, dx * unit, dy * unit, dz * unit)
+                           / (scaled * packet_root(scaled)) * unit2;
                 }
-#undef FLUX
                 int_packet far = active & (d2 > (float_packet)(near * near));
                 s->solid_angle += far ? term : (float_packet)(0.0f);
-                uint descend = BITS_OF(active & (d2 <= (float_packet)(near * near)));
+                uint descend = bits_of(active & (d2 <= (float_packet)(near * near)));
                 if (descend != 0) {
                     if (sp == STACK_SIZE + WIDE_ARITY)
                         return true;
@@ -348,8 +380,6 @@ TRAVERSAL_INLINE bool walk_winding_points(const PointPacket* q, __global const W
         lanes = as_uint(stack[sp].entry);
     }
 }
-#undef LANES_OF
-#undef BITS_OF
 #undef LANE_BITS
 
 #endif /* POINT_PACKET_H */

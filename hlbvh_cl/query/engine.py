@@ -1,0 +1,437 @@
+"""The one launch engine of the queries: rays, all hits and points alike.
+
+A query hands the engine a batch of items (rays or points): their input
+arrays, a row per item; the values each launch takes either as one number
+or a row per item (a ray's tmin, tmax and mask: "stepped"); the output
+arrays, a row per item, or a segment of rows per item (intersect_all's
+hits); and optionally an order to run the items in.  The query's own
+``launch(n, Launch)`` enqueues its kernel with the buffers the engine gives
+it.  The engine does the rest, the same way for every query:
+
+- **Chunking and pacing.**  Launches take at most ``most`` items, the first
+  FIRST_LAUNCH (the query's), each later one as many as the last to end
+  says fit in LAUNCH_SECONDS (LaunchSizes), so that Ctrl-C, which waits for
+  the launches in flight, is answered within a second whatever a ray costs;
+  at most two are in flight.
+- **Zero copy or copy.**  On PoCL's CPU device the kernels use the numpy
+  arrays themselves (CL_MEM_USE_HOST_PTR, zero_copy); elsewhere the inputs
+  go up into device buffers reused between launches, and the results come
+  back from others, or are written in place where the runtime can use the
+  arrays there (Intel's, for arrays that start on a page: outputs_in_place).
+- **Whole arrays by slots** (``whole``, CPU devices): every launch reads and
+  writes the whole arrays in place, the items of a run of ``order`` given
+  as slots, so that nothing is gathered or scattered on the host.
+  Otherwise an ordered batch's rows are taken on the host per launch and
+  its results put back once the launch ends.
+- **Collection and the overflow check.**  Results are mapped (in place) or
+  copied back; the counters (int32 [0]: a walk ran out of stack; [1]: the
+  query's own) are read once, at the end, the only blocking wait.
+
+On any error or Ctrl-C the queue is finished before the exception leaves:
+the launches in flight may still write the caller's arrays.
+"""
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+
+import numpy as np
+import pyopencl as cl
+
+from ..build.instances import InstancedTree
+from ..core import layout
+from ..core.tree import Tree
+from ..device.runtime import Runtime
+from .results import starts_on_page
+
+#: A batch's first launch takes at most this many items (rays; point queries
+#: start lower), and each later one what the last to end says fits in
+#: LAUNCH_SECONDS: a scene of many overlapping instances makes an item cost
+#: far more.
+FIRST_LAUNCH = 1 << 16
+LAUNCH_SECONDS = 0.25
+
+#: Stack sizes are rounded up to a multiple of this so that few program
+#: variants get compiled.
+STACK_GRANULE = 16
+
+
+def zero_copy(rt: Runtime) -> bool:
+    """Whether queries hand the kernels the numpy arrays themselves
+    (CL_MEM_USE_HOST_PTR) instead of device copies.
+
+    Only on PoCL's CPU device, where a device copy is just two memcpys and
+    zero copy measured faster.  Intel's CPU runtime measured the other way,
+    and a GPU's memory is its own.
+    """
+    return (not rt.profile.gpu and rt.device.id.startswith("pocl")
+            and bool(rt.device.cl_device.host_unified_memory))
+
+
+def outputs_in_place(rt: Runtime) -> bool:
+    """Whether, off zero copy, the kernels write results straight into the
+    result arrays where these start on a page (results.ALIGNMENT; Intel's
+    CPU runtime uses a host pointer in place only there).
+
+    On Intel's CPU runtime, where the inputs measured slower in place (a
+    caller's arrays seldom start on a page) but the results written in
+    place measured faster, with the same results.
+    """
+    return rt.device.id.startswith("intel") and not rt.profile.gpu
+
+
+def work_group_size(rt: Runtime) -> int:
+    """Work-items per group for the traversal kernels.
+
+    PoCL's speed hardly depends on it, nor does Intel's CPU runtime's up to
+    8.  At 16 and more Intel would pack 16 rays into SIMD lanes (much slower:
+    divergence), which the kernels' vec_type_hint now prevents, but 8 stays
+    the safe choice.  GPUs want at least a warp/wavefront.
+    """
+    d = rt.device
+    if rt.profile.gpu:
+        size = 64
+    elif d.id.startswith("intel"):
+        size = 8
+    else:
+        size = 16
+    return min(size, d.cl_device.max_work_group_size)
+
+
+def stack_size(tree) -> int:
+    """A stack that cannot overflow: a wide node pushes at most WIDE_ARITY - 1
+    children, and only those of the nodes on the path to the current one stay
+    on the stack.  Sized from the tree's depth, so that a tree whose depth is
+    wrong overflows (and raises) instead of being trusted in part."""
+    depth = (layout.WIDE_ARITY - 1) * max(1, int(tree.depth))
+    return (depth + STACK_GRANULE - 1) // STACK_GRANULE * STACK_GRANULE
+
+
+def kernel_defines(rt: Runtime, tree, variant, packet: int, **extra) -> dict:
+    """The defines every query kernel is built with for ``tree``: its stack,
+    the items per work-item, the kernel variant's and the device's (CPU
+    prefetch), INSTANCES for a two-level scene, then the query's own."""
+    defines = {"STACK_SIZE": stack_size(tree), "PACKET_SIZE": packet, **variant.defines,
+               **rt.prefetch_defines}
+    if isinstance(tree, InstancedTree):
+        defines["INSTANCES"] = 1
+    return {**defines, **extra}
+
+
+def check_tree(rt: Runtime, tree) -> bool:
+    """Validates a tree for a query on ``rt``; False when it holds no
+    triangle (every query misses)."""
+    if not isinstance(tree, (Tree, InstancedTree)):
+        raise TypeError(f"tree must be a hlbvh_cl.core.tree.Tree, got {type(tree).__name__}")
+    if tree.released:
+        raise ValueError("this Tree was released when its Scene rebuilt")
+    if tree.triangle_count == 0:
+        return False
+    if tree.nodes.context != rt.context:
+        raise ValueError(f"tree lives on another OpenCL context than this query "
+                         f"({rt.device.id}); build it with the same runtime")
+    if tree.depth < 1 or tree.node_count < 1:
+        raise ValueError(f"tree is malformed: depth={tree.depth}, node_count={tree.node_count}")
+    return True
+
+
+def collect(queue: cl.CommandQueue, buffer: cl.Buffer, array: np.ndarray,
+            in_place: bool) -> cl.Event:
+    """Enqueues what brings a launch's results from ``buffer`` into ``array``:
+    where the kernel wrote the array itself (a USE_HOST_PTR buffer over it),
+    a map of the buffer, which makes them visible without a copy; else a
+    copy back.  The caller keeps the event: pyopencl's events of non-blocking
+    copies wait when they are dropped."""
+    if in_place:
+        mapped, event = cl.enqueue_map_buffer(queue, buffer, cl.map_flags.READ, 0, array.shape,
+                                              array.dtype, is_blocking=False)
+        mapped.base.release(queue)
+        return event
+    return cl.enqueue_copy(queue, array, buffer, is_blocking=False)
+
+
+def take_rows(array: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """array[order], a 2-D array's rows gathered as one item each (numpy's
+    fancy indexing of an (N, 3) array goes element by element)."""
+    if array.ndim == 1:
+        return np.take(array, order)
+    item = np.dtype((np.void, array.itemsize * array.shape[1]))
+    rows = np.ascontiguousarray(array).view(item).reshape(-1)
+    return np.take(rows, order).view(array.dtype).reshape(-1, array.shape[1])
+
+
+def put_rows(out: np.ndarray, order: np.ndarray, values: np.ndarray) -> None:
+    """out[order] = values, as take_rows's inverse."""
+    if out.ndim == 2:
+        item = np.dtype((np.void, out.itemsize * out.shape[1]))
+        out = out.view(item).reshape(-1)
+        values = np.ascontiguousarray(values).view(item).reshape(-1)
+    out[order] = values
+
+
+def engine_setting(name: str, doc: str) -> property:
+    """A query's property that reads and sets its engine's ``name`` (the
+    engine owns the launch settings; the query shows them)."""
+    return property(lambda query: getattr(query.engine, name),
+                    lambda query, value: setattr(query.engine, name, value), doc=doc)
+
+
+class LaunchSizes:
+    """Items per launch for a batch: ``first`` for the first launch, then
+    what the last one ended took per item allows in LAUNCH_SECONDS, always
+    within [1, most]."""
+
+    def __init__(self, most: int, first: int | None = None):
+        self.most = most
+        self.size = max(1, min(most, FIRST_LAUNCH if first is None else first))
+        self.measured = False
+
+    def ended(self, event, items: int) -> None:
+        """A launch of ``items`` items has ended (its profiled event)."""
+        seconds = (event.profile.end - event.profile.start) * 1e-9
+        fits = LAUNCH_SECONDS * items / seconds if seconds > 0 else self.most
+        self.size = int(max(1, min(self.most, fits)))
+        self.measured = True
+
+
+@dataclass
+class Launch:
+    """What the engine gives one launch of a query's kernel."""
+
+    count: int  # items in this launch
+    #: each input and output array's buffer, by name: its rows for this
+    #: launch, or the whole array (Batch.whole)
+    buffers: dict
+    #: each stepped value's (buffer, step): step 1, a row per item; 0, one value
+    steps: dict
+    slots: cl.Buffer     # whole arrays: this launch's items (uint32 slots); else a stand-in
+    indexed: np.uint32   # 1 where ``slots`` are read
+    #: segmented outputs: (the items' offsets, the first output row, the
+    #: first item) as the buffers hold them; else ()
+    segments: tuple = ()
+
+
+@dataclass
+class Batch:
+    """A query's items for the engine (see the module's docstring)."""
+
+    count: int
+    inputs: dict                      # name -> array, a row per item
+    outputs: dict                     # name -> array, a row per item (or per segment row)
+    stepped: dict = field(default_factory=dict)  # name -> 0-d value or a row per item
+    order: np.ndarray | None = None   # uint32: run the items in this order
+    whole: bool = False               # whole arrays in place, items by slots
+    segments: np.ndarray | None = None  # int64 (count + 1,): item i's output rows
+    max_rows: int | None = None       # segmented: output rows per launch at most
+    most: int | None = None           # items per launch at most (None: the engine's)
+    first: int | None = None          # items in the first launch (None: FIRST_LAUNCH)
+
+
+class Engine:
+    """Runs a query's batches (``run``) on one runtime, with the buffers it
+    reuses between launches: one batch at a time."""
+
+    def __init__(self, rt: Runtime, most: int):
+        self.rt = rt
+        self.most = most  # items per launch at most
+        #: whether the kernels read the inputs and write the results in the
+        #: numpy arrays themselves (zero_copy); else the inputs go up and the
+        #: results come back through device buffers reused between launches
+        self.zero_copy = zero_copy(rt)
+        #: without zero_copy: whether results that start on a page are
+        #: written in place (outputs_in_place)
+        self.outputs_in_place = not self.zero_copy and outputs_in_place(rt)
+        self.counters = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 8)
+        self.unused = cl.Buffer(rt.context, cl.mem_flags.READ_ONLY, 4)  # a stand-in argument
+        self._scalars: dict[str, cl.Buffer] = {}
+        #: the device buffers reused between launches and batches, by name
+        #: (grow-only: reserve)
+        self.reused: dict[str, cl.Buffer] = {}
+        self._lock = threading.Lock()
+        #: device time of the last batch's kernels, milliseconds
+        self.last_kernel_ms = 0.0
+
+    def run(self, batch: Batch, launch) -> np.ndarray:
+        """Runs ``launch(n, Launch)`` over the batch; returns the counters
+        (int32 [2]) after raising RuntimeError if a walk ran out of stack."""
+        with self._lock:
+            try:
+                return self._run(batch, launch)
+            except BaseException:
+                # Ctrl-C, or an error: the launches in flight (at most two)
+                # may still write into the caller's arrays (zero copy) and the
+                # reused buffers; let them end before anyone reuses those.
+                self.rt.queue.finish()
+                raise
+
+    def reserve(self, sizes: dict[str, int]) -> dict[str, cl.Buffer]:
+        """Grow-only device buffers of at least ``sizes`` bytes, by name,
+        reused between launches and batches (the queue runs in order, so
+        the next launch's copies follow the last one's reads)."""
+        short = {name: size for name, size in sizes.items()
+                 if name not in self.reused or self.reused[name].size < size}
+        if short:
+            for name in short:  # release the old ones before allocating
+                self.reused.pop(name, None)
+            self.rt.check_allocation("query buffers", short)
+            self.reused.update({name: cl.Buffer(self.rt.context, cl.mem_flags.READ_WRITE,
+                                                 max(4, size)) for name, size in short.items()})
+        return {name: self.reused[name] for name in sizes}
+
+    # -- internals -----------------------------------------------------------
+
+    def _wrap(self, array: np.ndarray, access) -> cl.Buffer:
+        """A buffer over the array's own memory (CL_MEM_USE_HOST_PTR)."""
+        return cl.Buffer(self.rt.context, access | cl.mem_flags.USE_HOST_PTR, hostbuf=array)
+
+    def _scalar(self, name: str, value: np.ndarray) -> cl.Buffer:
+        buffer = self._scalars.get(name)
+        if buffer is None:
+            buffer = self._scalars[name] = cl.Buffer(self.rt.context, cl.mem_flags.READ_ONLY, 4)
+        cl.enqueue_copy(self.rt.queue, buffer, np.full(1, value, value.dtype))
+        return buffer
+
+    def _run(self, batch: Batch, launch) -> np.ndarray:
+        rt, queue = self.rt, self.rt.queue
+        cl.enqueue_copy(queue, self.counters, np.zeros(2, np.int32))
+        scalars = {name: self._scalar(name, value) for name, value in batch.stepped.items()
+                   if value.ndim == 0}
+        rows = {**batch.inputs, **{name: value for name, value in batch.stepped.items()
+                                   if value.ndim}}
+        cut, results = (self._whole if batch.whole else self._chunk)(batch, rows, scalars)
+        # launches in flight: (events, what ends them, the objects they use, items)
+        flight: list[tuple[list, object, object, int]] = []
+        events = []
+        sizes = LaunchSizes(batch.most or self.most, batch.first)
+
+        def retire(keep: int) -> None:
+            while len(flight) > keep:
+                waited, put_back, _, items = flight.pop(0)
+                rt.wait(waited)
+                sizes.ended(waited[0], items)
+                put_back()
+
+        for start, stop in _runs(batch, sizes):
+            arguments, done, put_back, held = cut(start, stop)
+            events.append(launch(stop - start, arguments))
+            flight.append(([events[-1], *done()], put_back, held, stop - start))
+            # before the next run is cut: at most one left in flight, none
+            # until the first has ended and sized the runs after it
+            retire(1 if sizes.measured else 0)
+        retire(0)
+        finish = [collect(queue, buffer, array, True) for buffer, array in results]
+        counters = np.zeros(2, np.int32)
+        finish.append(cl.enqueue_copy(queue, counters, self.counters, is_blocking=False))
+        rt.wait(finish)
+        self.last_kernel_ms = sum((e.profile.end - e.profile.start) * 1e-6 for e in events)
+        if counters[0]:
+            raise RuntimeError("a query's walk overflowed its stack (sized from Tree.depth): "
+                               "the tree is deeper than its depth field says")
+        return counters
+
+    def _whole(self, batch: Batch, rows: dict, scalars: dict):
+        """Launches over the whole arrays in place, by slots (Batch.whole)."""
+        flags = cl.mem_flags
+        read = {name: self._wrap(array, flags.READ_ONLY) for name, array in rows.items()}
+        # read too: a segmented kernel sorts the rows it wrote
+        written = {name: self._wrap(array, flags.READ_WRITE)
+                   for name, array in batch.outputs.items()}
+        buffers = {**read, **written}
+        steps = {name: (read[name], np.uint32(1)) if name in read else
+                 (scalars[name], np.uint32(0)) for name in batch.stepped}
+        segments = () if batch.segments is None else \
+            (self._wrap(batch.segments, flags.READ_ONLY), np.int64(0), np.int64(0))
+        order = batch.order if batch.order is not None else \
+            np.arange(batch.count, dtype=np.uint32)
+
+        def cut(start: int, stop: int):
+            slots = self._wrap(order[start:stop], flags.READ_ONLY)
+            arguments = Launch(stop - start, buffers, steps, slots, np.uint32(1), segments)
+            return arguments, list, _nothing, slots
+        # the results are mapped once, after the last launch
+        return cut, [(written[name], array) for name, array in batch.outputs.items()]
+
+    def _chunk(self, batch: Batch, rows: dict, scalars: dict):
+        """Launches over each run's rows (taken on the host in ``order``),
+        in place on zero copy, else through reused device buffers (reserved
+        at once for the largest run)."""
+        queue, flags = self.rt.queue, cl.mem_flags
+        order, segments = batch.order, batch.segments
+        if not self.zero_copy:
+            most = min(batch.count, batch.most or self.most)
+            slots = most if segments is None else \
+                max(batch.max_rows or 0, int(np.diff(segments).max(initial=0)))
+            self.reserve({**{name: _row_bytes(array) * most for name, array in rows.items()},
+                          **{name: _row_bytes(array) * min(slots, len(array))
+                             for name, array in batch.outputs.items()}})
+
+        def cut(start: int, stop: int):
+            items = slice(start, stop) if order is None else order[start:stop]
+            first, last = (start, stop) if segments is None else \
+                (int(segments[start]), int(segments[stop]))
+            inputs = {name: array[items] if order is None else take_rows(array, items)
+                      for name, array in rows.items()}
+            if segments is not None:
+                inputs["segments"] = segments[start:stop + 1]
+            # the results of an ordered run land in rows of their own first
+            outputs = {name: array[first:last] if order is None else
+                       np.empty((last - first, *array.shape[1:]), array.dtype)
+                       for name, array in batch.outputs.items()}
+            transfers = []
+            if self.zero_copy:
+                buffers = {name: self._wrap(array, flags.READ_ONLY) for name, array in inputs.items()}
+            else:
+                buffers = self.reserve({name: array.nbytes for name, array in inputs.items()})
+                transfers += [cl.enqueue_copy(queue, buffers[name], array, is_blocking=False)
+                              for name, array in inputs.items() if array.nbytes]
+            in_place = self.zero_copy or (self.outputs_in_place and starts_on_page(
+                *outputs.values()))
+            if in_place:
+                buffers.update({name: self._wrap(array, flags.WRITE_ONLY)
+                                for name, array in outputs.items()})
+            else:
+                buffers.update(self.reserve({name: array.nbytes for name, array in outputs.items()}))
+            steps = {name: (buffers[name], np.uint32(1)) if name in buffers else
+                     (scalars[name], np.uint32(0)) for name in batch.stepped}
+            segment = () if segments is None else \
+                (buffers.pop("segments"), np.int64(first), np.int64(start))
+            arguments = Launch(stop - start, buffers, steps, self.unused, np.uint32(0), segment)
+
+            def done():
+                return [collect(queue, buffers[name], array, in_place)
+                        for name, array in outputs.items()]
+
+            def put_back():
+                if order is not None:
+                    for name, array in outputs.items():
+                        put_rows(batch.outputs[name], items, array)
+            return arguments, done, put_back, (inputs, outputs, buffers, transfers)
+        return cut, []
+
+
+def _nothing() -> None:
+    pass
+
+
+def _row_bytes(array: np.ndarray) -> int:
+    return array.itemsize * int(np.prod(array.shape[1:]))
+
+
+def _runs(batch: Batch, sizes: LaunchSizes):
+    """(start, stop) runs of the batch's items: at most sizes.size items (as
+    it stands when each run is cut) and, for segmented outputs, at most
+    max_rows rows unless one item alone has more; runs with no rows are
+    skipped."""
+    start, count, offsets = 0, batch.count, batch.segments
+    while start < count:
+        stop = min(start + sizes.size, count)
+        if offsets is not None:
+            if batch.max_rows is not None:
+                bound = int(np.searchsorted(offsets, offsets[start] + batch.max_rows,
+                                            "right")) - 1
+                stop = min(stop, max(bound, start + 1))
+            if offsets[stop] == offsets[start]:
+                start = stop
+                continue
+        yield start, stop
+        start = stop

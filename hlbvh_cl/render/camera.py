@@ -1,0 +1,120 @@
+"""The camera: a pinhole camera's parameters (Camera), its record on the
+device (layout.PINHOLE_CAMERA), and the stage that makes its primary rays
+there (kernels/render/camera.cl).
+
+Convention (scene files share it, hlbvh_cl.io.scenefile): forward =
+unit(target - eye), right = unit(forward x up), true_up = right x forward.
+Pixel (x, y), y counting down from the top row, is sampled at (x + jx,
+y + jy): the centre (0.5, 0.5) with one sample per pixel; with more, sample
+s takes jx = random_unit(pixel, s, 0), jy = random_unit(pixel, s, 1)
+(kernels/render: the PCG hash of Jarzynski & Olano 2020), so renders are
+deterministic.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pyopencl as cl
+
+from ..core import inputs, layout
+from ..core.paths import kernel_of
+from ..device.runtime import Runtime
+
+KERNEL = kernel_of(__name__)
+
+#: Image sides beyond this are taken for mistakes.
+MAX_IMAGE_SIDE = 16384
+
+
+def unit(vector: np.ndarray) -> np.ndarray | None:
+    """A finite float64 vector's direction, scaled to its largest component
+    first so that the length neither overflows (1e300) nor underflows; None
+    for the zero vector."""
+    largest = np.abs(vector).max()
+    if not largest > 0:
+        return None
+    vector = vector / largest
+    return vector / np.linalg.norm(vector)
+
+
+def view_problem(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> tuple[str, str] | None:
+    """What stops a camera at finite ``eye`` looking at ``target`` with ``up``
+    from making rays, as (field, what is wrong); None when nothing does.
+    Camera and scene files (hlbvh_cl.io.scenefile) both ask."""
+    largest = float(np.finfo(np.float32).max)
+    for name, point in (("eye", eye), ("target", target)):
+        if np.abs(point).max() > largest:
+            return name, f"{point.tolist()} does not fit float32, as the rays must"
+    forward = unit(target - eye)
+    if forward is None:
+        return "target", f"{target.tolist()} equals eye: the camera looks nowhere"
+    up_unit = unit(up)
+    if up_unit is None or not np.linalg.norm(np.cross(forward, up_unit)) > 1e-6:
+        return "up", f"{up.tolist()} is zero or parallel to the view direction target - eye"
+    return None
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera looking from ``eye`` at ``target``; ``fov_deg`` is the
+    vertical field of view (the module's convention)."""
+
+    eye: tuple[float, float, float]
+    target: tuple[float, float, float]
+    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    fov_deg: float = 45.0  # a scene file's default too (hlbvh_cl.io.scenefile)
+
+    def __post_init__(self):
+        eye, target, up = (inputs.vector3(name, getattr(self, name))
+                           for name in ("eye", "target", "up"))
+        fov = inputs.number("fov_deg", self.fov_deg, 0.0, 180.0, low_open=True, high_open=True)
+        problem = view_problem(eye, target, up)
+        if problem is not None:
+            raise ValueError(" ".join(problem))
+        for name, value in (("eye", eye), ("target", target), ("up", up)):
+            object.__setattr__(self, name, tuple(float(x) for x in value))
+        object.__setattr__(self, "fov_deg", fov)
+
+    def basis(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """forward, right, true_up: unit vectors (float64)."""
+        forward = unit(np.subtract(self.target, self.eye))
+        right = unit(np.cross(forward, unit(np.asarray(self.up, np.float64))))
+        return forward, right, np.cross(right, forward)
+
+    def pinhole(self, width: int, height: int) -> np.ndarray:
+        """The PinholeCamera record (layout.PINHOLE_CAMERA) of a width x height image."""
+        forward, right, true_up = self.basis()
+        half_height = math.tan(math.radians(self.fov_deg) / 2)
+        record = np.zeros((), layout.PINHOLE_CAMERA)
+        record["eye"] = self.eye
+        record["forward"] = forward
+        record["right"] = right * half_height * (width / height)
+        record["up"] = true_up * half_height
+        return record
+
+    def rays(self, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+        """The primary rays of a width x height image, as a render with spp=1
+        traces them: float32 (H*W, 3) origins and directions through the pixel
+        centres, row-major from the top-left pixel, in camera.cl's float32
+        arithmetic."""
+        width = inputs.integer("width", width, 1, MAX_IMAGE_SIDE)
+        height = inputs.integer("height", height, 1, MAX_IMAGE_SIDE)
+        record = self.pinhole(width, height)
+        f32 = np.float32
+        ys, xs = np.mgrid[0:height, 0:width].astype(f32)
+        sx = (f32(2) * (xs + f32(0.5)) / f32(width) - f32(1)).reshape(-1, 1)
+        sy = (f32(1) - f32(2) * (ys + f32(0.5)) / f32(height)).reshape(-1, 1)
+        directions = record["forward"] + sx * record["right"] + sy * record["up"]
+        origins = np.broadcast_to(record["eye"], directions.shape).copy()
+        return origins, np.ascontiguousarray(directions, f32)
+
+
+def enqueue_primary_rays(rt: Runtime, pinhole: np.ndarray, width: int, height: int,
+                         band, sample: int, jitter: bool, rays: cl.Buffer) -> cl.Event:
+    """One Ray per pixel of ``band`` (the rows of a pass, renderer.Band) into
+    ``rays``, in the band's tile order."""
+    return rt.run(rt.kernel(KERNEL, "primary_rays"), band.tile_range, pinhole,
+                  np.uint32(width), np.uint32(height), band.first_row, band.rows,
+                  np.uint32(sample), np.int32(jitter), rays)

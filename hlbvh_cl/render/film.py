@@ -1,0 +1,56 @@
+"""The film: what a render accumulates and what it gives back.
+
+Each pixel of a pass sums its samples' colours in a float4 (RGB and one
+spare lane, 16 bytes: one aligned load); after the last sample the sums
+are scaled by 1 / spp and encoded into the whole image's 8-bit RGB
+(kernels/render/film.cl): channel = round(255 * c'), c' = sqrt(clamp(c,
+0, 1)) for radiance (display gamma 2, which looks as 2.2 does) and
+clamp(c, 0, 1) for data (normals, depth).  Only that image is read back.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pyopencl as cl
+
+from ..core.paths import kernel_of
+from ..device.runtime import Runtime
+
+KERNEL = kernel_of(__name__)
+
+
+class Film:
+    """A render's device buffers: the accumulators of one pass of pixels,
+    and the whole image; grow-only, reused across renders."""
+
+    def __init__(self):
+        self.pixels = 0         # accumulators held
+        self.image_pixels = 0   # image pixels held
+        self.accum: cl.Buffer | None = None
+        self.image: cl.Buffer | None = None
+
+    @staticmethod
+    def sizes(pixels: int, image_pixels: int) -> dict[str, int]:
+        """Bytes of the film's buffers for a pass of ``pixels`` pixels."""
+        return {"accumulated colour": 16 * pixels, "image": 3 * image_pixels}
+
+    def reserve(self, rt: Runtime, pixels: int, image_pixels: int) -> None:
+        """Buffers for a pass of ``pixels`` and an image of ``image_pixels``
+        (the caller has checked the allocation: Runtime.check_allocation)."""
+        if pixels > self.pixels:
+            self.accum = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 16 * pixels)  # float4
+            self.pixels = pixels
+        if image_pixels > self.image_pixels:
+            self.image = cl.Buffer(rt.context, cl.mem_flags.WRITE_ONLY, 3 * image_pixels)
+            self.image_pixels = image_pixels
+
+    def encode(self, rt: Runtime, band, width: int, spp: int, radiance: bool) -> cl.Event:
+        """The band's pixels, their sums over ``spp`` samples, into the 8-bit
+        image: gamma-encoded if they are ``radiance``, else as they are."""
+        kernel = rt.kernel(KERNEL, "encode_image", RADIANCE=int(radiance))
+        return rt.run(kernel, band.tile_range, self.accum,
+                      np.uint32(width), band.first_row, band.rows, np.float32(1.0 / spp),
+                      self.image)
+
+    def read(self, rt: Runtime, image: np.ndarray) -> cl.Event:
+        """Enqueues the image's copy into ``image`` (height, width, 3) uint8."""
+        return cl.enqueue_copy(rt.queue, image, self.image, is_blocking=False)

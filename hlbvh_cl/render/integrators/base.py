@@ -1,0 +1,74 @@
+"""The integrator interface: how a built scene becomes the film, sample by
+sample (Mitsuba 3's Integrator, pbrt-v4's), and the records the renderer
+hands an integrator."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pyopencl as cl
+
+
+@dataclass(frozen=True)
+class Band:
+    """The image rows one pass renders, and how its kernels cover them: the
+    2D range of pixel_in_pass (kernels/render: bands of TILE_ROWS rows in
+    tile order), or one work-item per pixel in ray order (``count``)."""
+    first_row: np.uint32
+    rows: np.uint32
+    width: int
+    count: int
+    tile_range: tuple[int, int]
+
+
+@dataclass
+class Step:
+    """One sample of one band, as the renderer hands it to an integrator
+    once the band's primary rays and their closest hits are on the device:
+    the buffers, the queries' entry points, and the events and pacing the
+    renderer keeps."""
+    rt: object            # hlbvh_cl.device.runtime.Runtime
+    query: object         # hlbvh_cl.query.rays.RayQuery: enqueue_intersect / enqueue_occluded
+    tree: object          # the tree the rays are traced in (its frame)
+    band: Band
+    sample: int
+    rays: cl.Buffer       # Ray per pixel of the band, in ray order
+    hits: cl.Buffer       # Hit per ray
+    accum: cl.Buffer      # the film's float4 sums per pixel (Film)
+    overflow: cl.Buffer   # int32: a traversal ran out of stack
+    events: dict          # stage name -> events, for the render's stats
+    done: object          # done(event): a step of rays ended (pacing, progress)
+
+
+class Integrator:
+    """A way to render: it lists the ``modes`` it renders (the names
+    Renderer.render's ``shading`` takes), and per render:
+
+    - ``prepare(rt, settings, tree, colors, light, pixels)``: its kernels,
+      parameters and buffers for passes of ``pixels`` pixels;
+    - ``shade(step)``: one sample of one band after its closest hits, adding
+      to ``step.accum``;
+    - ``passes(settings)``: the ray passes shade launches per sample (for
+      progress);
+    - ``radiance(settings)``: whether the mode's sums are radiance, which
+      the film gamma-encodes, or data it encodes as it is (Film.encode);
+    - ``buffer_sizes(pixels)``: the bytes its buffers take, for the
+      allocation check.
+    """
+
+    modes: tuple[str, ...] = ()
+
+    def prepare(self, rt, settings, tree, colors: np.ndarray, light, pixels: int) -> None:
+        raise NotImplementedError
+
+    def shade(self, step: Step) -> None:
+        raise NotImplementedError
+
+    def passes(self, settings) -> int:
+        raise NotImplementedError
+
+    def radiance(self, settings) -> bool:
+        raise NotImplementedError
+
+    def buffer_sizes(self, pixels: int) -> dict[str, int]:
+        return {}

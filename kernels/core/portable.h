@@ -1,0 +1,30 @@
+/* What every kernel needs to compile to the same arithmetic, and to run, on
+ * every OpenCL C compiler we test (PoCL's and Intel's CPU runtimes, Oclgrind,
+ * NVIDIA's): contraction off, and compiler builtins asked for by name.
+ * Every kernel file includes it first. */
+#ifndef PORTABLE_H
+#define PORTABLE_H
+
+/* Arithmetic as written, never fused into multiply-adds, in every kernel:
+ * OpenCL C lets a compiler contract by default, and one that does (for the
+ * SAH's box areas, say) would build another tree, and draw other pixels, than
+ * one that does not.  Traversal needs it besides (query/rays/triangle.h). */
+#pragma OPENCL FP_CONTRACT OFF
+
+/* Compiler builtins are only ever a faster spelling of plain OpenCL C: each
+ * use asks HAS_BUILTIN(name) and keeps a portable fallback.  The host defines
+ * PLAIN_OPENCL for compilers that claim a builtin they cannot lower (Oclgrind
+ * accepts __builtin_ctz, then fails on llvm.cttz), and for its safest kernel
+ * variant (hlbvh_cl/device/probe.py). */
+#if defined(__has_builtin) && !defined(PLAIN_OPENCL)
+#define HAS_BUILTIN(name) __has_builtin(name)
+#else
+#define HAS_BUILTIN(name) 0
+#endif
+
+/* PREFETCH (set by the host for CPU devices) asks for __builtin_prefetch. */
+#if defined(PREFETCH) && !HAS_BUILTIN(__builtin_prefetch)
+#undef PREFETCH
+#endif
+
+#endif /* PORTABLE_H */

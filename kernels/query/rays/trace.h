@@ -1,0 +1,237 @@
+/* A ray query from its visitor: its walks (query/walk/walk.h) for one ray
+ * (_ray) and, where PACKET_SIZE > 1, for a packet (_packet); on a two-level
+ * scene (INSTANCES) also the top tree's walks, whose leaves walk each
+ * instance's mesh with the query's own walks and state (below); and
+ * trace_QUERY, which traces the rays lanes[0, used) of a work-item as one
+ * packet when prepare_packet accepts them, else one by one, each walk from
+ * its start (start_ray, start_packet) over the scene's tree (on a two-level
+ * scene the top tree).  Include it as walk.h, without QUERY_PATH, with
+ * walk.h's hooks and these:
+ *   QUERY_OUT                the type of what the work-item's walks read and
+ *                            leave, one lane each: trace_QUERY's `out`
+ *   QUERY_END(s, out, l)     optional: stores a walk's results (s, and
+ *                            `state`) in lane l of out (a packet's in every
+ *                            lane)
+ *   QUERY_BEGIN(out, l)      with QUERY_STATE: sets `state` for lane l (a
+ *                            packet's for every lane) before its walk
+ *   QUERY_LANE(out, l)       optional: whether lane l's ray, traced one by one,
+ *                            takes a walk at all (default: every lane's)
+ *   QUERY_ENDS(s)            optional: whether the top walk ends once an
+ *                            instance's mesh is walked (default: false)
+ *   QUERY_MESH_ARGS(in, id)  optional: the QUERY_ARGS of the walk of instance
+ *                            in's mesh (id: its number; default: QUERY_ARGS)
+ * trace_QUERY(lanes, used, the scene's trees (instance.h's SCENE_TREES),
+ * overflow, out, QUERY_ARGS) sets overflow[0] if a walk ran out of stack, and
+ * counts the packets in overflow[1] under COUNT_PACKETS (tests). */
+#ifndef PATH_SUFFIX
+
+#include "query/rays/instance.h"
+
+/* QUERY_FN(name, path): the query's function `name` on a path. */
+#define QUERY_FN(name, path) CONCAT(CONCAT(name, CONCAT(_, QUERY)), path)
+#define TRACE_NAME(name) QUERY_FN(name, PATH_SUFFIX)
+#ifndef QUERY_ENDS
+#define QUERY_ENDS(s) false
+#endif
+#ifndef QUERY_MESH_ARGS
+#define QUERY_MESH_ARGS(in, id) QUERY_ARGS
+#endif
+#ifndef QUERY_END
+#define QUERY_END(s, out, l)
+#endif
+
+#ifdef INSTANCES
+/* A trace walks the top tree, with the instances' parameters. */
+#define TRACED(path) QUERY_FN(walk, CONCAT(_top, path))
+#define TRACE_SCENE_PARAMS MESHES_PARAMS
+#define TRACE_PARAMS INSTANCE_PARAMS QUERY_PARAMS
+#define TRACE_ARGS INSTANCE_ARGS QUERY_ARGS
+/* The walk of rays mapped into an instance's frame: a ray's is the query's
+ * own (map_instance_ray prepared it), a packet's mapped_QUERY_packet, which
+ * splits the packet where it must. */
+#define MESH_WALK_ray walk
+#define MESH_WALK_packet mapped
+#if PACKET_SIZE > 1 && defined(QUERY_STATE)
+#error "trace.h: instanced packets keep no query state (all_hits.cl walks one ray per work-item)"
+#endif
+#else /* a flat scene's trace walks its one tree */
+#define TRACED(path) QUERY_FN(walk, path)
+#define TRACE_SCENE_PARAMS
+#define TRACE_PARAMS QUERY_PARAMS
+#define TRACE_ARGS QUERY_ARGS
+#endif
+
+/* Each path's walks and trace; IS_PACKET tells the packet's. */
+#define IS_PACKET_ray 0
+#define IS_PACKET_packet 1
+#define PATH_SUFFIX _ray
+#include "query/rays/trace.h"
+#undef PATH_SUFFIX
+#if PACKET_SIZE > 1
+#define PATH_SUFFIX _packet
+#include "query/rays/trace.h"
+#undef PATH_SUFFIX
+#endif
+
+/* The query for the rays lanes[0, used) of a work-item: as one packet when
+ * prepare_packet accepts them, else one by one; results in out. */
+TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
+                                            __global const WideNode* nodes,
+                                            __global const Triangle* triangles
+                                            TRACE_SCENE_PARAMS, __global int* overflow,
+                                            QUERY_OUT* out QUERY_PARAMS)
+{
+#ifdef INSTANCES
+    bool mesh_out_of_stack = false;
+    bool* mesh_overflow = &mesh_out_of_stack;
+#endif
+    bool out_of_stack = false;
+#if PACKET_SIZE > 1
+    Packet p;
+    if (prepare_packet(lanes, &p)) {
+#ifdef COUNT_PACKETS
+        atomic_inc(overflow + 1);
+#endif
+        out_of_stack = QUERY_FN(trace, _packet)(&p, nodes, triangles, out, 0 TRACE_ARGS);
+    } else
+#endif
+    {
+        for (uint l = 0; l < used; ++l) {
+#ifdef QUERY_LANE
+            if (!QUERY_LANE(out, l))
+                continue;
+#endif
+            RayData r;
+            prepare_lane(&r, lanes, l);
+            out_of_stack |= QUERY_FN(trace, _ray)(&r, nodes, triangles, out, l TRACE_ARGS);
+        }
+    }
+#ifdef INSTANCES
+    out_of_stack |= mesh_out_of_stack;
+#endif
+    if (out_of_stack)
+        overflow[0] = 1;
+}
+
+#include "query/walk/walk_end.h"
+#undef QUERY_OUT
+#undef QUERY_BEGIN
+#undef QUERY_END
+#undef QUERY_LANE
+#undef QUERY_ENDS
+#undef QUERY_MESH_ARGS
+#undef QUERY_FN
+#undef TRACE_NAME
+#undef TRACED
+#undef TRACE_SCENE_PARAMS
+#undef TRACE_PARAMS
+#undef TRACE_ARGS
+#undef MESH_WALK_ray
+#undef MESH_WALK_packet
+#undef IS_PACKET_ray
+#undef IS_PACKET_packet
+
+#else /* one path */
+
+/* The walk of a flat scene's tree, or of an instance's mesh. */
+#include "query/walk/walk.h"
+
+#ifdef INSTANCES
+#if CONCAT(IS_PACKET, PATH_SUFFIX)
+/* The lanes of a mapped packet that prepare_packet turned down (their mapped
+ * directions disagree in sign), each walked as one ray with its lane's
+ * state.  Lanes the instance is hidden from (tmin inf) and lanes done (limit
+ * -inf) are skipped. */
+TRAVERSAL_INLINE bool QUERY_FN(lanes, _packet)(const RayLanes* lanes,
+                                               __global const WideNode* nodes,
+                                               __global const Triangle* triangles,
+                                               Found_packet* s QUERY_PARAMS)
+{
+    int index[PACKET_SIZE];
+    float t[PACKET_SIZE], u[PACKET_SIZE], v[PACKET_SIZE], limit[PACKET_SIZE];
+    vstore_packet(s->index, 0, index);
+    vstore_packet(s->t, 0, t);
+    vstore_packet(s->u, 0, u);
+    vstore_packet(s->v, 0, v);
+    vstore_packet(s->limit, 0, limit);
+    bool out_of_stack = false;
+    for (uint l = 0; l < PACKET_SIZE; ++l) {
+        if (!(lanes->tmin[l] <= limit[l]))
+            continue;
+        RayData one;
+        prepare_lane(&one, lanes, l);
+        Found_ray f = {index[l], t[l], u[l], v[l], limit[l]};
+        out_of_stack |= QUERY_FN(walk, _ray)(&one, nodes, triangles, &f QUERY_ARGS);
+        index[l] = f.index;
+        t[l] = f.t;
+        u[l] = f.u;
+        v[l] = f.v;
+        limit[l] = f.limit;
+    }
+    s->index = vload_packet(0, index);
+    s->t = vload_packet(0, t);
+    s->u = vload_packet(0, u);
+    s->v = vload_packet(0, v);
+    s->limit = vload_packet(0, limit);
+    update_reach_packet(s);
+    return out_of_stack;
+}
+
+/* A mapped packet's walk: as a packet where its mapped rays still share
+ * their direction signs and kz, else lane by lane. */
+TRAVERSAL_INLINE bool QUERY_FN(mapped, _packet)(const RayLanes* lanes,
+                                                __global const WideNode* nodes,
+                                                __global const Triangle* triangles,
+                                                Found_packet* s QUERY_PARAMS)
+{
+    Packet p;
+    if (prepare_packet(lanes, &p))
+        return QUERY_FN(walk, _packet)(&p, nodes, triangles, s QUERY_ARGS);
+    return QUERY_FN(lanes, _packet)(lanes, nodes, triangles, s QUERY_ARGS);
+}
+#endif /* the packet's own */
+
+/* Instance `in` (number id) of a top tree's leaf (instance_leaf.h): the
+ * rays mapped into its mesh's frame, where its mask lets them see it; the
+ * mesh's tree walked by the query's walk with the same state, so that what
+ * was found so far prunes it; and the instance recorded in the lanes whose
+ * walk took a hit (their t changed).  True when that ends the top walk. */
+TRAVERSAL_INLINE bool TRACE_NAME(instance)(PATH(Found)* s, const PATH(Rays)* r,
+                                           __global const Instance* in,
+                                           int id TRACE_PARAMS WALK_STATE_PARAM)
+{
+    PATH(Mapped) mapped;
+    if (!PATH(map_instance)(&mapped, in, r))
+        return false;
+    PATH(real) before = s->t;
+    *mesh_overflow |= TRACE_NAME(PATH(MESH_WALK))(&mapped, MESH_TREE(in),
+                                                  s QUERY_MESH_ARGS(in, id) WALK_STATE_ARG);
+    s->instance = s->t != before ? (PATH(flags))(id) : s->instance;
+    return QUERY_ENDS(s);
+}
+
+/* The top tree's walk, whose leaves hold instances. */
+#define QUERY_INSTANCE TRACE_NAME(instance)
+#include "query/walk/walk.h"
+#undef QUERY_INSTANCE
+#endif /* INSTANCES */
+
+/* The trace's walk of rays r (a packet, or lane `lane`'s ray) from its start
+ * over the scene's tree, with results in out; true if a stack ran out. */
+TRAVERSAL_INLINE bool TRACE_NAME(trace)(const PATH(Rays)* r, __global const WideNode* nodes,
+                                        __global const Triangle* triangles, QUERY_OUT* out,
+                                        uint lane TRACE_PARAMS)
+{
+    PATH(Found) s;
+    PATH(start)(&s, r);
+#ifdef QUERY_STATE
+    PATH(QUERY_STATE) walk_state;
+    PATH(QUERY_STATE)* state = &walk_state;
+    QUERY_BEGIN(out, lane);
+#endif
+    bool out_of_stack = TRACED(PATH_SUFFIX)(r, nodes, triangles, &s TRACE_ARGS WALK_STATE_ARG);
+    QUERY_END(&s, out, lane);
+    return out_of_stack;
+}
+
+#endif /* PATH_SUFFIX */

@@ -1,0 +1,189 @@
+/* The one traversal of the wide tree, for every query and path: a stack
+ * walk that visits the nearer children first (Embree's BVH8 single-ray
+ * order) and runs interior nodes until it holds a leaf, then the leaf's
+ * triangles (Aila & Laine 2009's "while-while"), as madmann91's bvh v2
+ * traverse_top_down does.  A query is a visitor, given as macros before
+ * including this header:
+ *   QUERY                       its name: the walk is walk_QUERY_PATH
+ *   QUERY_PATH                  the path: the vocabulary (PATH(...), node.h)
+ *                               of what walks and what it keeps, e.g. _ray
+ *                               or _packet (query/rays/), _point or _points
+ *                               (query/points/)
+ *   QUERY_HIT(s, i, hit, t, u, v)  for the default leaf: triangle i is hit
+ *                               in the lanes `hit`: record it in s
+ *                               (take_hit, which sets the limit) and say
+ *                               whether the walk ends
+ *   QUERY_NODE(s, r, n, mask)   optional: before the walk orders node n's
+ *                               met children (*mask): may visit some first
+ *                               (with WALK_NAME(leaves_first)) and say
+ *                               whether the walk ends.  Default: false
+ *   QUERY_PARAMS, QUERY_ARGS    optional: extra walk parameters the hooks use
+ *   QUERY_STATE                 optional: what the query keeps besides the
+ *                               path's Found, a type per path
+ *                               (PATH(QUERY_STATE)); the walk takes a pointer
+ *                               to it, `state`, last
+ *   QUERY_CHILDREN(r, n, s, entry)  optional: the node test, giving the child
+ *                               mask and entry distances (default: the path's
+ *                               PATH(children); point queries measure box
+ *                               distances instead)
+ *   QUERY_LEAF(s, r, first, count)  optional: the leaf's triangles [first,
+ *                               first + count) for queries that are not ray
+ *                               hits (point queries); says whether the walk
+ *                               ends.  Default: the path's hit_triangle on
+ *                               each, then QUERY_HIT
+ *   QUERY_INSTANCE              optional: the walk is a top tree's, whose
+ *                               leaves hold instances: the function that
+ *                               visits one (instance_leaf.h).  The walk is
+ *                               walk_QUERY_top_PATH, and takes the
+ *                               instances' INSTANCE_PARAMS (two_level.h)
+ *                               before QUERY_PARAMS
+ *   QUERY_UNORDERED             optional, defined: the query visits every
+ *                               met child (its limit never shrinks), so
+ *                               the walk neither orders children nor keeps
+ *                               their entries (next_item_any)
+ * Hooks may use the walk's `nodes` and `triangles`, `state`, and WALK_ARGS,
+ * which passes its extra parameters on.  Hooks are macros so that the walk
+ * compiles as if written for the query: no flag is tested at run time.
+ *
+ * With QUERY_PATH the header instantiates that path, then undefines the
+ * hooks (walk_end.h).  A header that instantiates several paths of one
+ * query (query/rays/trace.h) defines PATH_SUFFIX itself for each and
+ * includes walk_end.h when done. */
+#include "query/walk/stack.h"
+
+#ifndef PATH_SUFFIX
+
+#ifndef QUERY_PATH
+#error "walk.h: define QUERY_PATH (or PATH_SUFFIX, see above)"
+#endif
+#define PATH_SUFFIX QUERY_PATH
+#include "query/walk/walk.h"
+#undef PATH_SUFFIX
+#include "query/walk/walk_end.h"
+
+#else /* one path */
+
+#ifndef WALK_STATE_PARAM /* the query's first path: its defaults, until walk_end.h */
+#ifndef QUERY_NODE
+#define QUERY_NODE(s, r, n, mask) false
+#endif
+#ifndef QUERY_PARAMS
+#define QUERY_PARAMS
+#define QUERY_ARGS
+#endif
+#ifdef QUERY_STATE
+#define WALK_STATE_PARAM , PATH(QUERY_STATE)* state
+#define WALK_STATE_ARG , state
+#else
+#define WALK_STATE_PARAM
+#define WALK_STATE_ARG
+#endif
+#endif
+#ifdef QUERY_INSTANCE
+#define WALK_QUERY CONCAT(QUERY, _top)
+#define WALK_PARAMS INSTANCE_PARAMS QUERY_PARAMS WALK_STATE_PARAM
+#define WALK_ARGS INSTANCE_ARGS QUERY_ARGS WALK_STATE_ARG
+#else
+#define WALK_QUERY QUERY
+#define WALK_PARAMS QUERY_PARAMS WALK_STATE_PARAM
+#define WALK_ARGS QUERY_ARGS WALK_STATE_ARG
+#endif
+#define WALK_NAME(name) CONCAT(CONCAT(name, CONCAT(_, WALK_QUERY)), PATH_SUFFIX)
+#ifdef QUERY_CHILDREN
+#define WALK_CHILDREN QUERY_CHILDREN
+#else
+#define WALK_CHILDREN PATH(children)
+#endif
+
+#ifdef QUERY_INSTANCE
+#include "query/walk/instance_leaf.h"
+#endif
+
+/* The leaf's triangles [first, first + count) against every lane: each hit
+ * goes to QUERY_HIT; true when it ends the walk.  A lane takes a hit at
+ * t == limit only while it has none (hit_triangle's `strict`).  Or the
+ * query's own QUERY_LEAF, or a top tree's instances. */
+TRAVERSAL_INLINE bool WALK_NAME(leaf)(const PATH(Rays)* r, __global const Triangle* triangles,
+                                      int first, uint count, PATH(Found)* s WALK_PARAMS)
+{
+#if defined(QUERY_LEAF)
+    return QUERY_LEAF(s, r, first, count);
+#elif defined(QUERY_INSTANCE)
+    return WALK_NAME(instances)(s, r, first, count WALK_ARGS);
+#else
+    for (uint i = (uint)first; i < (uint)first + count; ++i) {
+        PATH(real) t, u, v;
+        PATH(flags) hit = PATH(hit_triangle)(r, triangles + i, s->limit, s->index >= 0, &t, &u,
+                                             &v);
+        if (PATH(some)(hit) && QUERY_HIT(s, i, hit, t, u, v))
+            return true;
+    }
+    return false;
+#endif
+}
+
+/* A node visitor for queries that end at a hit (shadow rays): the leaves
+ * among node n's met children (*mask) are tested at once, in slot order,
+ * and taken out of *mask; true when that ends the walk.  A large occluder
+ * such as a ground quad often sits in a leaf near the root. */
+TRAVERSAL_INLINE bool WALK_NAME(leaves_first)(PATH(Found)* s, const PATH(Rays)* r,
+                                              __global const WideNode* n, uint* mask,
+                                              __global const Triangle* triangles WALK_PARAMS)
+{
+    uint leaves = *mask & lane_mask(LOAD_ROW(int_lanes, n->count) != (int_lanes)(0));
+    *mask ^= leaves;
+    for (; leaves != 0; leaves &= leaves - 1u) {
+        int slot = lowest_slot(leaves);
+        if (WALK_NAME(leaf)(r, triangles, n->child[slot], n->count[slot], s WALK_ARGS))
+            return true;
+    }
+    return false;
+}
+
+/* Walks the tree from the root (always an interior node) for the query, with
+ * s holding its start (no hit, limit tmax) and ending with its result.
+ * Returns true when the stack was too small (the host then raises). */
+TRAVERSAL_INLINE bool WALK_NAME(walk)(const PATH(Rays)* r, __global const WideNode* nodes,
+                                      __global const Triangle* triangles,
+                                      PATH(Found)* s WALK_PARAMS)
+{
+    StackItem stack[STACK_SIZE + 1];  /* + 1: see next_item */
+    int sp = 0;
+    int index = 0;
+    uint count = 0;
+    bool done = false;
+
+    while (!done) {
+        while (!done && count == 0) {
+            __global const WideNode* n = nodes + index;
+            ChildEntries entry;
+            uint mask = WALK_CHILDREN(r, n, s, &entry);
+            if (QUERY_NODE(s, r, n, &mask))
+                return false;
+#ifdef QUERY_UNORDERED
+            int next = next_item_any(n, mask, nodes, triangles, stack, &sp, PATH(reach)(s),
+                                     &index, &count);
+#else
+            int next = next_item(n, mask, &entry, nodes, triangles, stack, &sp,
+                                 PATH(reach)(s), &index, &count);
+#endif
+            if (next == STACK_FULL)
+                return true;
+            done = next == NO_ITEM;
+        }
+        if (done)
+            break;
+        if (WALK_NAME(leaf)(r, triangles, index, count, s WALK_ARGS))
+            return false;
+        done = !pop(stack, &sp, PATH(reach)(s), &index, &count);
+    }
+    return false;
+}
+
+#undef WALK_QUERY
+#undef WALK_PARAMS
+#undef WALK_ARGS
+#undef WALK_NAME
+#undef WALK_CHILDREN
+
+#endif /* PATH_SUFFIX */
