@@ -66,20 +66,28 @@ _warned: set = set()
 
 
 @functools.cache
-def _sources_digest(folder: Path) -> str:
-    """The kernel sources' hash (read once per process)."""
+def sources_digest(folder: Path) -> str:
+    """The hash of every source below ``folder`` (.cl, .h, .py), each named
+    from it, read once per process: a verdict holds for the kernels and the
+    package (whose child runs the probe) it was made with, so an edit in any
+    room re-probes, and a checkout never reads another's verdicts."""
     digest = hashlib.sha256()
-    for path in sorted(folder.iterdir()):
-        if path.suffix in (".cl", ".h"):
-            digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    for path in sorted(folder.rglob("*")):
+        if path.suffix in (".cl", ".h", ".py"):
+            name = path.relative_to(folder).as_posix()
+            digest.update(name.encode() + b"\0" + path.read_bytes())
     return digest.hexdigest()
+
+
+def _package_dir() -> Path:
+    return Path(__file__).resolve().parent.parent
 
 
 def _device_key(cl_device, profile: Profile) -> str:
     platform = cl_device.platform
     parts = [str(FORMAT), profile.name, platform.name, platform.version, cl_device.name,
              cl_device.version, cl_device.driver_version, cl_device.vendor,
-             _sources_digest(kernel_dir())]
+             sources_digest(kernel_dir()), sources_digest(_package_dir())]
     return hashlib.sha256("\0".join(parts).encode()).hexdigest()[:32]
 
 

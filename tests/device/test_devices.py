@@ -561,3 +561,20 @@ def test_constants_come_from_the_header():
     assert f"#define MAX_LEAF_SIZE {layout.MAX_LEAF_SIZE}" in text
     assert layout.EMPTY_CHILD == -1 and "#define EMPTY_CHILD (-1)" in text
     assert f"#define WIDE_ARITY {layout.WIDE_ARITY}" in text
+
+
+def test_an_edit_in_any_kernel_room_changes_the_probes_key(tmp_path):
+    """The probe's verdicts are keyed by a hash of every kernel source, in
+    subfolders too: an edit in kernels/query/walk/ must re-probe."""
+    from hlbvh_cl.device.probe import sources_digest
+    header = tmp_path / "query" / "walk" / "walk.h"
+    header.parent.mkdir(parents=True)
+    header.write_text("/* one */")
+    (tmp_path / "core").mkdir()
+    (tmp_path / "core" / "portable.h").write_text("/* two */")
+    before = sources_digest.__wrapped__(tmp_path)
+    header.write_text("/* one, edited */")
+    edited = sources_digest.__wrapped__(tmp_path)
+    assert edited != before
+    header.rename(tmp_path / "core" / "walk.h")  # the same text, moved to another room
+    assert sources_digest.__wrapped__(tmp_path) != edited
