@@ -27,7 +27,7 @@ from .device.discovery import select_device, unregistered
 from .device.runtime import DeviceMemoryError, KernelBuildError
 from .render.camera import MAX_IMAGE_SIDE
 from .render.integrators import SHADINGS
-from .render.settings import AO_SAMPLES, MAX_AO_SAMPLES, MAX_SPP
+from .render.settings import AO_SAMPLES, MAX_AO_SAMPLES, MAX_DEPTH, MAX_SPP
 
 #: What a slow first run is doing (stage).
 _PROBING = "probing the OpenCL devices in child processes (once per device and driver)"
@@ -36,7 +36,7 @@ _BUILDING = "loading the scene and building its BVH (kernels compile on a first 
 _DEVICE_HELP = "device id, index, runtime (pocl, intel), type (cpu, gpu) or name (default: auto)"
 
 #: Image formats the render command writes (through imageio).
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".exr")
 
 
 def device_state(d) -> str:
@@ -131,8 +131,18 @@ def _cmd_render(args) -> int:
     build_wall = loaded.build_seconds
     width = args.width or loaded.width
     height = args.height or loaded.height
-    options = dict(shading=args.shading, shadows=not args.no_shadows, spp=args.spp,
-                   ao_samples=args.ao_samples or AO_SAMPLES)
+    # the file's own render options (a Mitsuba XML scene's), where no flag is given
+    given = loaded.options
+    shading = args.shading or given.get("shading", "diffuse")
+    if args.max_depth is not None and shading != "path":
+        raise ValueError(f"--max-depth applies to --shading path, not {shading}")
+    spp = args.spp or given.get("spp", 1)
+    options = dict(shading=shading, shadows=not args.no_shadows, spp=spp,
+                   ao_samples=args.ao_samples or AO_SAMPLES,
+                   rfilter=given.get("rfilter", "box"))
+    if shading == "path":
+        options.update(max_depth=args.max_depth if args.max_depth is not None
+                       else given.get("max_depth", -1), rr_depth=given.get("rr_depth", 5))
     # A one-pixel render first: it compiles (or loads from the cache) every
     # kernel the render uses, so the real render's times are its own.
     warm_started = time.perf_counter()
@@ -141,7 +151,8 @@ def _cmd_render(args) -> int:
     render_compile = time.perf_counter() - warm_started
     bar = sys.stderr.isatty()  # a tqdm bar on a terminal; else one line if it takes a while
     with contextlib.nullcontext() if bar else stage(f"rendering {width}x{height}"):
-        image = renderer.render(loaded.camera, width, height, progress=bar, **options)
+        image = renderer.render(loaded.camera, width, height, progress=bar,
+                                hdr=output.suffix.lower() == ".exr", **options)
     written_started = time.perf_counter()
     _write_image(output, image)
     written = time.perf_counter() - written_started
@@ -154,11 +165,11 @@ def _cmd_render(args) -> int:
     # Build kernels compile during the first build: its wall time beyond the
     # device time is that compilation (or cache loading) and host work.
     build_compile = max(0.0, build_wall - build_ms * 1e-3)
-    shading = args.shading + (" with shadows" if args.shading == "diffuse" and not args.no_shadows
-                              else "")
+    described = shading + (" with shadows" if shading == "diffuse" and not args.no_shadows
+                           else "")
     rays = f"{_count(rendered['primary_rays'])} primary"
     if rendered["secondary_rays"]:
-        kind = "AO" if args.shading == "ao" else "shadow"
+        kind = {"ao": "AO", "path": "bounce and shadow"}.get(shading, "shadow")
         rays += f" + {_count(rendered['secondary_rays'])} {kind} rays"
     if scene.transforms is not None:
         print(f"scene        {loaded.path}: {len(scene.meshes)} meshes, {_instances(scene)} "
@@ -171,7 +182,7 @@ def _cmd_render(args) -> int:
     print(f"build        {build_ms:7.1f} ms  device: BVH {bvh_ms:.1f} + wide tree {widen_ms:.1f} "
           f"(wall {build_wall * 1e3:.0f} ms)")
     print(f"trace+shade  {times['total']:7.1f} ms  device (wall {times['wall']:.0f} ms): "
-          f"{width}x{height}, {shading}, {args.spp} spp, {rays}")
+          f"{width}x{height}, {described}, {spp} spp, {rays}")
     print(f"compile      {build_compile + render_compile:7.2f} s   kernels built or loaded from "
           f"the cache: build {build_compile:.2f} s (wall - device), render {render_compile:.2f} s "
           f"(a 1-pixel render)")
@@ -200,6 +211,10 @@ def _count(n: int) -> str:
 
 
 def _write_image(path: Path, image) -> None:
+    if path.suffix.lower() == ".exr":  # float32 linear RGB, as rendered
+        from .io.exr import write_exr
+        write_exr(path, image)
+        return
     import imageio.v3 as iio
     try:
         iio.imwrite(path, image)
@@ -216,6 +231,17 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message):
         raise _UsageError(message)
+
+
+def _depth(text: str) -> int:
+    """--max-depth: -1, or 1..MAX_DEPTH."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value != -1 and not 1 <= value <= MAX_DEPTH:
+        raise argparse.ArgumentTypeError(f"expected -1 (no limit) or 1..{MAX_DEPTH}, got {value}")
+    return value
 
 
 def _integer_in(low: int, high: int):
@@ -238,10 +264,13 @@ def _check_combinations(args) -> None:
     if args.command == "devices" and args.no_fallback and not args.require:
         raise _UsageError("--no-fallback applies to --require ID, which is missing")
     if args.command == "render":
-        if args.ao_samples is not None and args.shading != "ao":
-            raise _UsageError(f"--ao-samples applies to --shading ao, not {args.shading}")
-        if args.no_shadows and args.shading != "diffuse":
-            raise _UsageError(f"--no-shadows applies to --shading diffuse, not {args.shading}")
+        shading = args.shading or "diffuse"
+        if args.ao_samples is not None and shading != "ao":
+            raise _UsageError(f"--ao-samples applies to --shading ao, not {shading}")
+        if args.max_depth is not None and args.shading not in (None, "path"):
+            raise _UsageError(f"--max-depth applies to --shading path, not {shading}")
+        if args.no_shadows and shading != "diffuse":
+            raise _UsageError(f"--no-shadows applies to --shading diffuse, not {shading}")
 
 
 def main(argv=None) -> int:
@@ -272,13 +301,17 @@ def main(argv=None) -> int:
     render.add_argument("--height", type=side, default=None,
                         help="image height in pixels (default: the scene file's)")
     render.add_argument("--device", default=None, help=_DEVICE_HELP)
-    render.add_argument("--shading", default="diffuse", choices=SHADINGS)
-    render.add_argument("--spp", type=_integer_in(1, MAX_SPP), default=1,
-                        help="samples per pixel (default 1)")
+    render.add_argument("--shading", default=None, choices=SHADINGS,
+                        help="default: diffuse; path for a Mitsuba .xml scene")
+    render.add_argument("--spp", type=_integer_in(1, MAX_SPP), default=None,
+                        help="samples per pixel (default 1, or a Mitsuba scene's sample_count)")
     render.add_argument("--ao-samples", type=_integer_in(1, MAX_AO_SAMPLES), default=None,
                         help=f"with --shading ao: ambient-occlusion rays per sample "
                              f"(default {AO_SAMPLES})")
     render.add_argument("--no-shadows", action="store_true", help="diffuse shading without shadows")
+    render.add_argument("--max-depth", type=_depth, default=None,
+                        help="with --shading path: segments per path at most, -1 for no limit "
+                             "(Mitsuba's max_depth; default -1, or a Mitsuba scene's)")
     render.set_defaults(run=_cmd_render)
     try:
         args = parser.parse_args(argv)

@@ -41,6 +41,8 @@ def test_user_mistakes_give_one_line_and_exit_2(tmp_path, capsys):
      "--ao-samples applies to --shading ao, not diffuse"),
     (["render", "s.toml", "-o", "x.png", "--shading", "depth", "--no-shadows"],
      "--no-shadows applies to --shading diffuse, not depth"),
+    (["render", "s.toml", "-o", "x.png", "--max-depth", "3"],
+     "--max-depth applies to --shading path, not diffuse"),
 ])
 def test_an_option_the_others_make_meaningless_is_refused(capsys, argv, words):
     assert main(argv) == 2
@@ -83,6 +85,37 @@ def test_a_mesh_file_renders_as_a_scene_of_that_mesh(tmp_path, capsys, suite_dev
     assert (np.abs(centre[..., 2] - centre[..., 0]) < 8).all()
     assert main(["info", str(mesh), "--repeat", "1", "--device", suite_device.id]) == 0
     assert "triangles  322" in capsys.readouterr().out  # 320 + the ground's 2
+
+
+def test_a_path_traced_render_names_its_rays(tmp_path, capsys, suite_device):
+    """--shading path with --max-depth: the image, and the bounce and
+    shadow rays it traced in the report; a depth of 0 is refused."""
+    import imageio.v3 as iio
+    import numpy as np
+    import trimesh
+    mesh = tmp_path / "ball.ply"
+    trimesh.creation.icosphere(subdivisions=2).export(mesh)
+    out = tmp_path / "ball.png"
+    assert main(["render", str(mesh), "-o", str(out), "--width", "32", "--height", "24",
+                 "--shading", "path", "--spp", "2", "--max-depth", "3",
+                 "--device", suite_device.id]) == 0
+    report = capsys.readouterr().out
+    assert "path, 2 spp, 1,536 primary + " in report and " bounce and shadow rays" in report
+    assert iio.imread(out).shape == (24, 32, 3)
+    assert main(["render", str(mesh), "-o", str(out), "--shading", "path",
+                 "--max-depth", "0"]) == 2
+    # an .exr gets the float32 linear means: what Renderer.render(hdr=True) gives
+    from hlbvh_cl.io.exr import read_exr
+    from hlbvh_cl.io.scenefile import load
+    exr = tmp_path / "ball.exr"
+    assert main(["render", str(mesh), "-o", str(exr), "--width", "32", "--height", "24",
+                 "--shading", "path", "--spp", "2", "--max-depth", "3",
+                 "--device", suite_device.id]) == 0
+    loaded = load(mesh, suite_device.id)
+    expected = loaded.renderer().render(loaded.camera, 32, 24, shading="path", spp=2,
+                                        max_depth=3, hdr=True)
+    assert np.array_equal(read_exr(exr), expected) and expected.max() > 0.1
+    assert "expected -1 (no limit) or 1..1024, got 0" in capsys.readouterr().err
 
 
 def test_a_file_neither_toml_nor_mesh_says_what_is_expected(tmp_path, capsys):

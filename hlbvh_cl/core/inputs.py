@@ -178,6 +178,16 @@ def vector3(name: str, value, low: float | None = None, high: float | None = Non
                      for k, item in enumerate(items)], np.float64)
 
 
+def color(name: str, value, high: float = 1.0) -> np.ndarray:
+    """An RGB value: one number (grey) or three, each in [0, high], as
+    float64 (3,); each checked by ``number`` (a bad channel is named)."""
+    if isinstance(value, REAL) and not isinstance(value, bool):
+        return np.repeat(number(name, value, 0.0, high), 3)
+    if isinstance(value, (str, bytes, dict)):
+        raise BadType(name, "a number or 3 numbers [r, g, b]", describe(value))
+    return vector3(name, value, 0.0, high)
+
+
 def unmasked(name: str, value):
     """``value``, unless it is a masked array with masked entries: np.asarray
     would drop the mask and keep what it hides."""

@@ -16,7 +16,8 @@ from .paths import kernel_dir
 
 #: The headers this module mirrors, named from the kernels' root.
 HEADERS = ("core/aabb.h", "core/tree.h", "build/config.h", "build/flat_node.h",
-           "query/records.h", "render/camera.h", "render/tiles.h", "render/integrators/direct.h")
+           "query/records.h", "render/camera.h", "render/tiles.h", "render/integrators/direct.h",
+           "render/integrators/path.h")
 
 
 def header_text() -> str:
@@ -84,8 +85,28 @@ SHADE_PARAMS = np.dtype([
     ("ao_distance", np.float32), ("ao_weight", np.float32),
 ])
 
+PATH_MATERIAL = np.dtype([
+    ("reflectance", *_f3), ("twosided", np.uint32), ("radiance", *_f3),
+    ("emitter_pdf", np.float32), ("eta", *_f3), ("bsdf", np.uint32), ("k", *_f3),
+    ("alpha", np.float32), ("transmittance", *_f3), ("reserved", np.uint32),
+])
+
+DELTA_LIGHT = np.dtype([("position", *_f3), ("type", np.uint32), ("value", *_f3),
+                        ("probability", np.float32)])
+
+PATH_PARAMS = np.dtype([
+    ("environment", *_f3), ("environment_probability", np.float32), ("ray_offset", np.float32),
+    ("light_triangles", np.uint32), ("delta_lights", np.uint32), ("max_depth", np.int32),
+    ("rr_depth", np.int32), ("delta_probability", np.float32),
+])
+
+PATH_STATE = np.dtype([("throughput", *_f3), ("bsdf_pdf", np.float32), ("radiance", *_f3),
+                       ("alive", np.uint32), ("eta", np.float32), ("reserved", *_f3)])
+
 #: name in HEADERS -> dtype, for the layout test
 STRUCTS = {"Aabb": AABB, "FlatNode": FLAT_NODE, "WideNode": WIDE_NODE,
            "WideDipoles": WIDE_DIPOLES, "Triangle": TRIANGLE,
            "TriangleRef": TRIANGLE_REF, "Instance": INSTANCE, "Ray": RAY, "Hit": HIT, "PinholeCamera": PINHOLE_CAMERA,
-           "ShadeParams": SHADE_PARAMS}
+           "ShadeParams": SHADE_PARAMS, "PathMaterial": PATH_MATERIAL, "PathParams": PATH_PARAMS,
+           "DeltaLight": DELTA_LIGHT,
+           "PathState": PATH_STATE}

@@ -30,10 +30,23 @@ Schema (every table and key is listed here; any other key is an error)::
     size = 10.0                   # side length; default 4 x the meshes' larger x/z extent.
                                   # Centred on the centre of the meshes' x/z bounds.
     color = [0.8, 0.8, 0.8]       # RGB, each 0..1; default 0.8 grey
+    material = { type = "diffuse", reflectance = 0.5 }   # as a mesh's
+
+    [[emitter]]                   # optional, any number: the path integrator's other lights
+    type = "point"                # "point" (position, intensity), "directional" (direction,
+    position = [0.0, 3.0, 0.0]    # irradiance) or "constant" (radiance): Mitsuba's emitters
+    intensity = [10.0, 10.0, 10.0]  # (hlbvh_cl/render/emitters.py)
 
     [[mesh]]                      # one table per mesh, at least one; mesh[0] is the first
-    path = "meshes/bunny.ply"     # relative to this TOML file (or absolute)
+    path = "meshes/bunny.ply"     # relative to this TOML file (or absolute); or instead:
+    shape = "rectangle"           # Mitsuba's shapes: "rectangle" ([-1, 1]^2 at z = 0, facing
+                                  # +z), "cube" ([-1, 1]^3) or "sphere" (radius 1, centre 0)
     color = [0.8, 0.8, 0.8]       # RGB, each 0..1; default 0.8 grey
+    material = { type = "dielectric", int_ior = 1.5 }
+                                  # the path integrator's BSDF (hlbvh_cl/render/materials.py,
+                                  # Mitsuba's names); default a two-sided diffuse of `color`
+    emitter = { type = "area", radiance = [5.0, 5.0, 5.0] }
+                                  # makes the mesh an area light (the path integrator)
     split = 1                     # cut every edge in k parts (k*k triangles each); default 1
     scale = 1.0                   # > 0: one number, or three (per axis)
     rotate_deg = [0.0, 0.0, 0.0]  # Euler angles in degrees: about x, then y, then z (fixed axes)
@@ -54,6 +67,10 @@ Schema (every table and key is listed here; any other key is an error)::
     random_yaw_deg = 0.0          # 0..180: turn each copy about +y by a random angle in +-it
     seed = 0                      # integer >= 0 for yaw and jitter; default the table's index
     place_on_ground = false       # set each copy's y so its lowest point is at the ground's y
+
+A file with no emitter, in a [[mesh]] table or an [[emitter]] one, is lit
+for the path integrator by a constant sky of radiance 1 (emitters.DEFAULT);
+the preview modes use [light] and the colours.
 
 Each mesh is split first, then scaled (scale, then fit_height), rotated and
 translated (translate, then place_on_ground).  fit_height measures the y
@@ -111,8 +128,8 @@ from ..scene import Scene
 from .split import split_edges
 from ..core import inputs
 
-Color = tuple[float, float, float]
-Vec3 = tuple[float, float, float]
+from .description import (Color, Ground, InstanceEntry, MeshEntry, SceneDescription,  # noqa: F401
+                          SceneFileError, Vec3, shape_mesh)
 
 _DEFAULT_COLOR: Color = (0.8, 0.8, 0.8)
 _MAX_IMAGE_SIDE = 16384
@@ -120,88 +137,20 @@ _MAX_IMAGE_SIDE = 16384
 MAX_INSTANCES = 1 << 24
 
 
-class SceneFileError(ValueError):
-    """A scene file that cannot be read; the message names the file and the key."""
-
-
-@dataclass(frozen=True)
-class Ground:
-    mesh: Mesh  # two triangles facing +y
-    y: float
-    size: float
-    color: Color
-
-
-@dataclass(frozen=True)
-class MeshEntry:
-    mesh: Mesh  # split and transformed
-    color: Color
-    path: Path
-    split: int = 1
-
-
-@dataclass(frozen=True)
-class InstanceEntry:
-    """One [[instance]] table: copies of meshes[mesh]."""
-    mesh: int
-    transforms: np.ndarray  # (copies, 3, 4) float64, object -> world: [A | t]
-
-
-@dataclass
-class SceneDescription:
-    path: Path
-    width: int
-    height: int
-    camera: Camera
-    light: Light
-    meshes: list[MeshEntry] = field(default_factory=list)
-    ground: Ground | None = None
-    instances: list[InstanceEntry] = field(default_factory=list)  # empty: no [[instance]]
-
-    @property
-    def triangle_count(self) -> int:
-        """Triangles stored: each mesh (and the ground) once, however often drawn."""
-        return sum(m.triangle_count for m, _ in self.geometries())
-
-    @property
-    def drawn_triangle_count(self) -> int:
-        """Triangles in the picture's world: each mesh times its copies."""
-        if not self.instances:
-            return self.triangle_count
-        ground = 0 if self.ground is None else self.ground.mesh.triangle_count
-        return ground + sum(len(entry.transforms) * self.meshes[entry.mesh].mesh.triangle_count
-                            for entry in self.instances)
-
-    def placements(self) -> list[tuple[int, np.ndarray]]:
-        """Scene's ``instances``: (mesh index, (3, 4) transform) of every copy
-        in file order, then the ground's (identity); [] without [[instance]]."""
-        if not self.instances:
-            return []
-        found = [(entry.mesh, transform) for entry in self.instances
-                 for transform in entry.transforms]
-        if self.ground is not None:
-            found.append((len(self.meshes), np.eye(3, 4)))
-        return found
-
-    def geometries(self) -> list[tuple[Mesh, Color]]:
-        """(mesh, colour) of every surface: the meshes in file order, then the ground."""
-        found = [(entry.mesh, entry.color) for entry in self.meshes]
-        if self.ground is not None:
-            found.append((self.ground.mesh, self.ground.color))
-        return found
-
-
-_TOP_KEYS = ("render", "camera", "light", "ground", "mesh", "instance")
+_TOP_KEYS = ("render", "camera", "light", "ground", "mesh", "instance", "emitter")
 _RENDER_KEYS = ("width", "height")
 _CAMERA_KEYS = ("eye", "target", "up", "fov_deg")
 _LIGHT_KEYS = ("direction", "intensity", "ambient")
-_GROUND_KEYS = ("y", "size", "color")
+_GROUND_KEYS = ("y", "size", "color", "material")
 #: fit_height refuses a mesh whose y extent is under this much of its
 #: largest extent: flat, up to rounding.
 FLAT_RATIO = 1e-9
 
-_MESH_KEYS = ("path", "color", "split", "scale", "rotate_deg", "fit_height", "translate",
-              "place_on_ground")
+_MESH_KEYS = ("path", "shape", "color", "material", "emitter", "split", "scale", "rotate_deg",
+              "fit_height", "translate", "place_on_ground")
+
+#: Mitsuba's shapes a [[mesh]] table may name instead of a file.
+SHAPES = ("rectangle", "cube", "sphere")
 _INSTANCE_KEYS = ("mesh", "scale", "rotate_deg", "translate", "grid", "random_yaw_deg", "seed",
                   "place_on_ground")
 _GRID_KEYS = ("count", "spacing", "origin", "jitter")
@@ -273,7 +222,7 @@ class _Reader:
 class _MeshSpec:
     """One [[mesh]] table, checked but not loaded yet."""
     key: str
-    path: Path
+    path: Path | None
     color: Color
     split: int
     scale: Vec3
@@ -281,6 +230,9 @@ class _MeshSpec:
     fit_height: float | None
     translate: Vec3
     place_on_ground: bool
+    shape: str | None = None
+    material: dict | None = None
+    emitter: dict | None = None
 
 
 @dataclass
@@ -311,16 +263,23 @@ class LoadedScene:
     path: Path
     load_seconds: float
     build_seconds: float
+    materials: list | None = None
+    emitters: list | None = None
+    options: dict = field(default_factory=dict)  # SceneDescription.options
 
     def renderer(self) -> Renderer:
-        """A Renderer of the scene with the file's colours and light."""
-        return Renderer(self.scene, colors=list(self.colors), light=self.light)
+        """A Renderer of the scene with the file's colours, light, materials
+        and emitters."""
+        return Renderer(self.scene, colors=list(self.colors), light=self.light,
+                        materials=self.materials, emitters=self.emitters)
 
 
-def load(path, device=None, builder: str = "hlbvh", morton_bits: int = 30) -> LoadedScene:
-    """Read a scene file (``read``) and build its Scene on ``device``."""
+def load(path, device=None, builder: str = "hlbvh", morton_bits: int = 30,
+         defaults: dict | None = None) -> LoadedScene:
+    """Read a scene file (``read``) and build its Scene on ``device``;
+    ``defaults`` override a Mitsuba XML file's <default> values."""
     started = time.perf_counter()
-    description = read(path)
+    description = read(path, defaults)
     loaded = time.perf_counter()
     geometries = description.geometries()
     meshes = [mesh for mesh, _ in geometries]
@@ -337,7 +296,9 @@ def load(path, device=None, builder: str = "hlbvh", morton_bits: int = 30) -> Lo
                        colors=tuple(color for _, color in geometries), width=description.width,
                        height=description.height, path=description.path,
                        load_seconds=loaded - started,
-                       build_seconds=time.perf_counter() - loaded)
+                       build_seconds=time.perf_counter() - loaded,
+                       materials=description.materials(), emitters=description.all_emitters(),
+                       options=dict(description.options))
 
 
 def _name_the_entry(description: SceneDescription, error: ValueError) -> ValueError:
@@ -391,9 +352,10 @@ def is_mesh_file(path) -> bool:
     return bool(suffixes) and suffixes[-1][1:] in MESH_EXTENSIONS
 
 
-def read(path) -> SceneDescription:
+def read(path, defaults: dict | None = None) -> SceneDescription:
     """Read a TOML scene file (schema in this module's docstring); a mesh
-    file (``bunny.ply``) is read as a scene of that mesh (read_mesh).
+    file (``bunny.ply``) is read as a scene of that mesh (read_mesh), and a
+    .xml file as Mitsuba 3's scene format (hlbvh_cl.io.mitsuba).
 
     Raises FileNotFoundError if the scene file itself is missing and
     SceneFileError (a ValueError) for anything wrong inside it, including
@@ -402,6 +364,9 @@ def read(path) -> SceneDescription:
     path = Path(os.fspath(path))
     if is_mesh_file(path):
         return read_mesh(path)
+    if path.suffix.lower() == ".xml":
+        from .mitsuba import read_xml
+        return read_xml(path, defaults)
     reader = _Reader(path)
     try:
         with open(path, "rb") as file:
@@ -445,8 +410,9 @@ def read(path) -> SceneDescription:
         lo = np.min([lo for lo, _ in boxes], axis=0)
         hi = np.max([hi for _, hi in boxes], axis=0)
         ground = _make_ground(reader, ground_spec, lo, hi)
+    emitters = _read_emitters(reader, data["emitter"]) if "emitter" in data else []
     return SceneDescription(path=path, width=width, height=height, camera=camera, light=light,
-                            meshes=meshes, ground=ground, instances=instances)
+                            meshes=meshes, ground=ground, instances=instances, emitters=emitters)
 
 
 def _read_camera(reader: _Reader, value) -> Camera:
@@ -491,7 +457,7 @@ def _read_ground(reader: _Reader, value) -> dict:
     if size is not None:
         size = reader.number(size, "ground.size", low=0.0, low_open=True)
     color = reader.color(table.get("color", list(_DEFAULT_COLOR)), "ground.color")
-    return {"y": y, "size": size, "color": color}
+    return {"y": y, "size": size, "color": color, "material": _material(reader, table, "ground")}
 
 
 def _read_mesh_specs(reader: _Reader, value, folder: Path) -> list[_MeshSpec]:
@@ -501,9 +467,14 @@ def _read_mesh_specs(reader: _Reader, value, folder: Path) -> list[_MeshSpec]:
     for index, item in enumerate(value):
         key = f"mesh[{index}]"
         table = reader.table(item, key, _MESH_KEYS)
-        if "path" not in table:
-            raise reader.error(f"{key}.path", "missing (required)")
-        if not isinstance(table["path"], str) or not table["path"]:
+        if ("path" in table) == ("shape" in table):
+            raise reader.error(f"{key}.path", "expected a mesh file (path) or one of Mitsuba's "
+                                              f"shapes (shape = {' | '.join(map(repr, SHAPES))}),"
+                                              " one of the two")
+        if "shape" in table and table["shape"] not in SHAPES:
+            raise reader.error(f"{key}.shape", f"expected one of {', '.join(SHAPES)}, got "
+                                               f"{inputs.describe(table['shape'])}")
+        if "path" in table and (not isinstance(table["path"], str) or not table["path"]):
             raise reader.error(f"{key}.path", f"expected a file name, got {inputs.describe(table['path'])}")
         scale = reader.scale(table.get("scale", 1.0), f"{key}.scale")
         fit_height = table.get("fit_height")
@@ -511,7 +482,10 @@ def _read_mesh_specs(reader: _Reader, value, folder: Path) -> list[_MeshSpec]:
             fit_height = reader.number(fit_height, f"{key}.fit_height", low=0.0, low_open=True)
         specs.append(_MeshSpec(
             key=key,
-            path=folder / table["path"],
+            path=folder / table["path"] if "path" in table else None,
+            shape=table.get("shape"),
+            material=_material(reader, table, key),
+            emitter=_area_emitter(reader, table, key),
             color=reader.color(table.get("color", list(_DEFAULT_COLOR)), f"{key}.color"),
             split=reader.integer(table.get("split", 1), f"{key}.split", 1),
             scale=scale,
@@ -641,14 +615,15 @@ def _load_meshes(reader: _Reader, specs: list[_MeshSpec], ground_y: float) -> li
                leave=False, disable=not sys.stderr.isatty(), bar_format="{desc} |{bar}| {elapsed}")
     with bar:
         def step(spec: _MeshSpec, doing: str) -> None:
-            bar.set_description_str(f"loading scene: {doing} {spec.path.name}", refresh=False)
+            what = spec.path.name if spec.path else spec.shape
+            bar.set_description_str(f"loading scene: {doing} {what}", refresh=False)
             bar.update(1)
         return [_load_mesh(reader, spec, ground_y, step) for spec in specs]
 
 
 def _load_mesh(reader: _Reader, spec: _MeshSpec, ground_y: float, step) -> MeshEntry:
     try:
-        mesh = Mesh.load(spec.path)
+        mesh = shape_mesh(spec.shape) if spec.shape else Mesh.load(spec.path)
     except FileNotFoundError:
         raise reader.error(f"{spec.key}.path", f"mesh file not found: {spec.path}") from None
     except (ValueError, TypeError) as error:
@@ -682,7 +657,8 @@ def _load_mesh(reader: _Reader, spec: _MeshSpec, ground_y: float, step) -> MeshE
         raise reader.error(spec.key, "its scale, rotate_deg, fit_height and translate give an "
                                      f"invalid mesh: {error}") from None
     step(spec, "done")
-    return MeshEntry(mesh=transformed, color=spec.color, path=spec.path, split=spec.split)
+    return MeshEntry(mesh=transformed, color=spec.color, path=spec.path, split=spec.split,
+                     material=spec.material, emitter=spec.emitter)
 
 
 def _place(reader: _Reader, spec: _InstanceSpec, mesh: Mesh, ground_y: float
@@ -742,4 +718,51 @@ def _make_ground(reader: _Reader, spec: dict, lo: np.ndarray, hi: np.ndarray) ->
     except ValueError as error:  # a size or height beyond float32
         raise reader.error("ground", f"its size {size:.3g} at y {y:.3g} gives an invalid "
                                      f"square: {error}") from None
-    return Ground(mesh=mesh, y=y, size=size, color=spec["color"])
+    return Ground(mesh=mesh, y=y, size=size, color=spec["color"], material=spec.get("material"))
+
+
+def _material(reader: _Reader, table: dict, key: str) -> dict | None:
+    """A table's `material`, checked as Renderer.materials checks one."""
+    if "material" not in table:
+        return None
+    from ..render.materials import check_material
+    try:
+        check_material(f"{key}.material", table["material"])
+    except (TypeError, ValueError) as error:
+        raise SceneFileError(f"{reader.label}: {error}") from None
+    return dict(table["material"])
+
+
+def _area_emitter(reader: _Reader, table: dict, key: str) -> dict | None:
+    """A [[mesh]] table's `emitter`: an area emitter, checked."""
+    if "emitter" not in table:
+        return None
+    spec = table["emitter"]
+    if not isinstance(spec, dict) or spec.get("type") != "area":
+        raise reader.error(f"{key}.emitter", "expected an area emitter: { type = \"area\", "
+                                             "radiance = [r, g, b] }, got "
+                                             f"{inputs.describe(spec)}")
+    from ..render.emitters import check_emitters
+    try:
+        check_emitters([{**spec, "mesh": 0}], 1, names=[f"{key}.emitter"])
+    except (TypeError, ValueError) as error:
+        raise SceneFileError(f"{reader.label}: {error}") from None
+    return dict(spec)
+
+
+def _read_emitters(reader: _Reader, value) -> list[dict]:
+    """The [[emitter]] tables: point, directional or constant lights."""
+    if not isinstance(value, list) or not value:
+        raise reader.error("emitter", f"expected one or more [[emitter]] tables, "
+                                      f"got {inputs.describe(value)}")
+    names = [f"emitter[{k}]" for k in range(len(value))]
+    for name, spec in zip(names, value):
+        if isinstance(spec, dict) and spec.get("type") == "area":
+            raise reader.error(name, "an area emitter belongs in its [[mesh]] table (emitter = "
+                                     "{ type = \"area\", radiance = ... })")
+    from ..render.emitters import check_emitters
+    try:
+        check_emitters(value, 0, names=names)
+    except (TypeError, ValueError) as error:
+        raise SceneFileError(f"{reader.label}: {error}") from None
+    return [dict(spec) for spec in value]

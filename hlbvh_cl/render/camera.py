@@ -111,10 +111,16 @@ class Camera:
         return origins, np.ascontiguousarray(directions, f32)
 
 
+#: The reconstruction filters a render takes, by Mitsuba's names, and the
+#: camera kernel's jitter for each (kernels/render/camera.cl).
+FILTERS = {"box": 1, "gaussian": 2}
+
+
 def enqueue_primary_rays(rt: Runtime, pinhole: np.ndarray, width: int, height: int,
-                         band, sample: int, jitter: bool, rays: cl.Buffer) -> cl.Event:
+                         band, sample: int, jitter: int, rays: cl.Buffer) -> cl.Event:
     """One Ray per pixel of ``band`` (the rows of a pass, renderer.Band) into
-    ``rays``, in the band's tile order."""
+    ``rays``, in the band's tile order; ``jitter`` 0 through the pixels'
+    centres, else a FILTERS value."""
     return rt.run(rt.kernel(KERNEL, "primary_rays"), band.tile_range, pinhole,
                   np.uint32(width), np.uint32(height), band.first_row, band.rows,
                   np.uint32(sample), np.int32(jitter), rays)

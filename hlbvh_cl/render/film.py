@@ -5,7 +5,9 @@ spare lane, 16 bytes: one aligned load); after the last sample the sums
 are scaled by 1 / spp and encoded into the whole image's 8-bit RGB
 (kernels/render/film.cl): channel = round(255 * c'), c' = sqrt(clamp(c,
 0, 1)) for radiance (display gamma 2, which looks as 2.2 does) and
-clamp(c, 0, 1) for data (normals, depth).  Only that image is read back.
+clamp(c, 0, 1) for data (normals, depth); or, for a float32 image, the
+means as they are (linear radiance, or the data).  Only that image is read
+back.
 """
 from __future__ import annotations
 
@@ -24,24 +26,26 @@ class Film:
 
     def __init__(self):
         self.pixels = 0         # accumulators held
-        self.image_pixels = 0   # image pixels held
+        self.image_bytes = 0    # image bytes held
         self.accum: cl.Buffer | None = None
         self.image: cl.Buffer | None = None
 
     @staticmethod
-    def sizes(pixels: int, image_pixels: int) -> dict[str, int]:
-        """Bytes of the film's buffers for a pass of ``pixels`` pixels."""
-        return {"accumulated colour": 16 * pixels, "image": 3 * image_pixels}
+    def sizes(pixels: int, image_pixels: int, hdr: bool = False) -> dict[str, int]:
+        """Bytes of the film's buffers for a pass of ``pixels`` pixels
+        (``hdr``: a float32 image)."""
+        return {"accumulated colour": 16 * pixels, "image": (12 if hdr else 3) * image_pixels}
 
-    def reserve(self, rt: Runtime, pixels: int, image_pixels: int) -> None:
+    def reserve(self, rt: Runtime, pixels: int, image_pixels: int, hdr: bool = False) -> None:
         """Buffers for a pass of ``pixels`` and an image of ``image_pixels``
         (the caller has checked the allocation: Runtime.check_allocation)."""
         if pixels > self.pixels:
             self.accum = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 16 * pixels)  # float4
             self.pixels = pixels
-        if image_pixels > self.image_pixels:
-            self.image = cl.Buffer(rt.context, cl.mem_flags.WRITE_ONLY, 3 * image_pixels)
-            self.image_pixels = image_pixels
+        image_bytes = (12 if hdr else 3) * image_pixels
+        if image_bytes > self.image_bytes:
+            self.image = cl.Buffer(rt.context, cl.mem_flags.WRITE_ONLY, image_bytes)
+            self.image_bytes = image_bytes
 
     def encode(self, rt: Runtime, band, width: int, spp: int, radiance: bool) -> cl.Event:
         """The band's pixels, their sums over ``spp`` samples, into the 8-bit
@@ -51,6 +55,14 @@ class Film:
                       np.uint32(width), band.first_row, band.rows, np.float32(1.0 / spp),
                       self.image)
 
+    def resolve(self, rt: Runtime, band, width: int, spp: int) -> cl.Event:
+        """The band's pixels, their means over ``spp`` samples, into the
+        float32 image."""
+        return rt.run(rt.kernel(KERNEL, "radiance_image", RADIANCE=1), band.tile_range,
+                      self.accum, np.uint32(width), band.first_row, band.rows,
+                      np.float32(1.0 / spp), self.image)
+
     def read(self, rt: Runtime, image: np.ndarray) -> cl.Event:
-        """Enqueues the image's copy into ``image`` (height, width, 3) uint8."""
+        """Enqueues the image's copy into ``image`` (height, width, 3),
+        uint8 or float32 as encoded or resolved."""
         return cl.enqueue_copy(rt.queue, image, self.image, is_blocking=False)

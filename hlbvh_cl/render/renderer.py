@@ -1,14 +1,15 @@
 """Rendering a Scene: the pipeline every integrator runs in.
 
 Every per-pixel step runs on the device, in passes over whole rows (bands)
-of at most PIXELS_PER_PASS pixels, and the host reads back one 8-bit image.
+of at most PIXELS_PER_PASS pixels, and the host reads back one image
+(8-bit, or float32 with hdr).
 Per sample of each band:
 
     render/camera.cl   primary_rays       one Ray per pixel (camera.py)
     query/rays.cl      intersect_closest  -> Hit
     the integrator     its stages         adding to the film's sums
                                           (integrators/: direct.py's shading,
-                                          shadow and AO rays)
+                                          shadow and AO rays; path.py's bounces)
 
 and once a band's samples are summed, the film encodes it (film.py).  The
 camera's convention is camera.py's, the film's encoding film.py's, and the
@@ -30,9 +31,11 @@ from ..scene import Scene
 from .camera import Camera, enqueue_primary_rays
 from .film import Film
 from .integrators import SHADINGS, integrator_for
-from .integrators.base import Band, Step
+from .emitters import check_emitters
+from .integrators.base import Band, Look, Step
 from .light import Light, check_light
-from .settings import AO_SAMPLES, RenderSettings, check_colors, default_colors
+from .materials import material_table
+from .settings import AO_SAMPLES, RR_DEPTH, RenderSettings, check_colors, default_colors
 
 #: Pixels per pass at most (whole rows): enough work-items for any device,
 #: and buffers (133 bytes a pixel) small enough to stay warm between passes
@@ -46,10 +49,11 @@ STAGES = ("camera", "closest", "shade", "occluded", "resolve", "encode")
 
 
 def check_settings(camera, width, height, shading="diffuse", shadows=True, spp=1,
-                   ao_samples=AO_SAMPLES, ao_distance=None) -> RenderSettings:
+                   ao_samples=AO_SAMPLES, ao_distance=None, max_depth=-1,
+                   rr_depth=RR_DEPTH, seed=0, rfilter="box") -> RenderSettings:
     """Renderer.render's arguments, checked (shading: one of SHADINGS)."""
     return RenderSettings.check(camera, width, height, shading, shadows, spp, ao_samples,
-                                ao_distance, SHADINGS)
+                                ao_distance, SHADINGS, max_depth, rr_depth, seed, rfilter)
 
 
 class Pipeline:
@@ -91,22 +95,22 @@ class Pipeline:
             rows -= rows % layout.TILE_ROWS
         return rows
 
-    def render(self, tree, settings: RenderSettings, colors: np.ndarray, light: Light,
-               progress: bool = False) -> np.ndarray:
+    def render(self, tree, settings: RenderSettings, look: Look, progress: bool = False,
+               hdr: bool = False) -> np.ndarray:
         with self._lock:  # the buffers are shared
             try:
-                return self._render(tree, settings.in_frame(tree.scale), colors, light, progress)
+                return self._render(tree, settings.in_frame(tree.scale), look, progress, hdr)
             except BaseException:
                 # Ctrl-C: the steps in flight (at most two) end before the
                 # buffers serve another render.
                 self.rt.queue.finish()
                 raise
 
-    def _reserve(self, integrator, pixels: int, image_pixels: int) -> None:
+    def _reserve(self, integrator, pixels: int, image_pixels: int, hdr: bool) -> None:
         """Buffers for passes of ``pixels`` and an image of ``image_pixels``,
         checked together against the device's limits first."""
         needed = {**{name: size * pixels for name, size in self.PER_PIXEL.items()},
-                  **self.film.sizes(pixels, image_pixels), **integrator.buffer_sizes(pixels)}
+                  **self.film.sizes(pixels, image_pixels, hdr), **integrator.buffer_sizes(pixels)}
         self.rt.check_allocation(f"rendering {image_pixels:,} pixels, {pixels:,} at a time",
                                  needed)
         if pixels > self._pixels:
@@ -114,23 +118,23 @@ class Pipeline:
             self.primary = cl.Buffer(context, rw, pixels * layout.RAY.itemsize)
             self.hits = cl.Buffer(context, rw, pixels * layout.HIT.itemsize)
             self._pixels = pixels
-        self.film.reserve(self.rt, pixels, image_pixels)
+        self.film.reserve(self.rt, pixels, image_pixels, hdr)
 
-    def _render(self, tree, settings: RenderSettings, colors, light, progress) -> np.ndarray:
+    def _render(self, tree, settings: RenderSettings, look: Look, progress, hdr) -> np.ndarray:
         started = time.perf_counter()
         rt = self.rt
         width, height = settings.width, settings.height
         kind = integrator_for(settings.shading)
         integrator = self._integrators.setdefault(kind, kind())
         rows = self.chunk_rows(width, height)
-        self._reserve(integrator, rows * width, width * height)
-        integrator.prepare(rt, settings, tree, colors, light, rows * width)
+        self._reserve(integrator, rows * width, width * height, hdr)
+        integrator.prepare(rt, settings, tree, look, rows * width)
         pinhole = settings.camera.pinhole(width, height)
         cl.enqueue_copy(rt.queue, self._overflow, np.zeros(1, np.int32))
         setup = time.perf_counter() - started
 
         passes = integrator.passes(settings)
-        image = np.empty((height, width, 3), np.uint8)
+        image = np.empty((height, width, 3), np.float32 if hdr else np.uint8)
         events = {name: [] for name in STAGES}
         chunks = range(0, height, rows)
         bar = _progress_bar(progress, len(chunks) * settings.spp * (1 + passes))
@@ -152,15 +156,18 @@ class Pipeline:
                             (layout.TILE_ROWS * width, -(-band_rows // layout.TILE_ROWS)))
                 for sample in range(settings.spp):
                     events["camera"].append(enqueue_primary_rays(
-                        rt, pinhole, width, height, band, sample, settings.spp > 1,
-                        self.primary))
+                        rt, pinhole, width, height, band, settings.stream(sample),
+                        settings.jitter(), self.primary))
                     events["closest"].append(self.query.enqueue_intersect(
                         tree, self.primary, self.hits, band.count, self._overflow))
-                    integrator.shade(Step(rt, self.query, tree, band, sample, self.primary,
-                                          self.hits, self.film.accum, self._overflow, events,
-                                          step_done))
-                events["encode"].append(self.film.encode(rt, band, width, settings.spp,
-                                                         integrator.radiance(settings)))
+                    integrator.shade(Step(rt, self.query, tree, band, sample,
+                                          settings.stream(sample), self.primary, self.hits,
+                                          self.film.accum, self._overflow, events, step_done))
+                if hdr:
+                    events["encode"].append(self.film.resolve(rt, band, width, settings.spp))
+                else:
+                    events["encode"].append(self.film.encode(rt, band, width, settings.spp,
+                                                             integrator.radiance(settings)))
         overflow = np.zeros(1, np.int32)
         rt.wait([self.film.read(rt, image),
                  cl.enqueue_copy(rt.queue, overflow, self._overflow, is_blocking=False)])
@@ -172,9 +179,12 @@ class Pipeline:
         times["setup"] = setup * 1e3
         times["wall"] = (time.perf_counter() - started) * 1e3
         pixels = width * height * settings.spp
+        secondary = pixels * passes
+        if hasattr(integrator, "last_bounces"):  # paths: each bounce a closest and a shadow ray
+            secondary = 2 * sum(integrator.last_bounces) + pixels
         self.last_stats = {"width": width, "height": height, "shading": settings.shading,
                            "shadows": settings.shadows, "spp": settings.spp,
-                           "primary_rays": pixels, "secondary_rays": pixels * passes,
+                           "primary_rays": pixels, "secondary_rays": secondary,
                            "times_ms": times}
         return image
 
@@ -183,19 +193,24 @@ class Renderer:
     """Renders a Scene through a Camera.
 
     ``colors`` holds one RGB triple (0..1) per mesh (by default
-    settings.PALETTE, cycled) and ``light`` a Light; both may be reassigned
-    between renders, None giving the defaults again.  ``stats`` describes
-    the last render ({} before one): Pipeline.last_stats.  The first render
-    compiles kernels: render once, small, to keep that out of a
-    measurement.
+    settings.PALETTE, cycled) and ``light`` a Light, which the preview modes
+    read; ``materials`` (materials.py: one per mesh, Mitsuba 3's names) and
+    ``emitters`` (emitters.py) are what the path integrator reads.  Each
+    may be reassigned between renders, None giving the defaults again.
+    ``stats`` describes the last render ({} before one):
+    Pipeline.last_stats.  The first render compiles kernels: render once,
+    small, to keep that out of a measurement.
     """
 
-    def __init__(self, scene, colors=None, light: Light | None = None):
+    def __init__(self, scene, colors=None, light: Light | None = None, materials=None,
+                 emitters=None):
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a hlbvh_cl.Scene, got {type(scene).__name__}")
         self.scene = scene
         self.colors = default_colors(len(scene.meshes)) if colors is None else colors
         self.light = Light() if light is None else light
+        self.materials = materials
+        self.emitters = emitters
         self._pipeline: Pipeline | None = None
 
     @property
@@ -204,21 +219,58 @@ class Renderer:
 
     def render(self, camera: Camera, width: int, height: int, shading: str = "diffuse",
                shadows: bool = True, spp: int = 1, ao_samples: int = AO_SAMPLES,
-               ao_distance: float | None = None, progress: bool = False) -> np.ndarray:
-        """A (height, width, 3) uint8 RGB image.  shading is one of SHADINGS
-        ("diffuse", "normals", "depth", "ao": integrators/direct.py defines
-        them); spp samples per pixel; ao_samples AO rays per sample,
-        reaching ao_distance (default 5% of the scene's diagonal).  progress
-        shows a tqdm bar on stderr for renders longer than a second."""
+               ao_distance: float | None = None, max_depth: int = -1,
+               rr_depth: int = RR_DEPTH, seed: int = 0, rfilter: str = "box",
+               hdr: bool = False, progress: bool = False) -> np.ndarray:
+        """A (height, width, 3) uint8 RGB image, or with ``hdr`` float32: the
+        mean of each pixel's samples, linear.  shading is one of SHADINGS:
+        "diffuse", "normals", "depth", "ao" (integrators/direct.py defines
+        them), or "path" (integrators/path.py: path tracing, its paths at
+        most ``max_depth`` segments long, -1 for no limit, with Russian
+        roulette from ``rr_depth`` on).  spp samples per pixel, their random
+        numbers fixed by ``seed`` (the same seed, the same image; seed > 0
+        jitters even one sample per pixel) and spread over the pixel by
+        ``rfilter``, "box" or "gaussian" (Mitsuba's, of standard deviation
+        0.5 pixel); ao_samples AO
+        rays per sample, reaching ao_distance (default 5% of the scene's
+        diagonal).  progress shows a tqdm bar on stderr for renders longer
+        than a second."""
         settings = check_settings(camera, width, height, shading, shadows, spp, ao_samples,
-                                  ao_distance)
+                                  ao_distance, max_depth, rr_depth, seed, rfilter)
+        if not isinstance(hdr, (bool, np.bool_)):
+            raise TypeError(f"hdr must be True or False, got {type(hdr).__name__}")
+        with self.scene.borrow() as built:  # no rebuild or refit while the tree is read
+            look = self.look()
+            if self._pipeline is None:
+                self._pipeline = Pipeline(built.runtime)  # its own queries and buffers
+            return self._pipeline.render(built.tree, settings, look, progress=progress,
+                                         hdr=bool(hdr))
+
+    def look(self) -> Look:
+        """colors, light, materials and emitters, checked, with the world
+        triangles of the emitting meshes: what Pipeline.render shows."""
         count = len(self.scene.meshes)
         colors = check_colors(default_colors(count) if self.colors is None else self.colors, count)
         light = check_light(Light() if self.light is None else self.light)
-        with self.scene.borrow() as built:  # no rebuild or refit while the tree is read
-            if self._pipeline is None:
-                self._pipeline = Pipeline(built.runtime)  # its own queries and buffers
-            return self._pipeline.render(built.tree, settings, colors, light, progress=progress)
+        emitters = check_emitters(self.emitters, count)
+        return Look(colors, light, material_table(self.materials, colors), emitters,
+                    self._emissive(emitters))
+
+    def _emissive(self, emitters) -> dict:
+        """The world triangles of each emitting mesh (every instance's)."""
+        out = {}
+        scene = self.scene
+        for mesh in emitters.area:
+            m = scene.meshes[mesh]
+            triangles = np.asarray(m.vertices, np.float64)[np.asarray(m.faces)]
+            if scene.transforms is None:
+                out[mesh] = triangles
+                continue
+            maps = np.asarray(scene.transforms, np.float64)[scene.instance_meshes == mesh]
+            out[mesh] = np.concatenate(
+                [triangles @ a[:, :3].T + a[:, 3] for a in maps]) if len(maps) \
+                else np.zeros((0, 3, 3))
+        return out
 
 
 def _progress_bar(enabled: bool, total: int):

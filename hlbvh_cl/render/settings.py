@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core import frame, inputs
-from .camera import MAX_IMAGE_SIDE, Camera
+from .camera import FILTERS, MAX_IMAGE_SIDE, Camera
 
 #: Samples per pixel, and AO rays per sample, beyond these are taken for mistakes.
 MAX_SPP = 1 << 16
@@ -17,6 +17,12 @@ MAX_AO_SAMPLES = 1024
 
 #: Default number of AO rays per pixel and sample.
 AO_SAMPLES = 16
+
+#: Path depths (Mitsuba's max_depth: segments per path; -1 for no limit)
+#: beyond this are taken for mistakes; Russian roulette's default start
+#: (Mitsuba's rr_depth).
+MAX_DEPTH = 1024
+RR_DEPTH = 5
 
 #: Colours of meshes 0, 1, 2, ... of a Scene that was given none (cycled).
 PALETTE = ((0.85, 0.6, 0.5), (0.55, 0.7, 0.85), (0.9, 0.85, 0.7), (0.6, 0.8, 0.55),
@@ -59,10 +65,25 @@ class RenderSettings:
     spp: int
     ao_samples: int
     ao_distance: float | None
+    max_depth: int = -1
+    rr_depth: int = RR_DEPTH
+    seed: int = 0
+    rfilter: str = "box"
+
+    def jitter(self) -> int:
+        """The camera kernel's jitter: the pixels' centres for one sample of
+        seed 0, else the filter's (camera.FILTERS)."""
+        return FILTERS[self.rfilter] if self.spp > 1 or self.seed > 0 else 0
+
+    def stream(self, sample: int) -> int:
+        """The random stream of sample ``sample`` (render/random.h's
+        `sample` argument): seed 0 gives the sample itself."""
+        return self.seed * MAX_SPP + sample
 
     @classmethod
     def check(cls, camera, width, height, shading, shadows, spp, ao_samples, ao_distance,
-              shadings: tuple[str, ...]):
+              shadings: tuple[str, ...], max_depth=-1, rr_depth=RR_DEPTH, seed=0,
+              rfilter="box"):
         """The settings, each argument checked; ``shading`` must be one of
         ``shadings``."""
         if not isinstance(camera, Camera):
@@ -76,13 +97,22 @@ class RenderSettings:
             raise TypeError(f"shadows must be True or False, got {type(shadows).__name__}")
         if ao_distance is not None:
             ao_distance = inputs.number("ao_distance", ao_distance, 0.0, low_open=True)
+        if rfilter not in FILTERS:
+            raise ValueError(f"rfilter must be one of {tuple(FILTERS)} (Mitsuba's names), got "
+                             f"{rfilter!r}")
+        max_depth = inputs.integer("max_depth", max_depth, -1, MAX_DEPTH)
+        if max_depth == 0:
+            raise ValueError("max_depth must be -1 (no limit) or 1..1024 (segments per path: "
+                             "1 shows only what the camera sees emitting), got 0")
         return cls(camera=camera,
                    width=inputs.integer("width", width, 1, MAX_IMAGE_SIDE),
                    height=inputs.integer("height", height, 1, MAX_IMAGE_SIDE),
                    shading=shading, shadows=bool(shadows),
                    spp=inputs.integer("spp", spp, 1, MAX_SPP),
                    ao_samples=inputs.integer("ao_samples", ao_samples, 1, MAX_AO_SAMPLES),
-                   ao_distance=ao_distance)
+                   ao_distance=ao_distance, max_depth=max_depth,
+                   rr_depth=inputs.integer("rr_depth", rr_depth, 1, MAX_DEPTH),
+                   seed=inputs.integer("seed", seed, 0, 2**32 // MAX_SPP - 1), rfilter=rfilter)
 
     def in_frame(self, scale: float) -> RenderSettings:
         """These settings in a tree's frame (hlbvh_cl.core.frame): its positions

@@ -5,6 +5,8 @@
  *                 the pixel of ray i = round(255 * encode(clamp(accum[i] *
  *                 scale, 0, 1))), scale = 1 / samples per pixel
  *
+ *   radiance_image  the same range: each pixel's mean, float32 RGB, as it is
+ *
  * Compile-time parameter (-D)
  *   RADIANCE  1: the sums are radiance, encoded with display gamma 2 (sqrt,
  *             which looks as 2.2 does; pow measured far slower on PoCL);
@@ -41,4 +43,22 @@ __kernel void encode_image(__global const float4* accum,
     pixel[0] = rgb.x;
     pixel[1] = rgb.y;
     pixel[2] = rgb.z;
+}
+
+__kernel void radiance_image(__global const float4* accum,
+                             const uint width,
+                             const uint first_row,
+                             const uint rows,
+                             const float scale,        /* 1 / samples per pixel */
+                             __global float* image)    /* the whole image, RGB */
+{
+    uint gid;
+    uint2 at;
+    if (!pixel_in_pass(get_global_id(0), get_global_id(1), width, rows, &gid, &at))
+        return;
+    float4 mean = accum[gid] * scale;
+    __global float* pixel = image + 3 * (size_t)((first_row + at.y) * width + at.x);
+    pixel[0] = mean.x;
+    pixel[1] = mean.y;
+    pixel[2] = mean.z;
 }

@@ -83,7 +83,10 @@ def camera():
 
 
 RENDERS = {"diffuse": {"shading": "diffuse", "shadows": True},
-           "ao": {"shading": "ao", "ao_samples": 4}}
+           "ao": {"shading": "ao", "ao_samples": 4},
+           # the path stages; no Russian roulette, whose coin a last-bit
+           # difference between devices could flip
+           "path": {"shading": "path", "spp": 2, "max_depth": 3, "rr_depth": 10}}
 WIDTH, HEIGHT = 8, 6
 
 
@@ -183,8 +186,8 @@ def case_packets(uninitialized: bool) -> dict:
 
 
 def case_render(uninitialized: bool) -> dict:
-    """Diffuse shading with shadows, and ambient occlusion (not in the
-    uninitialized mode: see uninitialized_mode); the images go to the parent,
+    """Diffuse shading with shadows, ambient occlusion and path tracing (not
+    in the uninitialized mode: see uninitialized_mode); the images go to the parent,
     which compares them with the suite's device."""
     import hlbvh_cl
     scene = hlbvh_cl.Scene(tiny_meshes())

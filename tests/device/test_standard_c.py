@@ -97,6 +97,20 @@ def _exercise(device) -> None:
         camera = hlbvh_cl.Camera(eye=(0, 0, 4), target=(0, 0, 0))
         for shading in ("diffuse", "normals", "depth", "ao"):
             hlbvh_cl.Renderer(scene).render(camera, 8, 6, shading=shading, ao_samples=2)
+        # the path stages with every BSDF and light kind, and the film's float image
+        materials = [{"type": "roughconductor", "distribution": "ggx", "alpha": 0.3}]
+        for material in ({"type": "diffuse"}, {"type": "conductor"}, {"type": "dielectric"},
+                         *materials):
+            hlbvh_cl.Renderer(scene, materials=[material], emitters=[
+                {"type": "area", "mesh": 0, "radiance": 1.0},
+                {"type": "point", "position": [0, 3, 0], "intensity": 1.0},
+                {"type": "directional", "direction": [0, -1, 0], "irradiance": 1.0},
+                {"type": "constant", "radiance": 0.5}]).render(
+                camera, 8, 6, shading="path", spp=2, max_depth=3, rfilter="gaussian", hdr=True)
+    from hlbvh_cl.render.sampling import eval_bsdf, sample_bsdf
+    for material in ({"type": "diffuse"}, *materials):
+        drawn = sample_bsdf(material, (0, 0, 1), 16, device=device)
+        eval_bsdf(material, (0, 0, 1), drawn["directions"], device=device)
     scenes[0].update_vertices(0, sphere.vertices * 1.1)
     scenes[1].set_transforms([1], [np.eye(4)])
     scenes[1].intersect(origins, directions, mask=2)

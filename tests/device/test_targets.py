@@ -26,7 +26,8 @@ CORRECTNESS = ["query/test_rays.py", "test_validation.py", "test_memory.py",
                "query/test_embree.py", "query/test_watertight.py", "query/test_packets.py",
                "build/test_build.py", "build/test_radix_tree.py", "io/test_split.py",
                "parallel/test_sort.py", "parallel/test_scan.py", "build/test_widen.py",
-               "render/test_render.py", "build/test_extreme_coordinates.py",
+               "render/test_render.py", "render/test_path.py",
+               "build/test_extreme_coordinates.py",
                "device/test_devices.py::test_struct_layout_matches_device",
                "device/test_devices.py::test_constants_come_from_the_header"]
 

@@ -7,7 +7,7 @@ import pytest
 import trimesh
 
 from hlbvh_cl import Camera
-from hlbvh_cl.io.scenefile import SceneFileError, read
+from hlbvh_cl.io.scenefile import SceneFileError, read, shape_mesh
 import places
 
 SCENES = places.SCENES
@@ -42,7 +42,8 @@ def test_scene_loads_with_the_expected_triangle_counts(loaded, path):
     spec = tomllib.loads(path.read_text())
     assert len(scene.meshes) == len(spec["mesh"])
     for entry, table in zip(scene.meshes, spec["mesh"]):
-        faces = len(trimesh.load_mesh(path.parent / table["path"], process=False).faces)
+        faces = (shape_mesh(table["shape"]).triangle_count if "shape" in table else
+                 len(trimesh.load_mesh(path.parent / table["path"], process=False).faces))
         assert entry.mesh.triangle_count == faces * table.get("split", 1) ** 2
     expected = sum(e.mesh.triangle_count for e in scene.meshes) + (2 if "ground" in spec else 0)
     assert scene.triangle_count == expected
@@ -79,6 +80,8 @@ def test_camera_frames_the_meshes(loaded, path):
     scene = loaded(path)
     corners = []
     for entry in scene.meshes:
+        if entry.emitter is not None:  # a light may hang out of view
+            continue
         lo, hi = entry.mesh.bounds
         corners += [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
     px, py, depth = project(scene.camera, scene.width, scene.height, np.array(corners))
@@ -295,3 +298,78 @@ def test_missing_scene_file(tmp_path):
 
 def test_scene_file_error_is_a_value_error():
     assert issubclass(SceneFileError, ValueError)
+
+
+# -- the path integrator's materials and emitters -----------------------------
+
+LOOK = BASE + """
+[ground]
+material = { type = "diffuse", reflectance = 0.4 }
+
+[[mesh]]
+path = "knight.ply"
+color = [0.2, 0.4, 0.6]
+
+[[mesh]]
+shape = "sphere"
+material = { type = "dielectric", int_ior = 1.33 }
+translate = [1.0, 1.0, 0.0]
+
+[[mesh]]
+shape = "rectangle"
+emitter = { type = "area", radiance = [4.0, 4.0, 4.0] }
+rotate_deg = [90.0, 0.0, 0.0]
+translate = [0.0, 3.0, 0.0]
+
+[[emitter]]
+type = "point"
+position = [1.0, 2.0, 3.0]
+intensity = 5.0
+"""
+
+
+def test_materials_emitters_and_shapes_reach_the_renderer(tmp_path):
+    """A [[mesh]] table's material and area emitter, Mitsuba's shapes, the
+    ground's material and [[emitter]] tables become Renderer.materials and
+    emitters; meshes without a material keep a two-sided diffuse of their
+    colour; a rectangle turned by 90 degrees about x faces -y."""
+    shutil.copy(KNIGHT, tmp_path / "knight.ply")
+    scene = read(write(tmp_path, LOOK))
+    materials = scene.materials()
+    assert materials[0] == {"type": "twosided", "bsdf": {"type": "diffuse",
+                                                         "reflectance": [0.2, 0.4, 0.6]}}
+    assert materials[1] == {"type": "dielectric", "int_ior": 1.33}
+    assert materials[3] == {"type": "diffuse", "reflectance": 0.4}  # the ground, last
+    assert scene.all_emitters() == [{"type": "area", "radiance": [4.0, 4.0, 4.0], "mesh": 2},
+                                    {"type": "point", "position": [1.0, 2.0, 3.0],
+                                     "intensity": 5.0}]
+    sphere, rectangle = scene.meshes[1].mesh, scene.meshes[2].mesh
+    assert np.allclose(np.linalg.norm(sphere.vertices - [1.0, 1.0, 0.0], axis=1), 1.0, atol=1e-6)
+    v = rectangle.vertices.astype(np.float64)
+    normal = np.cross(v[rectangle.faces[:, 1]] - v[rectangle.faces[:, 0]],
+                      v[rectangle.faces[:, 2]] - v[rectangle.faces[:, 0]])
+    assert np.allclose(normal / np.linalg.norm(normal, axis=1, keepdims=True), [0, -1, 0],
+                       atol=1e-6)
+    assert np.allclose(v[:, 1], 3.0)
+
+
+@pytest.mark.parametrize("change, words", [
+    (("material = { type = \"dielectric\", int_ior = 1.33 }",
+      "material = { type = \"glass\" }"), "mesh[1].material: type 'glass' is not one of"),
+    (("radiance = [4.0, 4.0, 4.0]", "radiance = -1.0"),
+     "mesh[2].emitter['radiance'] must be a finite number >= 0"),
+    (("type = \"point\"", "type = \"area\""), "emitter[0]: an area emitter belongs in its"),
+    (("shape = \"sphere\"", "shape = \"cylinder\""), "mesh[1].shape: expected one of"),
+    (("shape = \"sphere\"", "shape = \"sphere\"\npath = \"knight.ply\""),
+     "mesh[1].path: expected a mesh file (path) or one of Mitsuba's shapes"),
+    (("position = [1.0, 2.0, 3.0]", "where = [1.0, 2.0, 3.0]"),
+     "emitter[0]: point takes ('position', 'intensity'), not ['where']"),
+])
+def test_a_bad_material_or_emitter_names_its_table(tmp_path, change, words):
+    shutil.copy(KNIGHT, tmp_path / "knight.ply")
+    old, new = change
+    assert old in LOOK
+    with pytest.raises(SceneFileError) as error:
+        read(write(tmp_path, LOOK.replace(old, new, 1)))
+    assert str(error.value).startswith(str(tmp_path / "scene.toml"))
+    assert words in str(error.value)

@@ -264,7 +264,7 @@ def test_rendering_in_row_chunks_gives_the_same_image(scene, renderer, options):
     assert small.chunk_rows(50, 37) == 3
     settings = check_settings(CAMERA, 50, 37, options.get("shading", "diffuse"), True,
                               options.get("spp", 1), options.get("ao_samples", 16), None)
-    chunked = small.render(built.tree(scene), settings, np.asarray(COLORS, np.float32), LIGHT)
+    chunked = small.render(built.tree(scene), settings, renderer.look())
     assert np.array_equal(chunked, whole)
 
 
@@ -276,9 +276,10 @@ def test_every_packet_size_renders_the_same_image(scene, options):
                               options.get("ao_samples", 16), None)
     images = {}
     rt, tree = built.runtime(scene), built.tree(scene)
+    look = hlbvh_cl.Renderer(scene, COLORS, LIGHT).look()
     for size in PACKET_SIZES:
         renderer = Pipeline(rt, RayQuery(rt, packet_size=size))
-        images[size] = renderer.render(tree, settings, np.asarray(COLORS, np.float32), LIGHT)
+        images[size] = renderer.render(tree, settings, look)
     assert images[1].shape == (37, 50, 3) and images[1].std() > 0
     for size, image in images.items():
         assert np.array_equal(image, images[1]), f"packet size {size} renders another image"
@@ -286,7 +287,7 @@ def test_every_packet_size_renders_the_same_image(scene, options):
 
 def test_every_mode_gives_an_image_of_the_asked_size(scene, renderer):
     for shading in integrators.SHADINGS:
-        image = renderer.render(CAMERA, 33, 17, shading=shading, ao_samples=2)
+        image = renderer.render(CAMERA, 33, 17, shading=shading, ao_samples=2, max_depth=3)
         assert image.shape == (17, 33, 3) and image.dtype == np.uint8
         assert len(np.unique(image.reshape(-1, 3), axis=0)) >= 5
         stats = renderer.stats

@@ -8,9 +8,10 @@ from __future__ import annotations
 
 from .base import Integrator
 from .direct import Direct
+from .path import Path
 
 #: Every integrator, each once.
-INTEGRATORS: tuple[type[Integrator], ...] = (Direct,)
+INTEGRATORS: tuple[type[Integrator], ...] = (Direct, Path)
 
 #: The shading names Renderer.render takes: every integrator's modes.
 SHADINGS: tuple[str, ...] = tuple(mode for cls in INTEGRATORS for mode in cls.modes)

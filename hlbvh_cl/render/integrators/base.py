@@ -21,6 +21,19 @@ class Band:
     tile_range: tuple[int, int]
 
 
+@dataclass(frozen=True)
+class Look:
+    """What a render shows besides the geometry, checked: each integrator
+    reads its part."""
+    colors: np.ndarray      # float32 (G, 3): Renderer.colors (the direct integrator)
+    light: object           # hlbvh_cl.render.light.Light (the direct integrator)
+    materials: np.ndarray   # layout.PATH_MATERIAL (G,), no emission yet (materials.py)
+    emitters: object        # hlbvh_cl.render.emitters.Emitters
+    #: mesh -> float64 (T, 3, 3): the world triangles of each emitting mesh,
+    #: every instance's where the scene has instances
+    emissive: dict
+
+
 @dataclass
 class Step:
     """One sample of one band, as the renderer hands it to an integrator
@@ -31,7 +44,8 @@ class Step:
     query: object         # hlbvh_cl.query.rays.RayQuery: enqueue_intersect / enqueue_occluded
     tree: object          # the tree the rays are traced in (its frame)
     band: Band
-    sample: int
+    sample: int           # 0, 1, ... spp - 1: 0 starts the film's sums
+    stream: int           # its random numbers' stream (RenderSettings.stream)
     rays: cl.Buffer       # Ray per pixel of the band, in ray order
     hits: cl.Buffer       # Hit per ray
     accum: cl.Buffer      # the film's float4 sums per pixel (Film)
@@ -44,8 +58,9 @@ class Integrator:
     """A way to render: it lists the ``modes`` it renders (the names
     Renderer.render's ``shading`` takes), and per render:
 
-    - ``prepare(rt, settings, tree, colors, light, pixels)``: its kernels,
-      parameters and buffers for passes of ``pixels`` pixels;
+    - ``prepare(rt, settings, tree, look, pixels)``: its kernels,
+      parameters and buffers for passes of ``pixels`` pixels (``look``: a
+      Look);
     - ``shade(step)``: one sample of one band after its closest hits, adding
       to ``step.accum``;
     - ``passes(settings)``: the ray passes shade launches per sample (for
@@ -58,7 +73,7 @@ class Integrator:
 
     modes: tuple[str, ...] = ()
 
-    def prepare(self, rt, settings, tree, colors: np.ndarray, light, pixels: int) -> None:
+    def prepare(self, rt, settings, tree, look: Look, pixels: int) -> None:
         raise NotImplementedError
 
     def shade(self, step: Step) -> None:

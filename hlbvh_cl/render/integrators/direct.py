@@ -43,7 +43,7 @@ from ...core import layout
 from ...core.paths import kernel_of
 from ...device.runtime import Runtime
 from ..camera import unit
-from .base import Integrator, Step
+from .base import Integrator, Look, Step
 
 KERNEL = kernel_of(__name__)
 
@@ -116,8 +116,7 @@ class Direct(Integrator):
     def buffer_sizes(self, pixels: int) -> dict[str, int]:
         return {name: size * pixels for name, size in self.PER_PIXEL.items()}
 
-    def prepare(self, rt: Runtime, settings, tree, colors: np.ndarray, light,
-                pixels: int) -> None:
+    def prepare(self, rt: Runtime, settings, tree, look: Look, pixels: int) -> None:
         self.rt, self.settings = rt, settings
         defines = {"SHADING": f"SHADING_{settings.shading.upper()}",
                    "SHADOWS": int(settings.shadows)}
@@ -129,12 +128,12 @@ class Direct(Integrator):
             self.occluded = cl.Buffer(context, rw, pixels)
             self.pending = cl.Buffer(context, rw, pixels * 16)  # float4
             self._pixels = pixels
-        data = np.ascontiguousarray(colors, np.float32)
+        data = np.ascontiguousarray(look.colors, np.float32)
         if self._albedo is None or self._albedo_size < data.nbytes:
             self._albedo = cl.Buffer(rt.context, cl.mem_flags.READ_ONLY, data.nbytes)
             self._albedo_size = data.nbytes
         cl.enqueue_copy(rt.queue, self._albedo, data)
-        self._params = shade_params(settings, light, tree.bounds_lo, tree.bounds_hi)
+        self._params = shade_params(settings, look.light, tree.bounds_lo, tree.bounds_hi)
 
     def passes(self, settings) -> int:
         if settings.shading == "ao":
@@ -155,7 +154,8 @@ class Direct(Integrator):
             if self.settings.shading == "ao":
                 events["shade"].append(rt.run(
                     kernels["ao_rays"], band.tile_range, step.rays, step.hits, self._params,
-                    np.uint32(band.width), band.first_row, band.rows, s, np.uint32(k),
+                    np.uint32(band.width), band.first_row, band.rows, np.uint32(step.stream),
+                    np.uint32(k),
                     self.secondary))
             events["occluded"].append(step.query.enqueue_occluded(
                 step.tree, self.secondary, self.occluded, band.count, step.overflow))

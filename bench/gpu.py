@@ -1,0 +1,117 @@
+"""The GPU measurements of issue 57, in one run of a few minutes: what to record whenever a session is lent a GPU.
+
+  build      the reference scene's rebuild: wall and device milliseconds
+             (target <= 10 ms on a GPU), and its stages
+  camera     3M camera rays (2048 x 1536) of the reference scene, numpy in
+             and out: wall Mrays/s against the traversal kernel's own
+             (target: wall >= 30 % of kernel)
+  small      the latency of a 1K-ray intersect call (target <= 0.5 ms)
+  path       path-traced samples per second of scenes/materials.toml at
+             1280 x 720, max depth 8 (the path tracer's figure on a GPU)
+
+It runs on any device (a CPU runtime gives the CPU's figures) and prints
+one table; the JSON goes to bench/results/gpu.json.
+
+    python -m bench.gpu [--devices nvidia] [--quick]
+"""
+from __future__ import annotations
+
+import sys
+import time
+
+
+from hlbvh_cl.io.scenefile import load
+from hlbvh_cl.query.rays import RayQuery
+
+from .common import (BENCH, arguments, devices_or_exit, finish, machine_info, say, stopwatch,
+                     summary, table)
+
+SCENES = BENCH.parent / "scenes"
+
+#: Issue 57's targets.
+TARGETS = {"build_ms": 10.0, "wall_share_of_kernel": 0.30, "small_call_ms": 0.5}
+
+
+def timed(job, repeats: int) -> list[float]:
+    job()  # warm: kernels compiled, pools filled
+    out = []
+    for _ in range(repeats):
+        started = time.perf_counter()
+        job()
+        out.append(time.perf_counter() - started)
+    return out
+
+
+def measure(device: str, quick: bool) -> dict:
+    repeats = 2 if quick else 7
+    size = (256, 192) if quick else (2048, 1536)
+    loaded = load(SCENES / ("bunny.toml" if quick else "reference.toml"), device)
+    scene = loaded.scene
+    found = {"triangles": scene.stats.triangles}
+    builds = []
+
+    def rebuild():
+        scene.rebuild()
+        builds.append(scene.stats)
+    walls = timed(rebuild, repeats)
+    found["build"] = {"wall_ms": summary([w * 1e3 for w in walls]),
+                      "device_ms": summary([s.device_ms for s in builds[1:]]),
+                      "stages_ms": {k: summary([s.times_ms[k] for s in builds[1:]])
+                                    for k in builds[-1].times_ms}}
+    origins, directions = loaded.camera.rays(*size)
+    count = len(origins)
+    with scene.borrow() as built:
+        query = RayQuery(built.runtime)
+        kernel_ms = []
+
+        def camera():
+            query.intersect(built.tree, origins, directions)
+            kernel_ms.append(query.last_kernel_ms)
+        walls = timed(camera, repeats)
+        wall_rate = count / summary(walls)["median"] / 1e6
+        kernel_rate = count / (summary(kernel_ms[1:])["median"] * 1e-3) / 1e6
+        found["camera"] = {"rays": count, "wall_mrays_per_s": wall_rate,
+                           "kernel_mrays_per_s": kernel_rate,
+                           "wall_share_of_kernel": wall_rate / kernel_rate}
+        small_o, small_d = origins[:1024].copy(), directions[:1024].copy()
+        walls = timed(lambda: query.intersect(built.tree, small_o, small_d), 20 * repeats)
+        found["small"] = {"rays": 1024, "call_ms": summary([w * 1e3 for w in walls])}
+    materials = load(SCENES / "materials.toml", device)
+    renderer = materials.renderer()
+    width, height, spp = (160, 90, 1) if quick else (1280, 720, 4)
+    options = {"shading": "path", "spp": spp, "max_depth": 8}
+    walls = timed(lambda: renderer.render(materials.camera, width, height, hdr=True, **options),
+                  max(1, repeats // 2))
+    found["path"] = {"size": [width, height], "spp": spp,
+                     "msamples_per_s": width * height * spp / summary(walls)["median"] / 1e6}
+    return found
+
+
+def main(argv=None) -> dict:
+    args = arguments(__doc__.splitlines()[0], argv)
+    elapsed = stopwatch()
+    devices = [d.id for d in devices_or_exit(args.devices)]
+    say(f"devices: {', '.join(devices)}")
+    results = {"command": " ".join(["python -m bench.gpu",
+                                     *(sys.argv[1:] if argv is None else argv)]),
+               "machine": machine_info(), "targets": TARGETS, "quick": args.quick,
+               "devices": {}}
+    rows = []
+    for device in devices:
+        found = measure(device, args.quick)
+        results["devices"][device] = found
+        rows.append([device, f"{found['build']['wall_ms']['median']:.1f} / "
+                             f"{found['build']['device_ms']['median']:.1f}",
+                     f"{found['camera']['wall_mrays_per_s']:.1f} / "
+                     f"{found['camera']['kernel_mrays_per_s']:.1f} "
+                     f"({100 * found['camera']['wall_share_of_kernel']:.0f} %)",
+                     f"{found['small']['call_ms']['median']:.3f}",
+                     f"{found['path']['msamples_per_s']:.2f}"])
+    print(table(["device", "build ms (wall / device)", "camera Mrays/s (wall / kernel)",
+                 "1K-ray call ms", "path Msamples/s"], rows,
+                title=f"issue 57's measurements (targets: {TARGETS})"))
+    return finish(results, "gpu", args, elapsed)
+
+
+if __name__ == "__main__":
+    main()

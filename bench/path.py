@@ -1,0 +1,256 @@
+"""Path-traced samples per second: ours on each CPU runtime against Mitsuba 3's path integrator on the same XML file, in one run.
+
+Scenes (both renderers read the same Mitsuba XML file):
+  cornell    scenes/cornell_box.xml (max depth 6, its glass ball), square
+  materials  scenes/materials.toml's meshes, lights and materials written as
+             XML (its meshes as PLY files, in place), max depth 8
+
+Each round renders every scene once on every device and once in Mitsuba
+(llvm_ad_rgb where it runs, else scalar_rgb; in a child process, since the
+LLVM variant can abort a process on some hosts), in turn: a burst of load
+falls on all alike.  A render's time is its wall time after a warm-up render
+that compiles everything (Mitsuba's JIT included: its wall time is
+mi.render plus the image's numpy copy, RENDERING.md).  Samples per second =
+width x height x spp / seconds.  Equal-time quality is not measured here.
+
+    python -m bench.path [--quick] [--devices pocl,intel] [--rounds 3]
+"""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from hlbvh_cl.io.scenefile import load, read
+
+from .common import (BENCH, arguments, devices_or_exit, finish, machine_info, say, stopwatch,
+                     summary, table)
+
+SCENES_DIR = BENCH.parent / "scenes"
+
+#: (width, height, spp) per scene, full and --quick.
+FULL = {"cornell": (512, 512, 16), "materials": (1280, 720, 4)}
+QUICK = {"cornell": (96, 96, 2), "materials": (160, 90, 1)}
+
+#: The issue's target: at least Mitsuba's samples per second on each CPU runtime.
+TARGET_RATIO = 1.0
+
+_CHILD = r"""
+import json, sys, time
+import numpy as np
+import mitsuba as mi
+for variant in sys.argv[1:]:
+    try:
+        mi.set_variant(variant)
+        break
+    except Exception:
+        continue
+scenes = {}
+print(json.dumps({"variant": mi.variant()}), flush=True)
+for line in sys.stdin:
+    name, path, width, height, spp = line.split()
+    key = (path, width, height)
+    if key not in scenes:
+        scenes[key] = mi.load_file(path, res_x=int(width), res_y=int(height))
+        np.asarray(mi.render(scenes[key], spp=1))  # compiles (the JIT variants)
+    started = time.perf_counter()
+    image = np.asarray(mi.render(scenes[key], spp=int(spp)))
+    print(json.dumps({"seconds": time.perf_counter() - started, "mean": float(image.mean())}),
+          flush=True)
+"""
+
+
+def _xml_value(value) -> str:
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return f'<rgb name="{{}}" value="{", ".join(f"{float(v):.9g}" for v in value)}"/>'
+    if isinstance(value, str):
+        return f'<string name="{{}}" value="{value}"/>'
+    return f'<float name="{{}}" value="{float(value):.9g}"/>'
+
+
+def _bsdf_xml(spec: dict) -> str:
+    if spec["type"] == "twosided":
+        return f'<bsdf type="twosided">{_bsdf_xml(spec["bsdf"])}</bsdf>'
+    body = "".join(_xml_value(v).format(k) for k, v in spec.items() if k != "type")
+    return f'<bsdf type="{spec["type"]}">{body}</bsdf>'
+
+
+def materials_xml(folder: Path) -> Path:
+    """scenes/materials.toml as Mitsuba XML: each mesh (split and placed)
+    as a PLY, face normals, the file's materials and emitters, and the
+    camera as a look_at with the same vertical field of view."""
+    import trimesh
+    description = read(SCENES_DIR / "materials.toml")
+    materials = description.materials()
+    emitters = description.all_emitters() or []
+    entries = list(description.meshes) + [description.ground]
+    shapes = []
+    for k, entry in enumerate(entries):
+        mesh = entry.mesh
+        trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(folder / f"mesh{k}.ply")
+        emitter = next((e for e in emitters if e.get("mesh") == k), None)
+        light = (f'<emitter type="area">{_xml_value(emitter["radiance"]).format("radiance")}'
+                 "</emitter>") if emitter else ""
+        shapes.append(f'<shape type="ply"><string name="filename" value="mesh{k}.ply"/>'
+                      f'<boolean name="face_normals" value="true"/>{_bsdf_xml(materials[k])}'
+                      f"{light}</shape>")
+    others = []
+    for e in emitters:
+        if e["type"] == "constant":
+            others.append(f'<emitter type="constant">{_xml_value(e["radiance"]).format("radiance")}'
+                          "</emitter>")
+    camera = description.camera
+    text = f"""<scene version="3.0.0">
+  <default name="res_x" value="{description.width}"/>
+  <default name="res_y" value="{description.height}"/>
+  <integrator type="path"><integer name="max_depth" value="8"/></integrator>
+  <sensor type="perspective">
+    <float name="fov" value="{camera.fov_deg}"/><string name="fov_axis" value="y"/>
+    <transform name="to_world"><lookat origin="{', '.join(map(str, camera.eye))}"
+      target="{', '.join(map(str, camera.target))}" up="{', '.join(map(str, camera.up))}"/>
+    </transform>
+    <film type="hdrfilm"><integer name="width" value="$res_x"/>
+      <integer name="height" value="$res_y"/><rfilter type="box"/></film>
+    <sampler type="independent"><integer name="sample_count" value="4"/></sampler>
+  </sensor>
+  {''.join(shapes)}
+  {''.join(others)}
+</scene>
+"""
+    path = folder / "materials.xml"
+    path.write_text(text)
+    return path
+
+
+def cornell_xml(folder: Path) -> Path:
+    """scenes/cornell_box.xml with its size as $res_x and $res_y."""
+    text = (SCENES_DIR / "cornell_box.xml").read_text()
+    text = text.replace('<default name="res" value="256"/>',
+                        '<default name="res_x" value="256"/>\n  '
+                        '<default name="res_y" value="256"/>')
+    text = text.replace('name="width" value="$res"', 'name="width" value="$res_x"')
+    text = text.replace('name="height" value="$res"', 'name="height" value="$res_y"')
+    path = folder / "cornell_box.xml"
+    path.write_text(text)
+    return path
+
+
+def llvm_path() -> str | None:
+    """The newest libLLVM 19 or later on the system (setup_peers.sh installs
+    one where LLVM 15 cannot compile Mitsuba's path integrator), or None."""
+    import glob
+    found = sorted(glob.glob("/usr/lib/*/libLLVM.so.[12][0-9]*")
+                   + glob.glob("/usr/lib/*/libLLVM-[12][0-9].so"))
+    return found[-1] if found else None
+
+
+class MitsubaChild:
+    """Mitsuba 3 in a child process that renders on request (one JSON line
+    per render); ``variant`` is the one it runs."""
+
+    def __init__(self, variants: tuple[str, ...]):
+        import os
+        env = dict(os.environ)
+        if llvm_path() and "DRJIT_LIBLLVM_PATH" not in env:
+            env["DRJIT_LIBLLVM_PATH"] = llvm_path()
+        self.process = subprocess.Popen([sys.executable, "-c", _CHILD, *variants],
+                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                        text=True, env=env)
+        self.variant = json.loads(self.process.stdout.readline())["variant"]
+
+    def render(self, name, path, width, height, spp) -> dict:
+        self.process.stdin.write(f"{name} {path} {width} {height} {spp}\n")
+        self.process.stdin.flush()
+        line = self.process.stdout.readline()
+        if not line:
+            raise RuntimeError(f"Mitsuba ({self.variant}) died rendering {name}")
+        return json.loads(line)
+
+    def close(self) -> None:
+        self.process.stdin.close()
+        self.process.wait()
+
+
+def mitsuba_child(paths: dict, sizes: dict) -> MitsubaChild:
+    """A Mitsuba child in llvm_ad_rgb if it renders every scene (its LLVM
+    can abort the process), else in scalar_rgb."""
+    child = MitsubaChild(("llvm_ad_rgb", "scalar_rgb"))
+    try:
+        for name, path in paths.items():
+            child.render(name, path, 8, 8, 1)
+        return child
+    except (RuntimeError, ValueError):
+        say(f"Mitsuba's {child.variant} failed here; timing scalar_rgb")
+        child.close()
+        return MitsubaChild(("scalar_rgb",))
+
+
+def main(argv=None) -> dict:
+    args = arguments(__doc__.splitlines()[0], argv,
+                     (["--rounds"], {"type": int, "default": 3, "help": "timed rounds"}))
+    elapsed = stopwatch()
+    sizes = QUICK if args.quick else FULL
+    devices = [d.id for d in devices_or_exit(args.devices or "pocl,intel")]
+    say(f"devices: {', '.join(devices)}")
+    results = {"command": " ".join(["python -m bench.path",
+                                     *(sys.argv[1:] if argv is None else argv)]),
+               "machine": machine_info(), "devices": devices, "sizes": sizes,
+               "rounds": args.rounds, "scenes": {}}
+    with tempfile.TemporaryDirectory() as temporary:
+        folder = Path(temporary)
+        paths = {"cornell": cornell_xml(folder), "materials": materials_xml(folder)}
+        child = mitsuba_child(paths, sizes)
+        results["mitsuba"] = child.variant
+        ours = {}
+        for name, path in paths.items():
+            width, height, spp = sizes[name]
+            for device in devices:
+                loaded = load(path, device, defaults={"res_x": width, "res_y": height})
+                renderer = loaded.renderer()
+                options = {**loaded.options, "spp": spp}
+                renderer.render(loaded.camera, 8, 8, **options)  # compiles
+                ours[name, device] = (loaded, renderer, options)
+        times = {key: [] for key in [(n, d) for n in paths for d in devices]
+                 + [(n, "mitsuba") for n in paths]}
+        means = {key: [] for key in times}
+        for _ in range(args.rounds):
+            for name, path in paths.items():
+                width, height, spp = sizes[name]
+                for device in devices:
+                    loaded, renderer, options = ours[name, device]
+                    started = time.perf_counter()
+                    image = renderer.render(loaded.camera, width, height, hdr=True, **options)
+                    times[name, device].append(time.perf_counter() - started)
+                    means[name, device].append(float(image.mean()))
+                answer = child.render(name, path, width, height, spp)
+                times[name, "mitsuba"].append(answer["seconds"])
+                means[name, "mitsuba"].append(answer["mean"])
+        child.close()
+    rows = []
+    for name in paths:
+        width, height, spp = sizes[name]
+        samples = width * height * spp
+        theirs = samples / summary(times[name, "mitsuba"])["median"]
+        entry = {"samples": samples, "mitsuba_msamples_per_s": theirs / 1e6,
+                 "mitsuba_mean": summary(means[name, "mitsuba"])["median"]}
+        for device in devices:
+            rate = samples / summary(times[name, device])["median"]
+            entry[device] = {"msamples_per_s": rate / 1e6, "ratio_to_mitsuba": rate / theirs,
+                             "mean": summary(means[name, device])["median"],
+                             "seconds": summary(times[name, device])}
+            rows.append([name, f"{width}x{height}, {spp} spp", device, f"{rate / 1e6:.2f}",
+                         f"{theirs / 1e6:.2f}", f"{rate / theirs:.2f}x"])
+        results["scenes"][name] = entry
+    print(table(["scene", "size", "device", "ours (Msamples/s)",
+                 f"Mitsuba {results['mitsuba']}", "ratio"], rows,
+                title="path tracing, samples per second (median of the rounds)"))
+    return finish(results, "path", args, elapsed)
+
+
+if __name__ == "__main__":
+    main()

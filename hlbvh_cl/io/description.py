@@ -1,0 +1,124 @@
+"""A scene as its files describe it, before it is built: the plain records
+that every reader (TOML scene files, Mitsuba 3's XML, a bare mesh file)
+makes and scenefile.load builds (pbrt-v4's parse-then-create split)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..mesh import Mesh
+from ..render.camera import Camera
+from ..render.light import Light
+
+Color = tuple[float, float, float]
+Vec3 = tuple[float, float, float]
+
+
+class SceneFileError(ValueError):
+    """A scene file that cannot be read; the message names the file and the key."""
+
+
+@dataclass(frozen=True)
+class Ground:
+    mesh: Mesh  # two triangles facing +y
+    y: float
+    size: float
+    color: Color
+    material: dict | None = None
+
+
+@dataclass(frozen=True)
+class MeshEntry:
+    mesh: Mesh  # split and transformed
+    color: Color
+    path: Path | None  # None for a shape
+    split: int = 1
+    material: dict | None = None  # the path integrator's BSDF spec (None: the default)
+    emitter: dict | None = None   # an area emitter's spec, without its "mesh"
+
+
+@dataclass(frozen=True)
+class InstanceEntry:
+    """One [[instance]] table: copies of meshes[mesh]."""
+    mesh: int
+    transforms: np.ndarray  # (copies, 3, 4) float64, object -> world: [A | t]
+
+
+@dataclass
+class SceneDescription:
+    path: Path
+    width: int
+    height: int
+    camera: Camera
+    light: Light
+    meshes: list[MeshEntry] = field(default_factory=list)
+    ground: Ground | None = None
+    instances: list[InstanceEntry] = field(default_factory=list)  # empty: no [[instance]]
+    emitters: list[dict] = field(default_factory=list)  # the [[emitter]] tables
+    #: what the file says about rendering it besides the size (Mitsuba's
+    #: XML: shading, spp, max_depth, rr_depth, rfilter); a TOML file says none
+    options: dict = field(default_factory=dict)
+
+    def materials(self) -> list[dict] | None:
+        """Renderer.materials of every surface (the meshes, then the
+        ground): each entry's, else a two-sided diffuse of its colour; None
+        when no entry names one."""
+        entries = list(self.meshes) + ([self.ground] if self.ground is not None else [])
+        if all(entry.material is None for entry in entries):
+            return None
+        return [entry.material or {"type": "twosided", "bsdf": {
+            "type": "diffuse", "reflectance": list(entry.color)}} for entry in entries]
+
+    def all_emitters(self) -> list[dict] | None:
+        """Renderer.emitters: the meshes' area emitters, then the [[emitter]]
+        tables; None (the default sky) when there are none."""
+        found = [{**entry.emitter, "mesh": k} for k, entry in enumerate(self.meshes)
+                 if entry.emitter is not None] + list(self.emitters)
+        return found or None
+
+    @property
+    def triangle_count(self) -> int:
+        """Triangles stored: each mesh (and the ground) once, however often drawn."""
+        return sum(m.triangle_count for m, _ in self.geometries())
+
+    @property
+    def drawn_triangle_count(self) -> int:
+        """Triangles in the picture's world: each mesh times its copies."""
+        if not self.instances:
+            return self.triangle_count
+        ground = 0 if self.ground is None else self.ground.mesh.triangle_count
+        return ground + sum(len(entry.transforms) * self.meshes[entry.mesh].mesh.triangle_count
+                            for entry in self.instances)
+
+    def placements(self) -> list[tuple[int, np.ndarray]]:
+        """Scene's ``instances``: (mesh index, (3, 4) transform) of every copy
+        in file order, then the ground's (identity); [] without [[instance]]."""
+        if not self.instances:
+            return []
+        found = [(entry.mesh, transform) for entry in self.instances
+                 for transform in entry.transforms]
+        if self.ground is not None:
+            found.append((len(self.meshes), np.eye(3, 4)))
+        return found
+
+    def geometries(self) -> list[tuple[Mesh, Color]]:
+        """(mesh, colour) of every surface: the meshes in file order, then the ground."""
+        found = [(entry.mesh, entry.color) for entry in self.meshes]
+        if self.ground is not None:
+            found.append((self.ground.mesh, self.ground.color))
+        return found
+
+
+def shape_mesh(shape: str) -> Mesh:
+    """One of Mitsuba's shapes as a mesh, in its own frame: "rectangle"
+    ([-1, 1]^2 at z = 0, its normal +z), "cube" ([-1, 1]^3, normals out) or
+    "sphere" (radius 1 about the origin: an icosphere of 20 * 4^4 faces)."""
+    if shape == "rectangle":
+        return Mesh([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], [[0, 1, 2], [0, 2, 3]],
+                    name="rectangle")
+    import trimesh
+    made = (trimesh.creation.box(extents=(2.0, 2.0, 2.0)) if shape == "cube"
+            else trimesh.creation.icosphere(subdivisions=4, radius=1.0))
+    return Mesh(made.vertices, made.faces, name=shape)

@@ -1,0 +1,463 @@
+"""Mitsuba 3's XML scene format, a documented subset, read into a
+SceneDescription (hlbvh_cl.io.description) that renders with the path
+integrator as Mitsuba would render the file.
+
+The subset::
+
+    <scene version="3.0.0">
+      <default name="spp" value="64"/>            $spp substitutions
+      <integrator type="path">                      max_depth (default -1), rr_depth (5)
+      <sensor type="perspective">                   fov (deg), fov_axis (x, y, diagonal,
+        <transform name="to_world">...</transform>  smaller, larger; default x), to_world
+        <film type="hdrfilm">                       width, height (768 x 576)
+          <rfilter type="box"/>                     box or gaussian (the default)
+        <sampler type="independent">                sample_count (default 4)
+      <bsdf type="..." id="...">                    diffuse, conductor, roughconductor (ggx),
+                                                    dielectric, twosided; named or inline
+      <shape type="...">                            ply, obj (filename, face_normals),
+                                                    rectangle, cube, sphere (center, radius);
+        <transform name="to_world">                 translate, rotate, scale, matrix, lookat
+        <ref id="..."/>  or an inline <bsdf>
+        <emitter type="area">                       radiance
+      <emitter type="...">                          point (position or to_world, intensity),
+                                                    directional (direction, irradiance),
+                                                    constant (radiance)
+
+Values: rgb, float, integer, string, boolean and point, and ref.  Anything
+else, an element or a parameter, is an error naming it and its line: the
+loader never renders a silently different scene.  Mesh shapes must set
+face_normals = true, since shading normals are not written yet (Mitsuba
+would interpolate vertex normals, a different picture).
+"""
+from __future__ import annotations
+
+import math
+import os
+import re
+import xml.parsers.expat
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..mesh import Mesh
+from ..render.camera import Camera
+from ..render.light import Light
+from .description import MeshEntry, SceneDescription, SceneFileError, shape_mesh
+
+#: Mitsuba's defaults that the subset uses.
+FILM_SIZE = (768, 576)
+SAMPLE_COUNT = 4
+
+#: Named indices of refraction Mitsuba accepts for int_ior and ext_ior.
+IORS = {"vacuum": 1.0, "air": 1.000277, "water": 1.3330, "bk7": 1.5046, "glass": 1.5,
+        "polycarbonate": 1.58, "diamond": 2.419, "acrylic glass": 1.49, "fused quartz": 1.458}
+
+_VALUE_TAGS = ("rgb", "float", "integer", "string", "boolean", "point", "vector", "transform",
+               "ref", "bsdf", "emitter", "rfilter", "film", "sampler")
+
+#: The plugin types read, and the parameters each takes.
+_BSDFS = {"diffuse": ("reflectance",),
+          "conductor": ("eta", "k", "specular_reflectance", "material"),
+          "roughconductor": ("eta", "k", "specular_reflectance", "material", "distribution",
+                             "alpha"),
+          "dielectric": ("int_ior", "ext_ior", "specular_reflectance", "specular_transmittance"),
+          "twosided": ()}
+_EMITTERS = {"area": ("radiance",), "point": ("position", "intensity", "to_world"),
+             "directional": ("direction", "irradiance", "to_world"), "constant": ("radiance",)}
+_SHAPES = {"ply": ("filename", "face_normals", "to_world", "flip_normals"),
+           "obj": ("filename", "face_normals", "to_world", "flip_normals"),
+           "rectangle": ("to_world", "flip_normals"), "cube": ("to_world", "flip_normals"),
+           "sphere": ("to_world", "center", "radius", "flip_normals")}
+
+
+@dataclass
+class _Node:
+    tag: str
+    attributes: dict
+    line: int
+    children: list = field(default_factory=list)
+
+    def get(self, key, default=None):
+        return self.attributes.get(key, default)
+
+
+def _parse(path: Path) -> _Node:
+    """The XML as a tree of _Node, each with its line (expat)."""
+    root = _Node("document", {}, 0)
+    stack = [root]
+    parser = xml.parsers.expat.ParserCreate()
+
+    def start(tag, attributes):
+        node = _Node(tag, dict(attributes), parser.CurrentLineNumber)
+        stack[-1].children.append(node)
+        stack.append(node)
+
+    def end(tag):
+        stack.pop()
+    parser.StartElementHandler, parser.EndElementHandler = start, end
+    try:
+        parser.Parse(path.read_bytes(), True)
+    except xml.parsers.expat.ExpatError as error:
+        raise SceneFileError(f"{path}: not well-formed XML: {error}") from None
+    if len(root.children) != 1 or root.children[0].tag != "scene":
+        raise SceneFileError(f"{path}: expected one <scene> element at the top")
+    return root.children[0]
+
+
+class _Reader:
+    def __init__(self, path: Path, scene: _Node, overrides: dict):
+        self.path = path
+        self.defaults: dict[str, str] = {}
+        self.ids: dict[str, _Node] = {}
+        for node in scene.children:
+            if node.tag == "default":
+                self.defaults[node.get("name")] = node.get("value")
+        self.defaults.update({name: str(value) for name, value in overrides.items()})
+
+    def error(self, node: _Node, message: str) -> SceneFileError:
+        return SceneFileError(f"{self.path}:{node.line}: <{node.tag}"
+                              + (f" type=\"{node.get('type')}\"" if node.get("type") else "")
+                              + (f" name=\"{node.get('name')}\"" if node.get("name") else "")
+                              + f">: {message}")
+
+    def text(self, node: _Node, key: str = "value") -> str:
+        value = node.get(key)
+        if value is None:
+            raise self.error(node, f"needs a {key} attribute")
+        return re.sub(r"\$(\w+)", lambda m: self._default(node, m.group(1)), value)
+
+    def _default(self, node: _Node, name: str) -> str:
+        if name not in self.defaults:
+            raise self.error(node, f"${name} has no <default name=\"{name}\">")
+        return self.defaults[name]
+
+    def number(self, node: _Node) -> float:
+        text = self.text(node)
+        try:
+            value = float(text)
+        except ValueError:
+            raise self.error(node, f"expected a number, got {node.get('value')!r}") from None
+        if not math.isfinite(value):
+            raise self.error(node, f"expected a finite number, got {node.get('value')!r}")
+        return value
+
+    def numbers(self, node: _Node, count: int, key: str = "value") -> list[float]:
+        parts = re.split(r"[,\s]+", self.text(node, key).strip())  # (text raises first)
+        try:
+            values = [float(x) for x in parts if x]
+        except ValueError:
+            raise self.error(node, f"expected {count} numbers, got {node.get(key)!r}") from None
+        if len(values) == 1 and count == 3 and node.tag == "rgb":
+            values *= 3
+        if len(values) != count or not all(math.isfinite(v) for v in values):
+            raise self.error(node, f"expected {count} finite numbers, got {node.get(key)!r}")
+        return values
+
+    def value(self, node: _Node):
+        """A parameter's value: float, int, str, bool, RGB list, point."""
+        if node.tag == "float":
+            return self.number(node)
+        if node.tag == "integer":
+            text = self.text(node)
+            try:
+                return int(text)
+            except ValueError:
+                raise self.error(node, f"expected an integer, got {node.get('value')!r}") from None
+        if node.tag == "string":
+            return self.text(node)
+        if node.tag == "boolean":
+            text = self.text(node).lower()
+            if text not in ("true", "false"):
+                raise self.error(node, f"expected true or false, got {node.get('value')!r}")
+            return text == "true"
+        if node.tag == "rgb":
+            return self.numbers(node, 3)
+        if node.tag in ("point", "vector"):
+            if node.get("value") is not None:
+                return self.numbers(node, 3)
+            return [float(self.text(node, axis)) if node.get(axis) is not None else 0.0
+                    for axis in "xyz"]
+        if node.tag == "transform":
+            return self.transform(node)
+        raise self.error(node, "is not a value this reader takes (rgb, float, integer, string, "
+                               "boolean, point, transform)")
+
+    def parameters(self, node: _Node, known: tuple, skip=()) -> dict:
+        """The named values inside ``node``: every child with a name must be
+        one of ``known``; children that are not values must be in ``skip``."""
+        found = {}
+        for child in node.children:
+            if child.tag in skip:
+                continue
+            if child.tag not in _VALUE_TAGS or child.get("name") is None:
+                raise self.error(child, f"is not read inside <{node.tag} "
+                                        f"type=\"{node.get('type')}\"> (line {node.line})")
+            name = child.get("name")
+            if name not in known:
+                raise self.error(child, f"{node.get('type')} takes {known or 'no parameters'}, "
+                                        f"not {name!r}")
+            found[name] = self.value(child)
+        return found
+
+    def transform(self, node: _Node) -> np.ndarray:
+        """A <transform>'s 4 x 4 matrix: each step applied after the ones
+        before it, as Mitsuba composes them."""
+        matrix = np.eye(4)
+        for step in node.children:
+            try:
+                change = self._step(step)
+            except SceneFileError:
+                raise
+            except (ValueError, TypeError, ZeroDivisionError) as error:
+                raise self.error(step, f"expected numbers: {error}") from None
+            matrix = change @ matrix
+        return matrix
+
+    def _step(self, step: _Node) -> np.ndarray:
+        """One step of a <transform> as a 4 x 4 matrix."""
+        if step.tag == "translate":
+            offset = (self.numbers(step, 3) if step.get("value") is not None else
+                      [float(self.text(step, a)) if step.get(a) else 0.0 for a in "xyz"])
+            change = np.eye(4)
+            change[:3, 3] = offset
+        elif step.tag == "scale":
+            if step.get("value") is not None:
+                parts = re.split(r"[,\s]+", self.text(step).strip())
+                factors = [float(parts[0])] * 3 if len(parts) == 1 else self.numbers(step, 3)
+            else:
+                factors = [float(self.text(step, a)) if step.get(a) else 1.0 for a in "xyz"]
+            change = np.diag([*factors, 1.0])
+        elif step.tag == "rotate":
+            axis = (self.numbers(step, 3, "value") if step.get("value") is not None else
+                    [float(self.text(step, a)) if step.get(a) else 0.0 for a in "xyz"])
+            change = _rotation(np.array(axis), float(self.text(step, "angle")))
+        elif step.tag == "matrix":
+            change = np.array(self.numbers(step, 16)).reshape(4, 4)
+        elif step.tag == "lookat":
+            change = _look_at(np.array(self.numbers(step, 3, "origin")),
+                              np.array(self.numbers(step, 3, "target")),
+                              np.array(self.numbers(step, 3, "up")
+                                       if step.get("up") else [0.0, 1.0, 0.0]))
+        else:
+            raise self.error(step, "is not a transform step this reader takes (translate, "
+                                   "rotate, scale, matrix, lookat)")
+        return change
+
+
+def _rotation(axis: np.ndarray, degrees: float) -> np.ndarray:
+    """Rodrigues' rotation about ``axis`` as Mitsuba builds it: the axis is
+    taken as given, not normalised (so a non-unit one also scales)."""
+    c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
+    x, y, z = axis
+    out = np.eye(4)
+    out[:3, :3] = [[c + x * x * (1 - c), x * y * (1 - c) - z * s, x * z * (1 - c) + y * s],
+                   [y * x * (1 - c) + z * s, c + y * y * (1 - c), y * z * (1 - c) - x * s],
+                   [z * x * (1 - c) - y * s, z * y * (1 - c) + x * s, c + z * z * (1 - c)]]
+    return out
+
+
+def _look_at(origin, target, up) -> np.ndarray:
+    """Mitsuba's look_at: columns left, up, direction, origin."""
+    direction = (target - origin) / np.linalg.norm(target - origin)
+    left = np.cross(up, direction)
+    left /= np.linalg.norm(left)
+    new_up = np.cross(direction, left)
+    out = np.eye(4)
+    out[:3, 0], out[:3, 1], out[:3, 2], out[:3, 3] = left, new_up, direction, origin
+    return out
+
+
+def read_xml(path, defaults: dict | None = None) -> SceneDescription:
+    """A Mitsuba 3 XML scene (the module's subset) as a SceneDescription,
+    with its render options (shading "path", spp, max_depth, rr_depth,
+    rfilter) in ``options``; ``defaults`` override its <default> values,
+    as mitsuba.load_file's keyword arguments do."""
+    path = Path(os.fspath(path))
+    scene = _parse(path)
+    reader = _Reader(path, scene, defaults or {})
+    for node in scene.children:
+        if node.get("id") is not None:
+            reader.ids[node.get("id")] = node
+    options = {"shading": "path", "spp": SAMPLE_COUNT, "max_depth": -1, "rr_depth": 5,
+               "rfilter": "gaussian"}
+    camera, size = None, FILM_SIZE
+    meshes, emitters = [], []
+    for node in scene.children:
+        if node.tag == "default":
+            continue
+        if node.tag == "integrator":
+            if node.get("type") != "path":
+                raise reader.error(node, "only the path integrator is read")
+            values = reader.parameters(node, ("max_depth", "rr_depth"))
+            options.update({k: int(v) for k, v in values.items()})
+        elif node.tag == "sensor":
+            camera, size = _sensor(reader, node, options)
+        elif node.tag == "bsdf":
+            _bsdf(reader, node)  # checked here; used where a shape refers to it
+        elif node.tag == "shape":
+            meshes.append(_shape(reader, node))
+        elif node.tag == "emitter":
+            emitters.append(_emitter(reader, node))
+        else:
+            raise reader.error(node, "is not an element this reader takes (integrator, sensor, "
+                                     "bsdf, shape, emitter, default)")
+    if camera is None:
+        raise SceneFileError(f"{path}: no <sensor>: the scene needs a camera")
+    if not meshes:
+        raise SceneFileError(f"{path}: no <shape>: nothing to render")
+    return SceneDescription(path=path, width=size[0], height=size[1], camera=camera,
+                            light=Light(), meshes=meshes, emitters=emitters, options=options)
+
+
+def _sensor(reader: _Reader, node: _Node, options: dict):
+    if node.get("type") != "perspective":
+        raise reader.error(node, "only the perspective sensor is read")
+    values = reader.parameters(node, ("fov", "fov_axis", "to_world", "near_clip", "far_clip"),
+                               skip=("film", "sampler"))
+    size = FILM_SIZE
+    for child in node.children:
+        if child.tag == "film":
+            if child.get("type") != "hdrfilm":
+                raise reader.error(child, "only the hdrfilm film is read")
+            film = reader.parameters(child, ("width", "height", "pixel_format",
+                                             "component_format"), skip=("rfilter",))
+            size = (int(film.get("width", FILM_SIZE[0])), int(film.get("height", FILM_SIZE[1])))
+            for kid in child.children:
+                if kid.tag == "rfilter":
+                    if kid.get("type") not in ("box", "gaussian"):
+                        raise reader.error(kid, "only the box and gaussian filters are read")
+                    reader.parameters(kid, ())
+                    options["rfilter"] = kid.get("type")
+        elif child.tag == "sampler":
+            if child.get("type") != "independent":
+                raise reader.error(child, "only the independent sampler is read")
+            sampler = reader.parameters(child, ("sample_count", "seed"))
+            options["spp"] = int(sampler.get("sample_count", SAMPLE_COUNT))
+    if "fov" not in values:
+        raise reader.error(node, "needs its fov (degrees)")
+    matrix = values.get("to_world", np.eye(4))
+    if np.linalg.det(matrix[:3, :3]) < 0:  # look_at's frame (left, up, direction) has det 1
+        raise reader.error(node, "a to_world that mirrors the image (det < 0) is not read")
+    eye, forward, up = matrix[:3, 3], matrix[:3, 2], matrix[:3, 1]
+    width, height = size
+    half = math.tan(math.radians(values["fov"]) / 2)
+    axis = values.get("fov_axis", "x")
+    aspect = width / height
+    vertical = {"x": half / aspect, "y": half,
+                "diagonal": half / math.hypot(aspect, 1.0),
+                "smaller": half if aspect >= 1 else half / aspect,
+                "larger": half / aspect if aspect >= 1 else half}
+    if axis not in vertical:
+        raise reader.error(node, f"fov_axis {axis!r} is not one of {tuple(vertical)}")
+    fov_deg = math.degrees(2 * math.atan(vertical[axis]))
+    camera = Camera(tuple(eye), tuple(eye + forward), tuple(up), fov_deg=fov_deg)
+    return camera, size
+
+
+def _bsdf(reader: _Reader, node: _Node) -> dict:
+    """A <bsdf> (or a <ref> to one) as a materials.py spec."""
+    if node.tag == "ref":
+        target = reader.ids.get(node.get("id"))
+        if target is None or target.tag != "bsdf":
+            raise reader.error(node, f"refers to no <bsdf id=\"{node.get('id')}\">")
+        node = target
+    kind = node.get("type")
+    if kind not in _BSDFS:
+        raise reader.error(node, f"BSDF type {kind!r} is not read (this reader takes "
+                                 f"{', '.join(_BSDFS)})")
+    if kind == "twosided":
+        inner = [c for c in node.children if c.tag in ("bsdf", "ref")]
+        if len(inner) != 1 or len(inner) != len(node.children):
+            raise reader.error(node, "twosided takes one <bsdf> (or <ref>) and nothing else")
+        return {"type": "twosided", "bsdf": _bsdf(reader, inner[0])}
+    spec = {"type": kind, **reader.parameters(node, _BSDFS[kind])}
+    for key in ("int_ior", "ext_ior"):
+        if isinstance(spec.get(key), str):
+            name = spec[key].lower()
+            if name not in IORS:
+                raise reader.error(node, f"{key} {spec[key]!r} is not a named index this reader "
+                                         f"knows ({', '.join(IORS)})")
+            spec[key] = IORS[name]
+    from ..render.materials import check_material
+    try:
+        check_material(f"{reader.path}:{node.line}: <bsdf type=\"{kind}\">", spec)
+    except (TypeError, ValueError) as error:
+        raise SceneFileError(str(error)) from None
+    return spec
+
+
+def _shape(reader: _Reader, node: _Node) -> MeshEntry:
+    kind = node.get("type")
+    if kind not in _SHAPES:
+        raise reader.error(node, f"shape type {kind!r} is not read (this reader takes "
+                                 f"{', '.join(_SHAPES)})")
+    values = reader.parameters(node, _SHAPES[kind], skip=("bsdf", "ref", "emitter"))
+    if values.get("flip_normals"):
+        raise reader.error(node, "flip_normals is not read")
+    if kind in ("ply", "obj"):
+        if "filename" not in values:
+            raise reader.error(node, "needs its filename")
+        if not values.get("face_normals", False):
+            raise reader.error(node, "needs <boolean name=\"face_normals\" value=\"true\"/>: "
+                                     "shading normals are not written yet, and Mitsuba would "
+                                     "interpolate vertex normals (another picture)")
+        file = reader.path.parent / values["filename"]
+        try:
+            mesh = Mesh.load(file)
+        except FileNotFoundError:
+            raise reader.error(node, f"mesh file not found: {file}") from None
+        except (ValueError, TypeError) as error:
+            raise reader.error(node, str(error)) from None
+    else:
+        mesh = shape_mesh(kind)
+    matrix = values.get("to_world", np.eye(4))
+    if kind == "sphere" and ("center" in values or "radius" in values):
+        centre, radius = np.array(values.get("center", [0.0] * 3)), values.get("radius", 1.0)
+        matrix = matrix @ np.array([[radius, 0, 0, centre[0]], [0, radius, 0, centre[1]],
+                                    [0, 0, radius, centre[2]], [0, 0, 0, 1]])
+    points = mesh.vertices.astype(np.float64) @ matrix[:3, :3].T + matrix[:3, 3]
+    faces = mesh.faces
+    if np.linalg.det(matrix[:3, :3]) < 0:  # a mirror turns the faces inside out: Mitsuba keeps
+        faces = faces[:, ::-1]              # the normals outward by the transformed frame
+    material, emitter = None, None
+    for child in node.children:
+        if child.tag in ("bsdf", "ref"):
+            material = _bsdf(reader, child)
+        elif child.tag == "emitter":
+            emitter = _emitter(reader, child, area=True)
+    try:
+        placed = Mesh(points, faces, name=mesh.name)
+    except ValueError as error:
+        raise reader.error(node, f"its to_world gives an invalid mesh: {error}") from None
+    return MeshEntry(mesh=placed, color=(0.8, 0.8, 0.8), path=reader.path, material=material
+                     or {"type": "diffuse", "reflectance": 0.5}, emitter=emitter)
+
+
+def _emitter(reader: _Reader, node: _Node, area: bool = False) -> dict:
+    kind = node.get("type")
+    if kind not in _EMITTERS or (kind == "area") != area:
+        where = "inside a <shape>" if area else "at the top of the scene"
+        raise reader.error(node, f"emitter type {kind!r} is not read {where} (this reader "
+                                 "takes area inside shapes; point, directional and constant "
+                                 "at the top)")
+    values = reader.parameters(node, _EMITTERS[kind])
+    matrix = values.pop("to_world", None)
+    if matrix is not None:
+        if kind == "point":
+            values.setdefault("position", list(matrix[:3, 3]))
+        else:
+            values.setdefault("direction", list(matrix[:3, :3] @ [0.0, 0.0, 1.0]))
+    spec = {"type": kind, **values}
+    for needed in {"area": ("radiance",), "constant": ("radiance",),
+                   "point": ("position", "intensity"),
+                   "directional": ("direction", "irradiance")}[kind]:
+        if needed not in spec:
+            raise reader.error(node, f"needs its {needed}")
+    from ..render.emitters import check_emitters
+    try:
+        check_emitters([{**spec, "mesh": 0} if area else spec], 1,
+                       names=[f"{reader.path}:{node.line}: <emitter type=\"{kind}\">"])
+    except (TypeError, ValueError) as error:
+        raise SceneFileError(str(error)) from None
+    return spec

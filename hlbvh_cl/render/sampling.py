@@ -1,0 +1,74 @@
+"""A material's BSDF on its own (kernels/render/sampling.cl): samples of it
+and its values, on the device, the same code the path integrator runs.
+Tests check sampling against evaluation with them, as Mitsuba 3's chi2
+tests do; a user can check a material the same way.
+
+    sample_bsdf(material, wo, count)  -> directions, weights (f cos / pdf), pdfs
+    eval_bsdf(material, wo, wi)       -> f cos, pdfs
+
+``material`` is a materials.py spec; ``wo`` the unit direction towards the
+viewer and ``normal`` the surface's (default +z), turned towards wo for a
+BSDF with sides as the integrator turns it.  Delta lobes have density 0.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pyopencl as cl
+
+from ..core import inputs
+from ..core.paths import kernel_of
+from ..device.runtime import runtime
+from .materials import check_material
+
+KERNEL = kernel_of(__name__)
+
+
+def _setup(material, wo, normal, device):
+    rt = runtime(device)
+    record = np.ascontiguousarray(check_material("material", material).reshape(1))
+    table = cl.Buffer(rt.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
+                      hostbuf=record)
+    vectors = []
+    for name, value in (("normal", normal), ("wo", wo)):
+        vector = inputs.vector3(name, value)
+        length = float(np.linalg.norm(vector))
+        if not length > 0:
+            raise ValueError(f"{name} is the zero vector")
+        vectors += [np.float32(x) for x in vector / length]
+    return rt, table, vectors
+
+
+def sample_bsdf(material, wo, count: int, seed: int = 0, normal=(0.0, 0.0, 1.0),
+                device=None) -> dict[str, np.ndarray]:
+    """``count`` samples: "directions" (count, 3), "weights" (count, 3) and
+    "pdfs" (count,), float32; a zero weight where the BSDF gives none."""
+    count = inputs.integer("count", count, 1, 1 << 26)
+    seed = inputs.integer("seed", seed, 0, 2**32 - 1)
+    rt, table, vectors = _setup(material, wo, normal, device)
+    out = {"directions": np.empty((count, 3), np.float32),
+           "weights": np.empty((count, 3), np.float32), "pdfs": np.empty(count, np.float32)}
+    buffers = {name: cl.Buffer(rt.context, cl.mem_flags.WRITE_ONLY, array.nbytes)
+               for name, array in out.items()}
+    rt.run(rt.kernel(KERNEL, "bsdf_samples"), count, table, *vectors, np.uint32(count),
+           np.uint32(seed), buffers["directions"], buffers["weights"], buffers["pdfs"])
+    for name, array in out.items():
+        cl.enqueue_copy(rt.queue, array, buffers[name])
+    return out
+
+
+def eval_bsdf(material, wo, wi, normal=(0.0, 0.0, 1.0), device=None) -> dict[str, np.ndarray]:
+    """f cos ("values", (N, 3)) and the density ("pdfs", (N,)) towards each
+    unit direction of ``wi`` (N, 3)."""
+    wi = np.ascontiguousarray(wi, np.float32).reshape(-1, 3)
+    rt, table, vectors = _setup(material, wo, normal, device)
+    count = len(wi)
+    out = {"values": np.empty((count, 3), np.float32), "pdfs": np.empty(count, np.float32)}
+    directions = cl.Buffer(rt.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
+                           hostbuf=wi)
+    buffers = {name: cl.Buffer(rt.context, cl.mem_flags.WRITE_ONLY, array.nbytes)
+               for name, array in out.items()}
+    rt.run(rt.kernel(KERNEL, "bsdf_values"), count, table, *vectors, np.uint32(count),
+           directions, buffers["values"], buffers["pdfs"])
+    for name, array in out.items():
+        cl.enqueue_copy(rt.queue, array, buffers[name])
+    return out

@@ -1,0 +1,59 @@
+/* Mitsuba 3's `roughconductor` with distribution "ggx": a rough metal,
+ * f = F(wi . m) D(m) G1(wo) G1(wi) / (4 cos_o cos_i) with m the half
+ * vector, F Fresnel's conductor term times `specular_reflectance`;
+ * sampled by visible normals, whose weight is F G1(wi).  One-sided. */
+#ifndef BSDFS_ROUGHCONDUCTOR_H
+#define BSDFS_ROUGHCONDUCTOR_H
+
+#include "render/bsdfs/fresnel.h"
+#include "render/bsdfs/microfacet.h"
+#include "render/bsdfs/sample.h"
+#include "render/surface.h"
+
+/* The local frame around n: (b1, b2, n). */
+inline float3 to_local(float3 v, float3 b1, float3 b2, float3 n)
+{
+    return (float3)(dot3(v, b1), dot3(v, b2), dot3(v, n));
+}
+
+inline BsdfSample roughconductor_sample(__global const PathMaterial* m, float3 n, float3 wo,
+                                        float u1, float u2)
+{
+    BsdfSample out = no_sample();
+    float3 b1, b2;
+    orthonormal_basis(n, &b1, &b2);
+    float3 o = to_local(wo, b1, b2, n);
+    if (!(o.z > 0.0f))
+        return out;
+    float alpha = m->alpha;
+    float3 h = ggx_sample_visible(alpha, o, u1, u2);
+    float3 i = 2.0f * dot(o, h) * h - o;
+    if (!(i.z > 0.0f))
+        return out;
+    out.direction = normalize(i.x * b1 + i.y * b2 + i.z * n);
+    out.pdf = ggx_pdf_visible(alpha, o, h) / (4.0f * dot(o, h));
+    out.weight = LOAD_XYZ(m->reflectance)
+                 * fresnel_conductor(dot(i, h), LOAD_XYZ(m->eta), LOAD_XYZ(m->k))
+                 * ggx_g1(alpha, i, h);
+    return out;
+}
+
+inline float3 roughconductor_eval(__global const PathMaterial* m, float3 n, float3 wo, float3 wi,
+                                  float* pdf)
+{
+    *pdf = 0.0f;
+    float3 b1, b2;
+    orthonormal_basis(n, &b1, &b2);
+    float3 o = to_local(wo, b1, b2, n), i = to_local(wi, b1, b2, n);
+    if (!(o.z > 0.0f) || !(i.z > 0.0f))
+        return (float3)(0.0f);
+    float3 h = normalize(o + i);
+    float alpha = m->alpha;
+    float d = ggx_d(alpha, h);
+    *pdf = ggx_pdf_visible(alpha, o, h) / (4.0f * dot(o, h));
+    float3 f = LOAD_XYZ(m->reflectance)
+               * fresnel_conductor(dot(i, h), LOAD_XYZ(m->eta), LOAD_XYZ(m->k));
+    return f * (d * ggx_g1(alpha, o, h) * ggx_g1(alpha, i, h) / (4.0f * o.z));
+}
+
+#endif /* BSDFS_ROUGHCONDUCTOR_H */

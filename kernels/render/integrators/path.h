@@ -1,0 +1,56 @@
+/* What the path integrator's kernels (render/integrators/path.cl) read
+ * besides the rays and hits; hlbvh_cl/render/integrators/path.py fills
+ * them and documents the estimator.  Mirrored by hlbvh_cl/core/layout.py. */
+#ifndef INTEGRATORS_PATH_H
+#define INTEGRATORS_PATH_H
+
+/* A mesh's surface, by geom_id: its BSDF (render/bsdfs/) and its area
+ * emission. */
+typedef struct {
+    float reflectance[3];    /* diffuse: the albedo; conductor, dielectric: specular_reflectance */
+    uint twosided;           /* 1: both sides reflect; 0: the back side is black (Mitsuba's rule) */
+    float radiance[3];       /* emitted on the front side, along the geometric normal (0: none) */
+    float emitter_pdf;       /* the area density with which light sampling picks a point
+                              * on this mesh: P(triangles) * lum(radiance) / sum(area * lum) */
+    float eta[3];            /* conductor: the index's real part; dielectric: eta[0] =
+                              * int_ior / ext_ior */
+    uint bsdf;               /* BSDF_* (render/bsdfs/bsdf.h) */
+    float k[3];              /* conductor: the index's imaginary part */
+    float alpha;             /* reserved: microfacet roughness */
+    float transmittance[3];  /* dielectric: specular_transmittance */
+    uint reserved;
+} PathMaterial;
+
+/* A light of no extent, which light sampling alone can reach. */
+typedef struct {
+    float position[3];     /* point: where it is; directional: the unit direction light travels */
+    uint type;             /* LIGHT_POINT or LIGHT_DIRECTIONAL */
+    float value[3];        /* point: intensity (W/sr); directional: irradiance (W/m^2) */
+    float probability;     /* the chance a light sample picks it */
+} DeltaLight;
+
+#define LIGHT_POINT 0
+#define LIGHT_DIRECTIONAL 1
+
+typedef struct {
+    float environment[3];           /* the constant environment's radiance */
+    float environment_probability;  /* the chance a light sample goes to the environment */
+    float ray_offset;               /* secondary rays start this far off the surface */
+    uint light_triangles;           /* emissive triangles in light_cdf */
+    uint delta_lights;              /* DeltaLight records */
+    int max_depth;                  /* Mitsuba's: the longest path, in segments; <= 0: no limit */
+    int rr_depth;                   /* Russian roulette from this depth on */
+    float delta_probability;        /* the chance a light sample picks a delta light */
+} PathParams;
+
+/* One path of the pass: what it still carries and what it has gathered. */
+typedef struct {
+    float throughput[3];
+    float bsdf_pdf;   /* solid-angle density of the last bounce's direction; 0 after the camera */
+    float radiance[3];
+    uint alive;
+    float eta;        /* the product of the index ratios crossed (Russian roulette's eta^2) */
+    float reserved[3];
+} PathState;
+
+#endif /* INTEGRATORS_PATH_H */

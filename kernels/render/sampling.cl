@@ -1,0 +1,64 @@
+/* The path integrator's BSDFs (render/bsdfs/) on their own, for tests and
+ * users checking a material: draw samples, and evaluate f cos and the
+ * density at given directions (hlbvh_cl/render/sampling.py), as Mitsuba's
+ * chi2 tests drive its plugins.
+ *
+ * Kernels (one work-item per direction)
+ *   bsdf_samples  sample k of the BSDF of materials[0] at a point with unit
+ *                 normal n seen from unit wo: direction, weight f cos / pdf,
+ *                 density (0 for a delta lobe); random_unit(k, seed, 0..2)
+ *   bsdf_values   f cos and the density towards each of `wi`
+ * The normal given is used as the integrator uses it: turned towards wo for
+ * a BSDF with sides, as it is for a dielectric. */
+#include "core/portable.h"
+#include "core/spelled.h"
+#include "render/bsdfs/bsdf.h"
+#include "render/random.h"
+
+/* The BSDF's normal as path_surface computes it; false where the back of
+ * a one-sided BSDF is seen (black). */
+inline bool facing(__global const PathMaterial* m, float3 n, float3 wo, float3* out)
+{
+    *out = n;
+    if (bsdf_has_sides(m) && !(dot3(n, wo) > 0.0f)) {
+        *out = -n;
+        return m->twosided != 0;
+    }
+    return true;
+}
+
+__kernel void bsdf_samples(__global const PathMaterial* materials, const float nx,
+                           const float ny, const float nz, const float ox, const float oy,
+                           const float oz, const uint count, const uint seed,
+                           __global float* directions, __global float* weights,
+                           __global float* pdfs)
+{
+    uint k = get_global_id(0);
+    if (k >= count)
+        return;
+    float3 wo = (float3)(ox, oy, oz), n;
+    BsdfSample s = no_sample();
+    if (facing(materials, (float3)(nx, ny, nz), wo, &n))
+        s = bsdf_sample(materials, n, wo, random_unit(k, seed, 0), random_unit(k, seed, 1),
+                        random_unit(k, seed, 2));
+    store3(directions + 3 * (size_t)k, s.direction);
+    store3(weights + 3 * (size_t)k, s.weight);
+    pdfs[k] = s.pdf;
+}
+
+__kernel void bsdf_values(__global const PathMaterial* materials, const float nx,
+                          const float ny, const float nz, const float ox, const float oy,
+                          const float oz, const uint count, __global const float* wi,
+                          __global float* values, __global float* pdfs)
+{
+    uint k = get_global_id(0);
+    if (k >= count)
+        return;
+    float3 wo = (float3)(ox, oy, oz), n;
+    float pdf = 0.0f;
+    float3 value = (float3)(0.0f);
+    if (facing(materials, (float3)(nx, ny, nz), wo, &n))
+        value = bsdf_eval(materials, n, wo, LOAD_XYZ(wi + 3 * (size_t)k), &pdf);
+    store3(values + 3 * (size_t)k, value);
+    pdfs[k] = pdf;
+}

@@ -1,0 +1,174 @@
+"""Mitsuba 3's XML scenes (hlbvh_cl/io/mitsuba.py) against Mitsuba 3
+itself reading the same files: the camera's rays, the shapes' placement,
+and the Cornell box (scenes/cornell_box.xml) rendered by both; and the
+errors an element outside the subset gets, with its line."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import hlbvh_cl
+from hlbvh_cl.io.mitsuba import read_xml
+from hlbvh_cl.io.scenefile import SceneFileError, load
+import places
+
+mi = pytest.importorskip("mitsuba")
+
+CORNELL = places.SCENES / "cornell_box.xml"
+
+
+@pytest.fixture(autouse=True)
+def scalar_variant():
+    mi.set_variant("scalar_rgb")
+
+
+def scene_xml(body: str, width=40, height=24, fov=50.0, axis="x", to_world=None) -> str:
+    to_world = to_world or '<lookat origin="1, 2, 5" target="0, 0.5, 0" up="0, 1, 0"/>'
+    return f"""<scene version="3.0.0">
+  <sensor type="perspective">
+    <float name="fov" value="{fov}"/>
+    <string name="fov_axis" value="{axis}"/>
+    <transform name="to_world">{to_world}</transform>
+    <film type="hdrfilm">
+      <integer name="width" value="{width}"/>
+      <integer name="height" value="{height}"/>
+    </film>
+  </sensor>
+  {body}
+</scene>"""
+
+
+CUBE = '<shape type="cube"/>'
+
+
+@pytest.mark.parametrize("axis", ["x", "y", "diagonal", "smaller", "larger"])
+@pytest.mark.parametrize("size", [(40, 24), (24, 40)])
+def test_the_camera_sends_mitsuba_s_rays(tmp_path, axis, size):
+    """Through each pixel centre, our camera's ray has the direction of
+    Mitsuba's sensor ray, for every fov_axis and either orientation, with a
+    look_at turned further by a rotation."""
+    path = tmp_path / "scene.xml"
+    path.write_text(scene_xml(CUBE, *size, axis=axis, to_world=(
+        '<lookat origin="1, 2, 5" target="0, 0.5, 0" up="0, 1, 0"/>'
+        '<rotate y="1" angle="20"/>')))
+    width, height = size
+    described = read_xml(path)
+    origins, ours = described.camera.rays(width, height)
+    ours = ours / np.linalg.norm(ours, axis=1, keepdims=True)
+    sensor = mi.load_file(str(path)).sensors()[0]
+    theirs = []
+    for y in range(height):
+        for x in range(width):
+            ray, _ = sensor.sample_ray(0.0, 0.0, [(x + 0.5) / width, (y + 0.5) / height],
+                                       [0.5, 0.5])
+            theirs.append(np.array(ray.d))
+    np.testing.assert_allclose(ours, np.array(theirs), atol=2e-5)
+    # Mitsuba starts its rays at the near clip: our eye lies on its ray, behind
+    behind = origins[-1] - np.array(ray.o)
+    assert np.linalg.norm(np.cross(behind, np.array(ray.d))) < 1e-5 and behind @ ray.d < 0
+
+
+def test_shapes_land_where_mitsuba_puts_them(tmp_path):
+    """Every transform step (translate, rotate, scale, matrix) in Mitsuba's
+    order, a sphere by centre and radius, and a rectangle: the same boxes
+    as Mitsuba's shapes."""
+    body = """
+  <shape type="cube">
+    <transform name="to_world">
+      <scale x="0.5" y="1" z="2"/><rotate x="0.6" y="0.8" angle="30"/><translate value="1 -2 3"/>
+      <matrix value="1 0 0 0.5  0 0 -1 0  0 1 0 0  0 0 0 1"/>
+    </transform>
+  </shape>
+  <shape type="sphere"><point name="center" x="-1" y="0.5" z="2"/><float name="radius"
+      value="0.7"/></shape>
+  <shape type="rectangle"><transform name="to_world"><rotate x="1" angle="-90"/>
+      <scale value="3"/></transform></shape>"""
+    path = tmp_path / "scene.xml"
+    path.write_text(scene_xml(body))
+    described = read_xml(path)
+    theirs = [shape.bbox() for shape in mi.load_file(str(path)).shapes()]
+    assert len(theirs) == len(described.meshes) == 3
+    for entry in described.meshes:
+        lo, hi = entry.mesh.bounds
+        # Mitsuba lists its shapes in an order of its own: the nearest box
+        box = min(theirs, key=lambda b: np.abs(np.array(b.min) - lo).sum()
+                  + np.abs(np.array(b.max) - hi).sum())
+        # the icosphere's vertices lie on Mitsuba's analytic sphere: its box
+        # is within the sphere's by the mesh's sag
+        tolerance = 0.01 if entry.mesh.name == "sphere" else 1e-5
+        np.testing.assert_allclose(lo, np.array(box.min), atol=tolerance)
+        np.testing.assert_allclose(hi, np.array(box.max), atol=tolerance)
+
+
+def test_the_cornell_box_renders_as_in_mitsuba(suite_device):
+    """scenes/cornell_box.xml (diffuse walls, a box, a glass ball, an area
+    light; max depth 6, Mitsuba's Gaussian filter by default) at 32 x 32
+    and 16 spp through both loaders and renderers: every 8 x 8 block's mean
+    within 5 combined standard errors over 4 independent seeds each."""
+    seeds, size, spp = 4, 32, 16
+    overrides = {"res": size, "spp": spp}
+    scene = mi.load_file(str(CORNELL), **overrides)
+    theirs = np.stack([np.asarray(mi.render(scene, seed=s))[..., :3] for s in range(seeds)])
+    loaded = load(CORNELL, suite_device.id, defaults=overrides)
+    assert loaded.options == {"shading": "path", "spp": spp, "max_depth": 6, "rr_depth": 5,
+                              "rfilter": "gaussian"}
+    renderer = loaded.renderer()
+    ours = np.stack([renderer.render(loaded.camera, loaded.width, loaded.height, hdr=True,
+                                     seed=s + 1, **loaded.options) for s in range(seeds)])
+    assert ours.shape == theirs.shape == (seeds, size, size, 3)
+    # the glass ball's caustics make heavy-tailed noise: the means agree to a few percent
+    assert abs(ours.mean() - theirs.mean()) < 0.05 * theirs.mean()
+    for y in range(0, size, 8):
+        for x in range(0, size, 8):
+            a = theirs[:, y:y + 8, x:x + 8].reshape(seeds, -1, 3).astype(np.float64)
+            b = ours[:, y:y + 8, x:x + 8].reshape(seeds, -1, 3).astype(np.float64)
+            stderr = np.sqrt((a.var(0, ddof=1).sum(0) + b.var(0, ddof=1).sum(0)) / seeds) / 64
+            difference = np.abs(a.mean((0, 1)) - b.mean((0, 1)))
+            assert (difference <= 5 * stderr + 0.02 * a.mean((0, 1)) + 1e-6).all(), (
+                f"block ({y}, {x}): Mitsuba {a.mean((0, 1))}, ours {b.mean((0, 1))}")
+
+
+@pytest.mark.parametrize("body, words", [
+    ('<shape type="cylinder"/>', ":11: <shape type=\"cylinder\">: shape type 'cylinder' is "
+                                 "not read"),
+    ('<shape type="cube"><bsdf type="roughdielectric"/></shape>',
+     ":11: <bsdf type=\"roughdielectric\">: BSDF type 'roughdielectric' is not read"),
+    ('<shape type="ply"><string name="filename" value="m.ply"/></shape>',
+     "needs <boolean name=\"face_normals\" value=\"true\"/>"),
+    ('<shape type="cube"><float name="radius" value="1"/></shape>',
+     "cube takes ('to_world', 'flip_normals'), not 'radius'"),
+    ('<emitter type="envmap"/>', "emitter type 'envmap' is not read at the top"),
+    ('<shape type="cube"><bsdf type="diffuse"><rgb name="reflectance" value="2, 0, 0"/>'
+     '</bsdf></shape>', "['reflectance'][0] must be a finite number >= 0 and <= 1, got 2.0"),
+    ('<shape type="cube"><ref id="nowhere"/></shape>', "refers to no <bsdf id=\"nowhere\">"),
+    ('<integrator type="volpath"/>', "only the path integrator is read"),
+    ('<medium type="homogeneous"/>', "is not an element this reader takes"),
+    ('<shape type="sphere"><float name="radius" value="$missing"/></shape>',
+     "$missing has no <default name=\"missing\">"),
+])
+def test_an_element_outside_the_subset_names_itself_and_its_line(tmp_path, body, words):
+    path = tmp_path / "scene.xml"
+    path.write_text(scene_xml(body))
+    with pytest.raises(SceneFileError) as error:
+        read_xml(path)
+    assert str(error.value).startswith(str(path)) and words in str(error.value)
+
+
+def test_the_cli_renders_an_xml_scene_with_its_own_options(tmp_path, capsys, suite_device):
+    from hlbvh_cl.cli import main
+    from hlbvh_cl.io.exr import read_exr
+    out = tmp_path / "cbox.exr"
+    assert main(["render", str(CORNELL), "-o", str(out), "--width", "24", "--height", "24",
+                 "--spp", "2", "--device", suite_device.id]) == 0
+    assert "24x24, path, 2 spp" in capsys.readouterr().out
+    image = read_exr(out)
+    assert image.shape == (24, 24, 3) and 0.05 < image.mean() < 1.0
+    assert isinstance(hlbvh_cl.Renderer, type)
+
+
+def test_a_bad_number_in_a_transform_names_its_step(tmp_path):
+    path = tmp_path / "scene.xml"
+    path.write_text(scene_xml('<shape type="cube"><transform name="to_world">'
+                              '<translate x="one"/></transform></shape>'))
+    with pytest.raises(SceneFileError, match=r"scene.xml:11: <translate>: expected numbers"):
+        read_xml(path)

@@ -1,0 +1,422 @@
+"""The path integrator (hlbvh_cl/render/integrators/path.py,
+kernels/render/integrators/path.cl) against answers known without it:
+
+- white furnaces: a white diffuse object inside a constant environment of
+  radiance 1 reflects 1 everywhere, at any depth of bounces (convex and
+  concave, one- and two-sided);
+- inside a closed sphere that emits Le and reflects rho (diffuse), every
+  path of at most d segments sees Le (1 + rho + ... + rho^(d-1)), Le / (1 - rho)
+  without a limit;
+- direct light from an area emitter: a diffuse ground under an emitting
+  square reflects rho / pi times the irradiance of Lambert's polygon
+  formula, computed here in float64;
+
+each compared through standard errors taken from independent seeds; and
+the errors bad materials, emitters and settings get.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+import hlbvh_cl
+
+#: Independent seeds per comparison: their spread gives the standard error.
+SEEDS = 4
+
+
+def sphere(radius=1.0, inward=False, subdivisions=3) -> hlbvh_cl.Mesh:
+    """An icosphere whose geometric normals point out (or in)."""
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    faces = s.faces[:, ::-1] if inward else s.faces
+    return hlbvh_cl.Mesh(s.vertices, faces, name="sphere")
+
+
+def seeded(renderer, camera, width, height, **options) -> np.ndarray:
+    """SEEDS renders with seeds 1..SEEDS: (SEEDS, height, width, 3) float32."""
+    images = np.stack([renderer.render(camera, width, height, shading="path", hdr=True,
+                                       seed=seed, **options) for seed in range(1, SEEDS + 1)])
+    assert images.dtype == np.float32 and np.isfinite(images).all()
+    return images
+
+
+def assert_blocks(images, expected, mask=None, block=4, sigmas=5.0, slack=2e-3, label=""):
+    """Per block of block x block pixels (those in ``mask``), the mean of
+    images - expected is 0 within ``sigmas`` standard errors, pooled from
+    each pixel's spread over the seeds (many degrees of freedom, so the
+    bound is sharp), plus a relative ``slack`` for float32 (and for the
+    pixel footprint against a centre's oracle)."""
+    seeds, height, width, _ = images.shape
+    expected = np.broadcast_to(np.asarray(expected, np.float64)[..., None]
+                               if np.ndim(expected) == 2 else expected, (height, width, 3))
+    mask = np.ones((height, width), bool) if mask is None else mask
+    variance = images.astype(np.float64).var(0, ddof=1)
+    residual = images.astype(np.float64).mean(0) - expected
+    checked = 0
+    for y in range(0, height, block):
+        for x in range(0, width, block):
+            inside = mask[y:y + block, x:x + block]
+            n = int(inside.sum())
+            if n == 0:
+                continue
+            checked += 1
+            r = residual[y:y + block, x:x + block][inside].mean(0)
+            stderr = np.sqrt(variance[y:y + block, x:x + block][inside].sum(0) / seeds) / n
+            level = np.abs(expected[y:y + block, x:x + block][inside]).mean(0)
+            bound = sigmas * stderr + slack * level + 1e-6
+            assert (np.abs(r) <= bound).all(), (
+                f"{label}: the block at ({y}, {x}) is off by {r} (mean {level + r}), more "
+                f"than {bound} ({sigmas} standard errors {stderr} and the slack)")
+    assert checked > 0
+
+
+FURNACE = [{"type": "constant", "radiance": 1.0}]
+
+
+@pytest.mark.parametrize("name", ["sphere", "bunny"])
+def test_a_white_object_in_a_white_furnace_is_white(name, meshes, suite_device):
+    """Albedo 1 everywhere and light 1 from everywhere: every path, however
+    long, brings back 1 in expectation (Russian roulette keeps it unbiased).
+    The bunny is concave: paths bounce between its parts."""
+    mesh = sphere() if name == "sphere" else meshes["bunny_small"]
+    scene = hlbvh_cl.Scene([mesh], device=suite_device)
+    lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
+    centre, size = (lo + hi) / 2, float(np.linalg.norm(hi - lo))
+    camera = hlbvh_cl.Camera(eye=tuple(centre + [0.2 * size, 0.3 * size, 1.1 * size]),
+                             target=tuple(centre), fov_deg=35)
+    renderer = hlbvh_cl.Renderer(scene, materials=[{"type": "twosided", "bsdf": {
+        "type": "diffuse", "reflectance": 1.0}}], emitters=FURNACE)
+    images = seeded(renderer, camera, 24, 24, spp=16)
+    hits = scene.intersect(*camera.rays(24, 24)).geom_id.reshape(24, 24) >= 0
+    assert hits.mean() > 0.25, "the object should fill much of the view"
+    assert images[:, hits].std() > 0.01, "paths of random length: the pixels are noisy"
+    assert_blocks(images, 1.0, label=name)
+    # A convex object sees no part of itself: every depth limit keeps it
+    # white.  The concave bunny loses the light its parts pass each other.
+    short = seeded(renderer, camera, 24, 24, spp=8, max_depth=2)
+    if name == "sphere":
+        assert_blocks(short, 1.0, label=f"{name}, max_depth 2")
+    else:
+        assert short[:, hits].mean() < images[:, hits].mean() - 0.01
+
+
+@pytest.mark.parametrize("material", [
+    {"type": "conductor"},  # Mitsuba's default: a perfect mirror
+    {"type": "dielectric"},  # BK7 in air: reflects and refracts, internally too
+    {"type": "dielectric", "int_ior": 1.0, "ext_ior": 1.33},  # denser outside
+])
+def test_a_mirror_and_glass_in_a_white_furnace_are_invisible(material, suite_device):
+    """Neither a perfect mirror nor clear glass absorbs: in a constant
+    environment of 1 they bring back 1 along every path (delta BSDFs: no
+    light sample, and the environment they see counts in full), and the
+    radiance scaling of refraction cancels on the way in and out."""
+    scene = hlbvh_cl.Scene([sphere()], device=suite_device)
+    camera = hlbvh_cl.Camera(eye=(0, 0.5, 3.5), target=(0, 0, 0), fov_deg=40)
+    renderer = hlbvh_cl.Renderer(scene, materials=[material], emitters=FURNACE)
+    images = seeded(renderer, camera, 20, 20, spp=8)
+    assert_blocks(images, 1.0, label=material["type"])
+
+
+def test_pbrt_s_analytic_sphere(suite_device):
+    """pbrt's analytic scene: inside a diffuse sphere of radius 1 and
+    albedo 0.5, a point light of intensity pi at its centre gives radiance
+    1 everywhere (0.5 directly, and as much again over the bounces)."""
+    scene = hlbvh_cl.Scene([sphere(inward=True, subdivisions=4)], device=suite_device)
+    renderer = hlbvh_cl.Renderer(scene, materials=[{"type": "diffuse", "reflectance": 0.5}],
+                                 emitters=[{"type": "point", "position": [0, 0, 0],
+                                            "intensity": np.pi}])
+    camera = hlbvh_cl.Camera(eye=(0.1, 0.2, 0.3), target=(0, 0, -1), fov_deg=60)
+    direct = seeded(renderer, camera, 16, 12, spp=4, max_depth=2)
+    # the icosphere's faces lie inside the unit sphere: their distance r
+    # from the light makes the direct light 0.5 / r^2 cos, a little over 0.5
+    assert_blocks(direct, 0.5, slack=0.03, label="direct")
+    assert_blocks(seeded(renderer, camera, 16, 12, spp=8), 1.0, slack=0.03, label="all")
+
+
+def test_a_directional_light_on_a_ground(suite_device):
+    """A diffuse ground under parallel light of irradiance E at 60 degrees
+    from its normal reflects rho / pi * E * cos 60 (max_depth 2: direct
+    light only), wherever the camera looks."""
+    rho, irradiance = 0.8, 3.0
+    ground = hlbvh_cl.Mesh([[-6, 0, -6], [6, 0, -6], [6, 0, 6], [-6, 0, 6]],
+                           [[0, 2, 1], [0, 3, 2]], name="ground")
+    direction = [np.sin(np.pi / 3), -np.cos(np.pi / 3), 0.0]  # travelling down, 60 deg
+    scene = hlbvh_cl.Scene([ground], device=suite_device)
+    renderer = hlbvh_cl.Renderer(scene, materials=[{"type": "diffuse", "reflectance": rho}],
+                                 emitters=[{"type": "directional", "direction": direction,
+                                            "irradiance": irradiance}])
+    camera = hlbvh_cl.Camera(eye=(0, 1.5, 1.5), target=(0, 0, -0.5), fov_deg=50)
+    image = renderer.render(camera, 16, 12, shading="path", spp=2, max_depth=2, hdr=True)
+    assert np.allclose(image, rho / np.pi * irradiance * 0.5, rtol=1e-5)
+
+
+def test_the_back_of_a_one_sided_diffuse_surface_is_black(suite_device):
+    """Mitsuba's diffuse BSDF reflects on the front side only: a sphere
+    wound inwards, seen from outside, is black, and the furnace behind it
+    shows where the rays miss."""
+    scene = hlbvh_cl.Scene([sphere(inward=True)], device=suite_device)
+    camera = hlbvh_cl.Camera(eye=(0, 0, 4), target=(0, 0, 0), fov_deg=40)
+    renderer = hlbvh_cl.Renderer(scene, materials=[{"type": "diffuse", "reflectance": 1.0}],
+                                 emitters=FURNACE)
+    image = renderer.render(camera, 16, 16, shading="path", hdr=True, spp=4)
+    hits = scene.intersect(*camera.rays(16, 16)).geom_id.reshape(16, 16) >= 0
+    assert hits.sum() > 50 and (~hits).sum() > 50
+    # every sample of a pixel fully on the sphere is black, a pixel fully off it white
+    inner = hits & np.roll(hits, 1, 0) & np.roll(hits, -1, 0) & np.roll(hits, 1, 1) \
+        & np.roll(hits, -1, 1)
+    outer = ~(hits | np.roll(hits, 1, 0) | np.roll(hits, -1, 0) | np.roll(hits, 1, 1)
+              | np.roll(hits, -1, 1))
+    assert (image[inner] == 0).all() and np.allclose(image[outer], 1.0)
+
+
+@pytest.mark.parametrize("max_depth", [1, 2, 3, -1])
+def test_inside_an_emitting_sphere_paths_sum_a_geometric_series(max_depth, suite_device):
+    """Every vertex sees Le and reflects rho of what reaches it: a path of
+    at most d segments brings Le * sum(rho^k, k < d), Le / (1 - rho) without
+    a limit.  Le = 1.5, rho = 0.6: 1.5, 2.4, 2.94 and 3.75."""
+    le, rho = 1.5, 0.6
+    scene = hlbvh_cl.Scene([sphere(radius=2.0, inward=True)], device=suite_device)
+    renderer = hlbvh_cl.Renderer(scene, materials=[{"type": "diffuse", "reflectance": rho}],
+                                 emitters=[{"type": "area", "mesh": 0, "radiance": le}])
+    camera = hlbvh_cl.Camera(eye=(0.2, 0.3, 0.5), target=(0, 0, -2), fov_deg=70)
+    expected = le * (1 / (1 - rho) if max_depth == -1 else sum(rho**k for k in range(max_depth)))
+    images = seeded(renderer, camera, 16, 12, spp=8, max_depth=max_depth)
+    assert_blocks(images, expected, label=f"max_depth {max_depth}")
+    if max_depth == 1:
+        assert (images == np.float32(le)).all(), "the emitter seen directly, exactly"
+
+
+def polygon_irradiance(points, normal, polygon, radiance):
+    """Irradiance at each point (with unit `normal`) from a uniformly
+    emitting convex polygon facing it: Lambert's formula,
+    E = L / 2 * |sum_i angle_i * (n . unit(a_i x b_i))|, a_i and b_i the
+    vectors to consecutive vertices (float64)."""
+    total = np.zeros(len(points))
+    for i in range(len(polygon)):
+        a = polygon[i] - points
+        b = polygon[(i + 1) % len(polygon)] - points
+        cross = np.cross(a, b)
+        cosine = np.einsum("ij,ij->i", a, b) / (np.linalg.norm(a, axis=1)
+                                                 * np.linalg.norm(b, axis=1))
+        angle = np.arccos(np.clip(cosine, -1, 1))
+        total += angle * (cross @ normal) / np.linalg.norm(cross, axis=1)
+    return radiance / 2 * np.abs(total)
+
+
+def test_a_ground_under_an_area_light_matches_lambert_s_formula(suite_device):
+    """Direct light only (max_depth 2): a diffuse ground of albedo rho under
+    a square emitter facing down reflects rho / pi * E, E by Lambert's
+    polygon formula; the emitter's back, seen from above, is black."""
+    rho, le, h = 0.7, 4.0, 1.2
+    ground = hlbvh_cl.Mesh([[-6, 0, -6], [6, 0, -6], [6, 0, 6], [-6, 0, 6]],
+                           [[0, 2, 1], [0, 3, 2]], name="ground")  # normal +y
+    square = np.array([[-0.4, h, -0.3], [0.4, h, -0.3], [0.4, h, 0.3], [-0.4, h, 0.3]])
+    light = hlbvh_cl.Mesh(square, [[0, 1, 2], [0, 2, 3]], name="light")  # normal -y
+    scene = hlbvh_cl.Scene([ground, light], device=suite_device)
+    renderer = hlbvh_cl.Renderer(scene, materials=[
+        {"type": "diffuse", "reflectance": rho}, {"type": "diffuse", "reflectance": 0.0}],
+        emitters=[{"type": "area", "mesh": 1, "radiance": le}])
+    camera = hlbvh_cl.Camera(eye=(0.0, 2.6, 2.2), target=(0, 0, 0), fov_deg=60)
+    width, height = 24, 20
+    images = seeded(renderer, camera, width, height, spp=16, max_depth=2)
+    hits = scene.intersect(*camera.rays(width, height))
+    on_ground = (hits.geom_id == 0).reshape(height, width)
+    # pixels whose whole footprint is ground (jittered samples stay there)
+    clear = on_ground & np.roll(on_ground, 1, 0) & np.roll(on_ground, -1, 0) \
+        & np.roll(on_ground, 1, 1) & np.roll(on_ground, -1, 1)
+    assert clear.sum() > 200
+    points = hits.points.reshape(height, width, 3).astype(np.float64)
+    expected = rho / np.pi * polygon_irradiance(points.reshape(-1, 3), np.array([0.0, 1.0, 0.0]),
+                                                square, le).reshape(height, width)
+    assert expected[clear].max() > 0.2 and expected[clear].min() < 0.1 * expected[clear].max()
+    # the pixel's footprint against its centre: a smooth E, a 2% slack
+    assert_blocks(images, np.where(clear, expected, 0.0), clear, slack=0.02, label="ground")
+    on_light = (hits.geom_id == 1).reshape(height, width)
+    assert on_light.any() and (images[:, on_light & np.roll(on_light, 1, 0)
+                                      & np.roll(on_light, -1, 0)] == 0).all()
+
+
+def test_a_seed_fixes_the_image(suite_device):
+    scene = hlbvh_cl.Scene([sphere()], device=suite_device)
+    camera = hlbvh_cl.Camera(eye=(0, 0, 4), target=(0, 0, 0), fov_deg=40)
+    renderer = hlbvh_cl.Renderer(scene)
+    first = renderer.render(camera, 12, 10, shading="path", spp=2, seed=3, hdr=True)
+    again = renderer.render(camera, 12, 10, shading="path", spp=2, seed=3, hdr=True)
+    other = renderer.render(camera, 12, 10, shading="path", spp=2, seed=4, hdr=True)
+    assert np.array_equal(first, again) and not np.array_equal(first, other)
+    image = renderer.render(camera, 12, 10, shading="path", spp=2, seed=3)
+    assert image.dtype == np.uint8 and image.shape == (10, 12, 3)
+    # the 8-bit image is the film's encoding of the same means (gamma 2)
+    encoded = np.round(255 * np.sqrt(np.clip(first, 0, 1)))
+    assert np.abs(image.astype(int) - encoded).max() <= 1
+
+
+@pytest.mark.parametrize("materials, emitters, message", [
+    ("diffuse", None, "materials must be a list"),
+    ([{"type": "diffuse"}] * 2, None, "materials has 2 entries but the scene has 1"),
+    ([{"type": "glass"}], None, "materials[0]: type 'glass' is not one of"),
+    ([{"type": "diffuse", "roughness": 0.1}], None, "diffuse takes ('reflectance',), not"),
+    ([{"type": "diffuse", "reflectance": 1.5}], None, "materials[0]['reflectance'] must be"),
+    ([{"type": "diffuse", "reflectance": [0.1, float("nan"), 0.2]}], None,
+     "materials[0]['reflectance'][1] must be a finite number"),
+    ([{"type": "twosided"}], None, "twosided needs the BSDF it wraps"),
+    (None, [{"type": "spot", "intensity": 1.0}], "emitters[0]: type 'spot' is not one of"),
+    (None, [{"type": "point", "intensity": 1.0}], "emitters[0]: point needs its 'position'"),
+    (None, [{"type": "directional", "irradiance": 1.0, "direction": [0, 0, 0]}],
+     "emitters[0]['direction'] is the zero vector"),
+    ([{"type": "conductor", "material": "Au"}], None, "named conductors ('Au')"),
+    ([{"type": "dielectric", "int_ior": 0.0}], None,
+     "materials[0]['int_ior'] must be a finite number > 0"),
+    ([{"type": "twosided", "bsdf": {"type": "dielectric"}}], None, "has no back side to wrap"),
+    (None, [{"type": "constant"}], "emitters[0]: constant needs its 'radiance'"),
+    (None, [{"type": "constant", "radiance": -1.0}], "emitters[0]['radiance'] must be"),
+    (None, [{"type": "area", "mesh": 3, "radiance": 1.0}], "emitters[0]['mesh'] = 3"),
+    (None, [{"type": "constant", "radiance": 1.0}] * 2, "a second constant environment"),
+])
+def test_bad_materials_and_emitters_are_named(materials, emitters, message, suite_device):
+    scene = hlbvh_cl.Scene([sphere(subdivisions=1)], device=suite_device)
+    renderer = hlbvh_cl.Renderer(scene, materials=materials, emitters=emitters)
+    camera = hlbvh_cl.Camera(eye=(0, 0, 4), target=(0, 0, 0))
+    with pytest.raises((TypeError, ValueError)) as error:
+        renderer.render(camera, 4, 4, shading="path")
+    assert message in str(error.value)
+
+
+@pytest.mark.parametrize("options, message", [
+    ({"max_depth": 0}, "max_depth must be -1 (no limit) or 1..1024"),
+    ({"max_depth": -2}, "max_depth must be an integer >= -1"),
+    ({"rr_depth": 0}, "rr_depth must be an integer >= 1"),
+    ({"seed": -1}, "seed must be an integer >= 0"),
+    ({"hdr": "yes"}, "hdr must be True or False"),
+    ({"rfilter": "tent"}, "rfilter must be one of ('box', 'gaussian')"),
+])
+def test_bad_path_settings_are_named(options, message, suite_device):
+    scene = hlbvh_cl.Scene([sphere(subdivisions=1)], device=suite_device)
+    camera = hlbvh_cl.Camera(eye=(0, 0, 4), target=(0, 0, 0))
+    with pytest.raises((TypeError, ValueError)) as error:
+        hlbvh_cl.Renderer(scene).render(camera, 4, 4, shading="path", **options)
+    assert message in str(error.value)
+
+
+@pytest.mark.parametrize("rfilter", ["box", "gaussian"])
+def test_a_small_scene_agrees_with_mitsuba_3(rfilter, tmp_path, suite_device):
+    """The same scene in Mitsuba 3 (scalar_rgb, its path integrator, a box
+    filter, face normals): a one-sided diffuse ground, a two-sided diffuse
+    box, a glass ball, a smooth and a rough (GGX) gold ball, lit by an area light, a point light, a directional light and a
+    constant sky; max depth 6, Russian roulette from 5 in both; a box and
+    a Gaussian reconstruction filter (Mitsuba's default).  At equal
+    spp, with SEEDS independent seeds each, every 6 x 6 block's mean agrees
+    within 5 combined standard errors, plus 2% of its level for the
+    silhouettes' sub-pixel footing."""
+    mi = pytest.importorskip("mitsuba")
+    mi.set_variant("scalar_rgb")
+    ground = trimesh.Trimesh([[-3, 0, -3], [3, 0, -3], [3, 0, 3], [-3, 0, 3]],
+                             [[0, 2, 1], [0, 3, 2]], process=False)
+    box = trimesh.creation.box(extents=(0.8, 1.0, 0.6))
+    box.apply_translation((-0.9, 0.5, 0.2))
+    balls = []
+    for centre in ((0.1, 0.4, 0.3), (0.9, 0.45, -0.3), (-0.1, 0.3, 1.0)):
+        ball = trimesh.creation.icosphere(subdivisions=3, radius=0.4 if centre[1] > 0.35 else 0.3)
+        ball.apply_translation(centre)
+        balls.append(ball)
+    lamp = trimesh.Trimesh([[-0.5, 2.2, -0.5], [0.5, 2.2, -0.5], [0.5, 2.2, 0.5],
+                            [-0.5, 2.2, 0.5]], [[0, 1, 2], [0, 2, 3]], process=False)
+    shapes = [ground, box, *balls, lamp]
+    gold = {"eta": [0.18, 0.42, 1.37], "k": [3.42, 2.35, 1.77]}
+    ours_materials = [
+        {"type": "diffuse", "reflectance": 0.6},
+        {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": [0.8, 0.2, 0.2]}},
+        {"type": "dielectric", "int_ior": 1.5},
+        {"type": "conductor", **gold},
+        {"type": "roughconductor", "distribution": "ggx", "alpha": 0.25, **gold},
+        {"type": "diffuse", "reflectance": 0.0}]
+
+    def theirs_of(value):  # numbers and RGB lists as Mitsuba's textures
+        if isinstance(value, dict):
+            return {key: theirs_of(item) for key, item in value.items()}
+        if isinstance(value, list):
+            return {"type": "rgb", "value": value}
+        return value
+    width, height, spp, depth = 48, 36, 32, 6
+    eye, target, fov = (0.3, 2.0, 4.0), (0.0, 0.5, 0.0), 40.0
+    emitters = [{"type": "point", "position": [1.5, 1.5, 1.5], "intensity": [2.0, 1.5, 1.0]},
+                {"type": "directional", "direction": [-0.3, -1.0, -0.4],
+                 "irradiance": [0.4, 0.4, 0.6]}]
+    described = {
+        "type": "scene", "integrator": {"type": "path", "max_depth": depth, "rr_depth": 5},
+        "sensor": {"type": "perspective", "fov": fov, "fov_axis": "y",
+                   "to_world": mi.ScalarTransform4f().look_at(origin=list(eye),
+                                                              target=list(target), up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": width, "height": height,
+                            "rfilter": {"type": rfilter}, "pixel_format": "rgb"},
+                   "sampler": {"type": "independent", "sample_count": spp}},
+        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": [0.2] * 3}},
+        "point": {"type": "point", "position": emitters[0]["position"],
+                  "intensity": theirs_of(emitters[0]["intensity"])},
+        "sun": {"type": "directional", "direction": emitters[1]["direction"],
+                "irradiance": theirs_of(emitters[1]["irradiance"])}}
+    for k, shape in enumerate(shapes):
+        shape.export(tmp_path / f"shape{k}.ply")
+        described[f"shape{k}"] = {"type": "ply", "filename": str(tmp_path / f"shape{k}.ply"),
+                                  "face_normals": True, "bsdf": theirs_of(ours_materials[k])}
+    described[f"shape{len(shapes) - 1}"]["emitter"] = {
+        "type": "area", "radiance": {"type": "rgb", "value": [5.0] * 3}}
+    theirs = np.stack([np.asarray(mi.render(mi.load_dict(described), seed=seed))[..., :3]
+                       for seed in range(SEEDS)])
+
+    scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(s.vertices, s.faces) for s in shapes],
+                           device=suite_device)
+    renderer = hlbvh_cl.Renderer(scene, materials=ours_materials, emitters=[
+        {"type": "area", "mesh": len(shapes) - 1, "radiance": 5.0},
+        {"type": "constant", "radiance": 0.2}, *emitters])
+    camera = hlbvh_cl.Camera(eye=eye, target=target, fov_deg=fov)
+    ours = seeded(renderer, camera, width, height, spp=spp, max_depth=depth, rfilter=rfilter)
+    assert theirs.shape == ours.shape
+    assert abs(theirs.mean() - ours.mean()) < 0.01 * theirs.mean()
+    block = 6
+    for y in range(0, height, block):
+        for x in range(0, width, block):
+            a = theirs[:, y:y + block, x:x + block].reshape(SEEDS, -1, 3).astype(np.float64)
+            b = ours[:, y:y + block, x:x + block].reshape(SEEDS, -1, 3).astype(np.float64)
+            n = a.shape[1]
+            stderr = np.sqrt((a.var(0, ddof=1).sum(0) + b.var(0, ddof=1).sum(0)) / SEEDS) / n
+            difference = np.abs(a.mean((0, 1)) - b.mean((0, 1)))
+            bound = 5 * stderr + 0.02 * a.mean((0, 1)) + 1e-6
+            assert (difference <= bound).all(), (
+                f"block ({y}, {x}): Mitsuba {a.mean((0, 1))}, ours {b.mean((0, 1))}")
+
+
+@pytest.mark.parametrize("rfilter", ["box", "gaussian"])
+def test_a_sharp_edge_is_blurred_by_the_filter_and_no_more(rfilter, suite_device):
+    """An emitting half-plane facing the camera, seen directly (max_depth
+    1): each pixel is the share of its samples that land left of the edge,
+    which is the filter's integral up to the edge's offset from the pixel
+    centre -- the box filter's linear ramp within one pixel, or Mitsuba's
+    Gaussian (standard deviation 0.5, cut at 2) spread over five."""
+    distance, fov, width, height, spp = 4.0, 30.0, 24, 4, 512
+    edge_x = 0.123  # world x of the edge, on the plane z = 0
+    quad = hlbvh_cl.Mesh([[-9, -9, 0], [edge_x, -9, 0], [edge_x, 9, 0], [-9, 9, 0]],
+                         [[0, 1, 2], [0, 2, 3]], name="half")  # facing +z, the camera
+    scene = hlbvh_cl.Scene([quad], device=suite_device)
+    renderer = hlbvh_cl.Renderer(scene, emitters=[{"type": "area", "mesh": 0, "radiance": 1.0}])
+    camera = hlbvh_cl.Camera(eye=(0, 0, distance), target=(0, 0, 0), fov_deg=fov)
+    image = renderer.render(camera, width, height, shading="path", spp=spp, max_depth=1,
+                            rfilter=rfilter, seed=1, hdr=True)[..., 0].astype(np.float64)
+    half_width = np.tan(np.radians(fov) / 2) * width / height
+    edge = (edge_x / (distance * half_width) + 1) * width / 2  # in pixels from the left
+    offsets = edge - (np.arange(width) + 0.5)  # the edge's offset from each pixel centre
+    if rfilter == "box":
+        expected = np.clip(offsets + 0.5, 0, 1)
+    else:
+        from scipy.integrate import quad as integrate
+        shape = lambda t: np.exp(-t * t / 0.5) - np.exp(-4 / 0.5)  # sigma 0.5, radius 2
+        total = integrate(shape, -2, 2)[0]
+        expected = np.array([integrate(shape, -2, float(np.clip(o, -2, 2)))[0] / total
+                             for o in offsets])
+    # a binomial share of spp samples per pixel, every row alike
+    bound = 4 * np.sqrt(np.maximum(expected * (1 - expected), 1e-12) / spp) + 1e-6
+    for row in image:
+        assert (np.abs(row - expected) <= bound).all(), (row.round(3), expected.round(3))
+    blurred = ((expected > 0) & (expected < 1)).sum()
+    assert blurred == (1 if rfilter == "box" else 4)
