@@ -264,10 +264,11 @@ def _check_combinations(args) -> None:
     if args.command == "devices" and args.no_fallback and not args.require:
         raise _UsageError("--no-fallback applies to --require ID, which is missing")
     if args.command == "render":
-        shading = args.shading or "diffuse"
+        # without --shading: a Mitsuba XML scene's is path, any other file's diffuse
+        shading = args.shading or ("path" if args.scene.lower().endswith(".xml") else "diffuse")
         if args.ao_samples is not None and shading != "ao":
             raise _UsageError(f"--ao-samples applies to --shading ao, not {shading}")
-        if args.max_depth is not None and args.shading not in (None, "path"):
+        if args.max_depth is not None and shading != "path":
             raise _UsageError(f"--max-depth applies to --shading path, not {shading}")
         if args.no_shadows and shading != "diffuse":
             raise _UsageError(f"--no-shadows applies to --shading diffuse, not {shading}")

@@ -467,10 +467,13 @@ def _read_mesh_specs(reader: _Reader, value, folder: Path) -> list[_MeshSpec]:
     for index, item in enumerate(value):
         key = f"mesh[{index}]"
         table = reader.table(item, key, _MESH_KEYS)
-        if ("path" in table) == ("shape" in table):
-            raise reader.error(f"{key}.path", "expected a mesh file (path) or one of Mitsuba's "
-                                              f"shapes (shape = {' | '.join(map(repr, SHAPES))}),"
-                                              " one of the two")
+        shapes = " | ".join(map(repr, SHAPES))
+        if "path" not in table and "shape" not in table:
+            raise reader.error(f"{key}.path", "missing (required): a mesh file, or instead one "
+                                              f"of Mitsuba's shapes (shape = {shapes})")
+        if "path" in table and "shape" in table:
+            raise reader.error(f"{key}.path", "a mesh file (path) or one of Mitsuba's shapes "
+                                              f"(shape = {shapes}), not both")
         if "shape" in table and table["shape"] not in SHAPES:
             raise reader.error(f"{key}.shape", f"expected one of {', '.join(SHAPES)}, got "
                                                f"{inputs.describe(table['shape'])}")

@@ -361,7 +361,8 @@ def test_materials_emitters_and_shapes_reach_the_renderer(tmp_path):
     (("type = \"point\"", "type = \"area\""), "emitter[0]: an area emitter belongs in its"),
     (("shape = \"sphere\"", "shape = \"cylinder\""), "mesh[1].shape: expected one of"),
     (("shape = \"sphere\"", "shape = \"sphere\"\npath = \"knight.ply\""),
-     "mesh[1].path: expected a mesh file (path) or one of Mitsuba's shapes"),
+     "mesh[1].path: a mesh file (path) or one of Mitsuba's shapes (shape = 'rectangle' | "
+     "'cube' | 'sphere'), not both"),
     (("position = [1.0, 2.0, 3.0]", "where = [1.0, 2.0, 3.0]"),
      "emitter[0]: point takes ('position', 'intensity'), not ['where']"),
 ])
