@@ -8,10 +8,10 @@
  *   depth    (far - distance) / (far - near) clamped to [0, 1], black on a miss
  *   ao       a * (fraction of ao rays that meet nothing), sky on a miss
  * The modes share one kernel body, specialised at compile time by SHADING:
- * written as one function per mode instead, shade_hits took 1.2-1.4x the
- * device time on PoCL 3.0 (the render's "shade" stage; figures in the
- * commit that chose this).  The path integrator (path.cl) is the place for
- * new light transport; these are the fast previews.
+ * written as one function per mode instead, shade_hits measured slower on
+ * PoCL 3.0 (the A/B is in the commit message that chose this).  The path
+ * integrator (path.cl) is the place for new light transport; these are the
+ * fast previews.
  *
  * Kernels (one work-item per pixel of the current pass; ao_rays over
  * pixel_in_pass's 2D range, render/tiles.h, the others 1D in ray order)
@@ -69,12 +69,6 @@ inline float3 sky(const ShadeParams* params, float3 direction)
     return horizon + rise; /* mix, unfused (see dot3) */
 }
 
-/* Each mode's parameters: a primary ray, its closest hit (or miss), the
- * ray's direction, the meshes' colours, and where its secondary ray goes;
- * a mode returns the colour it adds now and sets *deferred to what is
- * added later where the secondary ray proves free.  (A parameter list: the
- * one kind of macro kernels/README.md allows.  Plain values, not a struct
- * of pointers, which made PoCL's shade_hits 1.4x slower.) */
 __kernel void shade_hits(__global const Ray* rays,
                          __global const Hit* hits,
                          __global const float* albedo,    /* RGB per geom_id */
