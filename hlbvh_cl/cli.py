@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import threading
 import sys
 import time
@@ -27,6 +28,7 @@ from .device.discovery import select_device, unregistered
 from .device.runtime import DeviceMemoryError, KernelBuildError
 from .render.camera import MAX_IMAGE_SIDE
 from .render.integrators import SHADINGS
+from .render.renderer import RenderInterrupted
 from .render.settings import AO_SAMPLES, MAX_AO_SAMPLES, MAX_DEPTH, MAX_SPP
 
 #: What a slow first run is doing (stage).
@@ -136,7 +138,7 @@ def _cmd_render(args) -> int:
     shading = args.shading or given.get("shading", "diffuse")
     if args.max_depth is not None and shading != "path":
         raise ValueError(f"--max-depth applies to --shading path, not {shading}")
-    spp = args.spp or given.get("spp", 1)
+    spp = args.spp or (None if args.time else given.get("spp", 1))
     options = dict(shading=shading, shadows=not args.no_shadows, spp=spp,
                    ao_samples=args.ao_samples or AO_SAMPLES,
                    rfilter=given.get("rfilter", "box"))
@@ -150,12 +152,21 @@ def _cmd_render(args) -> int:
         renderer.render(loaded.camera, 1, 1, **options)
     render_compile = time.perf_counter() - warm_started
     bar = sys.stderr.isatty()  # a tqdm bar on a terminal; else one line if it takes a while
-    with contextlib.nullcontext() if bar else stage(f"rendering {width}x{height}"):
-        image = renderer.render(loaded.camera, width, height, progress=bar,
-                                hdr=output.suffix.lower() == ".exr", **options)
+    if args.time:
+        options["time_budget"] = args.time
+    try:
+        with contextlib.nullcontext() if bar else stage(f"rendering {width}x{height}"):
+            image = renderer.render(loaded.camera, width, height, progress=bar,
+                                    hdr=output.suffix.lower() == ".exr", **options)
+    except RenderInterrupted as stopped:  # Ctrl-C: keep the rounds done
+        _write_image(output, stopped.image)
+        print(f"hlbvh-cl: interrupted after {stopped.spp} samples per pixel; wrote {output}",
+              file=sys.stderr)
+        return 130
     written_started = time.perf_counter()
     _write_image(output, image)
     written = time.perf_counter() - written_started
+    spp = renderer.stats["spp"]
 
     build_ms = scene.stats.device_ms
     widen_ms = scene.stats.times_ms["widen"]  # the wide tree traversal reads
@@ -244,6 +255,17 @@ def _depth(text: str) -> int:
     return value
 
 
+def _seconds(text: str) -> float:
+    """--time: a number of seconds > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") from None
+    if not (value > 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"expected a number of seconds > 0, got {text}")
+    return value
+
+
 def _integer_in(low: int, high: int):
     """An argparse type: an integer in [low, high]."""
     def parse(text: str) -> int:
@@ -270,6 +292,8 @@ def _check_combinations(args) -> None:
             raise _UsageError(f"--ao-samples applies to --shading ao, not {shading}")
         if args.max_depth is not None and shading != "path":
             raise _UsageError(f"--max-depth applies to --shading path, not {shading}")
+        if args.time is not None and shading != "path":
+            raise _UsageError(f"--time applies to --shading path, not {shading}")
         if args.no_shadows and shading != "diffuse":
             raise _UsageError(f"--no-shadows applies to --shading diffuse, not {shading}")
 
@@ -313,6 +337,9 @@ def main(argv=None) -> int:
     render.add_argument("--max-depth", type=_depth, default=None,
                         help="with --shading path: segments per path at most, -1 for no limit "
                              "(Mitsuba's max_depth; default -1, or a Mitsuba scene's)")
+    render.add_argument("--time", type=_seconds, default=None, metavar="SECONDS",
+                        help="with --shading path: render rounds of one sample per pixel until "
+                             "the next would end past SECONDS (at most --spp if given)")
     render.set_defaults(run=_cmd_render)
     try:
         args = parser.parse_args(argv)

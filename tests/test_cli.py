@@ -43,6 +43,8 @@ def test_user_mistakes_give_one_line_and_exit_2(tmp_path, capsys):
      "--no-shadows applies to --shading diffuse, not depth"),
     (["render", "s.toml", "-o", "x.png", "--max-depth", "3"],
      "--max-depth applies to --shading path, not diffuse"),
+    (["render", "s.toml", "-o", "x.png", "--time", "10"],
+     "--time applies to --shading path, not diffuse"),
 ])
 def test_an_option_the_others_make_meaningless_is_refused(capsys, argv, words):
     assert main(argv) == 2

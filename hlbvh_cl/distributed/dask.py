@@ -51,9 +51,8 @@ from ..query.all_hits import AllHits, check_max_hits
 from ..query.points import CLOSEST_FIELDS, ClosestPoints, check_max_distance
 from ..query.rays import HIT_FIELDS, Hits
 from ..render.camera import Camera
-from ..render.light import Light, check_light
 from ..render.renderer import Renderer, check_settings
-from ..render.settings import AO_SAMPLES, check_colors, default_colors
+from ..render.settings import AO_SAMPLES, RR_DEPTH
 from ..query.results import ResultPool
 from ..scene import Scene
 
@@ -479,31 +478,36 @@ _renderers: OrderedDict = OrderedDict()
 _renderers_lock = threading.Lock()
 
 
-def task_renderer(scene: Scene, colors: np.ndarray, light) -> Renderer:
-    """This process's Renderer of ``scene`` with these colours and light, as
-    render_frames' tasks use it: made once (the last RENDERERS kept), as its
-    pipeline compiles kernels and allocates buffers."""
-    key = (id(scene), colors.tobytes(), light)
+def task_renderer(scene: Scene, look: dict) -> Renderer:
+    """This process's Renderer of ``scene`` with this look (Renderer's
+    colors, light, materials and emitters, checked), as render_frames'
+    tasks use it: made once (the last RENDERERS kept), as its pipeline
+    compiles kernels and allocates buffers."""
+    key = (id(scene), dask.base.tokenize(look))
     with _renderers_lock:
         if key in _renderers:
             _renderers.move_to_end(key)
             return _renderers[key][1]
-        renderer = Renderer(scene, colors=colors.tolist(), light=light)
+        renderer = Renderer(scene, **look)
         _renderers[key] = (scene, renderer)  # the scene kept: its id names it
         while len(_renderers) > RENDERERS:
             _renderers.popitem(last=False)
         return renderer
 
 
-def _render_frames(shipped, cameras, paths, colors, light, options) -> list:
+def _render_frames(shipped, cameras, paths, look, options) -> list:
     """One task: its frames rendered, each returned or written to its path."""
     out = []
     with shipped.scene() as scene:  # every frame of the task of one content
-        shared = task_renderer(scene, colors, light)
+        shared = task_renderer(scene, look)
         for camera, path in zip(cameras, paths):
             image = shared.render(camera, **options)
             if path is None:
                 out.append(image)
+            elif path.endswith(".exr"):
+                from ..io.exr import write_exr
+                write_exr(path, image)
+                out.append(path)
             else:
                 import imageio.v3 as iio
                 iio.imwrite(path, image)
@@ -514,14 +518,19 @@ def _render_frames(shipped, cameras, paths, colors, light, options) -> list:
 def render_frames(scene: Scene, cameras, width: int, height: int, client=None, output=None, *,
                   colors=None, light=None, shading: str = "diffuse", shadows: bool = True,
                   spp: int = 1, ao_samples: int = AO_SAMPLES, ao_distance: float | None = None,
+                  materials=None, emitters=None, max_depth: int = -1, rr_depth: int = RR_DEPTH,
+                  seed: int = 0, rfilter: str = "box", hdr: bool = False,
                   frames_per_task: int = 1, progress: bool = True,
-                  name: str = "frame_{:05d}.png") -> list:
-    """Renders each of ``cameras`` (hlbvh_cl.Camera) as Renderer.render
-    would, ``frames_per_task`` frames a task, on ``client``'s cluster (else
-    the default client's, else dask's local threads).  Returns the (height,
-    width, 3) uint8 images in the cameras' order; with ``output``, a folder
-    that the workers can write to, the workers write them there as PNG
-    (``name`` formatted with the frame's index) and their paths are returned
+                  name: str | None = None) -> list:
+    """Renders each of ``cameras`` (hlbvh_cl.Camera) as a Renderer of
+    ``colors``, ``light``, ``materials`` and ``emitters`` would render it
+    with the options given (Renderer.render's), ``frames_per_task`` frames
+    a task, on ``client``'s cluster (else the default client's, else dask's
+    local threads).  Returns the (height, width, 3) images in the cameras'
+    order (uint8, or float32 linear with ``hdr``); with ``output``, a
+    folder that the workers can write to, the workers write them there
+    (``name`` formatted with the frame's index; by default
+    frame_00000.png, or .exr with ``hdr``) and their paths are returned
     instead.  ``progress`` shows dask's progress bar."""
     if isinstance(cameras, Camera) or not isinstance(cameras, Sequence):
         raise TypeError(f"cameras must be a list of hlbvh_cl.Camera, got "
@@ -530,15 +539,20 @@ def render_frames(scene: Scene, cameras, width: int, height: int, client=None, o
         if not isinstance(camera, Camera):
             raise TypeError(f"cameras[{k}] must be a hlbvh_cl.Camera, got "
                             f"{type(camera).__name__}")
-    options = dict(width=width, height=height, shading=shading, shadows=shadows, spp=spp,
-                   ao_samples=ao_samples, ao_distance=ao_distance)
+    settings = dict(shading=shading, shadows=shadows, spp=spp, ao_samples=ao_samples,
+                    ao_distance=ao_distance, max_depth=max_depth, rr_depth=rr_depth, seed=seed,
+                    rfilter=rfilter)
     for camera in cameras[:1]:  # the errors a local render raises, before any task
-        check_settings(camera, **options)
+        check_settings(camera, width, height, **settings)
+    if not isinstance(hdr, (bool, np.bool_)):
+        raise TypeError(f"hdr must be True or False, got {type(hdr).__name__}")
+    options = dict(width=width, height=height, hdr=bool(hdr), **settings)
     if not isinstance(scene, Scene):
         raise TypeError(f"scene must be a hlbvh_cl.Scene, got {type(scene).__name__}")
-    colors = check_colors(default_colors(len(scene.meshes)) if colors is None else colors,
-                          len(scene.meshes))
-    light = check_light(Light() if light is None else light)
+    look = dict(colors=colors, light=light, materials=materials, emitters=emitters)
+    Renderer(scene, **look).look()  # its errors, before any task
+    if name is None:
+        name = "frame_{:05d}" + (".exr" if hdr else ".png")
     if isinstance(frames_per_task, bool) or not isinstance(frames_per_task, int) \
             or frames_per_task < 1:
         raise ValueError(f"frames_per_task must be an integer >= 1, got {frames_per_task!r}")
@@ -553,9 +567,9 @@ def render_frames(scene: Scene, cameras, width: int, height: int, client=None, o
     shipped = ship(scene, client)
     groups = [slice(k, k + frames_per_task) for k in range(0, len(cameras), frames_per_task)]
     if client is not None:
-        token = dask.base.tokenize(shipped.key, list(cameras), paths, colors, light, options)
-        futures = [client.submit(_render_frames, shipped, list(cameras[g]), paths[g], colors,
-                                 light, options, key=f"hlbvh_cl-frames-{token}-{k}")
+        token = dask.base.tokenize(shipped.key, list(cameras), paths, look, options)
+        futures = [client.submit(_render_frames, shipped, list(cameras[g]), paths[g], look,
+                                 options, key=f"hlbvh_cl-frames-{token}-{k}")
                    for k, g in enumerate(groups)]
         if progress:
             from distributed import progress as show
@@ -563,7 +577,7 @@ def render_frames(scene: Scene, cameras, width: int, height: int, client=None, o
         found = client.gather(futures)
     else:
         tasks = [dask.delayed(_render_frames, pure=True)(shipped, list(cameras[g]), paths[g],
-                                                         colors, light, options)
+                                                         look, options)
                  for g in groups]
         if progress:
             from dask.diagnostics import ProgressBar

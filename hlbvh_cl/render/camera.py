@@ -13,6 +13,7 @@ deterministic.
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -115,12 +116,58 @@ class Camera:
 #: camera kernel's jitter for each (kernels/render/camera.cl).
 FILTERS = {"box": 1, "gaussian": 2}
 
+#: Mitsuba's Gaussian filter: f(t) = g(t) - g(r) on [-r, r], g(t) =
+#: exp(-t^2 / (2 sigma^2)), sigma 0.5 pixel, r = 4 sigma.
+GAUSSIAN_SIGMA, GAUSSIAN_RADIUS = 0.5, 2.0
+
+#: Equal-probability intervals of the filter's inverse CDF table.
+FILTER_INTERVALS = 1024
+
+
+def gaussian_filter_table(intervals: int = FILTER_INTERVALS) -> np.ndarray:
+    """float32 (intervals + 1,): offsets t_i with F(t_i) = i / intervals,
+    F the Gaussian filter's CDF, in float64 (its integral in closed form,
+    inverted by bisection).  The camera kernel draws an offset by
+    interpolating between them, which samples the filter to within one
+    interval's width (filter importance sampling, pbrt-v4 sec. 8.8)."""
+    sigma, r = GAUSSIAN_SIGMA, GAUSSIAN_RADIUS
+    erf = np.vectorize(math.erf)
+    floor = math.exp(-r * r / (2 * sigma * sigma))
+
+    def integral(x):  # of f from -r to x
+        scale = sigma * math.sqrt(math.pi / 2)
+        return scale * (erf(x / (sigma * math.sqrt(2))) + math.erf(r / (sigma * math.sqrt(2)))) \
+            - floor * (x + r)
+    targets = np.arange(intervals + 1) / intervals * integral(np.float64(r))
+    lo, hi = np.full(intervals + 1, -r), np.full(intervals + 1, r)
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        below = integral(mid) < targets
+        lo, hi = np.where(below, mid, lo), np.where(below, hi, mid)
+    table = 0.5 * (lo + hi)
+    table[0], table[-1] = -r, r
+    return table.astype(np.float32)
+
+
+def filter_table(rt: Runtime) -> cl.Buffer:
+    """The Gaussian filter's table on ``rt``'s device, made once per runtime."""
+    found = _FILTER_TABLES.get(rt)
+    if found is None:
+        found = _FILTER_TABLES[rt] = cl.Buffer(
+            rt.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
+            hostbuf=gaussian_filter_table())
+    return found
+
+
+_FILTER_TABLES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
 
 def enqueue_primary_rays(rt: Runtime, pinhole: np.ndarray, width: int, height: int,
                          band, sample: int, jitter: int, rays: cl.Buffer) -> cl.Event:
     """One Ray per pixel of ``band`` (the rows of a pass, renderer.Band) into
     ``rays``, in the band's tile order; ``jitter`` 0 through the pixels'
     centres, else a FILTERS value."""
-    return rt.run(rt.kernel(KERNEL, "primary_rays"), band.tile_range, pinhole,
+    kernel = rt.kernel(KERNEL, "primary_rays", FILTER_INTERVALS=FILTER_INTERVALS)
+    return rt.run(kernel, band.tile_range, pinhole,
                   np.uint32(width), np.uint32(height), band.first_row, band.rows,
-                  np.uint32(sample), np.int32(jitter), rays)
+                  np.uint32(sample), np.int32(jitter), filter_table(rt), rays)

@@ -8,6 +8,11 @@ are scaled by 1 / spp and encoded into the whole image's 8-bit RGB
 clamp(c, 0, 1) for data (normals, depth); or, for a float32 image, the
 means as they are (linear radiance, or the data).  Only that image is read
 back.
+
+A progressive render (Pipeline.render of a progressive integrator) instead
+adds each band's sums of every round of samples to the float32 image
+(add_to_image), so that the image of the rounds done is there to read
+whenever it stops; the host divides by the samples each band took.
 """
 from __future__ import annotations
 
@@ -44,7 +49,7 @@ class Film:
             self.pixels = pixels
         image_bytes = (12 if hdr else 3) * image_pixels
         if image_bytes > self.image_bytes:
-            self.image = cl.Buffer(rt.context, cl.mem_flags.WRITE_ONLY, image_bytes)
+            self.image = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, image_bytes)
             self.image_bytes = image_bytes
 
     def encode(self, rt: Runtime, band, width: int, spp: int, radiance: bool) -> cl.Event:
@@ -61,6 +66,15 @@ class Film:
         return rt.run(rt.kernel(KERNEL, "radiance_image", RADIANCE=1), band.tile_range,
                       self.accum, np.uint32(width), band.first_row, band.rows,
                       np.float32(1.0 / spp), self.image)
+
+    def clear(self, rt: Runtime, image_pixels: int) -> cl.Event:
+        """Zeroes the float32 image's sums (a progressive render's start)."""
+        return cl.enqueue_fill_buffer(rt.queue, self.image, np.float32(0), 0, 12 * image_pixels)
+
+    def add(self, rt: Runtime, band, width: int) -> cl.Event:
+        """The band's sums added to the float32 image's."""
+        return rt.run(rt.kernel(KERNEL, "add_to_image", RADIANCE=1), band.tile_range,
+                      self.accum, np.uint32(width), band.first_row, band.rows, self.image)
 
     def read(self, rt: Runtime, image: np.ndarray) -> cl.Event:
         """Enqueues the image's copy into ``image`` (height, width, 3),

@@ -24,7 +24,7 @@ import time
 import numpy as np
 import pyopencl as cl
 
-from ..core import layout
+from ..core import inputs, layout
 from ..device.runtime import Runtime, event_ms
 from ..query.rays import RayQuery
 from ..scene import Scene
@@ -35,7 +35,7 @@ from .emitters import check_emitters
 from .integrators.base import Band, Look, Step
 from .light import Light, check_light
 from .materials import material_table
-from .settings import AO_SAMPLES, RR_DEPTH, RenderSettings, check_colors, default_colors
+from .settings import AO_SAMPLES, MAX_SPP, RR_DEPTH, RenderSettings, check_colors, default_colors
 
 #: Pixels per pass at most (whole rows): enough work-items for any device,
 #: and buffers (133 bytes a pixel) small enough to stay warm between passes
@@ -80,7 +80,7 @@ class Pipeline:
         self.film = Film()
         self._integrators: dict[type, object] = {}
         self._pixels = 0
-        self._overflow = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 4)
+        self.overflow = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 4)
         self._lock = threading.Lock()
         self.last_stats: dict = {}
 
@@ -96,10 +96,11 @@ class Pipeline:
         return rows
 
     def render(self, tree, settings: RenderSettings, look: Look, progress: bool = False,
-               hdr: bool = False) -> np.ndarray:
+               hdr: bool = False, budget: float | None = None) -> np.ndarray:
         with self._lock:  # the buffers are shared
             try:
-                return self._render(tree, settings.in_frame(tree.scale), look, progress, hdr)
+                return self._render(tree, settings.in_frame(tree.scale), look, progress, hdr,
+                                    budget)
             except BaseException:
                 # Ctrl-C: the steps in flight (at most two) end before the
                 # buffers serve another render.
@@ -120,57 +121,36 @@ class Pipeline:
             self._pixels = pixels
         self.film.reserve(self.rt, pixels, image_pixels, hdr)
 
-    def _render(self, tree, settings: RenderSettings, look: Look, progress, hdr) -> np.ndarray:
+    def _render(self, tree, settings: RenderSettings, look: Look, progress, hdr,
+                budget) -> np.ndarray:
         started = time.perf_counter()
         rt = self.rt
         width, height = settings.width, settings.height
         kind = integrator_for(settings.shading)
         integrator = self._integrators.setdefault(kind, kind())
+        progressive = integrator.progressive
         rows = self.chunk_rows(width, height)
-        self._reserve(integrator, rows * width, width * height, hdr)
+        self._reserve(integrator, rows * width, width * height, hdr or progressive)
         integrator.prepare(rt, settings, tree, look, rows * width)
-        pinhole = settings.camera.pinhole(width, height)
-        cl.enqueue_copy(rt.queue, self._overflow, np.zeros(1, np.int32))
+        cl.enqueue_copy(rt.queue, self.overflow, np.zeros(1, np.int32))
         setup = time.perf_counter() - started
 
         passes = integrator.passes(settings)
-        image = np.empty((height, width, 3), np.float32 if hdr else np.uint8)
         events = {name: [] for name in STAGES}
-        chunks = range(0, height, rows)
-        bar = _progress_bar(progress, len(chunks) * settings.spp * (1 + passes))
+        bands = []
+        for row in range(0, height, rows):
+            band_rows = min(rows, height - row)
+            # pixel_in_pass's 2D range (kernels/render): bands of TILE_ROWS rows
+            bands.append(Band(np.uint32(row), np.uint32(band_rows), width, band_rows * width,
+                              (layout.TILE_ROWS * width, -(-band_rows // layout.TILE_ROWS))))
         steps: list[cl.Event] = []
-
-        def step_done(event: cl.Event) -> None:
-            """At most two steps (a pass's rays of one kind) in flight, so that
-            Ctrl-C, which waits for them, is answered soon; the bar advances."""
-            steps.append(event)
-            if len(steps) > 2:
-                rt.wait(steps[-3:-2])
-            _advance(bar, rt, event)
-
-        with bar:
-            for row in chunks:
-                band_rows = min(rows, height - row)
-                # pixel_in_pass's 2D range (kernels/render): bands of TILE_ROWS rows
-                band = Band(np.uint32(row), np.uint32(band_rows), width, band_rows * width,
-                            (layout.TILE_ROWS * width, -(-band_rows // layout.TILE_ROWS)))
-                for sample in range(settings.spp):
-                    events["camera"].append(enqueue_primary_rays(
-                        rt, pinhole, width, height, band, settings.stream(sample),
-                        settings.jitter(), self.primary))
-                    events["closest"].append(self.query.enqueue_intersect(
-                        tree, self.primary, self.hits, band.count, self._overflow))
-                    integrator.shade(Step(rt, self.query, tree, band, sample,
-                                          settings.stream(sample), self.primary, self.hits,
-                                          self.film.accum, self._overflow, events, step_done))
-                if hdr:
-                    events["encode"].append(self.film.resolve(rt, band, width, settings.spp))
-                else:
-                    events["encode"].append(self.film.encode(rt, band, width, settings.spp,
-                                                             integrator.radiance(settings)))
+        run = _Run(self, tree, settings, integrator, events, steps)
+        if progressive:
+            image, taken, interrupted = self._progressive(run, bands, hdr, progress, budget)
+        else:
+            image, taken, interrupted = self._band_by_band(run, bands, hdr, progress, passes)
         overflow = np.zeros(1, np.int32)
-        rt.wait([self.film.read(rt, image),
-                 cl.enqueue_copy(rt.queue, overflow, self._overflow, is_blocking=False)])
+        rt.wait([cl.enqueue_copy(rt.queue, overflow, self.overflow, is_blocking=False)])
         if overflow[0]:
             raise RuntimeError("ray traversal overflowed its stack: the tree is deeper than "
                                "its depth field says")
@@ -178,15 +158,123 @@ class Pipeline:
         times["total"] = sum(times.values())
         times["setup"] = setup * 1e3
         times["wall"] = (time.perf_counter() - started) * 1e3
-        pixels = width * height * settings.spp
+        pixels = width * height * taken
         secondary = pixels * passes
         if hasattr(integrator, "last_bounces"):  # paths: each bounce a closest and a shadow ray
             secondary = 2 * sum(integrator.last_bounces) + pixels
         self.last_stats = {"width": width, "height": height, "shading": settings.shading,
-                           "shadows": settings.shadows, "spp": settings.spp,
+                           "shadows": settings.shadows, "spp": taken,
                            "primary_rays": pixels, "secondary_rays": secondary,
-                           "times_ms": times}
+                           "times_ms": times, "interrupted": interrupted}
+        if interrupted:
+            raise RenderInterrupted(image, taken)
         return image
+
+    def _band_by_band(self, run, bands, hdr, progress, passes):
+        """Every sample of a band, then the next band (the preview modes:
+        a band's buffers stay warm).  -> (image, spp, False)."""
+        rt, settings, width = self.rt, run.settings, run.settings.width
+        image = np.empty((settings.height, width, 3), np.float32 if hdr else np.uint8)
+        bar = _progress_bar(progress, len(bands) * settings.spp * (1 + passes), "pass")
+        with bar:
+            run.bar = bar
+            for band in bands:
+                for sample in range(settings.spp):
+                    run.sample(band, sample, sample)
+                if hdr:
+                    run.events["encode"].append(self.film.resolve(rt, band, width, settings.spp))
+                else:
+                    run.events["encode"].append(self.film.encode(
+                        rt, band, width, settings.spp, run.integrator.radiance(settings)))
+        rt.wait([self.film.read(rt, image)])
+        return image, settings.spp, False
+
+    def _progressive(self, run, bands, hdr, progress, budget):
+        """Rounds of one sample per pixel over the whole image, each band's
+        sums added to the image's, until spp rounds are done or the next
+        would end past ``budget`` seconds (None: no limit).  Ctrl-C stops
+        it at once: the rounds every band finished make the image.
+        -> (image, spp taken, interrupted)."""
+        rt, settings, width = self.rt, run.settings, run.settings.width
+        taken = np.zeros(len(bands), np.int64)  # samples added to each band's sums
+        interrupted = False
+        started = time.perf_counter()
+        bar = _progress_bar(progress, None if budget is not None else settings.spp, "spp")
+        with bar:
+            try:
+                self.film.clear(rt, settings.width * settings.height)
+                for sample in range(settings.spp):
+                    for b, band in enumerate(bands):
+                        run.sample(band, sample, 0)
+                        added = self.film.add(rt, band, width)
+                        run.events["encode"].append(added)
+                        taken[b] += 1
+                    rt.wait([added])
+                    bar.update(1)
+                    spent = time.perf_counter() - started
+                    if budget is not None and spent * (sample + 2) / (sample + 1) > budget:
+                        break  # the next round would end past the budget
+            except KeyboardInterrupt:
+                rt.queue.finish()  # what was enqueued is in the sums
+                if taken.min() == 0:
+                    raise  # not one whole image yet
+                interrupted = True
+        sums = np.empty((settings.height, width, 3), np.float32)
+        rt.wait([self.film.read(rt, sums)])
+        for band, count in zip(bands, taken):
+            sums[int(band.first_row):int(band.first_row) + int(band.rows)] /= count
+        spp = int(taken.min())
+        return (sums if hdr else gamma_encode(sums)), spp, interrupted
+
+
+class _Run:
+    """One render's fixed parts, and one sample of one band through them."""
+
+    def __init__(self, pipeline, tree, settings, integrator, events, steps):
+        self.pipeline, self.tree, self.settings = pipeline, tree, settings
+        self.integrator, self.events, self.steps = integrator, events, steps
+        self.pinhole = settings.camera.pinhole(settings.width, settings.height)
+        self.bar = None
+
+    def step_done(self, event: cl.Event) -> None:
+        """At most two steps (a pass's rays of one kind) in flight, so that
+        Ctrl-C, which waits for them, is answered soon; a pass bar advances."""
+        rt, steps = self.pipeline.rt, self.steps
+        steps.append(event)
+        if len(steps) > 2:
+            rt.wait(steps[-3:-2])
+        if self.bar is not None:
+            _advance(self.bar, rt, event)
+
+    def sample(self, band: Band, sample: int, in_sum: int) -> None:
+        """Sample ``sample`` of ``band``'s pixels, added to the film's sums
+        (``in_sum``: how many the sums hold already; 0 starts them)."""
+        p, settings, events = self.pipeline, self.settings, self.events
+        stream = settings.stream(sample)
+        events["camera"].append(enqueue_primary_rays(
+            p.rt, self.pinhole, settings.width, settings.height, band, stream,
+            settings.jitter(), p.primary))
+        events["closest"].append(p.query.enqueue_intersect(
+            self.tree, p.primary, p.hits, band.count, p.overflow))
+        self.integrator.shade(Step(p.rt, p.query, self.tree, band, in_sum, stream, p.primary,
+                                   p.hits, p.film.accum, p.overflow, events, self.step_done))
+
+
+class RenderInterrupted(KeyboardInterrupt):
+    """Ctrl-C stopped a progressive render: ``image`` is the render of the
+    ``spp`` samples per pixel every pixel had taken (as render would have
+    returned it), for a caller to keep."""
+
+    def __init__(self, image: np.ndarray, spp: int):
+        super().__init__(f"render interrupted after {spp} samples per pixel")
+        self.image, self.spp = image, spp
+
+
+def gamma_encode(means: np.ndarray) -> np.ndarray:
+    """float32 linear means -> 8-bit RGB, as film.cl's encode_image: round(255
+    * sqrt(clamp(c, 0, 1))), NaN to 0."""
+    clamped = np.nan_to_num(np.clip(means, 0.0, 1.0), nan=0.0)
+    return (np.sqrt(clamped) * np.float32(255.0) + np.float32(0.5)).astype(np.uint8)
 
 
 class Renderer:
@@ -218,10 +306,11 @@ class Renderer:
         return self._pipeline.last_stats if self._pipeline is not None else {}
 
     def render(self, camera: Camera, width: int, height: int, shading: str = "diffuse",
-               shadows: bool = True, spp: int = 1, ao_samples: int = AO_SAMPLES,
+               shadows: bool = True, spp: int | None = None, ao_samples: int = AO_SAMPLES,
                ao_distance: float | None = None, max_depth: int = -1,
                rr_depth: int = RR_DEPTH, seed: int = 0, rfilter: str = "box",
-               hdr: bool = False, progress: bool = False) -> np.ndarray:
+               hdr: bool = False, progress: bool = False,
+               time_budget: float | None = None) -> np.ndarray:
         """A (height, width, 3) uint8 RGB image, or with ``hdr`` float32: the
         mean of each pixel's samples, linear.  shading is one of SHADINGS:
         "diffuse", "normals", "depth", "ao" (integrators/direct.py defines
@@ -234,8 +323,23 @@ class Renderer:
         0.5 pixel); ao_samples AO
         rays per sample, reaching ao_distance (default 5% of the scene's
         diagonal).  progress shows a tqdm bar on stderr for renders longer
-        than a second."""
-        settings = check_settings(camera, width, height, shading, shadows, spp, ao_samples,
+        than a second.
+
+        "path" renders progressively, a sample per pixel over the whole
+        image at a time: to ``spp`` samples, or with ``time_budget``
+        (seconds) until the next round would end past it (at most ``spp``
+        if given; at least one round).  Ctrl-C then stops within a round's
+        time and raises RenderInterrupted, whose ``image`` holds the
+        samples every pixel had taken; stats["spp"] says how many were
+        taken."""
+        if time_budget is not None:
+            if shading != "path":
+                raise ValueError("time_budget is for shading='path' (the previews render "
+                                 f"their spp in one go), not {shading!r}")
+            time_budget = inputs.number("time_budget", time_budget, 0.0, low_open=True)
+            spp = MAX_SPP if spp is None else spp
+        settings = check_settings(camera, width, height, shading, shadows,
+                                  1 if spp is None else spp, ao_samples,
                                   ao_distance, max_depth, rr_depth, seed, rfilter)
         if not isinstance(hdr, (bool, np.bool_)):
             raise TypeError(f"hdr must be True or False, got {type(hdr).__name__}")
@@ -244,7 +348,7 @@ class Renderer:
             if self._pipeline is None:
                 self._pipeline = Pipeline(built.runtime)  # its own queries and buffers
             return self._pipeline.render(built.tree, settings, look, progress=progress,
-                                         hdr=bool(hdr))
+                                         hdr=bool(hdr), budget=time_budget)
 
     def look(self) -> Look:
         """colors, light, materials and emitters, checked, with the world
@@ -273,10 +377,10 @@ class Renderer:
         return out
 
 
-def _progress_bar(enabled: bool, total: int):
+def _progress_bar(enabled: bool, total: int | None, unit: str):
     from tqdm import tqdm
     # Shown only once a render has taken a second (tqdm's delay).
-    return tqdm(total=total, desc="rendering", unit="pass", file=sys.stderr, delay=1.0,
+    return tqdm(total=total, desc="rendering", unit=unit, file=sys.stderr, delay=1.0,
                 leave=False, disable=not enabled)
 
 

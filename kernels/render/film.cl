@@ -7,6 +7,10 @@
  *
  *   radiance_image  the same range: each pixel's mean, float32 RGB, as it is
  *
+ *   add_to_image  the same range: each pixel's sums added to the float32
+ *                 image's (a progressive render's running sums; the host
+ *                 divides by the samples each band has taken)
+ *
  * Compile-time parameter (-D)
  *   RADIANCE  1: the sums are radiance, encoded with display gamma 2 (sqrt,
  *             which looks as 2.2 does; pow measured far slower on PoCL);
@@ -61,4 +65,21 @@ __kernel void radiance_image(__global const float4* accum,
     pixel[0] = mean.x;
     pixel[1] = mean.y;
     pixel[2] = mean.z;
+}
+
+__kernel void add_to_image(__global const float4* accum,
+                           const uint width,
+                           const uint first_row,
+                           const uint rows,
+                           __global float* image)      /* the whole image's sums, RGB */
+{
+    uint gid;
+    uint2 at;
+    if (!pixel_in_pass(get_global_id(0), get_global_id(1), width, rows, &gid, &at))
+        return;
+    float4 sums = accum[gid];
+    __global float* pixel = image + 3 * (size_t)((first_row + at.y) * width + at.x);
+    pixel[0] += sums.x;
+    pixel[1] += sums.y;
+    pixel[2] += sums.z;
 }

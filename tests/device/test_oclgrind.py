@@ -86,7 +86,8 @@ RENDERS = {"diffuse": {"shading": "diffuse", "shadows": True},
            "ao": {"shading": "ao", "ao_samples": 4},
            # the path stages; no Russian roulette, whose coin a last-bit
            # difference between devices could flip
-           "path": {"shading": "path", "spp": 2, "max_depth": 3, "rr_depth": 10}}
+           "path": {"shading": "path", "spp": 2, "max_depth": 3, "rr_depth": 10,
+                    "rfilter": "gaussian"}}
 WIDTH, HEIGHT = 8, 6
 
 

@@ -117,8 +117,10 @@ def test_a_process_tasks_share_one_view_of_a_shipped_scene(meshes, suite_device)
     try:
         with hd.Shipped(spec).scene() as first, hd.Shipped(spec).scene() as second:
             assert first is second
-        colors = np.ones((1, 3))
-        assert hd.task_renderer(first, colors, None) is hd.task_renderer(second, colors, None)
+        look = dict(colors=[(1.0, 1.0, 1.0)], light=None, materials=None, emitters=None)
+        assert hd.task_renderer(first, look) is hd.task_renderer(second, dict(look))
+        other = dict(look, materials=[{"type": "conductor"}])
+        assert hd.task_renderer(first, other) is not hd.task_renderer(first, look)
     finally:  # later tests count the scenes this process restores
         hd.forget()
 
@@ -270,6 +272,29 @@ def test_render_frames_match_one_process(client, tmp_path, suite_device):
     assert [p.name for p in paths] == [f"frame_{k:05d}.png" for k in range(5)]
     for path, want in zip(paths, expected):
         np.testing.assert_array_equal(iio.imread(path), want)
+
+
+def test_path_traced_frames_match_one_process(client, tmp_path, meshes, suite_device):
+    """Materials, emitters and the path options travel to the workers: each
+    frame is the one a local Renderer renders with the same seed."""
+    scene = _scene(meshes, suite_device.id)
+    look = dict(materials=[{"type": "roughconductor", "distribution": "ggx", "alpha": 0.3}],
+                emitters=[{"type": "constant", "radiance": 0.5},
+                          {"type": "point", "position": [0.3, 0.4, 0.3], "intensity": 0.2}])
+    options = dict(shading="path", spp=2, max_depth=4, seed=5, rfilter="gaussian", hdr=True)
+    cameras = [hlbvh_cl.Camera(eye=(x, 0.1, 0.3), target=(0, 0.1, 0)) for x in (-0.1, 0.1)]
+    local = hlbvh_cl.Renderer(scene, **look)
+    expected = [local.render(c, 40, 30, **options) for c in cameras]
+    paths = hd.render_frames(scene, cameras, 40, 30, client, output=tmp_path, progress=False,
+                             **look, **options)
+    assert [p.name for p in paths] == ["frame_00000.exr", "frame_00001.exr"]
+    from hlbvh_cl.io.exr import read_exr
+    for path, want in zip(paths, expected):
+        assert want.dtype == np.float32 and want.max() > 0
+        np.testing.assert_array_equal(read_exr(path), want)
+    with pytest.raises(ValueError, match=r"materials\[0\]"):
+        hd.render_frames(scene, cameras, 40, 30, client, materials=[{"type": "velvet"}],
+                         shading="path")
 
 
 def test_bad_input_raises_the_local_error_on_the_client(client, meshes, suite_device):

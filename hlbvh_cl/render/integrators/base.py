@@ -68,10 +68,14 @@ class Integrator:
     - ``radiance(settings)``: whether the mode's sums are radiance, which
       the film gamma-encodes, or data it encodes as it is (Film.encode);
     - ``buffer_sizes(pixels)``: the bytes its buffers take, for the
-      allocation check.
+      allocation check;
+    - ``progressive``: whether it renders a sample over the whole image at
+      a time (to a time budget, Ctrl-C keeping the rounds done) rather
+      than every sample of a band at a time.
     """
 
     modes: tuple[str, ...] = ()
+    progressive = False
 
     def prepare(self, rt, settings, tree, look: Look, pixels: int) -> None:
         raise NotImplementedError

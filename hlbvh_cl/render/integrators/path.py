@@ -118,6 +118,7 @@ class Path(Integrator):
     definitions)."""
 
     modes = ("path",)
+    progressive = True
 
     #: Bytes per pixel of a pass of the integrator's own buffers.
     PER_PIXEL = {"path states": layout.PATH_STATE.itemsize, "shadow rays": layout.RAY.itemsize,

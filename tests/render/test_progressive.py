@@ -1,0 +1,117 @@
+"""Progressive path tracing (Pipeline._progressive): rounds of one sample
+over the whole image, to an spp target or a time budget, and Ctrl-C keeping
+the rounds every pixel finished.  The oracle is the renderer itself on one
+band: the same seed gives every pixel the same random streams however the
+image is cut into bands and rounds."""
+import numpy as np
+import pytest
+import trimesh
+
+import hlbvh_cl
+from hlbvh_cl.cli import main
+from hlbvh_cl.io.exr import read_exr
+from hlbvh_cl.render import renderer as renderer_module
+from hlbvh_cl import RenderInterrupted
+
+WIDTH, HEIGHT = 48, 40
+
+
+@pytest.fixture(scope="module")
+def bunny_renderer(meshes, suite_device):
+    scene = hlbvh_cl.Scene([meshes["bunny"]], device=suite_device)
+    return hlbvh_cl.Renderer(scene, emitters=[{"type": "constant", "radiance": 1.0},
+                                              {"type": "directional", "direction": [-1, -2, -1],
+                                               "irradiance": 2.0}])
+
+
+CAMERA = hlbvh_cl.Camera(eye=(0.0, 0.1, 0.3), target=(0.0, 0.1, 0.0))
+
+
+def path(renderer, **options):
+    return renderer.render(CAMERA, WIDTH, HEIGHT, shading="path", hdr=True, seed=3, **options)
+
+
+@pytest.fixture
+def bands_of_8_rows(monkeypatch):
+    """Passes of 8 rows: the image becomes 5 bands."""
+    monkeypatch.setattr(renderer_module, "PIXELS_PER_PASS", 8 * WIDTH)
+
+
+def test_bands_and_rounds_do_not_change_the_image(bunny_renderer, monkeypatch):
+    whole = path(bunny_renderer, spp=3)
+    monkeypatch.setattr(renderer_module, "PIXELS_PER_PASS", 8 * WIDTH)
+    banded = path(bunny_renderer, spp=3)
+    assert bunny_renderer.stats["spp"] == 3
+    assert whole.std() > 0.05  # a lit bunny, not a blank image
+    np.testing.assert_allclose(banded, whole, rtol=1e-5, atol=1e-6)
+
+
+def test_a_time_budget_stops_between_rounds(bunny_renderer):
+    path(bunny_renderer, spp=1)  # kernels compiled before the clock runs
+    image = path(bunny_renderer, time_budget=1e-6)
+    assert bunny_renderer.stats["spp"] == 1  # at least one round, and no more past the budget
+    np.testing.assert_allclose(image, path(bunny_renderer, spp=1), rtol=1e-6, atol=1e-7)
+    path(bunny_renderer, time_budget=3600.0, spp=2)
+    assert bunny_renderer.stats["spp"] == 2  # spp caps a budget
+
+
+@pytest.mark.parametrize("time_budget, message", [(0, "time_budget"), (-1.0, "time_budget"),
+                                                  (float("nan"), "time_budget")])
+def test_bad_time_budgets_are_named(bunny_renderer, time_budget, message):
+    with pytest.raises(ValueError, match=message):
+        path(bunny_renderer, time_budget=time_budget)
+    with pytest.raises(ValueError, match="shading='path'"):
+        bunny_renderer.render(CAMERA, WIDTH, HEIGHT, time_budget=1.0)
+
+
+def interrupt_at(monkeypatch, band_index: int, round_index: int, bands: int):
+    """Ctrl-C as the film adds band ``band_index`` of round ``round_index``."""
+    calls = []
+    add = renderer_module.Film.add
+
+    def add_or_stop(self, rt, band, width):
+        if len(calls) == round_index * bands + band_index:
+            raise KeyboardInterrupt
+        calls.append(band)
+        return add(self, rt, band, width)
+    monkeypatch.setattr(renderer_module.Film, "add", add_or_stop)
+
+
+def test_ctrl_c_keeps_the_rounds_every_pixel_finished(bunny_renderer, bands_of_8_rows,
+                                                      monkeypatch):
+    one, two = path(bunny_renderer, spp=1), path(bunny_renderer, spp=2)
+    interrupt_at(monkeypatch, band_index=2, round_index=1, bands=5)
+    with pytest.raises(RenderInterrupted) as stopped:
+        path(bunny_renderer, spp=8)
+    assert stopped.value.spp == 1 and bunny_renderer.stats["interrupted"]
+    kept = stopped.value.image
+    # bands 0 and 1 (rows 0..15) had their second sample; the rest one
+    np.testing.assert_allclose(kept[:16], two[:16], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(kept[16:], one[16:], rtol=1e-5, atol=1e-6)
+
+
+def test_ctrl_c_before_a_whole_image_is_a_plain_interrupt(bunny_renderer, bands_of_8_rows,
+                                                          monkeypatch):
+    interrupt_at(monkeypatch, band_index=3, round_index=0, bands=5)
+    with pytest.raises(KeyboardInterrupt) as stopped:
+        path(bunny_renderer, spp=4)
+    assert not isinstance(stopped.value, RenderInterrupted)
+
+
+def test_the_cli_renders_to_a_time_budget_and_keeps_an_interrupted_image(
+        tmp_path, capsys, suite_device, monkeypatch):
+    mesh = tmp_path / "ball.ply"
+    trimesh.creation.icosphere(subdivisions=2).export(mesh)
+    out = tmp_path / "ball.exr"
+    argv = ["render", str(mesh), "--shading", "path", "--width", "32", "--height", "24",
+            "--device", suite_device.id, "-o", str(out)]
+    assert main(argv + ["--time", "600", "--spp", "3"]) == 0
+    assert "3 spp" in capsys.readouterr().out  # the budget left the spp cap to stop it
+    image = read_exr(out)
+    assert image.shape == (24, 32, 3) and np.isfinite(image).all() and image.max() > 0
+    out.unlink()
+    # Ctrl-C in the third round: the CLI's 1-pixel warm-up render takes 16 first
+    interrupt_at(monkeypatch, band_index=0, round_index=16 + 2, bands=1)
+    assert main(argv + ["--spp", "16"]) == 130
+    assert "interrupted after 2 samples per pixel; wrote" in capsys.readouterr().err
+    assert read_exr(out).shape == (24, 32, 3)
