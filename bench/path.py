@@ -1,9 +1,10 @@
 """Path-traced samples per second: ours on each CPU runtime against Mitsuba 3's path integrator on the same XML file, in one run.
 
-Scenes (both renderers read the same Mitsuba XML file):
-  cornell    scenes/cornell_box.xml (max depth 6, its glass ball), square
+Scenes (both renderers read the same Mitsuba XML file), at 1280x720 with
+max depth 8, as issue 55 asks:
+  cornell    scenes/cornell_box.xml (its glass ball)
   materials  scenes/materials.toml's meshes, lights and materials written as
-             XML (its meshes as PLY files, in place), max depth 8
+             XML (its meshes as PLY files, in place)
 
 Each round renders every scene once on every device and once in Mitsuba
 (llvm_ad_rgb where it runs, else scalar_rgb; in a child process, since the
@@ -11,7 +12,14 @@ LLVM variant can abort a process on some hosts), in turn: a burst of load
 falls on all alike.  A render's time is its wall time after a warm-up render
 that compiles everything (Mitsuba's JIT included: its wall time is
 mi.render plus the image's numpy copy, RENDERING.md).  Samples per second =
-width x height x spp / seconds.  Equal-time quality is not measured here.
+width x height x spp / seconds.
+
+Equal-time quality: a reference of REFERENCE_SPP samples per pixel by
+Mitsuba, then each renderer for the time Mitsuba takes for EQUAL_TIME_SPP
+(ours with a time budget, Mitsuba at the spp its measured rate fits in that
+time), each scored by relMSE = mean((image - reference)^2 / (reference^2 +
+0.01)) over pixels and channels.  The reference is Mitsuba's own: a bias of
+ours against Mitsuba counts against us.
 
     python -m bench.path [--quick] [--devices pocl,intel] [--rounds 3]
 """
@@ -34,8 +42,15 @@ from .common import (BENCH, arguments, devices_or_exit, finish, machine_info, sa
 SCENES_DIR = BENCH.parent / "scenes"
 
 #: (width, height, spp) per scene, full and --quick.
-FULL = {"cornell": (512, 512, 16), "materials": (1280, 720, 4)}
+FULL = {"cornell": (1280, 720, 4), "materials": (1280, 720, 4)}
 QUICK = {"cornell": (96, 96, 2), "materials": (160, 90, 1)}
+
+#: The path depth of every scene (the issue's: 8).
+MAX_DEPTH = 8
+
+#: Equal-time quality: the reference's spp and the budget, in Mitsuba's spp.
+REFERENCE_SPP = {"full": 128, "quick": 16}
+EQUAL_TIME_SPP = {"full": 8, "quick": 2}
 
 #: The issue's target: at least Mitsuba's samples per second on each CPU runtime.
 TARGET_RATIO = 1.0
@@ -53,15 +68,17 @@ for variant in sys.argv[1:]:
 scenes = {}
 print(json.dumps({"variant": mi.variant()}), flush=True)
 for line in sys.stdin:
-    name, path, width, height, spp = line.split()
+    name, path, width, height, spp, seed, out = line.split()
     key = (path, width, height)
     if key not in scenes:
         scenes[key] = mi.load_file(path, res_x=int(width), res_y=int(height))
         np.asarray(mi.render(scenes[key], spp=1))  # compiles (the JIT variants)
     started = time.perf_counter()
-    image = np.asarray(mi.render(scenes[key], spp=int(spp)))
-    print(json.dumps({"seconds": time.perf_counter() - started, "mean": float(image.mean())}),
-          flush=True)
+    image = np.asarray(mi.render(scenes[key], spp=int(spp), seed=int(seed)))
+    seconds = time.perf_counter() - started
+    if out != "-":
+        np.save(out, image)
+    print(json.dumps({"seconds": seconds, "mean": float(image.mean())}), flush=True)
 """
 
 
@@ -108,7 +125,7 @@ def materials_xml(folder: Path) -> Path:
     text = f"""<scene version="3.0.0">
   <default name="res_x" value="{description.width}"/>
   <default name="res_y" value="{description.height}"/>
-  <integrator type="path"><integer name="max_depth" value="8"/></integrator>
+  <integrator type="path"><integer name="max_depth" value="{MAX_DEPTH}"/></integrator>
   <sensor type="perspective">
     <float name="fov" value="{camera.fov_deg}"/><string name="fov_axis" value="y"/>
     <transform name="to_world"><lookat origin="{', '.join(map(str, camera.eye))}"
@@ -128,8 +145,11 @@ def materials_xml(folder: Path) -> Path:
 
 
 def cornell_xml(folder: Path) -> Path:
-    """scenes/cornell_box.xml with its size as $res_x and $res_y."""
+    """scenes/cornell_box.xml with its size as $res_x and $res_y, and max
+    depth MAX_DEPTH."""
     text = (SCENES_DIR / "cornell_box.xml").read_text()
+    text = text.replace('<integer name="max_depth" value="6"/>',
+                        f'<integer name="max_depth" value="{MAX_DEPTH}"/>')
     text = text.replace('<default name="res" value="256"/>',
                         '<default name="res_x" value="256"/>\n  '
                         '<default name="res_y" value="256"/>')
@@ -163,8 +183,8 @@ class MitsubaChild:
                                         text=True, env=env)
         self.variant = json.loads(self.process.stdout.readline())["variant"]
 
-    def render(self, name, path, width, height, spp) -> dict:
-        self.process.stdin.write(f"{name} {path} {width} {height} {spp}\n")
+    def render(self, name, path, width, height, spp, seed=0, out="-") -> dict:
+        self.process.stdin.write(f"{name} {path} {width} {height} {spp} {seed} {out}\n")
         self.process.stdin.flush()
         line = self.process.stdout.readline()
         if not line:
@@ -190,6 +210,42 @@ def mitsuba_child(paths: dict, sizes: dict) -> MitsubaChild:
         return MitsubaChild(("scalar_rgb",))
 
 
+def relmse(image: np.ndarray, reference: np.ndarray) -> float:
+    """Mean of (image - reference)^2 / (reference^2 + 0.01) over pixels and
+    channels (the 0.01 keeps black pixels from dominating)."""
+    image, reference = np.asarray(image, np.float64), np.asarray(reference, np.float64)
+    return float(np.mean((image - reference) ** 2 / (reference ** 2 + 1e-2)))
+
+
+def equal_time(child, ours, paths, sizes, devices, times, folder, kind) -> dict:
+    """Per scene: each renderer's relMSE against a high-spp Mitsuba reference
+    after the time Mitsuba takes for EQUAL_TIME_SPP (the module's
+    definitions)."""
+    out = {}
+    for name, path in paths.items():
+        width, height, spp = sizes[name]
+        reference_spp, budget_spp = REFERENCE_SPP[kind], EQUAL_TIME_SPP[kind]
+        say(f"{name}: Mitsuba reference at {reference_spp} spp")
+        child.render(name, path, width, height, reference_spp, seed=1000,
+                     out=str(folder / "reference.npy"))
+        reference = np.load(folder / "reference.npy")[..., :3]
+        per_sample = summary(times[name, "mitsuba"])["median"] / spp
+        budget = per_sample * budget_spp
+        child.render(name, path, width, height, budget_spp, seed=7,
+                     out=str(folder / "equal.npy"))
+        renders = {"mitsuba": {"spp": budget_spp,
+                               "relmse": relmse(np.load(folder / "equal.npy")[..., :3],
+                                                reference)}}
+        for device in devices:
+            loaded, renderer, options = ours[name, device]
+            image = renderer.render(loaded.camera, width, height, hdr=True,
+                                    **{**options, "spp": None, "seed": 7},
+                                    time_budget=budget)
+            renders[device] = {"spp": renderer.stats["spp"], "relmse": relmse(image, reference)}
+        out[name] = {"seconds": budget, "reference_spp": reference_spp, "renders": renders}
+    return out
+
+
 def main(argv=None) -> dict:
     args = arguments(__doc__.splitlines()[0], argv,
                      (["--rounds"], {"type": int, "default": 3, "help": "timed rounds"}))
@@ -212,7 +268,7 @@ def main(argv=None) -> dict:
             for device in devices:
                 loaded = load(path, device, defaults={"res_x": width, "res_y": height})
                 renderer = loaded.renderer()
-                options = {**loaded.options, "spp": spp}
+                options = {**loaded.options, "spp": spp, "max_depth": MAX_DEPTH}
                 renderer.render(loaded.camera, 8, 8, **options)  # compiles
                 ours[name, device] = (loaded, renderer, options)
         times = {key: [] for key in [(n, d) for n in paths for d in devices]
@@ -230,6 +286,8 @@ def main(argv=None) -> dict:
                 answer = child.render(name, path, width, height, spp)
                 times[name, "mitsuba"].append(answer["seconds"])
                 means[name, "mitsuba"].append(answer["mean"])
+        quality = equal_time(child, ours, paths, sizes, devices, times, folder,
+                             "quick" if args.quick else "full")
         child.close()
     rows = []
     for name in paths:
@@ -245,10 +303,17 @@ def main(argv=None) -> dict:
                              "seconds": summary(times[name, device])}
             rows.append([name, f"{width}x{height}, {spp} spp", device, f"{rate / 1e6:.2f}",
                          f"{theirs / 1e6:.2f}", f"{rate / theirs:.2f}x"])
+        entry["equal_time"] = quality[name]
         results["scenes"][name] = entry
     print(table(["scene", "size", "device", "ours (Msamples/s)",
                  f"Mitsuba {results['mitsuba']}", "ratio"], rows,
                 title="path tracing, samples per second (median of the rounds)"))
+    rows = [[name, q["seconds"] and f"{q['seconds']:.2f} s", who, str(r["spp"]),
+             f"{r['relmse']:.4g}"]
+            for name, q in quality.items() for who, r in q["renders"].items()]
+    print(table(["scene", "time", "renderer", "spp", "relMSE"], rows,
+                title=f"equal time: relMSE against Mitsuba at "
+                      f"{quality[next(iter(quality))]['reference_spp']} spp"))
     return finish(results, "path", args, elapsed)
 
 

@@ -23,10 +23,14 @@ rule), which keeps the estimate unbiased.
 The stages run as a wavefront (Laine, Karras & Aila 2013): the path states
 live in a device buffer, and per bounce the host enqueues the surface
 stage, the shadow rays (query/rays.cl's any-hit walk), their resolve, and
-the next closest hits (its closest-hit walk).  Paths that end take empty
-rays, which cost one node.  No bounce waits on the host, but to stop when
-every path of a pass has ended the host reads each bounce's count of live
-paths, two bounces behind the device.
+the next closest hits (its closest-hit walk).  The paths that go on are
+compacted on the device into the next bounce's first slots (an atomic
+counter; a path's random numbers follow its pixel, so the image does not
+depend on the order).  No bounce waits on the host: it reads each bounce's
+count of live paths two bounces behind the device, launches the next
+bounces over that many (an upper bound, as paths only end; the slots past
+the live ones hold empty rays, which cost one node), and stops when none
+is left.
 
 Shading uses the geometric normal (Mitsuba's ``face_normals``).
 """
@@ -122,7 +126,8 @@ class Path(Integrator):
 
     #: Bytes per pixel of a pass of the integrator's own buffers.
     PER_PIXEL = {"path states": layout.PATH_STATE.itemsize, "shadow rays": layout.RAY.itemsize,
-                 "occluded": 1, "pending light": 16}
+                 "occluded": 1, "pending light": 16, "next rays": layout.RAY.itemsize,
+                 "path numbers": 8}
 
     def __init__(self):
         self._pixels = 0
@@ -141,14 +146,17 @@ class Path(Integrator):
     def prepare(self, rt: Runtime, settings, tree, look: Look, pixels: int) -> None:
         self.rt, self.settings = rt, settings
         self._kernels = {name: rt.kernel(KERNEL, name) for name in
-                         ("path_start", "path_surface", "path_unoccluded", "path_finish")}
+                         ("path_start", "path_surface", "path_empty_tail", "path_unoccluded",
+                          "path_finish")}
         if pixels > self._pixels:
             context, rw = rt.context, cl.mem_flags.READ_WRITE
             self.states = cl.Buffer(context, rw, pixels * layout.PATH_STATE.itemsize)
             self.shadow = cl.Buffer(context, rw, pixels * layout.RAY.itemsize)
             self.occluded = cl.Buffer(context, rw, pixels)
             self.pending = cl.Buffer(context, rw, pixels * 16)  # float4
-            self.live = cl.Buffer(context, rw, 4 * UNLIMITED_BOUNCES)
+            self.next_rays = cl.Buffer(context, rw, pixels * layout.RAY.itemsize)
+            self.numbers = [cl.Buffer(context, rw, pixels * 4) for _ in range(2)]
+            self.live = cl.Buffer(context, rw, 4 * (UNLIMITED_BOUNCES + 1))
             self._pixels = pixels
         tables = light_tables(look, tree.scale, tree.bounds_lo, tree.bounds_hi)
         for name in ("materials", "vertices", "cdf", "owners", "deltas"):
@@ -172,6 +180,12 @@ class Path(Integrator):
         self.last_bounces = []
 
     def shade(self, step: Step) -> None:
+        """The bounces of one sample of a band.  Pass d traces the
+        live[d] paths that went on from pass d - 1, compacted on the device
+        (path_surface); the host does not wait for that count but launches
+        over the last count it has read, LOOKAHEAD passes behind (never
+        fewer, since paths only end), and the slots past live[d] hold empty
+        rays."""
         rt, band, kernels, events = step.rt, step.band, self._kernels, step.events
         count, sample = np.uint32(band.count), np.uint32(step.sample)
         stream, first_pixel = np.uint32(step.stream), np.uint32(int(band.first_row) * band.width)
@@ -179,27 +193,38 @@ class Path(Integrator):
         bounces = self.settings.max_depth if self.settings.max_depth > 0 else UNLIMITED_BOUNCES
         events["shade"].append(rt.run(kernels["path_start"], band.count, count, self.states))
         events["shade"].append(cl.enqueue_fill_buffer(rt.queue, self.live, np.uint32(0), 0,
-                                                      4 * bounces))
+                                                      4 * (bounces + 1)))
+        events["shade"].append(cl.enqueue_copy(rt.queue, self.live, np.array([count]),
+                                               is_blocking=False))
+        rays, next_rays = step.rays, self.next_rays
+        numbers, next_numbers = self.numbers
+        bound = band.count  # paths in this pass at most
         reads = []
         for depth in range(bounces):
+            at = np.int32(depth)
             if depth > 0:
                 events["closest"].append(step.query.enqueue_intersect(
-                    step.tree, step.rays, step.hits, band.count, step.overflow))
+                    step.tree, rays, step.hits, bound, step.overflow))
             events["shade"].append(rt.run(
-                kernels["path_surface"], band.count, step.rays, step.hits, self.states,
+                kernels["path_surface"], bound, rays, step.hits, numbers, self.states,
                 tables["materials"], tables["vertices"], tables["cdf"], tables["owners"],
-                tables["deltas"], self._params, count, first_pixel, stream,
-                np.int32(depth), self.shadow, self.pending, self.live))
+                tables["deltas"], self._params, np.uint32(bound), first_pixel, stream, at,
+                self.live, next_rays, next_numbers, self.shadow, self.pending))
+            events["shade"].append(rt.run(kernels["path_empty_tail"], bound, self.live, at,
+                                          np.uint32(bound), next_rays))
             events["occluded"].append(step.query.enqueue_occluded(
-                step.tree, self.shadow, self.occluded, band.count, step.overflow))
+                step.tree, self.shadow, self.occluded, bound, step.overflow))
             events["resolve"].append(rt.run(
-                kernels["path_unoccluded"], band.count, self.occluded, self.pending, count,
-                self.states))
+                kernels["path_unoccluded"], bound, self.occluded, self.pending, numbers,
+                self.live, at, np.uint32(bound), self.states))
             reads.append(cl.enqueue_copy(rt.queue, self._live[depth:depth + 1], self.live,
-                                         src_offset=4 * depth, is_blocking=False))
+                                         src_offset=4 * (depth + 1), is_blocking=False))
+            rays, next_rays = next_rays, rays
+            numbers, next_numbers = next_numbers, numbers
             if depth >= LOOKAHEAD:
                 rt.wait([reads[depth - LOOKAHEAD]])
-                if self._live[depth - LOOKAHEAD] == 0:
+                bound = int(self._live[depth - LOOKAHEAD])
+                if bound == 0:
                     break  # every path ended: what is enqueued after it finds none
         rt.wait(reads)
         self.last_bounces.append(int(self._live[:len(reads)].sum()))

@@ -6,13 +6,17 @@
  * the pass's paths, whose states live in a device buffer.  Closest-hit and
  * shadow rays are traced between the stages by query/rays.cl.
  *
- * Kernels (one work-item per path, in ray order)
+ * Kernels (one work-item per live path of the pass, in ray order; the
+ * first pass's paths are the camera's rays, a later pass's those that went
+ * on, compacted into its first live[depth] slots with their path numbers)
  *   path_start      a fresh path behind each camera ray
  *   path_surface    at the path's hit (or miss): the light it sees there,
  *                   a light sample (its shadow ray, and what it carries to
- *                   `pending`), and the next ray, sampled from the BSDF
+ *                   `pending`), and the next ray, sampled from the BSDF,
+ *                   in the next pass's next free slot
+ *   path_empty_tail empty rays in the next pass's slots past its live paths
  *   path_unoccluded a path's radiance += pending where its shadow ray was free
- *   path_finish     the film's sum += each path's radiance
+ *   path_finish     the film's sum += each path's radiance (by path)
  *
  * Random numbers: random_unit(pixel, sample, dimension) (render/random.h),
  * the camera's dimensions 0 and 1, then DIMENSIONS_PER_BOUNCE per bounce.
@@ -160,14 +164,12 @@ __kernel void path_start(const uint count, __global PathState* states)
     s->eta = 1.0f;
 }
 
-/* The path ends here, with what it gathered at this vertex: its next ray
- * is an empty one. */
-inline void end_path(__global PathState* s, __global Ray* next, float3 direction,
-                     float3 gathered)
+/* The path ends here, with what it gathered at this vertex: it takes no
+ * slot in the next pass. */
+inline void end_path(__global PathState* s, float3 gathered)
 {
     store3(s->radiance, LOAD_XYZ(s->radiance) + gathered);
     s->alive = 0;
-    write_empty_ray(next, direction);
 }
 
 /* No light sample at this vertex. */
@@ -177,33 +179,38 @@ inline void no_shadow_ray(__global Ray* shadow, __global float4* pending, float3
     *pending = (float4)(0.0f);
 }
 
-__kernel void path_surface(__global Ray* rays,               /* read, then the next rays */
+__kernel void path_surface(__global const Ray* rays,         /* the live paths' rays */
                            __global const Hit* hits,
-                           __global PathState* states,
+                           __global const uint* paths,       /* their paths (depth > 0) */
+                           __global PathState* states,       /* by path */
                            __global const PathMaterial* materials,  /* per geom_id */
                            __global const float* light_vertices,    /* 9 floats per triangle */
                            __global const float* light_cdf,
                            __global const int* light_geom,
                            __global const DeltaLight* delta_lights,
                            const PathParams params,
-                           const uint count,
+                           const uint bound,          /* work-items: >= live[depth] */
                            const uint first_pixel,    /* the pass's first pixel: random streams */
                            const uint sample,
                            const int depth,           /* segments the paths have so far, - 1 */
-                           __global Ray* shadow,
-                           __global float4* pending,
-                           __global uint* live)       /* live[depth] += paths that go on */
+                           __global uint* live,       /* live[depth]: paths in `rays`;
+                                                       * live[depth + 1] += paths that go on */
+                           __global Ray* next_rays,   /* the paths that go on, compacted */
+                           __global uint* next_paths,
+                           __global Ray* shadow,      /* by work-item */
+                           __global float4* pending)
 {
     uint gid = get_global_id(0);
-    if (gid >= count)
+    if (gid >= bound)
         return;
-    __global PathState* s = states + gid;
-    __global Ray* ray = rays + gid;
-    float3 d = LOAD_XYZ(ray->direction);
-    if (!s->alive) {
-        no_shadow_ray(shadow + gid, pending + gid, d);
+    if (gid >= live[depth]) {  /* past the live paths: nothing for the shadow pass */
+        no_shadow_ray(shadow + gid, pending + gid, (float3)(0.0f, 0.0f, 1.0f));
         return;
     }
+    uint path = depth == 0 ? gid : paths[gid];
+    __global PathState* s = states + path;
+    __global const Ray* ray = rays + gid;
+    float3 d = LOAD_XYZ(ray->direction);
     __global const Hit* hit = hits + gid;
     float length_d = length(d);
     float3 wo = -d / length_d;  /* unit, towards where the path came from */
@@ -214,7 +221,7 @@ __kernel void path_surface(__global Ray* rays,               /* read, then the n
         float weight = s->bsdf_pdf > 0.0f
             ? power_heuristic(s->bsdf_pdf, params.environment_probability * INV_FOUR_PI) : 1.0f;
         no_shadow_ray(shadow + gid, pending + gid, d);
-        end_path(s, ray, d, throughput * LOAD_XYZ(params.environment) * weight);
+        end_path(s, throughput * LOAD_XYZ(params.environment) * weight);
         return;
     }
     __global const PathMaterial* m = materials + hit->geom_id;
@@ -238,13 +245,13 @@ __kernel void path_surface(__global Ray* rays,               /* read, then the n
     }
     if (last || cos_out == 0.0f) {
         no_shadow_ray(shadow + gid, pending + gid, d);
-        end_path(s, ray, d, gathered);
+        end_path(s, gathered);
         return;
     }
     float3 x = LOAD_XYZ(ray->origin) + hit->t * d;
     /* secondary rays start off the surface on their own side of it */
     float3 lift = params.ray_offset * (cos_out > 0.0f ? geometric : -geometric);
-    uint pixel = first_pixel + gid, base = 2 + DIMENSIONS_PER_BOUNCE * (uint)depth;
+    uint pixel = first_pixel + path, base = 2 + DIMENSIONS_PER_BOUNCE * (uint)depth;
 
     /* next-event estimation, for a BSDF with a density: one light sample,
      * weighed against the BSDF's density of its direction (delta lights: no MIS) */
@@ -275,7 +282,7 @@ __kernel void path_surface(__global Ray* rays,               /* read, then the n
     throughput *= next.weight;
     float eta = s->eta * next.eta;
     if (!(luminance_max(throughput) > 0.0f)) {
-        end_path(s, ray, d, gathered);
+        end_path(s, gathered);
         return;
     }
     /* Russian roulette (Mitsuba's rule): from rr_depth on, a path goes on
@@ -284,7 +291,7 @@ __kernel void path_surface(__global Ray* rays,               /* read, then the n
         float q = luminance_max(throughput) * eta * eta;
         q = q < 0.95f ? q : 0.95f;
         if (!(random_unit(pixel, sample, base + 7) < q)) {
-            end_path(s, ray, next.direction, gathered);  /* its light sample above still counts */
+            end_path(s, gathered);  /* its light sample above still counts */
             return;
         }
         throughput /= q;
@@ -294,19 +301,39 @@ __kernel void path_surface(__global Ray* rays,               /* read, then the n
     s->eta = eta;
     store3(s->radiance, LOAD_XYZ(s->radiance) + gathered);
     float3 side = dot3(geometric, next.direction) > 0.0f ? geometric : -geometric;
-    write_ray(ray, x + params.ray_offset * side, next.direction, INFINITY);
-    atomic_inc(live + depth);
+    /* compaction (Laine, Karras & Aila 2013, sec. 4): the paths that go on
+     * take the next pass's first slots, in whatever order the atomic gives
+     * (a path's numbers depend on its pixel, not its slot) */
+    uint slot = atomic_inc(live + depth + 1);
+    write_ray(next_rays + slot, x + params.ray_offset * side, next.direction, INFINITY);
+    next_paths[slot] = path;
+}
+
+/* The next pass's slots from live[depth + 1] to `bound`: empty rays, which
+ * the closest-hit walk leaves after one node. */
+__kernel void path_empty_tail(__global const uint* live,
+                              const int depth,
+                              const uint bound,
+                              __global Ray* next_rays)
+{
+    uint gid = get_global_id(0);
+    if (gid >= bound || gid < live[depth + 1])
+        return;
+    write_empty_ray(next_rays + gid, (float3)(0.0f, 0.0f, 1.0f));
 }
 
 __kernel void path_unoccluded(__global const uchar* occluded,
                               __global const float4* pending,
-                              const uint count,
+                              __global const uint* paths,   /* as path_surface's */
+                              __global const uint* live,
+                              const int depth,
+                              const uint bound,
                               __global PathState* states)
 {
     uint gid = get_global_id(0);
-    if (gid >= count || occluded[gid])
+    if (gid >= bound || gid >= live[depth] || occluded[gid])
         return;
-    __global PathState* s = states + gid;
+    __global PathState* s = states + (depth == 0 ? gid : paths[gid]);
     store3(s->radiance, LOAD_XYZ(s->radiance) + pending[gid].xyz);
 }
 
