@@ -40,6 +40,7 @@ EMPTY_CHILD: int = CONSTANTS["EMPTY_CHILD"]
 WIDE_ARITY: int = CONSTANTS["WIDE_ARITY"]
 TILE_ROWS: int = CONSTANTS["TILE_ROWS"]
 TILE_COLUMNS: int = CONSTANTS["TILE_COLUMNS"]
+TRANSMISSION_TABLE: int = CONSTANTS["TRANSMISSION_TABLE"]
 
 _f3 = (np.float32, 3)
 
@@ -88,7 +89,10 @@ SHADE_PARAMS = np.dtype([
 PATH_MATERIAL = np.dtype([
     ("reflectance", *_f3), ("twosided", np.uint32), ("radiance", *_f3),
     ("emitter_pdf", np.float32), ("eta", *_f3), ("bsdf", np.uint32), ("k", *_f3),
-    ("alpha", np.float32), ("transmittance", *_f3), ("reserved", np.uint32),
+    ("alpha", np.float32), ("transmittance", *_f3), ("distribution", np.uint32),
+    ("specular", *_f3), ("specular_weight", np.float32), ("internal", np.float32),
+    ("nonlinear", np.uint32), ("reserved", np.float32, (2,)),
+    ("transmission", np.float32, (TRANSMISSION_TABLE,)),
 ])
 
 DELTA_LIGHT = np.dtype([("position", *_f3), ("type", np.uint32), ("value", *_f3),

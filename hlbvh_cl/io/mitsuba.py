@@ -12,8 +12,9 @@ The subset::
         <film type="hdrfilm">                       width, height (768 x 576)
           <rfilter type="box"/>                     box or gaussian (the default)
         <sampler type="independent">                sample_count (default 4)
-      <bsdf type="..." id="...">                    diffuse, conductor, roughconductor (ggx),
-                                                    dielectric, twosided; named or inline
+      <bsdf type="..." id="...">                    diffuse, conductor, roughconductor,
+                                                    dielectric, roughdielectric, plastic,
+                                                    roughplastic, twosided; named or inline
       <shape type="...">                            ply, obj (filename, face_normals),
                                                     rectangle, cube, sphere (center, radius);
         <transform name="to_world">                 translate, rotate, scale, matrix, lookat
@@ -43,6 +44,7 @@ import numpy as np
 from ..mesh import Mesh
 from ..render.camera import Camera
 from ..render.light import Light
+from ..render.materials import BSDFS, check_material
 from .description import MeshEntry, SceneDescription, SceneFileError, shape_mesh
 
 #: Mitsuba's defaults that the subset uses.
@@ -51,18 +53,15 @@ SAMPLE_COUNT = 4
 
 #: Named indices of refraction Mitsuba accepts for int_ior and ext_ior.
 IORS = {"vacuum": 1.0, "air": 1.000277, "water": 1.3330, "bk7": 1.5046, "glass": 1.5,
-        "polycarbonate": 1.58, "diamond": 2.419, "acrylic glass": 1.49, "fused quartz": 1.458}
+        "polycarbonate": 1.58, "diamond": 2.419, "acrylic glass": 1.49, "fused quartz": 1.458,
+        "polypropylene": 1.49}
 
 _VALUE_TAGS = ("rgb", "float", "integer", "string", "boolean", "point", "vector", "transform",
                "ref", "bsdf", "emitter", "rfilter", "film", "sampler")
 
-#: The plugin types read, and the parameters each takes.
-_BSDFS = {"diffuse": ("reflectance",),
-          "conductor": ("eta", "k", "specular_reflectance", "material"),
-          "roughconductor": ("eta", "k", "specular_reflectance", "material", "distribution",
-                             "alpha"),
-          "dielectric": ("int_ior", "ext_ior", "specular_reflectance", "specular_transmittance"),
-          "twosided": ()}
+#: The plugin types read, and the parameters each takes: the BSDFs are
+#: materials.py's (twosided's inner BSDF is an element, not a parameter).
+_BSDFS = {kind: () if kind == "twosided" else params for kind, params in BSDFS.items()}
 _EMITTERS = {"area": ("radiance",), "point": ("position", "intensity", "to_world"),
              "directional": ("direction", "irradiance", "to_world"), "constant": ("radiance",)}
 _SHAPES = {"ply": ("filename", "face_normals", "to_world", "flip_normals"),
@@ -379,7 +378,6 @@ def _bsdf(reader: _Reader, node: _Node) -> dict:
                 raise reader.error(node, f"{key} {spec[key]!r} is not a named index this reader "
                                          f"knows ({', '.join(IORS)})")
             spec[key] = IORS[name]
-    from ..render.materials import check_material
     try:
         check_material(f"{reader.path}:{node.line}: <bsdf type=\"{kind}\">", spec)
     except (TypeError, ValueError) as error:

@@ -11,15 +11,27 @@ to one:
   equations for the complex index eta + i k (numbers or RGB); Mitsuba's
   defaults, eta 0 and k 1, make a perfect mirror.  One-sided.  Named
   metals ("material": "Au") are refused: give eta and k.
-- ``{"type": "roughconductor", "distribution": "ggx", "alpha": 0.1, "eta": 0,
-  "k": 1, "specular_reflectance": 1}``: a rough metal, the GGX microfacet
-  model sampled by its visible normals.  Mitsuba's default distribution is
-  "beckmann", which is not written yet: name "ggx".  Isotropic only
-  (alpha, not alpha_u and alpha_v).
+- ``{"type": "roughconductor", "distribution": "beckmann", "alpha": 0.1,
+  "eta": 0, "k": 1, "specular_reflectance": 1}``: a rough metal, a
+  microfacet model, "beckmann" (Mitsuba's default; sampled by D cos) or
+  "ggx" (sampled by its visible normals).  Isotropic only (alpha, not
+  alpha_u and alpha_v).
 - ``{"type": "dielectric", "int_ior": 1.5046, "ext_ior": 1.000277,
   "specular_reflectance": 1, "specular_transmittance": 1}``: smooth glass,
   Fresnel reflection or refraction (Mitsuba's defaults: BK7 in air; an
   index is a number > 0).  It has no back side.
+- ``{"type": "roughdielectric", "distribution": "beckmann", "alpha": 0.1,
+  "int_ior": 1.5046, "ext_ior": 1.000277, "specular_reflectance": 1,
+  "specular_transmittance": 1}``: rough glass (Walter et al. 2007); the
+  indices must differ.  No back side.
+- ``{"type": "plastic", "diffuse_reflectance": 0.5, "specular_reflectance":
+  1, "int_ior": 1.49, "ext_ior": 1.000277, "nonlinear": False}``: a diffuse
+  base under a smooth dielectric coating (Mitsuba's defaults:
+  polypropylene in air); ``nonlinear`` scales the light bouncing inside the
+  coating by the base's albedo.  One-sided.
+- ``{"type": "roughplastic", "distribution": "beckmann", "alpha": 0.1, ...}``:
+  the same under a rough coating, with plastic's parameters besides; the
+  indices must differ.  One-sided.
 - ``{"type": "twosided", "bsdf": {...}}``: a one-sided BSDF on both sides.
 
 Renderer.materials = None gives every mesh a two-sided diffuse BSDF of its
@@ -33,7 +45,10 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from ..core import inputs, layout
+from . import coating
 from .plugins import plugin_type
+
+_PLASTIC = ("diffuse_reflectance", "specular_reflectance", "int_ior", "ext_ior", "nonlinear")
 
 #: The BSDF types written so far, and the parameters each takes.
 BSDFS = {"diffuse": ("reflectance",),
@@ -41,10 +56,18 @@ BSDFS = {"diffuse": ("reflectance",),
          "roughconductor": ("eta", "k", "specular_reflectance", "material", "distribution",
                             "alpha"),
          "dielectric": ("int_ior", "ext_ior", "specular_reflectance", "specular_transmittance"),
+         "roughdielectric": ("int_ior", "ext_ior", "specular_reflectance",
+                             "specular_transmittance", "distribution", "alpha"),
+         "plastic": _PLASTIC,
+         "roughplastic": (*_PLASTIC, "distribution", "alpha"),
          "twosided": ("bsdf",)}
 
 #: PathMaterial.bsdf of each (kernels/render/bsdfs/bsdf.h).
-CODES = {"diffuse": 0, "conductor": 1, "dielectric": 2, "roughconductor": 3}
+CODES = {"diffuse": 0, "conductor": 1, "dielectric": 2, "roughconductor": 3, "plastic": 4,
+         "roughplastic": 5, "roughdielectric": 6}
+
+#: PathMaterial.distribution of each (kernels/render/bsdfs/microfacet.h).
+DISTRIBUTIONS = {"ggx": 0, "beckmann": 1}
 
 #: Mitsuba's default roughness.
 DEFAULT_ALPHA = 0.1
@@ -53,6 +76,9 @@ DEFAULT_ALPHA = 0.1
 #: refraction for a dielectric (BK7 inside, air outside).
 DEFAULT_REFLECTANCE = 0.5
 BK7, AIR = 1.5046, 1.000277
+
+#: Mitsuba's default inside index of plastic: polypropylene.
+POLYPROPYLENE = 1.49
 
 _LARGE = float(np.finfo(np.float32).max) ** 0.25  # eta and k are squared twice
 
@@ -65,7 +91,7 @@ def _bsdf(name: str, spec) -> np.void:
         if "bsdf" not in spec:
             raise ValueError(f"{name}: twosided needs the BSDF it wraps ('bsdf')")
         inner = _bsdf(f"{name}['bsdf']", spec["bsdf"])
-        if inner["twosided"] or inner["bsdf"] == CODES["dielectric"]:
+        if inner["twosided"] or inner["bsdf"] in (CODES["dielectric"], CODES["roughdielectric"]):
             raise ValueError(f"{name}['bsdf'] has no back side to wrap (twosided or dielectric)")
         inner["twosided"] = 1
         return inner
@@ -73,16 +99,11 @@ def _bsdf(name: str, spec) -> np.void:
 
     def color(key, default, high=1.0):
         return inputs.color(f"{name}[{key!r}]", spec.get(key, default), high)
+    if kind.startswith("rough"):
+        _microfacet(name, spec, record)
     if kind == "diffuse":
         record["reflectance"] = color("reflectance", DEFAULT_REFLECTANCE)
     elif kind in ("conductor", "roughconductor"):
-        if kind == "roughconductor":
-            distribution = spec.get("distribution", "beckmann")
-            if distribution != "ggx":
-                raise ValueError(f"{name}: distribution {distribution!r} is not written yet "
-                                 "(Mitsuba's default is 'beckmann'); give 'distribution': 'ggx'")
-            record["alpha"] = inputs.number(f"{name}['alpha']", spec.get("alpha", DEFAULT_ALPHA),
-                                            1e-4, 1.0)
         material = spec.get("material", "none")
         if material != "none":
             raise ValueError(f"{name}: named conductors ({material!r}) are not written yet; "
@@ -90,15 +111,53 @@ def _bsdf(name: str, spec) -> np.void:
         record["reflectance"] = color("specular_reflectance", 1.0)
         record["eta"] = color("eta", 0.0, _LARGE)
         record["k"] = color("k", 1.0, _LARGE)
-    else:  # dielectric
+    elif kind in ("dielectric", "roughdielectric"):
         record["reflectance"] = color("specular_reflectance", 1.0)
         record["transmittance"] = color("specular_transmittance", 1.0)
-        inside = inputs.number(f"{name}['int_ior']", spec.get("int_ior", BK7), 0.0, _LARGE,
-                               low_open=True)
-        outside = inputs.number(f"{name}['ext_ior']", spec.get("ext_ior", AIR), 0.0, _LARGE,
-                                low_open=True)
-        record["eta"] = inside / outside
+        record["eta"] = _eta(name, spec, BK7, differ=kind == "roughdielectric")
+    else:  # plastic, roughplastic
+        albedo = color("diffuse_reflectance", DEFAULT_REFLECTANCE)
+        specular = color("specular_reflectance", 1.0)
+        nonlinear = spec.get("nonlinear", False)
+        if not isinstance(nonlinear, (bool, np.bool_)):
+            raise TypeError(f"{name}['nonlinear'] must be True or False, got {nonlinear!r}")
+        eta = _eta(name, spec, POLYPROPYLENE, differ=kind == "roughplastic")
+        record["reflectance"], record["specular"], record["eta"] = albedo, specular, eta
+        record["nonlinear"] = int(nonlinear)
+        # Mitsuba's steering of samples: the tints' means
+        means = float(albedo.mean()) + float(specular.mean())
+        record["specular_weight"] = specular.mean() / means if means > 0 else 0.5
+        if kind == "plastic":
+            record["internal"] = coating.diffuse_fresnel(1.0 / eta)
+        else:
+            record["transmission"], record["internal"] = coating.roughplastic_tables(
+                spec.get("distribution", "beckmann"), float(record["alpha"]), eta,
+                layout.TRANSMISSION_TABLE)
     return record
+
+
+def _microfacet(name: str, spec, record: np.void) -> None:
+    """A rough BSDF's distribution and roughness into ``record``."""
+    distribution = spec.get("distribution", "beckmann")
+    if not isinstance(distribution, str) or distribution not in DISTRIBUTIONS:
+        raise ValueError(f"{name}['distribution'] must be one of {tuple(DISTRIBUTIONS)}, got "
+                         f"{distribution!r} (Mitsuba's default is 'beckmann')")
+    record["distribution"] = DISTRIBUTIONS[distribution]
+    record["alpha"] = inputs.number(f"{name}['alpha']", spec.get("alpha", DEFAULT_ALPHA),
+                                    1e-4, 1.0)
+
+
+def _eta(name: str, spec, inside_default: float, differ: bool) -> float:
+    """int_ior / ext_ior, each a number > 0; ``differ``: a rough interface
+    of equal indices is refused, as Mitsuba refuses it."""
+    inside = inputs.number(f"{name}['int_ior']", spec.get("int_ior", inside_default), 0.0,
+                           _LARGE, low_open=True)
+    outside = inputs.number(f"{name}['ext_ior']", spec.get("ext_ior", AIR), 0.0, _LARGE,
+                            low_open=True)
+    if differ and inside == outside:
+        raise ValueError(f"{name}: int_ior and ext_ior are both {inside}: a rough interface "
+                         "needs two different indices")
+    return inside / outside
 
 
 def check_material(name: str, spec) -> np.void:

@@ -269,7 +269,11 @@ __kernel void path_surface(__global const Ray* rays,         /* the live paths' 
         /* stop short of the light itself: by the offset, or 0.1% of a short reach */
         float margin = params.ray_offset < 1e-3f * light.reach ? params.ray_offset
                                                                : 1e-3f * light.reach;
-        write_ray(shadow + gid, x + lift, light.direction, light.reach - margin);
+        /* a light behind a transmitting BSDF: the shadow ray starts on the
+         * light's side, up to twice the offset nearer the light */
+        bool behind = dot3(geometric, light.direction) * dot3(geometric, lift) < 0.0f;
+        float reach = light.reach - margin - (behind ? 2.0f * params.ray_offset : 0.0f);
+        write_ray(shadow + gid, behind ? x - lift : x + lift, light.direction, reach);
         pending[gid] = (float4)(carried, 0.0f);
     } else {
         no_shadow_ray(shadow + gid, pending + gid, d);

@@ -4,21 +4,32 @@
 #ifndef INTEGRATORS_PATH_H
 #define INTEGRATORS_PATH_H
 
+/* Entries of a roughplastic's transmittance table (Mitsuba's resolution). */
+#define TRANSMISSION_TABLE 64
+
 /* A mesh's surface, by geom_id: its BSDF (render/bsdfs/) and its area
  * emission. */
 typedef struct {
-    float reflectance[3];    /* diffuse: the albedo; conductor, dielectric: specular_reflectance */
+    float reflectance[3];    /* diffuse: the albedo; conductor, dielectric: specular_reflectance;
+                              * plastic: diffuse_reflectance */
     uint twosided;           /* 1: both sides reflect; 0: the back side is black (Mitsuba's rule) */
     float radiance[3];       /* emitted on the front side, along the geometric normal (0: none) */
     float emitter_pdf;       /* the area density with which light sampling picks a point
                               * on this mesh: P(triangles) * lum(radiance) / sum(area * lum) */
-    float eta[3];            /* conductor: the index's real part; dielectric: eta[0] =
-                              * int_ior / ext_ior */
+    float eta[3];            /* conductor: the index's real part; dielectric, plastic:
+                              * eta[0] = int_ior / ext_ior */
     uint bsdf;               /* BSDF_* (render/bsdfs/bsdf.h) */
     float k[3];              /* conductor: the index's imaginary part */
-    float alpha;             /* reserved: microfacet roughness */
+    float alpha;             /* rough BSDFs: the microfacet roughness */
     float transmittance[3];  /* dielectric: specular_transmittance */
-    uint reserved;
+    uint distribution;       /* rough BSDFs: MICROFACET_* (render/bsdfs/microfacet.h) */
+    float specular[3];       /* plastic: specular_reflectance */
+    float specular_weight;   /* plastic: the share of samples steered to the coating */
+    float internal;          /* plastic: the coating's diffuse reflectance from inside */
+    uint nonlinear;          /* plastic: 1 scales the internal reflection by the albedo */
+    float reserved[2];
+    float transmission[TRANSMISSION_TABLE];  /* roughplastic: the coating's transmittance
+                                              * at cos theta = i / (TRANSMISSION_TABLE - 1) */
 } PathMaterial;
 
 /* A light of no extent, which light sampling alone can reach. */
