@@ -34,7 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hlbvh_cl.io.scenefile import load, read
+from hlbvh_cl.io.scenefile import load
+from hlbvh_cl.io.to_mitsuba import write_xml
 
 from .common import (BENCH, arguments, devices_or_exit, finish, machine_info, say, stopwatch,
                      summary, table)
@@ -82,66 +83,10 @@ for line in sys.stdin:
 """
 
 
-def _xml_value(value) -> str:
-    if isinstance(value, (list, tuple, np.ndarray)):
-        return f'<rgb name="{{}}" value="{", ".join(f"{float(v):.9g}" for v in value)}"/>'
-    if isinstance(value, str):
-        return f'<string name="{{}}" value="{value}"/>'
-    return f'<float name="{{}}" value="{float(value):.9g}"/>'
-
-
-def _bsdf_xml(spec: dict) -> str:
-    if spec["type"] == "twosided":
-        return f'<bsdf type="twosided">{_bsdf_xml(spec["bsdf"])}</bsdf>'
-    body = "".join(_xml_value(v).format(k) for k, v in spec.items() if k != "type")
-    return f'<bsdf type="{spec["type"]}">{body}</bsdf>'
-
-
 def materials_xml(folder: Path) -> Path:
-    """scenes/materials.toml as Mitsuba XML: each mesh (split and placed)
-    as a PLY, face normals, the file's materials and emitters, and the
-    camera as a look_at with the same vertical field of view."""
-    import trimesh
-    description = read(SCENES_DIR / "materials.toml")
-    materials = description.materials()
-    emitters = description.all_emitters() or []
-    entries = list(description.meshes) + [description.ground]
-    shapes = []
-    for k, entry in enumerate(entries):
-        mesh = entry.mesh
-        trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(folder / f"mesh{k}.ply")
-        emitter = next((e for e in emitters if e.get("mesh") == k), None)
-        light = (f'<emitter type="area">{_xml_value(emitter["radiance"]).format("radiance")}'
-                 "</emitter>") if emitter else ""
-        shapes.append(f'<shape type="ply"><string name="filename" value="mesh{k}.ply"/>'
-                      f'<boolean name="face_normals" value="true"/>{_bsdf_xml(materials[k])}'
-                      f"{light}</shape>")
-    others = []
-    for e in emitters:
-        if e["type"] == "constant":
-            others.append(f'<emitter type="constant">{_xml_value(e["radiance"]).format("radiance")}'
-                          "</emitter>")
-    camera = description.camera
-    text = f"""<scene version="3.0.0">
-  <default name="res_x" value="{description.width}"/>
-  <default name="res_y" value="{description.height}"/>
-  <integrator type="path"><integer name="max_depth" value="{MAX_DEPTH}"/></integrator>
-  <sensor type="perspective">
-    <float name="fov" value="{camera.fov_deg}"/><string name="fov_axis" value="y"/>
-    <transform name="to_world"><lookat origin="{', '.join(map(str, camera.eye))}"
-      target="{', '.join(map(str, camera.target))}" up="{', '.join(map(str, camera.up))}"/>
-    </transform>
-    <film type="hdrfilm"><integer name="width" value="$res_x"/>
-      <integer name="height" value="$res_y"/><rfilter type="box"/></film>
-    <sampler type="independent"><integer name="sample_count" value="4"/></sampler>
-  </sensor>
-  {''.join(shapes)}
-  {''.join(others)}
-</scene>
-"""
-    path = folder / "materials.xml"
-    path.write_text(text)
-    return path
+    """scenes/materials.toml as Mitsuba XML (hlbvh_cl.io.to_mitsuba), max
+    depth MAX_DEPTH."""
+    return write_xml(SCENES_DIR / "materials.toml", folder, max_depth=MAX_DEPTH)
 
 
 def cornell_xml(folder: Path) -> Path:

@@ -21,6 +21,7 @@ import pytest
 import trimesh
 
 import hlbvh_cl
+from block_means import assert_blocks_agree
 
 #: Independent seeds per comparison: their spread gives the standard error.
 SEEDS = 4
@@ -89,17 +90,7 @@ def assert_agrees(theirs, ours, block):
     a, b = (images.reshape(SEEDS, -1).astype(np.float64).mean(1) for images in (theirs, ours))
     stderr = np.sqrt((a.var(ddof=1) + b.var(ddof=1)) / SEEDS)
     assert abs(a.mean() - b.mean()) < 0.01 * a.mean() + 4 * stderr, (a.mean(), b.mean(), stderr)
-    height, width = theirs.shape[1:3]
-    for y in range(0, height, block):
-        for x in range(0, width, block):
-            a = theirs[:, y:y + block, x:x + block].reshape(SEEDS, -1, 3).astype(np.float64)
-            b = ours[:, y:y + block, x:x + block].reshape(SEEDS, -1, 3).astype(np.float64)
-            n = a.shape[1]
-            stderr = np.sqrt((a.var(0, ddof=1).sum(0) + b.var(0, ddof=1).sum(0)) / SEEDS) / n
-            difference = np.abs(a.mean((0, 1)) - b.mean((0, 1)))
-            bound = 5 * stderr + 0.02 * a.mean((0, 1)) + 1e-6
-            assert (difference <= bound).all(), (
-                f"block ({y}, {x}): Mitsuba {a.mean((0, 1))}, ours {b.mean((0, 1))}")
+    assert_blocks_agree(theirs, ours, block)
 
 
 def mitsuba_scene(mi, shapes, materials, tmp_path, eye, target, fov, width, height, spp,
