@@ -71,7 +71,8 @@ class Pipeline:
     """
 
     #: Bytes per pixel of a pass of the pipeline's own buffers.
-    PER_PIXEL = {"primary rays": layout.RAY.itemsize, "hits": layout.HIT.itemsize}
+    PER_PIXEL = {"primary rays": layout.RAY.itemsize, "hits": layout.HIT.itemsize,
+                 "hit instances": 4}
 
     def __init__(self, rt: Runtime, query: RayQuery | None = None):
         self.rt = rt
@@ -117,6 +118,7 @@ class Pipeline:
             context, rw = self.rt.context, cl.mem_flags.READ_WRITE
             self.primary = cl.Buffer(context, rw, pixels * layout.RAY.itemsize)
             self.hits = cl.Buffer(context, rw, pixels * layout.HIT.itemsize)
+            self.instances = cl.Buffer(context, rw, pixels * 4)  # int32 per ray
             self._pixels = pixels
         self.film.reserve(self.rt, pixels, image_pixels, hdr)
 
@@ -158,11 +160,14 @@ class Pipeline:
                     events["camera"].append(enqueue_primary_rays(
                         rt, pinhole, width, height, band, settings.stream(sample),
                         settings.jitter(), self.primary))
+                    instances = self.instances if integrator.needs_instances else None
                     events["closest"].append(self.query.enqueue_intersect(
-                        tree, self.primary, self.hits, band.count, self._overflow))
+                        tree, self.primary, self.hits, band.count, self._overflow,
+                        instances=instances))
                     integrator.shade(Step(rt, self.query, tree, band, sample,
                                           settings.stream(sample), self.primary, self.hits,
-                                          self.film.accum, self._overflow, events, step_done))
+                                          self.film.accum, self._overflow, instances, events,
+                                          step_done))
                 if hdr:
                     events["encode"].append(self.film.resolve(rt, band, width, settings.spp))
                 else:
@@ -253,24 +258,34 @@ class Renderer:
         colors = check_colors(default_colors(count) if self.colors is None else self.colors, count)
         light = check_light(Light() if self.light is None else self.light)
         emitters = check_emitters(self.emitters, count)
+        triangles, normals = self._emissive(emitters)
+        transforms = self.scene.transforms
+        instance_maps = None if transforms is None else \
+            np.linalg.inv(np.asarray(transforms, np.float64)[:, :, :3]).transpose(0, 2, 1)
         return Look(colors, light, material_table(self.materials, colors), emitters,
-                    self._emissive(emitters))
+                    triangles, normals, tuple(self.scene.meshes), instance_maps)
 
-    def _emissive(self, emitters) -> dict:
-        """The world triangles of each emitting mesh (every instance's)."""
-        out = {}
+    def _emissive(self, emitters) -> tuple[dict, dict]:
+        """The world triangles of each emitting mesh (every instance's), and
+        their corners' world shading normals (None: face normals)."""
+        triangles, normals = {}, {}
         scene = self.scene
         for mesh in emitters.area:
             m = scene.meshes[mesh]
-            triangles = np.asarray(m.vertices, np.float64)[np.asarray(m.faces)]
+            corners = np.asarray(m.vertices, np.float64)[np.asarray(m.faces)]
+            smooth = None if m.face_normals else \
+                np.asarray(m.normals, np.float64)[np.asarray(m.faces)]
             if scene.transforms is None:
-                out[mesh] = triangles
+                triangles[mesh], normals[mesh] = corners, smooth
                 continue
             maps = np.asarray(scene.transforms, np.float64)[scene.instance_meshes == mesh]
-            out[mesh] = np.concatenate(
-                [triangles @ a[:, :3].T + a[:, 3] for a in maps]) if len(maps) \
+            triangles[mesh] = np.concatenate(
+                [corners @ a[:, :3].T + a[:, 3] for a in maps]) if len(maps) \
                 else np.zeros((0, 3, 3))
-        return out
+            normals[mesh] = None if smooth is None else np.concatenate(
+                [smooth @ np.linalg.inv(a[:, :3]) for a in maps]) if len(maps) \
+                else np.zeros((0, 3, 3))
+        return triangles, normals
 
 
 def _progress_bar(enabled: bool, total: int):

@@ -134,7 +134,7 @@ def test_the_cornell_box_renders_as_in_mitsuba(suite_device):
     ('<shape type="cube"><bsdf type="roughdielectric"/></shape>',
      ":11: <bsdf type=\"roughdielectric\">: BSDF type 'roughdielectric' is not read"),
     ('<shape type="ply"><string name="filename" value="m.ply"/></shape>',
-     "needs <boolean name=\"face_normals\" value=\"true\"/>"),
+     "mesh file not found"),
     ('<shape type="cube"><float name="radius" value="1"/></shape>',
      "cube takes ('to_world', 'flip_normals'), not 'radius'"),
     ('<emitter type="envmap"/>', "emitter type 'envmap' is not read at the top"),

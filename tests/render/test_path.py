@@ -365,8 +365,8 @@ def test_a_small_scene_agrees_with_mitsuba_3(rfilter, tmp_path, suite_device):
     theirs = np.stack([np.asarray(mi.render(mi.load_dict(described), seed=seed))[..., :3]
                        for seed in range(SEEDS)])
 
-    scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(s.vertices, s.faces) for s in shapes],
-                           device=suite_device)
+    scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(s.vertices, s.faces, face_normals=True)
+                            for s in shapes], device=suite_device)
     renderer = hlbvh_cl.Renderer(scene, materials=ours_materials, emitters=[
         {"type": "area", "mesh": len(shapes) - 1, "radiance": 5.0},
         {"type": "constant", "radiance": 0.2}, *emitters])

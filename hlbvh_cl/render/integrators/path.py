@@ -28,7 +28,12 @@ rays, which cost one node.  No bounce waits on the host, but to stop when
 every path of a pass has ended the host reads each bounce's count of live
 paths, two bounces behind the device.
 
-Shading uses the geometric normal (Mitsuba's ``face_normals``).
+Shading follows Mitsuba 3's rules (shading_tables; kernels/render/
+integrators/path.cl): BSDFs and area emitters see each mesh's shading
+normal, its vertex normals (Mesh.normals) interpolated at the hit and
+normalised, or the geometric normal where the mesh has ``face_normals``; the
+geometric normal decides only which side of the surface a new ray leaves
+from.
 """
 from __future__ import annotations
 
@@ -58,18 +63,22 @@ LIGHT_POINT, LIGHT_DIRECTIONAL = 0, 1
 def light_tables(look: Look, scale: float, bounds_lo, bounds_hi) -> dict:
     """The light sampling tables, in a tree's frame (coordinates times
     ``scale``): "materials", PathMaterial records with their emission;
-    "vertices", float32 (K, 9) of the emissive triangles; "cdf", their
+    "vertices", float32 (K, 9) of the emissive triangles; "normals", float32
+    (K, 9), their corners' shading normals (zeros: face normals); "cdf", their
     float32 CDF by power; "owners", the mesh of each; "deltas", DeltaLight
     records; and the chances a light sample picks the environment or a delta
     light (emitters.py)."""
     materials = look.materials.copy()
-    vertices, weights, owners = [], [], []
+    vertices, normals, weights, owners = [], [], [], []
     for mesh, radiance in sorted(look.emitters.area.items()):
         triangles = np.asarray(look.emissive[mesh], np.float64) * scale
         area = 0.5 * np.linalg.norm(np.cross(triangles[:, 1] - triangles[:, 0],
                                              triangles[:, 2] - triangles[:, 0]), axis=1)
         keep = area > 0
         vertices.append(triangles[keep].reshape(-1, 9))
+        smooth = look.emissive_normals.get(mesh)
+        normals.append(np.zeros((int(keep.sum()), 9)) if smooth is None
+                       else np.asarray(smooth)[keep].reshape(-1, 9))
         weights.append(area[keep] * luminance(radiance))
         owners.append(np.full(int(keep.sum()), mesh, np.int32))
         materials[mesh]["radiance"] = radiance
@@ -106,6 +115,8 @@ def light_tables(look: Look, scale: float, bounds_lo, bounds_hi) -> dict:
     return {"materials": materials,
             "vertices": (np.concatenate(vertices).astype(np.float32) if vertices
                          else np.zeros((0, 9), np.float32)),
+            "normals": (np.concatenate(normals).astype(np.float32) if normals
+                        else np.zeros((0, 9), np.float32)),
             "cdf": cdf.astype(np.float32),
             "owners": np.concatenate(owners) if owners else np.zeros(0, np.int32),
             "deltas": deltas, "delta_count": len(look.emitters.deltas),
@@ -113,11 +124,38 @@ def light_tables(look: Look, scale: float, bounds_lo, bounds_hi) -> dict:
             "delta_probability": sum(chance(power) for power in delta_powers)}
 
 
+def shading_tables(meshes) -> dict:
+    """The shading normals of the meshes without face normals, as the kernels
+    read them: "faces", uint32 (T, 3) vertex rows into "normals", float32
+    (V, 3), the meshes one after another; "bases", int32 per mesh, its first
+    row of "faces" (-1: face normals)."""
+    faces, normals, bases = [], [], np.full(len(meshes), -1, np.int32)
+    triangles = vertices = 0
+    for k, mesh in enumerate(meshes):
+        if mesh.face_normals:
+            continue
+        bases[k] = triangles
+        faces.append(np.asarray(mesh.faces, np.int64) + vertices)
+        normals.append(mesh.normals)
+        triangles += mesh.triangle_count
+        vertices += mesh.vertex_count
+    if vertices >= 2 ** 32 or triangles >= 2 ** 31:
+        raise ValueError(f"the meshes' shading normals ({vertices:,} vertices, {triangles:,} "
+                         "triangles) overflow the path integrator's 32-bit indices; give the "
+                         "largest meshes face_normals=True")
+    return {"faces": (np.concatenate(faces).astype(np.uint32) if faces
+                      else np.zeros((0, 3), np.uint32)),
+            "normals": (np.concatenate(normals).astype(np.float32) if normals
+                        else np.zeros((0, 3), np.float32)),
+            "bases": bases}
+
+
 class Path(Integrator):
     """Path tracing with next-event estimation and MIS (the module's
     definitions)."""
 
     modes = ("path",)
+    needs_instances = True
 
     #: Bytes per pixel of a pass of the integrator's own buffers.
     PER_PIXEL = {"path states": layout.PATH_STATE.itemsize, "shadow rays": layout.RAY.itemsize,
@@ -126,6 +164,7 @@ class Path(Integrator):
     def __init__(self):
         self._pixels = 0
         self._tables: dict[str, cl.Buffer] = {}
+        self._shading: tuple = ((), {})  # (the meshes, their shading buffers)
         self.last_bounces: list[int] = []
 
     def buffer_sizes(self, pixels: int) -> dict[str, int]:
@@ -150,12 +189,22 @@ class Path(Integrator):
             self.live = cl.Buffer(context, rw, 4 * UNLIMITED_BOUNCES)
             self._pixels = pixels
         tables = light_tables(look, tree.scale, tree.bounds_lo, tree.bounds_hi)
-        for name in ("materials", "vertices", "cdf", "owners", "deltas"):
-            data = np.ascontiguousarray(tables[name])
-            # at least one element: OpenCL has no empty buffers
-            self._tables[name] = cl.Buffer(rt.context, cl.mem_flags.READ_ONLY
-                                           | cl.mem_flags.COPY_HOST_PTR,
-                                           hostbuf=data if data.nbytes else np.zeros(4, np.uint8))
+        meshes, shading = self._shading
+        if len(meshes) != len(look.meshes) or any(a is not b for a, b in zip(meshes, look.meshes)):
+            # Meshes are immutable: their normals go to the device once
+            found = shading_tables(look.meshes)
+            shading = {name: _upload(rt, found[name]) for name in ("faces", "normals")}
+            shading["bases"] = found["bases"]
+            self._shading = (look.meshes, shading)
+        tables["materials"]["shading_base"] = shading["bases"]
+        maps = np.zeros((0, 9)) if look.instance_maps is None else \
+            np.asarray(look.instance_maps).reshape(-1, 9)
+        tables["instance_maps"] = maps.astype(np.float32)
+        for name in ("materials", "vertices", "normals", "cdf", "owners", "deltas",
+                     "instance_maps"):
+            self._tables[name] = _upload(rt, tables[name])
+        self._tables["shading_faces"] = shading["faces"]
+        self._tables["shading_normals"] = shading["normals"]
         params = np.zeros((), layout.PATH_PARAMS)
         environment = look.emitters.environment
         params["environment"] = environment if environment is not None else 0.0
@@ -166,6 +215,7 @@ class Path(Integrator):
         params["delta_lights"] = tables["delta_count"]
         params["max_depth"] = settings.max_depth
         params["rr_depth"] = settings.rr_depth
+        params["instance_maps"] = len(maps)
         self._params = params
         self._live = np.zeros(UNLIMITED_BOUNCES, np.uint32)
         self.last_bounces = []
@@ -183,11 +233,14 @@ class Path(Integrator):
         for depth in range(bounces):
             if depth > 0:
                 events["closest"].append(step.query.enqueue_intersect(
-                    step.tree, step.rays, step.hits, band.count, step.overflow))
+                    step.tree, step.rays, step.hits, band.count, step.overflow,
+                    instances=step.instances))
             events["shade"].append(rt.run(
                 kernels["path_surface"], band.count, step.rays, step.hits, self.states,
-                tables["materials"], tables["vertices"], tables["cdf"], tables["owners"],
-                tables["deltas"], self._params, count, first_pixel, stream,
+                tables["materials"], tables["vertices"], tables["normals"], tables["cdf"],
+                tables["owners"], tables["deltas"], tables["shading_faces"],
+                tables["shading_normals"], step.instances, tables["instance_maps"],
+                self._params, count, first_pixel, stream,
                 np.int32(depth), self.shadow, self.pending, self.live))
             events["occluded"].append(step.query.enqueue_occluded(
                 step.tree, self.shadow, self.occluded, band.count, step.overflow))
@@ -205,3 +258,11 @@ class Path(Integrator):
         events["resolve"].append(rt.run(kernels["path_finish"], band.count, self.states, count,
                                         sample, step.accum))
         step.done(events["resolve"][-1])
+
+
+def _upload(rt: Runtime, array: np.ndarray) -> cl.Buffer:
+    """A read-only device copy of ``array``, of one element at least (OpenCL
+    has no empty buffers)."""
+    data = np.ascontiguousarray(array)
+    return cl.Buffer(rt.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
+                     hostbuf=data if data.nbytes else np.zeros(4, np.uint8))

@@ -18,7 +18,8 @@ typedef struct {
     float k[3];              /* conductor: the index's imaginary part */
     float alpha;             /* reserved: microfacet roughness */
     float transmittance[3];  /* dielectric: specular_transmittance */
-    uint reserved;
+    int shading_base;        /* the mesh's first triangle in the shading-normal tables;
+                              * -1: face normals (Mitsuba's face_normals) */
 } PathMaterial;
 
 /* A light of no extent, which light sampling alone can reach. */
@@ -41,6 +42,7 @@ typedef struct {
     int max_depth;                  /* Mitsuba's: the longest path, in segments; <= 0: no limit */
     int rr_depth;                   /* Russian roulette from this depth on */
     float delta_probability;        /* the chance a light sample picks a delta light */
+    uint instance_maps;             /* normal maps per instance (0: a flat scene) */
 } PathParams;
 
 /* One path of the pass: what it still carries and what it has gathered. */
