@@ -22,9 +22,10 @@ from .query.points import ClosestPoints
 from .query.rays import Hits
 from .render.camera import Camera
 from .render.light import Light
-from .render.renderer import Renderer
+from .render.renderer import Renderer, RenderResult
 from .scene import Scene
 
 __all__ = ["AllHits", "BuildStats", "Camera", "ClosestPoints", "Device", "DeviceMemoryError",
-           "Hits", "KernelBuildError", "Light", "Mesh", "Renderer", "Scene", "devices", "scenefile"]
+           "Hits", "KernelBuildError", "Light", "Mesh", "RenderResult", "Renderer", "Scene",
+           "devices", "scenefile"]
 __version__ = "0.1.0"

@@ -150,9 +150,11 @@ def _cmd_render(args) -> int:
         renderer.render(loaded.camera, 1, 1, **options)
     render_compile = time.perf_counter() - warm_started
     bar = sys.stderr.isatty()  # a tqdm bar on a terminal; else one line if it takes a while
+    exr = output.suffix.lower() == ".exr"
     with contextlib.nullcontext() if bar else stage(f"rendering {width}x{height}"):
-        image = renderer.render(loaded.camera, width, height, progress=bar,
-                                hdr=output.suffix.lower() == ".exr", **options)
+        # a path render to EXR carries the AOVs as channels beside R, G, B
+        image = renderer.render(loaded.camera, width, height, progress=bar, hdr=exr,
+                                aovs=exr and shading == "path", **options)
     written_started = time.perf_counter()
     _write_image(output, image)
     written = time.perf_counter() - written_started
@@ -211,9 +213,13 @@ def _count(n: int) -> str:
 
 
 def _write_image(path: Path, image) -> None:
-    if path.suffix.lower() == ".exr":  # float32 linear RGB, as rendered
+    if path.suffix.lower() == ".exr":  # float32 linear RGB, as rendered, and any AOVs
         from .io.exr import write_exr
-        write_exr(path, image)
+        if hasattr(image, "albedo"):  # a RenderResult
+            write_exr(path, image.image, {"albedo": image.albedo, "normal": image.normal,
+                                          "depth": image.depth})
+        else:
+            write_exr(path, image)
         return
     import imageio.v3 as iio
     try:

@@ -20,6 +20,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import pyopencl as cl
@@ -54,6 +55,20 @@ def check_settings(camera, width, height, shading="diffuse", shadows=True, spp=1
     """Renderer.render's arguments, checked (shading: one of SHADINGS)."""
     return RenderSettings.check(camera, width, height, shading, shadows, spp, ao_samples,
                                 ao_distance, SHADINGS, max_depth, rr_depth, seed, rfilter)
+
+
+@dataclass(frozen=True)
+class RenderResult:
+    """Renderer.render(..., aovs=True): the image, and beside it the first
+    hit's AOVs (Mitsuba 3's aov integrator), float32 means over each pixel's
+    samples, zeros where the camera ray misses: ``albedo`` (H, W, 3), the
+    material's reflectance (diffuse reflectance; a conductor's or
+    dielectric's specular reflectance); ``normal`` (H, W, 3), the world
+    shading normal; ``depth`` (H, W), the distance along the ray."""
+    image: np.ndarray
+    albedo: np.ndarray
+    normal: np.ndarray
+    depth: np.ndarray
 
 
 class Pipeline:
@@ -97,21 +112,25 @@ class Pipeline:
         return rows
 
     def render(self, tree, settings: RenderSettings, look: Look, progress: bool = False,
-               hdr: bool = False) -> np.ndarray:
+               hdr: bool = False, aovs: bool = False):
+        """The image, or with ``aovs`` (the path integrator's) a RenderResult."""
         with self._lock:  # the buffers are shared
             try:
-                return self._render(tree, settings.in_frame(tree.scale), look, progress, hdr)
+                return self._render(tree, settings.in_frame(tree.scale), look, progress, hdr,
+                                    aovs)
             except BaseException:
                 # Ctrl-C: the steps in flight (at most two) end before the
                 # buffers serve another render.
                 self.rt.queue.finish()
                 raise
 
-    def _reserve(self, integrator, pixels: int, image_pixels: int, hdr: bool) -> None:
+    def _reserve(self, integrator, pixels: int, image_pixels: int, hdr: bool,
+                 aovs: bool = False) -> None:
         """Buffers for passes of ``pixels`` and an image of ``image_pixels``,
         checked together against the device's limits first."""
         needed = {**{name: size * pixels for name, size in self.PER_PIXEL.items()},
-                  **self.film.sizes(pixels, image_pixels, hdr), **integrator.buffer_sizes(pixels)}
+                  **self.film.sizes(pixels, image_pixels, hdr), **integrator.buffer_sizes(pixels),
+                  **(integrator.aov_sizes(pixels, image_pixels) if aovs else {})}
         self.rt.check_allocation(f"rendering {image_pixels:,} pixels, {pixels:,} at a time",
                                  needed)
         if pixels > self._pixels:
@@ -122,15 +141,17 @@ class Pipeline:
             self._pixels = pixels
         self.film.reserve(self.rt, pixels, image_pixels, hdr)
 
-    def _render(self, tree, settings: RenderSettings, look: Look, progress, hdr) -> np.ndarray:
+    def _render(self, tree, settings: RenderSettings, look: Look, progress, hdr, aovs):
         started = time.perf_counter()
         rt = self.rt
         width, height = settings.width, settings.height
         kind = integrator_for(settings.shading)
         integrator = self._integrators.setdefault(kind, kind())
         rows = self.chunk_rows(width, height)
-        self._reserve(integrator, rows * width, width * height, hdr)
+        self._reserve(integrator, rows * width, width * height, hdr, aovs)
         integrator.prepare(rt, settings, tree, look, rows * width)
+        if aovs:
+            integrator.prepare_aovs(rows * width, width * height)
         pinhole = settings.camera.pinhole(width, height)
         cl.enqueue_copy(rt.queue, self._overflow, np.zeros(1, np.int32))
         setup = time.perf_counter() - started
@@ -173,6 +194,8 @@ class Pipeline:
                 else:
                     events["encode"].append(self.film.encode(rt, band, width, settings.spp,
                                                              integrator.radiance(settings)))
+                if aovs:
+                    events["encode"].append(integrator.resolve_aovs(band, width, settings.spp))
         overflow = np.zeros(1, np.int32)
         rt.wait([self.film.read(rt, image),
                  cl.enqueue_copy(rt.queue, overflow, self._overflow, is_blocking=False)])
@@ -191,6 +214,8 @@ class Pipeline:
                            "shadows": settings.shadows, "spp": settings.spp,
                            "primary_rays": pixels, "secondary_rays": secondary,
                            "times_ms": times}
+        if aovs:
+            return RenderResult(image=image, **integrator.read_aovs(height, width))
         return image
 
 
@@ -226,7 +251,7 @@ class Renderer:
                shadows: bool = True, spp: int = 1, ao_samples: int = AO_SAMPLES,
                ao_distance: float | None = None, max_depth: int = -1,
                rr_depth: int = RR_DEPTH, seed: int = 0, rfilter: str = "box",
-               hdr: bool = False, progress: bool = False) -> np.ndarray:
+               hdr: bool = False, progress: bool = False, aovs: bool = False):
         """A (height, width, 3) uint8 RGB image, or with ``hdr`` float32: the
         mean of each pixel's samples, linear.  shading is one of SHADINGS:
         "diffuse", "normals", "depth", "ao" (integrators/direct.py defines
@@ -239,17 +264,24 @@ class Renderer:
         0.5 pixel); ao_samples AO
         rays per sample, reaching ao_distance (default 5% of the scene's
         diagonal).  progress shows a tqdm bar on stderr for renders longer
-        than a second."""
+        than a second.  With ``aovs`` (shading "path" only) it returns a
+        RenderResult: the image, and the first hit's albedo, shading normal
+        and depth beside it, float32."""
         settings = check_settings(camera, width, height, shading, shadows, spp, ao_samples,
                                   ao_distance, max_depth, rr_depth, seed, rfilter)
         if not isinstance(hdr, (bool, np.bool_)):
             raise TypeError(f"hdr must be True or False, got {type(hdr).__name__}")
+        if not isinstance(aovs, (bool, np.bool_)):
+            raise TypeError(f"aovs must be True or False, got {type(aovs).__name__}")
+        if aovs and settings.shading != "path":
+            raise ValueError(f"aovs=True needs shading='path' (the AOVs are the path "
+                             f"integrator's), got shading={settings.shading!r}")
         with self.scene.borrow() as built:  # no rebuild or refit while the tree is read
             look = self.look()
             if self._pipeline is None:
                 self._pipeline = Pipeline(built.runtime)  # its own queries and buffers
             return self._pipeline.render(built.tree, settings, look, progress=progress,
-                                         hdr=bool(hdr))
+                                         hdr=bool(hdr), aovs=bool(aovs))
 
     def look(self) -> Look:
         """colors, light, materials and emitters, checked, with the world

@@ -161,8 +161,13 @@ class Path(Integrator):
     PER_PIXEL = {"path states": layout.PATH_STATE.itemsize, "shadow rays": layout.RAY.itemsize,
                  "occluded": 1, "pending light": 16}
 
+    #: Bytes per pixel of the AOV sums (two float4) and of the AOV image (7 floats).
+    AOV_SUMS, AOV_IMAGE = 32, 28
+
     def __init__(self):
         self._pixels = 0
+        self._aov_pixels = self._aov_image_pixels = 0
+        self._aovs = False
         self._tables: dict[str, cl.Buffer] = {}
         self._shading: tuple = ((), {})  # (the meshes, their shading buffers)
         self.last_bounces: list[int] = []
@@ -217,8 +222,44 @@ class Path(Integrator):
         params["rr_depth"] = settings.rr_depth
         params["instance_maps"] = len(maps)
         self._params = params
+        self._aovs = False
+        self._length_scale = np.float32(1.0 / tree.scale)
         self._live = np.zeros(UNLIMITED_BOUNCES, np.uint32)
         self.last_bounces = []
+
+    @classmethod
+    def aov_sizes(cls, pixels: int, image_pixels: int) -> dict[str, int]:
+        """Bytes of the AOV buffers for passes of ``pixels`` and an image of
+        ``image_pixels`` (for the allocation check)."""
+        return {"AOV sums": cls.AOV_SUMS * pixels, "AOV image": cls.AOV_IMAGE * image_pixels}
+
+    def prepare_aovs(self, pixels: int, image_pixels: int) -> None:
+        """After prepare: this render also sums each pixel's first-hit AOVs
+        (path_aovs), resolved per band by resolve_aovs and read by read_aovs."""
+        context, rw = self.rt.context, cl.mem_flags.READ_WRITE
+        if pixels > self._aov_pixels:
+            self.aov_sums = cl.Buffer(context, rw, self.AOV_SUMS * pixels)
+            self._aov_pixels = pixels
+        if image_pixels > self._aov_image_pixels:
+            self.aov_image = cl.Buffer(context, rw, self.AOV_IMAGE * image_pixels)
+            self._aov_image_pixels = image_pixels
+        self._aov_kernels = {name: self.rt.kernel(KERNEL, name)
+                             for name in ("path_aovs", "path_aov_image")}
+        self._aovs = True
+
+    def resolve_aovs(self, band, width: int, spp: int) -> cl.Event:
+        """The band's AOV means into the whole image's."""
+        return self.rt.run(self._aov_kernels["path_aov_image"], band.tile_range, self.aov_sums,
+                           np.uint32(width), band.first_row, band.rows, np.float32(1.0 / spp),
+                           self.aov_image)
+
+    def read_aovs(self, height: int, width: int) -> dict[str, np.ndarray]:
+        """The AOV image: "albedo" and "normal" (height, width, 3) and "depth"
+        (height, width), float32 means over each pixel's samples."""
+        out = np.empty((height, width, 7), np.float32)
+        self.rt.wait([cl.enqueue_copy(self.rt.queue, out, self.aov_image, is_blocking=False)])
+        return {"albedo": out[..., 0:3].copy(), "normal": out[..., 3:6].copy(),
+                "depth": out[..., 6].copy()}
 
     def shade(self, step: Step) -> None:
         rt, band, kernels, events = step.rt, step.band, self._kernels, step.events
@@ -229,6 +270,12 @@ class Path(Integrator):
         events["shade"].append(rt.run(kernels["path_start"], band.count, count, self.states))
         events["shade"].append(cl.enqueue_fill_buffer(rt.queue, self.live, np.uint32(0), 0,
                                                       4 * bounces))
+        if self._aovs:
+            events["shade"].append(rt.run(
+                self._aov_kernels["path_aovs"], band.count, step.rays, step.hits,
+                tables["materials"], tables["shading_faces"], tables["shading_normals"],
+                step.instances, tables["instance_maps"], self._params, self._length_scale,
+                count, sample, self.aov_sums))
         reads = []
         for depth in range(bounces):
             if depth > 0:

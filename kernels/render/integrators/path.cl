@@ -13,6 +13,9 @@
  *                   `pending`), and the next ray, sampled from the BSDF
  *   path_unoccluded a path's radiance += pending where its shadow ray was free
  *   path_finish     the film's sum += each path's radiance
+ *   path_aovs       (when asked, before the first path_surface) each pixel's
+ *                   sums of its first hit's albedo, shading normal and depth
+ *   path_aov_image  a band's AOV means into the whole image's AOVs
  *
  * Normals (Mitsuba 3's rules): BSDFs and area emitters see the shading
  * normal (shading_normal: interpolated vertex normals, or the geometric one
@@ -29,6 +32,7 @@
 #include "render/integrators/path.h"
 #include "render/bsdfs/bsdf.h"
 #include "render/surface.h"
+#include "render/tiles.h"
 #include "render/random.h"
 
 #define DIMENSIONS_PER_BOUNCE 8
@@ -371,4 +375,69 @@ __kernel void path_finish(__global const PathState* states,
         return;
     float4 before = sample == 0 ? (float4)(0.0f) : accum[gid];
     accum[gid] = before + (float4)(LOAD_XYZ(states[gid].radiance), 0.0f);
+}
+
+/* Mitsuba 3's aov integrator at the camera ray's hit: the albedo (here the
+ * material's reflectance: diffuse reflectance, or a conductor's or
+ * dielectric's specular reflectance), the world shading normal (sh_normal,
+ * not turned to the viewer) and the depth (si.t: the distance along the
+ * ray, `length_scale` back from the tree's frame); a miss gives zeros.
+ * Each pixel sums them over its samples, two float4 per pixel: (albedo,
+ * depth) and (normal, 0); sample 0 starts the sums. */
+__kernel void path_aovs(__global const Ray* rays,
+                        __global const Hit* hits,
+                        __global const PathMaterial* materials,
+                        __global const uint* shading_faces,
+                        __global const float* shading_normals,
+                        __global const int* hit_instances,
+                        __global const float* instance_maps,
+                        const PathParams params,
+                        const float length_scale,
+                        const uint count,
+                        const uint sample,
+                        __global float4* aovs)
+{
+    uint gid = get_global_id(0);
+    if (gid >= count)
+        return;
+    __global const Hit* hit = hits + gid;
+    float4 first = (float4)(0.0f), second = (float4)(0.0f);
+    if (hit->geom_id >= 0) {
+        __global const PathMaterial* m = materials + hit->geom_id;
+        float reach = hit->t * length(LOAD_XYZ(rays[gid].direction)) * length_scale;
+        first = (float4)(LOAD_XYZ(m->reflectance), reach);
+        second = (float4)(shading_normal(hit, m, hit_instances[gid], shading_faces,
+                                         shading_normals, instance_maps, params.instance_maps),
+                          0.0f);
+    }
+    if (sample != 0) {
+        first += aovs[2 * (size_t)gid];
+        second += aovs[2 * (size_t)gid + 1];
+    }
+    aovs[2 * (size_t)gid] = first;
+    aovs[2 * (size_t)gid + 1] = second;
+}
+
+/* Over pixel_in_pass's 2D range (render/tiles.h): each pixel's AOV means,
+ * 7 floats (albedo RGB, normal XYZ, depth) in the whole image. */
+__kernel void path_aov_image(__global const float4* aovs,
+                             const uint width,
+                             const uint first_row,
+                             const uint rows,
+                             const float scale,        /* 1 / samples per pixel */
+                             __global float* image)
+{
+    uint gid;
+    uint2 at;
+    if (!pixel_in_pass(get_global_id(0), get_global_id(1), width, rows, &gid, &at))
+        return;
+    float4 first = aovs[2 * (size_t)gid] * scale, second = aovs[2 * (size_t)gid + 1] * scale;
+    __global float* pixel = image + 7 * (size_t)((first_row + at.y) * width + at.x);
+    pixel[0] = first.x;
+    pixel[1] = first.y;
+    pixel[2] = first.z;
+    pixel[3] = second.x;
+    pixel[4] = second.y;
+    pixel[5] = second.z;
+    pixel[6] = first.w;
 }
