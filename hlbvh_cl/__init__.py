@@ -22,10 +22,11 @@ from .query.points import ClosestPoints
 from .query.rays import Hits
 from .render.camera import Camera
 from .render.light import Light
-from .render.renderer import RenderInterrupted, Renderer
+from .render.renderer import RenderInterrupted, Renderer, RenderResult
 from .scene import Scene
 
 __all__ = ["AllHits", "BuildStats", "Camera", "ClosestPoints", "Device", "DeviceMemoryError",
-           "Hits", "KernelBuildError", "Light", "Mesh", "RenderInterrupted", "Renderer", "Scene",
+           "Hits", "KernelBuildError", "Light", "Mesh", "RenderInterrupted", "RenderResult",
+           "Renderer", "Scene",
            "devices", "scenefile"]
 __version__ = "0.1.0"

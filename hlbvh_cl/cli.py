@@ -154,10 +154,12 @@ def _cmd_render(args) -> int:
     bar = sys.stderr.isatty()  # a tqdm bar on a terminal; else one line if it takes a while
     if args.time:
         options["time_budget"] = args.time
+    exr = output.suffix.lower() == ".exr"
     try:
         with contextlib.nullcontext() if bar else stage(f"rendering {width}x{height}"):
-            image = renderer.render(loaded.camera, width, height, progress=bar,
-                                    hdr=output.suffix.lower() == ".exr", **options)
+            # a path render to EXR carries the AOVs as channels beside R, G, B
+            image = renderer.render(loaded.camera, width, height, progress=bar, hdr=exr,
+                                    aovs=exr and shading == "path", **options)
     except RenderInterrupted as stopped:  # Ctrl-C: keep the rounds done
         _write_image(output, stopped.image)
         print(f"hlbvh-cl: interrupted after {stopped.spp} samples per pixel; wrote {output}",
@@ -222,9 +224,13 @@ def _count(n: int) -> str:
 
 
 def _write_image(path: Path, image) -> None:
-    if path.suffix.lower() == ".exr":  # float32 linear RGB, as rendered
+    if path.suffix.lower() == ".exr":  # float32 linear RGB, as rendered, and any AOVs
         from .io.exr import write_exr
-        write_exr(path, image)
+        if hasattr(image, "albedo"):  # a RenderResult
+            write_exr(path, image.image, {"albedo": image.albedo, "normal": image.normal,
+                                          "depth": image.depth})
+        else:
+            write_exr(path, image)
         return
     import imageio.v3 as iio
     try:

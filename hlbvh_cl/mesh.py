@@ -1,7 +1,10 @@
 """Triangle meshes: validated numpy arrays, and loading them from files.
 
 A Mesh owns two read-only, C-contiguous arrays: ``vertices`` (N, 3) float32
-and ``faces`` (M, 3) int32, the layout every kernel reads.  Everything is
+and ``faces`` (M, 3) int32, the layout every kernel reads, and the shading
+normals the path integrator interpolates: ``normals`` (N, 3) float32, the
+file's or the caller's where given, else computed as Mitsuba 3 computes them
+(vertex_normals), unless ``face_normals`` is set.  Everything is
 checked once here so that later stages can trust the arrays: bad input gives a
 ValueError/TypeError that names the array, the first offending row and what
 was expected.  Zero-area triangles are valid (ray queries never hit them).
@@ -47,19 +50,48 @@ class Mesh:
     ``Mesh(other)`` takes the arrays of another library's triangle mesh: a
     trimesh.Trimesh (``vertices``, ``faces``) or an Open3D TriangleMesh
     (``vertices``, ``triangles``).
+
+    Shading (Mitsuba 3's rules, read by the path integrator only):
+    ``normals`` (N, 3), one per vertex, not necessarily unit, or None to
+    compute them (vertex_normals); ``face_normals=True`` shades with each
+    triangle's geometric normal instead, as Mitsuba's ``face_normals``.
     """
 
-    def __init__(self, vertices, faces=None, name: str | None = None):
+    def __init__(self, vertices, faces=None, name: str | None = None, normals=None,
+                 face_normals: bool = False):
         if faces is None:
             vertices, faces = _mesh_arrays(vertices)
         self._vertices = inputs.mesh_vertices(vertices)
         self._faces = inputs.mesh_faces(faces, len(self._vertices))
         self.name = name
         self._bounds: tuple[np.ndarray, np.ndarray] | None = None
+        if not isinstance(face_normals, (bool, np.bool_)):
+            raise TypeError(f"face_normals must be True or False, got "
+                            f"{type(face_normals).__name__}")
+        self.face_normals = bool(face_normals)
+        self._given_normals = normals is not None
+        self._normals = None if normals is None else _check_normals(normals, self.vertex_count)
 
     def __reduce__(self):
-        """Pickles as its arrays and name (checked again on arrival)."""
-        return (Mesh, (self._vertices, self._faces, self.name))
+        """Pickles as its arrays, name and shading (checked again on arrival)."""
+        given = self._normals if self._given_normals else None
+        return (Mesh, (self._vertices, self._faces, self.name, given, self.face_normals))
+
+    @property
+    def normals(self) -> np.ndarray:
+        """(N, 3) float32 per-vertex shading normals, read-only: the given
+        ones, or vertex_normals(vertices, faces) computed once."""
+        if self._normals is None:
+            computed = vertex_normals(self._vertices, self._faces).astype(np.float32)
+            computed.flags.writeable = False
+            self._normals = computed
+        return self._normals
+
+    @property
+    def has_file_normals(self) -> bool:
+        """Whether the normals were given (by the caller or the file) rather
+        than computed."""
+        return self._given_normals
 
     @property
     def vertices(self) -> np.ndarray:
@@ -105,7 +137,9 @@ class Mesh:
         split into a fan (trimesh groups faces by size).  An OBJ keeps both
         orders whatever its materials.  A file with several meshes (a GLB
         scene, an OBJ with several objects) becomes one mesh, with each part's
-        transform applied.
+        transform applied.  Vertex normals the file stores (a PLY's nx, ny,
+        nz; an OBJ's vn) become ``normals`` where every part has them; else
+        they are computed (vertex_normals).
         """
         path = Path(os.fspath(path))
         file_type, gzipped = _file_type(path)
@@ -113,12 +147,68 @@ class Mesh:
             raise ValueError(f"{path}: is a folder, not a mesh file")
         if not path.is_file():
             raise FileNotFoundError(errno.ENOENT, "mesh file not found", str(path))
-        vertices, faces = _read_with_trimesh(path, file_type, gzipped)
+        vertices, faces, normals = _read_with_trimesh(path, file_type, gzipped)
         name = path.name[: -len(".gz")] if gzipped else path.name
         try:
-            return cls(vertices, faces, name=name.rsplit(".", 1)[0])
+            return cls(vertices, faces, name=name.rsplit(".", 1)[0], normals=normals)
         except (ValueError, TypeError) as error:
             raise ValueError(f"{path}: {error}") from None
+
+
+def vertex_normals(vertices, faces) -> np.ndarray:
+    """Mitsuba 3's computed vertex normals (Mesh::recompute_vertex_normals),
+    float64 (N, 3): each triangle adds its unit geometric normal
+    cross(v1 - v0, v2 - v0) to its three corners, weighted by the corner's
+    interior angle (Thuermer & Wuethrich 1998, "Computing Vertex Normals from
+    Polygonal Facets"); zero-area triangles add nothing, and a vertex that
+    gets nothing takes Mitsuba's stand-in (1, 0, 0)."""
+    p = np.asarray(vertices, np.float64)[np.asarray(faces)]
+    normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    length = np.linalg.norm(normal, axis=1)
+    valid = length > 0
+    normal[valid] /= length[valid, None]
+    total = np.zeros((len(vertices), 3))
+    for k in range(3):
+        a = p[:, (k + 1) % 3] - p[:, k]
+        b = p[:, (k + 2) % 3] - p[:, k]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            a /= np.linalg.norm(a, axis=1)[:, None]
+            b /= np.linalg.norm(b, axis=1)[:, None]
+        angle = _unit_angle(a, b)
+        keep = valid & np.isfinite(angle)
+        np.add.at(total, np.asarray(faces)[keep, k], normal[keep] * angle[keep, None])
+    length = np.linalg.norm(total, axis=1)
+    out = np.tile([1.0, 0.0, 0.0], (len(vertices), 1))
+    out[length > 0] = total[length > 0] / length[length > 0, None]
+    return out
+
+
+def _unit_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The angle between unit rows a and b, accurate near 0 and pi as
+    Mitsuba's unit_angle: 2 asin(|a - b| / 2), or pi minus that of -b."""
+    dot = np.einsum("ij,ij->i", a, b)
+    near = 2.0 * np.arcsin(np.minimum(1.0, 0.5 * np.linalg.norm(a - b, axis=1)))
+    far = np.pi - 2.0 * np.arcsin(np.minimum(1.0, 0.5 * np.linalg.norm(a + b, axis=1)))
+    return np.where(dot >= 0, near, far)
+
+
+def _check_normals(normals, count: int) -> np.ndarray:
+    """Per-vertex normals as Mesh stores them: (count, 3) float32, finite,
+    read-only; errors name the first bad row."""
+    array = np.array(normals, dtype=np.float64, copy=True) if not isinstance(normals, np.ndarray) \
+        else np.asarray(normals)
+    if array.dtype.kind not in "fiu":
+        raise TypeError(f"normals has dtype {array.dtype}, expected real numbers")
+    if array.ndim != 2 or array.shape != (count, 3):
+        raise ValueError(f"normals has shape {array.shape}, expected ({count}, 3): one per vertex")
+    converted = np.array(array, dtype=np.float32, order="C", copy=True)
+    bad = ~np.isfinite(converted).all(axis=1) | ~(np.abs(converted).max(axis=1) > 0)
+    if bad.any():
+        row = int(np.argmax(bad))
+        raise ValueError(f"normals[{row}] = {array[row].tolist()} is not a finite, nonzero "
+                         "vector")
+    converted.flags.writeable = False
+    return converted
 
 
 def _mesh_arrays(mesh) -> tuple:
@@ -150,7 +240,7 @@ def _file_type(path: Path) -> tuple[str, bool]:
     return extension, gzipped
 
 
-def _read_with_trimesh(path: Path, file_type: str, gzipped: bool) -> tuple[np.ndarray, np.ndarray]:
+def _read_with_trimesh(path: Path, file_type: str, gzipped: bool) -> tuple:
     import trimesh  # imported here: only file loading needs it
 
     try:
@@ -171,8 +261,8 @@ def _read_with_trimesh(path: Path, file_type: str, gzipped: bool) -> tuple[np.nd
         # ones too, not renumbered by first use
         keep = {"maintain_order": True} if file_type == "obj" else {}
         scene = trimesh.load_scene(source, file_type=file_type, process=False, **keep)
-        # dump() applies each node's transform to its geometry.
-        parts = [g for g in scene.dump() if isinstance(g, trimesh.Trimesh) and len(g.faces)]
+        parts, normals = _placed_parts(scene, trimesh.Trimesh,
+                                       _stores_normals(source.getvalue(), file_type))
     except Exception as error:  # trimesh raises many types for malformed files
         reason = str(error) or type(error).__name__
         raise ValueError(f"{path}: trimesh cannot read it as {file_type.upper()}: {reason}") from None
@@ -191,7 +281,45 @@ def _read_with_trimesh(path: Path, file_type: str, gzipped: bool) -> tuple[np.nd
     offsets = np.cumsum([0] + [len(p.vertices) for p in parts[:-1]])
     vertices = np.concatenate([np.asarray(p.vertices) for p in parts])
     faces = np.concatenate([np.asarray(p.faces, dtype=np.int64) + o for p, o in zip(parts, offsets)])
-    return vertices, faces
+    return vertices, faces, (np.concatenate(normals) if all(n is not None for n in normals)
+                             else None)
+
+
+def _placed_parts(scene, kind, stores_normals: bool) -> tuple[list, list]:
+    """A trimesh scene's triangle meshes with each node's transform applied
+    (as scene.dump() does), and, where the file stores vertex normals, each
+    part's, mapped by the inverse transpose (None where it has none).
+    trimesh computes normals lazily when a file has none, so whether it has
+    them is read from the file itself (_stores_normals)."""
+    parts, normals = [], []
+    for node in scene.graph.nodes_geometry:
+        matrix, name = scene.graph[node]
+        geometry = scene.geometry[name]
+        if not isinstance(geometry, kind) or not len(geometry.faces):
+            continue
+        stored = np.array(geometry.vertex_normals, np.float64) if stores_normals else None
+        placed = geometry.copy()
+        placed.apply_transform(matrix)
+        parts.append(placed)
+        if stored is not None and len(stored) == len(placed.vertices):
+            stored = stored @ np.linalg.inv(np.asarray(matrix, np.float64)[:3, :3])
+        else:
+            stored = None
+        normals.append(stored)
+    return parts, normals
+
+
+def _stores_normals(data: bytes, file_type: str) -> bool:
+    """Whether a PLY's vertex element has nx, ny, nz, or an OBJ has vn lines."""
+    if file_type == "obj":
+        return re.search(rb"(?m)^[ \t]*vn[ \t]", data) is not None
+    if file_type == "ply":
+        end = data.find(b"end_header", 0, 1 << 16)
+        header = data[:max(end, 0)].decode("ascii", "replace").split("element")
+        vertex = [part for part in header if part.split()[:1] == ["vertex"]]
+        return bool(vertex) and all(re.search(rf"(?m)^property\s+\w+\s+{axis}\s*$",
+                                              vertex[0]) for axis in ("nx", "ny", "nz"))
+    return False
 
 
 def _obj_geometry(path: Path, data: bytes) -> bytes:

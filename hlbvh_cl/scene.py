@@ -353,7 +353,7 @@ class Scene:
         if len(positions) != old.vertex_count:
             raise ValueError(f"vertices has {len(positions)} rows but mesh {geom_id} has "
                              f"{old.vertex_count} vertices; update_vertices keeps the topology")
-        moved = Mesh(positions, old.faces, name=old.name)
+        moved = Mesh(positions, old.faces, name=old.name, face_normals=old.face_normals)
         rt = self._runtime
         started = time.perf_counter()
         # one lock throughout: a pickle between dropping the old content's

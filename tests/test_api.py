@@ -21,7 +21,7 @@ def test_public_names():
     assert sorted(hlbvh_cl.__all__) == sorted([
         "Scene", "Mesh", "Hits", "AllHits", "ClosestPoints", "BuildStats", "Renderer", "Camera",
         "Light", "Device", "devices", "DeviceMemoryError", "KernelBuildError", "scenefile",
-        "RenderInterrupted"])
+        "RenderInterrupted", "RenderResult"])
     scene = hlbvh_cl.Scene([hlbvh_cl.Mesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]])])
     public = {name for name in dir(scene) if not name.startswith("_")}
     assert public == {"intersect", "occluded", "intersect_all", "count_intersections",

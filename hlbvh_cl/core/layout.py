@@ -91,7 +91,7 @@ PATH_MATERIAL = np.dtype([
     ("emitter_pdf", np.float32), ("eta", *_f3), ("bsdf", np.uint32), ("k", *_f3),
     ("alpha", np.float32), ("transmittance", *_f3), ("distribution", np.uint32),
     ("specular", *_f3), ("specular_weight", np.float32), ("internal", np.float32),
-    ("nonlinear", np.uint32), ("reserved", np.float32, (2,)),
+    ("nonlinear", np.uint32), ("shading_base", np.int32), ("reserved", np.float32),
     ("transmission", np.float32, (TRANSMISSION_TABLE,)),
 ])
 
@@ -101,7 +101,7 @@ DELTA_LIGHT = np.dtype([("position", *_f3), ("type", np.uint32), ("value", *_f3)
 PATH_PARAMS = np.dtype([
     ("environment", *_f3), ("environment_probability", np.float32), ("ray_offset", np.float32),
     ("light_triangles", np.uint32), ("delta_lights", np.uint32), ("max_depth", np.int32),
-    ("rr_depth", np.int32), ("delta_probability", np.float32),
+    ("rr_depth", np.int32), ("delta_probability", np.float32), ("instance_maps", np.uint32),
 ])
 
 PATH_STATE = np.dtype([("throughput", *_f3), ("bsdf_pdf", np.float32), ("radiance", *_f3),

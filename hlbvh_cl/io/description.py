@@ -114,11 +114,16 @@ class SceneDescription:
 def shape_mesh(shape: str) -> Mesh:
     """One of Mitsuba's shapes as a mesh, in its own frame: "rectangle"
     ([-1, 1]^2 at z = 0, its normal +z), "cube" ([-1, 1]^3, normals out) or
-    "sphere" (radius 1 about the origin: an icosphere of 20 * 4^4 faces)."""
+    "sphere" (radius 1 about the origin: an icosphere of 20 * 4^4 faces).
+    Shaded as Mitsuba's: the cube's faces flat (its own face_normals), the
+    sphere with its exact normals at the vertices (Mitsuba's sphere is
+    analytic), the flat rectangle either way."""
     if shape == "rectangle":
         return Mesh([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], [[0, 1, 2], [0, 2, 3]],
                     name="rectangle")
     import trimesh
     made = (trimesh.creation.box(extents=(2.0, 2.0, 2.0)) if shape == "cube"
             else trimesh.creation.icosphere(subdivisions=4, radius=1.0))
-    return Mesh(made.vertices, made.faces, name=shape)
+    if shape == "cube":
+        return Mesh(made.vertices, made.faces, name=shape, face_normals=True)
+    return Mesh(made.vertices, made.faces, name=shape, normals=made.vertices)

@@ -26,9 +26,10 @@ The subset::
 
 Values: rgb, float, integer, string, boolean and point, and ref.  Anything
 else, an element or a parameter, is an error naming it and its line: the
-loader never renders a silently different scene.  Mesh shapes must set
-face_normals = true, since shading normals are not written yet (Mitsuba
-would interpolate vertex normals, a different picture).
+loader never renders a silently different scene.  Mesh shapes shade as
+Mitsuba's: with the file's vertex normals, or ones computed as Mitsuba
+computes them (hlbvh_cl.mesh.vertex_normals), after to_world; with each
+triangle's own normal where face_normals is true.
 """
 from __future__ import annotations
 
@@ -396,10 +397,6 @@ def _shape(reader: _Reader, node: _Node) -> MeshEntry:
     if kind in ("ply", "obj"):
         if "filename" not in values:
             raise reader.error(node, "needs its filename")
-        if not values.get("face_normals", False):
-            raise reader.error(node, "needs <boolean name=\"face_normals\" value=\"true\"/>: "
-                                     "shading normals are not written yet, and Mitsuba would "
-                                     "interpolate vertex normals (another picture)")
         file = reader.path.parent / values["filename"]
         try:
             mesh = Mesh.load(file)
@@ -416,6 +413,11 @@ def _shape(reader: _Reader, node: _Node) -> MeshEntry:
                                     [0, 0, radius, centre[2]], [0, 0, 0, 1]])
     points = mesh.vertices.astype(np.float64) @ matrix[:3, :3].T + matrix[:3, 3]
     faces = mesh.faces
+    # normals go by the inverse transpose; computed ones are computed anew
+    # from the placed vertices, as Mitsuba computes them after to_world
+    normals = mesh.normals.astype(np.float64) @ np.linalg.inv(matrix[:3, :3]) \
+        if mesh.has_file_normals else None
+    face_normals = mesh.face_normals or bool(values.get("face_normals", False))
     if np.linalg.det(matrix[:3, :3]) < 0:  # a mirror turns the faces inside out: Mitsuba keeps
         faces = faces[:, ::-1]              # the normals outward by the transformed frame
     material, emitter = None, None
@@ -425,7 +427,7 @@ def _shape(reader: _Reader, node: _Node) -> MeshEntry:
         elif child.tag == "emitter":
             emitter = _emitter(reader, child, area=True)
     try:
-        placed = Mesh(points, faces, name=mesh.name)
+        placed = Mesh(points, faces, name=mesh.name, normals=normals, face_normals=face_normals)
     except ValueError as error:
         raise reader.error(node, f"its to_world gives an invalid mesh: {error}") from None
     return MeshEntry(mesh=placed, color=(0.8, 0.8, 0.8), path=reader.path, material=material

@@ -53,6 +53,9 @@ Schema (every table and key is listed here; any other key is an error)::
     fit_height = 1.0              # > 0: uniform scale so the mesh's y extent equals it
     translate = [0.0, 0.0, 0.0]
     place_on_ground = false       # move along y so the mesh's lowest point is at the ground's y
+    face_normals = false          # true: shade with each triangle's own normal (Mitsuba's
+                                  # face_normals); default the file's vertex normals, or
+                                  # ones computed as Mitsuba does (hlbvh_cl.Mesh.normals)
 
     [[instance]]                  # optional, any number: copies of one mesh (Instances, below)
     mesh = 0                      # required: the [[mesh]] table drawn, counting from 0
@@ -147,7 +150,7 @@ _GROUND_KEYS = ("y", "size", "color", "material")
 FLAT_RATIO = 1e-9
 
 _MESH_KEYS = ("path", "shape", "color", "material", "emitter", "split", "scale", "rotate_deg",
-              "fit_height", "translate", "place_on_ground")
+              "fit_height", "translate", "place_on_ground", "face_normals")
 
 #: Mitsuba's shapes a [[mesh]] table may name instead of a file.
 SHAPES = ("rectangle", "cube", "sphere")
@@ -233,6 +236,7 @@ class _MeshSpec:
     shape: str | None = None
     material: dict | None = None
     emitter: dict | None = None
+    face_normals: bool = False
 
 
 @dataclass
@@ -497,6 +501,8 @@ def _read_mesh_specs(reader: _Reader, value, folder: Path) -> list[_MeshSpec]:
             translate=reader.vector3(table.get("translate", [0.0, 0.0, 0.0]), f"{key}.translate"),
             place_on_ground=reader.boolean(table.get("place_on_ground", False),
                                            f"{key}.place_on_ground"),
+            face_normals=reader.boolean(table.get("face_normals", False),
+                                        f"{key}.face_normals"),
         ))
     return specs
 
@@ -654,8 +660,16 @@ def _load_mesh(reader: _Reader, spec: _MeshSpec, ground_y: float, step) -> MeshE
     points += np.array(spec.translate)
     if spec.place_on_ground:
         points[:, 1] += ground_y - points[used, 1].min()
+    # The file's normals go by the inverse transpose of the linear part
+    # (split cuts new vertices: then they are computed); computed ones are
+    # computed anew from the transformed vertices, as Mitsuba does.
+    normals = None
+    if mesh.has_file_normals and spec.split == 1:
+        linear = np.einsum("ij,kj->ik", np.diag(spec.scale), _rotation(spec.rotate_deg))
+        normals = np.einsum("ij,jk->ik", mesh.normals.astype(np.float64), np.linalg.inv(linear).T)
     try:
-        transformed = Mesh(points, faces, name=mesh.name)
+        transformed = Mesh(points, faces, name=mesh.name, normals=normals,
+                           face_normals=mesh.face_normals or spec.face_normals)
     except ValueError as error:  # e.g. a scale, height or offset that overflows float32
         raise reader.error(spec.key, "its scale, rotate_deg, fit_height and translate give an "
                                      f"invalid mesh: {error}") from None

@@ -205,17 +205,20 @@ class RayQuery:
     # -- device-buffer entry points (the renderer's) ------------------------
 
     def enqueue_intersect(self, tree: Tree, rays: cl.Buffer, hits: cl.Buffer, count: int,
-                          overflow: cl.Buffer, wait_for=None) -> cl.Event:
+                          overflow: cl.Buffer, wait_for=None,
+                          instances: cl.Buffer | None = None) -> cl.Event:
         """Enqueue intersect_closest over `count` Ray records already on the
-        device; it writes `count` Hit records to `hits`.  Nothing is checked or
+        device; it writes `count` Hit records to `hits`, and with `instances`
+        each hit's instance (int32, -1: none).  Nothing is checked or
         read back: the rays must follow the conventions above (a ray with
         tmin > tmax hits nothing), and the caller clears the int32 `overflow`
         flag beforehand and raises if a traversal set it."""
         self._require_triangles(tree)
         kernel = self._kernel(tree, "intersect_closest")
         return self.rt.run(kernel, self._work_items(count),
-                           *scene_args(tree, self._all_bits, 0), rays, hits, overflow,
-                           np.uint32(count), wait_for=wait_for, local_size=self.work_group_size)
+                           *scene_args(tree, self._all_bits, 0), rays, hits, instances,
+                           overflow, np.uint32(count), wait_for=wait_for,
+                           local_size=self.work_group_size)
 
     def enqueue_occluded(self, tree: Tree, rays: cl.Buffer, occluded: cl.Buffer, count: int,
                          overflow: cl.Buffer, wait_for=None) -> cl.Event:

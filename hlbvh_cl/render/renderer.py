@@ -20,6 +20,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import pyopencl as cl
@@ -56,6 +57,20 @@ def check_settings(camera, width, height, shading="diffuse", shadows=True, spp=1
                                 ao_distance, SHADINGS, max_depth, rr_depth, seed, rfilter)
 
 
+@dataclass(frozen=True)
+class RenderResult:
+    """Renderer.render(..., aovs=True): the image, and beside it the first
+    hit's AOVs (Mitsuba 3's aov integrator), float32 means over each pixel's
+    samples, zeros where the camera ray misses: ``albedo`` (H, W, 3), the
+    material's reflectance (diffuse reflectance; a conductor's or
+    dielectric's specular reflectance); ``normal`` (H, W, 3), the world
+    shading normal; ``depth`` (H, W), the distance along the ray."""
+    image: np.ndarray
+    albedo: np.ndarray
+    normal: np.ndarray
+    depth: np.ndarray
+
+
 class Pipeline:
     """The render pipeline on one device: the camera stage, the closest-hit
     query, the integrators and the film, with buffers reused across renders.
@@ -71,7 +86,8 @@ class Pipeline:
     """
 
     #: Bytes per pixel of a pass of the pipeline's own buffers.
-    PER_PIXEL = {"primary rays": layout.RAY.itemsize, "hits": layout.HIT.itemsize}
+    PER_PIXEL = {"primary rays": layout.RAY.itemsize, "hits": layout.HIT.itemsize,
+                 "hit instances": 4}
 
     def __init__(self, rt: Runtime, query: RayQuery | None = None):
         self.rt = rt
@@ -96,33 +112,37 @@ class Pipeline:
         return rows
 
     def render(self, tree, settings: RenderSettings, look: Look, progress: bool = False,
-               hdr: bool = False, budget: float | None = None) -> np.ndarray:
+               hdr: bool = False, budget: float | None = None, aovs: bool = False):
+        """The image, or with ``aovs`` (the path integrator's) a RenderResult."""
         with self._lock:  # the buffers are shared
             try:
                 return self._render(tree, settings.in_frame(tree.scale), look, progress, hdr,
-                                    budget)
+                                    budget, aovs)
             except BaseException:
                 # Ctrl-C: the steps in flight (at most two) end before the
                 # buffers serve another render.
                 self.rt.queue.finish()
                 raise
 
-    def _reserve(self, integrator, pixels: int, image_pixels: int, hdr: bool) -> None:
+    def _reserve(self, integrator, pixels: int, image_pixels: int, hdr: bool,
+                 aovs: bool = False) -> None:
         """Buffers for passes of ``pixels`` and an image of ``image_pixels``,
         checked together against the device's limits first."""
         needed = {**{name: size * pixels for name, size in self.PER_PIXEL.items()},
-                  **self.film.sizes(pixels, image_pixels, hdr), **integrator.buffer_sizes(pixels)}
+                  **self.film.sizes(pixels, image_pixels, hdr), **integrator.buffer_sizes(pixels),
+                  **(integrator.aov_sizes(pixels, image_pixels) if aovs else {})}
         self.rt.check_allocation(f"rendering {image_pixels:,} pixels, {pixels:,} at a time",
                                  needed)
         if pixels > self._pixels:
             context, rw = self.rt.context, cl.mem_flags.READ_WRITE
             self.primary = cl.Buffer(context, rw, pixels * layout.RAY.itemsize)
             self.hits = cl.Buffer(context, rw, pixels * layout.HIT.itemsize)
+            self.instances = cl.Buffer(context, rw, pixels * 4)  # int32 per ray
             self._pixels = pixels
         self.film.reserve(self.rt, pixels, image_pixels, hdr)
 
-    def _render(self, tree, settings: RenderSettings, look: Look, progress, hdr,
-                budget) -> np.ndarray:
+    def _render(self, tree, settings: RenderSettings, look: Look, progress, hdr, budget,
+                aovs):
         started = time.perf_counter()
         rt = self.rt
         width, height = settings.width, settings.height
@@ -130,8 +150,10 @@ class Pipeline:
         integrator = self._integrators.setdefault(kind, kind())
         progressive = integrator.progressive
         rows = self.chunk_rows(width, height)
-        self._reserve(integrator, rows * width, width * height, hdr or progressive)
+        self._reserve(integrator, rows * width, width * height, hdr or progressive, aovs)
         integrator.prepare(rt, settings, tree, look, rows * width)
+        if aovs:
+            integrator.prepare_aovs(rows * width, width * height)
         cl.enqueue_copy(rt.queue, self.overflow, np.zeros(1, np.int32))
         setup = time.perf_counter() - started
 
@@ -146,7 +168,8 @@ class Pipeline:
         steps: list[cl.Event] = []
         run = _Run(self, tree, settings, integrator, events, steps)
         if progressive:
-            image, taken, interrupted = self._progressive(run, bands, hdr, progress, budget)
+            image, taken, interrupted = self._progressive(run, bands, hdr, progress, budget,
+                                                          aovs)
         else:
             image, taken, interrupted = self._band_by_band(run, bands, hdr, progress, passes)
         overflow = np.zeros(1, np.int32)
@@ -189,7 +212,7 @@ class Pipeline:
         rt.wait([self.film.read(rt, image)])
         return image, settings.spp, False
 
-    def _progressive(self, run, bands, hdr, progress, budget):
+    def _progressive(self, run, bands, hdr, progress, budget, aovs):
         """Rounds of one sample per pixel over the whole image, each band's
         sums added to the image's, until spp rounds are done or the next
         would end past ``budget`` seconds (None: no limit).  Ctrl-C stops
@@ -208,6 +231,9 @@ class Pipeline:
                         run.sample(band, sample, 0)
                         added = self.film.add(rt, band, width)
                         run.events["encode"].append(added)
+                        if aovs:
+                            added = run.integrator.add_aovs(band, width)
+                            run.events["encode"].append(added)
                         taken[b] += 1
                     rt.wait([added])
                     bar.update(1)
@@ -224,7 +250,13 @@ class Pipeline:
         for band, count in zip(bands, taken):
             sums[int(band.first_row):int(band.first_row) + int(band.rows)] /= count
         spp = int(taken.min())
-        return (sums if hdr else gamma_encode(sums)), spp, interrupted
+        image = sums if hdr else gamma_encode(sums)
+        if aovs:
+            rows = [(int(band.first_row), int(band.rows), int(count))
+                    for band, count in zip(bands, taken)]
+            image = RenderResult(image=image, **run.integrator.read_aovs(settings.height, width,
+                                                                         rows))
+        return image, spp, interrupted
 
 
 class _Run:
@@ -254,16 +286,18 @@ class _Run:
         events["camera"].append(enqueue_primary_rays(
             p.rt, self.pinhole, settings.width, settings.height, band, stream,
             settings.jitter(), p.primary))
+        instances = p.instances if self.integrator.needs_instances else None
         events["closest"].append(p.query.enqueue_intersect(
-            self.tree, p.primary, p.hits, band.count, p.overflow))
+            self.tree, p.primary, p.hits, band.count, p.overflow, instances=instances))
         self.integrator.shade(Step(p.rt, p.query, self.tree, band, in_sum, stream, p.primary,
-                                   p.hits, p.film.accum, p.overflow, events, self.step_done))
+                                   p.hits, p.film.accum, p.overflow, instances, events,
+                                   self.step_done))
 
 
 class RenderInterrupted(KeyboardInterrupt):
     """Ctrl-C stopped a progressive render: ``image`` is the render of the
     ``spp`` samples per pixel every pixel had taken (as render would have
-    returned it), for a caller to keep."""
+    returned it: with aovs, a RenderResult), for a caller to keep."""
 
     def __init__(self, image: np.ndarray, spp: int):
         super().__init__(f"render interrupted after {spp} samples per pixel")
@@ -310,7 +344,7 @@ class Renderer:
                ao_distance: float | None = None, max_depth: int = -1,
                rr_depth: int = RR_DEPTH, seed: int = 0, rfilter: str = "box",
                hdr: bool = False, progress: bool = False,
-               time_budget: float | None = None) -> np.ndarray:
+               time_budget: float | None = None, aovs: bool = False):
         """A (height, width, 3) uint8 RGB image, or with ``hdr`` float32: the
         mean of each pixel's samples, linear.  shading is one of SHADINGS:
         "diffuse", "normals", "depth", "ao" (integrators/direct.py defines
@@ -331,7 +365,9 @@ class Renderer:
         if given; at least one round).  Ctrl-C then stops within a round's
         time and raises RenderInterrupted, whose ``image`` holds the
         samples every pixel had taken; stats["spp"] says how many were
-        taken."""
+        taken.  With ``aovs`` (shading "path" only) it returns a
+        RenderResult: the image, and the first hit's albedo, shading normal
+        and depth beside it, float32."""
         if time_budget is not None:
             if shading != "path":
                 raise ValueError("time_budget is for shading='path' (the previews render "
@@ -343,12 +379,17 @@ class Renderer:
                                   ao_distance, max_depth, rr_depth, seed, rfilter)
         if not isinstance(hdr, (bool, np.bool_)):
             raise TypeError(f"hdr must be True or False, got {type(hdr).__name__}")
+        if not isinstance(aovs, (bool, np.bool_)):
+            raise TypeError(f"aovs must be True or False, got {type(aovs).__name__}")
+        if aovs and settings.shading != "path":
+            raise ValueError(f"aovs=True needs shading='path' (the AOVs are the path "
+                             f"integrator's), got shading={settings.shading!r}")
         with self.scene.borrow() as built:  # no rebuild or refit while the tree is read
             look = self.look()
             if self._pipeline is None:
                 self._pipeline = Pipeline(built.runtime)  # its own queries and buffers
             return self._pipeline.render(built.tree, settings, look, progress=progress,
-                                         hdr=bool(hdr), budget=time_budget)
+                                         hdr=bool(hdr), budget=time_budget, aovs=bool(aovs))
 
     def look(self) -> Look:
         """colors, light, materials and emitters, checked, with the world
@@ -357,24 +398,34 @@ class Renderer:
         colors = check_colors(default_colors(count) if self.colors is None else self.colors, count)
         light = check_light(Light() if self.light is None else self.light)
         emitters = check_emitters(self.emitters, count)
+        triangles, normals = self._emissive(emitters)
+        transforms = self.scene.transforms
+        instance_maps = None if transforms is None else \
+            np.linalg.inv(np.asarray(transforms, np.float64)[:, :, :3]).transpose(0, 2, 1)
         return Look(colors, light, material_table(self.materials, colors), emitters,
-                    self._emissive(emitters))
+                    triangles, normals, tuple(self.scene.meshes), instance_maps)
 
-    def _emissive(self, emitters) -> dict:
-        """The world triangles of each emitting mesh (every instance's)."""
-        out = {}
+    def _emissive(self, emitters) -> tuple[dict, dict]:
+        """The world triangles of each emitting mesh (every instance's), and
+        their corners' world shading normals (None: face normals)."""
+        triangles, normals = {}, {}
         scene = self.scene
         for mesh in emitters.area:
             m = scene.meshes[mesh]
-            triangles = np.asarray(m.vertices, np.float64)[np.asarray(m.faces)]
+            corners = np.asarray(m.vertices, np.float64)[np.asarray(m.faces)]
+            smooth = None if m.face_normals else \
+                np.asarray(m.normals, np.float64)[np.asarray(m.faces)]
             if scene.transforms is None:
-                out[mesh] = triangles
+                triangles[mesh], normals[mesh] = corners, smooth
                 continue
             maps = np.asarray(scene.transforms, np.float64)[scene.instance_meshes == mesh]
-            out[mesh] = np.concatenate(
-                [triangles @ a[:, :3].T + a[:, 3] for a in maps]) if len(maps) \
+            triangles[mesh] = np.concatenate(
+                [corners @ a[:, :3].T + a[:, 3] for a in maps]) if len(maps) \
                 else np.zeros((0, 3, 3))
-        return out
+            normals[mesh] = None if smooth is None else np.concatenate(
+                [smooth @ np.linalg.inv(a[:, :3]) for a in maps]) if len(maps) \
+                else np.zeros((0, 3, 3))
+        return triangles, normals
 
 
 def _progress_bar(enabled: bool, total: int | None, unit: str):

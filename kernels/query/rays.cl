@@ -133,8 +133,11 @@ TRAVERSAL_INLINE void any_hits(RayLanes* lanes, uint used, uint first, SCENE_PAR
         occluded[l] = found.index[l] >= 0 ? 1 : 0;
 }
 
-/* Closest hit of rays[0, ray_count) -> hits. */
-TRAVERSAL_KERNEL void intersect_closest(SCENE_PARAMS, __global const Ray* rays, __global Hit* hits, __global int* overflow, const uint ray_count)
+/* Closest hit of rays[0, ray_count) -> hits, and where instance_out is not
+ * null, the instance each hit (-1: none, or a flat scene): the path
+ * integrator maps a mesh's shading normals to the world by it. */
+TRAVERSAL_KERNEL void intersect_closest(SCENE_PARAMS, __global const Ray* rays, __global Hit* hits,
+        __global int* instance_out, __global int* overflow, const uint ray_count)
 {
     RayLanes lanes;
     Hit found[PACKET_SIZE];
@@ -146,6 +149,9 @@ TRAVERSAL_KERNEL void intersect_closest(SCENE_PARAMS, __global const Ray* rays, 
     closest_hits(&lanes, used, first, SCENE_ARGS, overflow, found, instance);
     for (uint l = 0; l < used; ++l)
         hits[first + l] = found[l];
+    if (instance_out != 0)
+        for (uint l = 0; l < used; ++l)
+            instance_out[first + l] = instance[l];
 }
 
 /* Occlusion of rays[0, ray_count): occluded[i] = 1 if anything is hit. */

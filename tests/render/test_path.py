@@ -428,7 +428,8 @@ def mitsuba_renders(mi, described) -> np.ndarray:
 def our_renders(shapes, materials, emitters, eye, target, fov, width, height, device,
                 **options) -> np.ndarray:
     """SEEDS renders of mitsuba_scene's scene (and ``emitters`` besides)."""
-    scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(s.vertices, s.faces) for s in shapes], device=device)
+    scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(s.vertices, s.faces, face_normals=True)
+                            for s in shapes], device=device)
     renderer = hlbvh_cl.Renderer(scene, materials=materials, emitters=[
         {"type": "area", "mesh": len(shapes) - 1, "radiance": 5.0},
         {"type": "constant", "radiance": 0.2}, *emitters])

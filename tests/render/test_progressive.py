@@ -115,3 +115,17 @@ def test_the_cli_renders_to_a_time_budget_and_keeps_an_interrupted_image(
     assert main(argv + ["--spp", "16"]) == 130
     assert "interrupted after 2 samples per pixel; wrote" in capsys.readouterr().err
     assert read_exr(out).shape == (24, 32, 3)
+
+
+def test_aovs_add_up_over_bands_and_rounds(bunny_renderer, monkeypatch):
+    whole = path(bunny_renderer, spp=3, aovs=True)
+    monkeypatch.setattr(renderer_module, "PIXELS_PER_PASS", 8 * WIDTH)
+    banded = path(bunny_renderer, spp=3, aovs=True)
+    assert whole.depth.max() > 0 and np.abs(whole.normal).max() > 0.5
+    for name in ("image", "albedo", "normal", "depth"):
+        np.testing.assert_allclose(getattr(banded, name), getattr(whole, name), rtol=1e-5,
+                                   atol=1e-6, err_msg=name)
+    interrupt_at(monkeypatch, band_index=2, round_index=1, bands=5)
+    with pytest.raises(RenderInterrupted) as stopped:
+        path(bunny_renderer, spp=8, aovs=True)
+    assert stopped.value.image.depth.shape == (HEIGHT, WIDTH)  # a RenderResult, kept whole

@@ -32,6 +32,13 @@ class Look:
     #: mesh -> float64 (T, 3, 3): the world triangles of each emitting mesh,
     #: every instance's where the scene has instances
     emissive: dict
+    #: mesh -> float64 (T, 3, 3) world shading normals at those triangles'
+    #: corners, or None for a mesh with face normals
+    emissive_normals: dict
+    meshes: tuple = ()      # the scene's Meshes: their shading normals (the path integrator)
+    #: float64 (K, 3, 3) per instance, the inverse transpose of its map's
+    #: linear part (normals to the world), or None for a flat scene
+    instance_maps: object = None
 
 
 @dataclass
@@ -50,6 +57,8 @@ class Step:
     hits: cl.Buffer       # Hit per ray
     accum: cl.Buffer      # the film's float4 sums per pixel (Film)
     overflow: cl.Buffer   # int32: a traversal ran out of stack
+    instances: object     # int32 per ray: the hit's instance, for an integrator that
+                          # needs_instances (else None)
     events: dict          # stage name -> events, for the render's stats
     done: object          # done(event): a step of rays ended (pacing, progress)
 
@@ -76,6 +85,9 @@ class Integrator:
 
     modes: tuple[str, ...] = ()
     progressive = False
+
+    #: Whether shade reads each hit's instance (Step.instances).
+    needs_instances = False
 
     def prepare(self, rt, settings, tree, look: Look, pixels: int) -> None:
         raise NotImplementedError

@@ -32,7 +32,12 @@ bounces over that many (an upper bound, as paths only end; the slots past
 the live ones hold empty rays, which cost one node), and stops when none
 is left.
 
-Shading uses the geometric normal (Mitsuba's ``face_normals``).
+Shading follows Mitsuba 3's rules (shading_tables; kernels/render/
+integrators/path.cl): BSDFs and area emitters see each mesh's shading
+normal, its vertex normals (Mesh.normals) interpolated at the hit and
+normalised, or the geometric normal where the mesh has ``face_normals``; the
+geometric normal decides only which side of the surface a new ray leaves
+from.
 """
 from __future__ import annotations
 
@@ -62,18 +67,22 @@ LIGHT_POINT, LIGHT_DIRECTIONAL = 0, 1
 def light_tables(look: Look, scale: float, bounds_lo, bounds_hi) -> dict:
     """The light sampling tables, in a tree's frame (coordinates times
     ``scale``): "materials", PathMaterial records with their emission;
-    "vertices", float32 (K, 9) of the emissive triangles; "cdf", their
+    "vertices", float32 (K, 9) of the emissive triangles; "normals", float32
+    (K, 9), their corners' shading normals (zeros: face normals); "cdf", their
     float32 CDF by power; "owners", the mesh of each; "deltas", DeltaLight
     records; and the chances a light sample picks the environment or a delta
     light (emitters.py)."""
     materials = look.materials.copy()
-    vertices, weights, owners = [], [], []
+    vertices, normals, weights, owners = [], [], [], []
     for mesh, radiance in sorted(look.emitters.area.items()):
         triangles = np.asarray(look.emissive[mesh], np.float64) * scale
         area = 0.5 * np.linalg.norm(np.cross(triangles[:, 1] - triangles[:, 0],
                                              triangles[:, 2] - triangles[:, 0]), axis=1)
         keep = area > 0
         vertices.append(triangles[keep].reshape(-1, 9))
+        smooth = look.emissive_normals.get(mesh)
+        normals.append(np.zeros((int(keep.sum()), 9)) if smooth is None
+                       else np.asarray(smooth)[keep].reshape(-1, 9))
         weights.append(area[keep] * luminance(radiance))
         owners.append(np.full(int(keep.sum()), mesh, np.int32))
         materials[mesh]["radiance"] = radiance
@@ -110,11 +119,39 @@ def light_tables(look: Look, scale: float, bounds_lo, bounds_hi) -> dict:
     return {"materials": materials,
             "vertices": (np.concatenate(vertices).astype(np.float32) if vertices
                          else np.zeros((0, 9), np.float32)),
+            "normals": (np.concatenate(normals).astype(np.float32) if normals
+                        else np.zeros((0, 9), np.float32)),
             "cdf": cdf.astype(np.float32),
             "owners": np.concatenate(owners) if owners else np.zeros(0, np.int32),
             "deltas": deltas, "delta_count": len(look.emitters.deltas),
             "environment_probability": chance(environment_power),
             "delta_probability": sum(chance(power) for power in delta_powers)}
+
+
+def shading_tables(meshes) -> dict:
+    """The shading normals of the meshes without face normals, as the kernels
+    read them: "faces", uint32 (T, 3) vertex rows into "normals", float32
+    (V, 3), the meshes one after another; "bases", int32 per mesh, its first
+    row of "faces" (-1: face normals)."""
+    faces, normals, bases = [], [], np.full(len(meshes), -1, np.int32)
+    triangles = vertices = 0
+    for k, mesh in enumerate(meshes):
+        if mesh.face_normals:
+            continue
+        bases[k] = triangles
+        faces.append(np.asarray(mesh.faces, np.int64) + vertices)
+        normals.append(mesh.normals)
+        triangles += mesh.triangle_count
+        vertices += mesh.vertex_count
+    if vertices >= 2 ** 32 or triangles >= 2 ** 31:
+        raise ValueError(f"the meshes' shading normals ({vertices:,} vertices, {triangles:,} "
+                         "triangles) overflow the path integrator's 32-bit indices; give the "
+                         "largest meshes face_normals=True")
+    return {"faces": (np.concatenate(faces).astype(np.uint32) if faces
+                      else np.zeros((0, 3), np.uint32)),
+            "normals": (np.concatenate(normals).astype(np.float32) if normals
+                        else np.zeros((0, 3), np.float32)),
+            "bases": bases}
 
 
 class Path(Integrator):
@@ -123,15 +160,22 @@ class Path(Integrator):
 
     modes = ("path",)
     progressive = True
+    needs_instances = True
 
     #: Bytes per pixel of a pass of the integrator's own buffers.
     PER_PIXEL = {"path states": layout.PATH_STATE.itemsize, "shadow rays": layout.RAY.itemsize,
                  "occluded": 1, "pending light": 16, "next rays": layout.RAY.itemsize,
                  "path numbers": 8}
 
+    #: Bytes per pixel of the AOV sums (two float4) and of the AOV image (7 floats).
+    AOV_SUMS, AOV_IMAGE = 32, 28
+
     def __init__(self):
         self._pixels = 0
+        self._aov_pixels = self._aov_image_pixels = 0
+        self._aovs = False
         self._tables: dict[str, cl.Buffer] = {}
+        self._shading: tuple = ((), {})  # (the meshes, their shading buffers)
         self.last_bounces: list[int] = []
 
     def buffer_sizes(self, pixels: int) -> dict[str, int]:
@@ -159,12 +203,22 @@ class Path(Integrator):
             self.live = cl.Buffer(context, rw, 4 * (UNLIMITED_BOUNCES + 1))
             self._pixels = pixels
         tables = light_tables(look, tree.scale, tree.bounds_lo, tree.bounds_hi)
-        for name in ("materials", "vertices", "cdf", "owners", "deltas"):
-            data = np.ascontiguousarray(tables[name])
-            # at least one element: OpenCL has no empty buffers
-            self._tables[name] = cl.Buffer(rt.context, cl.mem_flags.READ_ONLY
-                                           | cl.mem_flags.COPY_HOST_PTR,
-                                           hostbuf=data if data.nbytes else np.zeros(4, np.uint8))
+        meshes, shading = self._shading
+        if len(meshes) != len(look.meshes) or any(a is not b for a, b in zip(meshes, look.meshes)):
+            # Meshes are immutable: their normals go to the device once
+            found = shading_tables(look.meshes)
+            shading = {name: _upload(rt, found[name]) for name in ("faces", "normals")}
+            shading["bases"] = found["bases"]
+            self._shading = (look.meshes, shading)
+        tables["materials"]["shading_base"] = shading["bases"]
+        maps = np.zeros((0, 9)) if look.instance_maps is None else \
+            np.asarray(look.instance_maps).reshape(-1, 9)
+        tables["instance_maps"] = maps.astype(np.float32)
+        for name in ("materials", "vertices", "normals", "cdf", "owners", "deltas",
+                     "instance_maps"):
+            self._tables[name] = _upload(rt, tables[name])
+        self._tables["shading_faces"] = shading["faces"]
+        self._tables["shading_normals"] = shading["normals"]
         params = np.zeros((), layout.PATH_PARAMS)
         environment = look.emitters.environment
         params["environment"] = environment if environment is not None else 0.0
@@ -175,9 +229,51 @@ class Path(Integrator):
         params["delta_lights"] = tables["delta_count"]
         params["max_depth"] = settings.max_depth
         params["rr_depth"] = settings.rr_depth
+        params["instance_maps"] = len(maps)
         self._params = params
+        self._aovs = False
+        self._length_scale = np.float32(1.0 / tree.scale)
         self._live = np.zeros(UNLIMITED_BOUNCES, np.uint32)
         self.last_bounces = []
+
+    @classmethod
+    def aov_sizes(cls, pixels: int, image_pixels: int) -> dict[str, int]:
+        """Bytes of the AOV buffers for passes of ``pixels`` and an image of
+        ``image_pixels`` (for the allocation check)."""
+        return {"AOV sums": cls.AOV_SUMS * pixels, "AOV image": cls.AOV_IMAGE * image_pixels}
+
+    def prepare_aovs(self, pixels: int, image_pixels: int) -> cl.Event:
+        """After prepare: this render also sums each pixel's first-hit AOVs
+        (path_aovs), added to the whole image's zeroed sums by add_aovs and
+        read by read_aovs."""
+        context, rw = self.rt.context, cl.mem_flags.READ_WRITE
+        if pixels > self._aov_pixels:
+            self.aov_sums = cl.Buffer(context, rw, self.AOV_SUMS * pixels)
+            self._aov_pixels = pixels
+        if image_pixels > self._aov_image_pixels:
+            self.aov_image = cl.Buffer(context, rw, self.AOV_IMAGE * image_pixels)
+            self._aov_image_pixels = image_pixels
+        self._aov_kernels = {name: self.rt.kernel(KERNEL, name)
+                             for name in ("path_aovs", "path_aov_add")}
+        self._aovs = True
+        return cl.enqueue_fill_buffer(self.rt.queue, self.aov_image, np.float32(0), 0,
+                                      self.AOV_IMAGE * image_pixels)
+
+    def add_aovs(self, band, width: int) -> cl.Event:
+        """The band's AOV sums added to the whole image's."""
+        return self.rt.run(self._aov_kernels["path_aov_add"], band.tile_range, self.aov_sums,
+                           np.uint32(width), band.first_row, band.rows, self.aov_image)
+
+    def read_aovs(self, height: int, width: int, rows) -> dict[str, np.ndarray]:
+        """The AOV image: "albedo" and "normal" (height, width, 3) and "depth"
+        (height, width), float32 means over each pixel's samples; ``rows``:
+        (first row, rows, samples) of each band."""
+        out = np.empty((height, width, 7), np.float32)
+        self.rt.wait([cl.enqueue_copy(self.rt.queue, out, self.aov_image, is_blocking=False)])
+        for first, count, samples in rows:
+            out[first:first + count] /= samples
+        return {"albedo": out[..., 0:3].copy(), "normal": out[..., 3:6].copy(),
+                "depth": out[..., 6].copy()}
 
     def shade(self, step: Step) -> None:
         """The bounces of one sample of a band.  Pass d traces the
@@ -196,6 +292,12 @@ class Path(Integrator):
                                                       4 * (bounces + 1)))
         events["shade"].append(cl.enqueue_copy(rt.queue, self.live, np.array([count]),
                                                is_blocking=False))
+        if self._aovs:
+            events["shade"].append(rt.run(
+                self._aov_kernels["path_aovs"], band.count, step.rays, step.hits,
+                tables["materials"], tables["shading_faces"], tables["shading_normals"],
+                step.instances, tables["instance_maps"], self._params, self._length_scale,
+                count, sample, self.aov_sums))
         rays, next_rays = step.rays, self.next_rays
         numbers, next_numbers = self.numbers
         bound = band.count  # paths in this pass at most
@@ -204,11 +306,14 @@ class Path(Integrator):
             at = np.int32(depth)
             if depth > 0:
                 events["closest"].append(step.query.enqueue_intersect(
-                    step.tree, rays, step.hits, bound, step.overflow))
+                    step.tree, rays, step.hits, bound, step.overflow,
+                    instances=step.instances))
             events["shade"].append(rt.run(
                 kernels["path_surface"], bound, rays, step.hits, numbers, self.states,
-                tables["materials"], tables["vertices"], tables["cdf"], tables["owners"],
-                tables["deltas"], self._params, np.uint32(bound), first_pixel, stream, at,
+                tables["materials"], tables["vertices"], tables["normals"], tables["cdf"],
+                tables["owners"], tables["deltas"], tables["shading_faces"],
+                tables["shading_normals"], step.instances, tables["instance_maps"],
+                self._params, np.uint32(bound), first_pixel, stream, at,
                 self.live, next_rays, next_numbers, self.shadow, self.pending))
             events["shade"].append(rt.run(kernels["path_empty_tail"], bound, self.live, at,
                                           np.uint32(bound), next_rays))
@@ -231,3 +336,11 @@ class Path(Integrator):
         events["resolve"].append(rt.run(kernels["path_finish"], band.count, self.states, count,
                                         sample, step.accum))
         step.done(events["resolve"][-1])
+
+
+def _upload(rt: Runtime, array: np.ndarray) -> cl.Buffer:
+    """A read-only device copy of ``array``, of one element at least (OpenCL
+    has no empty buffers)."""
+    data = np.ascontiguousarray(array)
+    return cl.Buffer(rt.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
+                     hostbuf=data if data.nbytes else np.zeros(4, np.uint8))

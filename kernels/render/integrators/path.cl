@@ -17,6 +17,15 @@
  *   path_empty_tail empty rays in the next pass's slots past its live paths
  *   path_unoccluded a path's radiance += pending where its shadow ray was free
  *   path_finish     the film's sum += each path's radiance (by path)
+ *   path_aovs       (when asked, before the first path_surface) each pixel's
+ *                   sums of its first hit's albedo, shading normal and depth
+ *   path_aov_add    a band's AOV sums added to the whole image's
+ *
+ * Normals (Mitsuba 3's rules): BSDFs and area emitters see the shading
+ * normal (shading_normal: interpolated vertex normals, or the geometric one
+ * for face normals), so it decides which side a BSDF or an emitter shows;
+ * the geometric normal decides only on which side a new ray starts (Mitsuba's
+ * spawn_ray).  Nothing more corrects the shading normal, as in Mitsuba's path.
  *
  * Random numbers: random_unit(pixel, sample, dimension) (render/random.h),
  * the camera's dimensions 0 and 1, then DIMENSIONS_PER_BOUNCE per bounce.
@@ -27,6 +36,7 @@
 #include "render/integrators/path.h"
 #include "render/bsdfs/bsdf.h"
 #include "render/surface.h"
+#include "render/tiles.h"
 #include "render/random.h"
 
 #define DIMENSIONS_PER_BOUNCE 8
@@ -69,6 +79,31 @@ inline uint pick(__global const float* cdf, uint count, float u)
     return lo;
 }
 
+/* The shading normal at a hit, as Mitsuba 3's Mesh::compute_surface_interaction
+ * takes it: the mesh's vertex normals interpolated by the hit's barycentrics
+ * (u for v1, v for v2) and normalised, mapped to the world by the hit
+ * instance's inverse transpose (9 floats, row-major, per instance); the unit
+ * geometric normal for a mesh with face normals (shading_base < 0). */
+inline float3 shading_normal(__global const Hit* hit, __global const PathMaterial* m,
+                             int instance, __global const uint* shading_faces,
+                             __global const float* shading_normals,
+                             __global const float* instance_maps, uint instance_count)
+{
+    float3 geometric = LOAD_XYZ(hit->normal);
+    if (m->shading_base < 0)
+        return geometric;
+    __global const uint* f = shading_faces + 3 * ((size_t)m->shading_base + (uint)hit->prim_id);
+    float3 n0 = LOAD_XYZ(shading_normals + 3 * (size_t)f[0]);
+    float3 n = n0 + hit->u * (LOAD_XYZ(shading_normals + 3 * (size_t)f[1]) - n0)
+                  + hit->v * (LOAD_XYZ(shading_normals + 3 * (size_t)f[2]) - n0);
+    if (instance >= 0 && (uint)instance < instance_count) {
+        __global const float* a = instance_maps + 9 * (size_t)instance;
+        n = (float3)(dot3(LOAD_XYZ(a), n), dot3(LOAD_XYZ(a + 3), n), dot3(LOAD_XYZ(a + 6), n));
+    }
+    float squared = dot3(n, n);
+    return squared > 0.0f ? n * rsqrt(squared) : geometric;
+}
+
 /* One light sample: uniform on the sphere for the constant environment
  * (as Mitsuba's constant emitter), a point or directional light (a delta:
  * its pdf is the chance of picking it, and MIS leaves it alone), or uniform
@@ -78,6 +113,7 @@ inline uint pick(__global const float* cdf, uint count, float u)
 inline LightSample sample_light(float3 x, const PathParams* params,
                                 __global const PathMaterial* materials,
                                 __global const float* light_vertices,
+                                __global const float* light_normals,
                                 __global const float* light_cdf,
                                 __global const int* light_geom,
                                 __global const DeltaLight* delta_lights,
@@ -135,6 +171,12 @@ inline LightSample sample_light(float3 x, const PathParams* params,
     float b0 = 1.0f - root, b1 = u2 * root;
     float3 p = b0 * v0 + b1 * v1 + (1.0f - b0 - b1) * v2;
     float3 normal = normalize(cross(v1 - v0, v2 - v0));
+    /* the shading normal there (Mitsuba's Mesh::sample_position), unless the
+     * mesh has face normals (zeros in the table) */
+    __global const float* ln = light_normals + 9 * (size_t)k;
+    float3 smooth = b0 * LOAD_XYZ(ln) + b1 * LOAD_XYZ(ln + 3) + (1.0f - b0 - b1) * LOAD_XYZ(ln + 6);
+    if (dot3(smooth, smooth) > 0.0f)
+        normal = normalize(smooth);
     float3 to_light = p - x;
     float squared = dot3(to_light, to_light);
     float distance = sqrt(squared);
@@ -185,9 +227,14 @@ __kernel void path_surface(__global const Ray* rays,         /* the live paths' 
                            __global PathState* states,       /* by path */
                            __global const PathMaterial* materials,  /* per geom_id */
                            __global const float* light_vertices,    /* 9 floats per triangle */
+                           __global const float* light_normals,     /* 9 floats per triangle */
                            __global const float* light_cdf,
                            __global const int* light_geom,
                            __global const DeltaLight* delta_lights,
+                           __global const uint* shading_faces,      /* 3 vertices per triangle */
+                           __global const float* shading_normals,   /* 3 floats per vertex */
+                           __global const int* hit_instances,       /* per ray */
+                           __global const float* instance_maps,     /* 9 floats per instance */
                            const PathParams params,
                            const uint bound,          /* work-items: >= live[depth] */
                            const uint first_pixel,    /* the pass's first pixel: random streams */
@@ -226,7 +273,10 @@ __kernel void path_surface(__global const Ray* rays,         /* the live paths' 
     }
     __global const PathMaterial* m = materials + hit->geom_id;
     float3 geometric = LOAD_XYZ(hit->normal);
-    float cos_out = dot3(geometric, wo);
+    float3 shading = shading_normal(hit, m, hit_instances[gid], shading_faces, shading_normals,
+                                    instance_maps, params.instance_maps);
+    float cos_out = dot3(shading, wo);
+    float cos_geometric = dot3(geometric, wo);
     float3 emitted = LOAD_XYZ(m->radiance);
     if (cos_out > 0.0f && luminance_max(emitted) > 0.0f) {
         float distance = hit->t * length_d;
@@ -237,7 +287,7 @@ __kernel void path_surface(__global const Ray* rays,         /* the live paths' 
     }
     bool last = params.max_depth > 0 && depth + 1 >= params.max_depth;
     /* n: the BSDF's normal, turned to the viewer for one with sides */
-    float3 n = geometric;
+    float3 n = shading;
     if (bsdf_has_sides(m) && !(cos_out > 0.0f)) {
         if (!m->twosided)
             last = true;  /* the back of a one-sided BSDF is black */
@@ -250,7 +300,7 @@ __kernel void path_surface(__global const Ray* rays,         /* the live paths' 
     }
     float3 x = LOAD_XYZ(ray->origin) + hit->t * d;
     /* secondary rays start off the surface on their own side of it */
-    float3 lift = params.ray_offset * (cos_out > 0.0f ? geometric : -geometric);
+    float3 lift = params.ray_offset * (cos_geometric > 0.0f ? geometric : -geometric);
     uint pixel = first_pixel + path, base = 2 + DIMENSIONS_PER_BOUNCE * (uint)depth;
 
     /* next-event estimation, for a BSDF with a density: one light sample,
@@ -258,8 +308,9 @@ __kernel void path_surface(__global const Ray* rays,         /* the live paths' 
     bool delta_light = false;
     LightSample light = {(float3)(0.0f), 0.0f, (float3)(0.0f), 0.0f};
     if (bsdf_has_density(m))
-        light = sample_light(x + lift, &params, materials, light_vertices, light_cdf, light_geom,
-                             delta_lights, pixel, sample, base, &delta_light);
+        light = sample_light(x + lift, &params, materials, light_vertices, light_normals,
+                             light_cdf, light_geom, delta_lights, pixel, sample, base,
+                             &delta_light);
     float bsdf_pdf_of_light;
     float3 f_cos = light.pdf > 0.0f ? bsdf_eval(m, n, wo, light.direction, &bsdf_pdf_of_light)
                                     : (float3)(0.0f);
@@ -269,11 +320,14 @@ __kernel void path_surface(__global const Ray* rays,         /* the live paths' 
         /* stop short of the light itself: by the offset, or 0.1% of a short reach */
         float margin = params.ray_offset < 1e-3f * light.reach ? params.ray_offset
                                                                : 1e-3f * light.reach;
-        /* a light behind a transmitting BSDF: the shadow ray starts on the
-         * light's side, up to twice the offset nearer the light */
-        bool behind = dot3(geometric, light.direction) * dot3(geometric, lift) < 0.0f;
+        /* on the light's side (Mitsuba's spawn_ray_to): through a
+         * transmitting BSDF, or with shading normals, it may be the
+         * geometric back of the surface, up to twice the offset nearer the
+         * light than the point it was sampled from */
+        float3 toward = dot3(geometric, light.direction) > 0.0f ? geometric : -geometric;
+        bool behind = dot3(toward, lift) < 0.0f;
         float reach = light.reach - margin - (behind ? 2.0f * params.ray_offset : 0.0f);
-        write_ray(shadow + gid, behind ? x - lift : x + lift, light.direction, reach);
+        write_ray(shadow + gid, x + params.ray_offset * toward, light.direction, reach);
         pending[gid] = (float4)(carried, 0.0f);
     } else {
         no_shadow_ray(shadow + gid, pending + gid, d);
@@ -351,4 +405,69 @@ __kernel void path_finish(__global const PathState* states,
         return;
     float4 before = sample == 0 ? (float4)(0.0f) : accum[gid];
     accum[gid] = before + (float4)(LOAD_XYZ(states[gid].radiance), 0.0f);
+}
+
+/* Mitsuba 3's aov integrator at the camera ray's hit: the albedo (here the
+ * material's reflectance: diffuse reflectance, or a conductor's or
+ * dielectric's specular reflectance), the world shading normal (sh_normal,
+ * not turned to the viewer) and the depth (si.t: the distance along the
+ * ray, `length_scale` back from the tree's frame); a miss gives zeros.
+ * Each pixel sums them over its samples, two float4 per pixel: (albedo,
+ * depth) and (normal, 0); sample 0 starts the sums. */
+__kernel void path_aovs(__global const Ray* rays,
+                        __global const Hit* hits,
+                        __global const PathMaterial* materials,
+                        __global const uint* shading_faces,
+                        __global const float* shading_normals,
+                        __global const int* hit_instances,
+                        __global const float* instance_maps,
+                        const PathParams params,
+                        const float length_scale,
+                        const uint count,
+                        const uint sample,
+                        __global float4* aovs)
+{
+    uint gid = get_global_id(0);
+    if (gid >= count)
+        return;
+    __global const Hit* hit = hits + gid;
+    float4 first = (float4)(0.0f), second = (float4)(0.0f);
+    if (hit->geom_id >= 0) {
+        __global const PathMaterial* m = materials + hit->geom_id;
+        float reach = hit->t * length(LOAD_XYZ(rays[gid].direction)) * length_scale;
+        first = (float4)(LOAD_XYZ(m->reflectance), reach);
+        second = (float4)(shading_normal(hit, m, hit_instances[gid], shading_faces,
+                                         shading_normals, instance_maps, params.instance_maps),
+                          0.0f);
+    }
+    if (sample != 0) {
+        first += aovs[2 * (size_t)gid];
+        second += aovs[2 * (size_t)gid + 1];
+    }
+    aovs[2 * (size_t)gid] = first;
+    aovs[2 * (size_t)gid + 1] = second;
+}
+
+/* Over pixel_in_pass's 2D range (render/tiles.h): each pixel's AOV sums
+ * added to the whole image's, 7 floats (albedo RGB, normal XYZ, depth); the
+ * host divides by the samples each band took (the film's add_to_image). */
+__kernel void path_aov_add(__global const float4* aovs,
+                           const uint width,
+                           const uint first_row,
+                           const uint rows,
+                           __global float* image)
+{
+    uint gid;
+    uint2 at;
+    if (!pixel_in_pass(get_global_id(0), get_global_id(1), width, rows, &gid, &at))
+        return;
+    float4 first = aovs[2 * (size_t)gid], second = aovs[2 * (size_t)gid + 1];
+    __global float* pixel = image + 7 * (size_t)((first_row + at.y) * width + at.x);
+    pixel[0] += first.x;
+    pixel[1] += first.y;
+    pixel[2] += first.z;
+    pixel[3] += second.x;
+    pixel[4] += second.y;
+    pixel[5] += second.z;
+    pixel[6] += first.w;
 }

@@ -27,7 +27,9 @@ typedef struct {
     float specular_weight;   /* plastic: the share of samples steered to the coating */
     float internal;          /* plastic: the coating's diffuse reflectance from inside */
     uint nonlinear;          /* plastic: 1 scales the internal reflection by the albedo */
-    float reserved[2];
+    int shading_base;        /* the mesh's first triangle in the shading-normal tables;
+                              * -1: face normals (Mitsuba's face_normals) */
+    float reserved;
     float transmission[TRANSMISSION_TABLE];  /* roughplastic: the coating's transmittance
                                               * at cos theta = i / (TRANSMISSION_TABLE - 1) */
 } PathMaterial;
@@ -52,6 +54,7 @@ typedef struct {
     int max_depth;                  /* Mitsuba's: the longest path, in segments; <= 0: no limit */
     int rr_depth;                   /* Russian roulette from this depth on */
     float delta_probability;        /* the chance a light sample picks a delta light */
+    uint instance_maps;             /* normal maps per instance (0: a flat scene) */
 } PathParams;
 
 /* One path of the pass: what it still carries and what it has gathered. */
