@@ -9,7 +9,8 @@ Each sample of a pixel follows one path from the camera.  At each vertex x
   the power-heuristic weight of the BSDF sample against a light sample of
   that direction (Veach 1997, eq. 9.13);
 - next-event estimation: one light sample (materials.py, emitters.py:
-  the environment or a triangle, by power), T * f * cos * L / p_light
+  the environment, constant or a map (envmap.py), a delta light or a
+  triangle, by power), T * f * cos * L / p_light
   times its weight against the BSDF's density, where its shadow ray is
   free;
 
@@ -60,8 +61,9 @@ def light_tables(look: Look, scale: float, bounds_lo, bounds_hi) -> dict:
     ``scale``): "materials", PathMaterial records with their emission;
     "vertices", float32 (K, 9) of the emissive triangles; "cdf", their
     float32 CDF by power; "owners", the mesh of each; "deltas", DeltaLight
-    records; and the chances a light sample picks the environment or a delta
-    light (emitters.py)."""
+    records; "envmap_image" and "envmap_cdf", the environment map's pixels
+    and CDFs (envmap.py; stand-ins without one); and the chances a light
+    sample picks the environment or a delta light (emitters.py)."""
     materials = look.materials.copy()
     vertices, weights, owners = [], [], []
     for mesh, radiance in sorted(look.emitters.area.items()):
@@ -77,9 +79,11 @@ def light_tables(look: Look, scale: float, bounds_lo, bounds_hi) -> dict:
     triangle_power = float(weights.sum())
     lo, hi = np.asarray(bounds_lo, np.float64), np.asarray(bounds_hi, np.float64)
     radius = 0.5 * float(np.linalg.norm(hi - lo)) or 1.0
-    environment = look.emitters.environment
-    environment_power = (0.0 if environment is None
-                         else luminance(environment) * 4.0 * np.pi * radius * radius)
+    environment, envmap = look.emitters.environment, look.emitters.envmap
+    # the luminance integrated over the sphere, times R^2
+    environment_power = radius * radius * (
+        envmap.tables[1] if envmap is not None
+        else 0.0 if environment is None else luminance(environment) * 4.0 * np.pi)
     deltas = np.zeros(max(1, len(look.emitters.deltas)), layout.DELTA_LIGHT)
     delta_powers = []
     for k, (kind, vector, value) in enumerate(look.emitters.deltas):
@@ -103,7 +107,11 @@ def light_tables(look: Look, scale: float, bounds_lo, bounds_hi) -> dict:
         cdf[-1] = 1.0
     else:
         cdf = np.zeros(0)
-    return {"materials": materials,
+    if envmap is not None:
+        envmap_image, envmap_cdf = envmap.image, envmap.tables[0]
+    else:  # none: stand-ins, since OpenCL has no empty buffers
+        envmap_image, envmap_cdf = np.zeros(4, np.float32), np.zeros(4, np.float32)
+    return {"materials": materials, "envmap_image": envmap_image, "envmap_cdf": envmap_cdf,
             "vertices": (np.concatenate(vertices).astype(np.float32) if vertices
                          else np.zeros((0, 9), np.float32)),
             "cdf": cdf.astype(np.float32),
@@ -111,6 +119,17 @@ def light_tables(look: Look, scale: float, bounds_lo, bounds_hi) -> dict:
             "deltas": deltas, "delta_count": len(look.emitters.deltas),
             "environment_probability": chance(environment_power),
             "delta_probability": sum(chance(power) for power in delta_powers)}
+
+
+def envmap_params(params: np.ndarray, envmap) -> None:
+    """PathParams' environment map fields: its size and rotation (width 0
+    without one: the environment is constant)."""
+    if envmap is None:
+        params["envmap_width"] = params["envmap_height"] = 0
+        params["envmap_to_world"] = np.eye(3).reshape(-1)
+        return
+    params["envmap_height"], params["envmap_width"] = envmap.image.shape[:2]
+    params["envmap_to_world"] = envmap.to_world.reshape(-1)
 
 
 class Path(Integrator):
@@ -150,7 +169,8 @@ class Path(Integrator):
             self.live = cl.Buffer(context, rw, 4 * UNLIMITED_BOUNCES)
             self._pixels = pixels
         tables = light_tables(look, tree.scale, tree.bounds_lo, tree.bounds_hi)
-        for name in ("materials", "vertices", "cdf", "owners", "deltas"):
+        for name in ("materials", "vertices", "cdf", "owners", "deltas", "envmap_image",
+                     "envmap_cdf"):
             data = np.ascontiguousarray(tables[name])
             # at least one element: OpenCL has no empty buffers
             self._tables[name] = cl.Buffer(rt.context, cl.mem_flags.READ_ONLY
@@ -166,6 +186,7 @@ class Path(Integrator):
         params["delta_lights"] = tables["delta_count"]
         params["max_depth"] = settings.max_depth
         params["rr_depth"] = settings.rr_depth
+        envmap_params(params, look.emitters.envmap)
         self._params = params
         self._live = np.zeros(UNLIMITED_BOUNCES, np.uint32)
         self.last_bounces = []
@@ -187,7 +208,8 @@ class Path(Integrator):
             events["shade"].append(rt.run(
                 kernels["path_surface"], band.count, step.rays, step.hits, self.states,
                 tables["materials"], tables["vertices"], tables["cdf"], tables["owners"],
-                tables["deltas"], self._params, count, first_pixel, stream,
+                tables["deltas"], tables["envmap_image"], tables["envmap_cdf"], self._params,
+                count, first_pixel, stream,
                 np.int32(depth), self.shadow, self.pending, self.live))
             events["occluded"].append(step.query.enqueue_occluded(
                 step.tree, self.shadow, self.occluded, band.count, step.overflow))
