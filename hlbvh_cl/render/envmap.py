@@ -113,21 +113,20 @@ def check_envmap(name: str, spec) -> Envmap:
     if max(image.shape[:2]) > MAX_SIDE:
         raise ValueError(f"{what}: {image.shape[1]} x {image.shape[0]} pixels, more than "
                          f"{MAX_SIDE} on a side")
-    values = np.asarray(image, np.float64)
-    bad = ~np.isfinite(values) | (values < 0)
-    if bad.any():
-        y, x, c = (int(k) for k in np.argwhere(bad)[0])
-        raise ValueError(f"{what}: pixel (row {y}, column {x}) channel {c} is {values[y, x, c]}:"
+    if not (np.isfinite(image).all() and (image >= 0).all()):
+        y, x, c = (int(k) for k in np.argwhere(~np.isfinite(image) | (image < 0))[0])
+        raise ValueError(f"{what}: pixel (row {y}, column {x}) channel {c} is {image[y, x, c]}:"
                          f" radiance must be finite and >= 0")
     scale = inputs.number(f"{name}['scale']", spec.get("scale", 1.0), 0.0, _FLOAT32_MAX)
-    scaled = values * scale
-    if scaled.max(initial=0.0) > _FLOAT32_MAX:
+    if float(image.max(initial=0)) * scale > _FLOAT32_MAX:
         raise ValueError(f"{what} times scale {scale} overflows float32")
+    scaled = image.astype(np.float32) * np.float32(scale)  # Mitsuba scales in float32 too
     height, width = image.shape[:2]
-    padded = np.pad(scaled, ((0, max(0, MIN_HEIGHT - height)), (0, max(0, MIN_WIDTH - width)),
-                             (0, 0)), mode="edge")
+    if height < MIN_HEIGHT or width < MIN_WIDTH:
+        scaled = np.pad(scaled, ((0, max(0, MIN_HEIGHT - height)),
+                                 (0, max(0, MIN_WIDTH - width)), (0, 0)), mode="edge")
     rotation = to_world_rotation(f"{name}['to_world']", spec.get("to_world"))
-    return Envmap(np.ascontiguousarray(padded, np.float32), rotation, what)
+    return Envmap(np.ascontiguousarray(scaled), rotation, what)
 
 
 def to_world_rotation(name: str, value) -> np.ndarray:
