@@ -102,6 +102,7 @@ PATH_PARAMS = np.dtype([
     ("environment", *_f3), ("environment_probability", np.float32), ("ray_offset", np.float32),
     ("light_triangles", np.uint32), ("delta_lights", np.uint32), ("max_depth", np.int32),
     ("rr_depth", np.int32), ("delta_probability", np.float32), ("instance_maps", np.uint32),
+    ("envmap_to_world", np.float32, 9), ("envmap_width", np.uint32), ("envmap_height", np.uint32),
 ])
 
 PATH_STATE = np.dtype([("throughput", *_f3), ("bsdf_pdf", np.float32), ("radiance", *_f3),

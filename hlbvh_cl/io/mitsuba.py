@@ -22,7 +22,9 @@ The subset::
         <emitter type="area">                       radiance
       <emitter type="...">                          point (position or to_world, intensity),
                                                     directional (direction, irradiance),
-                                                    constant (radiance)
+                                                    constant (radiance), envmap (filename,
+                                                    relative to the file's folder; scale;
+                                                    to_world, a rotation)
 
 Values: rgb, float, integer, string, boolean and point, and ref.  Anything
 else, an element or a parameter, is an error naming it and its line: the
@@ -64,7 +66,8 @@ _VALUE_TAGS = ("rgb", "float", "integer", "string", "boolean", "point", "vector"
 #: materials.py's (twosided's inner BSDF is an element, not a parameter).
 _BSDFS = {kind: () if kind == "twosided" else params for kind, params in BSDFS.items()}
 _EMITTERS = {"area": ("radiance",), "point": ("position", "intensity", "to_world"),
-             "directional": ("direction", "irradiance", "to_world"), "constant": ("radiance",)}
+             "directional": ("direction", "irradiance", "to_world"), "constant": ("radiance",),
+             "envmap": ("filename", "scale", "to_world")}
 _SHAPES = {"ply": ("filename", "face_normals", "to_world", "flip_normals"),
            "obj": ("filename", "face_normals", "to_world", "flip_normals"),
            "rectangle": ("to_world", "flip_normals"), "cube": ("to_world", "flip_normals"),
@@ -282,7 +285,7 @@ def read_xml(path, defaults: dict | None = None) -> SceneDescription:
     options = {"shading": "path", "spp": SAMPLE_COUNT, "max_depth": -1, "rr_depth": 5,
                "rfilter": "gaussian"}
     camera, size = None, FILM_SIZE
-    meshes, emitters = [], []
+    meshes, emitters, emitter_names = [], [], []
     for node in scene.children:
         if node.tag == "default":
             continue
@@ -299,9 +302,15 @@ def read_xml(path, defaults: dict | None = None) -> SceneDescription:
             meshes.append(_shape(reader, node))
         elif node.tag == "emitter":
             emitters.append(_emitter(reader, node))
+            emitter_names.append(_emitter_name(reader, node))
         else:
             raise reader.error(node, "is not an element this reader takes (integrator, sensor, "
                                      "bsdf, shape, emitter, default)")
+    from ..render.emitters import check_emitters
+    try:  # together: one environment at most
+        check_emitters(emitters, 0, names=emitter_names)
+    except (TypeError, ValueError) as error:
+        raise SceneFileError(str(error)) from None
     if camera is None:
         raise SceneFileError(f"{path}: no <sensor>: the scene needs a camera")
     if not meshes:
@@ -439,17 +448,22 @@ def _emitter(reader: _Reader, node: _Node, area: bool = False) -> dict:
     if kind not in _EMITTERS or (kind == "area") != area:
         where = "inside a <shape>" if area else "at the top of the scene"
         raise reader.error(node, f"emitter type {kind!r} is not read {where} (this reader "
-                                 "takes area inside shapes; point, directional and constant "
-                                 "at the top)")
+                                 "takes area inside shapes; point, directional, constant "
+                                 "and envmap at the top)")
     values = reader.parameters(node, _EMITTERS[kind])
     matrix = values.pop("to_world", None)
-    if matrix is not None:
+    if kind == "envmap":
+        if "filename" in values:  # Mitsuba resolves it against the file's folder
+            values["filename"] = str(reader.path.parent / values["filename"])
+        if matrix is not None:
+            values["to_world"] = matrix
+    elif matrix is not None:
         if kind == "point":
             values.setdefault("position", list(matrix[:3, 3]))
         else:
             values.setdefault("direction", list(matrix[:3, :3] @ [0.0, 0.0, 1.0]))
     spec = {"type": kind, **values}
-    for needed in {"area": ("radiance",), "constant": ("radiance",),
+    for needed in {"area": ("radiance",), "constant": ("radiance",), "envmap": ("filename",),
                    "point": ("position", "intensity"),
                    "directional": ("direction", "irradiance")}[kind]:
         if needed not in spec:
@@ -457,7 +471,11 @@ def _emitter(reader: _Reader, node: _Node, area: bool = False) -> dict:
     from ..render.emitters import check_emitters
     try:
         check_emitters([{**spec, "mesh": 0} if area else spec], 1,
-                       names=[f"{reader.path}:{node.line}: <emitter type=\"{kind}\">"])
+                       names=[_emitter_name(reader, node)])
     except (TypeError, ValueError) as error:
         raise SceneFileError(str(error)) from None
     return spec
+
+
+def _emitter_name(reader: _Reader, node: _Node) -> str:
+    return f"{reader.path}:{node.line}: <emitter type=\"{node.get('type')}\">"

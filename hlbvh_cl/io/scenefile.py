@@ -34,8 +34,10 @@ Schema (every table and key is listed here; any other key is an error)::
 
     [[emitter]]                   # optional, any number: the path integrator's other lights
     type = "point"                # "point" (position, intensity), "directional" (direction,
-    position = [0.0, 3.0, 0.0]    # irradiance) or "constant" (radiance): Mitsuba's emitters
-    intensity = [10.0, 10.0, 10.0]  # (hlbvh_cl/render/emitters.py)
+    position = [0.0, 3.0, 0.0]    # irradiance), "constant" (radiance) or "envmap" (filename,
+    intensity = [10.0, 10.0, 10.0]  # relative to this file; scale; to_world, a 3 x 3 or 4 x 4
+                                  # rotation): Mitsuba's emitters (hlbvh_cl/render/emitters.py);
+                                  # one environment (constant or envmap) at most
 
     [[mesh]]                      # one table per mesh, at least one; mesh[0] is the first
     path = "meshes/bunny.ply"     # relative to this TOML file (or absolute); or instead:
@@ -164,6 +166,7 @@ class _Reader:
 
     def __init__(self, path: Path):
         self.label = str(path)
+        self.path = Path(path)
 
     def error(self, key: str, message: str) -> SceneFileError:
         return SceneFileError(f"{self.label}: {key}: {message}")
@@ -768,15 +771,18 @@ def _area_emitter(reader: _Reader, table: dict, key: str) -> dict | None:
 
 
 def _read_emitters(reader: _Reader, value) -> list[dict]:
-    """The [[emitter]] tables: point, directional or constant lights."""
+    """The [[emitter]] tables: point, directional, constant or envmap lights."""
     if not isinstance(value, list) or not value:
         raise reader.error("emitter", f"expected one or more [[emitter]] tables, "
                                       f"got {inputs.describe(value)}")
     names = [f"emitter[{k}]" for k in range(len(value))]
+    value = [dict(spec) if isinstance(spec, dict) else spec for spec in value]
     for name, spec in zip(names, value):
         if isinstance(spec, dict) and spec.get("type") == "area":
             raise reader.error(name, "an area emitter belongs in its [[mesh]] table (emitter = "
                                      "{ type = \"area\", radiance = ... })")
+        if isinstance(spec, dict) and isinstance(spec.get("filename"), str):
+            spec["filename"] = str(reader.path.parent / spec["filename"])  # relative to the file
     from ..render.emitters import check_emitters
     try:
         check_emitters(value, 0, names=names)

@@ -10,7 +10,15 @@
   light of that radiant intensity (Mitsuba's point emitter);
 - ``{"type": "directional", "direction": [x, y, z], "irradiance": rgb}``:
   parallel light travelling along ``direction`` (Mitsuba's directional
-  emitter), of that irradiance on a surface facing it.
+  emitter), of that irradiance on a surface facing it;
+- ``{"type": "envmap", "filename": "sky.exr", "scale": 1.0, "to_world": R}``:
+  an equirectangular image of the light from every direction (Mitsuba's
+  envmap emitter; envmap.py has its mapping and sampling): an OpenEXR or
+  Radiance .hdr file, or instead of ``filename`` an ``image``, a numpy
+  float array (H, W, 3) of linear RGB; ``to_world`` a rotation, 3 x 3 or
+  4 x 4 (default the identity).
+
+At most one environment (constant or envmap) lights a scene.
 
 A radiance is a number or RGB, each >= 0 and finite.  Renderer.emitters =
 None lights the scene with a constant environment of radiance 1, so that a
@@ -31,11 +39,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..core import inputs
+from .envmap import LUMINANCE, Envmap, check_envmap
 from .plugins import plugin_type
 
 #: The emitter types written so far, and the parameters each takes.
 EMITTERS = {"area": ("mesh", "radiance"), "constant": ("radiance",),
-            "point": ("position", "intensity"), "directional": ("direction", "irradiance")}
+            "point": ("position", "intensity"), "directional": ("direction", "irradiance"),
+            "envmap": ("filename", "image", "scale", "to_world")}
 
 #: The value each emitter type needs.
 VALUES = {"area": "radiance", "constant": "radiance", "point": "intensity",
@@ -44,19 +54,19 @@ VALUES = {"area": "radiance", "constant": "radiance", "point": "intensity",
 #: Renderer.emitters = None: a white sky all around.
 DEFAULT = ({"type": "constant", "radiance": 1.0},)
 
-#: Rec. 709 luminance weights: how bright an RGB radiance is, for light selection.
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 @dataclass(frozen=True)
 class Emitters:
-    """Checked emitters: radiance per emitting mesh, the environment's, and
-    the delta lights as (type, position or unit direction, value)."""
+    """Checked emitters: radiance per emitting mesh, the constant
+    environment's or the environment map, and the delta lights as (type,
+    position or unit direction, value)."""
     area: dict[int, np.ndarray] = field(default_factory=dict)
     environment: np.ndarray | None = None
     deltas: tuple = ()
+    envmap: Envmap | None = None
 
 
 def check_emitters(emitters, mesh_count: int, names=None) -> Emitters:
@@ -68,11 +78,20 @@ def check_emitters(emitters, mesh_count: int, names=None) -> Emitters:
         raise TypeError(f"emitters must be a list of emitters such as {DEFAULT[0]}, got "
                         f"{type(emitters).__name__}")
     area: dict[int, np.ndarray] = {}
-    environment = None
+    environment = envmap = None
     deltas: list = []
+    first_environment = None
     for i, spec in enumerate(emitters):
         name = names[i] if names is not None else f"emitters[{i}]"
         kind = plugin_type(name, spec, EMITTERS, DEFAULT[0], "emitters")
+        if kind in ("constant", "envmap"):
+            if first_environment is not None:
+                raise ValueError(f"{name}: a second environment ({kind}) besides "
+                                 f"{first_environment}: one at most lights a scene")
+            first_environment = f"{name} ({kind})"
+        if kind == "envmap":
+            envmap = check_envmap(name, spec)
+            continue
         value = VALUES[kind]
         if value not in spec:
             raise ValueError(f"{name}: {kind} needs its {value!r}")
@@ -90,8 +109,6 @@ def check_emitters(emitters, mesh_count: int, names=None) -> Emitters:
             deltas.append((kind, vector, radiance))
             continue
         if kind == "constant":
-            if environment is not None:
-                raise ValueError(f"{name}: a second constant environment (one at most)")
             environment = radiance
             continue
         mesh = spec.get("mesh")
@@ -102,7 +119,7 @@ def check_emitters(emitters, mesh_count: int, names=None) -> Emitters:
         if int(mesh) in area:
             raise ValueError(f"{name}: mesh {int(mesh)} has an area emitter already")
         area[int(mesh)] = radiance
-    return Emitters(area, environment, tuple(deltas))
+    return Emitters(area, environment, tuple(deltas), envmap)
 
 
 def luminance(radiance: np.ndarray) -> float:

@@ -5,19 +5,25 @@ tests do; a user can check a material the same way.
 
     sample_bsdf(material, wo, count)  -> directions, weights (f cos / pdf), pdfs
     eval_bsdf(material, wo, wi)       -> f cos, pdfs
+    sample_envmap(emitter, count)     -> directions, radiance, pdfs
+    eval_envmap(emitter, wi)          -> radiance, pdfs
 
 ``material`` is a materials.py spec; ``wo`` the unit direction towards the
 viewer and ``normal`` the surface's (default +z), turned towards wo for a
 BSDF with sides as the integrator turns it.  Delta lobes have density 0.
+``emitter`` is an "envmap" spec (emitters.py, envmap.py); its densities are
+per solid angle, before the integrator's chance of picking the map.
 """
 from __future__ import annotations
 
 import numpy as np
 import pyopencl as cl
 
-from ..core import inputs
+from ..core import inputs, layout
 from ..core.paths import kernel_of
 from ..device.runtime import runtime
+from .envmap import check_envmap
+from .integrators.path import envmap_params
 from .materials import check_material
 
 KERNEL = kernel_of(__name__)
@@ -72,3 +78,55 @@ def eval_bsdf(material, wo, wi, normal=(0.0, 0.0, 1.0), device=None) -> dict[str
     for name, array in out.items():
         cl.enqueue_copy(rt.queue, array, buffers[name])
     return out
+
+
+def _envmap_setup(emitter, device):
+    rt = runtime(device)
+    if not isinstance(emitter, dict) or emitter.get("type") != "envmap":
+        raise ValueError(f"emitter must be an envmap spec such as {{'type': 'envmap', "
+                         f"'filename': 'sky.exr'}}, got {inputs.describe(emitter)}")
+    envmap = check_envmap("emitter", {k: v for k, v in emitter.items() if k != "type"})
+    params = np.zeros((), layout.PATH_PARAMS)
+    envmap_params(params, envmap)
+    flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
+    return rt, [params, cl.Buffer(rt.context, flags, hostbuf=envmap.image),
+                cl.Buffer(rt.context, flags, hostbuf=envmap.tables[0])]
+
+
+def _launch(rt, name, count, arguments, out) -> dict[str, np.ndarray]:
+    """Run kernel ``name`` over ``count`` items with ``arguments`` and then
+    one write-only buffer per array of ``out``, and read them back."""
+    buffers = {key: cl.Buffer(rt.context, cl.mem_flags.WRITE_ONLY, array.nbytes)
+               for key, array in out.items()}
+    rt.run(rt.kernel(KERNEL, name), count, *arguments, *buffers.values())
+    for key, array in out.items():
+        cl.enqueue_copy(rt.queue, array, buffers[key])
+    return out
+
+
+def sample_envmap(emitter, count: int, seed: int = 0, device=None) -> dict[str, np.ndarray]:
+    """``count`` directions drawn as the path integrator's light samples
+    draw them from an environment map: "directions" (count, 3) unit, world
+    frame, the way light arrives from; "radiance" (count, 3) along each;
+    "pdfs" (count,) their solid-angle densities; float32."""
+    count = inputs.integer("count", count, 1, 1 << 26)
+    seed = inputs.integer("seed", seed, 0, 2**32 - 1)
+    rt, arguments = _envmap_setup(emitter, device)
+    return _launch(rt, "envmap_samples", count, [*arguments, np.uint32(count), np.uint32(seed)],
+                   {"directions": np.empty((count, 3), np.float32),
+                    "radiance": np.empty((count, 3), np.float32),
+                    "pdfs": np.empty(count, np.float32)})
+
+
+def eval_envmap(emitter, wi, device=None) -> dict[str, np.ndarray]:
+    """The radiance ("radiance", (N, 3)) an environment map sends from each
+    unit direction of ``wi`` (N, 3), and the density ("pdfs", (N,)) with
+    which sample_envmap draws it."""
+    wi = np.ascontiguousarray(wi, np.float32).reshape(-1, 3)
+    rt, arguments = _envmap_setup(emitter, device)
+    count = len(wi)
+    directions = cl.Buffer(rt.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
+                           hostbuf=wi)
+    return _launch(rt, "envmap_values", count, [*arguments, np.uint32(count), directions],
+                   {"radiance": np.empty((count, 3), np.float32),
+                    "pdfs": np.empty(count, np.float32)})

@@ -8,12 +8,17 @@
  *                 normal n seen from unit wo: direction, weight f cos / pdf,
  *                 density (0 for a delta lobe); random_unit(k, seed, 0..2)
  *   bsdf_values   f cos and the density towards each of `wi`
+ *   envmap_samples  sample k of an environment map's directions
+ *                   (render/envmap.h): direction, radiance, density;
+ *                   random_unit(k, seed, 0..2)
+ *   envmap_values   its radiance and density towards each of `wi`
  * The normal given is used as the integrator uses it: turned towards wo for
  * a BSDF with sides, as it is for a dielectric. */
 #include "core/portable.h"
 #include "core/spelled.h"
 #include "render/bsdfs/bsdf.h"
 #include "render/random.h"
+#include "render/envmap.h"
 
 /* The BSDF's normal as path_surface computes it; false where the back of
  * a one-sided BSDF is seen (black). */
@@ -61,4 +66,33 @@ __kernel void bsdf_values(__global const PathMaterial* materials, const float nx
         value = bsdf_eval(materials, n, wo, LOAD_XYZ(wi + 3 * (size_t)k), &pdf);
     store3(values + 3 * (size_t)k, value);
     pdfs[k] = pdf;
+}
+
+__kernel void envmap_samples(const PathParams params, __global const float* image,
+                             __global const float* cdf, const uint count, const uint seed,
+                             __global float* directions, __global float* radiance,
+                             __global float* pdfs)
+{
+    uint k = get_global_id(0);
+    float pdf;
+    if (k >= count)
+        return;
+    float3 d = envmap_sample(&params, cdf, random_unit(k, seed, 0), random_unit(k, seed, 1),
+                             random_unit(k, seed, 2), &pdf);
+    store3(directions + 3 * (size_t)k, d);
+    store3(radiance + 3 * (size_t)k, envmap_radiance(&params, image, d));
+    pdfs[k] = pdf;
+}
+
+__kernel void envmap_values(const PathParams params, __global const float* image,
+                            __global const float* cdf, const uint count,
+                            __global const float* wi, __global float* radiance,
+                            __global float* pdfs)
+{
+    uint k = get_global_id(0);
+    if (k >= count)
+        return;
+    float3 d = LOAD_XYZ(wi + 3 * (size_t)k);
+    store3(radiance + 3 * (size_t)k, envmap_radiance(&params, image, d));
+    pdfs[k] = envmap_pdf(&params, cdf, d);
 }

@@ -87,13 +87,19 @@ RENDERS = {"diffuse": {"shading": "diffuse", "shadows": True},
            # the path stages; no Russian roulette, whose coin a last-bit
            # difference between devices could flip
            "path": {"shading": "path", "spp": 2, "max_depth": 3, "rr_depth": 10,
-                    "rfilter": "gaussian"}}
+                    "rfilter": "gaussian"},
+           # the environment map's lookups and sampling (render/envmap.h)
+           "envmap": {"shading": "path", "spp": 2, "max_depth": 3, "rr_depth": 10,
+                      "emitters": [{"type": "envmap", "image": np.linspace(
+                          0.1, 3.0, 5 * 7 * 3, dtype=np.float32).reshape(5, 7, 3)}]}}
 WIDTH, HEIGHT = 8, 6
 
 
 def render(scene, name: str) -> np.ndarray:
     import hlbvh_cl
-    return hlbvh_cl.Renderer(scene).render(camera(), WIDTH, HEIGHT, **RENDERS[name])
+    options = dict(RENDERS[name])
+    renderer = hlbvh_cl.Renderer(scene, emitters=options.pop("emitters", None))
+    return renderer.render(camera(), WIDTH, HEIGHT, **options)
 
 
 #: Rays per coherent block: a 16 x 4 fan from one origin, whose directions

@@ -107,10 +107,15 @@ def _exercise(device) -> None:
                 {"type": "directional", "direction": [0, -1, 0], "irradiance": 1.0},
                 {"type": "constant", "radiance": 0.5}]).render(
                 camera, 8, 6, shading="path", spp=2, max_depth=3, rfilter="gaussian", hdr=True)
-    from hlbvh_cl.render.sampling import eval_bsdf, sample_bsdf
+        sky = np.linspace(0.1, 2.0, 4 * 8 * 3, dtype=np.float32).reshape(4, 8, 3)
+        hlbvh_cl.Renderer(scene, emitters=[{"type": "envmap", "image": sky}]).render(
+            camera, 8, 6, shading="path", spp=2, max_depth=3, hdr=True)
+    from hlbvh_cl.render.sampling import eval_bsdf, eval_envmap, sample_bsdf, sample_envmap
     for material in ({"type": "diffuse"}, *materials):
         drawn = sample_bsdf(material, (0, 0, 1), 16, device=device)
         eval_bsdf(material, (0, 0, 1), drawn["directions"], device=device)
+    drawn = sample_envmap({"type": "envmap", "image": sky}, 16, device=device)
+    eval_envmap({"type": "envmap", "image": sky}, drawn["directions"], device=device)
     scenes[0].update_vertices(0, sphere.vertices * 1.1)
     scenes[1].set_transforms([1], [np.eye(4)])
     scenes[1].intersect(origins, directions, mask=2)

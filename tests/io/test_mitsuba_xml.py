@@ -11,7 +11,7 @@ import hlbvh_cl
 from hlbvh_cl.io.mitsuba import read_xml
 from hlbvh_cl.io.scenefile import SceneFileError, load
 import places
-from block_means import assert_blocks_agree
+from agreement import assert_blocks_agree
 
 mi = pytest.importorskip("mitsuba")
 
@@ -119,7 +119,7 @@ def test_the_cornell_box_renders_as_in_mitsuba(suite_device):
     assert ours.shape == theirs.shape == (seeds, size, size, 3)
     # the glass ball's caustics make heavy-tailed noise: the means agree to a few percent
     assert abs(ours.mean() - theirs.mean()) < 0.05 * theirs.mean()
-    assert_blocks_agree(theirs, ours)
+    assert_blocks_agree(theirs, ours, 8)
 
 
 def test_the_materials_scene_renders_as_in_mitsuba(tmp_path, suite_device):
@@ -141,6 +141,67 @@ def test_the_materials_scene_renders_as_in_mitsuba(tmp_path, suite_device):
     assert_blocks_agree(theirs, ours, block=12)
 
 
+def sun_and_sky(height=16, width=32) -> np.ndarray:
+    """A small synthetic sky: a blue-white gradient over a dark ground half,
+    and a bright sun 2 x 2 pixels wide."""
+    v = (np.arange(height) + 0.5) / height
+    image = np.empty((height, width, 3), np.float32)
+    image[:] = (np.where(v < 0.5, 1 - v, 0.1)[:, None] * [0.6, 0.8, 1.2])[:, None]
+    image[:, :, 0] *= 1 + 0.5 * np.sin(np.linspace(0, 2 * np.pi, width))  # uneven in phi
+    image[3:5, 9:11] = [150.0, 130.0, 100.0]
+    return image
+
+
+@pytest.mark.parametrize("rotated", [False, True], ids=["identity", "rotated"])
+def test_an_environment_map_lights_a_scene_as_in_mitsuba(rotated, tmp_path, suite_device):
+    """A diffuse and a mirror ball on a diffuse ground, lit only by an
+    envmap with a sun (a temporary EXR, with and without a to_world
+    rotation), rendered by both from one XML file: every 6 x 6 block's mean
+    within 5 combined standard errors over 4 independent seeds each, plus
+    2% of its level for the balls' facets."""
+    import trimesh
+    from hlbvh_cl.io.exr import write_exr
+    seeds, width, height, spp = 4, 36, 24, 32
+    (tmp_path / "maps").mkdir()
+    write_exr(tmp_path / "maps" / "sky.exr", sun_and_sky())
+    for name, centre in (("diffuse", (-0.6, 0.5, 0.0)), ("mirror", (0.6, 0.5, 0.2))):
+        ball = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+        ball.apply_translation(centre)
+        ball.export(tmp_path / f"{name}.ply")
+    turn = '<rotate y="1" angle="120"/><rotate x="1" angle="20"/>' if rotated else ""
+    body = f"""
+  <integrator type="path"><integer name="max_depth" value="5"/></integrator>
+  <shape type="rectangle"><transform name="to_world"><rotate x="1" angle="-90"/>
+    <scale value="3"/></transform><bsdf type="diffuse"><rgb name="reflectance"
+    value="0.5, 0.45, 0.4"/></bsdf></shape>
+  <shape type="ply"><string name="filename" value="diffuse.ply"/>
+    <boolean name="face_normals" value="true"/>
+    <bsdf type="diffuse"><rgb name="reflectance" value="0.8, 0.3, 0.2"/></bsdf></shape>
+  <shape type="ply"><string name="filename" value="mirror.ply"/>
+    <boolean name="face_normals" value="true"/><bsdf type="conductor"/></shape>
+  <emitter type="envmap"><string name="filename" value="maps/sky.exr"/>
+    <float name="scale" value="0.8"/><transform name="to_world">{turn}</transform></emitter>"""
+    path = tmp_path / "scene.xml"
+    path.write_text(scene_xml(body, width, height, fov=45).replace(
+        "<film type=\"hdrfilm\">", "<film type=\"hdrfilm\"><rfilter type=\"box\"/>"))
+    scene = mi.load_file(str(path))
+    theirs = np.stack([np.asarray(mi.render(scene, spp=spp, seed=s))[..., :3]
+                       for s in range(seeds)])
+    loaded = load(path, suite_device.id)
+    assert loaded.emitters[0]["filename"] == str(tmp_path / "maps" / "sky.exr")
+    renderer = loaded.renderer()
+    options = {**loaded.options, "spp": spp}
+    ours = np.stack([renderer.render(loaded.camera, width, height, hdr=True, seed=s + 1,
+                                     **options) for s in range(seeds)])
+    assert ours.shape == theirs.shape == (seeds, height, width, 3)
+    # the image means, within 5 combined standard errors (the sun's
+    # reflections make heavy-tailed noise) and 1%
+    a, b = theirs.mean((1, 2, 3)), ours.mean((1, 2, 3))
+    assert abs(a.mean() - b.mean()) < 5 * np.sqrt((a.var(ddof=1) + b.var(ddof=1)) / seeds) \
+        + 0.01 * a.mean(), (a.mean(), b.mean())
+    assert_blocks_agree(theirs, ours, 6)
+
+
 @pytest.mark.parametrize("body, words", [
     ('<shape type="cylinder"/>', ":11: <shape type=\"cylinder\">: shape type 'cylinder' is "
                                  "not read"),
@@ -156,7 +217,18 @@ def test_the_materials_scene_renders_as_in_mitsuba(tmp_path, suite_device):
      "mesh file not found"),
     ('<shape type="cube"><float name="radius" value="1"/></shape>',
      "cube takes ('to_world', 'flip_normals'), not 'radius'"),
-    ('<emitter type="envmap"/>', "emitter type 'envmap' is not read at the top"),
+    ('<emitter type="spot"/>', "emitter type 'spot' is not read at the top"),
+    ('<emitter type="envmap"/>', ":11: <emitter type=\"envmap\">: needs its filename"),
+    ('<emitter type="envmap"><string name="filename" value="nowhere.exr"/></emitter>',
+     "cannot read the environment map"),
+    ('<emitter type="envmap"><string name="filename" value="sky.exr"/>'
+     '<float name="gamma" value="2.2"/></emitter>',
+     "envmap takes ('filename', 'scale', 'to_world'), not 'gamma'"),
+    ('<emitter type="envmap"><string name="filename" value="sky.exr"/><transform '
+     'name="to_world"><scale value="2"/></transform></emitter>', "must be a rotation"),
+    ('<emitter type="constant"><rgb name="radiance" value="1"/></emitter><emitter '
+     'type="envmap"><string name="filename" value="sky.exr"/></emitter>',
+     "a second environment (envmap) besides"),
     ('<shape type="cube"><bsdf type="diffuse"><rgb name="reflectance" value="2, 0, 0"/>'
      '</bsdf></shape>', "['reflectance'][0] must be a finite number >= 0 and <= 1, got 2.0"),
     ('<shape type="cube"><ref id="nowhere"/></shape>', "refers to no <bsdf id=\"nowhere\">"),
@@ -166,6 +238,8 @@ def test_the_materials_scene_renders_as_in_mitsuba(tmp_path, suite_device):
      "$missing has no <default name=\"missing\">"),
 ])
 def test_an_element_outside_the_subset_names_itself_and_its_line(tmp_path, body, words):
+    from hlbvh_cl.io.exr import write_exr
+    write_exr(tmp_path / "sky.exr", np.ones((4, 8, 3), np.float32))
     path = tmp_path / "scene.xml"
     path.write_text(scene_xml(body))
     with pytest.raises(SceneFileError) as error:

@@ -374,3 +374,50 @@ def test_a_bad_material_or_emitter_names_its_table(tmp_path, change, words):
         read(write(tmp_path, LOOK.replace(old, new, 1)))
     assert str(error.value).startswith(str(tmp_path / "scene.toml"))
     assert words in str(error.value)
+
+
+SKY = """
+[[emitter]]
+type = "envmap"
+filename = "maps/sky.exr"
+scale = 2.0
+to_world = [[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]
+"""
+
+
+def test_an_envmap_table_finds_its_file_beside_the_scene_and_renders(tmp_path, suite_device):
+    """An [[emitter]] envmap's filename is relative to the TOML file, as
+    Mitsuba resolves an XML file's; the loaded scene renders lit by it: a
+    map of one value c gives c where the camera sees the sky."""
+    from hlbvh_cl.io.exr import write_exr
+    from hlbvh_cl.io.scenefile import load
+    (tmp_path / "maps").mkdir()
+    write_exr(tmp_path / "maps" / "sky.exr", np.full((4, 8, 3), 0.25, np.float32))
+    text = BASE + SKY + '\n[[mesh]]\nshape = "sphere"\nscale = 0.3\n'
+    scene = read(write(tmp_path, text))
+    assert scene.all_emitters() == [{
+        "type": "envmap", "filename": str(tmp_path / "maps" / "sky.exr"), "scale": 2.0,
+        "to_world": [[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]}]
+    loaded = load(write(tmp_path, text), suite_device.id)
+    image = loaded.renderer().render(loaded.camera, 16, 12, shading="path", spp=2, hdr=True)
+    assert np.allclose(image[0], 0.5) and np.allclose(image[:, 0], 0.5)
+
+
+@pytest.mark.parametrize("change, words", [
+    ("maps/sky.exr", "emitter[0]: cannot read the environment map"),
+    ("scale = 2.0", "emitter[0]['scale'] must be a finite number >= 0"),
+    ("[-1.0, 0.0, 0.0]]", "emitter[0]['to_world'] must be a rotation"),
+    ("[[emitter]]", "emitter[1]: a second environment (envmap) besides emitter[0] (constant)"),
+])
+def test_a_bad_envmap_table_is_named(tmp_path, change, words):
+    from hlbvh_cl.io.exr import write_exr
+    write_exr(tmp_path / "sky.exr", np.ones((4, 8, 3), np.float32))
+    text = SKY.replace("maps/", "")
+    text = {"maps/sky.exr": SKY.replace("maps/sky.exr", "missing.exr"),
+            "scale = 2.0": text.replace("scale = 2.0", "scale = -2.0"),
+            "[-1.0, 0.0, 0.0]]": text.replace("[-1.0, 0.0, 0.0]]", "[-2.0, 0.0, 0.0]]"),
+            "[[emitter]]": '[[emitter]]\ntype = "constant"\nradiance = 1.0\n' + text}[change]
+    with pytest.raises(SceneFileError) as error:
+        read(write(tmp_path, BASE + text + '\n[[mesh]]\nshape = "sphere"\n'))
+    assert str(error.value).startswith(str(tmp_path / "scene.toml"))
+    assert words in str(error.value)

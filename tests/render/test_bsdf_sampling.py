@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
+import chi2
 from hlbvh_cl.render.sampling import eval_bsdf, sample_bsdf
 
 #: Bins in cos(theta) and phi (equal solid angles), samples drawn.
@@ -62,17 +63,9 @@ def unit(v):
 def bin_integrals(material, wo, device, sub=6):
     """The BSDF's density integrated over each (cos theta, phi) bin by a
     sub x sub midpoint rule: the share of samples each bin should get."""
-    z_edges = np.linspace(-1, 1, THETA_BINS * sub + 1)
-    phi_edges = np.linspace(0, 2 * np.pi, PHI_BINS * sub + 1)
-    z = (z_edges[:-1] + z_edges[1:]) / 2
-    phi = (phi_edges[:-1] + phi_edges[1:]) / 2
-    zz, pp = np.meshgrid(z, phi, indexing="ij")
-    r = np.sqrt(1 - zz**2)
-    directions = np.stack([r * np.cos(pp), r * np.sin(pp), zz], -1).reshape(-1, 3)
-    pdfs = eval_bsdf(material, wo, directions, device=device)["pdfs"].astype(np.float64)
-    cell = (2.0 / len(z)) * (2 * np.pi / len(phi))  # d(cos theta) d(phi) = solid angle
-    per_cell = (pdfs * cell).reshape(THETA_BINS, sub, PHI_BINS, sub)
-    return per_cell.sum(axis=(1, 3))
+    directions, cell = chi2.bin_directions(THETA_BINS, PHI_BINS, sub)
+    pdfs = eval_bsdf(material, wo, directions, device=device)["pdfs"]
+    return chi2.bin_shares(pdfs, cell, THETA_BINS, PHI_BINS, sub)
 
 
 @pytest.mark.parametrize("material, wo", GLOSSY, ids=GLOSSY_IDS)
@@ -82,30 +75,13 @@ def test_sampling_matches_the_density_chi_squared(material, wo, suite_device):
     # the smooth lobes' samples: a delta lobe's (density 0) lie outside the density
     ok = (drawn["weights"].max(axis=1) > 0) & (drawn["pdfs"] > 0)
     assert ok.mean() > 0.5, "most samples should be taken"
-    d = drawn["directions"][ok].astype(np.float64)
-    z_bin = np.clip(((d[:, 2] + 1) / 2 * THETA_BINS).astype(int), 0, THETA_BINS - 1)
-    phi = np.mod(np.arctan2(d[:, 1], d[:, 0]), 2 * np.pi)
-    phi_bin = np.clip((phi / (2 * np.pi) * PHI_BINS).astype(int), 0, PHI_BINS - 1)
-    observed = np.zeros((THETA_BINS, PHI_BINS))
-    np.add.at(observed, (z_bin, phi_bin), 1)
+    observed = chi2.binned(drawn["directions"][ok], THETA_BINS, PHI_BINS)
     shares = bin_integrals(material, wo, suite_device)
     # the density integrates to the share of samples taken (the rest fail:
     # reflected below the surface), up to the midpoint rule's error
     assert abs(shares.sum() - ok.mean()) < 0.02, (shares.sum(), ok.mean())
-    expected = shares.reshape(-1) * SAMPLES
-    observed = observed.reshape(-1)
-    # pool the bins expected to hold under 5 samples into one (Mitsuba's chi2 does)
-    small = expected < 5
-    observed_pooled, expected_pooled = observed[~small], expected[~small]
-    if expected[small].sum() > 0:
-        observed_pooled = np.append(observed_pooled, observed[small].sum())
-        expected_pooled = np.append(expected_pooled, expected[small].sum())
-    else:  # no density there: no sample either
-        assert observed[small].sum() == 0
-    expected_pooled *= observed_pooled.sum() / expected_pooled.sum()
-    chi2 = float(((observed_pooled - expected_pooled) ** 2 / expected_pooled).sum())
-    p_value = stats.chi2.sf(chi2, len(observed_pooled) - 1)
-    assert p_value > 1e-3, f"chi2 {chi2:.1f} over {len(observed_pooled) - 1} dof: p = {p_value:.2e}"
+    p, statistic, dof = chi2.p_value(observed, shares * SAMPLES)
+    assert p > 1e-3, f"chi2 {statistic:.1f} over {dof} dof: p = {p:.2e}"
 
 
 @pytest.mark.parametrize("material, wo", GLOSSY, ids=GLOSSY_IDS)

@@ -9,7 +9,8 @@ Each sample of a pixel follows one path from the camera.  At each vertex x
   the power-heuristic weight of the BSDF sample against a light sample of
   that direction (Veach 1997, eq. 9.13);
 - next-event estimation: one light sample (materials.py, emitters.py:
-  the environment or a triangle, by power), T * f * cos * L / p_light
+  the environment, constant or a map (envmap.py), a delta light or a
+  triangle, by power), T * f * cos * L / p_light
   times its weight against the BSDF's density, where its shadow ray is
   free;
 
@@ -70,8 +71,9 @@ def light_tables(look: Look, scale: float, bounds_lo, bounds_hi) -> dict:
     "vertices", float32 (K, 9) of the emissive triangles; "normals", float32
     (K, 9), their corners' shading normals (zeros: face normals); "cdf", their
     float32 CDF by power; "owners", the mesh of each; "deltas", DeltaLight
-    records; and the chances a light sample picks the environment or a delta
-    light (emitters.py)."""
+    records; "envmap_image" and "envmap_cdf", the environment map's pixels
+    and CDFs (envmap.py; stand-ins without one); and the chances a light
+    sample picks the environment or a delta light (emitters.py)."""
     materials = look.materials.copy()
     vertices, normals, weights, owners = [], [], [], []
     for mesh, radiance in sorted(look.emitters.area.items()):
@@ -90,9 +92,11 @@ def light_tables(look: Look, scale: float, bounds_lo, bounds_hi) -> dict:
     triangle_power = float(weights.sum())
     lo, hi = np.asarray(bounds_lo, np.float64), np.asarray(bounds_hi, np.float64)
     radius = 0.5 * float(np.linalg.norm(hi - lo)) or 1.0
-    environment = look.emitters.environment
-    environment_power = (0.0 if environment is None
-                         else luminance(environment) * 4.0 * np.pi * radius * radius)
+    environment, envmap = look.emitters.environment, look.emitters.envmap
+    # the luminance integrated over the sphere, times R^2
+    environment_power = radius * radius * (
+        envmap.tables[1] if envmap is not None
+        else 0.0 if environment is None else luminance(environment) * 4.0 * np.pi)
     deltas = np.zeros(max(1, len(look.emitters.deltas)), layout.DELTA_LIGHT)
     delta_powers = []
     for k, (kind, vector, value) in enumerate(look.emitters.deltas):
@@ -116,7 +120,11 @@ def light_tables(look: Look, scale: float, bounds_lo, bounds_hi) -> dict:
         cdf[-1] = 1.0
     else:
         cdf = np.zeros(0)
-    return {"materials": materials,
+    if envmap is not None:
+        envmap_image, envmap_cdf = envmap.image, envmap.tables[0]
+    else:  # none: stand-ins, since OpenCL has no empty buffers
+        envmap_image, envmap_cdf = np.zeros(4, np.float32), np.zeros(4, np.float32)
+    return {"materials": materials, "envmap_image": envmap_image, "envmap_cdf": envmap_cdf,
             "vertices": (np.concatenate(vertices).astype(np.float32) if vertices
                          else np.zeros((0, 9), np.float32)),
             "normals": (np.concatenate(normals).astype(np.float32) if normals
@@ -152,6 +160,17 @@ def shading_tables(meshes) -> dict:
             "normals": (np.concatenate(normals).astype(np.float32) if normals
                         else np.zeros((0, 3), np.float32)),
             "bases": bases}
+
+
+def envmap_params(params: np.ndarray, envmap) -> None:
+    """PathParams' environment map fields: its size and rotation (width 0
+    without one: the environment is constant)."""
+    if envmap is None:
+        params["envmap_width"] = params["envmap_height"] = 0
+        params["envmap_to_world"] = np.eye(3).reshape(-1)
+        return
+    params["envmap_height"], params["envmap_width"] = envmap.image.shape[:2]
+    params["envmap_to_world"] = envmap.to_world.reshape(-1)
 
 
 class Path(Integrator):
@@ -215,7 +234,7 @@ class Path(Integrator):
             np.asarray(look.instance_maps).reshape(-1, 9)
         tables["instance_maps"] = maps.astype(np.float32)
         for name in ("materials", "vertices", "normals", "cdf", "owners", "deltas",
-                     "instance_maps"):
+                     "instance_maps", "envmap_image", "envmap_cdf"):
             self._tables[name] = _upload(rt, tables[name])
         self._tables["shading_faces"] = shading["faces"]
         self._tables["shading_normals"] = shading["normals"]
@@ -230,6 +249,7 @@ class Path(Integrator):
         params["max_depth"] = settings.max_depth
         params["rr_depth"] = settings.rr_depth
         params["instance_maps"] = len(maps)
+        envmap_params(params, look.emitters.envmap)
         self._params = params
         self._aovs = False
         self._length_scale = np.float32(1.0 / tree.scale)
@@ -313,6 +333,7 @@ class Path(Integrator):
                 tables["materials"], tables["vertices"], tables["normals"], tables["cdf"],
                 tables["owners"], tables["deltas"], tables["shading_faces"],
                 tables["shading_normals"], step.instances, tables["instance_maps"],
+                tables["envmap_image"], tables["envmap_cdf"],
                 self._params, np.uint32(bound), first_pixel, stream, at,
                 self.live, next_rays, next_numbers, self.shadow, self.pending))
             events["shade"].append(rt.run(kernels["path_empty_tail"], bound, self.live, at,

@@ -38,6 +38,7 @@
 #include "render/surface.h"
 #include "render/tiles.h"
 #include "render/random.h"
+#include "render/envmap.h"
 
 #define DIMENSIONS_PER_BOUNCE 8
 #define INV_FOUR_PI 0.07957747154594767f
@@ -64,19 +65,20 @@ typedef struct {
     float pdf;
 } LightSample;
 
-/* The first index whose cumulative weight exceeds u (cdf ascending, the
- * last entry 1): a binary search. */
-inline uint pick(__global const float* cdf, uint count, float u)
+/* The environment's radiance along -direction (direction: unit, the way
+ * a ray escapes) and the density with which a light sample picks that
+ * direction (0 when it cannot): the constant environment's, uniform on the
+ * sphere, or the map's (render/envmap.h). */
+inline float3 environment_light(const PathParams* params, __global const float* envmap_image,
+                                __global const float* envmap_cdf, float3 direction, float* pdf)
 {
-    uint lo = 0, hi = count - 1;
-    while (lo < hi) {
-        uint mid = (lo + hi) / 2;
-        if (cdf[mid] > u)
-            hi = mid;
-        else
-            lo = mid + 1;
+    if (params->envmap_width == 0) {
+        *pdf = params->environment_probability * INV_FOUR_PI;
+        return LOAD_XYZ(params->environment);
     }
-    return lo;
+    *pdf = params->environment_probability > 0.0f
+        ? params->environment_probability * envmap_pdf(params, envmap_cdf, direction) : 0.0f;
+    return envmap_radiance(params, envmap_image, direction);
 }
 
 /* The shading normal at a hit, as Mitsuba 3's Mesh::compute_surface_interaction
@@ -105,7 +107,8 @@ inline float3 shading_normal(__global const Hit* hit, __global const PathMateria
 }
 
 /* One light sample: uniform on the sphere for the constant environment
- * (as Mitsuba's constant emitter), a point or directional light (a delta:
+ * (as Mitsuba's constant emitter), by the map's density for an environment
+ * map (render/envmap.h), a point or directional light (a delta:
  * its pdf is the chance of picking it, and MIS leaves it alone), or uniform
  * in area on an emissive triangle picked by power (its area times its
  * radiance's luminance); the lights themselves are picked by power
@@ -117,6 +120,8 @@ inline LightSample sample_light(float3 x, const PathParams* params,
                                 __global const float* light_cdf,
                                 __global const int* light_geom,
                                 __global const DeltaLight* delta_lights,
+                                __global const float* envmap_image,
+                                __global const float* envmap_cdf,
                                 uint pixel, uint sample, uint base, bool* delta)
 {
     LightSample out = {(float3)(0.0f), 0.0f, (float3)(0.0f), 0.0f};
@@ -125,11 +130,18 @@ inline LightSample sample_light(float3 x, const PathParams* params,
     float u1 = random_unit(pixel, sample, base + 2);
     float u2 = random_unit(pixel, sample, base + 3);
     if (choice < params->environment_probability) {
+        out.reach = INFINITY;
+        if (params->envmap_width > 0) {
+            out.direction = envmap_sample(params, envmap_cdf, random_unit(pixel, sample, base + 1),
+                                          u1, u2, &out.pdf);
+            out.radiance = envmap_radiance(params, envmap_image, out.direction);
+            out.pdf *= params->environment_probability;
+            return out;
+        }
         float z = 1.0f - 2.0f * u1;
         float r = sqrt(1.0f - z * z > 0.0f ? 1.0f - z * z : 0.0f);
         float cosine, sine = sincos(2.0f * M_PI_F * u2, &cosine);
         out.direction = (float3)(r * cosine, r * sine, z);
-        out.reach = INFINITY;
         out.radiance = LOAD_XYZ(params->environment);
         out.pdf = params->environment_probability * INV_FOUR_PI;
         return out;
@@ -235,6 +247,8 @@ __kernel void path_surface(__global const Ray* rays,         /* the live paths' 
                            __global const float* shading_normals,   /* 3 floats per vertex */
                            __global const int* hit_instances,       /* per ray */
                            __global const float* instance_maps,     /* 9 floats per instance */
+                           __global const float* envmap_image,  /* H x W RGB (envmap.h) */
+                           __global const float* envmap_cdf,    /* its marginal, conditionals */
                            const PathParams params,
                            const uint bound,          /* work-items: >= live[depth] */
                            const uint first_pixel,    /* the pass's first pixel: random streams */
@@ -265,10 +279,11 @@ __kernel void path_surface(__global const Ray* rays,         /* the live paths' 
     float3 gathered = (float3)(0.0f);
 
     if (hit->geom_id < 0) {  /* the environment */
-        float weight = s->bsdf_pdf > 0.0f
-            ? power_heuristic(s->bsdf_pdf, params.environment_probability * INV_FOUR_PI) : 1.0f;
+        float light_pdf;
+        float3 escaped = environment_light(&params, envmap_image, envmap_cdf, -wo, &light_pdf);
+        float weight = s->bsdf_pdf > 0.0f ? power_heuristic(s->bsdf_pdf, light_pdf) : 1.0f;
         no_shadow_ray(shadow + gid, pending + gid, d);
-        end_path(s, throughput * LOAD_XYZ(params.environment) * weight);
+        end_path(s, throughput * escaped * weight);
         return;
     }
     __global const PathMaterial* m = materials + hit->geom_id;
@@ -309,7 +324,8 @@ __kernel void path_surface(__global const Ray* rays,         /* the live paths' 
     LightSample light = {(float3)(0.0f), 0.0f, (float3)(0.0f), 0.0f};
     if (bsdf_has_density(m))
         light = sample_light(x + lift, &params, materials, light_vertices, light_normals,
-                             light_cdf, light_geom, delta_lights, pixel, sample, base,
+                             light_cdf, light_geom, delta_lights, envmap_image, envmap_cdf,
+                             pixel, sample, base,
                              &delta_light);
     float bsdf_pdf_of_light;
     float3 f_cos = light.pdf > 0.0f ? bsdf_eval(m, n, wo, light.direction, &bsdf_pdf_of_light)

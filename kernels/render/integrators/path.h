@@ -47,7 +47,8 @@ typedef struct {
 
 typedef struct {
     float environment[3];           /* the constant environment's radiance */
-    float environment_probability;  /* the chance a light sample goes to the environment */
+    float environment_probability;  /* the chance a light sample goes to the environment
+                                     * (constant or map) */
     float ray_offset;               /* secondary rays start this far off the surface */
     uint light_triangles;           /* emissive triangles in light_cdf */
     uint delta_lights;              /* DeltaLight records */
@@ -55,6 +56,9 @@ typedef struct {
     int rr_depth;                   /* Russian roulette from this depth on */
     float delta_probability;        /* the chance a light sample picks a delta light */
     uint instance_maps;             /* normal maps per instance (0: a flat scene) */
+    float envmap_to_world[9];       /* the environment map's rotation to the world, row-major */
+    uint envmap_width;              /* its pixels per row; 0: the environment is constant */
+    uint envmap_height;             /* its rows (render/envmap.h) */
 } PathParams;
 
 /* One path of the pass: what it still carries and what it has gathered. */

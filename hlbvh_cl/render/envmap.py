@@ -1,0 +1,248 @@
+"""The environment map light (emitters.py's "envmap"): Mitsuba 3's
+``envmap`` emitter, an equirectangular (latitude-longitude) image of the
+radiance arriving from every direction at infinity.
+
+Mapping, as Mitsuba's (src/emitters/envmap.cpp), so that one file lights a
+scene alike in both renderers.  A world direction d is taken to the map's
+frame by the inverse of ``to_world`` (a rotation), and there
+
+    u = atan2(d.x, -d.z) / (2 pi)  (wrapped into [0, 1)),  v = acos(d.y) / pi
+
+(the top row looks along +y; the image's left edge, u = 0, along -z; its
+middle, u = 0.5, along +z; u = 0.25 along +x).  The radiance is the image's bilinear
+interpolation with texel-centred columns (column i at u = (i + 0.5) / W,
+periodic in u) and corner-aligned rows (row j at v = j / (H - 1), clamped),
+times ``scale``.  Images smaller than 2 x 3 (width x height) are padded by
+repeating their last column and row, as Mitsuba pads them.
+
+Importance sampling: the bilinear patches between four neighbouring texels
+are the cells, (H - 1) x W of them, each a band of latitude
+[theta_j, theta_j+1] by a sector of longitude.  A cell is picked with
+probability proportional to the mean luminance of its four corners times
+its solid angle (the integral of sin(theta) over it), by a marginal CDF
+over the bands and a conditional CDF per band, built here in float64; a
+direction is then uniform in solid angle within the cell.  The density is
+therefore piecewise constant: P(cell) / solid angle(cell), and the kernels
+evaluate exactly that density for a direction found by BSDF sampling (MIS
+weights stay correct although the density is not proportional to the
+bilinear radiance).  A cell where any corner shines has a positive density,
+so every direction with radiance can be sampled.
+"""
+from __future__ import annotations
+
+import functools
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..core import inputs
+
+#: Mitsuba pads smaller images to this width and height (Bitmap::pad_to).
+MIN_WIDTH, MIN_HEIGHT = 2, 3
+
+#: Rec. 709 luminance weights: how bright an RGB radiance is, for light
+#: selection and the map's sampling (Mitsuba's luminance()).
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+
+#: The largest side read: the kernels index pixels with uint32.
+MAX_SIDE = 1 << 15
+
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+@dataclass(frozen=True, eq=False)
+class Envmap:
+    """A checked environment map: ``image`` float32 (H, W, 3), padded and
+    times ``scale``; ``to_world`` the float64 3 x 3 rotation from the map's
+    frame to the world; ``name`` how errors and reprs call it."""
+    image: np.ndarray
+    to_world: np.ndarray
+    name: str
+
+    @functools.cached_property
+    def tables(self) -> tuple[np.ndarray, float]:
+        """(float32 CDFs, total): the H - 1 entries of the marginal CDF over
+        the bands, then each band's W entries of its conditional CDF; and
+        the integral of the luminance over the sphere, in float64
+        (light selection's power)."""
+        height, width, _ = self.image.shape
+        lum = np.asarray(self.image, np.float64) @ LUMINANCE
+        corners = 0.25 * (lum[:-1] + lum[1:] + np.roll(lum[:-1], -1, 1) + np.roll(lum[1:], -1, 1))
+        theta = np.pi * np.arange(height) / (height - 1)
+        # cos(theta_j) - cos(theta_j+1) without cancellation near the poles
+        band = 2.0 * np.sin(0.5 * (theta[:-1] + theta[1:])) * np.sin(0.5 * np.pi / (height - 1))
+        weights = corners * (band * (2.0 * np.pi / width))[:, None]
+        rows = weights.sum(1)
+        total = float(rows.sum())
+        conditional = np.where(rows[:, None] > 0, np.cumsum(weights, 1)
+                               / np.where(rows > 0, rows, 1.0)[:, None],
+                               np.arange(1, width + 1) / width)
+        marginal = np.cumsum(rows) / total if total > 0 else np.arange(1, height) / (height - 1)
+        conditional[:, -1] = 1.0
+        marginal[-1] = 1.0
+        cdf = np.concatenate([marginal, conditional.reshape(-1)]).astype(np.float32)
+        return cdf, total
+
+
+def check_envmap(name: str, spec) -> Envmap:
+    """An "envmap" emitter spec (emitters.py) -> Envmap; errors name
+    ``name``, the file, the pixel."""
+    has_file, has_image = "filename" in spec, "image" in spec
+    if has_file == has_image:
+        raise ValueError(f"{name}: envmap needs its 'filename' or an 'image' array "
+                         "(H, W, 3), one of them")
+    if has_file:
+        filename = spec["filename"]
+        if not isinstance(filename, (str, os.PathLike)):
+            raise TypeError(f"{name}['filename'] must be a path, got {inputs.describe(filename)}")
+        what = f"{name}['filename'] {os.fspath(filename)}"
+        try:
+            image = read_radiance(filename)
+        except ValueError as error:
+            raise ValueError(f"{name}: {error}") from None
+    else:
+        what = f"{name}['image']"
+        image = spec["image"]
+        if not isinstance(image, np.ndarray) or image.dtype.kind not in "fiu":
+            raise TypeError(f"{what} must be a numpy array of floats (H, W, 3), got "
+                            f"{inputs.describe(image)}")
+    if image.ndim != 3 or image.shape[2] != 3 or min(image.shape[:2]) < 1:
+        raise ValueError(f"{what}: expected an (H, W, 3) RGB image, got shape {image.shape}")
+    if max(image.shape[:2]) > MAX_SIDE:
+        raise ValueError(f"{what}: {image.shape[1]} x {image.shape[0]} pixels, more than "
+                         f"{MAX_SIDE} on a side")
+    if not (np.isfinite(image).all() and (image >= 0).all()):
+        y, x, c = (int(k) for k in np.argwhere(~np.isfinite(image) | (image < 0))[0])
+        raise ValueError(f"{what}: pixel (row {y}, column {x}) channel {c} is {image[y, x, c]}:"
+                         f" radiance must be finite and >= 0")
+    scale = inputs.number(f"{name}['scale']", spec.get("scale", 1.0), 0.0, _FLOAT32_MAX)
+    if float(image.max(initial=0)) * scale > _FLOAT32_MAX:
+        raise ValueError(f"{what} times scale {scale} overflows float32")
+    scaled = image.astype(np.float32) * np.float32(scale)  # Mitsuba scales in float32 too
+    height, width = image.shape[:2]
+    if height < MIN_HEIGHT or width < MIN_WIDTH:
+        scaled = np.pad(scaled, ((0, max(0, MIN_HEIGHT - height)),
+                                 (0, max(0, MIN_WIDTH - width)), (0, 0)), mode="edge")
+    rotation = to_world_rotation(f"{name}['to_world']", spec.get("to_world"))
+    return Envmap(np.ascontiguousarray(scaled), rotation, what)
+
+
+def to_world_rotation(name: str, value) -> np.ndarray:
+    """A to_world of 3 x 3 or 4 x 4 (its translation ignored: directions)
+    as a float64 rotation; None is the identity.  Scaling and shear are
+    refused: the lat-long mapping takes unit directions."""
+    if value is None:
+        return np.eye(3)
+    try:
+        matrix = np.asarray(value, np.float64)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must be a 3 x 3 or 4 x 4 matrix, got "
+                        f"{inputs.describe(value)}") from None
+    if matrix.shape not in ((3, 3), (4, 4)) or not np.isfinite(matrix).all():
+        raise ValueError(f"{name} must be a finite 3 x 3 or 4 x 4 matrix, got shape "
+                         f"{matrix.shape}")
+    rotation = matrix[:3, :3]
+    if np.abs(rotation.T @ rotation - np.eye(3)).max() > 1e-5:
+        raise ValueError(f"{name} must be a rotation (orthonormal columns): an environment map "
+                         f"is only turned, got {rotation.tolist()}")
+    return rotation
+
+
+def read_radiance(path) -> np.ndarray:
+    """The float32 (H, W, 3) linear RGB of an OpenEXR (.exr) or Radiance
+    RGBE (.hdr, .rgbe) file, the top row first; an error names the file and
+    why it cannot be read."""
+    path = Path(os.fspath(path))
+    try:
+        stat = path.stat()
+    except OSError as error:
+        raise ValueError(f"cannot read the environment map {path}: {error.strerror}") from None
+    return _read_cached(str(path.resolve()), stat.st_mtime_ns, stat.st_size)
+
+
+@functools.lru_cache(maxsize=4)
+def _read_cached(path: str, mtime_ns: int, size: int) -> np.ndarray:
+    """One file's pixels, read again only when it changes (renders check
+    their emitters each time)."""
+    suffix = Path(path).suffix.lower()
+    try:
+        if suffix == ".exr":
+            image = _read_exr(path)
+        elif suffix in (".hdr", ".rgbe"):
+            image = _read_rgbe(Path(path).read_bytes())
+        else:
+            raise ValueError(f"{suffix or 'no extension'} is not an environment map format "
+                             "read here (.exr, .hdr, .rgbe)")
+    except (OSError, RuntimeError, ValueError, KeyError, IndexError) as error:
+        raise ValueError(f"cannot read the environment map {path}: {error}") from None
+    image.flags.writeable = False
+    return image
+
+
+def _read_exr(path: str) -> np.ndarray:
+    import OpenEXR
+    with OpenEXR.File(path) as image:
+        channels = image.channels()
+        for group in ("RGB", "RGBA"):
+            if group in channels:
+                return np.array(channels[group].pixels[..., :3], np.float32)
+        if all(c in channels for c in "RGB"):
+            return np.stack([np.asarray(channels[c].pixels, np.float32) for c in "RGB"], -1)
+        if "Y" in channels:  # luminance only: grey
+            return np.repeat(np.asarray(channels["Y"].pixels, np.float32)[..., None], 3, -1)
+        raise ValueError(f"no R, G, B (or Y) channels, only {sorted(channels)}")
+
+
+def _read_rgbe(data: bytes) -> np.ndarray:
+    """Radiance's RGBE format (Greg Ward, Graphics Gems II): a text header,
+    "-Y H +X W", then scanlines flat or in the adaptive run-length scheme;
+    a pixel is m * 2^(e - 136) per channel, as Mitsuba decodes it."""
+    header_end = data.find(b"\n\n")
+    if not data.startswith((b"#?", b"\n")) or header_end < 0:
+        raise ValueError("not a Radiance RGBE file (no #? header)")
+    header = data[:header_end].decode("latin-1")
+    if "FORMAT=" in header and "FORMAT=32-bit_rle_rgbe" not in header:
+        raise ValueError("only FORMAT=32-bit_rle_rgbe is read")
+    line_end = data.index(b"\n", header_end + 2)
+    size = data[header_end + 2:line_end].split()
+    if len(size) != 4 or size[0] != b"-Y" or size[2] != b"+X":
+        raise ValueError(f"only the -Y H +X W orientation is read, got {size}")
+    height, width = int(size[1]), int(size[3])
+    body, at = memoryview(data), line_end + 1
+    pixels = np.zeros((height, width, 4), np.uint8)
+    for y in range(height):
+        try:
+            at = _rgbe_scanline(body, at, pixels[y])
+        except (IndexError, ValueError) as error:
+            raise ValueError(f"scanline {y} of {height} is cut short or corrupt "
+                             f"({error})") from None
+    exponent = pixels[..., 3].astype(np.int32)
+    factor = np.where(exponent > 0, np.ldexp(1.0, exponent - 136), 0.0)
+    return (pixels[..., :3] * factor[..., None]).astype(np.float32)
+
+
+def _rgbe_scanline(body: memoryview, at: int, out: np.ndarray) -> int:
+    """One scanline of RGBE bytes from body[at:] into out (W, 4); where the
+    next begins."""
+    width = len(out)
+    if 8 <= width < 32768 and bytes(body[at:at + 2]) == b"\x02\x02":
+        at += 4  # the scanline's marker and width
+        for c in range(4):
+            x = 0
+            while x < width:
+                run = body[at] > 128  # a run of one byte, else literal bytes
+                count = body[at] - 128 if run else body[at]
+                if count == 0 or x + count > width:
+                    raise ValueError("a run of bytes outside its scanline")
+                if run:
+                    out[x:x + count, c] = body[at + 1]
+                    at += 2
+                else:
+                    out[x:x + count, c] = np.frombuffer(body[at + 1:at + 1 + count], np.uint8)
+                    at += 1 + count
+                x += count
+        return at
+    out[:] = np.frombuffer(body[at:at + 4 * width], np.uint8).reshape(width, 4)
+    return at + 4 * width
