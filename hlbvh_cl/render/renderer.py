@@ -250,7 +250,7 @@ class Pipeline:
         for band, count in zip(bands, taken):
             sums[int(band.first_row):int(band.first_row) + int(band.rows)] /= count
         spp = int(taken.min())
-        image = sums if hdr else gamma_encode(sums)
+        image = sums if hdr else srgb_encode(sums)
         if aovs:
             rows = [(int(band.first_row), int(band.rows), int(count))
                     for band, count in zip(bands, taken)]
@@ -304,11 +304,14 @@ class RenderInterrupted(KeyboardInterrupt):
         self.image, self.spp = image, spp
 
 
-def gamma_encode(means: np.ndarray) -> np.ndarray:
-    """float32 linear means -> 8-bit RGB, as film.cl's encode_image: round(255
-    * sqrt(clamp(c, 0, 1))), NaN to 0."""
-    clamped = np.nan_to_num(np.clip(means, 0.0, 1.0), nan=0.0)
-    return (np.sqrt(clamped) * np.float32(255.0) + np.float32(0.5)).astype(np.uint8)
+def srgb_encode(means: np.ndarray) -> np.ndarray:
+    """float32 linear radiance -> 8-bit sRGB, the path tracer's tone map:
+    each channel clipped to [0, 1] (NaN to 0), then the sRGB transfer
+    function (IEC 61966-2-1: 12.92 c up to 0.0031308, else 1.055 c^(1/2.4) -
+    0.055), rounded; as Mitsuba writes an 8-bit image of a linear film."""
+    c = np.nan_to_num(np.clip(means.astype(np.float64), 0.0, 1.0), nan=0.0)
+    encoded = np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
+    return np.round(encoded * 255.0).astype(np.uint8)
 
 
 class Renderer:

@@ -129,3 +129,12 @@ def test_aovs_add_up_over_bands_and_rounds(bunny_renderer, monkeypatch):
     with pytest.raises(RenderInterrupted) as stopped:
         path(bunny_renderer, spp=8, aovs=True)
     assert stopped.value.image.depth.shape == (HEIGHT, WIDTH)  # a RenderResult, kept whole
+
+
+def test_an_8_bit_path_render_is_srgb_of_the_linear_one(bunny_renderer):
+    """Clipped to [0, 1], then IEC 61966-2-1's transfer function, per channel."""
+    linear = path(bunny_renderer, spp=2).astype(np.float64)
+    encoded = bunny_renderer.render(CAMERA, WIDTH, HEIGHT, shading="path", seed=3, spp=2)
+    c = np.clip(linear, 0, 1)
+    expected = np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055) * 255
+    assert encoded.dtype == np.uint8 and np.abs(encoded - expected).max() <= 0.5 + 1e-6
