@@ -65,6 +65,7 @@ class Mesh:
         self._faces = inputs.mesh_faces(faces, len(self._vertices))
         self.name = name
         self._bounds: tuple[np.ndarray, np.ndarray] | None = None
+        self._area: float | None = None
         if not isinstance(face_normals, (bool, np.bool_)):
             raise TypeError(f"face_normals must be True or False, got "
                             f"{type(face_normals).__name__}")
@@ -110,6 +111,19 @@ class Mesh:
     @property
     def triangle_count(self) -> int:
         return int(self._faces.shape[0])
+
+    @property
+    def area(self) -> float:
+        """The triangles' total area, summed in float64 and computed once
+        (a Mesh never changes)."""
+        if self._area is None:
+            total, chunk = 0.0, 1 << 18  # faces at a time: bounded scratch memory
+            for start in range(0, self.triangle_count, chunk):
+                corners = self._vertices[self._faces[start:start + chunk]].astype(np.float64)
+                normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+                total += 0.5 * float(np.sqrt((normal * normal).sum(axis=1)).sum())
+            self._area = total
+        return self._area
 
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:

@@ -147,3 +147,11 @@ def test_an_open3d_mesh_is_taken_whole():
     mesh = Mesh(box)
     np.testing.assert_array_equal(mesh.vertices, np.asarray(box.vertices, np.float32))
     np.testing.assert_array_equal(mesh.faces, np.asarray(box.triangles))
+
+
+def test_the_area_is_trimesh_s():
+    bunny = trimesh.load(places.MESHES / "bunny.ply", process=False)
+    mesh = Mesh(bunny.vertices, bunny.faces)
+    assert mesh.area == pytest.approx(float(bunny.area), rel=1e-6)
+    assert Mesh(QUAD, QUAD_FACES).area == pytest.approx(
+        float(trimesh.Trimesh(QUAD, QUAD_FACES, process=False).area), rel=1e-12)

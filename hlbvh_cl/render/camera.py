@@ -149,14 +149,34 @@ def gaussian_filter_table(intervals: int = FILTER_INTERVALS) -> np.ndarray:
     return table.astype(np.float32)
 
 
-def filter_table(rt: Runtime) -> cl.Buffer:
-    """The Gaussian filter's table on ``rt``'s device, made once per runtime."""
-    found = _FILTER_TABLES.get(rt)
-    if found is None:
-        found = _FILTER_TABLES[rt] = cl.Buffer(
-            rt.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
-            hostbuf=gaussian_filter_table())
-    return found
+#: Equal intervals of |t| in [0, GAUSSIAN_RADIUS] of the filter's weight table.
+WEIGHT_INTERVALS = 256
+
+#: Pixels on each side of its own whose centres a splatted sample can reach:
+#: a sample lies in [x, x + 1), so within the radius of centres x + 0.5 + d
+#: for |d| < radius + 0.5.
+SPLAT_REACH = math.ceil(GAUSSIAN_RADIUS + 0.5) - 1
+
+
+def gaussian_weight_table(intervals: int = WEIGHT_INTERVALS) -> np.ndarray:
+    """float32 (intervals + 1,): the filter's value f(t) at t_i = i r /
+    intervals, from float64; film.cl interpolates between them (linear
+    interpolation's error is below |f''| h^2 / 8 <= h^2 / (8 sigma^2))."""
+    t = np.arange(intervals + 1) * (GAUSSIAN_RADIUS / intervals)
+    g = lambda x: np.exp(-x * x / (2 * GAUSSIAN_SIGMA ** 2))  # noqa: E731
+    return np.maximum(g(t) - g(GAUSSIAN_RADIUS), 0.0).astype(np.float32)
+
+
+def filter_table(rt: Runtime, kind: str = "offsets") -> cl.Buffer:
+    """A table of the Gaussian filter on ``rt``'s device, made once per
+    runtime: its inverse CDF ("offsets": gaussian_filter_table, for the
+    camera) or its values ("weights": gaussian_weight_table, for the film)."""
+    tables = _FILTER_TABLES.setdefault(rt, {})
+    if kind not in tables:
+        values = gaussian_filter_table() if kind == "offsets" else gaussian_weight_table()
+        tables[kind] = cl.Buffer(rt.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
+                                 hostbuf=values)
+    return tables[kind]
 
 
 _FILTER_TABLES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()

@@ -24,11 +24,13 @@ A radiance is a number or RGB, each >= 0 and finite.  Renderer.emitters =
 None lights the scene with a constant environment of radiance 1, so that a
 first render shows the scene; [] renders it dark.
 
-Light sampling picks a light by its power (over pi, in luminance: the
-environment's 4 pi R^2 L for the scene's bounding sphere of radius R, a
-point light's 4 I, a directional light's R^2 E, the triangles' sum of
-area times L), then a triangle by its own power and a point uniform in
-its area.  Point and directional lights are deltas: only light sampling
+Light sampling picks a light by its power (over pi, in luminance: a
+point light's 4 I, a directional light's R^2 E for the scene's bounding
+sphere of radius R, the triangles' sum of area times L, and for the
+environment the most it can deliver to the scene's surfaces, their area
+S times L, or for a map S times its luminance integrated over the sphere
+over 4 pi), then a triangle by its own power and a point uniform in its
+area.  Point and directional lights are deltas: only light sampling
 reaches them.
 """
 from __future__ import annotations

@@ -13,6 +13,12 @@ A progressive render (Pipeline.render of a progressive integrator) instead
 adds each band's sums of every round of samples to the float32 image
 (add_to_image), so that the image of the rounds done is there to read
 whenever it stops; the host divides by the samples each band took.
+
+Under a filter wider than a pixel (the path integrator's Gaussian), a
+progressive render splats instead, as Mitsuba 3's film does: each round's
+values go to a whole-image round buffer (store_round), and once every band
+is stored each pixel gathers the filter-weighted samples around it into its
+sums and weights (splat_round); the image is sums / weights.
 """
 from __future__ import annotations
 
@@ -21,6 +27,7 @@ import pyopencl as cl
 
 from ..core.paths import kernel_of
 from ..device.runtime import Runtime
+from .camera import GAUSSIAN_RADIUS, SPLAT_REACH, WEIGHT_INTERVALS, filter_table
 
 KERNEL = kernel_of(__name__)
 
@@ -29,17 +36,30 @@ class Film:
     """A render's device buffers: the accumulators of one pass of pixels,
     and the whole image; grow-only, reused across renders."""
 
+    #: Bytes per image pixel and float4 group of the splatting buffers (the
+    #: round's values and the sums), and per pixel (position and weight).
+    SPLAT_GROUP_BYTES, SPLAT_PIXEL_BYTES = 32, 12
+
     def __init__(self):
         self.pixels = 0         # accumulators held
         self.image_bytes = 0    # image bytes held
         self.accum: cl.Buffer | None = None
         self.image: cl.Buffer | None = None
+        self.splat_pixels = 0   # image pixels the splatting buffers hold
+        self.splat: dict[str, cl.Buffer] = {}
+        self.groups = 0         # float4 per pixel of this render's splatting
 
-    @staticmethod
-    def sizes(pixels: int, image_pixels: int, hdr: bool = False) -> dict[str, int]:
+    @classmethod
+    def sizes(cls, pixels: int, image_pixels: int, hdr: bool = False,
+              splat_groups: int = 0) -> dict[str, int]:
         """Bytes of the film's buffers for a pass of ``pixels`` pixels
-        (``hdr``: a float32 image)."""
-        return {"accumulated colour": 16 * pixels, "image": (12 if hdr else 3) * image_pixels}
+        (``hdr``: a float32 image; ``splat_groups``: float4 values per pixel
+        splatted, 0 for none)."""
+        out = {"accumulated colour": 16 * pixels, "image": (12 if hdr else 3) * image_pixels}
+        if splat_groups:
+            out["splatted samples"] = (cls.SPLAT_GROUP_BYTES * splat_groups
+                                       + cls.SPLAT_PIXEL_BYTES) * image_pixels
+        return out
 
     def reserve(self, rt: Runtime, pixels: int, image_pixels: int, hdr: bool = False) -> None:
         """Buffers for a pass of ``pixels`` and an image of ``image_pixels``
@@ -75,6 +95,50 @@ class Film:
         """The band's sums added to the float32 image's."""
         return rt.run(rt.kernel(KERNEL, "add_to_image", RADIANCE=1), band.tile_range,
                       self.accum, np.uint32(width), band.first_row, band.rows, self.image)
+
+    def start_splatting(self, rt: Runtime, image_pixels: int, groups: int) -> cl.Event:
+        """Zeroed sums and weights for splatting ``groups`` float4 values per
+        pixel of an image of ``image_pixels`` (the caller has checked the
+        allocation with sizes(..., splat_groups=groups))."""
+        if image_pixels > self.splat_pixels or groups != self.groups:
+            size = {"round": 16 * groups, "sums": 16 * groups, "positions": 8, "weights": 4}
+            self.splat = {name: cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, each * image_pixels)
+                          for name, each in size.items()}
+            self.splat_pixels, self.groups = image_pixels, groups
+        zero = np.float32(0)
+        cl.enqueue_fill_buffer(rt.queue, self.splat["weights"], zero, 0, 4 * image_pixels)
+        return cl.enqueue_fill_buffer(rt.queue, self.splat["sums"], zero, 0,
+                                      16 * groups * image_pixels)
+
+    def _splat_kernel(self, rt: Runtime, name: str) -> cl.Kernel:
+        return rt.kernel(KERNEL, name, RADIANCE=1, GROUPS=self.groups, REACH=SPLAT_REACH,
+                         WEIGHT_INTERVALS=WEIGHT_INTERVALS)
+
+    def store_round(self, rt: Runtime, band, width: int, values: cl.Buffer, value_groups: int,
+                    to_group: int, stream: int, jitter: int) -> cl.Event:
+        """The band's ``value_groups`` float4 per pixel of this round (in
+        tile order), as groups ``to_group``... of the round buffer; with
+        group 0, where each sample fell (the camera's ``stream`` and ``jitter``)."""
+        return rt.run(self._splat_kernel(rt, "store_round"), band.tile_range, values,
+                      np.uint32(value_groups), np.uint32(to_group), np.uint32(width),
+                      band.first_row, band.rows, np.uint32(stream), np.int32(jitter),
+                      self.splat["round"], self.splat["positions"])
+
+    def splat_round(self, rt: Runtime, width: int, height: int) -> cl.Event:
+        """The stored round's samples splatted onto every pixel's sums."""
+        return rt.run(self._splat_kernel(rt, "splat_round"), (width, height),
+                      self.splat["round"], self.splat["positions"], np.uint32(width),
+                      np.uint32(height), filter_table(rt, "weights"),
+                      np.float32(GAUSSIAN_RADIUS), self.splat["sums"], self.splat["weights"])
+
+    def read_splatted(self, rt: Runtime, height: int, width: int) -> np.ndarray:
+        """float32 (height, width, groups, 4): each pixel's splatted sums over
+        its sum of weights."""
+        sums = np.empty((height, width, self.groups, 4), np.float32)
+        weights = np.empty((height, width), np.float32)
+        rt.wait([cl.enqueue_copy(rt.queue, sums, self.splat["sums"], is_blocking=False),
+                 cl.enqueue_copy(rt.queue, weights, self.splat["weights"], is_blocking=False)])
+        return sums / weights[:, :, None, None]
 
     def read(self, rt: Runtime, image: np.ndarray) -> cl.Event:
         """Enqueues the image's copy into ``image`` (height, width, 3),

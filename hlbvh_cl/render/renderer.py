@@ -125,11 +125,13 @@ class Pipeline:
                 raise
 
     def _reserve(self, integrator, pixels: int, image_pixels: int, hdr: bool,
-                 aovs: bool = False) -> None:
-        """Buffers for passes of ``pixels`` and an image of ``image_pixels``,
-        checked together against the device's limits first."""
+                 aovs: bool = False, splat_groups: int = 0) -> None:
+        """Buffers for passes of ``pixels`` and an image of ``image_pixels``
+        (splatting ``splat_groups`` float4 per pixel), checked together
+        against the device's limits first."""
         needed = {**{name: size * pixels for name, size in self.PER_PIXEL.items()},
-                  **self.film.sizes(pixels, image_pixels, hdr), **integrator.buffer_sizes(pixels),
+                  **self.film.sizes(pixels, image_pixels, hdr, splat_groups),
+                  **integrator.buffer_sizes(pixels),
                   **(integrator.aov_sizes(pixels, image_pixels) if aovs else {})}
         self.rt.check_allocation(f"rendering {image_pixels:,} pixels, {pixels:,} at a time",
                                  needed)
@@ -150,7 +152,9 @@ class Pipeline:
         integrator = self._integrators.setdefault(kind, kind())
         progressive = integrator.progressive
         rows = self.chunk_rows(width, height)
-        self._reserve(integrator, rows * width, width * height, hdr or progressive, aovs)
+        splat_groups = (1 + integrator.AOV_GROUPS * aovs) if settings.splats() else 0
+        self._reserve(integrator, rows * width, width * height, hdr or progressive, aovs,
+                      splat_groups)
         integrator.prepare(rt, settings, tree, look, rows * width)
         if aovs:
             integrator.prepare_aovs(rows * width, width * height)
@@ -219,22 +223,40 @@ class Pipeline:
         it at once: the rounds every band finished make the image.
         -> (image, spp taken, interrupted)."""
         rt, settings, width = self.rt, run.settings, run.settings.width
+        film, integrator, splats = self.film, run.integrator, settings.splats()
         taken = np.zeros(len(bands), np.int64)  # samples added to each band's sums
+        splatted = 0  # rounds splatted (splats)
         interrupted = False
         started = time.perf_counter()
         bar = _progress_bar(progress, None if budget is not None else settings.spp, "spp")
         with bar:
             try:
-                self.film.clear(rt, settings.width * settings.height)
+                if splats:
+                    film.start_splatting(rt, settings.width * settings.height,
+                                         1 + integrator.AOV_GROUPS * aovs)
+                else:
+                    film.clear(rt, settings.width * settings.height)
                 for sample in range(settings.spp):
+                    stream, jitter = settings.stream(sample), settings.jitter()
                     for b, band in enumerate(bands):
                         run.sample(band, sample, 0)
-                        added = self.film.add(rt, band, width)
+                        if splats:
+                            added = film.store_round(rt, band, width, film.accum, 1, 0, stream,
+                                                     jitter)
+                            if aovs:
+                                added = film.store_round(rt, band, width, integrator.aov_sums,
+                                                         integrator.AOV_GROUPS, 1, stream, jitter)
+                        else:
+                            added = film.add(rt, band, width)
+                            if aovs:
+                                run.events["encode"].append(added)
+                                added = integrator.add_aovs(band, width)
                         run.events["encode"].append(added)
-                        if aovs:
-                            added = run.integrator.add_aovs(band, width)
-                            run.events["encode"].append(added)
                         taken[b] += 1
+                    if splats:
+                        added = film.splat_round(rt, width, settings.height)
+                        run.events["encode"].append(added)
+                        splatted += 1
                     rt.wait([added])
                     bar.update(1)
                     spent = time.perf_counter() - started
@@ -242,20 +264,27 @@ class Pipeline:
                         break  # the next round would end past the budget
             except KeyboardInterrupt:
                 rt.queue.finish()  # what was enqueued is in the sums
-                if taken.min() == 0:
+                if (splatted if splats else taken.min()) == 0:
                     raise  # not one whole image yet
                 interrupted = True
-        sums = np.empty((settings.height, width, 3), np.float32)
-        rt.wait([self.film.read(rt, sums)])
-        for band, count in zip(bands, taken):
-            sums[int(band.first_row):int(band.first_row) + int(band.rows)] /= count
-        spp = int(taken.min())
-        image = sums if hdr else srgb_encode(sums)
+        if splats:
+            means = film.read_splatted(rt, settings.height, width)
+            spp, image = splatted, means[:, :, 0, :3]
+            if aovs:
+                found = integrator.aovs_of_groups(means[:, :, 1:])
+        else:
+            image = np.empty((settings.height, width, 3), np.float32)
+            rt.wait([film.read(rt, image)])
+            for band, count in zip(bands, taken):
+                image[int(band.first_row):int(band.first_row) + int(band.rows)] /= count
+            spp = int(taken.min())
+            if aovs:
+                rows = [(int(band.first_row), int(band.rows), int(count))
+                        for band, count in zip(bands, taken)]
+                found = integrator.read_aovs(settings.height, width, rows)
+        image = np.ascontiguousarray(image) if hdr else srgb_encode(image)
         if aovs:
-            rows = [(int(band.first_row), int(band.rows), int(count))
-                    for band, count in zip(bands, taken)]
-            image = RenderResult(image=image, **run.integrator.read_aovs(settings.height, width,
-                                                                         rows))
+            image = RenderResult(image=image, **found)
         return image, spp, interrupted
 
 
@@ -406,7 +435,17 @@ class Renderer:
         instance_maps = None if transforms is None else \
             np.linalg.inv(np.asarray(transforms, np.float64)[:, :, :3]).transpose(0, 2, 1)
         return Look(colors, light, material_table(self.materials, colors), emitters,
-                    triangles, normals, tuple(self.scene.meshes), instance_maps)
+                    triangles, normals, tuple(self.scene.meshes), instance_maps,
+                    self._surface_area(transforms))
+
+    def _surface_area(self, transforms) -> float:
+        """The scene's world surface area: its meshes', each instance's scaled
+        by |det A|^(2/3) of its map's linear part A (exact for a similarity)."""
+        areas = np.array([m.area for m in self.scene.meshes], np.float64)
+        if transforms is None:
+            return float(areas.sum())
+        scales = np.abs(np.linalg.det(np.asarray(transforms, np.float64)[:, :, :3])) ** (2 / 3)
+        return float((areas[self.scene.instance_meshes] * scales).sum())
 
     def _emissive(self, emitters) -> tuple[dict, dict]:
         """The world triangles of each emitting mesh (every instance's), and

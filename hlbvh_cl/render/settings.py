@@ -72,8 +72,17 @@ class RenderSettings:
 
     def jitter(self) -> int:
         """The camera kernel's jitter: the pixels' centres for one sample of
-        seed 0, else the filter's (camera.FILTERS)."""
-        return FILTERS[self.rfilter] if self.spp > 1 or self.seed > 0 else 0
+        seed 0, else the filter's (camera.FILTERS), uniform in the pixel
+        when the film splats."""
+        if self.spp == 1 and self.seed == 0:
+            return 0
+        return FILTERS["box"] if self.splats() else FILTERS[self.rfilter]
+
+    def splats(self) -> bool:
+        """Whether the film splats each sample over the pixels around
+        (film.py), as Mitsuba's does under a filter wider than a pixel: the
+        path integrator's Gaussian.  (The previews draw its offsets instead.)"""
+        return self.shading == "path" and self.rfilter == "gaussian"
 
     def stream(self, sample: int) -> int:
         """The random stream of sample ``sample`` (render/random.h's

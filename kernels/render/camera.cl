@@ -10,11 +10,13 @@
  * [x, x + 1] x [y, y + 1]; a sample at (x + jx, y + jy) maps to the image
  * plane as sx = 2 (x + jx) / width - 1, sy = 1 - 2 (y + jy) / height
  * (hlbvh_cl/io/scenefile.py's convention, which takes the pixel centre,
- * jx = jy = 0.5).  With `jitter` 1 (a box filter), (jx, jy) =
- * (random_unit(pixel, sample, 0), random_unit(pixel, sample, 1))
- * (render/random.h), so a render with several samples per pixel is the same
- * every time; with 2 (Mitsuba's Gaussian filter: standard deviation 0.5
- * pixel, cut at 2) each is 0.5 plus an offset drawn from that filter (filter
+ * jx = jy = 0.5).  With `jitter` 1, (jx, jy) = (random_unit(pixel, sample,
+ * 0), random_unit(pixel, sample, 1)) (render/camera.h's pixel_offset), so a
+ * render with several samples per pixel is the same every time: a box
+ * filter's samples, and the path integrator's under Mitsuba's Gaussian
+ * filter, which film.cl then splats onto the pixels around, as Mitsuba does.
+ * With 2 (the previews' Gaussian filter: standard deviation 0.5 pixel, cut
+ * at 2) each is 0.5 plus an offset drawn from that filter (filter
  * importance sampling, pbrt-v4 sec. 8.8: every sample then weighs the same,
  * and a pixel's mean is the filter's weighted mean).
  *
@@ -56,11 +58,9 @@ __kernel void primary_rays(const PinholeCamera camera, const uint width, const u
         return;
     uint x = at.x, y = first_row + at.y;
     uint pixel = y * width + x;
-    float jx = 0.5f, jy = 0.5f;
-    if (jitter == 1) {
-        jx = random_unit(pixel, sample, 0);
-        jy = random_unit(pixel, sample, 1);
-    } else if (jitter == 2) {
+    float2 offset = pixel_offset(pixel, sample, jitter);
+    float jx = offset.x, jy = offset.y;
+    if (jitter == 2) {
         jx += gaussian_offset(table, random_unit(pixel, sample, 0));
         jy += gaussian_offset(table, random_unit(pixel, sample, 1));
     }

@@ -11,12 +11,32 @@
  *                 image's (a progressive render's running sums; the host
  *                 divides by the samples each band has taken)
  *
- * Compile-time parameter (-D)
+ * Splatting (a progressive render under a filter wider than a pixel: the
+ * path integrator's Gaussian).  As Mitsuba 3's film does (ImageBlock::put),
+ * each sample, taken uniformly in its pixel, adds its value times the
+ * filter's weight f(dx) f(dy) to every pixel whose centre is within the
+ * filter's radius, and the weight to that pixel's sum of weights; the image
+ * is the ratio.  A sample then serves up to (2 REACH + 1)^2 pixels, where
+ * filter importance sampling (camera.cl) gives it to one.  Gathered rather
+ * than scattered, so that no two work-items add to one pixel and a render
+ * is the same on every run (no float atomics):
+ *   store_round   over pixel_in_pass's range: a band's values of this round
+ *                 into the whole image's round buffer, row-major, and (group
+ *                 0) where each sample fell in its pixel (camera.h)
+ *   splat_round   over (width, height), once every band of the round is
+ *                 stored: each pixel's weighted sums of the samples of the
+ *                 (2 REACH + 1)^2 pixels around, added to its sums
+ *
+ * Compile-time parameters (-D)
  *   RADIANCE  1: the sums are radiance, encoded with display gamma 2 (sqrt,
  *             which looks as 2.2 does; pow measured far slower on PoCL);
  *             0: they are data (normals, depth), encoded as they are
+ *   GROUPS, REACH, WEIGHT_INTERVALS  (the splatting kernels) float4 values
+ *             per pixel, pixels a sample reaches on each side, intervals of
+ *             the filter's weight table (camera.py)
  */
 #include "core/portable.h"
+#include "render/camera.h"
 #include "render/tiles.h"
 
 #ifndef RADIANCE
@@ -83,3 +103,81 @@ __kernel void add_to_image(__global const float4* accum,
     pixel[1] += sums.y;
     pixel[2] += sums.z;
 }
+
+#ifdef GROUPS
+
+__kernel void store_round(__global const float4* values,  /* the band's, in tile order */
+                          const uint value_groups,        /* float4 per pixel in values */
+                          const uint to_group,            /* where they go among GROUPS */
+                          const uint width,
+                          const uint first_row,
+                          const uint rows,
+                          const uint sample,              /* the round's random stream */
+                          const int jitter,               /* the camera's (0 or 1) */
+                          __global float4* round,         /* GROUPS float4 per image pixel */
+                          __global float2* positions)     /* per image pixel */
+{
+    uint gid;
+    uint2 at;
+    if (!pixel_in_pass(get_global_id(0), get_global_id(1), width, rows, &gid, &at))
+        return;
+    uint pixel = (first_row + at.y) * width + at.x;  /* as camera.cl numbers it */
+    for (uint g = 0; g < value_groups; ++g)
+        round[(size_t)pixel * GROUPS + to_group + g] = values[(size_t)gid * value_groups + g];
+    if (to_group == 0)
+        positions[pixel] = pixel_offset(pixel, sample, jitter);
+}
+
+/* The filter's weight at offset t from a pixel centre (0 beyond its
+ * radius), interpolated in `table`: f at |t| = i * radius / WEIGHT_INTERVALS
+ * for i = 0 .. WEIGHT_INTERVALS (camera.py's gaussian_weight_table). */
+inline float filter_weight(__global const float* table, float radius, float t)
+{
+    float at = (t < 0.0f ? -t : t) * ((float)WEIGHT_INTERVALS / radius);  /* fabs: spelled.h */
+    if (!(at < (float)WEIGHT_INTERVALS))
+        return 0.0f;
+    uint i = (uint)at;
+    return mix(table[i], table[i + 1], at - (float)i);
+}
+
+__kernel void splat_round(__global const float4* round,
+                          __global const float2* positions,
+                          const uint width,
+                          const uint height,
+                          __global const float* table,   /* the filter's weights */
+                          const float radius,            /* the filter's, in pixels */
+                          __global float4* sums,         /* GROUPS float4 per pixel */
+                          __global float* weights)       /* per pixel */
+{
+    int x = (int)get_global_id(0), y = (int)get_global_id(1);
+    if (x >= (int)width || y >= (int)height)
+        return;
+    float4 gathered[GROUPS];
+    for (int g = 0; g < GROUPS; ++g)
+        gathered[g] = (float4)(0.0f);
+    float total = 0.0f;
+    for (int dy = -REACH; dy <= REACH; ++dy) {
+        int sy = y + dy;
+        if (sy < 0 || sy >= (int)height)
+            continue;
+        for (int dx = -REACH; dx <= REACH; ++dx) {
+            int sx = x + dx;
+            if (sx < 0 || sx >= (int)width)
+                continue;
+            size_t source = (size_t)sy * width + (size_t)sx;
+            /* the sample sits at (sx, sy) + its offset; this pixel's centre at (x, y) + 0.5 */
+            float2 at = positions[source];
+            float w = filter_weight(table, radius, (float)dx + at.x - 0.5f)
+                      * filter_weight(table, radius, (float)dy + at.y - 0.5f);
+            for (int g = 0; g < GROUPS; ++g)
+                gathered[g] += w * round[source * GROUPS + g];
+            total += w;
+        }
+    }
+    size_t pixel = (size_t)y * width + (size_t)x;
+    for (int g = 0; g < GROUPS; ++g)
+        sums[pixel * GROUPS + g] += gathered[g];
+    weights[pixel] += total;
+}
+
+#endif /* GROUPS */

@@ -421,6 +421,30 @@ def test_bad_path_settings_are_named(options, message, suite_device):
     assert message in str(error.value)
 
 
+def test_the_environment_s_light_samples_follow_the_power_it_can_deliver(suite_device):
+    """A light sample picks the environment by the most power it can
+    deliver to the scene's surfaces (area S times pi L, over pi: S L)
+    against the lamp's emitted power (area A times L, over pi), in
+    luminance; instances count with their maps' area scale (here 2^2)."""
+    from hlbvh_cl.render.integrators.path import light_tables
+    ground = np.array([[-3, 0, -3], [3, 0, -3], [3, 0, 3], [-3, 0, 3]], np.float64)
+    lamp = np.array([[-0.5, 2, -0.5], [0.5, 2, -0.5], [0.5, 2, 0.5], [-0.5, 2, 0.5]])
+    faces = [[0, 2, 1], [0, 3, 2]]
+    meshes = [hlbvh_cl.Mesh(ground, faces), hlbvh_cl.Mesh(lamp, [[0, 1, 2], [0, 2, 3]])]
+    emitters = [{"type": "area", "mesh": 1, "radiance": 10.0},
+                {"type": "constant", "radiance": [0.2, 0.3, 0.4]}]
+    sky = 0.2126 * 0.2 + 0.7152 * 0.3 + 0.0722 * 0.4  # Rec. 709 luminance
+    twice = np.diag([2.0, 2.0, 2.0])
+    for instances, factor in ((None, 1.0), ([(0, np.hstack([twice, np.zeros((3, 1))])),
+                                             (1, np.hstack([twice, np.zeros((3, 1))]))], 4.0)):
+        scene = hlbvh_cl.Scene(meshes, device=suite_device, instances=instances)
+        look = hlbvh_cl.Renderer(scene, emitters=emitters).look()
+        tables = light_tables(look, 1.0, np.zeros(3), np.ones(3))  # bounds: no directional light
+        surface, lamp_power = (36.0 + 1.0) * factor, 1.0 * factor * 10.0
+        expected = surface * sky / (surface * sky + lamp_power)
+        assert tables["environment_probability"] == pytest.approx(expected, rel=1e-6)
+
+
 @pytest.mark.parametrize("rfilter", ["box", "gaussian"])
 def test_a_small_scene_agrees_with_mitsuba_3(rfilter, tmp_path, suite_device):
     """The same scene in Mitsuba 3 (scalar_rgb, its path integrator, a box

@@ -39,6 +39,9 @@ class Look:
     #: float64 (K, 3, 3) per instance, the inverse transpose of its map's
     #: linear part (normals to the world), or None for a flat scene
     instance_maps: object = None
+    #: the scene's world surface area (every instance's), which bounds the
+    #: power an environment delivers to it (the path integrator's light choice)
+    surface_area: float = 0.0
 
 
 @dataclass

@@ -93,8 +93,13 @@ def light_tables(look: Look, scale: float, bounds_lo, bounds_hi) -> dict:
     lo, hi = np.asarray(bounds_lo, np.float64), np.asarray(bounds_hi, np.float64)
     radius = 0.5 * float(np.linalg.norm(hi - lo)) or 1.0
     environment, envmap = look.emitters.environment, look.emitters.envmap
-    # the luminance integrated over the sphere, times R^2
-    environment_power = radius * radius * (
+    # The power an environment can deliver to the scene's surfaces (area S):
+    # at most the cosine-weighted integral of its luminance per unit area,
+    # whose mean over orientations is a quarter of its integral over the
+    # sphere (pi L for a constant L).  pbrt-v4's power sampler counts the
+    # flux through the scene's bounding sphere instead, 4 pi R^2 L, which
+    # gave an open scene's sky most light samples and a small bright lamp few.
+    environment_power = look.surface_area * scale * scale / (4.0 * np.pi) * (
         envmap.tables[1] if envmap is not None
         else 0.0 if environment is None else luminance(environment) * 4.0 * np.pi)
     deltas = np.zeros(max(1, len(look.emitters.deltas)), layout.DELTA_LIGHT)
@@ -186,8 +191,10 @@ class Path(Integrator):
                  "occluded": 1, "pending light": 16, "next rays": layout.RAY.itemsize,
                  "path numbers": 8}
 
-    #: Bytes per pixel of the AOV sums (two float4) and of the AOV image (7 floats).
-    AOV_SUMS, AOV_IMAGE = 32, 28
+    #: float4 of AOV sums per pixel: (albedo, depth) and (shading normal, 0);
+    #: bytes per pixel of the AOV sums and of the AOV image (7 floats).
+    AOV_GROUPS = 2
+    AOV_SUMS, AOV_IMAGE = 16 * AOV_GROUPS, 28
 
     def __init__(self):
         self._pixels = 0
@@ -294,6 +301,13 @@ class Path(Integrator):
             out[first:first + count] /= samples
         return {"albedo": out[..., 0:3].copy(), "normal": out[..., 3:6].copy(),
                 "depth": out[..., 6].copy()}
+
+    @staticmethod
+    def aovs_of_groups(means: np.ndarray) -> dict[str, np.ndarray]:
+        """The AOV image from each pixel's means of its AOV_GROUPS float4
+        (height, width, AOV_GROUPS, 4), as a splatting film gives them."""
+        return {"albedo": means[..., 0, 0:3].copy(), "normal": means[..., 1, 0:3].copy(),
+                "depth": means[..., 0, 3].copy()}
 
     def shade(self, step: Step) -> None:
         """The bounces of one sample of a band.  Pass d traces the
