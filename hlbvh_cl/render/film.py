@@ -37,8 +37,9 @@ class Film:
     and the whole image; grow-only, reused across renders."""
 
     #: Bytes per image pixel and float4 group of the splatting buffers (the
-    #: round's values and the sums), and per pixel (position and weight).
-    SPLAT_GROUP_BYTES, SPLAT_PIXEL_BYTES = 32, 12
+    #: round's values and the sums), and per pixel (the filter's taps around
+    #: a sample and the sum of weights).
+    SPLAT_GROUP_BYTES, SPLAT_PIXEL_BYTES = 32, 4 * (2 * (2 * SPLAT_REACH + 1) + 1)
 
     def __init__(self):
         self.pixels = 0         # accumulators held
@@ -101,7 +102,8 @@ class Film:
         pixel of an image of ``image_pixels`` (the caller has checked the
         allocation with sizes(..., splat_groups=groups))."""
         if image_pixels > self.splat_pixels or groups != self.groups:
-            size = {"round": 16 * groups, "sums": 16 * groups, "positions": 8, "weights": 4}
+            size = {"round": 16 * groups, "sums": 16 * groups,
+                    "taps": 8 * (2 * SPLAT_REACH + 1), "weights": 4}
             self.splat = {name: cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, each * image_pixels)
                           for name, each in size.items()}
             self.splat_pixels, self.groups = image_pixels, groups
@@ -118,18 +120,19 @@ class Film:
                     to_group: int, stream: int, jitter: int) -> cl.Event:
         """The band's ``value_groups`` float4 per pixel of this round (in
         tile order), as groups ``to_group``... of the round buffer; with
-        group 0, where each sample fell (the camera's ``stream`` and ``jitter``)."""
+        group 0, the filter's weights around each sample, from where it fell
+        (the camera's ``stream`` and ``jitter``)."""
         return rt.run(self._splat_kernel(rt, "store_round"), band.tile_range, values,
                       np.uint32(value_groups), np.uint32(to_group), np.uint32(width),
                       band.first_row, band.rows, np.uint32(stream), np.int32(jitter),
-                      self.splat["round"], self.splat["positions"])
+                      filter_table(rt, "weights"), np.float32(GAUSSIAN_RADIUS),
+                      self.splat["round"], self.splat["taps"])
 
     def splat_round(self, rt: Runtime, width: int, height: int) -> cl.Event:
         """The stored round's samples splatted onto every pixel's sums."""
         return rt.run(self._splat_kernel(rt, "splat_round"), (width, height),
-                      self.splat["round"], self.splat["positions"], np.uint32(width),
-                      np.uint32(height), filter_table(rt, "weights"),
-                      np.float32(GAUSSIAN_RADIUS), self.splat["sums"], self.splat["weights"])
+                      self.splat["round"], self.splat["taps"], np.uint32(width),
+                      np.uint32(height), self.splat["sums"], self.splat["weights"])
 
     def read_splatted(self, rt: Runtime, height: int, width: int) -> np.ndarray:
         """float32 (height, width, groups, 4): each pixel's splatted sums over

@@ -22,7 +22,8 @@
  * is the same on every run (no float atomics):
  *   store_round   over pixel_in_pass's range: a band's values of this round
  *                 into the whole image's round buffer, row-major, and (group
- *                 0) where each sample fell in its pixel (camera.h)
+ *                 0) the filter's weights for the columns and rows around
+ *                 each sample, from where it fell in its pixel (camera.h)
  *   splat_round   over (width, height), once every band of the round is
  *                 stored: each pixel's weighted sums of the samples of the
  *                 (2 REACH + 1)^2 pixels around, added to its sums
@@ -106,27 +107,9 @@ __kernel void add_to_image(__global const float4* accum,
 
 #ifdef GROUPS
 
-__kernel void store_round(__global const float4* values,  /* the band's, in tile order */
-                          const uint value_groups,        /* float4 per pixel in values */
-                          const uint to_group,            /* where they go among GROUPS */
-                          const uint width,
-                          const uint first_row,
-                          const uint rows,
-                          const uint sample,              /* the round's random stream */
-                          const int jitter,               /* the camera's (0 or 1) */
-                          __global float4* round,         /* GROUPS float4 per image pixel */
-                          __global float2* positions)     /* per image pixel */
-{
-    uint gid;
-    uint2 at;
-    if (!pixel_in_pass(get_global_id(0), get_global_id(1), width, rows, &gid, &at))
-        return;
-    uint pixel = (first_row + at.y) * width + at.x;  /* as camera.cl numbers it */
-    for (uint g = 0; g < value_groups; ++g)
-        round[(size_t)pixel * GROUPS + to_group + g] = values[(size_t)gid * value_groups + g];
-    if (to_group == 0)
-        positions[pixel] = pixel_offset(pixel, sample, jitter);
-}
+/* A sample's filter weights for the pixel columns (or rows) k - REACH from
+ * its own, k = 0 .. TAPS - 1, of which it is the only reader's source. */
+#define TAPS (2 * REACH + 1)
 
 /* The filter's weight at offset t from a pixel centre (0 beyond its
  * radius), interpolated in `table`: f at |t| = i * radius / WEIGHT_INTERVALS
@@ -140,12 +123,44 @@ inline float filter_weight(__global const float* table, float radius, float t)
     return mix(table[i], table[i + 1], at - (float)i);
 }
 
+__kernel void store_round(__global const float4* values,  /* the band's, in tile order */
+                          const uint value_groups,        /* float4 per pixel in values */
+                          const uint to_group,            /* where they go among GROUPS */
+                          const uint width,
+                          const uint first_row,
+                          const uint rows,
+                          const uint sample,              /* the round's random stream */
+                          const int jitter,               /* the camera's (0 or 1) */
+                          __global const float* table,    /* the filter's weights */
+                          const float radius,             /* the filter's, in pixels */
+                          __global float4* round,         /* GROUPS float4 per image pixel */
+                          __global float* taps)           /* 2 TAPS per image pixel */
+{
+    uint gid;
+    uint2 at;
+    if (!pixel_in_pass(get_global_id(0), get_global_id(1), width, rows, &gid, &at))
+        return;
+    uint pixel = (first_row + at.y) * width + at.x;  /* as camera.cl numbers it */
+    for (uint g = 0; g < value_groups; ++g)
+        round[(size_t)pixel * GROUPS + to_group + g] = values[(size_t)gid * value_groups + g];
+    if (to_group != 0)
+        return;
+    /* The weights this sample gives the pixel columns and rows around its
+     * own, once here rather than at each of the pixels that read them: the
+     * centre of column x + k - REACH is k - REACH + 0.5 - offset from it. */
+    float2 offset = pixel_offset(pixel, sample, jitter);
+    __global float* out = taps + (size_t)pixel * (2 * TAPS);
+    for (int k = 0; k < TAPS; ++k) {
+        float centre = (float)(k - REACH) + 0.5f;
+        out[k] = filter_weight(table, radius, centre - offset.x);
+        out[TAPS + k] = filter_weight(table, radius, centre - offset.y);
+    }
+}
+
 __kernel void splat_round(__global const float4* round,
-                          __global const float2* positions,
+                          __global const float* taps,
                           const uint width,
                           const uint height,
-                          __global const float* table,   /* the filter's weights */
-                          const float radius,            /* the filter's, in pixels */
                           __global float4* sums,         /* GROUPS float4 per pixel */
                           __global float* weights)       /* per pixel */
 {
@@ -164,11 +179,10 @@ __kernel void splat_round(__global const float4* round,
             int sx = x + dx;
             if (sx < 0 || sx >= (int)width)
                 continue;
+            /* this pixel is column -dx and row -dy from the sample's */
             size_t source = (size_t)sy * width + (size_t)sx;
-            /* the sample sits at (sx, sy) + its offset; this pixel's centre at (x, y) + 0.5 */
-            float2 at = positions[source];
-            float w = filter_weight(table, radius, (float)dx + at.x - 0.5f)
-                      * filter_weight(table, radius, (float)dy + at.y - 0.5f);
+            __global const float* tap = taps + source * (2 * TAPS);
+            float w = tap[REACH - dx] * tap[TAPS + REACH - dy];
             for (int g = 0; g < GROUPS; ++g)
                 gathered[g] += w * round[source * GROUPS + g];
             total += w;
