@@ -106,7 +106,7 @@ PATH_PARAMS = np.dtype([
 ])
 
 PATH_STATE = np.dtype([("throughput", *_f3), ("bsdf_pdf", np.float32), ("radiance", *_f3),
-                       ("alive", np.uint32), ("eta", np.float32), ("reserved", *_f3)])
+                       ("eta", np.float32), ("reserved", np.float32, 4)])
 
 #: name in HEADERS -> dtype, for the layout test
 STRUCTS = {"Aabb": AABB, "FlatNode": FLAT_NODE, "WideNode": WIDE_NODE,

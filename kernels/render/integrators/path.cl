@@ -214,7 +214,6 @@ __kernel void path_start(const uint count, __global PathState* states)
     store3(s->throughput, (float3)(1.0f));
     s->bsdf_pdf = 0.0f;
     store3(s->radiance, (float3)(0.0f));
-    s->alive = 1;
     s->eta = 1.0f;
 }
 
@@ -223,7 +222,6 @@ __kernel void path_start(const uint count, __global PathState* states)
 inline void end_path(__global PathState* s, float3 gathered)
 {
     store3(s->radiance, LOAD_XYZ(s->radiance) + gathered);
-    s->alive = 0;
 }
 
 /* No light sample at this vertex. */

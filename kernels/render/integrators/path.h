@@ -66,9 +66,8 @@ typedef struct {
     float throughput[3];
     float bsdf_pdf;   /* solid-angle density of the last bounce's direction; 0 after the camera */
     float radiance[3];
-    uint alive;
     float eta;        /* the product of the index ratios crossed (Russian roulette's eta^2) */
-    float reserved[3];
+    float reserved[4];  /* 48 bytes: whole 16-byte lines */
 } PathState;
 
 #endif /* INTEGRATORS_PATH_H */
