@@ -12,7 +12,7 @@ given to every participant as the same float32 arrays:
     aimed at a uniform random point of their box (a scene file's flat
     ground is left out of that box: it would take most of them);
   - diffuse bounces, a path tracer's second segment: the primary rays of the
-    first resolution are traced (by our first device), and from each hit on
+    last (largest) resolution are traced (by our first device), and from each hit on
     a mesh (not on a scene file's ground) one ray leaves cosine-distributed
     about the triangle's geometric normal (bounce_rays).  They follow from
     the scene, the camera, the seed and those hits, which are exact
@@ -213,14 +213,16 @@ class SceneCase:
     def workloads(self, resolutions, incoherent: int, seed: int,
                   bounce_device: str | None = None) -> list[Rays]:
         """Primary rays per resolution, the incoherent rays, and with
-        ``bounce_device`` (a device id) the diffuse bounces of the first
-        resolution's hits, traced there."""
+        ``bounce_device`` (a device id) the diffuse bounces of the last
+        resolution's hits, traced there: on the reference scene at 2048x1536,
+        the 374,672 bounces of issue 56's table."""
         out = [primary_rays(self.camera or framed_camera(*self.box, w / h), w, h)
                for w, h in resolutions]
         out.append(incoherent_rays(*self.box, incoherent, seed))
         if bounce_device is not None:
-            hits = self.trace(out[0], bounce_device)
-            out.append(bounce_rays(self.meshes, out[0], hits.geom_id, hits.prim_id, hits.u,
+            camera = out[len(resolutions) - 1]
+            hits = self.trace(camera, bounce_device)
+            out.append(bounce_rays(self.meshes, camera, hits.geom_id, hits.prim_id, hits.u,
                                    hits.v, seed))
         return out
 

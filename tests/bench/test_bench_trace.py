@@ -117,7 +117,8 @@ def test_bounce_rays_leave_the_hit_cosine_distributed_and_skip_the_ground():
 
 def test_bounce_workload_starts_on_the_meshes_and_hits_as_brute_force(suite_device):
     case = trace.scene_file_case("bunny_small.toml", suite_device.id)  # a bunny on a ground
-    primary, _, bounce = case.workloads([(40, 30)], 16, seed=4, bounce_device=suite_device.id)
+    _, primary, _, bounce = case.workloads([(20, 15), (40, 30)], 16, seed=4,
+                                           bounce_device=suite_device.id)  # from the last
     assert (bounce.name, bounce.kind) == (f"bounce {len(bounce):,}", "bounce")
     vertices, faces = case.geometry()
     bunny = case.meshes[0].triangle_count
