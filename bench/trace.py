@@ -10,13 +10,20 @@ given to every participant as the same float32 arrays:
     file's, or one framed on a lone mesh (framed_camera);
   - incoherent rays: origins uniform on a sphere around the objects, each
     aimed at a uniform random point of their box (a scene file's flat
-    ground is left out of that box: it would take most of them).
+    ground is left out of that box: it would take most of them);
+  - diffuse bounces, a path tracer's second segment: the primary rays of the
+    last (largest) resolution are traced (by our first device), and from each hit on
+    a mesh (not on a scene file's ground) one ray leaves cosine-distributed
+    about the triangle's geometric normal (bounce_rays).  They follow from
+    the scene, the camera, the seed and those hits, which are exact
+    (watertight, the same on every device), so any user regenerates them.
 
 Timing: each participant builds once outside the timing; each query runs
 once to warm up, then in ``repeats`` rounds of one call per participant, so
 that all of them meet about the same load from other processes.  The time is
 the host's wall time of one call, numpy in and numpy out: what a user sees.
-Peers see the scene's meshes as one mesh.
+Peers see the scene's meshes as one mesh.  Each of our trees' device
+memory (nodes plus leaf triangles, BuildStats.tree_bytes) is printed per scene.
 
 Scaling: one workload (primary rays framed on it) over one surface
 tessellated ever finer (common.surface), on our devices and embreex: the
@@ -48,6 +55,13 @@ from .peers import PEERS, REFERENCE, load_peers
 FRAMED_FOV_DEG = 40.0
 #: incoherent rays start on a sphere this many half-diagonals from the centre
 SPHERE_RADIUS_FACTOR = 1.5
+#: a bounce ray's origin is lifted off its triangle along the normal by this
+#: fraction of the triangle's largest absolute vertex coordinate.  The float32
+#: hit point and the next traversal's origin-relative vertices are each off by
+#: a few ulps of that coordinate (2^-24 relative); 2^-13 clears that ~2000
+#: times over, so no ray re-hits the triangle it leaves, while staying far
+#: below a triangle's size (the same idea as Mitsuba 3's relative RayEpsilon).
+BOUNCE_OFFSET = 2.0 ** -13
 
 
 @dataclass(frozen=True)
@@ -123,6 +137,57 @@ def incoherent_rays(lo, hi, count: int, seed: int) -> Rays:
                 np.ascontiguousarray(directions, np.float32))
 
 
+def solid_meshes(meshes) -> list[int]:
+    """Indices of the meshes with extent along every axis: all but a scene
+    file's flat ground (all of them when every mesh is flat)."""
+    solid = [i for i, m in enumerate(meshes) if np.ptp(m.vertices, axis=0).min() > 0]
+    return solid or list(range(len(meshes)))
+
+
+def orthonormal_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors that make (t, b, n) orthonormal for unit normals n
+    (R, 3): Duff et al. 2017, "Building an Orthonormal Basis, Revisited"."""
+    sign = np.where(n[:, 2] >= 0, 1.0, -1.0)
+    a = -1.0 / (sign + n[:, 2])
+    b = n[:, 0] * n[:, 1] * a
+    t = np.stack([1 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]], axis=1)
+    return t, np.stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]], axis=1)
+
+
+def bounce_rays(meshes, rays: Rays, geom_id, prim_id, u, v, seed: int) -> Rays:
+    """One diffuse bounce from every hit of ``rays`` on a solid mesh
+    (solid_meshes): the hit point from its barycentrics (u, v) on face
+    prim_id of mesh geom_id, in float64; the direction cosine-distributed
+    about the geometric normal cross(v1 - v0, v2 - v0) turned to face the
+    incoming ray (Malley's method: uniform on the unit disk, lifted to the
+    hemisphere; pbrt-v4, cosine-weighted hemisphere sampling); the origin lifted along that normal
+    by BOUNCE_OFFSET.  Misses have geom_id -1."""
+    geom_id, prim_id = np.asarray(geom_id), np.asarray(prim_id)
+    keep = np.flatnonzero(np.isin(geom_id, solid_meshes(meshes)))
+    corners = np.empty((len(keep), 3, 3))
+    for g in np.unique(geom_id[keep]):
+        mine = geom_id[keep] == g
+        corners[mine] = meshes[g].vertices[meshes[g].faces[prim_id[keep][mine]]]
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    length = np.linalg.norm(normal, axis=1)
+    area = length > 0  # a watertight hit has a plane; kept as a guard
+    keep, corners, normal = keep[area], corners[area], normal[area] / length[area, None]
+    incoming = rays.directions[keep].astype(np.float64)
+    normal *= np.where((normal * incoming).sum(axis=1) > 0, -1.0, 1.0)[:, None]
+    bu, bv = (np.asarray(x, np.float64)[keep, None] for x in (u, v))
+    point = (1 - bu - bv) * corners[:, 0] + bu * corners[:, 1] + bv * corners[:, 2]
+    origins = point + normal * (BOUNCE_OFFSET * np.abs(corners).max(axis=(1, 2)))[:, None]
+    radius2, phi = np.random.default_rng(seed).random((2, len(keep)))
+    radius, phi = np.sqrt(radius2), 2 * np.pi * phi
+    tangent, bitangent = orthonormal_basis(normal)
+    directions = ((radius * np.cos(phi))[:, None] * tangent
+                  + (radius * np.sin(phi))[:, None] * bitangent
+                  + np.sqrt(1 - radius2)[:, None] * normal)
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    return Rays(f"bounce {len(keep):,}", "bounce", np.ascontiguousarray(origins, np.float32),
+                np.ascontiguousarray(directions, np.float32))
+
+
 # ---------------------------------------------------------------- scenes
 
 @dataclass
@@ -145,10 +210,29 @@ class SceneCase:
         faces = np.concatenate([m.faces + np.int32(o) for m, o in zip(self.meshes, offsets)])
         return np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(faces, np.int32)
 
-    def workloads(self, resolutions, incoherent: int, seed: int) -> list[Rays]:
+    def workloads(self, resolutions, incoherent: int, seed: int,
+                  bounce_device: str | None = None) -> list[Rays]:
+        """Primary rays per resolution, the incoherent rays, and with
+        ``bounce_device`` (a device id) the diffuse bounces of the last
+        resolution's hits, traced there: on the reference scene at 2048x1536,
+        the 374,672 bounces of issue 56's table."""
         out = [primary_rays(self.camera or framed_camera(*self.box, w / h), w, h)
                for w, h in resolutions]
-        return out + [incoherent_rays(*self.box, incoherent, seed)]
+        out.append(incoherent_rays(*self.box, incoherent, seed))
+        if bounce_device is not None:
+            camera = out[len(resolutions) - 1]
+            hits = self.trace(camera, bounce_device)
+            out.append(bounce_rays(self.meshes, camera, hits.geom_id, hits.prim_id, hits.u,
+                                   hits.v, seed))
+        return out
+
+    def trace(self, rays: Rays, device_id: str):
+        """Closest hits of ``rays`` on ``device_id``: on the scene built
+        there already (left for the bench), else on one built for this."""
+        if device_id in self.built:
+            return self.built[device_id][0].intersect(rays.origins, rays.directions)
+        return hlbvh_cl.Scene(self.meshes, device=device_id).intersect(rays.origins,
+                                                                       rays.directions)
 
 
 def mesh_case(filename: str) -> SceneCase:
@@ -163,7 +247,7 @@ def scene_file_case(filename: str, device_id: str) -> SceneCase:
     loaded = hlbvh_cl.io.scenefile.load(SCENES / filename, device=device_id)
     seconds = elapsed() - loaded.load_seconds
     meshes = list(loaded.scene.meshes)
-    solid = [m for m in meshes if np.ptp(m.vertices, axis=0).min() > 0] or meshes  # no ground
+    solid = [meshes[i] for i in solid_meshes(meshes)]  # no ground
     return SceneCase(filename, meshes, loaded.camera, bounds(solid),
                      built={device_id: (loaded.scene, seconds)})
 
@@ -196,7 +280,9 @@ class OurDevice:
             seconds = elapsed()
         s = self.scene.stats
         self.trees[case.name] = {"triangles": s.triangles, "nodes": s.nodes, "leaves": s.leaves,
-                                 "depth": s.depth, "sah_cost": s.sah_cost}
+                                 "depth": s.depth, "sah_cost": s.sah_cost,
+                                 "node_bytes": s.node_bytes, "triangle_bytes": s.triangle_bytes,
+                                 "tree_bytes": s.tree_bytes}
         return seconds
 
     def intersect(self, rays: Rays):
@@ -278,7 +364,9 @@ def bench_case(case: SceneCase, workloads: list[Rays], participants: list, repea
     errors: dict = {}
     built, build_seconds = build_all(case, participants, errors)
     out = {"name": case.name, "triangles": case.triangles, "meshes": len(case.meshes),
-           "build_s": build_seconds, "errors": errors, "workloads": []}
+           "build_s": build_seconds, "errors": errors, "workloads": [],
+           "trees": {p.name: p.trees[case.name] for p in built
+                     if p.kind == "device" and case.name in p.trees}}
     try:
         for rays in workloads:
             if bar is not None:
@@ -382,6 +470,12 @@ def format_results(results: dict) -> str:
                        *[f"{w['results'][n]['disagreement']['intersect']:.1e}"
                          if n in w["results"] else None for n in names]] for s, w in rows],
                      title="fraction of rays whose hit/miss differs from the reference's"))
+    out.append(table(
+        ["scene", "device", "nodes MiB", "leaf triangles MiB", "tree MiB", "bytes/triangle"],
+        [[s["name"], name, f"{t['node_bytes'] / 2**20:.2f}", f"{t['triangle_bytes'] / 2**20:.2f}",
+          f"{t['tree_bytes'] / 2**20:.2f}", f"{t['tree_bytes'] / t['triangles']:.1f}"]
+         for s in results["scenes"] for name, t in s.get("trees", {}).items()],
+        title="tree memory traversal reads on the device: wide nodes + leaf triangles"))
     scaling = results["scaling"]
     out.append(table(["mesh", "triangles", *names],
                      [[p["mesh"], p["triangles"], *[spread(p["results"][n]["intersect_s"], 1e3)
@@ -413,12 +507,13 @@ def main(argv=None) -> dict:
     results = {"config": asdict(config), "quick": args.quick, "machine": machine_info(),
                "participants": {p.name: p.describe() for p in participants + missing},
                "scenes": []}
-    steps = (len(config.meshes) + 1) * (len(config.resolutions) + 1) + len(config.scaling)
+    steps = (len(config.meshes) + 1) * (len(config.resolutions) + 2) + len(config.scaling)
     with progress(steps, "trace bench", enabled=not args.no_progress) as bar:
         for filename in (*config.meshes, config.scene):
             case = (scene_file_case(filename, chosen[0].id) if filename == config.scene
                     else mesh_case(filename))
-            workloads = case.workloads(config.resolutions, config.incoherent_rays, config.seed)
+            workloads = case.workloads(config.resolutions, config.incoherent_rays, config.seed,
+                                       bounce_device=chosen[0].id)
             results["scenes"].append(bench_case(case, workloads, participants, config.repeats, bar))
         results["scaling"] = bench_scaling(
             config, devices + [p for p in peers if p.name == REFERENCE], bar)

@@ -110,6 +110,8 @@ def _cmd_info(args) -> int:
     print(f"triangles  {s.triangles:,}")
     print(f"nodes      {s.nodes:,}   leaves {s.leaves:,}   depth {s.depth}   "
           f"(8-wide: {s.wide_nodes:,} nodes, depth {s.wide_depth})")
+    print(f"memory     {s.tree_bytes / 2**20:.2f} MiB on the device for traversal: nodes "
+          f"{s.node_bytes:,} B + leaf triangles {s.triangle_bytes:,} B")
     print(f"SAH cost   {s.sah_cost:.2f}  (C_t = C_i = 1, relative to the root's area)")
     stages = "  ".join(f"{k} {v:.1f}" for k, v in s.times_ms.items())
     print(f"build ms   {stages}")

@@ -6,6 +6,7 @@ import warnings
 import pytest
 
 from hlbvh_cl.cli import main
+from hlbvh_cl.io.scenefile import load
 import places
 
 SCENES = places.SCENES
@@ -20,6 +21,9 @@ def test_info_prints_stats(capsys):
     assert main(["info", str(SCENES / "bunny_small.toml"), "--repeat", "1"]) == 0
     out = capsys.readouterr().out
     assert "triangles" in out and "SAH cost" in out and "bounds" in out
+    stats = load(SCENES / "bunny_small.toml").scene.stats  # the same tree, built again
+    assert (f"nodes {stats.node_bytes:,} B + leaf triangles {stats.triangle_bytes:,} B"
+            in out) and stats.node_bytes > 0 and stats.triangle_bytes > 0
 
 
 def test_user_mistakes_give_one_line_and_exit_2(tmp_path, capsys):

@@ -96,6 +96,10 @@ class BuildStats:
     (1 for lbvh).  wide_nodes and wide_depth describe the 8-wide tree that
     traversal reads.  times_ms holds the device milliseconds of each stage
     (STAGES), device_ms their sum and wall_ms the host's whole build.
+    node_bytes and triangle_bytes are the device memory traversal reads
+    (Tree.memory: the wide nodes and the leaves' triangles), tree_bytes
+    their sum; the refs and vertex ids that map hits back to meshes and
+    feed refits are not in it.
     refit_ms is None, or after update_vertices the device milliseconds of
     its upload and refit and its wall time: {"upload", "refit", "wall"}.
     """
@@ -110,10 +114,16 @@ class BuildStats:
     clusters: int
     wide_nodes: int
     wide_depth: int
+    node_bytes: int
+    triangle_bytes: int
     times_ms: dict
     device_ms: float
     wall_ms: float
     refit_ms: dict | None = None
+
+    @property
+    def tree_bytes(self) -> int:
+        return self.node_bytes + self.triangle_bytes
 
 
 def build(rt: Runtime, geometry: Geometry, builder: str = "hlbvh", morton_bits: int = 30,
@@ -191,6 +201,6 @@ def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int, scal
         "leaves": leaf_count, "depth": depth,
         "sah_cost": cost / root_area if root_area > 0 else float(leaf_count),
         "clusters": top.cluster_count if top else 1, "wide_nodes": tree.node_count,
-        "wide_depth": tree.depth,
+        "wide_depth": tree.depth, **tree.memory(),
     }
     return tree, stats, stage_events

@@ -60,6 +60,12 @@ class Tree:
         """Wide nodes on the longest root-to-leaf path (>= 1)."""
         return len(self.levels)
 
+    def memory(self) -> dict[str, int]:
+        """Device bytes traversal reads: {"node_bytes", "triangle_bytes"},
+        from the layouts' itemsizes, so that they follow any layout change."""
+        return {"node_bytes": self.node_count * layout.WIDE_NODE.itemsize,
+                "triangle_bytes": self.triangle_count * layout.TRIANGLE.itemsize}
+
     def release(self, pool) -> None:
         """Give this tree's device buffers back to ``pool`` for the next
         build to reuse; the tree is unusable after."""

@@ -7,6 +7,10 @@ import math
 import numpy as np
 import pytest
 from bench_support import ROOT, check_json
+from chi2 import bin_directions, bin_shares, binned, p_value
+from oracle import brute_force_intersect
+
+import hlbvh_cl
 
 pytest.importorskip("matplotlib")
 
@@ -55,10 +59,100 @@ def test_incoherent_rays_start_on_a_sphere_and_cross_the_box():
     assert np.array_equal(again.directions, rays.directions)
 
 
+def _plane_frame(normal):
+    """A tangent frame about each unit normal by Gram-Schmidt against the
+    axis it leans on least: the test's own, not the bench's."""
+    axis = np.eye(3)[np.argmin(np.abs(normal), axis=1)]
+    t = axis - (axis * normal).sum(axis=1, keepdims=True) * normal
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    return t, np.cross(normal, t)
+
+
+def test_bounce_rays_leave_the_hit_cosine_distributed_and_skip_the_ground():
+    # a tetrahedron (four facing ways, coordinates up to 40) and a flat ground
+    tetra = hlbvh_cl.Mesh([[0, 0, 0], [40, 0, 0], [0, 20, 1], [3, 2, 10]],
+                          [[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]])
+    ground = hlbvh_cl.Mesh([[-9, -1, -9], [9, -1, -9], [9, -1, 9], [-9, -1, 9]],
+                           [[0, 2, 1], [0, 3, 2]])
+    rng = np.random.default_rng(5)
+    count = 40_000
+    geom = rng.choice([0, 0, 0, 1, -1], count)  # hits on both, and misses
+    prim = np.where(geom == 0, rng.integers(0, 4, count), rng.integers(0, 2, count))
+    u, v = rng.random((2, count)).astype(np.float32)
+    u, v = np.where(u + v > 1, 1 - u, u), np.where(u + v > 1, 1 - v, v)
+    incoming = rng.normal(size=(count, 3))
+    incoming /= np.linalg.norm(incoming, axis=1, keepdims=True)
+    camera = trace.Rays("camera", "primary", np.zeros((count, 3), np.float32),
+                        incoming.astype(np.float32))
+    rays = trace.bounce_rays([tetra, ground], camera, geom, prim, u, v, seed=11)
+    assert rays.kind == "bounce" and len(rays) == (geom == 0).sum()  # the ground is left out
+    assert rays.name == f"bounce {len(rays):,}"
+    faces = tetra.faces[prim[geom == 0]]
+    corners = tetra.vertices.astype(np.float64)[faces]
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    normal *= -np.sign((normal * incoming[geom == 0]).sum(axis=1))[:, None]  # faces the ray
+    uu, vv = u[geom == 0, None], v[geom == 0, None]
+    point = (1 - uu - vv) * corners[:, 0] + uu * corners[:, 1] + vv * corners[:, 2]
+    lift = rays.origins - point
+    offset = trace.BOUNCE_OFFSET * np.where((faces == 1).any(axis=1), 40, 20)  # largest coordinate
+    np.testing.assert_allclose((lift * normal).sum(axis=1), offset, rtol=0.05)
+    assert (np.linalg.norm(lift, axis=1) < 1.05 * offset).all()  # straight off the plane
+    d = rays.directions.astype(np.float64)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1, atol=1e-6)
+    assert ((d * normal).sum(axis=1) > 0).all()  # in the hemisphere the ray came from
+    # chi-squared against the cosine density cos(theta) / pi, in the test's own frames
+    t, b = _plane_frame(normal)
+    local = np.stack([(d * t).sum(axis=1), (d * b).sum(axis=1), (d * normal).sum(axis=1)], 1)
+    cells, cell = bin_directions(10, 20, 4)
+    expected = bin_shares(np.maximum(cells[:, 2], 0) / np.pi, cell, 10, 20, 4) * len(d)
+    p, chi2, dof = p_value(binned(local, 10, 20), expected)
+    assert p > 1e-3, (chi2, dof)
+    again = trace.bounce_rays([tetra, ground], camera, geom, prim, u, v, seed=11)
+    other = trace.bounce_rays([tetra, ground], camera, geom, prim, u, v, seed=12)
+    assert np.array_equal(again.directions, rays.directions)
+    assert np.array_equal(again.origins, rays.origins)
+    assert not np.array_equal(other.directions, rays.directions)
+
+
+def test_bounce_workload_starts_on_the_meshes_and_hits_as_brute_force(suite_device):
+    case = trace.scene_file_case("bunny_small.toml", suite_device.id)  # a bunny on a ground
+    _, primary, _, bounce = case.workloads([(20, 15), (40, 30)], 16, seed=4,
+                                           bounce_device=suite_device.id)  # from the last
+    assert (bounce.name, bounce.kind) == (f"bounce {len(bounce):,}", "bounce")
+    vertices, faces = case.geometry()
+    bunny = case.meshes[0].triangle_count
+    assert case.meshes[1].triangle_count == 2 and np.ptp(case.meshes[1].vertices[:, 1]) == 0
+    camera = brute_force_intersect(vertices, faces, primary.origins, primary.directions)
+    on_bunny = (camera["prim"] >= 0) & (camera["prim"] < bunny)
+    assert 0 < on_bunny.sum() < (camera["prim"] >= 0).sum()  # the ground is hit too, and left out
+    assert len(bounce) == on_bunny.sum()
+    # each starts just off the triangle the camera ray hit, on the camera's side
+    source = camera["prim"][on_bunny]
+    corners = vertices.astype(np.float64)[faces[source]]
+    normal = camera["normal"][on_bunny]
+    normal *= -np.sign((normal * primary.directions[on_bunny]).sum(axis=1))[:, None]
+    height = ((bounce.origins - corners[:, 0]) * normal).sum(axis=1)
+    np.testing.assert_allclose(height, trace.BOUNCE_OFFSET * np.abs(corners).max(axis=(1, 2)),
+                               rtol=0.05)
+    d = bounce.directions.astype(np.float64)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1, atol=1e-6)
+    assert ((d * normal).sum(axis=1) > 0).all()
+    # our hits on them are the brute force's, and none falls back on its own triangle
+    found = case.trace(bounce, suite_device.id)
+    oracle = brute_force_intersect(vertices, faces, bounce.origins, bounce.directions)
+    assert np.array_equal(found.hit, oracle["prim"] >= 0) and 0 < found.hit.sum() < len(bounce)
+    flat = np.where(found.hit, np.cumsum([0, bunny])[np.maximum(found.geom_id, 0)]
+                    + found.prim_id, -1)
+    assert np.array_equal(flat, oracle["prim"])
+    np.testing.assert_allclose(found.t[found.hit], oracle["t"][found.hit], rtol=1e-5)
+    assert not (oracle["prim"] == source).any()
+
+
 @pytest.fixture(scope="module")
-def bunny_case():
+def bunny_case(suite_device):
     case = trace.mesh_case("bunny_small.ply")
-    return case, case.workloads([(48, 36)], 2048, seed=3)
+    return case, case.workloads([(48, 36)], 2048, seed=3, bounce_device=suite_device.id)
 
 
 @pytest.mark.parametrize("name", list(peers.PEERS))

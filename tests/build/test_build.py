@@ -180,6 +180,17 @@ def test_stats_and_stage_times(meshes):
         assert np.isfinite(stats.times_ms[stage]) and stats.times_ms[stage] >= 0
     assert stats.device_ms == pytest.approx(sum(stats.times_ms.values())) and stats.device_ms > 0
     assert stats.wall_ms > 0
+    # tree memory: the wide nodes read back and one Triangle per mesh face, and
+    # no more than the device buffers hold
+    with scene.borrow() as built:
+        tree, queue = built.tree, built.runtime.queue
+        nodes, (triangles, _) = tree.read_nodes(queue), tree.read_triangles(queue)
+        node_buffer, triangle_buffer = tree.nodes.size, tree.triangles.size
+    assert len(triangles) == meshes["bunny"].triangle_count
+    assert stats.node_bytes == len(nodes) * nodes.dtype.itemsize <= node_buffer
+    assert stats.triangle_bytes == meshes["bunny"].triangle_count * triangles.dtype.itemsize
+    assert stats.triangle_bytes <= triangle_buffer
+    assert stats.tree_bytes == stats.node_bytes + stats.triangle_bytes
     with pytest.raises(dataclasses.FrozenInstanceError):
         stats.nodes = 0
 
