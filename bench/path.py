@@ -14,6 +14,14 @@ that compiles everything (Mitsuba's JIT included: its wall time is
 mi.render plus the image's numpy copy, RENDERING.md).  Samples per second =
 width x height x spp / seconds.
 
+LuxCore's PATHCPU (bench/luxcore.py, where pyluxcore imports; else the bench
+says it is skipped) renders the same scenes at the same size, spp and depth
+on 2 threads, in a child process too, in the same rounds.  Its time is the
+wall time from its session's Start returning (its scene compiled and BVH
+built) until the last sample is done, polled every 2 ms: like ours and
+Mitsuba's, a render of a built scene.  Each scene's image means (linear,
+over pixels and channels) are printed side by side as a translation check.
+
 Equal-time quality: a reference of REFERENCE_SPP samples per pixel by
 Mitsuba, then each renderer for the time Mitsuba takes for EQUAL_TIME_SPP
 (ours with a time budget, Mitsuba at the spp its measured rate fits in that
@@ -37,6 +45,7 @@ import numpy as np
 from hlbvh_cl.io.scenefile import load
 from hlbvh_cl.io.to_mitsuba import write_xml
 
+from . import luxcore
 from .common import (BENCH, arguments, devices_or_exit, finish, machine_info, say, stopwatch,
                      summary, table)
 
@@ -207,6 +216,11 @@ def main(argv=None) -> dict:
         paths = {"cornell": cornell_xml(folder), "materials": materials_xml(folder)}
         child = mitsuba_child(paths, sizes)
         results["mitsuba"] = child.variant
+        lux_problem = luxcore.available()
+        lux = None if lux_problem else luxcore.LuxCoreChild()
+        results["luxcore"] = f"skipped: {lux_problem}" if lux_problem else "PATHCPU"
+        if lux_problem:
+            say(f"LuxCore PATHCPU: skipped (pyluxcore does not import: {lux_problem})")
         ours = {}
         for name, path in paths.items():
             width, height, spp = sizes[name]
@@ -217,7 +231,8 @@ def main(argv=None) -> dict:
                 renderer.render(loaded.camera, 8, 8, **options)  # compiles
                 ours[name, device] = (loaded, renderer, options)
         times = {key: [] for key in [(n, d) for n in paths for d in devices]
-                 + [(n, "mitsuba") for n in paths]}
+                 + [(n, "mitsuba") for n in paths]
+                 + [(n, "luxcore") for n in paths if lux is not None]}
         means = {key: [] for key in times}
         for _ in range(args.rounds):
             for name, path in paths.items():
@@ -231,16 +246,29 @@ def main(argv=None) -> dict:
                 answer = child.render(name, path, width, height, spp)
                 times[name, "mitsuba"].append(answer["seconds"])
                 means[name, "mitsuba"].append(answer["mean"])
+                if lux is not None:
+                    rr_depth = ours[name, devices[0]][0].options.get("rr_depth", 5)
+                    answer = lux.render(path, width, height, spp, MAX_DEPTH, rr_depth)
+                    times[name, "luxcore"].append(answer["seconds"])
+                    means[name, "luxcore"].append(answer["mean"])
         quality = equal_time(child, ours, paths, sizes, devices, times, folder,
                              "quick" if args.quick else "full")
         child.close()
-    rows = []
+        if lux is not None:
+            lux.close()
+    rows, mean_rows = [], []
     for name in paths:
         width, height, spp = sizes[name]
         samples = width * height * spp
         theirs = samples / summary(times[name, "mitsuba"])["median"]
         entry = {"samples": samples, "mitsuba_msamples_per_s": theirs / 1e6,
                  "mitsuba_mean": summary(means[name, "mitsuba"])["median"]}
+        lux_rate = None
+        if lux is not None:
+            lux_rate = samples / summary(times[name, "luxcore"])["median"]
+            entry["luxcore"] = {"msamples_per_s": lux_rate / 1e6,
+                                "mean": summary(means[name, "luxcore"])["median"],
+                                "seconds": summary(times[name, "luxcore"])}
         for device in devices:
             rate = samples / summary(times[name, device])["median"]
             entry[device] = {"msamples_per_s": rate / 1e6, "ratio_to_mitsuba": rate / theirs,
@@ -248,11 +276,21 @@ def main(argv=None) -> dict:
                              "seconds": summary(times[name, device])}
             rows.append([name, f"{width}x{height}, {spp} spp", device, f"{rate / 1e6:.2f}",
                          f"{theirs / 1e6:.2f}", f"{rate / theirs:.2f}x"])
+            if lux_rate is not None:
+                entry[device]["ratio_to_luxcore"] = rate / lux_rate
+                rows[-1] += [f"{lux_rate / 1e6:.2f}", f"{rate / lux_rate:.2f}x"]
+        if lux is not None:
+            mean_rows.append([name] + [f"{entry[d]['mean']:.4f}" for d in devices]
+                             + [f"{entry['mitsuba_mean']:.4f}", f"{entry['luxcore']['mean']:.4f}"])
         entry["equal_time"] = quality[name]
         results["scenes"][name] = entry
+    lux_columns = ["LuxCore PATHCPU", "ratio to LuxCore"] if lux is not None else []
     print(table(["scene", "size", "device", "ours (Msamples/s)",
-                 f"Mitsuba {results['mitsuba']}", "ratio"], rows,
+                 f"Mitsuba {results['mitsuba']}", "ratio", *lux_columns], rows,
                 title="path tracing, samples per second (median of the rounds)"))
+    if lux is not None:  # the translation's check (bench/luxcore.py)
+        print(table(["scene", *devices, "Mitsuba", "LuxCore"], mean_rows,
+                    title="image means (linear; median of the rounds)"))
     rows = [[name, q["seconds"] and f"{q['seconds']:.2f} s", who, str(r["spp"]),
              f"{r['relmse']:.4g}"]
             for name, q in quality.items() for who, r in q["renders"].items()]

@@ -7,9 +7,18 @@
 # AVX-512 Xeons and on AMD EPYC Zen 3) and runs with LLVM 19, which
 # bench/path.py then names in DRJIT_LIBLLVM_PATH.  Safe to run again; a peer
 # that still cannot load is reported as missing by bench/peers.py.
+# LuxCore's PATHCPU (bench/path.py's third renderer) comes from pip's
+# pyluxcore, installed here where pip finds a wheel for this platform; where
+# it does not, bench/path.py says LuxCore is skipped.
 set -uo pipefail
 PY=${PYTHON:-python3}
 SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+
+if ! "$PY" -c "import numpy, pyluxcore" >/dev/null 2>&1; then
+    echo "setup_peers.sh: installing pyluxcore (LuxCore) for bench/path.py" >&2
+    "$PY" -m pip install -q pyluxcore \
+        || echo "setup_peers.sh: pip could not install pyluxcore here; bench/path.py will skip LuxCore" >&2
+fi
 
 needed=()
 if "$PY" -c "import importlib.util as u, sys; sys.exit(u.find_spec('open3d') is None)" 2>/dev/null \

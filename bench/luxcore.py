@@ -1,0 +1,339 @@
+"""LuxCore's PATHCPU as a bench participant: a scene bench.path renders (the
+SceneDescription that hlbvh_cl.io.scenefile.read gives of the same XML file)
+translated to LuxCore scene properties, and timed renders of it.
+
+pyluxcore is optional: ``available()`` says whether it imports (numpy must be
+imported first, or the process aborts: RENDERING.md).  It runs in a child
+process (LuxCoreChild): imported beside Mitsuba it aborts the process.
+
+The translation, and what in it is approximate:
+  meshes     Scene.DefineMeshExt with the placed vertices, faces and (unless the
+             mesh is flat-shaded) our vertex normals, as numpy arrays; no files.
+  camera     lookat + fieldofview with an explicit screenwindow of
+             [-aspect, aspect] x [-1, 1]: LuxCore's fieldofview spans the unit
+             range of the screen window, and its automatic window puts that on
+             the image's longer side, whereas ours (and Mitsuba's after our
+             reader's fov_axis conversion) is the vertical field of view.
+  diffuse    matte (kd).  LuxCore's materials are two-sided, Mitsuba's diffuse
+             is black from behind: the same wherever the camera sees fronts.
+  dielectric glass (interiorior / exteriorior, kr / kt).
+  roughdielectric  roughglass, same roughness mapping as metal2.
+  conductor / roughconductor  metal2 with n and k.  metal2's microfacet
+             distribution is Schlick's form with r = uroughness * vroughness,
+             D = r / (pi (1 + (r - 1) cos^2)^2), which is GGX with alpha^2 = r:
+             so uroughness = vroughness = Mitsuba's GGX alpha.  Its shadowing
+             term is Schlick's approximation, not GGX's Smith G.  A Beckmann
+             alpha is passed the same way (approximate).  A smooth conductor
+             gets roughness SMOOTH (LuxCore has no delta conductor with n, k).
+             specular_reflectance is not mapped.
+  plastic / roughplastic  glossy2 (approximate: LuxCore's glossy2 is the
+             Ashikhmin-Shirley coating over a diffuse base, Mitsuba's
+             roughplastic a GGX coating with internal scattering): kd = the
+             diffuse reflectance, ks = Fresnel reflectance at normal
+             incidence ((eta - 1) / (eta + 1))^2 of int_ior / ext_ior, the
+             same roughness mapping; smooth plastic gets roughness SMOOTH;
+             nonlinear is not mapped.
+  twosided   the inner BSDF (LuxCore's are two-sided already).
+  area       emission on the mesh's material, gain 1 (radiance = the colour;
+             no power / efficacy normalisation), front side only as Mitsuba.
+  constant   constantinfinite (color, gain 1).
+  point      point (color = intensity, gain 1, no power normalisation).
+  directional / envmap  not written yet: a scene with one is refused.
+  depth      path.pathdepth.total = Mitsuba's max_depth, both counting the
+             path's segments (an emitter seen directly: 1).  Found by
+             rendering, not by LuxCore's documentation: the Cornell box's mean
+             from LuxCore at total N matches Mitsuba's at max_depth N for N =
+             2, 3 and 8 within the noise, and tests/bench/test_bench_luxcore.py
+             checks it against ours at depth 3, where an off-by-one shows.
+             LuxCore at total 1 still samples the lights at the first hit (as
+             at total 2), so Mitsuba's max_depth 0 and 1 have no equivalent
+             and are refused.  The diffuse / glossy / specular limits are set
+             to the same number, so only the total binds.  Its accounting of
+             specular bounces may differ in detail (the glass ball's region
+             differs most at a small depth).
+  roulette   path.russianroulette.depth = Mitsuba's rr_depth (5).  Approximate:
+             LuxCore's survival probability is the last BSDF sample's weight
+             clamped to [cap, 1] (cap ROULETTE_CAP) and it plays no roulette
+             after a specular bounce; Mitsuba's is the path throughput times
+             eta^2, at most 0.95.  Unbiased either way: it moves noise only.
+  sampler    RANDOM (Mitsuba's independent sampler), box filter 1 pixel wide
+             (film.filter.width 0.5 is its radius), uniform light choice
+             (Mitsuba samples emitters uniformly), no clamping, no denoiser.
+  film       the RGB output: linear radiance, rows bottom-up (flipped here).
+"""
+from __future__ import annotations
+
+import atexit
+import os
+import time
+
+import numpy as np
+
+#: The roughness given to LuxCore's stand-in for a smooth conductor or plastic.
+SMOOTH = 1e-3
+
+#: LuxCore's lower bound on the Russian roulette survival probability (its default).
+ROULETTE_CAP = 0.5
+
+#: LuxCore's render threads: both of the machine's cores.
+THREADS = 2
+
+
+def available() -> str | None:
+    """None when pyluxcore imports, else why not.  Asked of a child process:
+    pyluxcore in the bench's own process aborts it once Mitsuba or the
+    OpenCL runtimes load beside it."""
+    import subprocess
+    import sys
+    done = subprocess.run([sys.executable, "-c", "import numpy, pyluxcore"],
+                          capture_output=True, text=True)
+    if done.returncode != 0:
+        lines = (done.stderr or done.stdout).strip().splitlines()
+        return lines[-1] if lines else f"exit status {done.returncode}"
+    return None
+
+
+def _pyluxcore():
+    import pyluxcore
+    if not getattr(_pyluxcore, "started", False):
+        pyluxcore.Init(_quiet)  # its log would flood the bench's output
+        # a Python log handler left in place aborts the interpreter's exit
+        atexit.register(pyluxcore.SetLogHandler, None)
+        _pyluxcore.started = True
+    return pyluxcore
+
+
+def _quiet(message: str) -> None:
+    """LuxCore's log handler: drops its lines."""
+
+
+def _color(value) -> str:
+    rgb = np.broadcast_to(np.asarray(value, np.float64), 3)
+    return " ".join(repr(float(x)) for x in rgb)
+
+
+def _ior(spec: dict, default_int: float, default_ext: float) -> tuple[float, float]:
+    return float(spec.get("int_ior", default_int)), float(spec.get("ext_ior", default_ext))
+
+
+def _roughness(spec: dict, prefix: str, alpha: float) -> list[str]:
+    return [f"{prefix}.uroughness = {alpha!r}", f"{prefix}.vroughness = {alpha!r}"]
+
+
+def material_lines(name: str, spec: dict) -> list[str]:
+    """One of our material specs (hlbvh_cl.render.materials) as LuxCore
+    scene.materials.<name>.* lines (see the module's list of what is
+    approximate)."""
+    while spec.get("type") == "twosided":
+        spec = spec["bsdf"]
+    kind, prefix = spec["type"], f"scene.materials.{name}"
+    alpha = float(spec.get("alpha", 0.1))
+    if kind == "diffuse":
+        return [f"{prefix}.type = matte", f"{prefix}.kd = {_color(spec.get('reflectance', 0.5))}"]
+    if kind in ("dielectric", "roughdielectric"):
+        inside, outside = _ior(spec, 1.5046, 1.000277)
+        lines = [f"{prefix}.type = {'glass' if kind == 'dielectric' else 'roughglass'}",
+                 f"{prefix}.kr = {_color(spec.get('specular_reflectance', 1.0))}",
+                 f"{prefix}.kt = {_color(spec.get('specular_transmittance', 1.0))}",
+                 f"{prefix}.interiorior = {inside!r}", f"{prefix}.exteriorior = {outside!r}"]
+        return lines + (_roughness(spec, prefix, alpha) if kind == "roughdielectric" else [])
+    if kind in ("conductor", "roughconductor"):
+        if "eta" not in spec or "k" not in spec:
+            raise ValueError(f"{name}: a {kind} without eta and k (a named metal) is not "
+                             "translated to LuxCore yet")
+        return [f"{prefix}.type = metal2", f"{prefix}.n = {_color(spec['eta'])}",
+                f"{prefix}.k = {_color(spec['k'])}",
+                *_roughness(spec, prefix, alpha if kind == "roughconductor" else SMOOTH)]
+    if kind in ("plastic", "roughplastic"):
+        inside, outside = _ior(spec, 1.49, 1.000277)
+        eta = inside / outside
+        return [f"{prefix}.type = glossy2",
+                f"{prefix}.kd = {_color(spec.get('diffuse_reflectance', 0.5))}",
+                f"{prefix}.ks = {_color(((eta - 1) / (eta + 1)) ** 2)}",
+                f"{prefix}.multibounce = 0",
+                *_roughness(spec, prefix, alpha if kind == "roughplastic" else SMOOTH)]
+    raise ValueError(f"{name}: material type {kind!r} is not translated to LuxCore yet")
+
+
+def scene_properties(description, width: int, height: int) -> tuple[list[str], list]:
+    """(LuxCore scene property lines, [(mesh name, Mesh)]) of a
+    SceneDescription rendered at width x height (module docstring)."""
+    camera = description.camera
+    aspect = width / height
+    lines = ["scene.camera.type = perspective",
+             f"scene.camera.lookat.orig = {_color(camera.eye)}",
+             f"scene.camera.lookat.target = {_color(camera.target)}",
+             f"scene.camera.up = {_color(camera.up)}",
+             f"scene.camera.fieldofview = {camera.fov_deg!r}",
+             f"scene.camera.screenwindow = {-aspect!r} {aspect!r} -1.0 1.0"]
+    materials = description.materials() or [None] * len(description.geometries())
+    meshes = []
+    for index, ((mesh, color), spec) in enumerate(zip(description.geometries(), materials)):
+        name = f"m{index}"
+        spec = spec or {"type": "diffuse", "reflectance": list(color)}
+        lines += material_lines(name, spec)
+        entry = description.meshes[index] if index < len(description.meshes) else None
+        if entry is not None and entry.emitter is not None:
+            lines += [f"scene.materials.{name}.emission = {_color(entry.emitter['radiance'])}",
+                      f"scene.materials.{name}.emission.gain = 1 1 1",
+                      f"scene.materials.{name}.emission.power = 0",
+                      f"scene.materials.{name}.emission.efficency = 0"]
+        lines += [f"scene.objects.{name}.shape = {name}", f"scene.objects.{name}.material = {name}"]
+        meshes.append((name, mesh))
+    for index, emitter in enumerate(description.emitters):
+        prefix = f"scene.lights.l{index}"
+        if emitter["type"] == "constant":
+            lines += [f"{prefix}.type = constantinfinite",
+                      f"{prefix}.color = {_color(emitter['radiance'])}", f"{prefix}.gain = 1 1 1"]
+        elif emitter["type"] == "point":
+            lines += [f"{prefix}.type = point", f"{prefix}.position = {_color(emitter['position'])}",
+                      f"{prefix}.color = {_color(emitter['intensity'])}",
+                      f"{prefix}.gain = 1 1 1", f"{prefix}.power = 0", f"{prefix}.efficency = 0"]
+        else:
+            raise ValueError(f"emitter {index} ({emitter['type']!r}) is not translated to "
+                             "LuxCore yet (constant, point and area emitters are)")
+    return lines, meshes
+
+
+def config_properties(width: int, height: int, spp: int, max_depth: int, rr_depth: int,
+                      seed: int = 1) -> list[str]:
+    """LuxCore render configuration lines: PATHCPU on THREADS threads,
+    width x height, spp samples per pixel, the depth and roulette mapping of
+    the module's docstring."""
+    if 0 <= max_depth < 2:
+        raise ValueError(f"max_depth {max_depth}: LuxCore samples the lights at the first hit "
+                         "whatever its path depth, so depths under 2 have no LuxCore equivalent")
+    depth = int(max_depth) if max_depth >= 0 else 1 << 16  # -1: unbounded, as Mitsuba's
+    return ["renderengine.type = PATHCPU", f"native.threads.count = {THREADS}",
+            f"renderengine.seed = {seed}", "sampler.type = RANDOM",
+            f"film.width = {width}", f"film.height = {height}",
+            "film.filter.type = BOX", "film.filter.width = 0.5",
+            "film.outputs.0.type = RGB", "film.outputs.0.filename = unused.exr",
+            "film.imagepipelines.0.0.type = NOP",
+            "lightstrategy.type = UNIFORM",
+            f"path.pathdepth.total = {depth}", f"path.pathdepth.diffuse = {depth}",
+            f"path.pathdepth.glossy = {depth}", f"path.pathdepth.specular = {depth}",
+            f"path.russianroulette.depth = {int(rr_depth)}",
+            f"path.russianroulette.cap = {ROULETTE_CAP!r}",
+            "path.clamping.variance.maxvalue = 0",
+            f"batch.haltspp = {int(spp)}", "batch.halttime = 0"]
+
+
+class LuxCoreRenderer:
+    """A SceneDescription as a LuxCore scene, parsed once; render() starts a
+    render session for each image."""
+
+    def __init__(self, description, width: int, height: int):
+        lux = _pyluxcore()
+        self.width, self.height = width, height
+        lines, meshes = scene_properties(description, width, height)
+        self.scene = lux.Scene()
+        for name, mesh in meshes:
+            normals = None if mesh.face_normals else np.ascontiguousarray(mesh.normals, np.float32)
+            self.scene.DefineMeshExt(name, np.ascontiguousarray(mesh.vertices, np.float32),
+                                     np.ascontiguousarray(mesh.faces, np.uint32), normals)
+        self.scene.Parse(_properties(lux, lines))
+        self.stats = {}
+
+    def render(self, spp: int, max_depth: int, rr_depth: int = 5, seed: int = 1) -> np.ndarray:
+        """A (height, width, 3) float32 linear image, top row first.
+        self.stats: seconds (wall time from the session's Start returning --
+        the scene compiled and the BVH built -- until the last sample is
+        done), start_seconds (Start's own, left out), engine_seconds (LuxCore's own stats.renderengine.time) and
+        samples (its sample count)."""
+        lux = _pyluxcore()
+        config = lux.RenderConfig(_properties(lux, config_properties(
+            self.width, self.height, spp, max_depth, rr_depth, seed)), self.scene)
+        session = lux.RenderSession(config)
+        starting = time.perf_counter()
+        session.Start()  # compiles the scene and builds its BVH, then starts the threads
+        started = time.perf_counter()
+        while not session.HasDone():
+            time.sleep(0.002)
+            session.UpdateStats()  # where LuxCore checks its halt conditions
+        seconds = time.perf_counter() - started
+        session.UpdateStats()
+        stats = session.GetStats()
+        film = session.GetFilm()
+        image = np.zeros(self.width * self.height * 3, np.float32)
+        film.GetOutputFloat(lux.FilmOutputType.RGB, image)
+        session.Stop()
+        self.stats = {"seconds": seconds, "start_seconds": started - starting,
+                      "engine_seconds": stats.Get("stats.renderengine.time").GetFloat(),
+                      "samples": stats.Get("stats.renderengine.pass").GetInt()
+                      * self.width * self.height}
+        return image.reshape(self.height, self.width, 3)[::-1].copy()  # rows bottom-up
+
+
+def _properties(lux, lines: list[str]):
+    properties = lux.Properties()
+    properties.SetFromString("\n".join(lines) + "\n")
+    return properties
+
+
+def from_file(path, width: int, height: int) -> LuxCoreRenderer:
+    """The scene file at ``path`` (read as bench.path's renderers read it,
+    at width x height) as a LuxCoreRenderer."""
+    from hlbvh_cl.io.scenefile import read
+    description = read(os.fspath(path), {"res_x": width, "res_y": height})
+    return LuxCoreRenderer(description, width, height)
+
+
+# ---------------------------------------------------------------- a child process
+
+#: The child's loop: one render per stdin line "path width height spp
+#: max_depth rr_depth seed out" (out: an .npy file for the image, or -), one
+#: JSON line of its stats and image mean per render.
+_CHILD = r"""
+import json, sys
+import numpy as np
+sys.path.insert(0, sys.argv[1])
+from bench import luxcore
+renderers = {}
+print(json.dumps({"ready": True}), flush=True)
+for line in sys.stdin:
+    path, width, height, spp, max_depth, rr_depth, seed, out = line.split()
+    key = (path, int(width), int(height))
+    if key not in renderers:
+        renderers[key] = luxcore.from_file(*key)
+    image = renderers[key].render(int(spp), int(max_depth), int(rr_depth), int(seed))
+    if out != "-":
+        np.save(out, image)
+    print(json.dumps({**renderers[key].stats, "mean": float(image.mean())}), flush=True)
+"""
+
+
+class LuxCoreChild:
+    """LuxCore in a child process that renders on request, as bench.path's
+    Mitsuba child does: pyluxcore and Mitsuba abort when imported into one
+    process in that order, and LuxCore's threads stay out of ours."""
+
+    def __init__(self):
+        import subprocess
+        import sys
+        from pathlib import Path
+        root = str(Path(__file__).resolve().parent.parent)
+        self.process = subprocess.Popen([sys.executable, "-c", _CHILD, root],
+                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                        text=True)
+        self._answer("starting")
+
+    def _answer(self, doing: str) -> dict:
+        import json
+        for line in self.process.stdout:
+            if line.startswith("{"):  # pyluxcore prints its libraries on import
+                return json.loads(line)
+        raise RuntimeError(f"LuxCore's child process died {doing}")
+
+    def render(self, path, width: int, height: int, spp: int, max_depth: int,
+               rr_depth: int = 5, seed: int = 1, out="-") -> dict:
+        """LuxCoreRenderer.render's stats and the image mean ("mean");
+        the image saved to ``out`` unless it is "-"."""
+        self.process.stdin.write(f"{path} {width} {height} {spp} {max_depth} {rr_depth} "
+                                 f"{seed} {out}\n")
+        self.process.stdin.flush()
+        return self._answer(f"rendering {path}")
+
+    def close(self) -> None:
+        self.process.stdin.close()
+        self.process.wait()
