@@ -13,8 +13,8 @@ to one:
   metals ("material": "Au") are refused: give eta and k.
 - ``{"type": "roughconductor", "distribution": "beckmann", "alpha": 0.1,
   "eta": 0, "k": 1, "specular_reflectance": 1}``: a rough metal, a
-  microfacet model, "beckmann" (Mitsuba's default; sampled by D cos) or
-  "ggx" (sampled by its visible normals).  Isotropic only (alpha, not
+  microfacet model, "beckmann" (Mitsuba's default) or "ggx", each
+  sampled by its visible normals.  Isotropic only (alpha, not
   alpha_u and alpha_v).
 - ``{"type": "dielectric", "int_ior": 1.5046, "ext_ior": 1.000277,
   "specular_reflectance": 1, "specular_transmittance": 1}``: smooth glass,

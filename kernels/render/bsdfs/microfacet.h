@@ -1,10 +1,12 @@
 /* Isotropic microfacet distributions with Smith's shadowing (Walter et al.
  * 2007, "Microfacet Models for Refraction through Rough Surfaces"), in a
  * local frame whose z is the surface normal, as Mitsuba 3's
- * MicrofacetDistribution: GGX, sampled by its visible normals (Heitz 2018,
- * "Sampling the GGX Distribution of Visible Normals", JCGT 7(4)), and
- * Beckmann, sampled by D(m) cos(m) (Walter et al. eq. 28), which needs no
- * inverse error function; its pdf says so, so the estimate is the same. */
+ * MicrofacetDistribution.  Both are sampled by their visible normals, with
+ * density G1(wo, m) (wo . m) D(m) / wo.z (Heitz & d'Eon 2014, eq. 2): GGX by
+ * Heitz 2018 ("Sampling the GGX Distribution of Visible Normals", JCGT
+ * 7(4)), Beckmann by the slopes of Heitz & d'Eon 2014 ("Importance Sampling
+ * Microfacet-Based BSDFs using the Distribution of Visible Normals", EGSR),
+ * which at grazing wo leave far less noise than sampling D(m) cos(m). */
 #ifndef BSDFS_MICROFACET_H
 #define BSDFS_MICROFACET_H
 
@@ -65,15 +67,6 @@ inline float3 ggx_sample_visible(float alpha, float3 wo, float u1, float u2)
     return normalize((float3)(alpha * h.x, alpha * h.y, h.z > 0.0f ? h.z : 0.0f));
 }
 
-/* The density of ggx_sample_visible's m for wo: G1(wo, m) (wo . m) D(m) / wo.z. */
-inline float ggx_pdf_visible(float alpha, float3 wo, float3 m)
-{
-    float cosine = dot(wo, m);
-    if (!(cosine > 0.0f) || !(wo.z > 0.0f))
-        return 0.0f;
-    return ggx_g1(alpha, wo, m) * cosine * ggx_d(alpha, m) / wo.z;
-}
-
 /* Beckmann: D(m) = exp(-tan^2 / alpha^2) / (pi alpha^2 cos^4) */
 inline float beckmann_d(float alpha, float3 m)
 {
@@ -99,18 +92,71 @@ inline float beckmann_g1(float alpha, float3 v, float3 m)
     return (3.535f * a + 2.181f * a * a) / (1.0f + 2.276f * a + 2.577f * a * a);
 }
 
-/* m with density D(m) cos(m): tan^2 = -alpha^2 log(1 - u1), phi = 2 pi u2. */
-inline float3 beckmann_sample(float alpha, float u1, float u2)
+/* erf^-1 (OpenCL C has erf but no inverse), |x| < 1: Winitzki's closed
+ * form (2008, "A handy approximation for the error function and its
+ * inverse", a = 0.147) polished by one Newton step on erf.  Compact rather
+ * than Giles' polynomials (2010): Intel's CPU compiler returned wrong
+ * normals from every sampler here, GGX's too, once this header grew. */
+inline float erfinv_approx(float x)
 {
-    float cos_theta = rsqrt(1.0f - alpha * alpha * log(1.0f - u1));
-    float sin2 = 1.0f - cos_theta * cos_theta;
-    float sin_theta = sqrt(sin2 > 0.0f ? sin2 : 0.0f);
-    float cosine, sine = sincos(2.0f * M_PI_F * u2, &cosine);
-    return (float3)(sin_theta * cosine, sin_theta * sine, cos_theta);
+    float l = log((1.0f - x) * (1.0f + x));
+    float t = 4.3307467f + 0.5f * l;
+    float y = copysign(sqrt(sqrt(t * t - l * 6.802721f) - t), x);
+    return y - (erf(y) - x) * 0.88622693f * exp(y * y);
 }
 
-/* By distribution (MICROFACET_*): D, G1, a normal m for wo (local, wo.z >
- * 0), and the density of that m. */
+/* The slope x along the view of a visible normal of the alpha-1 Beckmann
+ * surface, seen at (cos_theta, sin_theta), from u in (0, 1).  The visible
+ * slopes have density (cos - x sin) exp(-x^2) / sqrt(pi) for x < cot
+ * (Heitz & d'Eon 2014, appendix), whose cdf, over cos / 2, is
+ * C(x) = 1 + erf(x) + tan exp(-x^2) / sqrt(pi).  C is smooth and concave in
+ * e = erf(x), with dC/de = 1 - x tan, so Newton's method in e solves
+ * C = u C(cot) (Jakob's inversion, continuous in u where the paper's fit
+ * is not), kept inside its bracket by bisection, from the exact solution
+ * at grazing incidence, e = -erf(sqrt(-log u)), scaled to [-1, erf(cot)]. */
+inline float beckmann_visible_slope(float cos_theta, float sin_theta, float u)
+{
+    const float inv_sqrt_pi = 0.5641895835477563f;
+    float tan_theta = sin_theta / cos_theta;
+    float cot_theta = sin_theta > 0.0f ? cos_theta / sin_theta : MAXFLOAT;
+    float high = erf(cot_theta), low = -1.0f;
+    u = clamp(u, 1e-6f, 1.0f - 1e-6f);
+    float target = u * (1.0f + high + inv_sqrt_pi * tan_theta * exp(-cot_theta * cot_theta));
+    float e = -1.0f + (1.0f + high) * erfc(sqrt(-log(u)));
+    for (int step = 0; step < 4; step++) {
+        float x = erfinv_approx(clamp(e, -1.0f + 1e-7f, 1.0f - 1e-7f));
+        float excess = 1.0f + e + inv_sqrt_pi * tan_theta * exp(-x * x) - target;
+        if (excess > 0.0f)
+            high = e;
+        else
+            low = e;
+        float slope = 1.0f - x * tan_theta;
+        float next = e - excess / slope;
+        e = slope > 0.0f && next >= low && next <= high ? next : 0.5f * (low + high);
+    }
+    return erfinv_approx(clamp(e, -1.0f + 1e-7f, 1.0f - 1e-7f));
+}
+
+/* A visible Beckmann normal for wo (local, wo.z > 0) from u1, u2 in [0, 1)
+ * (Heitz & d'Eon 2014, sec. 4): stretch wo to the alpha-1 surface, draw the
+ * slope along its azimuth (above) and the one across it (a Gaussian, which
+ * visibility does not weigh), rotate them to wo's azimuth, unstretch them
+ * by alpha, and m = (-x, -y, 1) normalised. */
+inline float3 beckmann_sample_visible(float alpha, float3 wo, float u1, float u2)
+{
+    float3 stretched = normalize((float3)(alpha * wo.x, alpha * wo.y, wo.z));
+    float sin_theta = sqrt(stretched.x * stretched.x + stretched.y * stretched.y);
+    float cos_phi = sin_theta > 0.0f ? stretched.x / sin_theta : 1.0f;
+    float sin_phi = sin_theta > 0.0f ? stretched.y / sin_theta : 0.0f;
+    float along = beckmann_visible_slope(stretched.z, sin_theta, u1);
+    float across = erfinv_approx(clamp(2.0f * u2 - 1.0f, -1.0f + 1e-6f, 1.0f - 1e-6f));
+    float x = alpha * (cos_phi * along - sin_phi * across);
+    float y = alpha * (sin_phi * along + cos_phi * across);
+    return normalize((float3)(-x, -y, 1.0f));
+}
+
+/* By distribution (MICROFACET_*): D, G1, a visible normal m for wo (local,
+ * wo.z > 0), and the density of that m. */
 inline float microfacet_d(uint type, float alpha, float3 m)
 {
     return type == MICROFACET_BECKMANN ? beckmann_d(alpha, m) : ggx_d(alpha, m);
@@ -123,27 +169,26 @@ inline float microfacet_g1(uint type, float alpha, float3 v, float3 m)
 
 inline float3 microfacet_sample(uint type, float alpha, float3 wo, float u1, float u2)
 {
-    return type == MICROFACET_BECKMANN ? beckmann_sample(alpha, u1, u2)
+    return type == MICROFACET_BECKMANN ? beckmann_sample_visible(alpha, wo, u1, u2)
                                        : ggx_sample_visible(alpha, wo, u1, u2);
 }
 
+/* G1(wo, m) (wo . m) D(m) / wo.z (Heitz & d'Eon 2014, eq. 2). */
 inline float microfacet_pdf(uint type, float alpha, float3 wo, float3 m)
 {
-    if (type == MICROFACET_BECKMANN)
-        return beckmann_d(alpha, m) * m.z;
-    return ggx_pdf_visible(alpha, wo, m);
+    float cosine = dot(wo, m);
+    if (!(cosine > 0.0f) || !(wo.z > 0.0f))
+        return 0.0f;
+    return microfacet_g1(type, alpha, wo, m) * cosine * microfacet_d(type, alpha, m) / wo.z;
 }
 
 /* D G1(wo) G1(wi) (wo . m) / (wo.z pdf(m)): what a sampled m leaves of the
  * microfacet BSDF's f cos / pdf besides Fresnel and the tints, for a
- * reflection or a refraction alike (the Jacobians cancel): G1(wi) for
- * visible normals (Heitz 2018, eq. 19), G1 G1 (wo . m) / (wo.z m.z) else. */
-inline float microfacet_weight(uint type, float alpha, float3 wo, float3 wi, float3 m)
+ * reflection or a refraction alike (the Jacobians cancel): G1(wi) (Heitz
+ * 2018, eq. 19). */
+inline float microfacet_weight(uint type, float alpha, float3 wi, float3 m)
 {
-    float g1_in = microfacet_g1(type, alpha, wi, m);
-    if (type != MICROFACET_BECKMANN)
-        return g1_in;
-    return g1_in * beckmann_g1(alpha, wo, m) * dot(wo, m) / (wo.z * m.z);
+    return microfacet_g1(type, alpha, wi, m);
 }
 
 #endif /* BSDFS_MICROFACET_H */

@@ -27,7 +27,7 @@ inline BsdfSample roughconductor_sample(__global const PathMaterial* m, float3 n
     out.pdf = microfacet_pdf(m->distribution, alpha, o, h) / (4.0f * dot(o, h));
     out.weight = LOAD_XYZ(m->reflectance)
                  * fresnel_conductor(dot(i, h), LOAD_XYZ(m->eta), LOAD_XYZ(m->k))
-                 * microfacet_weight(m->distribution, alpha, o, i, h);
+                 * microfacet_weight(m->distribution, alpha, i, h);
     return out;
 }
 
