@@ -7,6 +7,7 @@ tests do; a user can check a material the same way.
     eval_bsdf(material, wo, wi)       -> f cos, pdfs
     sample_envmap(emitter, count)     -> directions, radiance, pdfs
     eval_envmap(emitter, wi)          -> radiance, pdfs
+    turn_angles(u)                    -> sin and cos of 2 pi u, as the samplers take them
 
 ``material`` is a materials.py spec; ``wo`` the unit direction towards the
 viewer and ``normal`` the surface's (default +z), turned towards wo for a
@@ -130,3 +131,20 @@ def eval_envmap(emitter, wi, device=None) -> dict[str, np.ndarray]:
     return _launch(rt, "envmap_values", count, [*arguments, np.uint32(count), directions],
                    {"radiance": np.empty((count, 3), np.float32),
                     "pdfs": np.empty(count, np.float32)})
+
+
+def turn_angles(u, device=None) -> dict[str, np.ndarray]:
+    """sin and cos of 2 pi u ("sin", "cos"; float32 like ``u``) for each u
+    of ``u`` in [0, 1.25], as the path integrator's samplers compute the
+    angles they draw (kernels/render/angles.h)."""
+    u = np.ascontiguousarray(u, np.float32).reshape(-1)
+    if not np.all((u >= 0.0) & (u <= 1.25)):
+        bad = int(np.flatnonzero(~((u >= 0.0) & (u <= 1.25)))[0])
+        raise ValueError(f"u[{bad}] must be in [0, 1.25], got {u[bad]!r}")
+    rt, count = runtime(device), len(u)
+    if count == 0:
+        return {"sin": np.empty(0, np.float32), "cos": np.empty(0, np.float32)}
+    turns = cl.Buffer(rt.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
+                      hostbuf=u)
+    return _launch(rt, "turn_angles", count, [np.uint32(count), turns],
+                   {"sin": np.empty(count, np.float32), "cos": np.empty(count, np.float32)})

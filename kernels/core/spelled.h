@@ -23,4 +23,17 @@
 #define GROW_LO(acc, value) ((value) < (acc) ? (value) : (acc))
 #define GROW_HI(acc, value) ((value) > (acc) ? (value) : (acc))
 
+/* sqrt as one instruction where the compiler is a Clang (PoCL calls sqrt
+ * out of line, and each call spills every live vector register around it:
+ * all are caller-saved on x86-64).  Both round correctly. */
+#if HAS_BUILTIN(__builtin_sqrtf)
+#define SQRT __builtin_sqrtf
+#else
+#define SQRT sqrt
+#endif
+
+/* |x| and copysign(1, x) by the sign bit: fabs and copysign without calls. */
+inline float abs_float(float x) { return as_float(as_uint(x) & 0x7fffffffu); }
+inline float sign_of(float x) { return as_float((as_uint(x) & 0x80000000u) | 0x3f800000u); }
+
 #endif /* SPELLED_H */

@@ -16,7 +16,7 @@ TRAVERSAL_INLINE float3 unit_vector(float3 w)
     if (largest == 0.0f)
         return w;
     w = w * (1.0f / largest);
-    return w * (1.0f / SQUARE_ROOT(w.x * w.x + w.y * w.y + w.z * w.z));
+    return w * (1.0f / SQRT(w.x * w.x + w.y * w.y + w.z * w.z));
 }
 
 /* The unit geometric normal of the triangle (a, b, c), cross(b - a, c - a)

@@ -232,7 +232,7 @@ TRAVERSAL_INLINE void store_closest(const Found_point* s, uint i, POINT_SCENE_PA
         normal = corners_normal(a, b, c);
         at = a + s->u * (b - a) + s->v * (c - a);
     }
-    distance_out[i] = found ? SQUARE_ROOT(s->reach) : INFINITY;
+    distance_out[i] = found ? SQRT(s->reach) : INFINITY;
     geom_out[i] = geom;
     prim_out[i] = prim;
     instance_out[i] = instance;
@@ -398,7 +398,7 @@ TRAVERSAL_KERNEL void signed_distances(POINT_SCENE_PARAMS, __global const WideDi
     float w[POINTS_PER_ITEM];
     winding_walks(&q, POINT_SCENE_ARGS, dipoles, w, overflow);
     for (uint l = 0; l < used; ++l) {
-        float distance = lanes[l].index >= 0 ? SQUARE_ROOT(lanes[l].reach) : INFINITY;
+        float distance = lanes[l].index >= 0 ? SQRT(lanes[l].reach) : INFINITY;
         distance_out[at[l]] = fabs(w[l]) >= 0.5f ? -distance : distance;
         winding_out[at[l]] = w[l];
     }

@@ -10,6 +10,7 @@
 
 #include "render/integrators/path.h"
 #include "render/distribution.h"
+#include "render/angles.h"
 
 /* A world direction in the map's frame: the rotation's transpose (its inverse). */
 inline float3 envmap_local(const PathParams* p, float3 d)
@@ -109,7 +110,6 @@ inline float3 envmap_sample(const PathParams* p, __global const float* cdf, floa
     float below = i > 0 ? row[i - 1] : 0.0f;
     float t = (u_cell - below) / (row[i] - below);
     t = t < 0.0f ? 0.0f : (t < 0x1.fffffep-1f ? t : 0x1.fffffep-1f);
-    float phi = 2.0f * M_PI_F * ((float)i + 0.5f + t) / (float)width;
     float step = M_PI_F / (float)(height - 1), band = envmap_band(height, j);
     /* s = sin^2(theta / 2) = (1 - cos theta) / 2 grows by `band` across the
      * band; in the south, s is cos^2(theta / 2) = (1 + cos theta) / 2, which
@@ -120,7 +120,7 @@ inline float3 envmap_sample(const PathParams* p, __global const float* cdf, floa
     s = s < 0.0f ? 0.0f : (s < 1.0f ? s : 1.0f);
     float cos_theta = north ? 1.0f - 2.0f * s : 2.0f * s - 1.0f;
     float sin_theta = 2.0f * sqrt(s * (1.0f - s));
-    float cos_phi, sin_phi = sincos(phi, &cos_phi);
+    float cos_phi, sin_phi = sincos_turn(((float)i + 0.5f + t) / (float)width, &cos_phi);
     *pdf = envmap_cell_pdf(p, cdf, i, j);
     return envmap_world(p, (float3)(sin_phi * sin_theta, cos_theta, -cos_phi * sin_theta));
 }

@@ -120,7 +120,8 @@ inline float filter_weight(__global const float* table, float radius, float t)
     if (!(at < (float)WEIGHT_INTERVALS))
         return 0.0f;
     uint i = (uint)at;
-    return mix(table[i], table[i + 1], at - (float)i);
+    /* mix as OpenCL defines it, spelled (PoCL calls mix out of line) */
+    return table[i] + (table[i + 1] - table[i]) * (at - (float)i);
 }
 
 __kernel void store_round(__global const float4* values,  /* the band's, in tile order */

@@ -12,6 +12,8 @@
  *                   (render/envmap.h): direction, radiance, density;
  *                   random_unit(k, seed, 0..2)
  *   envmap_values   its radiance and density towards each of `wi`
+ *   turn_angles     sin and cos of 2 pi u as the samplers take them
+ *                   (render/angles.h), for each u given
  * The normal given is used as the integrator uses it: turned towards wo for
  * a BSDF with sides, as it is for a dielectric. */
 #include "core/portable.h"
@@ -95,4 +97,15 @@ __kernel void envmap_values(const PathParams params, __global const float* image
     float3 d = LOAD_XYZ(wi + 3 * (size_t)k);
     store3(radiance + 3 * (size_t)k, envmap_radiance(&params, image, d));
     pdfs[k] = envmap_pdf(&params, cdf, d);
+}
+
+__kernel void turn_angles(const uint count, __global const float* turns, __global float* sines,
+                          __global float* cosines)
+{
+    uint k = get_global_id(0);
+    if (k >= count)
+        return;
+    float cosine;
+    sines[k] = sincos_turn(turns[k], &cosine);
+    cosines[k] = cosine;
 }

@@ -6,6 +6,7 @@
 
 #include "core/spelled.h"
 #include "query/records.h"
+#include "render/angles.h"
 
 /* PoCL 3.0 calls vload3, vstore3, dot, fmax and other builtins out of line
  * (core/spelled.h; perf showed most of shade_hits' time in such calls), so
@@ -23,6 +24,27 @@ inline float dot3(float3 a, float3 b)
 {
     float3 products = a * b;
     return products.x + products.y + products.z;
+}
+
+/* |v|, v / |v| and a x b in the operations of length, normalize and cross
+ * (PoCL's: for v / |v|, one division and three products), without their
+ * calls.  Outside squared lengths of [1e-30, 1e30], where length and
+ * normalize rescale v against underflow and overflow, they call them. */
+inline float length3(float3 v)
+{
+    float squared = dot3(v, v);
+    return squared > 1e-30f && squared < 1e30f ? SQRT(squared) : length(v);
+}
+
+inline float3 normalize3(float3 v)
+{
+    float squared = dot3(v, v);
+    return squared > 1e-30f && squared < 1e30f ? v * (1.0f / SQRT(squared)) : normalize(v);
+}
+
+inline float3 cross3(float3 a, float3 b)
+{
+    return (float3)(a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x);
 }
 
 /* A ray with tmin > tmax: traversal rejects the root's children at once and
@@ -59,7 +81,7 @@ inline float3 facing_normal(__global const Hit* hit, float3 direction)
  * Orthonormal Basis, Revisited" (JCGT 6(1)), branchless and exact at n.z = -1. */
 inline void orthonormal_basis(float3 n, float3* b1, float3* b2)
 {
-    float sign = copysign(1.0f, n.z);
+    float sign = sign_of(n.z);
     float a = -1.0f / (sign + n.z);
     float b = n.x * n.y * a;
     *b1 = (float3)(1.0f + sign * n.x * n.x * a, sign * b, -sign * n.x);
@@ -68,19 +90,33 @@ inline void orthonormal_basis(float3 n, float3* b1, float3* b2)
 
 /* A direction cosine-distributed about the unit n, of density cos / pi
  * (Malley's method: a uniform point on the unit disc, lifted to the
- * hemisphere; pbrt-v4 SampleCosineHemisphere), from u1, u2 in [0, 1);
- * not normalised beyond rounding. */
-inline float3 cosine_direction(float3 n, float u1, float u2)
+ * hemisphere; pbrt-v4 SampleCosineHemisphere), from u1 in [0, 1) and the
+ * cosine and sine of the point's angle on the disc; not normalised beyond
+ * rounding. */
+inline float3 cosine_direction_at(float3 n, float u1, float cosine, float sine)
 {
-    float radius = sqrt(u1);
-    float angle = 2.0f * M_PI_F * u2;
+    float radius = SQRT(u1);
     float3 b1, b2;
     orthonormal_basis(n, &b1, &b2);
-    /* One call for both (PoCL: the same bits as sin and cos at every angle
-     * u2 can give, and measured faster) */
-    float cosine, sine = sincos(angle, &cosine);
     return radius * cosine * b1 + radius * sine * b2
-           + sqrt(1.0f - u1) * n;  /* u1 < 1, so never tangent */
+           + SQRT(1.0f - u1) * n;  /* u1 < 1, so never tangent */
+}
+
+/* The same at the angle 2 pi u2 (u2 in [0, 1)), as the previews draw it.
+ * One call for both (PoCL: the same bits as sin and cos at every angle u2
+ * can give, and measured faster). */
+inline float3 cosine_direction(float3 n, float u1, float u2)
+{
+    float cosine, sine = sincos(2.0f * M_PI_F * u2, &cosine);
+    return cosine_direction_at(n, u1, cosine, sine);
+}
+
+/* The path integrator's cosine-distributed direction, normalised, at the
+ * angle sincos_turn gives (render/angles.h). */
+inline float3 cosine_sample(float3 n, float u1, float u2)
+{
+    float cos_phi, sin_phi = sincos_turn(u2, &cos_phi);
+    return normalize3(cosine_direction_at(n, u1, cos_phi, sin_phi));
 }
 
 #endif /* SURFACE_H */

@@ -83,7 +83,7 @@ TRAVERSAL_INLINE float mesh_reach(float best, const MeshFrame* f)
 {
     /* best 0 stays 0 where reach_scale is inf (an instance scaled below
      * about 1e-19), not 0 * inf = NaN, which would skip the instance */
-    float r = SQUARE_ROOT(best > 0.0f ? best * f->reach_scale : 0.0f) * REACH_PAD + f->slack;
+    float r = SQRT(best > 0.0f ? best * f->reach_scale : 0.0f) * REACH_PAD + f->slack;
     return r * r;
 }
 

@@ -161,7 +161,7 @@ TRAVERSAL_INLINE float solid_angle(float3 a, float3 b, float3 c)
         bb *= unit2;
         cc *= unit2;
     }
-    float la = SQUARE_ROOT(aa), lb = SQUARE_ROOT(bb), lc = SQUARE_ROOT(cc);
+    float la = SQRT(aa), lb = SQRT(bb), lc = SQRT(cc);
     float det = a.x * (b.y * c.z - b.z * c.y) + a.y * (b.z * c.x - b.x * c.z)
                 + a.z * (b.x * c.y - b.y * c.x);
     float ab = DOT3(a, b), bc = DOT3(b, c), ca = DOT3(c, a);

@@ -59,14 +59,7 @@ TRAVERSAL_INLINE __global const float* plane_row(__global const WideNode* node, 
 #define LO_Y_ROW (2 * ROW_BYTES)
 #define LO_Z_ROW (4 * ROW_BYTES)
 
-/* sqrt as one instruction where the compiler is a Clang (PoCL calls sqrt). */
-#if HAS_BUILTIN(__builtin_sqrtf)
-#define SQUARE_ROOT __builtin_sqrtf
-#else
-#define SQUARE_ROOT sqrt
-#endif
-
-/* The same for 8 lanes at once, as x86's one vsqrtps where the compiler
+/* sqrt of 8 lanes at once (core/spelled.h's SQRT: one), as x86's one vsqrtps where the compiler
  * exposes it: PoCL calls sqrt on vectors out of line, and the winding
  * walk's dipole and solid-angle terms took a call each (measured slower).
  * Both round correctly, as sqrtf does, so the results are the same. */
@@ -79,9 +72,9 @@ TRAVERSAL_INLINE float8 lanes_root(float8 v)
 #endif
 }
 
-/* Sign bit and absolute value by their bits (PoCL: see LOAD_ROW). */
+/* Sign bit and absolute values by their bits (PoCL: see LOAD_ROW;
+ * core/spelled.h's abs_float for one). */
 TRAVERSAL_INLINE uint sign_bit(float x) { return as_uint(x) >> 31; }
-TRAVERSAL_INLINE float abs_float(float x) { return as_float(as_uint(x) & 0x7fffffffu); }
 TRAVERSAL_INLINE float8 abs_lanes(float8 x) { return as_float8(as_int8(x) & (int8)(0x7fffffff)); }
 
 /* Ize 2013: scaling the exit distance by 1 + 2*gamma(3) makes the slab test

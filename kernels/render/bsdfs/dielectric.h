@@ -23,7 +23,7 @@ inline BsdfSample dielectric_sample(__global const PathMaterial* m, float3 n, fl
         return out;
     }
     /* Snell: wt = -wo / eta_it + n (cos_i / eta_it + cos_t), cos_t signed */
-    out.direction = normalize(-wo / eta_it + n * (cos_i / eta_it + cos_t));
+    out.direction = normalize3(-wo / eta_it + n * (cos_i / eta_it + cos_t));
     out.weight = LOAD_XYZ(m->transmittance) / (eta_it * eta_it);
     out.eta = eta_it;
     return out;

@@ -9,7 +9,7 @@
 inline BsdfSample diffuse_sample(__global const PathMaterial* m, float3 n, float u1, float u2)
 {
     BsdfSample out = no_sample();
-    out.direction = normalize(cosine_direction(n, u1, u2));
+    out.direction = cosine_sample(n, u1, u2);
     float cosine = dot3(n, out.direction);
     if (!(cosine > 0.0f))
         return out;

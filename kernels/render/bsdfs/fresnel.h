@@ -3,6 +3,8 @@
 #ifndef BSDFS_FRESNEL_H
 #define BSDFS_FRESNEL_H
 
+#include "core/spelled.h"
+
 /* A dielectric interface of relative index eta (inside over outside), seen
  * at cos_i (> 0 from outside): the reflectance, and the cosine of the
  * transmitted direction (0 under total internal reflection), whose sign is
@@ -11,13 +13,13 @@ inline float fresnel_dielectric(float cos_i, float eta, float* cos_t, float* eta
 {
     float ratio = cos_i >= 0.0f ? eta : 1.0f / eta;
     *eta_it = ratio;
-    float abs_i = fabs(cos_i);
+    float abs_i = abs_float(cos_i);
     float sin2_t = (1.0f - abs_i * abs_i) / (ratio * ratio);
     if (sin2_t >= 1.0f) {  /* total internal reflection */
         *cos_t = 0.0f;
         return 1.0f;
     }
-    float abs_t = sqrt(1.0f - sin2_t);
+    float abs_t = SQRT(1.0f - sin2_t);
     if (eta == 1.0f) {
         *cos_t = cos_i >= 0.0f ? -abs_t : abs_t;
         return 0.0f;

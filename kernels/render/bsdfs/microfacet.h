@@ -46,25 +46,25 @@ inline float ggx_g1(float alpha, float3 v, float3 m)
         return 0.0f;
     float cos2 = v.z * v.z;
     float tan2 = (1.0f - cos2) / cos2;
-    return 2.0f / (1.0f + sqrt(1.0f + alpha * alpha * tan2));
+    return 2.0f / (1.0f + SQRT(1.0f + alpha * alpha * tan2));
 }
 
 /* A visible normal for wo (local, wo.z > 0) from u1, u2 in [0, 1). */
 inline float3 ggx_sample_visible(float alpha, float3 wo, float u1, float u2)
 {
-    float3 stretched = normalize((float3)(alpha * wo.x, alpha * wo.y, wo.z));
+    float3 stretched = normalize3((float3)(alpha * wo.x, alpha * wo.y, wo.z));
     float length2 = stretched.x * stretched.x + stretched.y * stretched.y;
-    float3 t1 = length2 > 0.0f ? (float3)(-stretched.y, stretched.x, 0.0f) / sqrt(length2)
+    float3 t1 = length2 > 0.0f ? (float3)(-stretched.y, stretched.x, 0.0f) / SQRT(length2)
                                : (float3)(1.0f, 0.0f, 0.0f);
-    float3 t2 = cross(stretched, t1);
-    float r = sqrt(u1);
-    float cosine, sine = sincos(2.0f * M_PI_F * u2, &cosine);
+    float3 t2 = cross3(stretched, t1);
+    float r = SQRT(u1);
+    float cosine, sine = sincos_turn(u2, &cosine);
     float p1 = r * cosine, p2 = r * sine;
     float s = 0.5f * (1.0f + stretched.z);
-    p2 = (1.0f - s) * sqrt(1.0f - p1 * p1) + s * p2;
+    p2 = (1.0f - s) * SQRT(1.0f - p1 * p1) + s * p2;
     float lift = 1.0f - p1 * p1 - p2 * p2;
-    float3 h = p1 * t1 + p2 * t2 + sqrt(lift > 0.0f ? lift : 0.0f) * stretched;
-    return normalize((float3)(alpha * h.x, alpha * h.y, h.z > 0.0f ? h.z : 0.0f));
+    float3 h = p1 * t1 + p2 * t2 + SQRT(lift > 0.0f ? lift : 0.0f) * stretched;
+    return normalize3((float3)(alpha * h.x, alpha * h.y, h.z > 0.0f ? h.z : 0.0f));
 }
 
 /* Beckmann: D(m) = exp(-tan^2 / alpha^2) / (pi alpha^2 cos^4) */
@@ -86,7 +86,7 @@ inline float beckmann_g1(float alpha, float3 v, float3 m)
     float tan2 = (1.0f - v.z * v.z) / (v.z * v.z);
     if (!(tan2 > 0.0f))
         return 1.0f;
-    float a = 1.0f / (alpha * sqrt(tan2));
+    float a = 1.0f / (alpha * SQRT(tan2));
     if (a >= 1.6f)
         return 1.0f;
     return (3.535f * a + 2.181f * a * a) / (1.0f + 2.276f * a + 2.577f * a * a);
@@ -101,7 +101,7 @@ inline float erfinv_approx(float x)
 {
     float l = log((1.0f - x) * (1.0f + x));
     float t = 4.3307467f + 0.5f * l;
-    float y = copysign(sqrt(sqrt(t * t - l * 6.802721f) - t), x);
+    float y = copysign(SQRT(SQRT(t * t - l * 6.802721f) - t), x);
     return y - (erf(y) - x) * 0.88622693f * exp(y * y);
 }
 
@@ -122,7 +122,7 @@ inline float beckmann_visible_slope(float cos_theta, float sin_theta, float u)
     float high = erf(cot_theta), low = -1.0f;
     u = clamp(u, 1e-6f, 1.0f - 1e-6f);
     float target = u * (1.0f + high + inv_sqrt_pi * tan_theta * exp(-cot_theta * cot_theta));
-    float e = -1.0f + (1.0f + high) * erfc(sqrt(-log(u)));
+    float e = -1.0f + (1.0f + high) * erfc(SQRT(-log(u)));
     for (int step = 0; step < 4; step++) {
         float x = erfinv_approx(clamp(e, -1.0f + 1e-7f, 1.0f - 1e-7f));
         float excess = 1.0f + e + inv_sqrt_pi * tan_theta * exp(-x * x) - target;
@@ -144,15 +144,15 @@ inline float beckmann_visible_slope(float cos_theta, float sin_theta, float u)
  * by alpha, and m = (-x, -y, 1) normalised. */
 inline float3 beckmann_sample_visible(float alpha, float3 wo, float u1, float u2)
 {
-    float3 stretched = normalize((float3)(alpha * wo.x, alpha * wo.y, wo.z));
-    float sin_theta = sqrt(stretched.x * stretched.x + stretched.y * stretched.y);
+    float3 stretched = normalize3((float3)(alpha * wo.x, alpha * wo.y, wo.z));
+    float sin_theta = SQRT(stretched.x * stretched.x + stretched.y * stretched.y);
     float cos_phi = sin_theta > 0.0f ? stretched.x / sin_theta : 1.0f;
     float sin_phi = sin_theta > 0.0f ? stretched.y / sin_theta : 0.0f;
     float along = beckmann_visible_slope(stretched.z, sin_theta, u1);
     float across = erfinv_approx(clamp(2.0f * u2 - 1.0f, -1.0f + 1e-6f, 1.0f - 1e-6f));
     float x = alpha * (cos_phi * along - sin_phi * across);
     float y = alpha * (sin_phi * along + cos_phi * across);
-    return normalize((float3)(-x, -y, 1.0f));
+    return normalize3((float3)(-x, -y, 1.0f));
 }
 
 /* By distribution (MICROFACET_*): D, G1, a visible normal m for wo (local,

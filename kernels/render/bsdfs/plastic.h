@@ -57,7 +57,7 @@ inline BsdfSample plastic_sample(__global const PathMaterial* m, float3 n, float
         out.delta = true;
         return out;
     }
-    out.direction = normalize(cosine_direction(n, u1, u2));
+    out.direction = cosine_sample(n, u1, u2);
     float cos_i = dot3(n, out.direction);
     if (!(cos_i > 0.0f))
         return out;

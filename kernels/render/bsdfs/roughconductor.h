@@ -23,7 +23,7 @@ inline BsdfSample roughconductor_sample(__global const PathMaterial* m, float3 n
     float3 i = 2.0f * dot(o, h) * h - o;
     if (!(i.z > 0.0f))
         return out;
-    out.direction = normalize(i.x * b1 + i.y * b2 + i.z * n);
+    out.direction = normalize3(i.x * b1 + i.y * b2 + i.z * n);
     out.pdf = microfacet_pdf(m->distribution, alpha, o, h) / (4.0f * dot(o, h));
     out.weight = LOAD_XYZ(m->reflectance)
                  * fresnel_conductor(dot(i, h), LOAD_XYZ(m->eta), LOAD_XYZ(m->k))
@@ -38,7 +38,7 @@ inline float3 roughconductor_eval(__global const PathMaterial* m, float3 n, floa
     float3 b1, b2, o = local_frame(n, wo, &b1, &b2), i = to_local(wi, b1, b2, n);
     if (!(o.z > 0.0f) || !(i.z > 0.0f))
         return (float3)(0.0f);
-    float3 h = normalize(o + i);
+    float3 h = normalize3(o + i);
     float alpha = m->alpha;
     uint type = m->distribution;
     float d = microfacet_d(type, alpha, h);

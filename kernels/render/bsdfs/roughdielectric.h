@@ -36,7 +36,7 @@ inline float3 roughdielectric_local(__global const PathMaterial* m, float e, flo
     if (!(o.z > 0.0f) || i.z == 0.0f)
         return (float3)(0.0f);
     bool reflect = i.z > 0.0f;
-    float3 h = normalize(reflect ? o + i : o + e * i);
+    float3 h = normalize3(reflect ? o + i : o + e * i);
     h = h.z < 0.0f ? -h : h;
     float oh = dot(o, h), ih = dot(i, h);
     /* the micro- and macrosurface agree on each direction's side (Mitsuba's rule) */
@@ -56,7 +56,7 @@ inline float3 roughdielectric_local(__global const PathMaterial* m, float e, flo
     float denominator = oh + e * ih;
     denominator *= denominator;
     *pdf = density * (1.0f - f) * e * e * fabs(ih) / denominator;
-    return LOAD_XYZ(m->transmittance) * ((1.0f - f) * d * g * oh * fabs(ih) / (o.z * denominator));
+    return LOAD_XYZ(m->transmittance) * ((1.0f - f) * d * g * oh * abs_float(ih) / (o.z * denominator));
 }
 
 inline BsdfSample roughdielectric_sample(__global const PathMaterial* m, float3 n, float3 wo,
@@ -78,13 +78,13 @@ inline BsdfSample roughdielectric_sample(__global const PathMaterial* m, float3 
     /* reflect with Fresnel's probability, else refract about m by Snell:
      * i = -o / e + m (o.m / e + cos_t), cos_t < 0 */
     bool reflect = u0 <= f;
-    float3 i = normalize(reflect ? 2.0f * oh * h - o : -o / e + h * (oh / e + cos_t));
+    float3 i = normalize3(reflect ? 2.0f * oh * h - o : -o / e + h * (oh / e + cos_t));
     if (reflect != (i.z > 0.0f))  /* off the macrosurface's side: no sample */
         return out;
     float3 value = roughdielectric_local(m, e, o, i, &out.pdf);
     if (!(out.pdf > 0.0f))
         return out;
-    out.direction = normalize(i.x * b1 + i.y * b2 + i.z * n);
+    out.direction = normalize3(i.x * b1 + i.y * b2 + i.z * n);
     out.weight = value / out.pdf;
     out.eta = i.z < 0.0f ? e : 1.0f;
     return out;

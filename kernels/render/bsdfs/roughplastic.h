@@ -41,7 +41,7 @@ inline float3 roughplastic_local(__global const PathMaterial* m, float3 o, float
         return (float3)(0.0f);
     uint type = m->distribution;
     float alpha = m->alpha, eta = m->eta[0];
-    float3 h = normalize(o + i);
+    float3 h = normalize3(o + i);
     float t_o = roughplastic_transmission(m, o.z), t_i = roughplastic_transmission(m, i.z);
     float specular = roughplastic_specular_probability(m, t_o);
     float d = microfacet_d(type, alpha, h);
@@ -74,7 +74,7 @@ inline BsdfSample roughplastic_sample(__global const PathMaterial* m, float3 n, 
     float3 value = roughplastic_local(m, o, i, &out.pdf);
     if (!(out.pdf > 0.0f))
         return out;
-    out.direction = normalize(i.x * b1 + i.y * b2 + i.z * n);
+    out.direction = normalize3(i.x * b1 + i.y * b2 + i.z * n);
     out.weight = value / out.pdf;
     return out;
 }

@@ -103,7 +103,7 @@ inline float3 shading_normal(__global const Hit* hit, __global const PathMateria
         n = (float3)(dot3(LOAD_XYZ(a), n), dot3(LOAD_XYZ(a + 3), n), dot3(LOAD_XYZ(a + 6), n));
     }
     float squared = dot3(n, n);
-    return squared > 0.0f ? n * rsqrt(squared) : geometric;
+    return squared > 0.0f ? n * (1.0f / SQRT(squared)) : geometric;
 }
 
 /* One light sample: uniform on the sphere for the constant environment
@@ -139,8 +139,8 @@ inline LightSample sample_light(float3 x, const PathParams* params,
             return out;
         }
         float z = 1.0f - 2.0f * u1;
-        float r = sqrt(1.0f - z * z > 0.0f ? 1.0f - z * z : 0.0f);
-        float cosine, sine = sincos(2.0f * M_PI_F * u2, &cosine);
+        float r = SQRT(1.0f - z * z > 0.0f ? 1.0f - z * z : 0.0f);
+        float cosine, sine = sincos_turn(u2, &cosine);
         out.direction = (float3)(r * cosine, r * sine, z);
         out.radiance = LOAD_XYZ(params->environment);
         out.pdf = params->environment_probability * INV_FOUR_PI;
@@ -163,7 +163,7 @@ inline LightSample sample_light(float3 x, const PathParams* params,
             } else {
                 float3 to_light = LOAD_XYZ(light->position) - x;
                 float squared = dot3(to_light, to_light);
-                out.reach = sqrt(squared);
+                out.reach = SQRT(squared);
                 if (!(out.reach > 0.0f))
                     return out;
                 out.direction = to_light / out.reach;
@@ -179,19 +179,19 @@ inline LightSample sample_light(float3 x, const PathParams* params,
     uint k = pick(light_cdf, params->light_triangles, random_unit(pixel, sample, base + 1));
     __global const float* v = light_vertices + 9 * (size_t)k;
     float3 v0 = LOAD_XYZ(v), v1 = LOAD_XYZ(v + 3), v2 = LOAD_XYZ(v + 6);
-    float root = sqrt(u1);  /* uniform in the triangle: pbrt-v4 SampleUniformTriangle's map */
+    float root = SQRT(u1);  /* uniform in the triangle: pbrt-v4 SampleUniformTriangle's map */
     float b0 = 1.0f - root, b1 = u2 * root;
     float3 p = b0 * v0 + b1 * v1 + (1.0f - b0 - b1) * v2;
-    float3 normal = normalize(cross(v1 - v0, v2 - v0));
+    float3 normal = normalize3(cross3(v1 - v0, v2 - v0));
     /* the shading normal there (Mitsuba's Mesh::sample_position), unless the
      * mesh has face normals (zeros in the table) */
     __global const float* ln = light_normals + 9 * (size_t)k;
     float3 smooth = b0 * LOAD_XYZ(ln) + b1 * LOAD_XYZ(ln + 3) + (1.0f - b0 - b1) * LOAD_XYZ(ln + 6);
     if (dot3(smooth, smooth) > 0.0f)
-        normal = normalize(smooth);
+        normal = normalize3(smooth);
     float3 to_light = p - x;
     float squared = dot3(to_light, to_light);
-    float distance = sqrt(squared);
+    float distance = SQRT(squared);
     if (!(distance > 0.0f))
         return out;
     out.direction = to_light / distance;
@@ -271,7 +271,7 @@ __kernel void path_surface(__global const Ray* rays,         /* the live paths' 
     __global const Ray* ray = rays + gid;
     float3 d = LOAD_XYZ(ray->direction);
     __global const Hit* hit = hits + gid;
-    float length_d = length(d);
+    float length_d = length3(d);
     float3 wo = -d / length_d;  /* unit, towards where the path came from */
     float3 throughput = LOAD_XYZ(s->throughput);
     float3 gathered = (float3)(0.0f);
@@ -448,7 +448,7 @@ __kernel void path_aovs(__global const Ray* rays,
     float4 first = (float4)(0.0f), second = (float4)(0.0f);
     if (hit->geom_id >= 0) {
         __global const PathMaterial* m = materials + hit->geom_id;
-        float reach = hit->t * length(LOAD_XYZ(rays[gid].direction)) * length_scale;
+        float reach = hit->t * length3(LOAD_XYZ(rays[gid].direction)) * length_scale;
         first = (float4)(LOAD_XYZ(m->reflectance), reach);
         second = (float4)(shading_normal(hit, m, hit_instances[gid], shading_faces,
                                          shading_normals, instance_maps, params.instance_maps),
