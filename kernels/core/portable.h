@@ -27,4 +27,16 @@
 #undef PREFETCH
 #endif
 
+/* Inlined whatever the compiler's inliner thinks: PoCL's stops short of
+ * the path integrator's light and BSDF samplers, and each call it leaves
+ * spills every live vector register (all are caller-saved on x86-64).
+ * Not under PLAIN_OPENCL: Oclgrind cannot run the
+ * llvm.experimental.noalias.scope.decl that LLVM leaves where it forces
+ * them inline. */
+#ifdef PLAIN_OPENCL
+#define FORCE_INLINE inline
+#else
+#define FORCE_INLINE inline __attribute__((always_inline))
+#endif
+
 #endif /* PORTABLE_H */

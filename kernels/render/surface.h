@@ -113,7 +113,7 @@ inline float3 cosine_direction(float3 n, float u1, float u2)
 
 /* The path integrator's cosine-distributed direction, normalised, at the
  * angle sincos_turn gives (render/angles.h). */
-inline float3 cosine_sample(float3 n, float u1, float u2)
+FORCE_INLINE float3 cosine_sample(float3 n, float u1, float u2)
 {
     float cos_phi, sin_phi = sincos_turn(u2, &cos_phi);
     return normalize3(cosine_direction_at(n, u1, cos_phi, sin_phi));

@@ -28,7 +28,7 @@ inline bool bsdf_has_sides(__global const PathMaterial* m)
 }
 
 /* n: the facing normal for a BSDF with sides, else the geometric one. */
-inline BsdfSample bsdf_sample(__global const PathMaterial* m, float3 n, float3 wo, float u0,
+FORCE_INLINE BsdfSample bsdf_sample(__global const PathMaterial* m, float3 n, float3 wo, float u0,
                               float u1, float u2)
 {
     if (m->bsdf == BSDF_CONDUCTOR)
@@ -52,7 +52,7 @@ inline BsdfSample bsdf_sample(__global const PathMaterial* m, float3 n, float3 w
  * which bsdf_sample draws wi, its smooth lobe's share included, so that
  * MIS weighs a light sample against it; a delta sample is marked delta,
  * and an emitter it meets takes no MIS (path.cl). */
-inline float3 bsdf_eval(__global const PathMaterial* m, float3 n, float3 wo, float3 wi,
+FORCE_INLINE float3 bsdf_eval(__global const PathMaterial* m, float3 n, float3 wo, float3 wi,
                         float* pdf)
 {
     if (m->bsdf == BSDF_DIFFUSE)

@@ -113,7 +113,7 @@ inline float3 shading_normal(__global const Hit* hit, __global const PathMateria
  * in area on an emissive triangle picked by power (its area times its
  * radiance's luminance); the lights themselves are picked by power
  * (hlbvh_cl/render/emitters.py). */
-inline LightSample sample_light(float3 x, const PathParams* params,
+FORCE_INLINE LightSample sample_light(float3 x, const PathParams* params,
                                 __global const PathMaterial* materials,
                                 __global const float* light_vertices,
                                 __global const float* light_normals,
