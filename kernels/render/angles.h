@@ -22,20 +22,12 @@ inline float sincos_turn(float u, float* cosine)
                                                                         + x2 * (1.0f / 362880.0f))));
     float c = 1.0f + x2 * (-0.5f + x2 * (1.0f / 24.0f + x2 * (-1.0f / 720.0f + x2 * (1.0f / 40320.0f
                                                                     + x2 * (-1.0f / 3628800.0f)))));
-    switch (k & 3) {
-    case 0:
-        *cosine = c;
-        return s;
-    case 1:
-        *cosine = -s;
-        return c;
-    case 2:
-        *cosine = -c;
-        return -s;
-    default:
-        *cosine = s;
-        return -c;
-    }
+    /* quarter turn q: (sin, cos) = (s, c), (c, -s), (-s, -c), (-c, s), by
+     * selects: Oclgrind ran a switch over q to wrong values */
+    int q = k & 3;
+    float sine = (q & 1) ? c : s, cos_out = (q & 1) ? s : c;
+    *cosine = ((q + 1) & 2) ? -cos_out : cos_out;
+    return (q & 2) ? -sine : sine;
 }
 
 #endif /* RENDER_ANGLES_H */
