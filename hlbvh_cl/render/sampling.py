@@ -135,12 +135,12 @@ def eval_envmap(emitter, wi, device=None) -> dict[str, np.ndarray]:
 
 def turn_angles(u, device=None) -> dict[str, np.ndarray]:
     """sin and cos of 2 pi u ("sin", "cos"; float32 like ``u``) for each u
-    of ``u`` in [0, 1.25], as the path integrator's samplers compute the
+    of ``u`` in [0, 2], as the path integrator's samplers compute the
     angles they draw (kernels/render/angles.h)."""
     u = np.ascontiguousarray(u, np.float32).reshape(-1)
-    if not np.all((u >= 0.0) & (u <= 1.25)):
-        bad = int(np.flatnonzero(~((u >= 0.0) & (u <= 1.25)))[0])
-        raise ValueError(f"u[{bad}] must be in [0, 1.25], got {u[bad]!r}")
+    if not np.all((u >= 0.0) & (u <= 2.0)):
+        bad = int(np.flatnonzero(~((u >= 0.0) & (u <= 2.0)))[0])
+        raise ValueError(f"u[{bad}] must be in [0, 2], got {u[bad]!r}")
     rt, count = runtime(device), len(u)
     if count == 0:
         return {"sin": np.empty(0, np.float32), "cos": np.empty(0, np.float32)}

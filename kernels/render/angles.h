@@ -6,7 +6,8 @@
 #ifndef RENDER_ANGLES_H
 #define RENDER_ANGLES_H
 
-/* sin(2 pi u), and cos(2 pi u) in *cosine, for u in [0, 1.25]: u is
+/* sin(2 pi u), and cos(2 pi u) in *cosine, for u in [0, 2] (an
+ * environment map one texel wide samples up to 1.5): u is
  * split into the nearest quarter turn k and a remainder f in [-1/2, 1/2]
  * (4u - k is exact, by Sterbenz's lemma), whose angle x = f pi / 2 lies in
  * [-pi/4, pi/4]; sin x and cos x are their Taylor polynomials there (to

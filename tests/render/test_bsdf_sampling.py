@@ -311,19 +311,19 @@ def test_the_coatings_averages_are_fresnel_s_integrals(eta):
 def test_the_samplers_angles_are_sin_and_cos_of_the_turn(suite_device):
     """sincos_turn (kernels/render/angles.h) against float64 numpy, at
     every 24-bit u the random numbers give (a stride through them, plus
-    the quarter turns and their neighbours) and on (1, 1.25], where the
-    environment map's cells can reach: within 2 float32 ulps of 1, and on
-    the unit circle as closely."""
+    the quarter turns and their neighbours) and on (1, 2], where the
+    environment map's cells can reach (1.5 for a map one texel wide):
+    within 2 float32 ulps of 1, and on the unit circle as closely."""
     grid = np.arange(0, 1 << 24, 97, dtype=np.int64)
     quarters = np.array([0, 1, 2, 3, 4], np.int64) << 22
     edges = np.concatenate([quarters, quarters[1:] - 1, quarters[:-1] + 1, [(1 << 24) - 1]])
     u = np.concatenate([grid, edges]).astype(np.float64) * 2.0**-24
-    u = np.concatenate([u, np.linspace(1.0, 1.25, 1001)]).astype(np.float32)
+    u = np.concatenate([u, np.linspace(1.0, 2.0, 4001)]).astype(np.float32)
     got = turn_angles(u, device=suite_device)
     angle = 2.0 * np.pi * u.astype(np.float64)
     assert np.abs(got["sin"] - np.sin(angle)).max() < 2.4e-7
     assert np.abs(got["cos"] - np.cos(angle)).max() < 2.4e-7
     assert np.abs(got["sin"].astype(np.float64) ** 2 + got["cos"].astype(np.float64) ** 2
                   - 1.0).max() < 4.8e-7
-    with pytest.raises(ValueError, match=r"u\[1\] must be in \[0, 1.25\]"):
+    with pytest.raises(ValueError, match=r"u\[1\] must be in \[0, 2\]"):
         turn_angles([0.5, -0.1], device=suite_device)
