@@ -132,7 +132,8 @@ class Pipeline:
         needed = {**{name: size * pixels for name, size in self.PER_PIXEL.items()},
                   **self.film.sizes(pixels, image_pixels, hdr, splat_groups),
                   **integrator.buffer_sizes(pixels),
-                  **(integrator.aov_sizes(pixels, image_pixels) if aovs else {})}
+                  **(integrator.aov_sizes(pixels, 0 if splat_groups else image_pixels)
+                     if aovs else {})}
         self.rt.check_allocation(f"rendering {image_pixels:,} pixels, {pixels:,} at a time",
                                  needed)
         if pixels > self._pixels:
@@ -156,8 +157,8 @@ class Pipeline:
         self._reserve(integrator, rows * width, width * height, hdr or progressive, aovs,
                       splat_groups)
         integrator.prepare(rt, settings, tree, look, rows * width)
-        if aovs:
-            integrator.prepare_aovs(rows * width, width * height)
+        if aovs:  # a splatting film sums the AOVs itself: no AOV image
+            integrator.prepare_aovs(rows * width, 0 if splat_groups else width * height)
         cl.enqueue_copy(rt.queue, self.overflow, np.zeros(1, np.int32))
         setup = time.perf_counter() - started
 

@@ -11,6 +11,7 @@ import pytest
 import trimesh
 
 import hlbvh_cl
+import built
 
 
 def pixel_rays(camera, width, height):
@@ -104,8 +105,17 @@ def test_aovs_average_the_pixel_s_samples_as_the_radiance_does(rfilter, suite_de
     renderer = hlbvh_cl.Renderer(scene, materials=[{"type": "diffuse", "reflectance": 1.0}],
                                  emitters=[{"type": "area", "mesh": 0, "radiance": 1.0}])
     camera = hlbvh_cl.Camera(eye=(0.0, 0.0, 3.0), target=(0.0, 0.0, 0.0), fov_deg=50)
-    result = renderer.render(camera, 20, 20, shading="path", hdr=True, aovs=True, spp=16,
-                             seed=3, max_depth=1, rfilter=rfilter)
+    reserved = []  # what each render reserves, by buffer (Runtime.check_allocation)
+    check = type(built.runtime(scene)).check_allocation
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(type(built.runtime(scene)), "check_allocation",
+                      lambda rt, what, buffers: (reserved.append(buffers),
+                                                 check(rt, what, buffers))[1])
+        result = renderer.render(camera, 20, 20, shading="path", hdr=True, aovs=True, spp=16,
+                                 seed=3, max_depth=1, rfilter=rfilter)
+    # a Gaussian filter splats the AOVs with the radiance: no AOV image of its own
+    aov_images = [buffers["AOV image"] for buffers in reserved if "AOV image" in buffers]
+    assert aov_images == ([] if rfilter == "gaussian" else [20 * 20 * 7 * 4])
     partial = (result.image[..., 0] > 0.05) & (result.image[..., 0] < 0.95)
     assert partial.sum() >= 8  # the test sees silhouettes
     np.testing.assert_allclose(result.albedo, result.image, atol=1e-6)

@@ -266,13 +266,17 @@ class Path(Integrator):
     @classmethod
     def aov_sizes(cls, pixels: int, image_pixels: int) -> dict[str, int]:
         """Bytes of the AOV buffers for passes of ``pixels`` and an image of
-        ``image_pixels`` (for the allocation check)."""
-        return {"AOV sums": cls.AOV_SUMS * pixels, "AOV image": cls.AOV_IMAGE * image_pixels}
+        ``image_pixels`` (for the allocation check; 0: none, as prepare_aovs)."""
+        sizes = {"AOV sums": cls.AOV_SUMS * pixels}
+        if image_pixels:
+            sizes["AOV image"] = cls.AOV_IMAGE * image_pixels
+        return sizes
 
-    def prepare_aovs(self, pixels: int, image_pixels: int) -> cl.Event:
+    def prepare_aovs(self, pixels: int, image_pixels: int) -> cl.Event | None:
         """After prepare: this render also sums each pixel's first-hit AOVs
         (path_aovs), added to the whole image's zeroed sums by add_aovs and
-        read by read_aovs."""
+        read by read_aovs.  ``image_pixels`` 0: a splatting film takes the
+        sums instead (aovs_of_groups), and no AOV image is kept."""
         context, rw = self.rt.context, cl.mem_flags.READ_WRITE
         if pixels > self._aov_pixels:
             self.aov_sums = cl.Buffer(context, rw, self.AOV_SUMS * pixels)
@@ -283,6 +287,8 @@ class Path(Integrator):
         self._aov_kernels = {name: self.rt.kernel(KERNEL, name)
                              for name in ("path_aovs", "path_aov_add")}
         self._aovs = True
+        if image_pixels == 0:
+            return None
         return cl.enqueue_fill_buffer(self.rt.queue, self.aov_image, np.float32(0), 0,
                                       self.AOV_IMAGE * image_pixels)
 
