@@ -224,9 +224,10 @@ def test_cornell_box_matches_ours_and_is_the_right_way_up(suite_device, tmp_path
     spread differently around the light's edge), Russian roulette's
     survival rule, and noise.  Seen over 6 seeds at this size and spp: the
     whole mean within 3%, the halves within 3.5% (7% before LuxCore's
-    screen window was lowered by a row): 5% and 12% leave room for noise, where an off-by-one depth (10%), a wrong field-of-view axis
-    or a picture upside down (its top half is 8x brighter than its bottom,
-    the light being on top) fails."""
+    screen window was lowered by a row): 5% and 12% leave room for noise,
+    where an off-by-one depth (10%), a wrong field-of-view axis or a
+    picture upside down (its top half is 8x brighter than its bottom, the
+    light being on top) fails."""
     from hlbvh_cl.io.scenefile import load
     xml = bench_path.cornell_xml(tmp_path)
     loaded = load(xml, suite_device, defaults={"res_x": WIDTH, "res_y": HEIGHT})
