@@ -3,22 +3,33 @@ SceneDescription that hlbvh_cl.io.scenefile.read gives of the same XML file)
 translated to LuxCore scene properties, and timed renders of it.
 
 pyluxcore is optional: ``available()`` says whether it imports (numpy must be
-imported first, or the process aborts: RENDERING.md).  It runs in a child
+imported first, or the process aborts: RENDERING.md; so must the OpenEXR
+module, before an envmap's file is read: _pyluxcore).  It runs in a child
 process (LuxCoreChild): imported beside Mitsuba it aborts the process.
 
 The translation, and what in it is approximate:
   meshes     Scene.DefineMeshExt with the placed vertices, faces and (unless the
              mesh is flat-shaded) our vertex normals, as numpy arrays; no files.
   camera     lookat + fieldofview with an explicit screenwindow of
-             [-aspect, aspect] x [-1, 1]: LuxCore's fieldofview spans the unit
-             range of the screen window, and its automatic window puts that on
-             the image's longer side, whereas ours (and Mitsuba's after our
-             reader's fov_axis conversion) is the vertical field of view.
+             [-aspect, aspect] x [-1 - 2 / height, 1 - 2 / height]: LuxCore's
+             fieldofview spans the unit range of the screen window, and its
+             automatic window puts that on the image's longer side, whereas
+             ours (and Mitsuba's after our reader's fov_axis conversion) is
+             the vertical field of view.  The window is one pixel (2 / height)
+             lower because LuxCore's picture otherwise sits one row lower than
+             ours: found by rendering a box's shadow on a floor at 48 x 32,
+             40 x 40 and 30 x 60, where ours moved down by 1.0 row matched
+             LuxCore's best (of shifts in quarter rows), and with the lowered
+             window no shift does better, in rows or columns.
   diffuse    matte (kd).  LuxCore's materials are two-sided, Mitsuba's diffuse
              is black from behind: the same wherever the camera sees fronts.
   dielectric glass (interiorior / exteriorior, kr / kt).
   roughdielectric  roughglass, same roughness mapping as metal2.
-  conductor / roughconductor  metal2 with n and k.  metal2's microfacet
+  conductor / roughconductor  metal2 with n = eta and k (Mitsuba's
+             defaults 0 and 1 when absent, a perfect mirror).  A named metal
+             ("material": "Au") is refused, as our own loader
+             (hlbvh_cl.render.materials) refuses it: it has no table of
+             named metals' eta and k yet.  metal2's microfacet
              distribution is Schlick's form with r = uroughness * vroughness,
              D = r / (pi (1 + (r - 1) cos^2)^2), which is GGX with alpha^2 = r:
              so uroughness = vroughness = Mitsuba's GGX alpha.  Its shadowing
@@ -38,7 +49,26 @@ The translation, and what in it is approximate:
              no power / efficacy normalisation), front side only as Mitsuba.
   constant   constantinfinite (color, gain 1).
   point      point (color = intensity, gain 1, no power normalisation).
-  directional / envmap  not written yet: a scene with one is refused.
+  directional  sharpdistant (direction, color = the irradiance, gain 1): both
+             take the direction the light travels, and LuxCore's colour is
+             the irradiance on a surface facing it (seen by rendering: a
+             diffuse floor's radiance is reflectance / pi * E cos, and the
+             floor is black with the direction negated).
+  envmap     infinite with the same file, gamma 1 (the file is linear
+             radiance), gain = scale, and a transformation that turns
+             LuxCore's latitude-longitude frame into Mitsuba's (ENVMAP_FRAME)
+             before the emitter's to_world rotation.  Found by rendering a
+             map whose texels hold their own (u, v): LuxCore's top row looks
+             along +z and u = atan2(y, x) / (2 pi), Mitsuba's top row along
+             +y and u = atan2(x, -z) / (2 pi) (hlbvh_cl/render/envmap.py).
+             The two turn in opposite senses around the pole, so the frame
+             change is a mirror (determinant -1), which LuxCore applies as
+             given.  Approximate: LuxCore's image lookup puts rows at texel
+             centres and wraps them around the poles, where Mitsuba's rows
+             are corner-aligned (row j at v = j / (H - 1)) and clamped; the
+             two differ within a texel of the poles.  Its importance
+             sampling differs too (unbiased either way).  An envmap given as
+             an image array, not a file, is refused.
   depth      path.pathdepth.total = Mitsuba's max_depth, both counting the
              path's segments (an emitter seen directly: 1).  Found by
              rendering, not by LuxCore's documentation: the Cornell box's mean
@@ -75,6 +105,13 @@ SMOOTH = 1e-3
 #: LuxCore's lower bound on the Russian roulette survival probability (its default).
 ROULETTE_CAP = 0.5
 
+#: LuxCore's latitude-longitude frame in Mitsuba's envmap frame: the
+#: direction (x, y, z) in Mitsuba's frame is (-z, x, y) in LuxCore's (its
+#: u = atan2(y, x) / (2 pi) and top row +z against Mitsuba's
+#: u = atan2(x, -z) / (2 pi) and top row +y), so LuxCore's light-to-world
+#: transformation is to_world @ ENVMAP_FRAME.  A mirror: det -1.
+ENVMAP_FRAME = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0]])
+
 #: LuxCore's render threads: both of the machine's cores.
 THREADS = 2
 
@@ -94,6 +131,13 @@ def available() -> str | None:
 
 
 def _pyluxcore():
+    # Our EXR reader's OpenEXR module imported after pyluxcore (which bundles
+    # OpenEXR libraries of its own) aborts the process ("free(): invalid
+    # pointer") when a scene's envmap file is read: so it comes first.
+    try:
+        import OpenEXR  # noqa: F401
+    except ImportError:
+        pass
     import pyluxcore
     if not getattr(_pyluxcore, "started", False):
         pyluxcore.Init(_quiet)  # its log would flood the bench's output
@@ -138,11 +182,11 @@ def material_lines(name: str, spec: dict) -> list[str]:
                  f"{prefix}.interiorior = {inside!r}", f"{prefix}.exteriorior = {outside!r}"]
         return lines + (_roughness(spec, prefix, alpha) if kind == "roughdielectric" else [])
     if kind in ("conductor", "roughconductor"):
-        if "eta" not in spec or "k" not in spec:
-            raise ValueError(f"{name}: a {kind} without eta and k (a named metal) is not "
-                             "translated to LuxCore yet")
-        return [f"{prefix}.type = metal2", f"{prefix}.n = {_color(spec['eta'])}",
-                f"{prefix}.k = {_color(spec['k'])}",
+        if spec.get("material", "none") != "none":
+            raise ValueError(f"{name}: a {kind} named {spec['material']!r} is not translated "
+                             "to LuxCore (named metals are not written yet); give its eta and k")
+        return [f"{prefix}.type = metal2", f"{prefix}.n = {_color(spec.get('eta', 0.0))}",
+                f"{prefix}.k = {_color(spec.get('k', 1.0))}",
                 *_roughness(spec, prefix, alpha if kind == "roughconductor" else SMOOTH)]
     if kind in ("plastic", "roughplastic"):
         inside, outside = _ior(spec, 1.49, 1.000277)
@@ -159,13 +203,13 @@ def scene_properties(description, width: int, height: int) -> tuple[list[str], l
     """(LuxCore scene property lines, [(mesh name, Mesh)]) of a
     SceneDescription rendered at width x height (module docstring)."""
     camera = description.camera
-    aspect = width / height
+    aspect, row = width / height, 2.0 / height  # one pixel in screen-window units
     lines = ["scene.camera.type = perspective",
              f"scene.camera.lookat.orig = {_color(camera.eye)}",
              f"scene.camera.lookat.target = {_color(camera.target)}",
              f"scene.camera.up = {_color(camera.up)}",
              f"scene.camera.fieldofview = {camera.fov_deg!r}",
-             f"scene.camera.screenwindow = {-aspect!r} {aspect!r} -1.0 1.0"]
+             f"scene.camera.screenwindow = {-aspect!r} {aspect!r} {-1.0 - row!r} {1.0 - row!r}"]
     materials = description.materials() or [None] * len(description.geometries())
     meshes = []
     for index, ((mesh, color), spec) in enumerate(zip(description.geometries(), materials)):
@@ -189,10 +233,38 @@ def scene_properties(description, width: int, height: int) -> tuple[list[str], l
             lines += [f"{prefix}.type = point", f"{prefix}.position = {_color(emitter['position'])}",
                       f"{prefix}.color = {_color(emitter['intensity'])}",
                       f"{prefix}.gain = 1 1 1", f"{prefix}.power = 0", f"{prefix}.efficency = 0"]
+        elif emitter["type"] == "directional":
+            lines += [f"{prefix}.type = sharpdistant",
+                      f"{prefix}.direction = {_color(emitter['direction'])}",
+                      f"{prefix}.color = {_color(emitter['irradiance'])}", f"{prefix}.gain = 1 1 1"]
+        elif emitter["type"] == "envmap":
+            lines += envmap_lines(prefix, emitter, f"emitter {index} (envmap)")
         else:
             raise ValueError(f"emitter {index} ({emitter['type']!r}) is not translated to "
-                             "LuxCore yet (constant, point and area emitters are)")
+                             "LuxCore yet (constant, point, directional, envmap and area "
+                             "emitters are)")
     return lines, meshes
+
+
+def envmap_lines(prefix: str, emitter: dict, name: str) -> list[str]:
+    """An envmap emitter spec as LuxCore infinite light lines (module
+    docstring); errors name ``name``."""
+    from hlbvh_cl.render.envmap import to_world_rotation
+    if "filename" not in emitter:
+        raise ValueError(f"{name}: an envmap given as an image array, not a file, is not "
+                         "translated to LuxCore (LuxCore reads the map from its file)")
+    filename = os.fspath(emitter["filename"])
+    if '"' in filename:
+        raise ValueError(f"{name}: the file name {filename!r} holds a double quote, which "
+                         "LuxCore's scene properties cannot quote")
+    to_world = to_world_rotation(f"{name}['to_world']", emitter.get("to_world"))
+    frame = np.eye(4)
+    frame[:3, :3] = to_world @ ENVMAP_FRAME
+    # LuxCore's light-to-world matrix column by column (or, the same numbers
+    # for an orthogonal matrix, its inverse row by row: rendering cannot tell)
+    return [f"{prefix}.type = infinite", f'{prefix}.file = "{filename}"',
+            f"{prefix}.gamma = 1.0", f"{prefix}.gain = {_color(emitter.get('scale', 1.0))}",
+            f"{prefix}.transformation = " + " ".join(repr(float(x)) for x in frame.T.ravel())]
 
 
 def config_properties(width: int, height: int, spp: int, max_depth: int, rr_depth: int,
