@@ -284,18 +284,25 @@ class Engine:
         """A buffer over the array's own memory (CL_MEM_USE_HOST_PTR)."""
         return cl.Buffer(self.rt.context, access | cl.mem_flags.USE_HOST_PTR, hostbuf=array)
 
-    def _scalar(self, name: str, value: np.ndarray) -> cl.Buffer:
+    def _scalar(self, name: str, value: np.ndarray, uploads: list) -> cl.Buffer:
+        """The buffer of the stepped value ``name`` given once for every item,
+        its upload enqueued (its event added to ``uploads``, which the caller
+        keeps until the call's one wait: a dropped pyopencl copy event waits)."""
         buffer = self._scalars.get(name)
         if buffer is None:
             buffer = self._scalars[name] = cl.Buffer(self.rt.context, cl.mem_flags.READ_ONLY, 4)
-        cl.enqueue_copy(self.rt.queue, buffer, np.full(1, value, value.dtype))
+        uploads.append(cl.enqueue_copy(self.rt.queue, buffer, np.full(1, value, value.dtype),
+                                       is_blocking=False))
         return buffer
 
     def _run(self, batch: Batch, launch) -> np.ndarray:
+        """The batch's launches; the host waits once, for the results (and
+        between launches of a batch that takes several, to size them),
+        issue 57: a call's fixed cost is its host synchronisations."""
         rt, queue = self.rt, self.rt.queue
-        cl.enqueue_copy(queue, self.counters, np.zeros(2, np.int32))
-        scalars = {name: self._scalar(name, value) for name, value in batch.stepped.items()
-                   if value.ndim == 0}
+        uploads = [cl.enqueue_fill_buffer(queue, self.counters, np.int32(0), 0, 8)]
+        scalars = {name: self._scalar(name, value, uploads)
+                   for name, value in batch.stepped.items() if value.ndim == 0}
         rows = {**batch.inputs, **{name: value for name, value in batch.stepped.items()
                                    if value.ndim}}
         cut, results = (self._whole if batch.whole else self._chunk)(batch, rows, scalars)
@@ -316,13 +323,17 @@ class Engine:
             events.append(launch(stop - start, arguments))
             flight.append(([events[-1], *done()], put_back, held, stop - start))
             # before the next run is cut: at most one left in flight, none
-            # until the first has ended and sized the runs after it
-            retire(1 if sizes.measured else 0)
-        retire(0)
+            # until the first has ended and sized the runs after it (the
+            # last run waits with the results, below)
+            if stop < batch.count:
+                retire(1 if sizes.measured else 0)
         finish = [collect(queue, buffer, array, True) for buffer, array in results]
         counters = np.zeros(2, np.int32)
         finish.append(cl.enqueue_copy(queue, counters, self.counters, is_blocking=False))
-        rt.wait(finish)
+        rt.wait([*uploads, *(event for waited, *_ in flight for event in waited), *finish])
+        for _, put_back, _, _ in flight:
+            put_back()
+        flight.clear()
         self.last_kernel_ms = sum((e.profile.end - e.profile.start) * 1e-6 for e in events)
         if counters[0]:
             raise RuntimeError("a query's walk overflowed its stack (sized from Tree.depth): "
