@@ -5,6 +5,10 @@ import pyopencl as cl
 
 from ..core import layout
 
+#: Work-items of the fold's one work-group at most (FOLD_GROUP in
+#: kernels/build/bounds.cl, whose local arrays it sizes).
+FOLD_GROUP = 256
+
 
 def partial_count(rt, triangle_count: int) -> int:
     """Work-items of the first reduction level: enough to fill the device,
@@ -25,11 +29,13 @@ def scene_bounds(rt, vertices: cl.Buffer, faces: cl.Buffer, triangle_count: int,
     geometry = rt.pool.take(partials * layout.AABB.itemsize)
     centroid_boxes = rt.pool.take(partials * layout.AABB.itemsize)
     kernel = rt.kernel("build/bounds.cl", "reduce_triangle_bounds",
-                       STRIDED_SLICES=int(rt.profile.gpu))
+                       STRIDED_SLICES=int(rt.profile.gpu), FOLD_GROUP=FOLD_GROUP)
     reduce = rt.run(kernel, partials,
                     vertices, faces, triangle_count, geometry, centroid_boxes, centroids,
                     wait_for=wait_for)
-    fold = rt.run(rt.kernel("build/bounds.cl", "fold_partial_bounds", STRIDED_SLICES=0), 1,
-                  geometry, centroid_boxes, partials, bounds, inverse_extent, wait_for=[reduce],
-                  local_size=1)
+    fold_kernel = rt.kernel("build/bounds.cl", "fold_partial_bounds", STRIDED_SLICES=0,
+                            FOLD_GROUP=FOLD_GROUP)
+    group = min(FOLD_GROUP, rt.largest_group(fold_kernel))  # one work-group
+    fold = rt.run(fold_kernel, group, geometry, centroid_boxes, partials, bounds,
+                  inverse_extent, wait_for=[reduce], local_size=group)
     return [reduce, fold]

@@ -5,9 +5,7 @@
  * gathering its three vertices again.
  *
  * Each work-item folds a slice of the triangles into partial boxes; one
- * work-item then folds the partials.  No local memory and no barriers:
- * simple to run correctly on PoCL's CPU device, and the second level touches
- * only a few thousand boxes.  Slices are contiguous on CPUs (a grid-stride
+ * work-group then folds the partials.  Slices are contiguous on CPUs (a grid-stride
  * loop measured far slower on PoCL) and interleaved on GPUs (coalescing):
  * STRIDED_SLICES selects.
  */
@@ -73,27 +71,49 @@ inline float divide_nearest(float a, float b)
     return q;
 }
 
+/* FOLD_GROUP (-D, hlbvh_cl/build/bounds.py): the fold's work-items at most,
+ * its local arrays' length; the host launches a power of two no larger. */
+#ifndef FOLD_GROUP
+#error "FOLD_GROUP must be defined (-D FOLD_GROUP=...)"
+#endif
+
 /* bounds[0] = scene box, bounds[1] = box of the triangle centroids,
  * inverse_extent[0] = 1 / that box's extent per axis, correctly rounded (0
  * on a flat axis): one ulp of the Morton codes' scale moves many centroids
- * across a cell of 2^21 per axis, so every device must agree on it. */
+ * across a cell of 2^21 per axis, so every device must agree on it.
+ *
+ * One work-group folds the partials: each work-item a strided share, then
+ * a tree in local memory (issue 57: a GPU has hundreds of thousands of
+ * partials, which one work-item folded serially).  min and max are exact,
+ * so any order of folding gives the same boxes. */
 __kernel void fold_partial_bounds(__global const Aabb *partial_geometry,
                                   __global const Aabb *partial_centroids, int partial_count,
                                   __global Aabb *bounds, __global float4 *inverse_extent)
 {
-    if (get_global_id(0) != 0)
-        return;
-    Aabb geometry = aabb_empty();
-    Aabb centroids = aabb_empty();
-    for (int i = 0; i < partial_count; ++i) {
-        geometry = aabb_union(geometry, partial_geometry[i]);
-        centroids = aabb_union(centroids, partial_centroids[i]);
+    __local Aabb geometry[FOLD_GROUP];
+    __local Aabb centroids[FOLD_GROUP];
+    int item = (int)get_local_id(0), items = (int)get_local_size(0);
+    Aabb g = aabb_empty(), c = aabb_empty();
+    for (int i = item; i < partial_count; i += items) {
+        g = aabb_union(g, partial_geometry[i]);
+        c = aabb_union(c, partial_centroids[i]);
     }
-    bounds[0] = geometry;
-    bounds[1] = centroids;
+    geometry[item] = g;
+    centroids[item] = c;
+    for (int step = items / 2; step > 0; step /= 2) {
+        barrier(CLK_LOCAL_MEM_FENCE);
+        if (item < step) {
+            geometry[item] = aabb_union(geometry[item], geometry[item + step]);
+            centroids[item] = aabb_union(centroids[item], centroids[item + step]);
+        }
+    }
+    if (item != 0)
+        return;
+    bounds[0] = geometry[0];
+    bounds[1] = centroids[0];
     float inverse[3];
     for (int k = 0; k < 3; ++k) {
-        float extent = centroids.hi[k] - centroids.lo[k];
+        float extent = centroids[0].hi[k] - centroids[0].lo[k];
         inverse[k] = extent > 0.0f ? divide_nearest(1.0f, extent) : 0.0f;
     }
     inverse_extent[0] = (float4)(inverse[0], inverse[1], inverse[2], 0.0f);
