@@ -8,6 +8,10 @@
   small      the latency of a 1K-ray intersect call (target <= 0.5 ms)
   path       path-traced samples per second of scenes/materials.toml at
              1280 x 720, max depth 8 (the path tracer's figure on a GPU)
+  interop    what the device offers for sharing memory with CUDA frameworks
+             (docs/devices.md, "Sharing device memory"): its external-memory
+             and semaphore extensions, and the memory handle types it
+             imports (CL_DEVICE_EXTERNAL_MEMORY_IMPORT_HANDLE_TYPES_KHR)
 
 It runs on any device (a CPU runtime gives the CPU's figures) and prints
 one table; the JSON goes to bench/results/gpu.json.
@@ -16,9 +20,12 @@ one table; the JSON goes to bench/results/gpu.json.
 """
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import sys
 import time
 
+import pyopencl as cl
 
 from hlbvh_cl.io.scenefile import load
 from hlbvh_cl.query.rays import RayQuery
@@ -40,6 +47,43 @@ def timed(job, repeats: int) -> list[float]:
         job()
         out.append(time.perf_counter() - started)
     return out
+
+
+#: cl_khr_external_memory's device query, and the handle types' names
+#: (OpenCL registry, cl_ext.h).
+IMPORT_HANDLE_TYPES = 0x204F
+HANDLE_TYPES = {0x2060: "opaque fd", 0x2061: "opaque win32", 0x2062: "opaque win32 kmt",
+                0x2063: "opaque win32 name", 0x2067: "dma-buf"}
+
+
+def interop(cl_device: cl.Device) -> dict:
+    """The device's external-memory and semaphore extensions, and the
+    handle types it imports, asked of the OpenCL library through ctypes
+    (pyopencl does not wrap cl_khr_external_memory)."""
+    extensions = sorted(e for e in cl_device.extensions.split()
+                        if "external" in e or "semaphore" in e)
+    found = {"extensions": extensions, "import_handle_types": []}
+    if "cl_khr_external_memory" not in extensions:
+        return found
+    # no device here exposes the extension, so this path first runs on a
+    # lent GPU: whatever goes wrong is recorded, not raised, so that the
+    # run's other measurements still come back
+    try:
+        library = ctypes.CDLL(ctypes.util.find_library("OpenCL") or "libOpenCL.so.1")
+        size = ctypes.c_size_t(0)
+        query = library.clGetDeviceInfo
+        query.argtypes = [ctypes.c_void_p, ctypes.c_uint, ctypes.c_size_t, ctypes.c_void_p,
+                          ctypes.POINTER(ctypes.c_size_t)]
+        device = ctypes.c_void_p(cl_device.int_ptr)
+        status = query(device, IMPORT_HANDLE_TYPES, 0, None, ctypes.byref(size))
+        if status != 0:
+            raise RuntimeError(f"clGetDeviceInfo returned {status}")
+        types = (ctypes.c_uint * (size.value // 4))()
+        query(device, IMPORT_HANDLE_TYPES, size, types, None)
+        found["import_handle_types"] = [HANDLE_TYPES.get(t, hex(t)) for t in types]
+    except Exception as error:  # noqa: BLE001 -- see above
+        found["import_handle_types"] = [f"(query failed: {error})"]
+    return found
 
 
 def measure(device: str, quick: bool) -> dict:
@@ -84,6 +128,8 @@ def measure(device: str, quick: bool) -> dict:
                   max(1, repeats // 2))
     found["path"] = {"size": [width, height], "spp": spp,
                      "msamples_per_s": width * height * spp / summary(walls)["median"] / 1e6}
+    with scene.borrow() as built:
+        found["interop"] = interop(built.runtime.device.cl_device)
     return found
 
 
@@ -106,9 +152,11 @@ def main(argv=None) -> dict:
                      f"{found['camera']['kernel_mrays_per_s']:.1f} "
                      f"({100 * found['camera']['wall_share_of_kernel']:.0f} %)",
                      f"{found['small']['call_ms']['median']:.3f}",
-                     f"{found['path']['msamples_per_s']:.2f}"])
+                     f"{found['path']['msamples_per_s']:.2f}",
+                     ", ".join(found["interop"]["extensions"] + found["interop"]["import_handle_types"])
+                     or "none"])
     print(table(["device", "build ms (wall / device)", "camera Mrays/s (wall / kernel)",
-                 "1K-ray call ms", "path Msamples/s"], rows,
+                 "1K-ray call ms", "path Msamples/s", "external memory"], rows,
                 title=f"issue 57's measurements (targets: {TARGETS})"))
     return finish(results, "gpu", args, elapsed)
 

@@ -12,7 +12,7 @@ from bench_support import ROOT, check_json
 
 pytest.importorskip("matplotlib")
 
-from bench import build, common, large  # noqa: E402
+from bench import build, common, gpu, large  # noqa: E402
 
 PNG = b"\x89PNG\r\n\x1a\n"
 
@@ -58,6 +58,35 @@ def test_large_quick_reports_its_build_and_memory(suite_device, tmp_path, capsys
     memory = result["rss_bytes"]
     assert 0 < memory["before"] <= memory["first_build"] <= memory["rebuilds"]
     assert "peak RSS" in capsys.readouterr().out
+
+
+def test_gpu_quick_takes_every_measurement_of_issue_57(suite_device, tmp_path, capsys):
+    """The script a lent GPU runs first, run here in its --quick form so
+    that it works when one comes: every figure present and positive, and
+    the interop probe's answer: the device's own extensions, and, with the
+    extension claimed where the device has none, its ctypes query made and
+    its failure recorded, not raised."""
+    result = gpu.main(["--quick", "--devices", suite_device.id, "--out", str(tmp_path)])
+    found = result["devices"][suite_device.id]
+    assert json.loads((tmp_path / "gpu.json").read_text())["devices"].keys() == {suite_device.id}
+    assert found["build"]["wall_ms"]["median"] > 0 and found["build"]["device_ms"]["median"] > 0
+    assert 0 < found["camera"]["wall_share_of_kernel"]
+    assert found["small"]["rays"] == 1024 and found["small"]["call_ms"]["median"] > 0
+    assert found["path"]["msamples_per_s"] > 0
+    offered = sorted(e for e in suite_device.cl_device.extensions.split()
+                     if "external" in e or "semaphore" in e)
+    assert found["interop"]["extensions"] == offered
+    if "cl_khr_external_memory" not in offered:
+        assert found["interop"]["import_handle_types"] == []
+    assert "1K-ray call ms" in capsys.readouterr().out
+
+    class Claimed:  # a device that says it has the extension, as a GPU's driver may
+        extensions = "cl_khr_external_memory"
+        int_ptr = suite_device.cl_device.int_ptr
+    answer = gpu.interop(Claimed())
+    assert answer["extensions"] == ["cl_khr_external_memory"]
+    (types,) = answer["import_handle_types"]
+    assert types.startswith("(query failed: clGetDeviceInfo returned -30")  # CL_INVALID_VALUE
 
 
 def test_devices_are_picked_by_name_and_the_rest_listed_as_skipped(suite_device):
