@@ -540,6 +540,40 @@ def test_masked_entries_and_timedeltas_are_refused_everywhere(suite_device):
         hlbvh_cl.Light(direction=np.ma.masked_array([0, 1, 0], mask=[0, 1, 0]))
 
 
+def test_device_arrays_are_named_and_array_interfaces_read_in_place(suite_device, monkeypatch):
+    """A pyopencl array (which numpy reads as one opaque object) is refused
+    by name with what to pass instead, by ray and point queries alike; an
+    object exposing __array_interface__ is read without a copy on a CPU
+    device: the kernel's buffer wraps the caller's memory."""
+    import pyopencl.array as cla
+
+    from hlbvh_cl.query import engine
+    scene = hlbvh_cl.Scene([Mesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]])],
+                           device=suite_device)
+    origins = np.float32([[0.2, 0.2, -1.0]] * 64)
+    directions = np.float32([[0.0, 0.0, 1.0]] * 64)
+    on_device = cla.to_device(built.runtime(scene).queue, origins)
+    for call, name in [(lambda: scene.intersect(on_device, directions), "origins"),
+                       (lambda: scene.occluded(origins, on_device), "directions"),
+                       (lambda: scene.closest_points(on_device), "points")]:
+        with pytest.raises(TypeError, match=rf"{name} is a pyopencl array: .* {name}\.get\(\)"):
+            call()
+
+    class Interface:  # e.g. a framework's CPU tensor, as numpy sees it
+        def __init__(self, array):
+            self.__array_interface__ = array.__array_interface__
+    wrapped = []  # the host memory of every buffer the call makes
+    make = cl.Buffer
+    monkeypatch.setattr(cl, "Buffer", lambda *args, hostbuf=None, **kwargs: (
+        wrapped.append(hostbuf), make(*args, hostbuf=hostbuf, **kwargs))[1])
+    hits = scene.intersect(Interface(origins), Interface(directions))
+    monkeypatch.undo()
+    assert hits.hit.all() and np.allclose(hits.t, 1.0)
+    if engine.zero_copy(built.runtime(scene)):  # CPU devices
+        assert any(a is not None and np.shares_memory(a, origins) for a in wrapped)
+        assert any(a is not None and np.shares_memory(a, directions) for a in wrapped)
+
+
 def test_ragged_inputs_odd_scalars_and_far_cameras_are_named(suite_device):
     """Review G's cases: ragged lists name their array (not numpy's bare
     'setting an array element with a sequence'); a float morton_bits, a bool

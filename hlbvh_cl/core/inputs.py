@@ -217,12 +217,22 @@ def _from_tensor(value):
     return value.numpy()
 
 
+def _not_on_a_device(name: str, value) -> None:
+    """The TypeError naming ``name`` for a pyopencl array: numpy would read it
+    as one object, and the queries take no device arrays yet (issue 57;
+    docs/devices.md, "Sharing device memory")."""
+    if type(value).__module__.startswith("pyopencl") and hasattr(value, "get"):
+        raise TypeError(f"{name} is a pyopencl array: the queries take host arrays for now; "
+                        f"pass {name}.get() (a numpy copy)")
+
+
 def as_array(name: str, value) -> np.ndarray:
     """``value`` as a numpy array (unmasked; a PyTorch tensor detached and on
     the CPU; bfloat16, as JAX's ml_dtypes gives it, as float32), or the
     ValueError naming ``name`` when it is ragged (nested lists of unequal
     lengths) or cannot be read as an array."""
     unmasked(name, value)
+    _not_on_a_device(name, value)
     value = _from_tensor(value)
     try:
         array = np.asarray(value)
