@@ -15,6 +15,13 @@ from ..parallel.scan import exclusive_scan
 TOP_TASK_BYTES = 16  # struct TopTask in sah_top.cl: four ints
 CLUSTER_RECORD_BYTES = 32  # struct ClusterRecord in sah_top.cl: two float4s
 TOP_COST_GROUP = 64  # work-items of sum_top_cost's one work-group (a -D define)
+#: Work-items of split_top_group's groups at most (TOP_GROUP in sah_top.cl,
+#: whose local arrays it sizes: about 23 KB, under OpenCL 1.2's 32 KB minimum).
+TOP_GROUP = 256
+#: Work-groups a compute unit holds at once, for the levels split by whole
+#: groups (_group_levels): a GPU's multiprocessor runs several (2048 threads
+#: on NVIDIA's, 8 groups of 256).
+GROUPS_PER_UNIT = 8
 # Device bytes build_top takes per cluster: first primitive, root, two record
 # buffers, cost, height, box, three task lists, two child links, top box.
 BYTES_PER_CLUSTER = (4 + 4 + 2 * CLUSTER_RECORD_BYTES + 4 + 4 + layout.AABB.itemsize
@@ -50,7 +57,7 @@ def build_top(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: RadixTre
     n = tree.n
     q = rt.queue
     kernel = functools.partial(rt.kernel, "build/sah_top.cl", MORTON_BITS=bits,
-                               TOP_COST_GROUP=TOP_COST_GROUP)
+                               TOP_COST_GROUP=TOP_COST_GROUP, TOP_GROUP=TOP_GROUP)
     scan = rt.pool.take((n + 1) * 4)
     events = [rt.run(kernel("mark_cluster_starts"), n,
                      keys, n, scan, wait_for=wait_for)]
@@ -90,11 +97,20 @@ def build_top(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: RadixTre
                                          wait_for=events[-1:]))
     events.append(cl.enqueue_fill_buffer(q, task_counts, np.int32(1), 0, 4,
                                          wait_for=events[-1:]))  # the root task
+    group_levels = _group_levels(serial_depth, rt.device.compute_units, rt.profile.gpu)
+    group_kernel = kernel("split_top_group")
+    group = min(TOP_GROUP, rt.largest_group(group_kernel))
     for level in range(serial_depth + 1):
-        events.append(rt.run(kernel("split_top_level"), min(1 << level, clusters), tasks, level,
-                             serial_depth, next_tasks, task_counts, stack, records, records_odd,
-                             cluster_height, left, right, boxes, info, wait_for=events[-1:],
-                             local_size=1))
+        tasks_at_most = min(1 << level, clusters)
+        if level < group_levels:  # one work-group per task
+            events.append(rt.run(group_kernel, tasks_at_most * group, tasks, level, next_tasks,
+                                 task_counts, records, records_odd, cluster_height, left, right,
+                                 boxes, info, wait_for=events[-1:], local_size=group))
+        else:  # one work-item per task
+            events.append(rt.run(kernel("split_top_level"), tasks_at_most, tasks, level,
+                                 serial_depth, next_tasks, task_counts, stack, records,
+                                 records_odd, cluster_height, left, right, boxes, info,
+                                 wait_for=events[-1:], local_size=1))
         tasks, next_tasks = next_tasks, tasks
     events.append(rt.run(kernel("sum_top_cost"), TOP_COST_GROUP, clusters - 1, boxes, clusters,
                          cluster_cost, root_cost, wait_for=events[-1:],
@@ -114,3 +130,18 @@ def _serial_depth(clusters: int, compute_units: int, gpu: bool) -> int:
     by_work = max(0, (clusters // 64).bit_length() - 1)
     by_width = max(1, (per_unit * compute_units).bit_length() - 1)
     return min(by_work, by_width)
+
+
+def _group_levels(serial_depth: int, compute_units: int, gpu: bool) -> int:
+    """Levels 0 .. n-1 split one task per work-group (split_top_group), the
+    others one task per work-item (issue 57).  On a GPU while a level's
+    tasks, at most 2^L, are no more than the work-groups the device holds
+    at once: there one work-item per task would leave most of the device
+    idle while each scans a large share of the clusters serially.  Never the
+    serial level (its tasks build whole subtrees).  Not on the CPU profile:
+    a core runs a work-group's items one after another anyway, and there the
+    group split measured slower than one work-item per task."""
+    if not gpu:
+        return 0
+    resident = GROUPS_PER_UNIT * compute_units
+    return min(serial_depth, resident.bit_length())

@@ -281,6 +281,75 @@ inline int split_pair(__global const ClusterRecord *in, __global ClusterRecord *
     return begin + 1;
 }
 
+/* The split of least SAH cost over a node's bins (bin_lo/hi[a][b] the box
+ * of bin b on axis a, its triangle count in bin_lo's w lane): *best_axis
+ * -1 where no axis has a usable split.  Shared by split_clusters and the
+ * work-group split, so both choose the same split. */
+inline void choose_split(float4 (*bin_lo)[TOP_SAH_BINS], float4 (*bin_hi)[TOP_SAH_BINS], int bins,
+                         float4 inv_extent, float *best_cost, int *best_axis, int *best_bin)
+{
+    /* Lane a of bin_size[b]: bin b's count on axis a, so the sweeps read one vector. */
+    float4 bin_size[TOP_SAH_BINS];
+    for (int b = 0; b < bins; ++b)
+        bin_size[b] = (float4)(bin_lo[0][b].w, bin_lo[1][b].w, bin_lo[2][b].w, 0.0f);
+
+    /* Both sweeps run the three axes side by side, lane a for axis a: the
+     * per-bin work is a few vector ops instead of three scalar passes. */
+    float4 right_area[TOP_SAH_BINS], right_size[TOP_SAH_BINS];
+    Sweep sweep;
+    sweep_start(&sweep);
+    for (int b = bins - 1; b > 0; --b) {
+        right_area[b] = sweep_bin(&sweep, bin_lo, bin_hi, bin_size, b);
+        right_size[b] = sweep.size;
+    }
+    /* An axis whose centroids coincide has no split (all in bin 0). */
+    int4 usable_axis = inv_extent != 0.0f;
+    float4 axis_cost = (float4)(INFINITY);
+    int4 axis_bin = (int4)(0);
+    sweep_start(&sweep);
+    for (int b = 0; b < bins - 1; ++b) {
+        float4 area = sweep_bin(&sweep, bin_lo, bin_hi, bin_size, b);
+        float4 cost = sweep.size * area + right_size[b + 1] * right_area[b + 1];
+        /* Strict <: per axis the first bin of least cost, as a scalar scan. */
+        int4 better = usable_axis & (sweep.size != 0.0f) & (right_size[b + 1] != 0.0f) &
+                      (cost < axis_cost);
+        axis_cost = select(axis_cost, cost, better);
+        axis_bin = select(axis_bin, (int4)(b), better);
+    }
+    /* Axes in order, strict <: the first (axis, bin) of least cost, the
+     * split a scan over axis 0, 1, 2 in turn would keep. */
+    *best_cost = INFINITY;
+    *best_axis = -1;
+    *best_bin = 0;
+    for (int axis = 0; axis < 3; ++axis) {
+        float cost = lane_f(axis_cost, axis);
+        if (cost < *best_cost) {
+            *best_cost = cost;
+            *best_axis = axis;
+            *best_bin = lane(axis_bin, axis);
+        }
+    }
+}
+
+/* A record's centre into the centroid bounds and its box into the box. */
+inline void grow_bounds(ClusterRecord r, float4 *centroid_lo, float4 *centroid_hi,
+                        float4 *lo_corner, float4 *hi_corner)
+{
+    float4 center = 0.5f * (r.lo + r.hi);
+    *centroid_lo = grow_lo(*centroid_lo, center);
+    *centroid_hi = grow_hi(*centroid_hi, center);
+    *lo_corner = grow_lo(*lo_corner, r.lo);
+    *hi_corner = grow_hi(*hi_corner, r.hi);
+}
+
+/* The SAH cost of isolating the largest cluster (largest_size triangles, box
+ * area largest_area) from the rest (the box rest_lo..rest_hi). */
+inline float isolation_cost(float largest_size, float largest_area, float total, float4 rest_lo,
+                            float4 rest_hi)
+{
+    return largest_size * largest_area + (total - largest_size) * area_of(rest_lo, rest_hi);
+}
+
 /* Split records[begin..end) with the binned SAH: write the range to
  * out[begin..end), the left child's records first, and return the split
  * point, and the box of the whole range in *box_lo/hi.  A split's cost is
@@ -306,11 +375,7 @@ inline int split_clusters(__global const ClusterRecord *records, __global Cluste
     int largest = begin;
     for (int k = begin; k < end; ++k) {
         ClusterRecord r = records[k];
-        float4 center = 0.5f * (r.lo + r.hi);
-        centroid_lo = grow_lo(centroid_lo, center);
-        centroid_hi = grow_hi(centroid_hi, center);
-        lo_corner = grow_lo(lo_corner, r.lo);
-        hi_corner = grow_hi(hi_corner, r.hi);
+        grow_bounds(r, &centroid_lo, &centroid_hi, &lo_corner, &hi_corner);
         if (try_isolate) {
             total += r.lo.w;
             float area = area_of(r.lo, r.hi);
@@ -355,54 +420,15 @@ inline int split_clusters(__global const ClusterRecord *records, __global Cluste
         bin_lo[2][b.z] = grow_bin(bin_lo[2][b.z], r.lo);
         bin_hi[2][b.z] = grow_hi(bin_hi[2][b.z], r.hi);
     }
-    /* Lane a of bin_size[b]: bin b's count on axis a, so the sweeps read one vector. */
-    float4 bin_size[TOP_SAH_BINS];
-    for (int b = 0; b < bins; ++b)
-        bin_size[b] = (float4)(bin_lo[0][b].w, bin_lo[1][b].w, bin_lo[2][b].w, 0.0f);
-
-    /* Both sweeps run the three axes side by side, lane a for axis a: the
-     * per-bin work is a few vector ops instead of three scalar passes. */
-    float4 right_area[TOP_SAH_BINS], right_size[TOP_SAH_BINS];
-    Sweep sweep;
-    sweep_start(&sweep);
-    for (int b = bins - 1; b > 0; --b) {
-        right_area[b] = sweep_bin(&sweep, bin_lo, bin_hi, bin_size, b);
-        right_size[b] = sweep.size;
-    }
-    /* An axis whose centroids coincide has no split (all in bin 0). */
-    int4 usable_axis = inv_extent != 0.0f;
-    float4 axis_cost = (float4)(INFINITY);
-    int4 axis_bin = (int4)(0);
-    sweep_start(&sweep);
-    for (int b = 0; b < bins - 1; ++b) {
-        float4 area = sweep_bin(&sweep, bin_lo, bin_hi, bin_size, b);
-        float4 cost = sweep.size * area + right_size[b + 1] * right_area[b + 1];
-        /* Strict <: per axis the first bin of least cost, as a scalar scan. */
-        int4 better = usable_axis & (sweep.size != 0.0f) & (right_size[b + 1] != 0.0f) &
-                      (cost < axis_cost);
-        axis_cost = select(axis_cost, cost, better);
-        axis_bin = select(axis_bin, (int4)(b), better);
-    }
-    /* Axes in order, strict <: the first (axis, bin) of least cost, the
-     * split a scan over axis 0, 1, 2 in turn would keep. */
-    float best_cost = INFINITY;
-    int best_axis = -1, best_bin = 0;
-    for (int axis = 0; axis < 3; ++axis) {
-        float cost = lane_f(axis_cost, axis);
-        if (cost < best_cost) {
-            best_cost = cost;
-            best_axis = axis;
-            best_bin = lane(axis_bin, axis);
-        }
-    }
+    float best_cost;
+    int best_axis, best_bin;
+    choose_split(bin_lo, bin_hi, bins, inv_extent, &best_cost, &best_axis, &best_bin);
 
     int middle = begin + (end - begin) / 2; /* no usable split: halve */
     int isolated = 0;
     if (try_isolate) {
         float largest_size = big.lo.w;
-        float isolate_cost =
-            largest_size * largest_area + (total - largest_size) * area_of(rest_lo, rest_hi);
-        if (isolate_cost < best_cost) {
+        if (isolation_cost(largest_size, largest_area, total, rest_lo, rest_hi) < best_cost) {
             for (int k = begin; k < end; ++k) /* the largest last */
                 out[k] = k == end - 1 ? big : k == largest ? records[end - 1] : records[k];
             middle = end - 1;
@@ -431,6 +457,34 @@ inline int split_clusters(__global const ClusterRecord *records, __global Cluste
     return middle;
 }
 
+/* The top node of `task`, split at middle with the box lo..hi: its box,
+ * its link from its parent and its one-cluster children (out holds the
+ * children's records); its other children in children[], their count
+ * returned.  *tree_depth grows to the deepest path through a cluster. */
+inline int finish_node(TopTask task, int middle, float4 lo, float4 hi,
+                       __global const ClusterRecord *out, __global const int *cluster_height,
+                       __global int *top_left, __global int *top_right, __global Aabb *top_boxes,
+                       __global volatile int *info, int *tree_depth, TopTask *children)
+{
+    int depth = task.side_and_depth >> 1, node = middle - 1, count = 0;
+    Aabb box = {{lo.x, lo.y, lo.z}, {hi.x, hi.y, hi.z}};
+    top_boxes[node] = box;
+    attach(node, task.parent, task.side_and_depth & 1, top_left, top_right, info);
+    int ranges[2][2] = {{task.begin, middle}, {middle, task.end}};
+    for (int side = 0; side < 2; ++side) {
+        if (ranges[side][1] - ranges[side][0] == 1) {
+            int cluster = (int)out[ranges[side][0]].hi.w;
+            attach(~cluster, node, side, top_left, top_right, info);
+            /* the tree's depth: top nodes on the path, then the cluster's subtree */
+            *tree_depth = max(*tree_depth, depth + 1 + cluster_height[cluster]);
+            continue;
+        }
+        TopTask child = {ranges[side][0], ranges[side][1], node, ((depth + 1) << 1) | side};
+        children[count++] = child;
+    }
+    return count;
+}
+
 /* One task of split_top_level, and its whole subtree if it is serial. */
 inline void split_task(TopTask task, int level, int serial_depth, __global TopTask *next_tasks,
                        __global volatile int *task_counts, __global TopTask *stack,
@@ -453,24 +507,14 @@ inline void split_task(TopTask task, int level, int serial_depth, __global TopTa
         __global ClusterRecord *out = depth & 1 ? records : records_odd;
         float4 lo, hi;
         int middle = split_clusters(in, out, task.begin, task.end, depth, &lo, &hi);
-        int node = middle - 1;
-        Aabb box = {{lo.x, lo.y, lo.z}, {hi.x, hi.y, hi.z}};
-        top_boxes[node] = box;
-        attach(node, task.parent, task.side_and_depth & 1, top_left, top_right, info);
-        int ranges[2][2] = {{task.begin, middle}, {middle, task.end}};
-        for (int side = 0; side < 2; ++side) {
-            if (ranges[side][1] - ranges[side][0] == 1) {
-                int cluster = (int)out[ranges[side][0]].hi.w;
-                attach(~cluster, node, side, top_left, top_right, info);
-                /* the tree's depth: top nodes on the path, then the cluster's subtree */
-                tree_depth = max(tree_depth, depth + 1 + cluster_height[cluster]);
-                continue;
-            }
-            TopTask child = {ranges[side][0], ranges[side][1], node, ((depth + 1) << 1) | side};
+        TopTask children[2];
+        int child_count = finish_node(task, middle, lo, hi, out, cluster_height, top_left,
+                                      top_right, top_boxes, info, &tree_depth, children);
+        for (int c = 0; c < child_count; ++c) {
             if (serial)
-                stack[top++] = child;
+                stack[top++] = children[c];
             else
-                next_tasks[atomic_inc(&task_counts[level + 1])] = child;
+                next_tasks[atomic_inc(&task_counts[level + 1])] = children[c];
         }
         if (top == base)
             break;
@@ -506,6 +550,268 @@ __kernel void split_top_level(__global const TopTask *tasks, int level, int seri
     for (long t = i * count / items; t < (i + 1) * count / items; ++t)
         split_task(tasks[t], level, serial_depth, next_tasks, task_counts, stack, records,
                    records_odd, cluster_height, top_left, top_right, top_boxes, info);
+}
+
+/* TOP_GROUP (-D, hlbvh_cl/build/sah_top.py): the work-items of
+ * split_top_group's groups at most, its local arrays' length; the host
+ * launches a power of two no larger. */
+#ifndef TOP_GROUP
+#error "TOP_GROUP must be defined (-D TOP_GROUP=...)"
+#endif
+
+/* A float as an int of the same order (the negatives' magnitude bits
+ * flipped), and back: so local atomic_min/max, standard on ints, take the
+ * least and greatest float of a bin in any order.  -0 and +0 get different
+ * ints where the serial scan keeps whichever came first; bins only feed
+ * areas, whose sign of zero no comparison sees, so the split is the same. */
+inline int order_key(float f)
+{
+    int i = as_int(f);
+    return i < 0 ? i ^ 0x7fffffff : i;
+}
+
+inline float key_value(int key)
+{
+    return as_float(key < 0 ? key ^ 0x7fffffff : key);
+}
+
+/* The first and last+1 record of work-item `item`'s block of [begin, end):
+ * blocks in order, so a fold of the blocks in order is the serial scan's. */
+inline int block_start(int begin, int end, int item, int items)
+{
+    return begin + (int)((long)item * (end - begin) / items);
+}
+
+/* split_clusters by a whole work-group (issue 57: at the top levels a few
+ * tasks hold all clusters, which one work-item each scanned serially), with
+ * the same result bit for bit:
+ *  - the box, centroid bounds, triangle total and largest cluster: each
+ *    work-item folds its block in order, then a tree in local memory joins
+ *    neighbouring blocks, earlier on the left (Blelloch 1990), so the ties
+ *    of GROW_LO/HI (the first of equal values: -0 and +0 in the box) and of
+ *    the largest area (the first) fall as in the serial scan;
+ *  - the bins and the box of all but the largest: min/max over int keys by
+ *    local atomics (order_key), the counts by atomic_add (exact, as the
+ *    serial float sum is below 2^24 triangles);
+ *  - the split: choose_split and isolation_cost, by work-item 0;
+ *  - the partition: in tiles of one record per work-item, a local prefix
+ *    sum of the left flags places each record where partition_records puts
+ *    it (left ones in order, the others from the end backwards).
+ * Returns the split point; *box_lo/hi the task's box (every work-item). */
+inline int split_clusters_group(__global const ClusterRecord *records,
+                                __global ClusterRecord *out, int begin, int end, int depth,
+                                float4 *box_lo, float4 *box_hi, __local float4 *fold_lo,
+                                __local float4 *fold_hi, __local float4 *fold_centre_lo,
+                                __local float4 *fold_centre_hi, __local float *fold_total,
+                                __local float *fold_area, __local int *fold_largest,
+                                __local int *bin_min, __local int *bin_max, __local int *bin_count,
+                                __local int *decision)
+{
+    int item = (int)get_local_id(0), items = (int)get_local_size(0);
+    int try_isolate = depth < TOP_ISOLATE_DEPTH && end - begin > 2;
+    /* pass 1: each work-item's block, folded in order */
+    float4 centroid_lo = (float4)(INFINITY), centroid_hi = (float4)(-INFINITY);
+    float4 lo_corner = centroid_lo, hi_corner = centroid_hi;
+    float total = 0.0f, largest_area = -1.0f;
+    int largest = begin;
+    int first = block_start(begin, end, item, items), last = block_start(begin, end, item + 1, items);
+    for (int k = first; k < last; ++k) {
+        ClusterRecord r = records[k];
+        grow_bounds(r, &centroid_lo, &centroid_hi, &lo_corner, &hi_corner);
+        total += r.lo.w;
+        float area = area_of(r.lo, r.hi);
+        if (area > largest_area) {
+            largest_area = area;
+            largest = k;
+        }
+    }
+    fold_lo[item] = lo_corner;
+    fold_hi[item] = hi_corner;
+    fold_centre_lo[item] = centroid_lo;
+    fold_centre_hi[item] = centroid_hi;
+    fold_total[item] = total;
+    fold_area[item] = largest_area;
+    fold_largest[item] = largest;
+    /* items is a power of two: slot i joins slot i + step, its next block */
+    for (int step = 1; step < items; step *= 2) {
+        barrier(CLK_LOCAL_MEM_FENCE);
+        if ((item & (2 * step - 1)) == 0) {
+            int next = item + step;
+            fold_lo[item] = grow_lo(fold_lo[item], fold_lo[next]);
+            fold_hi[item] = grow_hi(fold_hi[item], fold_hi[next]);
+            fold_centre_lo[item] = grow_lo(fold_centre_lo[item], fold_centre_lo[next]);
+            fold_centre_hi[item] = grow_hi(fold_centre_hi[item], fold_centre_hi[next]);
+            fold_total[item] += fold_total[next];
+            if (fold_area[next] > fold_area[item]) { /* strict: the first largest */
+                fold_area[item] = fold_area[next];
+                fold_largest[item] = fold_largest[next];
+            }
+        }
+    }
+    barrier(CLK_LOCAL_MEM_FENCE);
+    *box_lo = fold_lo[0];
+    *box_hi = fold_hi[0];
+    centroid_lo = fold_centre_lo[0];
+    largest = fold_largest[0];
+    int bins = min(max((end - begin) / 2, 2), TOP_SAH_BINS);
+    float4 lo = (float4)(centroid_lo.xyz, 0.0f);
+    float4 inv_extent = inverse_extents(fold_centre_hi[0] - centroid_lo, (float)bins);
+
+    /* pass 2: the bins, and (key 3 * bins of each array) the box of all
+     * but the largest cluster */
+    int slots = 3 * TOP_SAH_BINS + 1, rest = 3 * TOP_SAH_BINS;
+    for (int s = item; s < 3 * slots; s += items) {
+        bin_min[s] = order_key(INFINITY);
+        bin_max[s] = order_key(-INFINITY);
+    }
+    for (int s = item; s < slots; s += items)
+        bin_count[s] = 0;
+    barrier(CLK_LOCAL_MEM_FENCE);
+    for (int k = begin + item; k < end; k += items) {
+        ClusterRecord r = records[k];
+        int4 b = bins_of(r, lo, inv_extent, bins);
+        for (int axis = 0; axis < 3; ++axis) {
+            int slot = axis * TOP_SAH_BINS + lane(b, axis);
+            atomic_add(&bin_count[slot], (int)r.lo.w);
+            for (int c = 0; c < 3; ++c) {
+                atomic_min(&bin_min[3 * slot + c], order_key(lane_f(r.lo, c)));
+                atomic_max(&bin_max[3 * slot + c], order_key(lane_f(r.hi, c)));
+            }
+        }
+        if (k != largest)
+            for (int c = 0; c < 3; ++c) {
+                atomic_min(&bin_min[3 * rest + c], order_key(lane_f(r.lo, c)));
+                atomic_max(&bin_max[3 * rest + c], order_key(lane_f(r.hi, c)));
+            }
+    }
+    barrier(CLK_LOCAL_MEM_FENCE);
+
+    /* the split, as split_clusters chooses it; decision[0]: 0 partition on
+     * axis decision[1] at bin decision[2], 1 isolate, 2 halve */
+    if (item == 0) {
+        float4 bin_lo[3][TOP_SAH_BINS], bin_hi[3][TOP_SAH_BINS];
+        for (int axis = 0; axis < 3; ++axis)
+            for (int b = 0; b < bins; ++b) {
+                int slot = axis * TOP_SAH_BINS + b;
+                bin_lo[axis][b] = (float4)(key_value(bin_min[3 * slot]),
+                                           key_value(bin_min[3 * slot + 1]),
+                                           key_value(bin_min[3 * slot + 2]), (float)bin_count[slot]);
+                bin_hi[axis][b] = (float4)(key_value(bin_max[3 * slot]),
+                                           key_value(bin_max[3 * slot + 1]),
+                                           key_value(bin_max[3 * slot + 2]), 0.0f);
+            }
+        float best_cost;
+        int best_axis, best_bin;
+        choose_split(bin_lo, bin_hi, bins, inv_extent, &best_cost, &best_axis, &best_bin);
+        int mode = best_axis >= 0 ? 0 : 2;
+        if (try_isolate) {
+            ClusterRecord big = records[largest];
+            float4 rest_lo = (float4)(key_value(bin_min[3 * rest]), key_value(bin_min[3 * rest + 1]),
+                                      key_value(bin_min[3 * rest + 2]), 0.0f);
+            float4 rest_hi = (float4)(key_value(bin_max[3 * rest]), key_value(bin_max[3 * rest + 1]),
+                                      key_value(bin_max[3 * rest + 2]), 0.0f);
+            if (isolation_cost(big.lo.w, fold_area[0], fold_total[0], rest_lo, rest_hi) < best_cost)
+                mode = 1;
+        }
+        decision[0] = mode;
+        decision[1] = best_axis;
+        decision[2] = best_bin;
+    }
+    barrier(CLK_LOCAL_MEM_FENCE);
+    int mode = decision[0], middle = begin + (end - begin) / 2;
+    if (mode == 1) { /* the largest last */
+        ClusterRecord big = records[largest], swapped = records[end - 1];
+        for (int k = begin + item; k < end; k += items)
+            out[k] = k == end - 1 ? big : k == largest ? swapped : records[k];
+        middle = end - 1;
+    } else if (mode == 0) {
+        int axis = decision[1];
+        float split_lo = lane_f(lo, axis), split_scale = lane_f(inv_extent, axis);
+        float bins_after = decision[2] + 1.0f;
+        /* fold_largest reused as the tile's inclusive prefix sum of left flags */
+        __local int *scan = fold_largest;
+        int left_before = 0;
+        for (int tile = begin; tile < end; tile += items) {
+            int k = tile + item;
+            ClusterRecord r = {(float4)(0.0f), (float4)(0.0f)};
+            int left = 0;
+            if (k < end) {
+                r = records[k];
+                left = left_of_split(r, axis, split_lo, split_scale, bins_after);
+            }
+            barrier(CLK_LOCAL_MEM_FENCE); /* the last tile's total has been read */
+            scan[item] = left;
+            for (int step = 1; step < items; step *= 2) {
+                barrier(CLK_LOCAL_MEM_FENCE);
+                int add = item >= step ? scan[item - step] : 0;
+                barrier(CLK_LOCAL_MEM_FENCE);
+                scan[item] += add;
+            }
+            barrier(CLK_LOCAL_MEM_FENCE);
+            int lefts = left_before + scan[item] - left; /* left records before k */
+            if (k < end)
+                out[left ? begin + lefts : end - 1 - ((k - begin) - lefts)] = r;
+            left_before += scan[items - 1];
+        }
+        middle = begin + left_before;
+    }
+    if (mode == 2 || middle == begin || middle == end) {
+        middle = begin + (end - begin) / 2; /* no usable split: halve, in order */
+        barrier(CLK_GLOBAL_MEM_FENCE); /* the partition's stores first */
+        for (int k = begin + item; k < end; k += items)
+            out[k] = records[k];
+    }
+    return middle;
+}
+
+/* split_top_level with one work-group per task, for the levels with few
+ * tasks (the host picks them): group g takes the tasks
+ * [g * count / groups, (g + 1) * count / groups), none of them serial. */
+__kernel void split_top_group(__global const TopTask *tasks, int level,
+                              __global TopTask *next_tasks, __global volatile int *task_counts,
+                              __global ClusterRecord *records, __global ClusterRecord *records_odd,
+                              __global const int *cluster_height, __global int *top_left,
+                              __global int *top_right, __global Aabb *top_boxes,
+                              __global volatile int *info)
+{
+    __local float4 fold_lo[TOP_GROUP], fold_hi[TOP_GROUP];
+    __local float4 fold_centre_lo[TOP_GROUP], fold_centre_hi[TOP_GROUP];
+    __local float fold_total[TOP_GROUP], fold_area[TOP_GROUP];
+    __local int fold_largest[TOP_GROUP];
+    __local int bin_min[3 * (3 * TOP_SAH_BINS + 1)], bin_max[3 * (3 * TOP_SAH_BINS + 1)];
+    __local int bin_count[3 * TOP_SAH_BINS + 1];
+    __local int decision[3];
+    long g = get_group_id(0), groups = get_num_groups(0);
+    long count = task_counts[level]; /* the tasks the level before queued */
+    int tree_depth = 0;
+    for (long t = g * count / groups; t < (g + 1) * count / groups; ++t) {
+        TopTask task = tasks[t];
+        int depth = task.side_and_depth >> 1;
+        __global ClusterRecord *in = depth & 1 ? records_odd : records;
+        __global ClusterRecord *out = depth & 1 ? records : records_odd;
+        float4 lo = (float4)(0.0f), hi = lo;
+        int middle = task.begin + 1;
+        barrier(CLK_LOCAL_MEM_FENCE); /* the last task's local arrays are read */
+        if (task.end - task.begin == 2) {
+            if (get_local_id(0) == 0)
+                middle = split_pair(in, out, task.begin, &lo, &hi);
+        } else {
+            middle = split_clusters_group(in, out, task.begin, task.end, depth, &lo, &hi, fold_lo,
+                                          fold_hi, fold_centre_lo, fold_centre_hi, fold_total,
+                                          fold_area, fold_largest, bin_min, bin_max, bin_count,
+                                          decision);
+        }
+        barrier(CLK_GLOBAL_MEM_FENCE); /* work-item 0 reads the children's records */
+        if (get_local_id(0) == 0) {
+            TopTask children[2];
+            int child_count = finish_node(task, middle, lo, hi, out, cluster_height, top_left,
+                                          top_right, top_boxes, info, &tree_depth, children);
+            for (int c = 0; c < child_count; ++c)
+                next_tasks[atomic_inc(&task_counts[level + 1])] = children[c];
+        }
+    }
+    if (tree_depth > 0)
+        atomic_max(&info[0], tree_depth);
 }
 
 /* The SAH cost of the whole tree: cost(node) = C_t A(node) + cost(left) +
