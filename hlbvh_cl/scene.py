@@ -25,6 +25,7 @@ from .core import inputs
 from .core.inputs import ALL_BITS, as_array
 from .build.instances import InstancedTree, TwoLevel, check_instances, check_masks, check_transforms
 from .query.points import PointQuery
+from .query import on_device
 from .query.rays import RayQuery
 from .build.refit import refit
 from .core.tree import Tree
@@ -135,6 +136,14 @@ class Scene:
     def device(self):
         """The hlbvh_cl.Device the scene lives on."""
         return self._runtime.device
+
+    @property
+    def queue(self):
+        """The scene's pyopencl CommandQueue (and, as queue.context, its
+        context): pyopencl arrays made with it can be given to intersect and
+        occluded, which then return pyopencl arrays on it
+        (docs/queries.md, "Rays on the device")."""
+        return self._runtime.queue
 
     @contextlib.contextmanager
     def borrow(self):
@@ -406,7 +415,8 @@ class Scene:
             hits = self._ray_query().intersect(self._built_tree(), origins, directions, tmin,
                                                tmax, mask)
             if self._two_level is not None and not self._instanced:
-                hits.instance_id[...] = -1  # instances of the masks' making, not the caller's
+                # instances of the masks' making, not the caller's
+                on_device.fill(hits.instance_id, -1)
             return hits
 
     def occluded(self, origins, directions=None, tmin=0.0, tmax=np.inf,

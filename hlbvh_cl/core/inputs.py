@@ -218,12 +218,13 @@ def _from_tensor(value):
 
 
 def _not_on_a_device(name: str, value) -> None:
-    """The TypeError naming ``name`` for a pyopencl array: numpy would read it
-    as one object, and the queries take no device arrays yet (issue 57;
-    docs/devices.md, "Sharing device memory")."""
+    """The TypeError naming ``name`` for a pyopencl array where a host array
+    is taken: numpy would read it as one object.  (The ray queries take
+    rays on the device before they get here: query/on_device.py.)"""
     if type(value).__module__.startswith("pyopencl") and hasattr(value, "get"):
-        raise TypeError(f"{name} is a pyopencl array: the queries take host arrays for now; "
-                        f"pass {name}.get() (a numpy copy)")
+        raise TypeError(f"{name} is a pyopencl array: this call takes host arrays (intersect "
+                        f"and occluded take rays on the device); pass {name}.get() "
+                        "(a numpy copy)")
 
 
 def as_array(name: str, value) -> np.ndarray:
@@ -317,10 +318,10 @@ def rays(origins, directions=None, tmin=0.0, tmax=np.inf) -> Rays:
                            "row did")
     low, high = limits("tmin", tmin, shape), limits("tmax", tmax, shape)
     check_limits(low, high, shape)
-    return Rays(o_rows, d_rows, *_inward(low, high), shape, sources[0], sources[1], *extent)
+    return Rays(o_rows, d_rows, *inward(low, high), shape, sources[0], sources[1], *extent)
 
 
-def _inward(low: np.ndarray, high: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def inward(low: np.ndarray, high: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The float64 limits as float32, tmin rounded up and tmax down: the
     kernels compare float32 t, and every t they then take meets the limits
     as given (rounding to nearest would take t = float32(0.1) > 0.1 under

@@ -159,13 +159,14 @@ class Runtime:
         return known[1]
 
     def run(self, kernel: cl.Kernel, work_items: int | tuple[int, int], *args, wait_for=None,
-            local_size: int | None = None) -> cl.Event:
+            local_size: int | None = None, offset: int = 0) -> cl.Event:
         """Enqueue ``kernel`` over ``work_items`` items, or a 2D range
         (columns, rows) in work-groups of one row; columns are rounded up to
         whole work-groups, and every kernel checks its own bound.  Python
         ints and floats become int32 and float32 arguments.  ``local_size``
         (by default group_size) is capped at what the kernel allows
-        (largest_group); the kernels take any group size."""
+        (largest_group); the kernels take any group size.  ``offset`` is a
+        1D range's global offset: its work-items' get_global_id start there."""
         check_process()
         local_size = min(local_size or self.group_size, self.largest_group(kernel))
         values = [_kernel_arg(a) for a in args]
@@ -178,6 +179,7 @@ class Runtime:
         with self._launch_lock:
             kernel.set_args(*values)
             return cl.enqueue_nd_range_kernel(self.queue, kernel, global_size, group,
+                                              global_work_offset=(offset,) if offset else None,
                                               wait_for=wait_for)
 
     def wait(self, events) -> None:

@@ -25,7 +25,13 @@ it.  The engine does the rest, the same way for every query:
   its results put back once the launch ends.
 - **Collection and the overflow check.**  Results are mapped (in place) or
   copied back; the counters (int32 [0]: a walk ran out of stack; [1]: the
-  query's own) are read once, at the end, the only blocking wait.
+  query's own; [2] and [3]: the input checks of arrays already on the
+  device, query/on_device.py) are read once, at the end, the only blocking
+  wait.
+- **Arrays on the device.**  A batch's inputs and outputs may be pyopencl
+  arrays of the engine's context (query/on_device.py): the kernels use
+  their buffers as they are, over the whole arrays by slots, and nothing
+  of theirs crosses to the host.
 
 On any error or Ctrl-C the queue is finished before the exception leaves:
 the launches in flight may still write the caller's arrays.
@@ -50,6 +56,9 @@ from .results import starts_on_page
 #: far more.
 FIRST_LAUNCH = 1 << 16
 LAUNCH_SECONDS = 0.25
+
+#: int32 counters a batch clears and reads back (the module's docstring).
+COUNTERS = 4
 
 #: Stack sizes are rounded up to a multiple of this so that few program
 #: variants get compiled.
@@ -206,9 +215,12 @@ class Launch:
     steps: dict
     slots: cl.Buffer     # whole arrays: this launch's items (uint32 slots); else a stand-in
     indexed: np.uint32   # 1 where ``slots`` are read
+    #: whole arrays without slots (Batch.slots False): the launch's items
+    #: are [first, first + count) of the arrays; else 0
     #: segmented outputs: (the items' offsets, the first output row, the
     #: first item) as the buffers hold them; else ()
     segments: tuple = ()
+    first: int = 0
 
 
 @dataclass
@@ -225,6 +237,15 @@ class Batch:
     max_rows: int | None = None       # segmented: output rows per launch at most
     most: int | None = None           # items per launch at most (None: the engine's)
     first: int | None = None          # items in the first launch (None: FIRST_LAUNCH)
+    #: enqueues the checks of inputs already on the device, after the
+    #: counters are cleared: check(buffers, steps), as a Launch has them
+    check: object = None
+    #: whole arrays: False where the kernel takes its items as a range
+    #: [Launch.first, + count) (a global offset) instead of by slots, which
+    #: then need not go up to the device
+    slots: bool = True
+    #: items per launch are a multiple of this, but for the last
+    granule: int = 1
 
 
 class Engine:
@@ -241,7 +262,7 @@ class Engine:
         #: without zero_copy: whether results that start on a page are
         #: written in place (outputs_in_place)
         self.outputs_in_place = not self.zero_copy and outputs_in_place(rt)
-        self.counters = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 8)
+        self.counters = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 4 * COUNTERS)
         self.unused = cl.Buffer(rt.context, cl.mem_flags.READ_ONLY, 4)  # a stand-in argument
         self._scalars: dict[str, cl.Buffer] = {}
         #: the device buffers reused between launches and batches, by name
@@ -253,7 +274,7 @@ class Engine:
 
     def run(self, batch: Batch, launch) -> np.ndarray:
         """Runs ``launch(n, Launch)`` over the batch; returns the counters
-        (int32 [2]) after raising RuntimeError if a walk ran out of stack."""
+        (int32 [COUNTERS]) after raising RuntimeError if a walk ran out of stack."""
         with self._lock:
             try:
                 return self._run(batch, launch)
@@ -300,7 +321,7 @@ class Engine:
         between launches of a batch that takes several, to size them),
         issue 57: a call's fixed cost is its host synchronisations."""
         rt, queue = self.rt, self.rt.queue
-        uploads = [cl.enqueue_fill_buffer(queue, self.counters, np.int32(0), 0, 8)]
+        uploads = [cl.enqueue_fill_buffer(queue, self.counters, np.int32(0), 0, 4 * COUNTERS)]
         scalars = {name: self._scalar(name, value, uploads)
                    for name, value in batch.stepped.items() if value.ndim == 0}
         rows = {**batch.inputs, **{name: value for name, value in batch.stepped.items()
@@ -328,7 +349,7 @@ class Engine:
             if stop < batch.count:
                 retire(1 if sizes.measured else 0)
         finish = [collect(queue, buffer, array, True) for buffer, array in results]
-        counters = np.zeros(2, np.int32)
+        counters = np.zeros(COUNTERS, np.int32)
         finish.append(cl.enqueue_copy(queue, counters, self.counters, is_blocking=False))
         rt.wait([*uploads, *(event for waited, *_ in flight for event in waited), *finish])
         for _, put_back, _, _ in flight:
@@ -341,26 +362,44 @@ class Engine:
         return counters
 
     def _whole(self, batch: Batch, rows: dict, scalars: dict):
-        """Launches over the whole arrays in place, by slots (Batch.whole)."""
+        """Launches over the whole arrays in place, by slots (Batch.whole):
+        numpy arrays wrapped, pyopencl arrays by their own buffers."""
         flags = cl.mem_flags
-        read = {name: self._wrap(array, flags.READ_ONLY) for name, array in rows.items()}
+        read = {name: self._whole_buffer(array, flags.READ_ONLY) for name, array in rows.items()}
         # read too: a segmented kernel sorts the rows it wrote
-        written = {name: self._wrap(array, flags.READ_WRITE)
+        written = {name: self._whole_buffer(array, flags.READ_WRITE)
                    for name, array in batch.outputs.items()}
         buffers = {**read, **written}
         steps = {name: (read[name], np.uint32(1)) if name in read else
                  (scalars[name], np.uint32(0)) for name in batch.stepped}
         segments = () if batch.segments is None else \
             (self._wrap(batch.segments, flags.READ_ONLY), np.int64(0), np.int64(0))
-        order = batch.order if batch.order is not None else \
+        order = batch.order if batch.order is not None or not batch.slots else \
             np.arange(batch.count, dtype=np.uint32)
+        if batch.check is not None:
+            batch.check(buffers, steps)
 
         def cut(start: int, stop: int):
+            if not batch.slots:
+                return (Launch(stop - start, buffers, steps, self.unused, np.uint32(0), segments,
+                               start), list, _nothing, None)
             slots = self._wrap(order[start:stop], flags.READ_ONLY)
             arguments = Launch(stop - start, buffers, steps, slots, np.uint32(1), segments)
             return arguments, list, _nothing, slots
-        # the results are mapped once, after the last launch
-        return cut, [(written[name], array) for name, array in batch.outputs.items()]
+        # the results are mapped once, after the last launch (those on the
+        # device stay there)
+        return cut, [(written[name], array) for name, array in batch.outputs.items()
+                     if isinstance(array, np.ndarray)]
+
+    def _whole_buffer(self, array, access) -> cl.Buffer:
+        """The buffer a whole-array launch uses for ``array``: a numpy
+        array's own memory (_wrap), a pyopencl array's buffer."""
+        if isinstance(array, np.ndarray):
+            return self._wrap(array, access)
+        if array.context != self.rt.context:
+            raise ValueError("a pyopencl array of another OpenCL context than this scene's "
+                             f"({self.rt.device.id}) reached the launch engine")
+        return array.data
 
     def _chunk(self, batch: Batch, rows: dict, scalars: dict):
         """Launches over each run's rows (taken on the host in ``order``),
@@ -430,12 +469,13 @@ def _row_bytes(array: np.ndarray) -> int:
 
 def _runs(batch: Batch, sizes: LaunchSizes):
     """(start, stop) runs of the batch's items: at most sizes.size items (as
-    it stands when each run is cut) and, for segmented outputs, at most
+    it stands when each run is cut, rounded down to the batch's granule) and, for segmented outputs, at most
     max_rows rows unless one item alone has more; runs with no rows are
     skipped."""
     start, count, offsets = 0, batch.count, batch.segments
     while start < count:
-        stop = min(start + sizes.size, count)
+        stop = min(start + max(batch.granule, sizes.size // batch.granule * batch.granule),
+                   count)
         if offsets is not None:
             if batch.max_rows is not None:
                 bound = int(np.searchsorted(offsets, offsets[start] + batch.max_rows,

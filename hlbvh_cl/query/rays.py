@@ -22,6 +22,7 @@ import pyopencl as cl
 
 from ..core import frame
 from ..core import inputs
+from . import on_device
 from ..device.runtime import Runtime
 from ..device.profile import PACKET_SIZES
 from .engine import (Batch, Engine, check_tree, engine_setting, kernel_defines,
@@ -60,8 +61,10 @@ class Hits:
 
     @property
     def hit(self) -> np.ndarray:
-        """bool (R,): which rays hit something."""
-        return self.geom_id >= 0
+        """bool (R,): which rays hit something (a pyopencl array where the
+        hits are)."""
+        hit = self.geom_id >= 0
+        return hit if isinstance(hit, np.ndarray) else hit.view(bool)  # int8 0 or 1
 
 
 #: Device buffers of the numpy-facing queries, bytes per ray: the inputs, then
@@ -114,6 +117,9 @@ class RayQuery:
         self.results = ResultPool()
         # the renderer's device-buffer entry points: every ray sees all (mask)
         self._all_bits = cl.Buffer(rt.context, cl.mem_flags.READ_ONLY, 4)
+        #: the device memory of results of rays given on the device (made
+        #: on the first such call)
+        self._device_results: on_device.ResultArrays | None = None
         cl.enqueue_copy(rt.queue, self._all_bits, np.full(1, ALL_BITS, np.uint32))
         #: for tests: count the work-items whose rays were traced as one packet
         #: (kernels built with COUNT_PACKETS) into last_packets
@@ -149,24 +155,22 @@ class RayQuery:
                   mask=None) -> Hits:
         """Closest hit of each ray (origins[i] + t * directions[i], tmin <= t <= tmax),
         in the rays' leading shape (hlbvh_cl.core.inputs); a ray skips geometry
-        whose mask shares no bit with its own (``mask``: scalar or per ray)."""
+        whose mask shares no bit with its own (``mask``: scalar or per ray).
+        Rays given as pyopencl arrays get a Hits of pyopencl arrays
+        (query/on_device.py)."""
+        rays = on_device.device_rays(self.rt, origins, directions, tmin, tmax, mask)
+        if rays is not None:
+            return self._on_device(tree, rays, self.intersect, {
+                name: ((n,) if n > 1 else (), dtype) for name, (dtype, n) in HIT_FIELDS.items()},
+                lambda found: Hits(**found))
         batch = masked(inputs.rays(origins, directions, tmin, tmax), mask, tree)
         count = len(batch)
         hits = Hits(**{name: self.results.empty((count, n) if n > 1 else count, dtype)
                        for name, (dtype, n) in HIT_FIELDS.items()})
         batch, t_factor = into_frame(batch, tree)
         if count and check_tree(self.rt, tree):
-            kernel = self._kernel(tree, "intersect_closest_arrays", self.count_packets)
-
-            def launch(n, run):
-                b, steps = run.buffers, run.steps
-                return self.rt.run(kernel, self._work_items(n),
-                                   *scene_args(tree, *steps["mask"]), b["origins"],
-                                   b["directions"], *steps["tmin"], *steps["tmax"], b["t"],
-                                   b["geom_id"], b["prim_id"], b["u"], b["v"], b["normal"],
-                                   b["points"], b["instance_id"], self.engine.counters,
-                                   np.uint32(n), local_size=self.work_group_size)
-            self._run(batch, launch, {name: getattr(hits, name) for name in HIT_ARRAYS})
+            self._run(batch, self._closest(tree), {name: getattr(hits, name)
+                                                   for name in HIT_ARRAYS})
             if t_factor is not None:  # back from the frame
                 hit = np.flatnonzero(hits.prim_id >= 0)
                 found = hits.t[hit]
@@ -174,33 +178,106 @@ class RayQuery:
                 hits.t[hit] = found
                 hits.points[:] = frame.to_frame(hits.points, 1.0 / tree.scale)
         elif count:
-            hits.t[:] = np.inf
-            hits.geom_id[:] = hits.prim_id[:] = hits.instance_id[:] = -1
-            hits.u[:] = hits.v[:] = hits.normal[:] = 0.0
-            hits.points[:] = np.nan
+            missed(hits)
         return Hits(**{name: field.reshape(batch.shape + field.shape[1:])
                        for name, field in vars(hits).items()})
 
     def occluded(self, tree: Tree, origins, directions=None, tmin=0.0,
                  tmax=np.inf, mask=None) -> np.ndarray:
         """bool in the rays' leading shape: whether anything is hit with
-        tmin <= t <= tmax (stops at the first hit); ``mask`` as intersect."""
+        tmin <= t <= tmax (stops at the first hit); ``mask`` as intersect.
+        Rays given as pyopencl arrays get a pyopencl array."""
+        rays = on_device.device_rays(self.rt, origins, directions, tmin, tmax, mask)
+        if rays is not None:
+            return self._on_device(tree, rays, self.occluded, {"occluded": ((), np.uint8)},
+                                   lambda found: found["occluded"].view(bool))
         batch, _ = into_frame(masked(inputs.rays(origins, directions, tmin, tmax), mask, tree),
                               tree)
         count = len(batch)
         result = self.results.empty(count, np.uint8)
         if count and check_tree(self.rt, tree):
-            kernel = self._kernel(tree, "intersect_any_arrays", self.count_packets)
-
-            def launch(n, run):
-                b, steps = run.buffers, run.steps
-                return self.rt.run(kernel, self._work_items(n),
-                                   *scene_args(tree, *steps["mask"]), b["origins"],
-                                   b["directions"], *steps["tmin"], *steps["tmax"],
-                                   b["occluded"], self.engine.counters, np.uint32(n),
-                                   local_size=self.work_group_size)
-            self._run(batch, launch, {"occluded": result})
+            self._run(batch, self._any(tree), {"occluded": result})
         return result.view(bool).reshape(batch.shape)  # the kernel writes 0 or 1
+
+    def _closest(self, tree):
+        """The launch (Batch's ``launch``) of intersect_closest_arrays: over
+        the rays [first, first + n) of its arrays (a global offset of whole
+        packets; Launch.first)."""
+        kernel = self._kernel(tree, "intersect_closest_arrays", self.count_packets)
+
+        def launch(n, run):
+            b, steps = run.buffers, run.steps
+            return self.rt.run(kernel, self._work_items(n),
+                               *scene_args(tree, *steps["mask"]), b["origins"],
+                               b["directions"], *steps["tmin"], *steps["tmax"], b["t"],
+                               b["geom_id"], b["prim_id"], b["u"], b["v"], b["normal"],
+                               b["points"], b["instance_id"], self.engine.counters,
+                               np.uint32(run.first + n), local_size=self.work_group_size,
+                               offset=run.first // self.packet_size)
+        return launch
+
+    def _any(self, tree):
+        """The launch of intersect_any_arrays."""
+        kernel = self._kernel(tree, "intersect_any_arrays", self.count_packets)
+
+        def launch(n, run):
+            b, steps = run.buffers, run.steps
+            return self.rt.run(kernel, self._work_items(n),
+                               *scene_args(tree, *steps["mask"]), b["origins"],
+                               b["directions"], *steps["tmin"], *steps["tmax"],
+                               b["occluded"], self.engine.counters,
+                               np.uint32(run.first + n), local_size=self.work_group_size,
+                               offset=run.first // self.packet_size)
+        return launch
+
+    def _on_device(self, tree, rays: on_device.DeviceRays, query, fields: dict, make):
+        """A query (intersect or occluded) of rays on the device: the
+        results, by ``fields`` (name: (trailing shape, dtype)), as pyopencl
+        arrays, made into the query's result by ``make``; traced from the
+        host where the tree's frame or a ray's reach asks for it
+        (query/on_device.py)."""
+        if self._device_results is None:
+            self._device_results = on_device.ResultArrays(self.rt.queue)
+        pool, count = self._device_results, len(rays)
+        found = {name: pool.empty((count, *trailing), dtype)
+                 for name, (trailing, dtype) in fields.items()}
+        fallback = False
+        if count and check_tree(self.rt, tree):
+            fallback = getattr(tree, "scale", 1.0) != 1.0
+            if not fallback:
+                launch = (self._closest if "t" in fields else self._any)(tree)
+                fallback = self._run_on_device(tree, rays, launch, found)
+        elif count:
+            missed(found)
+        if fallback:  # from the host: its frame, and the results back up
+            result = query(tree, *rays.host(), mask=rays.mask)
+            host = vars(result) if "t" in fields else {"occluded": result.view(np.uint8)}
+            found = {name: pool.upload(host[name].reshape(count, *fields[name][0]))
+                     for name in fields}
+        return make({name: array.reshape(*rays.shape, *fields[name][0])
+                     for name, array in found.items()})
+
+    def _run_on_device(self, tree, rays: on_device.DeviceRays, launch, outputs: dict) -> bool:
+        """The launches over rays on the device, checked there; raises for
+        a ray that fails the checks; True where a ray's hit may lie past
+        float32's range (the caller traces from the host instead)."""
+        stepped = {"tmin": rays.tmin, "tmax": rays.tmax, "mask": rays.mask}
+        if not isinstance(tree, InstancedTree) and rays.mask == 0:
+            # a flat tree's meshes have every bit (masked): these rays see
+            # nothing; the checks still see the caller's tmax
+            stepped.update(given_tmax=rays.tmax, tmax=np.array(-np.inf, np.float32))
+
+        def check(buffers, steps):
+            on_device.check_rays(self.rt, rays, {"tmin": steps["tmin"], "tmax": steps.get(
+                "given_tmax", steps["tmax"])}, self.engine.counters)
+        counters = self.engine.run(Batch(
+            len(rays), {"origins": rays.origins, "directions": rays.directions}, outputs,
+            stepped=stepped, whole=True, check=check, slots=False, granule=self.packet_size),
+            launch)
+        self.last_packets = int(counters[1]) if self.count_packets else None
+        if counters[2]:
+            on_device.raise_for_bad_ray(rays)
+        return bool(counters[3])
 
     # -- device-buffer entry points (the renderer's) ------------------------
 
@@ -254,6 +331,17 @@ class RayQuery:
             len(batch), {"origins": batch.origins, "directions": batch.directions}, outputs,
             stepped={"tmin": batch.tmin, "tmax": batch.tmax, "mask": batch.mask}), launch)
         self.last_packets = int(counters[1]) if self.count_packets else None
+
+
+def missed(hits) -> None:
+    """Every field of Hits (or of a dict of its fields, numpy's or
+    pyopencl's) set as a miss has it."""
+    fields = hits if isinstance(hits, dict) else vars(hits)
+    for name, value in {"t": np.inf, "geom_id": -1, "prim_id": -1, "instance_id": -1,
+                        "u": 0.0, "v": 0.0, "normal": 0.0, "points": np.nan,
+                        "occluded": 0}.items():
+        if name in fields:
+            on_device.fill(fields[name], value)
 
 
 def scene_args(tree, masks: cl.Buffer, mask_step) -> tuple:

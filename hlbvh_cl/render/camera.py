@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pyopencl as cl
+import pyopencl.array as cla
 
 from ..core import inputs, layout
 from ..core.paths import kernel_of
@@ -95,14 +96,19 @@ class Camera:
         record["up"] = true_up * half_height
         return record
 
-    def rays(self, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    def rays(self, width: int, height: int, scene=None):
         """The primary rays of a width x height image, as a render with spp=1
         traces them: float32 (H*W, 3) origins and directions through the pixel
         centres, row-major from the top-left pixel, in camera.cl's float32
-        arithmetic."""
+        arithmetic.  With a ``scene``, they are made on its device and
+        returned as pyopencl arrays on scene.queue, which its ray queries
+        take as they are (nothing crosses to the host; OpenCL may round the
+        pixel's division differently from numpy, by an ulp)."""
         width = inputs.integer("width", width, 1, MAX_IMAGE_SIDE)
         height = inputs.integer("height", height, 1, MAX_IMAGE_SIDE)
         record = self.pinhole(width, height)
+        if scene is not None:
+            return _device_rays(scene, record, width, height)
         f32 = np.float32
         ys, xs = np.mgrid[0:height, 0:width].astype(f32)
         sx = (f32(2) * (xs + f32(0.5)) / f32(width) - f32(1)).reshape(-1, 1)
@@ -110,6 +116,18 @@ class Camera:
         directions = record["forward"] + sx * record["right"] + sy * record["up"]
         origins = np.broadcast_to(record["eye"], directions.shape).copy()
         return origins, np.ascontiguousarray(directions, f32)
+
+
+def _device_rays(scene, record: np.ndarray, width: int, height: int):
+    """Camera.rays made by camera.cl's camera_rays on the scene's device."""
+    with scene.borrow() as built:
+        rt = built.runtime
+        origins, directions = (cla.empty(rt.queue, (width * height, 3), np.float32)
+                               for _ in range(2))
+        rt.run(rt.kernel(KERNEL, "camera_rays", FILTER_INTERVALS=FILTER_INTERVALS),
+               width * height, record, np.uint32(width), np.uint32(height), origins.data,
+               directions.data)
+    return origins, directions
 
 
 #: The reconstruction filters a render takes, by Mitsuba's names, and the

@@ -1,10 +1,13 @@
 /* Primary ray generation: one pinhole-camera ray per pixel and sample.
  *
- * Kernel
+ * Kernels
  *   primary_rays  one ray per pixel of the pass of `rows` rows from row
  *                 first_row of a width x height image (pixels row-major from
  *                 the top-left one), in tile order: over the 2D range of
  *                 pixel_in_pass (render/tiles.h)
+ *   camera_rays   one ray through each pixel's centre, row-major, as
+ *                 origins and directions arrays (Camera.rays on the device,
+ *                 which computes them as camera.py does in numpy)
  *
  * Pixel (x, y), y counting down from the top row, is the square
  * [x, x + 1] x [y, y + 1]; a sample at (x + jx, y + jy) maps to the image
@@ -74,4 +77,19 @@ __kernel void primary_rays(const PinholeCamera camera, const uint width, const u
     }
     ray->tmin = 0.0f;
     ray->tmax = INFINITY;
+}
+
+__kernel void camera_rays(const PinholeCamera camera, const uint width, const uint height,
+                          __global float* origins, __global float* directions)
+{
+    size_t pixel = get_global_id(0);
+    if (pixel >= (size_t)width * height)
+        return;
+    uint x = (uint)(pixel % width), y = (uint)(pixel / width);
+    float sx = 2.0f * ((float)x + 0.5f) / (float)width - 1.0f;
+    float sy = 1.0f - 2.0f * ((float)y + 0.5f) / (float)height;
+    for (int k = 0; k < 3; ++k) {
+        origins[3 * pixel + k] = camera.eye[k];
+        directions[3 * pixel + k] = camera.forward[k] + sx * camera.right[k] + sy * camera.up[k];
+    }
 }

@@ -189,7 +189,30 @@ def case_packets(uninitialized: bool) -> dict:
                       f"packets of {packet_size}")
         if packet_size > 1:  # the coherent blocks went as packets (with tmax, by occluded)
             assert query.last_packets >= len(COHERENT_BLOCKS) * BLOCK // packet_size
+        check_device_rays(query, built.tree(scene), Oracle(scene))
     return {}
+
+
+def check_device_rays(query, tree, oracle) -> None:
+    """The rays as pyopencl arrays (query/on_device.py: checked on the
+    device, then traced in launches at global offsets, a few packets each):
+    the numpy rays' hits."""
+    import pyopencl.array as cla
+    origins, directions = rays(oracle)
+    query.max_rays_per_launch = 3 * query.packet_size
+    on_device = [cla.to_device(query.rt.queue, a) for a in (origins, directions)]
+    hits, expected = query.intersect(tree, *on_device), query.intersect(tree, origins, directions)
+    for name, value in vars(expected).items():
+        np.testing.assert_array_equal(getattr(hits, name).get(), value, name)
+    occluded = query.occluded(tree, *on_device)
+    np.testing.assert_array_equal(occluded.get(), expected.hit)
+    # pyopencl arrays' buffers are not cl.Buffer objects made in Python:
+    # kept alive here as uninitialized_mode keeps those (its point 3)
+    KEPT_DEVICE_ARRAYS.append((query, on_device, hits, occluded))
+
+
+#: What check_device_rays keeps alive until the child ends.
+KEPT_DEVICE_ARRAYS: list = []
 
 
 def case_render(uninitialized: bool) -> dict:

@@ -87,6 +87,32 @@ def test_a_query_call_launches_once_and_waits_once_for_its_results(zero_copy, su
         assert dict(counted) == {"launch": passes, "sync": passes}, name
 
 
+def test_a_call_on_device_arrays_waits_once_and_moves_no_rays(suite_device, counted,
+                                                              monkeypatch):
+    """Rays given as pyopencl arrays: the checks' kernel and the query's,
+    one wait (for the counters: the results stay on the device), and no
+    copy between host and device but that wait's."""
+    import pyopencl.array as cla
+    scene = hlbvh_cl.Scene([grid_mesh(6)], device=suite_device)
+    rng = np.random.default_rng(5)
+    origins = cla.to_device(scene.queue, rng.uniform(-0.5, 1.5, (300, 3)).astype(np.float32))
+    directions = cla.to_device(scene.queue, np.tile(np.float32([0.05, 0.02, 1.0]), (300, 1)))
+    moved = []  # bytes of each copy between the host and the device
+    original = cl.enqueue_copy
+    monkeypatch.setattr(cl, "enqueue_copy", lambda queue, dest, src, **kw: (
+        moved.append(sum(a.nbytes for a in (dest, src) if isinstance(a, np.ndarray))),
+        original(queue, dest, src, **kw))[1])
+    for call in (lambda: scene.intersect(origins, directions, tmax=9.0),
+                 lambda: scene.occluded(origins, directions)):
+        call()
+        counted.clear()
+        moved.clear()
+        call()
+        assert dict(counted) == {"launch": 2, "sync": 1}
+        # up: tmin, tmax and the mask, a number each; back: the counters
+        assert 0 < sum(moved) <= 3 * 4 + 4 * engine.COUNTERS
+
+
 def test_a_build_synchronises_no_more_than_today(suite_device, counted):
     mesh = grid_mesh(20)
     hlbvh_cl.Scene([mesh], device=suite_device)  # programs built

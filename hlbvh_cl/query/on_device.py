@@ -1,0 +1,184 @@
+"""Rays that are already on the device: pyopencl arrays given to a ray query,
+whose results then stay on the device too (issue 57; Warp's and Open3D's
+queries take and give device arrays the same way).
+
+What is taken: ``origins`` and ``directions``, both pyopencl arrays of
+float32 of the same shape (..., 3), on the scene's context (Scene.queue
+makes them); ``tmin`` and ``tmax`` as numbers or float32 pyopencl arrays
+of the rays' leading shape; ``mask`` as one integer or None.  Anything else
+is refused by name.  The rays are checked on the device
+(kernels/query/on_device.cl) as core/inputs.py checks numpy rays, in the
+same queue as the query's own kernel, so that the call still waits once; a
+ray that fails is then named as inputs.rays names it, from a copy of the
+arrays (the error's path, not the call's).
+
+Results are pyopencl arrays on Scene.queue, in the rays' leading shape.
+Where the scene's tree is built in a scaled frame (hlbvh_cl.core.frame), or
+where a ray's hit could lie past float32's range, the rays are traced from
+the host instead (query/rays.py's into_frame scales them there) and the
+results copied back up: same answers, a slower call.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pyopencl as cl
+import pyopencl.array as cla
+import pyopencl.tools  # noqa: F401  (cl.tools: the memory pool)
+
+from ..core import frame
+from ..core import inputs
+from ..core.paths import kernel_of
+from ..device.runtime import Runtime
+
+KERNEL = kernel_of(__name__)
+
+#: float32's largest t the box and triangle tests take without overflow
+#: (query/rays.py's _SAFE_T, as a float32).
+SAFE_T = np.float32(np.finfo(np.float32).max / 4)
+
+
+def is_device_array(value) -> bool:
+    """Whether ``value`` is a pyopencl array."""
+    return isinstance(value, cla.Array)
+
+
+@dataclass
+class DeviceRays:
+    """Rays on the device, their shapes checked: (R, 3) float32 arrays
+    without offset, limits as float32 0-d numpy values or (R,) pyopencl
+    arrays, the mask as uint32 0-d, and the leading shape of the results."""
+
+    origins: cla.Array
+    directions: cla.Array
+    tmin: object
+    tmax: object
+    mask: np.ndarray
+    shape: tuple
+
+    def __len__(self) -> int:
+        return len(self.origins)
+
+    def host(self) -> tuple:
+        """origins, directions, tmin and tmax copied to the host in the
+        caller's shapes, as the numpy queries take them (the fallback's and
+        the error path's)."""
+        return (self.origins.get().reshape(*self.shape, 3),
+                self.directions.get().reshape(*self.shape, 3),
+                *(limit if isinstance(limit, np.ndarray) else limit.get().reshape(self.shape)
+                  for limit in (self.tmin, self.tmax)))
+
+
+def device_rays(rt: Runtime, origins, directions, tmin, tmax, mask) -> DeviceRays | None:
+    """The rays as DeviceRays when any of them is a pyopencl array, else
+    None (numpy rays: core/inputs.py's).  Shapes, types and the context are
+    checked here; values on the device (check_rays)."""
+    given = {"origins": origins, "directions": directions, "tmin": tmin, "tmax": tmax,
+             "mask": mask}
+    if not any(is_device_array(value) for value in given.values()):
+        return None
+    for name in ("origins", "directions"):
+        if not is_device_array(given[name]):
+            raise TypeError(f"{name} is {'missing' if given[name] is None else 'not a pyopencl array'}"
+                            " while another ray input is one: give origins and directions as "
+                            "two pyopencl arrays of shape (..., 3), or all inputs as numpy arrays")
+    if is_device_array(mask):
+        raise TypeError("mask is a pyopencl array: rays on the device take one integer mask "
+                        "(or none); give per-ray masks with numpy rays")
+    for name, value in given.items():
+        if is_device_array(value) and value.context != rt.context:
+            raise ValueError(f"{name} is a pyopencl array of another OpenCL context than this "
+                             f"scene's ({rt.device.id}): make it with scene.queue")
+    shape = origins.shape[:-1]
+    for name, value in (("origins", origins), ("directions", directions)):
+        _check_array(name, value, np.float32)
+        if value.ndim < 1 or value.shape[-1] != 3 or value.shape[:-1] != shape:
+            raise ValueError(f"{name} must have shape (..., 3) like origins {origins.shape}, "
+                             f"got {value.shape}")
+    count = int(np.prod(shape, dtype=np.int64))
+    if count > inputs.MAX_BATCH:
+        raise ValueError(f"{count} rays in one call: at most {inputs.MAX_BATCH}")
+    limits = {}
+    for name, value in (("tmin", tmin), ("tmax", tmax)):
+        if is_device_array(value):
+            _check_array(name, value, np.float32)
+            if value.shape != shape:
+                raise ValueError(f"{name} must have the rays' leading shape {shape}, "
+                                 f"got {value.shape}")
+            limits[name] = _flat(value, count)
+        else:
+            limits[name] = inputs.limits(name, value, ())
+    if not is_device_array(tmin):  # one tmin for all is checked here, as inputs.rays does
+        inputs.check_limits(limits["tmin"], limits["tmax"] if not is_device_array(tmax)
+                            else np.float64(np.inf), ())
+    # float32, rounded inward as inputs.rays rounds them
+    scalars = inputs.inward(*(limits[name] if not is_device_array(limits[name])
+                              else np.float64(0.0) for name in ("tmin", "tmax")))
+    for name, value in zip(("tmin", "tmax"), scalars):
+        if not is_device_array(limits[name]):
+            limits[name] = value.reshape(())
+    masks = np.array(inputs.ALL_BITS, np.uint32) if mask is None else \
+        inputs.ray_masks(mask, ())
+    return DeviceRays(_flat(origins, count, 3), _flat(directions, count, 3), limits["tmin"],
+                      limits["tmax"], masks.reshape(()), shape)
+
+
+def _check_array(name: str, value: cla.Array, dtype) -> None:
+    if value.dtype != dtype:
+        raise TypeError(f"{name} is a pyopencl array of {value.dtype}; rays on the device must "
+                        f"be {np.dtype(dtype).name} ({name}.astype(np.{np.dtype(dtype).name}))")
+    if not value.flags.c_contiguous:
+        raise ValueError(f"{name} is a pyopencl array that is not C-contiguous; give a "
+                         "contiguous one (e.g. its .copy())")
+
+
+def _flat(value: cla.Array, count: int, width: int = 0) -> cla.Array:
+    """``value`` as (count, width) rows (or (count,)) over a buffer of its
+    own from offset 0, which is what a kernel argument can take: a view at
+    an offset is copied on the device."""
+    if value.offset:
+        value = value.copy()
+    return value.reshape((count, width) if width else (count,))
+
+
+def check_rays(rt: Runtime, rays: DeviceRays, steps: dict, counters: cl.Buffer) -> None:
+    """Enqueues check_rays over the rays (the buffers and steps of the
+    engine's launch), setting counters[2] and [3]."""
+    kernel = rt.kernel(KERNEL, "check_rays")
+    rt.run(kernel, len(rays), rays.origins.data, rays.directions.data, *steps["tmin"],
+           *steps["tmax"], np.float32(frame.SAFE_RANGE[1]), SAFE_T, counters,
+           np.uint32(len(rays)))
+
+
+def raise_for_bad_ray(rays: DeviceRays) -> None:
+    """The ValueError core/inputs.py raises for the first ray that
+    check_rays refused, read from a copy of the rays."""
+    inputs.rays(*rays.host())
+    raise RuntimeError("hlbvh_cl internal error: check_rays refused a ray that inputs.rays "
+                       "takes")
+
+
+def fill(array, value) -> None:
+    """Every element of a result array, numpy's or pyopencl's, set to
+    ``value``."""
+    if isinstance(array, np.ndarray):
+        array[...] = value
+    else:
+        array.fill(value)
+
+
+class ResultArrays:
+    """Result arrays on the device, from a pyopencl memory pool: the buffers
+    of results the caller has dropped are handed out again instead of being
+    allocated afresh (issue 57: results come from a pool)."""
+
+    def __init__(self, queue: cl.CommandQueue):
+        self.queue = queue
+        self.pool = cl.tools.MemoryPool(cl.tools.ImmediateAllocator(queue))
+
+    def empty(self, shape, dtype) -> cla.Array:
+        return cla.empty(self.queue, shape, dtype, allocator=self.pool)
+
+    def upload(self, array: np.ndarray) -> cla.Array:
+        return cla.to_device(self.queue, np.ascontiguousarray(array), allocator=self.pool)
