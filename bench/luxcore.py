@@ -26,13 +26,12 @@ The translation, and what in it is approximate:
   dielectric glass (interiorior / exteriorior, kr / kt).
   roughdielectric  roughglass, same roughness mapping as metal2.
   conductor / roughconductor  metal2 with n = eta and k (Mitsuba's
-             defaults 0 and 1 when absent, a perfect mirror).  A named metal
-             ("material": "Au") is refused, as our own loader
-             (hlbvh_cl.render.materials) refuses it: it has no table of
-             named metals' eta and k yet.  metal2's microfacet
-             distribution is Schlick's form with r = uroughness * vroughness,
-             D = r / (pi (1 + (r - 1) cos^2)^2), which is GGX with alpha^2 = r:
-             so uroughness = vroughness = Mitsuba's GGX alpha.  Its shadowing
+             defaults 0 and 1 when absent, a perfect mirror), or a named
+             metal's ("material": "Au") from the table our own loader uses
+             (hlbvh_cl.render.metals: Mitsuba's RGB values).  metal2's
+             microfacet distribution is Schlick's form with r = uroughness *
+             vroughness, D = r / (pi (1 + (r - 1) cos^2)^2), which is GGX with
+             alpha^2 = r: so uroughness = vroughness = Mitsuba's GGX alpha.  Its shadowing
              term is Schlick's approximation, not GGX's Smith G.  A Beckmann
              alpha is passed the same way (approximate).  A smooth conductor
              gets roughness SMOOTH (LuxCore has no delta conductor with n, k).
@@ -182,11 +181,12 @@ def material_lines(name: str, spec: dict) -> list[str]:
                  f"{prefix}.interiorior = {inside!r}", f"{prefix}.exteriorior = {outside!r}"]
         return lines + (_roughness(spec, prefix, alpha) if kind == "roughdielectric" else [])
     if kind in ("conductor", "roughconductor"):
+        eta, k = spec.get("eta", 0.0), spec.get("k", 1.0)
         if spec.get("material", "none") != "none":
-            raise ValueError(f"{name}: a {kind} named {spec['material']!r} is not translated "
-                             "to LuxCore (named metals are not written yet); give its eta and k")
-        return [f"{prefix}.type = metal2", f"{prefix}.n = {_color(spec.get('eta', 0.0))}",
-                f"{prefix}.k = {_color(spec.get('k', 1.0))}",
+            from hlbvh_cl.render.metals import METALS
+            eta, k = METALS[spec["material"]]
+        return [f"{prefix}.type = metal2", f"{prefix}.n = {_color(eta)}",
+                f"{prefix}.k = {_color(k)}",
                 *_roughness(spec, prefix, alpha if kind == "roughconductor" else SMOOTH)]
     if kind in ("plastic", "roughplastic"):
         inside, outside = _ior(spec, 1.49, 1.000277)

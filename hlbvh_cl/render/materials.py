@@ -9,10 +9,13 @@ to one:
 - ``{"type": "conductor", "eta": 0, "k": 1, "specular_reflectance": 1}``:
   a smooth metal, mirror reflection weighted by Fresnel's conductor
   equations for the complex index eta + i k (numbers or RGB); Mitsuba's
-  defaults, eta 0 and k 1, make a perfect mirror.  One-sided.  Named
-  metals ("material": "Au") are refused: give eta and k.
+  defaults, eta 0 and k 1, make a perfect mirror.  One-sided.  Or
+  ``"material": "Au"``: a metal Mitsuba names, its eta and k from
+  metals.METALS (Mitsuba's RGB values; "none", the default, is the
+  mirror); naming one and giving eta or k too is an error, as in Mitsuba.
 - ``{"type": "roughconductor", "distribution": "beckmann", "alpha": 0.1,
-  "eta": 0, "k": 1, "specular_reflectance": 1}``: a rough metal, a
+  "eta": 0, "k": 1, "specular_reflectance": 1}``: a rough metal (eta and
+  k, or a "material", as the conductor's), a
   microfacet model, "beckmann" (Mitsuba's default) or "ggx", each
   sampled by its visible normals.  Isotropic only (alpha, not
   alpha_u and alpha_v).
@@ -46,6 +49,7 @@ import numpy as np
 
 from ..core import inputs, layout
 from . import coating
+from .metals import METALS
 from .plugins import plugin_type
 
 _PLASTIC = ("diffuse_reflectance", "specular_reflectance", "int_ior", "ext_ior", "nonlinear")
@@ -104,13 +108,8 @@ def _bsdf(name: str, spec) -> np.void:
     if kind == "diffuse":
         record["reflectance"] = color("reflectance", DEFAULT_REFLECTANCE)
     elif kind in ("conductor", "roughconductor"):
-        material = spec.get("material", "none")
-        if material != "none":
-            raise ValueError(f"{name}: named conductors ({material!r}) are not written yet; "
-                             "give its 'eta' and 'k' instead")
         record["reflectance"] = color("specular_reflectance", 1.0)
-        record["eta"] = color("eta", 0.0, _LARGE)
-        record["k"] = color("k", 1.0, _LARGE)
+        record["eta"], record["k"] = _conductor_index(name, spec)
     elif kind in ("dielectric", "roughdielectric"):
         record["reflectance"] = color("specular_reflectance", 1.0)
         record["transmittance"] = color("specular_transmittance", 1.0)
@@ -134,6 +133,29 @@ def _bsdf(name: str, spec) -> np.void:
                 spec.get("distribution", "beckmann"), float(record["alpha"]), eta,
                 layout.TRANSMISSION_TABLE)
     return record
+
+
+def _conductor_index(name: str, spec) -> tuple:
+    """A conductor's (eta, k): those given (Mitsuba's defaults 0 and 1), or
+    the named metal's.  Mitsuba refuses a name beside eta, and leaves a k
+    beside it unread, an error too."""
+    material = spec.get("material", "none")
+    if not isinstance(material, str):
+        raise TypeError(f"{name}['material'] must be a metal's name (a string such as 'Au'), "
+                        f"got {type(material).__name__}")
+    if material == "none":
+        return (inputs.color(f"{name}['eta']", spec.get("eta", 0.0), _LARGE),
+                inputs.color(f"{name}['k']", spec.get("k", 1.0), _LARGE))
+    if material not in METALS:
+        cased = [known for known in METALS if known.lower() == material.lower()]
+        hint = f" (names are case-sensitive: {cased[0]!r}?)" if cased else ""
+        raise ValueError(f"{name}['material'] = {material!r} is not a metal Mitsuba names{hint}; "
+                         f"the names are 'none' (a perfect mirror) and {', '.join(METALS)}")
+    given = [key for key in ("eta", "k") if key in spec]
+    if given:
+        raise ValueError(f"{name}: give either the material {material!r} or eta and k, not "
+                         f"both (it also has {' and '.join(given)})")
+    return METALS[material]
 
 
 def _microfacet(name: str, spec, record: np.void) -> None:

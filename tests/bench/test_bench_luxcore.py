@@ -56,9 +56,12 @@ def test_an_emitter_it_cannot_translate_is_refused_by_name(emitter, words):
         luxcore.scene_properties(description_with([emitter]), 8, 8)
 
 
-def test_a_named_conductor_is_refused_and_mitsuba_s_defaults_fill_in_eta_and_k():
-    with pytest.raises(ValueError, match=r"m3: a roughconductor named 'Au' is not translated"):
-        luxcore.material_lines("m3", {"type": "roughconductor", "material": "Au"})
+def test_a_named_conductor_takes_the_table_s_eta_and_k_and_mitsuba_s_defaults_fill_in():
+    # Mitsuba 3's RGB gold (the table tests/render/test_metals.py checks against it)
+    lines = luxcore.material_lines("m3", {"type": "roughconductor", "material": "Au"})
+    assert "scene.materials.m3.type = metal2" in lines
+    assert [line.split(" = ")[1] for line in lines if line.split(" = ")[0].endswith((".n", ".k"))] \
+        == ["0.14303598 0.37530708 1.4420453", "3.982997 2.3855565 1.6033592"]
     # Mitsuba's conductor without eta, k or material: eta 0, k 1 (a perfect mirror)
     lines = luxcore.material_lines("m0", {"type": "conductor", "material": "none"})
     assert "scene.materials.m0.n = 0.0 0.0 0.0" in lines

@@ -10,6 +10,7 @@ import pytest
 import hlbvh_cl
 from hlbvh_cl.io.mitsuba import read_xml
 from hlbvh_cl.io.scenefile import SceneFileError, load
+from hlbvh_cl.render.materials import check_material
 import places
 from agreement import assert_blocks_agree
 
@@ -274,6 +275,37 @@ def test_plastics_and_rough_glass_read_as_mitsuba_names_them(tmp_path):
         {"type": "plastic", "specular_reflectance": 0.5},
         {"type": "roughdielectric", "alpha": 0.3, "ext_ior": 1.333,
          "specular_transmittance": [1.0, 0.9, 0.8]}]
+
+
+def test_a_named_metal_reads_as_mitsuba_names_it(tmp_path):
+    """<string name="material" value="Au"/> in a roughconductor arrives as
+    the spec's "material", whose eta and k are the RGB values Mitsuba 3
+    loads from the same file; a name Mitsuba does not know, or a name
+    beside eta, is an error naming the line, as Mitsuba refuses both."""
+    body = """
+  <shape type="sphere"><bsdf type="roughconductor" id="gold">
+    <string name="material" value="Au"/><float name="alpha" value="0.2"/>
+  </bsdf></shape>"""
+    path = tmp_path / "scene.xml"
+    path.write_text(scene_xml(body))
+    theirs = mi.traverse(mi.load_file(str(path)).shapes()[0].bsdf())
+    materials = read_xml(path).materials()
+    assert materials == [{"type": "roughconductor", "material": "Au", "alpha": 0.2}]
+    record = check_material("gold", materials[0])
+    for key in ("eta", "k"):
+        assert record[key] == pytest.approx(np.ravel(theirs[f"{key}.value"]), rel=1e-6)
+    for inside, words in (('<string name="material" value="Gold"/>',
+                           "['material'] = 'Gold' is not a metal Mitsuba names"),
+                          ('<string name="material" value="Au"/><float name="eta" value="1"/>',
+                           "give either the material 'Au' or eta and k, not both")):
+        path.write_text(scene_xml(f'<shape type="sphere"><bsdf type="roughconductor">{inside}'
+                                  '</bsdf></shape>'))
+        with pytest.raises(RuntimeError):
+            mi.load_file(str(path))
+        with pytest.raises(SceneFileError, match=r"scene.xml:11: <bsdf type=\"roughconductor\">"
+                                                 ) as error:
+            read_xml(path)
+        assert words in str(error.value)
 
 
 def test_the_cli_renders_an_xml_scene_with_its_own_options(tmp_path, capsys, suite_device):

@@ -336,7 +336,17 @@ def test_a_seed_fixes_the_image(suite_device):
     (None, [{"type": "point", "intensity": 1.0}], "emitters[0]: point needs its 'position'"),
     (None, [{"type": "directional", "irradiance": 1.0, "direction": [0, 0, 0]}],
      "emitters[0]['direction'] is the zero vector"),
-    ([{"type": "conductor", "material": "Au"}], None, "named conductors ('Au')"),
+    ([{"type": "conductor", "material": "Gold"}], None,
+     "materials[0]['material'] = 'Gold' is not a metal Mitsuba names; the names are 'none' "
+     "(a perfect mirror) and a-C, Ag, Al, AlAs, "),
+    ([{"type": "roughconductor", "material": "cu"}], None,
+     "'cu' is not a metal Mitsuba names (names are case-sensitive: 'Cu'?)"),
+    ([{"type": "conductor", "material": "Au", "eta": [0.2, 0.4, 1.4]}], None,
+     "materials[0]: give either the material 'Au' or eta and k, not both (it also has eta)"),
+    ([{"type": "roughconductor", "material": "Cu", "k": 3.0}], None,
+     "give either the material 'Cu' or eta and k, not both (it also has k)"),
+    ([{"type": "conductor", "material": None}], None,
+     "materials[0]['material'] must be a metal's name (a string such as 'Au'), got NoneType"),
     ([{"type": "dielectric", "int_ior": 0.0}], None,
      "materials[0]['int_ior'] must be a finite number > 0"),
     ([{"type": "twosided", "bsdf": {"type": "dielectric"}}], None, "has no back side to wrap"),
@@ -449,8 +459,9 @@ def test_the_environment_s_light_samples_follow_the_power_it_can_deliver(suite_d
 def test_a_small_scene_agrees_with_mitsuba_3(rfilter, tmp_path, suite_device):
     """The same scene in Mitsuba 3 (scalar_rgb, its path integrator, a box
     filter, face normals): a one-sided diffuse ground, a two-sided diffuse
-    box, a glass ball, a smooth and a rough (GGX) gold ball, lit by an area light, a point light, a directional light and a
-    constant sky; max depth 6, Russian roulette from 5 in both; a box and
+    box, a glass ball, a smooth gold ball (Mitsuba's named "Au") and a rough
+    (GGX) one of given eta and k, lit by an area light, a point light, a
+    directional light and a constant sky; max depth 6, Russian roulette from 5 in both; a box and
     a Gaussian reconstruction filter (Mitsuba's default).  At equal
     spp, with SEEDS independent seeds each, every 6 x 6 block's mean agrees
     within 5 combined standard errors, plus 2% of its level for the
@@ -474,7 +485,7 @@ def test_a_small_scene_agrees_with_mitsuba_3(rfilter, tmp_path, suite_device):
         {"type": "diffuse", "reflectance": 0.6},
         {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": [0.8, 0.2, 0.2]}},
         {"type": "dielectric", "int_ior": 1.5},
-        {"type": "conductor", **gold},
+        {"type": "conductor", "material": "Au"},
         {"type": "roughconductor", "distribution": "ggx", "alpha": 0.25, **gold},
         {"type": "diffuse", "reflectance": 0.0}]
 
@@ -525,8 +536,10 @@ def our_renders(shapes, materials, emitters, eye, target, fov, width, height, de
       "specular_transmittance": [0.9, 0.8, 0.5]}, True),
     ({"type": "roughconductor", "alpha": 0.2, "eta": [0.18, 0.42, 1.37],
       "k": [3.42, 2.35, 1.77]}, False),
+    ({"type": "roughconductor", "distribution": "ggx", "alpha": 0.15, "material": "Cu"}, False),
 ], ids=["plastic", "twosided-plastic-nonlinear", "roughplastic-ggx", "roughplastic-beckmann",
-        "roughdielectric-ggx", "roughdielectric-beckmann", "roughconductor-beckmann"])
+        "roughdielectric-ggx", "roughdielectric-beckmann", "roughconductor-beckmann",
+        "roughconductor-ggx-named-Cu"])
 def test_a_ball_of_each_rough_or_coated_material_agrees_with_mitsuba_3(material, pane,
                                                                        tmp_path, suite_device):
     """A ball of the material on a diffuse ground under an area light and
