@@ -140,9 +140,9 @@ class Scene:
     @property
     def queue(self):
         """The scene's pyopencl CommandQueue (and, as queue.context, its
-        context): pyopencl arrays made with it can be given to intersect and
-        occluded, which then return pyopencl arrays on it
-        (docs/queries.md, "Rays on the device")."""
+        context): pyopencl arrays made with it can be given to the ray and
+        point queries, which then return pyopencl arrays on it
+        (docs/queries.md, "Rays and points on the device")."""
         return self._runtime.queue
 
     @contextlib.contextmanager
@@ -465,7 +465,7 @@ class Scene:
         with self._lock:
             found = self._point_query().closest_points(self._built_tree(), points, max_distance)
             if self._two_level is not None and not self._instanced:
-                found.instance_id[...] = -1  # instances of the masks' making
+                on_device.fill(found.instance_id, -1)  # instances of the masks' making
             return found
 
     def winding_number(self, points) -> np.ndarray:
@@ -487,7 +487,8 @@ class Scene:
 
     def contains(self, points) -> np.ndarray:
         """bool: whether each point is inside (|winding number| >= 0.5)."""
-        return np.abs(self.winding_number(points)) >= 0.5
+        inside = abs(self.winding_number(points)) >= 0.5
+        return inside if isinstance(inside, np.ndarray) else inside.view(bool)  # int8 0 or 1
 
     def _point_query(self):
         if self._points is None:

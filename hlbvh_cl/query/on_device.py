@@ -1,5 +1,5 @@
-"""Rays that are already on the device: pyopencl arrays given to a ray query,
-whose results then stay on the device too (issue 57; Warp's and Open3D's
+"""Rays and points that are already on the device: pyopencl arrays given to
+a ray or point query, whose results then stay on the device too (issue 57; Warp's and Open3D's
 queries take and give device arrays the same way).
 
 What is taken: ``origins`` and ``directions``, both pyopencl arrays of
@@ -12,7 +12,13 @@ same queue as the query's own kernel, so that the call still waits once; a
 ray that fails is then named as inputs.rays names it, from a copy of the
 arrays (the error's path, not the call's).
 
-Results are pyopencl arrays on Scene.queue, in the rays' leading shape.
+Points for the point queries come the same way, as one float32 pyopencl
+array (..., 3), checked on the device (finite, and within the range the
+point queries take), and walked in the order given (numpy points are
+walked in Morton order where a batch is big: a caller on the device orders
+them).
+
+Results are pyopencl arrays on Scene.queue, in the inputs' leading shape.
 Where the scene's tree is built in a scaled frame (hlbvh_cl.core.frame), or
 where a ray's hit could lie past float32's range, the rays are traced from
 the host instead (query/rays.py's into_frame scales them there) and the
@@ -124,6 +130,25 @@ def device_rays(rt: Runtime, origins, directions, tmin, tmax, mask) -> DeviceRay
                       limits["tmax"], masks.reshape(()), shape)
 
 
+def device_points(rt: Runtime, points) -> tuple[cla.Array, tuple] | None:
+    """Points given as a pyopencl array: (N, 3) float32 rows without
+    offset, and their leading shape; None for any other points (numpy's,
+    core/inputs.py)."""
+    if not is_device_array(points):
+        return None
+    if points.context != rt.context:
+        raise ValueError("points is a pyopencl array of another OpenCL context than this "
+                         f"scene's ({rt.device.id}): make it with scene.queue")
+    _check_array("points", points, np.float32)
+    if points.ndim < 1 or points.shape[-1] != 3:
+        raise ValueError(f"points must have shape (..., 3), got {points.shape}")
+    shape = points.shape[:-1]
+    count = int(np.prod(shape, dtype=np.int64))
+    if count > inputs.MAX_BATCH:
+        raise ValueError(f"{count} points in one call: at most {inputs.MAX_BATCH}")
+    return _flat(points, count, 3), shape
+
+
 def _check_array(name: str, value: cla.Array, dtype) -> None:
     if value.dtype != dtype:
         raise TypeError(f"{name} is a pyopencl array of {value.dtype}; rays on the device must "
@@ -149,6 +174,14 @@ def check_rays(rt: Runtime, rays: DeviceRays, steps: dict, counters: cl.Buffer) 
     rt.run(kernel, len(rays), rays.origins.data, rays.directions.data, *steps["tmin"],
            *steps["tmax"], np.float32(frame.SAFE_RANGE[1]), SAFE_T, counters,
            np.uint32(len(rays)))
+
+
+def check_points(rt: Runtime, points: cla.Array, limit: float, counters: cl.Buffer) -> None:
+    """Enqueues check_points over (N, 3) points, setting counters[2] where
+    one is not finite or lies beyond ``limit`` in a coordinate."""
+    kernel = rt.kernel(KERNEL, "check_points")
+    rt.run(kernel, len(points), points.data, np.float32(limit), counters,
+           np.uint32(len(points)))
 
 
 def raise_for_bad_ray(rays: DeviceRays) -> None:

@@ -43,6 +43,7 @@ import pyopencl as cl
 
 from ..core import frame
 from ..core import inputs
+from . import on_device
 from .order import COHERENT_MIN, FINE_ORDER_BITS, device_order
 from ..device.runtime import Runtime
 from ..build.instances import InstancedTree
@@ -94,8 +95,10 @@ class ClosestPoints:
 
     @property
     def found(self) -> np.ndarray:
-        """bool (N,): which points have a surface point within max_distance."""
-        return self.geom_id >= 0
+        """bool (N,): which points have a surface point within max_distance
+        (a pyopencl array where the results are)."""
+        found = self.geom_id >= 0
+        return found if isinstance(found, np.ndarray) else found.view(bool)  # int8 0 or 1
 
 
 def check_max_distance(value) -> float:
@@ -129,6 +132,16 @@ def squared_limit(limit: float) -> np.float32:
         while np.sqrt(np.nextafter(square, np.float32(np.inf))) <= top:
             square = np.nextafter(square, np.float32(np.inf))
     return square
+
+
+def nothing_found(out: dict) -> None:
+    """The results (numpy's or pyopencl's, by field) of points with no
+    surface point: as ClosestPoints has them; a winding number of 0."""
+    for name, value in {"distance": np.inf, "geom_id": -1, "prim_id": -1, "instance_id": -1,
+                        "u": 0.0, "v": 0.0, "normal": 0.0, "points": np.nan,
+                        "winding": 0.0}.items():
+        if name in out:
+            on_device.fill(out[name], value)
 
 
 def point_scene_args(tree) -> tuple:
@@ -170,6 +183,8 @@ class PointQuery:
         #: the host memory of results: a closest_points's arrays, kept and
         #: made again, and the points' copy on a page (results.ResultPool)
         self.results = ResultPool(keep=2 * len(CLOSEST_FIELDS) + 2)
+        #: the device memory of results of points given on the device
+        self._device_results: on_device.ResultArrays | None = None
 
     max_points_per_launch = engine_setting("most", "Points per kernel launch at most.")
 
@@ -177,80 +192,126 @@ class PointQuery:
 
     def closest_points(self, tree: Tree, points, max_distance=np.inf) -> ClosestPoints:
         """The nearest surface point of each point within max_distance, in
-        the points' leading shape."""
-        points, shape = inputs.points(points)
+        the points' leading shape (pyopencl arrays for points given as one:
+        query/on_device.py)."""
         max_distance = check_max_distance(max_distance)
+        fields = {name: ((n,) if n > 1 else (), dtype)
+                  for name, (dtype, n) in CLOSEST_FIELDS.items()}
+        on_device_points = on_device.device_points(self.rt, points)
+        if on_device_points is not None:
+            return ClosestPoints(**self._on_device(
+                tree, *on_device_points, fields, lambda t: self._closest(
+                    t, squared_limit(max_distance)),
+                lambda host: vars(self.closest_points(tree, host, max_distance))))
+        points, shape = inputs.points(points)
         count = len(points)
         out = {name: self.results.empty((count, n) if n > 1 else count, dtype)
                for name, (dtype, n) in CLOSEST_FIELDS.items()}
         if count and check_tree(self.rt, tree):
             framed = self._into_frame(points, shape, tree)
-            max_d2 = squared_limit(max_distance * tree.scale)
-            kernel, packet = self._kernel(tree, "closest_points")
-
-            def launch(n, run):
-                b = run.buffers
-                return self.rt.run(kernel, -(-n // packet), *point_scene_args(tree), b["input"],
-                                   run.slots, run.indexed, np.uint32(n), max_d2,
-                                   b["distance"], b["geom_id"], b["prim_id"], b["instance_id"],
-                                   b["u"], b["v"], b["normal"], b["points"], self.engine.counters,
-                                   local_size=self.work_group_size)
-            self._run(framed, launch, out)
+            self._run(framed, self._closest(tree, squared_limit(max_distance * tree.scale)), out)
             if tree.scale != 1.0:  # back from the frame: powers of two, exact
                 out["distance"][:] = frame.to_frame(out["distance"], 1.0 / tree.scale)
                 out["points"][:] = frame.to_frame(out["points"], 1.0 / tree.scale)
         elif count:
-            out["distance"][:] = np.inf
-            out["geom_id"][:] = out["prim_id"][:] = out["instance_id"][:] = -1
-            out["u"][:] = out["v"][:] = out["normal"][:] = 0.0
-            out["points"][:] = np.nan
+            nothing_found(out)
         return ClosestPoints(**{name: array.reshape(shape + array.shape[1:])
                                 for name, array in out.items()})
 
     def winding_numbers(self, tree: Tree, points) -> np.ndarray:
         """float32: the generalized winding number of each point, in the
-        points' leading shape."""
+        points' leading shape (as closest_points, on the device)."""
+        on_device_points = on_device.device_points(self.rt, points)
+        if on_device_points is not None:
+            return self._on_device(
+                tree, *on_device_points, {"winding": ((), np.float32)}, self._winding,
+                lambda host: {"winding": self.winding_numbers(tree, host)})["winding"]
         points, shape = inputs.points(points)
         out = {"winding": self.results.empty(len(points), np.float32)}
         if not (len(points) and check_tree(self.rt, tree)):
             out["winding"][:] = 0.0
         else:
-            framed = self._into_frame(points, shape, tree)
-            dipoles = make_dipoles(self.rt, tree)
-            kernel, packet = self._kernel(tree, "winding_numbers")
-
-            def launch(n, run):
-                b = run.buffers
-                return self.rt.run(kernel, -(-n // packet), *point_scene_args(tree), dipoles,
-                                   b["input"], run.slots, run.indexed, np.uint32(n),
-                                   b["winding"], self.engine.counters,
-                                   local_size=self.work_group_size)
-            self._run(framed, launch, out)
+            self._run(self._into_frame(points, shape, tree), self._winding(tree), out)
         return out["winding"].reshape(shape)
 
     def signed_distance(self, tree: Tree, points) -> np.ndarray:
         """float32: the distance to the surface, negative inside (|winding
-        number| >= 0.5), in the points' leading shape."""
+        number| >= 0.5), in the points' leading shape (as closest_points,
+        on the device)."""
+        on_device_points = on_device.device_points(self.rt, points)
+        if on_device_points is not None:
+            return self._on_device(
+                tree, *on_device_points, {name: ((), np.float32) for name in ("distance",
+                                                                             "winding")},
+                self._signed, lambda host: {"distance": self.signed_distance(tree, host)},
+                )["distance"]
         points, shape = inputs.points(points)
         out = {name: self.results.empty(len(points), np.float32)
                for name in ("distance", "winding")}
         if not (len(points) and check_tree(self.rt, tree)):
             out["distance"][:] = np.inf
         else:
-            framed = self._into_frame(points, shape, tree)
-            dipoles = make_dipoles(self.rt, tree)
-            kernel, packet = self._kernel(tree, "signed_distances")
-
-            def launch(n, run):
-                b = run.buffers
-                return self.rt.run(kernel, -(-n // packet), *point_scene_args(tree), dipoles,
-                                   b["input"], run.slots, run.indexed, np.uint32(n),
-                                   b["distance"], b["winding"], self.engine.counters,
-                                   local_size=self.work_group_size)
-            self._run(framed, launch, out)
+            self._run(self._into_frame(points, shape, tree), self._signed(tree), out)
             if tree.scale != 1.0:
                 out["distance"][:] = frame.to_frame(out["distance"], 1.0 / tree.scale)
         return out["distance"].reshape(shape)
+
+    # -- the launches (the engine's ``launch``): over the points [first,
+    #    first + n) of the arrays (a global offset of whole packets) or
+    #    over the launch's slots (QUERY_POINTS in kernels/query/points.cl)
+
+    def _launch(self, tree, name: str, before: tuple, after: tuple, outputs: tuple):
+        kernel, packet = self._kernel(tree, name)
+
+        def launch(n, run):
+            b = run.buffers
+            return self.rt.run(kernel, -(-n // packet), *point_scene_args(tree), *before,
+                               b["input"], run.slots, run.indexed, np.uint32(run.first + n),
+                               *after, *(b[name] for name in outputs), self.engine.counters,
+                               local_size=self.work_group_size, offset=run.first // packet)
+        return launch
+
+    def _closest(self, tree, max_d2: np.float32):
+        return self._launch(tree, "closest_points", (), (max_d2,), tuple(CLOSEST_FIELDS))
+
+    def _winding(self, tree):
+        return self._launch(tree, "winding_numbers", (make_dipoles(self.rt, tree),), (),
+                            ("winding",))
+
+    def _signed(self, tree):
+        return self._launch(tree, "signed_distances", (make_dipoles(self.rt, tree),), (),
+                            ("distance", "winding"))
+
+    def _on_device(self, tree, points, shape: tuple, fields: dict, launch_of, host_query) -> dict:
+        """A point query of points on the device: the results, by
+        ``fields`` (name: (trailing shape, dtype)), as pyopencl arrays in
+        the points' leading shape.  The points are checked there
+        (query/on_device.py) and walked in the order given; a scene in a
+        scaled frame takes them through ``host_query`` (the numpy query,
+        whose results go back up)."""
+        if self._device_results is None:
+            self._device_results = on_device.ResultArrays(self.rt.queue)
+        pool, count = self._device_results, len(points)
+        out = {name: pool.empty((count, *trailing), dtype)
+               for name, (trailing, dtype) in fields.items()}
+        if not (count and check_tree(self.rt, tree)):
+            nothing_found(out)
+        elif tree.scale != 1.0:
+            host = host_query(points.get().reshape(*shape, 3))
+            out = {name: pool.upload(host[name].reshape(count, *fields[name][0]))
+                   for name in host}
+        else:
+            packet = self._kernel(tree, "closest_points")[1]
+            counters = self.engine.run(Batch(
+                count, {"input": points}, out, whole=True, slots=False, granule=packet,
+                first=FIRST_LAUNCH, check=lambda buffers, steps: on_device.check_points(
+                    self.rt, points, POINT_RANGE, self.engine.counters)), launch_of(tree))
+            if counters[2]:  # named as the numpy query names it
+                host = points.get().reshape(*shape, 3)
+                self._into_frame(*inputs.points(host), tree)
+                raise RuntimeError("hlbvh_cl internal error: check_points refused a point "
+                                   "that the point queries take")
+        return {name: array.reshape(*shape, *fields[name][0]) for name, array in out.items()}
 
     # -- internals ----------------------------------------------------------
 

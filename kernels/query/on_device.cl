@@ -11,6 +11,10 @@
  *               range (the host then traces it in the scaled frame instead,
  *               query/rays.py's into_frame).
  *
+ *   check_points  one work-item per point; sets counters[2] where a point is
+ *               not finite or lies beyond `limit` in a coordinate (the point
+ *               queries' range, query/points.py's POINT_RANGE)
+ *
  * A ray is accepted when its origin is finite, its direction finite with a
  * component of magnitude >= FLT_MIN (else its inverse overflows: the slab
  * test), tmin finite and >= 0, and tmax not NaN and >= tmin.
@@ -46,4 +50,17 @@ __kernel void check_rays(__global const float* origins, __global const float* di
      * and triangle tests overflow and would miss it. */
     if (1.7320508f * (far + safe_range) > safe_t * longest)
         atomic_or(counters + 3, 1);
+}
+
+__kernel void check_points(__global const float* points, const float limit,
+                           __global int* counters, const uint count)
+{
+    uint i = get_global_id(0);
+    if (i >= count)
+        return;
+    int valid = 1;
+    for (uint k = 0; k < 3; ++k)
+        valid &= fabs(points[3 * (size_t)i + k]) <= limit;  /* false for NaN */
+    if (!valid)
+        atomic_or(counters + 2, 1);
 }

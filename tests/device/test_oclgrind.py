@@ -211,7 +211,25 @@ def check_device_rays(query, tree, oracle) -> None:
     KEPT_DEVICE_ARRAYS.append((query, on_device, hits, occluded))
 
 
-#: What check_device_rays keeps alive until the child ends.
+def check_device_points(query, tree, points) -> None:
+    """The points as a pyopencl array (checked on the device, walked in
+    launches of three packets at global offsets): the numpy points'
+    answers."""
+    import pyopencl.array as cla
+    query.max_points_per_launch = 3 * query.variant.packet_size
+    on_device = cla.to_device(query.rt.queue, points)
+    found, expected = query.closest_points(tree, on_device), query.closest_points(tree, points)
+    for name, value in vars(expected).items():
+        np.testing.assert_array_equal(getattr(found, name).get(), value, name)
+    winding = query.winding_numbers(tree, on_device)
+    np.testing.assert_allclose(winding.get(), query.winding_numbers(tree, points), atol=1e-5)
+    distance = query.signed_distance(tree, on_device)
+    np.testing.assert_allclose(distance.get(), query.signed_distance(tree, points), rtol=1e-6)
+    KEPT_DEVICE_ARRAYS.append((query, on_device, found, winding, distance))
+
+
+#: What check_device_rays and check_device_points keep alive until the
+#: child ends.
 KEPT_DEVICE_ARRAYS: list = []
 
 
@@ -262,6 +280,7 @@ def case_points(uninitialized: bool) -> dict:
             sdf = query.signed_distance(tree, points[:20])
             clear = np.abs(winding[:20] - 0.5) > 0.1
             assert np.array_equal((sdf < 0)[clear], (winding[:20] >= 0.5)[clear]), label
+            check_device_points(query, tree, points)
         scene.update_vertices(0, scene.meshes[0].vertices * np.float32(1.1))
     return {}
 

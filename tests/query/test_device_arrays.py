@@ -161,3 +161,52 @@ def test_a_view_at_an_offset_is_taken(suite_device):
     d = cla.to_device(scene.queue, directions)[10:]
     assert o.offset
     assert_same_hits(scene.intersect(o, d), scene.intersect(origins[10:], directions[10:]))
+
+
+def test_points_on_the_device_give_the_numpy_answers(suite_device, meshes):
+    """closest_points, signed_distance, winding_number and contains of
+    points given as a pyopencl array, in more launches than one, flat and
+    instanced: the numpy queries' answers (winding numbers up to the order
+    of their sums)."""
+    bunny = meshes["bunny"]
+    lo, hi = bunny.vertices.min(axis=0), bunny.vertices.max(axis=0)
+    rng = np.random.default_rng(7)
+    points = (lo + rng.uniform(-0.2, 1.2, (40_000, 3)) * (hi - lo)).astype(np.float32)
+    points = points.reshape(200, 200, 3)
+    shifted = np.hstack([np.eye(3), (hi - lo)[:, None] * 0.3])
+    for scene in (hlbvh_cl.Scene([bunny], device=suite_device),
+                  hlbvh_cl.Scene([bunny], device=suite_device,
+                                 instances=[(0, np.eye(3, 4)), (0, shifted)])):
+        on_device = cla.to_device(scene.queue, points)
+        found, expected = scene.closest_points(on_device, 0.02), scene.closest_points(points, 0.02)
+        assert found.distance.shape == (200, 200) and found.found.dtype == bool
+        for name, value in vars(expected).items():
+            np.testing.assert_array_equal(getattr(found, name).get(), value, err_msg=name)
+        np.testing.assert_allclose(scene.winding_number(on_device).get(),
+                                   scene.winding_number(points), atol=1e-5)
+        distance = scene.signed_distance(on_device).get()
+        np.testing.assert_allclose(distance, scene.signed_distance(points), rtol=1e-6)
+        inside = scene.contains(on_device)
+        assert inside.dtype == bool
+        np.testing.assert_array_equal(inside.get(), distance < 0)
+
+
+def test_bad_points_on_the_device_are_named(suite_device):
+    scene = hlbvh_cl.Scene([grid_mesh(4)], device=suite_device)
+    points = np.zeros((3, 4, 3), np.float32)
+    points[1, 2, 0] = np.inf
+    with pytest.raises(ValueError, match=r"points\[1, 2\] = .* is not finite"):
+        scene.closest_points(cla.to_device(scene.queue, points))
+    points[1, 2, 0] = 1e30
+    with pytest.raises(ValueError, match=r"points\[1, 2\] = .* is too far from the origin"):
+        scene.signed_distance(cla.to_device(scene.queue, points))
+    with pytest.raises(TypeError, match="points is a pyopencl array of float64"):
+        scene.winding_number(cla.to_device(scene.queue, points.astype(np.float64)))
+    with pytest.raises(ValueError, match=r"points must have shape \(\.\.\., 3\)"):
+        scene.contains(cla.to_device(scene.queue, np.zeros((4, 2), np.float32)))
+    tiny = Mesh(grid_mesh(4).vertices * 1e-9, grid_mesh(4).faces)  # a scaled frame: via the host
+    small = hlbvh_cl.Scene([tiny], device=suite_device)
+    near = np.random.default_rng(8).uniform(0, 1e-9, (500, 3)).astype(np.float32)
+    np.testing.assert_array_equal(
+        small.closest_points(cla.to_device(small.queue, near)).distance.get(),
+        small.closest_points(near).distance)

@@ -89,7 +89,7 @@ def test_a_query_call_launches_once_and_waits_once_for_its_results(zero_copy, su
 
 def test_a_call_on_device_arrays_waits_once_and_moves_no_rays(suite_device, counted,
                                                               monkeypatch):
-    """Rays given as pyopencl arrays: the checks' kernel and the query's,
+    """Rays (and points) given as pyopencl arrays: the checks' kernel and the query's,
     one wait (for the counters: the results stay on the device), and no
     copy between host and device but that wait's."""
     import pyopencl.array as cla
@@ -103,7 +103,8 @@ def test_a_call_on_device_arrays_waits_once_and_moves_no_rays(suite_device, coun
         moved.append(sum(a.nbytes for a in (dest, src) if isinstance(a, np.ndarray))),
         original(queue, dest, src, **kw))[1])
     for call in (lambda: scene.intersect(origins, directions, tmax=9.0),
-                 lambda: scene.occluded(origins, directions)):
+                 lambda: scene.occluded(origins, directions),
+                 lambda: scene.closest_points(origins), lambda: scene.contains(origins)):
         call()
         counted.clear()
         moved.clear()
