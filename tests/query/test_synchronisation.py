@@ -92,7 +92,7 @@ def test_a_query_call_launches_once_and_waits_once_for_its_results(zero_copy, su
         assert dict(counted) == {"launch": passes, "sync": passes}, name
 
 
-def test_a_build_synchronises_no_more_than_today(suite_device, counted):
+def test_a_build_waits_for_one_batch_of_reads_and_for_its_last_kernel(suite_device, counted):
     mesh = grid_mesh(20)
     hlbvh_cl.Scene([mesh], device=suite_device)  # programs built
     counted.clear()
