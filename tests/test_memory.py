@@ -100,6 +100,19 @@ def test_a_buffer_given_twice_is_free_once(pool):
     assert pool.take(64) is not a
 
 
+def test_a_spare_buffer_is_the_smallest_that_holds_the_bytes_and_is_handed_out_once(pool):
+    with pool.build():
+        small, large, other = pool.take(100), pool.take(400), pool.take(200)
+        spare = [large, small, other]
+        assert pool.take_spare(spare, 150) is other  # the smallest of those that fit
+        assert spare == [large, small]
+        assert pool.take_spare(spare, 401).size == 401  # none fits: a new one
+        assert pool.take_spare(spare, 50) is small and pool.take_spare(spare, 50) is large
+        assert spare == [] and pool.take_spare(spare, 50) not in (small, large, other)
+    # the spare buffers came back once each, with the new ones
+    assert pool.free_bytes == 100 + 400 + 200 + 401 + 50
+
+
 def test_scratch_comes_back_after_an_error(pool):
     with pytest.raises(RuntimeError):
         with pool.build():

@@ -7,6 +7,13 @@ Every stage runs on the device; this module only sequences them, sizes the
 buffers (failing before any allocation when the device is too small) and
 collects per-stage times from profiling events.  Its one product is a Tree
 and its BuildStats: everything else, the binary tree included, is scratch.
+
+The host does not wait between stages (issue 57): every buffer is sized
+from the triangle count for as much as the stage can need, the kernels read
+the sizes the stages before them found from the device, and the host reads
+the figures it needs (the scene's box, the flat tree's summary, the wide
+levels) in one batch, before the last kernel, which writes the wide nodes
+into a buffer of their exact size; then it waits for that kernel.
 """
 from __future__ import annotations
 
@@ -22,10 +29,10 @@ from ..device.runtime import Runtime, event_ms
 from .flatten import box_area, flatten_nodes
 from .morton import key_dtype, morton_codes
 from .radix_tree import RadixTree, RadixTreeMetrics, build_radix_tree
-from .sah_top import BYTES_PER_CLUSTER, build_top, max_clusters
+from .sah_top import BYTES_PER_CLUSTER, build_top, max_clusters, task_lists_bytes
 from ..parallel.radix_sort import sorter
 from ..core.tree import Tree
-from .widen import widen
+from .widen import Widening, read_back
 
 BUILDERS = ("hlbvh", "lbvh")
 STAGES = ("bounds", "morton", "sort", "radix_tree", "sah_top", "flatten", "widen")
@@ -72,6 +79,7 @@ def build_memory(vertex_count: int, triangle_count: int, morton_bits: int) -> di
         "triangles": n * layout.TRIANGLE.itemsize, "triangle refs": n * layout.TRIANGLE_REF.itemsize,
         "triangle vertex ids": n * 12,
         "SAH top (clusters)": max_clusters(n) * BYTES_PER_CLUSTER,
+        "SAH top (task lists)": task_lists_bytes(n),
     }
 
 
@@ -156,6 +164,7 @@ def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int, scal
                                           centroids, inverse_extent)
 
     keys, primitive_ids = buf(n * dtype.itemsize), buf(n * 4)
+    unsorted = (keys, primitive_ids)
     stage_events["morton"] = morton_codes(rt, centroids, n, bounds, inverse_extent, keys,
                                           primitive_ids, morton_bits,
                                           wait_for=stage_events["bounds"][-1:])
@@ -173,34 +182,50 @@ def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int, scal
         rt, keys, morton_bits, geometry.vertices, geometry.faces, primitive_ids,
         geometry.mesh_first_face, geometry.mesh_count, radix, metrics, triangles, refs,
         vertex_ids, collapse_leaves=hlbvh, wait_for=stage_events["sort"][-1:])
+    # Buffers no later stage reads (the centroids, the radix tree's walk, the
+    # sort's input where its result is not): the stages sized for the most
+    # they can need take from these first (BufferPool.take_spare).
+    spare = [centroids, radix.far_end, radix.visits, *(b for b in unsorted if b is not keys)]
 
     top = None
     if hlbvh and n > 1:
-        top, stage_events["sah_top"] = build_top(rt, keys, morton_bits, radix, metrics,
+        top, stage_events["sah_top"] = build_top(rt, keys, morton_bits, radix, metrics, spare,
                                                  wait_for=stage_events["radix_tree"][-1:])
+        spare += top.spent
 
     last = (stage_events["sah_top"] or stage_events["radix_tree"])[-1:]
     # the binary tree: scratch, read only by widen
-    bvh2, bvh2_count, leaf_count, root_box, depth, cost, stage_events["flatten"] = \
-        flatten_nodes(rt, keys, morton_bits, radix, metrics, top, use_clusters=hlbvh,
-                      wait_for=last)
-    nodes, levels, stage_events["widen"] = widen(rt, bvh2, bvh2_count,
-                                                 wait_for=stage_events["flatten"][-1:])
+    bvh2, bvh2_capacity, summary, stage_events["flatten"] = flatten_nodes(
+        rt, keys, morton_bits, radix, metrics, top, use_clusters=hlbvh, spare=spare,
+        wait_for=last)
+    spare += [*radix.buffers(), *metrics.buffers(), *(top.buffers() if top else [])]
+    widening = Widening(rt, bvh2, bvh2_capacity, summary, spare,
+                        wait_for=stage_events["flatten"][-1:])
 
-    scene_box = np.empty(2, layout.AABB)
-    cl.enqueue_copy(rt.queue, scene_box, bounds)
-    rt.queue.finish()
+    # The build's one read: everything the host needs to know of it
+    scene_box, flat = np.empty(2, layout.AABB), np.empty(1, layout.FLAT_SUMMARY)
+    read_back(rt, [(scene_box, bounds), (flat, summary), *widening.pending()])
+    while not widening.advance():  # a tree deeper than the levels launched
+        read_back(rt, widening.pending())
+    nodes, levels, stage_events["widen"] = widening.write()
+    rt.wait(stage_events["widen"][-1:])
 
     tree = Tree(nodes=nodes, triangles=triangles, refs=refs, vertex_ids=vertex_ids,
                 node_count=levels[-1][0] + levels[-1][1], levels=levels, triangle_count=n,
                 bounds_lo=scene_box[0]["lo"].copy(), bounds_hi=scene_box[0]["hi"].copy(),
                 scale=scale)
+    flat = flat[0]
+    root_box = np.zeros(1, layout.AABB)[0]
+    root_box["lo"], root_box["hi"] = flat["lo"], flat["hi"]
     root_area = box_area(root_box)
+    leaf_count = int(flat["leaf_count"])
+    # a leaf root: the root node (C_t A) over one leaf of n triangles (C_i n A)
+    cost = root_area * (1.0 + n) if flat["root_is_leaf"] else float(flat["sah_cost"])
     stats = {
-        "builder": builder, "morton_bits": morton_bits, "triangles": n, "nodes": bvh2_count,
-        "leaves": leaf_count, "depth": depth,
+        "builder": builder, "morton_bits": morton_bits, "triangles": n,
+        "nodes": int(flat["node_count"]), "leaves": leaf_count, "depth": int(flat["depth"]),
         "sah_cost": cost / root_area if root_area > 0 else float(leaf_count),
-        "clusters": top.cluster_count if top else 1, "wide_nodes": tree.node_count,
+        "clusters": int(flat["clusters"]), "wide_nodes": tree.node_count,
         "wide_depth": tree.depth, **tree.memory(),
     }
     return tree, stats, stage_events

@@ -22,12 +22,23 @@ class RadixTree:
     parent: cl.Buffer        # int32[2n-1], -1 at the root
     range_first: cl.Buffer   # int32[n-1]: first sorted primitive under the node
     range_last: cl.Buffer    # int32[n-1]
+    # the bottom-up walk's scratch (build_radix_tree), dead once the tree is
+    # built: later stages of the build reuse it
+    far_end: cl.Buffer       # int32[2 max(1, n-1)]
+    visits: cl.Buffer        # int32[max(1, n-1)]
 
     @classmethod
     def allocate(cls, rt, n: int) -> "RadixTree":
         def ints(count):
             return rt.pool.take(count * 4)
-        return cls(n, ints(n - 1), ints(n - 1), ints(2 * n - 1), ints(n - 1), ints(n - 1))
+        splits = max(1, n - 1)
+        return cls(n, ints(n - 1), ints(n - 1), ints(2 * n - 1), ints(n - 1), ints(n - 1),
+                   ints(2 * splits), ints(splits))
+
+    def buffers(self) -> list[cl.Buffer]:
+        """The tree's own arrays (not the walk's scratch)."""
+        return [self.left_child, self.right_child, self.parent, self.range_first,
+                self.range_last]
 
     def read(self, queue) -> dict[str, np.ndarray]:
         """Host copies, for tests."""
@@ -58,6 +69,9 @@ class RadixTreeMetrics:
         return cls(buf(nodes * layout.AABB.itemsize), buf(nodes * 4), buf(nodes * 4),
                    buf((n - 1) * 4))
 
+    def buffers(self) -> list[cl.Buffer]:
+        return [self.boxes, self.sah_cost, self.height, self.collapsed]
+
 
 def build_radix_tree(rt, keys: cl.Buffer, bits: int, vertices: cl.Buffer, faces: cl.Buffer,
                      primitive_ids: cl.Buffer, mesh_first_face: cl.Buffer, mesh_count: int,
@@ -69,7 +83,7 @@ def build_radix_tree(rt, keys: cl.Buffer, bits: int, vertices: cl.Buffer, faces:
     leaf (sorted) order with the leaves' boxes (lay_out_leaves)."""
     n = tree.n
     splits = max(1, n - 1)
-    far_end, visits = rt.pool.take(2 * splits * 4), rt.pool.take(splits * 4)
+    far_end, visits = tree.far_end, tree.visits
     cleared = cl.enqueue_fill_buffer(rt.queue, visits, np.int32(0), 0, splits * 4,
                                      wait_for=wait_for)
     if n == 1:  # no internal node: the lone leaf is the root

@@ -22,10 +22,12 @@ TOP_GROUP = 256
 #: groups (_group_levels): a GPU's multiprocessor runs several (2048 threads
 #: on NVIDIA's, 8 groups of 256).
 GROUPS_PER_UNIT = 8
-# Device bytes build_top takes per cluster: first primitive, root, two record
-# buffers, cost, height, box, three task lists, two child links, top box.
+# Device bytes build_top takes per cluster it can hold (max_clusters): first
+# primitive, root, two record buffers, cost, height, box, the serial level's
+# task stack, two child links, top box.  (The two task lists hold the
+# parallel levels' tasks only: task_lists_bytes.)
 BYTES_PER_CLUSTER = (4 + 4 + 2 * CLUSTER_RECORD_BYTES + 4 + 4 + layout.AABB.itemsize
-                     + 3 * TOP_TASK_BYTES + 2 * 4 + layout.AABB.itemsize)
+                     + TOP_TASK_BYTES + 2 * 4 + layout.AABB.itemsize)
 
 
 def max_clusters(triangle_count: int) -> int:
@@ -33,94 +35,104 @@ def max_clusters(triangle_count: int) -> int:
     return min(triangle_count, 1 << layout.CLUSTER_BITS)
 
 
+def task_lists_bytes(triangle_count: int) -> int:
+    """The most bytes of the two task lists: level L holds at most 2^L
+    tasks, and _serial_depth stops where 2^L reaches clusters / 64."""
+    return 2 * TOP_TASK_BYTES * max(1, max_clusters(triangle_count) // 64)
+
+
 @dataclass
 class TopTree:
-    """SAH nodes above the clusters: top_count = clusters - 1 nodes (the root
-    is the node of the first split, `root`)."""
+    """SAH nodes above the clusters: clusters - 1 top nodes (the root is the
+    node of the first split, info[1]), none where one cluster holds
+    everything (then the radix tree stands).  The cluster count, the depth
+    and the root stay on the device, in info (issue 57; flatten.cl reads
+    them): the buffers are sized for `capacity` clusters, as many as there
+    can be."""
 
-    cluster_count: int
-    top_count: int
-    root: int                # the top node splitting at m is node m - 1: the root is anywhere
+    capacity: int
+    info: cl.Buffer          # int32[3]: the tree's depth, the root top node, the cluster count
     top_left: cl.Buffer      # int32: >= 0 a top node, < 0 the cluster ~ref
     top_right: cl.Buffer
-    top_boxes: cl.Buffer     # Aabb
+    top_boxes: cl.Buffer     # Aabb; the top node splitting at m is node m - 1
     cluster_roots: cl.Buffer  # int32: radix-tree node of each cluster
     cluster_boxes: cl.Buffer  # Aabb of each cluster (its root's box, gathered compactly)
-    depth: int
-    sah_cost: float          # of the whole tree, not normalised
+    sah_cost: cl.Buffer      # float32: of the whole tree, not normalised
+    spent: list              # build_top's scratch, dead once its kernels have run
+
+    def buffers(self) -> list[cl.Buffer]:
+        """The buffers above (not spent), which only flatten reads."""
+        return [self.info, self.top_left, self.top_right, self.top_boxes, self.cluster_roots,
+                self.cluster_boxes, self.sah_cost]
 
 
 def build_top(rt, keys: cl.Buffer, bits: int, tree: RadixTree, metrics: RadixTreeMetrics,
-              wait_for=None) -> tuple[TopTree | None, list[cl.Event]]:
-    """Find the clusters and, when there are two or more, build the SAH top.
-    Returns None when one cluster holds everything (the radix tree is kept)."""
+              spare: list | None = None, wait_for=None) -> tuple[TopTree, list[cl.Event]]:
+    """Find the clusters and, when there are two or more, build the SAH top
+    over them, all without the host reading anything back: the buffers and
+    the launches are sized for max_clusters(n), and the kernels read the
+    actual count from the device.  ``spare``: dead buffers of the build to
+    reuse first (BufferPool.take_spare)."""
     n = tree.n
     q = rt.queue
     kernel = functools.partial(rt.kernel, "build/sah_top.cl", MORTON_BITS=bits,
                                TOP_COST_GROUP=TOP_COST_GROUP, TOP_GROUP=TOP_GROUP)
-    scan = rt.pool.take((n + 1) * 4)
-    events = [rt.run(kernel("mark_cluster_starts"), n,
-                     keys, n, scan, wait_for=wait_for)]
-    events += exclusive_scan(rt, scan, n, wait_for=events[-1:])
-    cluster_count = np.empty(1, np.uint32)
-    cl.enqueue_copy(q, cluster_count, scan, src_offset=n * 4, wait_for=events[-1:])
-    clusters = int(cluster_count[0])
-    if clusters < 2:
-        return None, events
+    capacity = max_clusters(n)
+    spare = [] if spare is None else spare
 
     def buf(count, itemsize=4):
-        return rt.pool.take(count * itemsize)
-    first, roots = buf(clusters), buf(clusters)
-    records, records_odd = buf(clusters, CLUSTER_RECORD_BYTES), buf(clusters, CLUSTER_RECORD_BYTES)
-    cluster_cost, cluster_height = buf(clusters), buf(clusters)
-    cluster_box = buf(clusters, layout.AABB.itemsize)
-    tasks, next_tasks, stack = (buf(clusters, TOP_TASK_BYTES) for _ in range(3))
-    left, right = buf(clusters), buf(clusters)
-    boxes = buf(clusters, layout.AABB.itemsize)
-    info, root_cost = buf(2), buf(1)  # info: depth, root
-    events.append(rt.run(kernel("gather_cluster_starts"), n, scan, n, first, wait_for=events[-1:]))
-    events.append(rt.run(kernel("gather_clusters"), clusters, scan, n, first, tree.range_first,
-                         tree.range_last, metrics.boxes, metrics.sah_cost, metrics.height, roots,
-                         cluster_box, records, cluster_cost, cluster_height, tasks,
-                         wait_for=events[-1:]))
-    events.append(cl.enqueue_fill_buffer(q, info, np.int32(0), 0, 8, wait_for=events[-1:]))
+        return rt.pool.take_spare(spare, count * itemsize)
+    # the larger first, so that they find the larger spare buffers
+    records, records_odd = buf(capacity, CLUSTER_RECORD_BYTES), buf(capacity, CLUSTER_RECORD_BYTES)
+    cluster_box, boxes = buf(capacity, layout.AABB.itemsize), buf(capacity, layout.AABB.itemsize)
+    stack = buf(capacity, TOP_TASK_BYTES)
+    scan = buf(n + 1)
+    first, roots, left, right = buf(capacity), buf(capacity), buf(capacity), buf(capacity)
+    cluster_cost, cluster_height = buf(capacity), buf(capacity)
+    info, root_cost = buf(3), buf(1)
     # One launch per level, levels 0..serial_depth: tasks at serial_depth
     # build their whole subtrees, so nothing is left after them.  Level L has
     # at most 2^L tasks (each task queues at most two), so the launches are
-    # sized without reading the counts back: a read-back per level cost each
-    # build a round trip to the device.  The parallel
-    # levels stop where there are enough subtrees to fill the device with
-    # work (about 64 clusters each).
-    serial_depth = _serial_depth(clusters, rt.device.compute_units, rt.profile.gpu)
+    # sized without reading the counts back.  The parallel levels stop where
+    # there would be enough subtrees to fill the device with work (about 64
+    # clusters each), counted for as many clusters as there can be: the
+    # levels past the tree's depth find no tasks.
+    serial_depth = _serial_depth(capacity, rt.device.compute_units, rt.profile.gpu)
+    tasks_at_most = min(1 << serial_depth, capacity)
+    tasks, next_tasks = buf(tasks_at_most, TOP_TASK_BYTES), buf(tasks_at_most, TOP_TASK_BYTES)
     task_counts = buf(serial_depth + 2)  # [L]: tasks queued for level L
+    events = [rt.run(kernel("mark_cluster_starts"), n, keys, n, scan, wait_for=wait_for)]
+    events += exclusive_scan(rt, scan, n, wait_for=events[-1:])
+    events.append(rt.run(kernel("gather_cluster_starts"), n, scan, n, first, wait_for=events[-1:]))
+    events.append(cl.enqueue_fill_buffer(q, info, np.int32(0), 0, 12, wait_for=events[-1:]))
     events.append(cl.enqueue_fill_buffer(q, task_counts, np.int32(0), 0, (serial_depth + 2) * 4,
                                          wait_for=events[-1:]))
-    events.append(cl.enqueue_fill_buffer(q, task_counts, np.int32(1), 0, 4,
-                                         wait_for=events[-1:]))  # the root task
+    # also the cluster count into info and, if two or more, the root task
+    events.append(rt.run(kernel("gather_clusters"), capacity, scan, n, first, tree.range_first,
+                         tree.range_last, metrics.boxes, metrics.sah_cost, metrics.height, roots,
+                         cluster_box, records, cluster_cost, cluster_height, tasks, task_counts,
+                         info, wait_for=events[-1:]))
     group_levels = _group_levels(serial_depth, rt.device.compute_units, rt.profile.gpu)
     group_kernel = kernel("split_top_group")
     group = min(TOP_GROUP, rt.largest_group(group_kernel))
     for level in range(serial_depth + 1):
-        tasks_at_most = min(1 << level, clusters)
+        level_tasks = min(1 << level, capacity)
         if level < group_levels:  # one work-group per task
-            events.append(rt.run(group_kernel, tasks_at_most * group, tasks, level, next_tasks,
+            events.append(rt.run(group_kernel, level_tasks * group, tasks, level, next_tasks,
                                  task_counts, records, records_odd, cluster_height, left, right,
                                  boxes, info, wait_for=events[-1:], local_size=group))
         else:  # one work-item per task
-            events.append(rt.run(kernel("split_top_level"), tasks_at_most, tasks, level,
+            events.append(rt.run(kernel("split_top_level"), level_tasks, tasks, level,
                                  serial_depth, next_tasks, task_counts, stack, records,
                                  records_odd, cluster_height, left, right, boxes, info,
                                  wait_for=events[-1:], local_size=1))
         tasks, next_tasks = next_tasks, tasks
-    events.append(rt.run(kernel("sum_top_cost"), TOP_COST_GROUP, clusters - 1, boxes, clusters,
-                         cluster_cost, root_cost, wait_for=events[-1:],
-                         local_size=TOP_COST_GROUP))
-    depth_and_root = np.empty(2, np.int32)
-    total = np.empty(1, np.float32)
-    cl.enqueue_copy(q, depth_and_root, info, wait_for=events[-1:])
-    cl.enqueue_copy(q, total, root_cost, wait_for=events[-1:])
-    return TopTree(clusters, clusters - 1, int(depth_and_root[1]), left, right, boxes, roots,
-                   cluster_box, int(depth_and_root[0]), float(total[0])), events
+    events.append(rt.run(kernel("sum_top_cost"), TOP_COST_GROUP, info, boxes, cluster_cost,
+                         root_cost, wait_for=events[-1:], local_size=TOP_COST_GROUP))
+    spent = [scan, first, records, records_odd, cluster_cost, cluster_height, stack, tasks,
+             next_tasks, task_counts]
+    return TopTree(capacity, info, left, right, boxes, roots, cluster_box, root_cost,
+                   spent), events
 
 
 def _serial_depth(clusters: int, compute_units: int, gpu: bool) -> int:

@@ -53,6 +53,12 @@ FLAT_NODE = np.dtype([
     ("left_count", np.uint32), ("right_count", np.uint32),
 ])
 
+FLAT_SUMMARY = np.dtype([
+    ("node_count", np.int32), ("leaf_count", np.int32), ("depth", np.int32),
+    ("clusters", np.int32), ("root_is_leaf", np.int32), ("sah_cost", np.float32),
+    ("lo", *_f3), ("hi", *_f3),
+])
+
 _wide = (np.float32, WIDE_ARITY)
 WIDE_NODE = np.dtype([
     ("lo_x", *_wide), ("hi_x", *_wide), ("lo_y", *_wide), ("hi_y", *_wide),
@@ -109,7 +115,7 @@ PATH_STATE = np.dtype([("throughput", *_f3), ("bsdf_pdf", np.float32), ("radianc
                        ("eta", np.float32), ("reserved", np.float32, 4)])
 
 #: name in HEADERS -> dtype, for the layout test
-STRUCTS = {"Aabb": AABB, "FlatNode": FLAT_NODE, "WideNode": WIDE_NODE,
+STRUCTS = {"Aabb": AABB, "FlatNode": FLAT_NODE, "FlatSummary": FLAT_SUMMARY, "WideNode": WIDE_NODE,
            "WideDipoles": WIDE_DIPOLES, "Triangle": TRIANGLE,
            "TriangleRef": TRIANGLE_REF, "Instance": INSTANCE, "Ray": RAY, "Hit": HIT, "PinholeCamera": PINHOLE_CAMERA,
            "ShadeParams": SHADE_PARAMS, "PathMaterial": PATH_MATERIAL, "PathParams": PATH_PARAMS,

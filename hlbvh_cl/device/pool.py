@@ -54,6 +54,21 @@ class BufferPool:
             self._taken.append(buffer)
         return buffer
 
+    def take_spare(self, spare: list[cl.Buffer], nbytes: int) -> cl.Buffer:
+        """A buffer of at least nbytes: the smallest of ``spare`` that holds
+        them (removed from the list), else take(nbytes).  ``spare`` lists
+        buffers of the current build that nothing enqueued later reads as
+        what they held: the stages that size their buffers for the most
+        they can need reuse the earlier stages' dead scratch, which keeps a
+        build's peak memory down (issue 57).  The queue runs in order, so
+        the new use starts after the old one ended."""
+        fitting = [b for b in spare if b.size >= nbytes]
+        if not fitting:
+            return self.take(nbytes)
+        chosen = min(fitting, key=lambda b: b.size)
+        spare[:] = [b for b in spare if b != chosen]  # never handed out twice
+        return chosen
+
     def give(self, *buffers: cl.Buffer | None) -> None:
         """Hand buffers back; the caller must not use them again."""
         with self._locked():

@@ -2,6 +2,8 @@
 
 Reduce-then-scan over a device-chosen number of tiles: one work-group per
 tile, and the tile sums are few enough for a single work-group to scan.
+exclusive_scan_counted scans a length that an earlier kernel left in a
+device buffer, so that the host never reads it (issue 57).
 """
 from __future__ import annotations
 
@@ -49,7 +51,9 @@ def _fitting_group_size(rt: Runtime, group_size: int) -> int:
         allowed = min(
             rt.kernel(KERNEL_FILE, name, SCAN_GROUP_SIZE=group_size).get_work_group_info(
                 cl.kernel_work_group_info.WORK_GROUP_SIZE, rt.device.cl_device)
-            for name in ("scan_reduce_tiles", "scan_tile_sums", "scan_tiles"))
+            for name in ("scan_reduce_tiles", "scan_tile_sums", "scan_tiles",
+                         "scan_reduce_tiles_counted", "scan_tile_sums_counted",
+                         "scan_tiles_counted"))
         if group_size <= allowed:
             break
         group_size //= 2
@@ -91,6 +95,11 @@ def _check_args(buf, n) -> int:
     return n
 
 
+def _tiles(chosen: ScanPlan, n: int) -> int:
+    """Tiles for n elements: up to the plan's most, none under MIN_PER_ITEM per work-item."""
+    return max(1, min(chosen.max_tiles, n // (chosen.group_size * MIN_PER_ITEM)))
+
+
 def exclusive_scan(rt: Runtime, buf: cl.Buffer, n: int, wait_for=None) -> list[cl.Event]:
     """Exclusive prefix sum of the uint32 ``buf[0:n]``, in place, on ``rt.queue``.
 
@@ -108,7 +117,7 @@ def exclusive_scan(rt: Runtime, buf: cl.Buffer, n: int, wait_for=None) -> list[c
     chosen = plan(rt)
     wg = chosen.group_size
     kernel = lambda name: rt.kernel(KERNEL_FILE, name, SCAN_GROUP_SIZE=wg)  # noqa: E731
-    tiles = max(1, min(chosen.max_tiles, n // (wg * MIN_PER_ITEM)))
+    tiles = _tiles(chosen, n)
     per_item = math.ceil(n / (tiles * wg))
     tiles = math.ceil(n / (wg * per_item))  # no empty tiles
 
@@ -123,4 +132,33 @@ def exclusive_scan(rt: Runtime, buf: cl.Buffer, n: int, wait_for=None) -> list[c
                                          np.uint32(math.ceil(tiles / wg)), wait_for=[reduce])
     rescan = kernel("scan_tiles")(queue, size, (wg,), buf, np.uint32(n), np.uint32(per_item),
                                   chosen.tile_sums, wait_for=[scan_sums])
+    return [reduce, scan_sums, rescan]
+
+
+def exclusive_scan_counted(rt: Runtime, buf: cl.Buffer, counts: cl.Buffer, at: int,
+                           most: int, wait_for=None) -> list[cl.Event]:
+    """exclusive_scan of ``buf[0:n]`` where n = ``counts[at]`` (uint32) is
+    on the device only, at most ``most``: ``buf`` must hold most + 1
+    elements.  The launch is sized for ``most``; the work-items share the
+    actual n between them.  The kernel that writes ``counts[at]`` must come
+    before it on ``rt.queue``."""
+    most = _check_args(buf, most)
+    elements = counts.size // 4
+    if isinstance(at, bool) or not isinstance(at, (int, np.integer)) or not 0 <= at < elements:
+        raise ValueError(f"exclusive_scan_counted: at={at} is not an element of counts "
+                         f"({elements} uint32)")
+    chosen = plan(rt)
+    wg = chosen.group_size
+    kernel = lambda name: rt.kernel(KERNEL_FILE, name, SCAN_GROUP_SIZE=wg)  # noqa: E731
+    tiles, queue, at = _tiles(chosen, most), rt.queue, np.uint32(at)
+    if tiles == 1:
+        return [kernel("scan_tile_sums_counted")(queue, (wg,), (wg,), buf, counts, at,
+                                                 wait_for=wait_for)]
+    size = (tiles * wg,)
+    reduce = kernel("scan_reduce_tiles_counted")(queue, size, (wg,), buf, counts, at,
+                                                 chosen.tile_sums, wait_for=wait_for)
+    scan_sums = kernel("scan_tile_sums")(queue, (wg,), (wg,), chosen.tile_sums, np.uint32(tiles),
+                                         np.uint32(math.ceil(tiles / wg)), wait_for=[reduce])
+    rescan = kernel("scan_tiles_counted")(queue, size, (wg,), buf, counts, at, chosen.tile_sums,
+                                          wait_for=[scan_sums])
     return [reduce, scan_sums, rescan]

@@ -17,4 +17,18 @@ typedef struct {
     uint right_count;
 } FlatNode;
 
+/* What the host reads of the flat tree, with the rest of the build's
+ * figures, in the build's one read (issue 57; flatten.cl's
+ * summarise_flat_tree writes it). */
+typedef struct {
+    int node_count;   /* flat nodes */
+    int leaf_count;
+    int depth;        /* nodes on the longest root-to-leaf path */
+    int clusters;     /* the SAH top's clusters (1 without it) */
+    int root_is_leaf; /* one leaf holds every triangle */
+    float sah_cost;   /* not normalised (0 for a leaf root: the host's) */
+    float lo[3];      /* the root's box */
+    float hi[3];
+} FlatSummary;
+
 #endif /* FLAT_NODE_H */

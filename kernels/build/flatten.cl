@@ -6,6 +6,10 @@
  * the top_count SAH top nodes, each holding both children's boxes.  A leaf
  * slot points at a run of triangles in sorted (Morton) order, the order in
  * which radix_tree.cl stored them.
+ *
+ * The SAH top's size, root and depth come from its info[] (sah_top.cl:
+ * depth, root, cluster count), on the device: the host reads none of them
+ * (issue 57), and summarise_flat_tree gathers what it reads at the end.
  */
 #include "core/portable.h"
 #include "core/aabb.h"
@@ -38,6 +42,13 @@ __kernel void mark_live_nodes(__global const morton_t *keys, int n, __global con
             is_live = 0;
     }
     live[i] = is_live;
+}
+
+/* The SAH top's node count: clusters - 1, none for one cluster or without
+ * clusters (the LBVH builder; top_info is then not read). */
+inline int top_node_count(__global const int *top_info)
+{
+    return USE_CLUSTERS ? max(top_info[2] - 1, 0) : 0;
 }
 
 /* Where radix-tree node `node` lands in a parent's child slot. */
@@ -74,7 +85,8 @@ inline void write_node(__global FlatNode *out, Aabb left_box, Aabb right_box, in
     *out = node;
 }
 
-__kernel void write_flat_nodes(int n, int top_count, __global const uint *live_scan,
+__kernel void write_flat_nodes(int n, __global const int *top_info,
+                               __global const uint *live_scan,
                                __global const int *left_child, __global const int *right_child,
                                __global const int *range_first, __global const int *range_last,
                                __global const int *collapsed, __global const Aabb *boxes,
@@ -83,6 +95,7 @@ __kernel void write_flat_nodes(int n, int top_count, __global const uint *live_s
     int i = get_global_id(0);
     if (i >= n - 1 || live_scan[i] == live_scan[i + 1])
         return;
+    int top_count = top_node_count(top_info);
     int self = top_count + (int)live_scan[i];
     int left, right;
     uint left_count, right_count;
@@ -123,15 +136,16 @@ inline void top_child(int ref, int n, int top_count, int top_root,
 
 /* Two calls to top_child rather than a loop over the sides: PoCL keeps a
  * work-item's private arrays in memory, and copying them took half the
- * kernel's time. */
-__kernel void write_top_nodes(int n, int top_count, int top_root, __global const uint *live_scan,
+ * kernel's time.  Launched for as many top nodes as there can be. */
+__kernel void write_top_nodes(int n, __global const int *top_info,
+                              __global const uint *live_scan,
                               __global const int *top_left, __global const int *top_right,
                               __global const Aabb *top_boxes, __global const int *cluster_roots,
                               __global const Aabb *cluster_boxes, __global const int *range_first,
                               __global const int *range_last, __global const int *collapsed,
                               __global FlatNode *nodes)
 {
-    int t = get_global_id(0);
+    int t = get_global_id(0), top_count = top_node_count(top_info), top_root = top_info[1];
     if (t >= top_count)
         return;
     int self = top_slot(t, top_root);
@@ -147,11 +161,44 @@ __kernel void write_top_nodes(int n, int top_count, int top_root, __global const
     write_node(nodes + self, left_box, right_box, left, left_count, right, right_count);
 }
 
-/* A tree whose root is itself a leaf (one triangle, or a few that the SAH
- * keeps together): one node whose left slot holds all n triangles. */
-__kernel void write_leaf_root(int n, __global const Aabb *boxes, __global FlatNode *nodes)
+/* The figures the host reads of the flat tree (FlatSummary), one work-item;
+ * and a tree whose root is a leaf gets its one node here, whose left slot
+ * holds all n triangles (the scan marked no node live, so no other kernel
+ * wrote one).  Without the scan (n == 1) live_scan is not read. */
+__kernel void summarise_flat_tree(int n, __global const int *top_info,
+                                  __global const uint *live_scan, __global const int *collapsed,
+                                  __global const Aabb *boxes, __global const float *sah_cost,
+                                  __global const int *height, __global const Aabb *top_boxes,
+                                  __global const float *top_cost, __global FlatNode *nodes,
+                                  __global FlatSummary *out)
 {
     if (get_global_id(0) != 0)
         return;
-    write_node(nodes, boxes[0], aabb_empty(), 0, (uint)n, EMPTY_CHILD, 0);
+    FlatSummary s;
+    int top_count = n > 1 ? top_node_count(top_info) : 0;
+    Aabb box = boxes[0];
+    s.clusters = USE_CLUSTERS && n > 1 ? top_info[2] : 1;
+    /* one triangle, or a few that the SAH keeps together with no top above */
+    s.root_is_leaf = n == 1 || (top_count == 0 && collapsed[0]);
+    if (s.root_is_leaf) {
+        s.node_count = s.leaf_count = s.depth = 1;
+        s.sah_cost = 0.0f;
+        write_node(nodes, box, aabb_empty(), 0, (uint)n, EMPTY_CHILD, 0);
+    } else {
+        s.node_count = top_count + (int)live_scan[n - 1];
+        s.leaf_count = s.node_count + 1;
+        if (top_count > 0) {
+            s.depth = top_info[0];
+            s.sah_cost = top_cost[0];
+            box = top_boxes[top_info[1]];
+        } else {
+            s.depth = height[0];
+            s.sah_cost = sah_cost[0];
+        }
+    }
+    for (int k = 0; k < 3; ++k) {
+        s.lo[k] = box.lo[k];
+        s.hi[k] = box.hi[k];
+    }
+    *out = s;
 }

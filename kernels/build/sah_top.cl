@@ -8,6 +8,10 @@
  * are replaced by a binned-SAH tree over the cluster boxes, built level by
  * level in parallel (split_top_level), which also writes each top node's box
  * and the tree's depth; sum_top_cost then adds up its SAH cost.
+ *
+ * info[] holds what the later stages need to know of the top, on the device
+ * (the host reads none of it, issue 57): [0] the tree's depth, [1] the root
+ * top node, [2] the cluster count.
  */
 #include "core/portable.h"
 #include "core/aabb.h"
@@ -66,14 +70,18 @@ typedef struct {
 
 /* One work-item per cluster: its radix-tree root and the compact records the
  * top build reads (a few MB at most, instead of scattered radix-tree nodes).
- * Work-item 0 also queues the root task over all clusters. */
+ * The host launches as many work-items as there can be clusters and never
+ * reads the count (issue 57): work-item 0 writes it to info[2] for the
+ * stages after, and queues the root task over all clusters when there are
+ * two or more (with one, no level finds a task and the radix tree stands). */
 __kernel void gather_clusters(__global const uint *scan, int n, __global const int *cluster_first,
                               __global const int *range_first, __global const int *range_last,
                               __global const Aabb *boxes, __global const float *sah_cost,
                               __global const int *height, __global int *cluster_root,
                               __global Aabb *cluster_box, __global ClusterRecord *records,
                               __global float *cluster_cost, __global int *cluster_height,
-                              __global TopTask *tasks)
+                              __global TopTask *tasks, __global int *task_counts,
+                              __global int *info)
 {
     int c = get_global_id(0);
     int cluster_count = (int)scan[n];
@@ -82,6 +90,8 @@ __kernel void gather_clusters(__global const uint *scan, int n, __global const i
     if (c == 0) {
         TopTask root = {0, cluster_count, -1, 0};
         tasks[0] = root;
+        task_counts[0] = cluster_count >= 2;
+        info[2] = cluster_count;
     }
     int first = cluster_first[c];
     int last = (c + 1 < cluster_count ? cluster_first[c + 1] : n) - 1;
@@ -818,11 +828,13 @@ __kernel void split_top_group(__global const TopTask *tasks, int level,
  * cost(right) unrolls into the sum of C_t A over the top nodes plus the
  * clusters' costs.  One work-group of at most TOP_COST_GROUP: each
  * work-item sums a fixed stride, work-item 0 adds the partial sums in order
- * (the same total every run on a device). */
-__kernel void sum_top_cost(int top_count, __global const Aabb *top_boxes, int cluster_count,
+ * (the same total every run on a device).  The cluster count is info[2]
+ * (gather_clusters); with one cluster the total is unused. */
+__kernel void sum_top_cost(__global const int *info, __global const Aabb *top_boxes,
                            __global const float *cluster_cost, __global float *sah_cost_out)
 {
     __local float partial[TOP_COST_GROUP];
+    int cluster_count = info[2], top_count = cluster_count - 1;
     /* the group may be smaller than asked (a device's limit for the kernel) */
     int i = get_local_id(0), items = (int)get_local_size(0);
     float sum = 0.0f;

@@ -17,6 +17,12 @@
  * The nodes come out breadth-first, level after level, which is the order
  * the refit (refit.cl) walks back up.
  *
+ * Each level's first node and count stay on the device, in `levels` (first,
+ * count pairs, the level at `at`; link_wide_children writes the next): the
+ * host launches the levels without reading their sizes (issue 57), over as
+ * many work-items as a level can use at most, and each work-group takes its
+ * share of the nodes the level has (group_block).
+ *
  * A slot is named by the BVH2 child slot it copies: 2 * node + side (side 0
  * left, 1 right), or NO_SLOT.
  */
@@ -147,47 +153,81 @@ inline int choose_slots(__global const FlatNode *nodes, int node, uint *slots)
     return used;
 }
 
-/* For the level's wide nodes [level_first, level_first + level_count):
- * slots[WIDE_ARITY * w + k] and interior_count[i] (i = w - level_first).  Slot
- * indices are size_t, as WIDE_ARITY * w passes int's range from 2^28 wide nodes. */
-__kernel void choose_wide_slots(int level_first, int level_count, __global const int *source,
+/* The block [*begin, *end) of the level's nodes (as indices into it) that
+ * this work-group takes, its work-items the block's nodes in turn.  Blocks
+ * over all the groups, so that a level smaller than the launch still
+ * spreads over every core (PoCL hands each core a run of consecutive
+ * work-groups, as in sah_top.cl); neighbouring work-items on neighbouring
+ * nodes, as with one node each. */
+inline void group_block(int count, int *begin, int *end)
+{
+    long g = get_group_id(0), groups = get_num_groups(0);
+    *begin = (int)(g * count / groups);
+    *end = (int)((g + 1) * count / groups);
+}
+
+/* For the level's wide nodes [first, first + count) (levels[2 * at] and
+ * levels[2 * at + 1]): slots[WIDE_ARITY * w + k] and interior_count[i]
+ * (i = w - first).  Slot indices are size_t, as WIDE_ARITY * w passes int's
+ * range from 2^28 wide nodes. */
+__kernel void choose_wide_slots(int at, __global const int *levels, __global const int *source,
                                 __global const FlatNode *nodes, __global uint *slots,
                                 __global uint *interior_count)
 {
-    int i = get_global_id(0);
-    if (i >= level_count)
-        return;
-    int w = level_first + i;
-    uint chosen[WIDE_ARITY];
-    int used = choose_slots(nodes, source[w], chosen);
-    uint interior = 0;
-    for (int k = 0; k < WIDE_ARITY; ++k) {
-        uint slot = k < used ? chosen[k] : NO_SLOT;
-        slots[(size_t)WIDE_ARITY * w + k] = slot;
-        if (slot != NO_SLOT && slot_is_interior(nodes, slot))
-            ++interior;
+    int first = levels[2 * at], begin, end;
+    group_block(levels[2 * at + 1], &begin, &end);
+    for (int i = begin + (int)get_local_id(0); i < end; i += (int)get_local_size(0)) {
+        int w = first + i;
+        uint chosen[WIDE_ARITY];
+        int used = choose_slots(nodes, source[w], chosen);
+        uint interior = 0;
+        for (int k = 0; k < WIDE_ARITY; ++k) {
+            uint slot = k < used ? chosen[k] : NO_SLOT;
+            slots[(size_t)WIDE_ARITY * w + k] = slot;
+            if (slot != NO_SLOT && slot_is_interior(nodes, slot))
+                ++interior;
+        }
+        interior_count[i] = interior;
     }
-    interior_count[i] = interior;
 }
 
 /* With interior_offset the exclusive scan of interior_count: the interior
  * children of wide node w become wide nodes next_first + interior_offset[i] + j,
- * in slot order; their BVH2 nodes go to source[], the first index to first_child[w]. */
-__kernel void link_wide_children(int level_first, int level_count, int next_first,
+ * in slot order; their BVH2 nodes go to source[], the first index to
+ * first_child[w].  Work-item 0 writes the next level's (first, count) at
+ * at + 1.  Each wide node stands for a distinct BVH2 node, so more wide
+ * nodes than *bvh2_count means the BVH2 is not a tree: then nothing is
+ * linked, the next level is empty and levels[overflow_at] is set, which the
+ * host reports. */
+__kernel void link_wide_children(int at, __global int *levels, int overflow_at,
+                                 __global const int *bvh2_count,
                                  __global const uint *interior_offset,
                                  __global const FlatNode *nodes, __global const uint *slots,
                                  __global int *source, __global int *first_child)
 {
-    int i = get_global_id(0);
-    if (i >= level_count)
+    int first = levels[2 * at], count = levels[2 * at + 1];
+    int next_first = first + count;
+    long next_count = (long)interior_offset[count];
+    int fits = next_first + next_count <= (long)*bvh2_count;
+    if (get_global_id(0) == 0) {
+        levels[2 * at + 2] = next_first;
+        levels[2 * at + 3] = fits ? (int)next_count : 0;
+        if (!fits)
+            levels[overflow_at] = 1;
+    }
+    if (!fits)
         return;
-    int w = level_first + i;
-    int next = next_first + (int)interior_offset[i];
-    first_child[w] = next;
-    for (int k = 0; k < WIDE_ARITY; ++k) {
-        uint slot = slots[(size_t)WIDE_ARITY * w + k];
-        if (slot != NO_SLOT && slot_is_interior(nodes, slot))
-            source[next++] = slot_child(nodes, slot);
+    int begin, end;
+    group_block(count, &begin, &end);
+    for (int i = begin + (int)get_local_id(0); i < end; i += (int)get_local_size(0)) {
+        int w = first + i;
+        int next = next_first + (int)interior_offset[i];
+        first_child[w] = next;
+        for (int k = 0; k < WIDE_ARITY; ++k) {
+            uint slot = slots[(size_t)WIDE_ARITY * w + k];
+            if (slot != NO_SLOT && slot_is_interior(nodes, slot))
+                source[next++] = slot_child(nodes, slot);
+        }
     }
 }
 

@@ -11,6 +11,12 @@
  * barriers sit outside loops (PoCL's CPU device has hung on barriers inside
  * loops in local-memory code).
  *
+ * The _counted kernels scan a length that only the device knows (counts[at],
+ * written by an earlier kernel), so the host need not read it back (issue
+ * 57): the host launches as many tiles as the largest length needs, and each
+ * work-item's share, ceil(n / work-items), is worked out on the device as the
+ * host works it out for the others.
+ *
  * Defines: SCAN_GROUP_SIZE, the work-group size (required).
  */
 
@@ -72,12 +78,11 @@ inline void scan_tile(__global uint *data, uint n, uint per_item, uint tile_offs
         data[n] = running;
 }
 
-/* tile_sums[group] = sum of the group's tile. */
-__kernel __attribute__((reqd_work_group_size(SCAN_GROUP_SIZE, 1, 1)))
-void scan_reduce_tiles(const __global uint *data, uint n, uint per_item,
-                       __global uint *tile_sums)
+/* tile_sums[group] = sum of the group's tile.  Every work-item of the
+ * group must call it (it holds a barrier). */
+inline void reduce_tile(const __global uint *data, uint n, uint per_item,
+                        __global uint *tile_sums, __local uint *item_sums)
 {
-    __local uint item_sums[SCAN_GROUP_SIZE];
     const uint lid = get_local_id(0);
     uint begin, end;
     item_sums[lid] = item_sum(data, n, per_item, &begin, &end);
@@ -89,6 +94,31 @@ void scan_reduce_tiles(const __global uint *data, uint n, uint per_item,
             total += item_sums[w];
         tile_sums[get_group_id(0)] = total;
     }
+}
+
+/* The elements per work-item that cover n over the whole launch (the host's
+ * per_item for a launch of that size). */
+inline uint share_of(uint n)
+{
+    const uint items = (uint)get_global_size(0);
+    return (n + items - 1) / items;
+}
+
+__kernel __attribute__((reqd_work_group_size(SCAN_GROUP_SIZE, 1, 1)))
+void scan_reduce_tiles(const __global uint *data, uint n, uint per_item,
+                       __global uint *tile_sums)
+{
+    __local uint item_sums[SCAN_GROUP_SIZE];
+    reduce_tile(data, n, per_item, tile_sums, item_sums);
+}
+
+__kernel __attribute__((reqd_work_group_size(SCAN_GROUP_SIZE, 1, 1)))
+void scan_reduce_tiles_counted(const __global uint *data, const __global uint *counts, uint at,
+                               __global uint *tile_sums)
+{
+    __local uint item_sums[SCAN_GROUP_SIZE];
+    const uint n = counts[at];
+    reduce_tile(data, n, share_of(n), tile_sums, item_sums);
 }
 
 /* Exclusive scan of data[0, n) by a single work-group; data[n] = total.
@@ -107,4 +137,23 @@ void scan_tiles(__global uint *data, uint n, uint per_item,
 {
     __local uint item_offsets[SCAN_GROUP_SIZE];
     scan_tile(data, n, per_item, tile_offsets[get_group_id(0)], item_offsets);
+}
+
+/* scan_tile_sums over counts[at] elements: a whole short input. */
+__kernel __attribute__((reqd_work_group_size(SCAN_GROUP_SIZE, 1, 1)))
+void scan_tile_sums_counted(__global uint *data, const __global uint *counts, uint at)
+{
+    __local uint item_offsets[SCAN_GROUP_SIZE];
+    const uint n = counts[at];
+    scan_tile(data, n, share_of(n), 0u, item_offsets);
+}
+
+/* scan_tiles over counts[at] elements. */
+__kernel __attribute__((reqd_work_group_size(SCAN_GROUP_SIZE, 1, 1)))
+void scan_tiles_counted(__global uint *data, const __global uint *counts, uint at,
+                        const __global uint *tile_offsets)
+{
+    __local uint item_offsets[SCAN_GROUP_SIZE];
+    const uint n = counts[at];
+    scan_tile(data, n, share_of(n), tile_offsets[get_group_id(0)], item_offsets);
 }

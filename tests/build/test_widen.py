@@ -5,13 +5,15 @@ from __future__ import annotations
 
 
 import numpy as np
+import pyopencl as cl
 import pytest
 
 import hlbvh_cl
+from hlbvh_cl.core import layout
 from hlbvh_cl.build.widen import widen
 import built
 from invariants import check_tree
-from shapes import grid_mesh
+from shapes import deep_scene, grid_mesh
 import places
 
 MESHES = places.MESHES
@@ -34,6 +36,8 @@ SCENES = {
     "grid": lambda: [grid_mesh(6)],
     "knight": lambda: [_mesh("knight")],
     "bunny_small + teapot": lambda: [_mesh("bunny_small"), _mesh("teapot")],
+    # deeper than the first round of wide levels: the build launches a second
+    "bunny_small on a ground plane": deep_scene,
 }
 
 
@@ -74,6 +78,23 @@ def test_update_vertices_refits_the_wide_tree():
     scene.update_vertices(0, knight.vertices)
     check_tree(scene)
     assert built.tree(scene).read_nodes(q).tobytes() == before.tobytes()
+
+
+def test_a_bvh2_that_is_not_a_tree_is_refused():
+    """Two nodes that hold each other (and a leaf each): the levels would
+    never end; the device finds more wide nodes than BVH2 nodes and the
+    host says so."""
+    scene = hlbvh_cl.Scene([_one_triangle()])
+    rt = built.runtime(scene)
+    nodes = np.zeros(2, layout.FLAT_NODE)
+    nodes["left"] = [1, 0]
+    nodes["right"], nodes["right_count"] = 0, 1
+    nodes["left_lo"] = nodes["right_lo"] = 0.0
+    nodes["left_hi"] = nodes["right_hi"] = 1.0
+    buffer = cl.Buffer(rt.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
+                       hostbuf=nodes)
+    with pytest.raises(RuntimeError, match="not a tree"):
+        widen(rt, buffer, 2)
 
 
 def test_a_tree_without_nodes_is_refused():

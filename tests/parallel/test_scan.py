@@ -1,4 +1,4 @@
-"""hlbvh_cl.parallel.scan.exclusive_scan against numpy.cumsum."""
+"""hlbvh_cl.parallel.scan.exclusive_scan and exclusive_scan_counted against numpy.cumsum."""
 import numpy as np
 import pyopencl as cl
 import pytest
@@ -97,3 +97,44 @@ def test_bad_inputs(rt):
         scan.exclusive_scan(rt, buf, 2.0)
     with pytest.raises(TypeError, match="buf must be a pyopencl.Buffer"):
         scan.exclusive_scan(rt, np.zeros(10, np.uint32), 5)
+
+
+def counted_scan(rt, values: np.ndarray, most: int) -> None:
+    """exclusive_scan_counted of values (n of them) with the count on the
+    device at counts[3], launched for ``most``: the scan and total as
+    numpy's, and the elements after buf[n] left alone."""
+    n = values.size
+    rng = np.random.default_rng(n + most)
+    data = np.concatenate([values.astype(np.uint32),
+                           rng.integers(0, 2**32, most - n + 1 + GUARD, dtype=np.uint32)])
+    flags = cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR
+    buf = cl.Buffer(rt.context, flags, hostbuf=data)
+    counts = cl.Buffer(rt.context, flags, hostbuf=np.array([7, 7, 7, n, 7], np.uint32))
+    events = scan.exclusive_scan_counted(rt, buf, counts, 3, most)
+    out = np.empty_like(data)
+    cl.enqueue_copy(rt.queue, out, buf, wait_for=events).wait()
+    expected = np.zeros(n + 1, dtype=np.uint32)
+    np.cumsum(values, dtype=np.uint32, out=expected[1:])
+    np.testing.assert_array_equal(out[:n + 1], expected)
+    np.testing.assert_array_equal(out[n + 1:], data[n + 1:])
+
+
+def test_counted_scan_of_a_length_only_the_device_knows(rt):
+    """Single-group and tiled launches (sized for `most`), with n from 0 to
+    most: the work-items share the actual n between them."""
+    rng = np.random.default_rng(3)
+    plan = scan.plan(rt)
+    tiled = 3 * plan.group_size * scan.MIN_PER_ITEM
+    for most in (1, 100, tiled):
+        for n in sorted({0, 1, most // 3, most - 1, most}):
+            counted_scan(rt, rng.integers(0, 1000, n, dtype=np.uint32), most)
+    counted_scan(rt, rng.integers(2**31, 2**32, 100_000, dtype=np.uint32), 300_000)
+
+
+def test_counted_scan_bad_inputs(rt):
+    buf = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 4 * 10)
+    counts = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 4 * 2)
+    with pytest.raises(ValueError, match="n=10 needs n\\+1"):
+        scan.exclusive_scan_counted(rt, buf, counts, 0, 10)
+    with pytest.raises(ValueError, match="at=2 is not an element of counts"):
+        scan.exclusive_scan_counted(rt, buf, counts, 2, 5)
