@@ -6,6 +6,9 @@
              and out: wall Mrays/s against the traversal kernel's own
              (target: wall >= 30 % of kernel)
   small      the latency of a 1K-ray intersect call (target <= 0.5 ms)
+  on device  the same two with rays made on the device (Camera.rays with
+             scene=) and results left there as pyopencl arrays
+             (docs/queries.md, "Rays and points on the device")
   path       path-traced samples per second of scenes/materials.toml at
              1280 x 720, max depth 8 (the path tracer's figure on a GPU)
   interop    what the device offers for sharing memory with CUDA frameworks
@@ -104,6 +107,8 @@ def measure(device: str, quick: bool) -> dict:
                                     for k in builds[-1].times_ms}}
     origins, directions = loaded.camera.rays(*size)
     count = len(origins)
+    on_device = loaded.camera.rays(*size, scene=scene)
+    small_on_device = [array[:1024].copy() for array in on_device]
     with scene.borrow() as built:
         query = RayQuery(built.runtime)
         kernel_ms = []
@@ -120,6 +125,19 @@ def measure(device: str, quick: bool) -> dict:
         small_o, small_d = origins[:1024].copy(), directions[:1024].copy()
         walls = timed(lambda: query.intersect(built.tree, small_o, small_d), 20 * repeats)
         found["small"] = {"rays": 1024, "call_ms": summary([w * 1e3 for w in walls])}
+        kernel_ms.clear()
+
+        def camera_on_device():
+            query.intersect(built.tree, *on_device)
+            kernel_ms.append(query.last_kernel_ms)
+        walls = timed(camera_on_device, repeats)
+        wall_rate = count / summary(walls)["median"] / 1e6
+        kernel_rate = count / (summary(kernel_ms[1:])["median"] * 1e-3) / 1e6
+        walls_small = timed(lambda: query.intersect(built.tree, *small_on_device), 20 * repeats)
+        found["on_device"] = {"rays": count, "wall_mrays_per_s": wall_rate,
+                              "kernel_mrays_per_s": kernel_rate,
+                              "wall_share_of_kernel": wall_rate / kernel_rate,
+                              "small_call_ms": summary([w * 1e3 for w in walls_small])}
     materials = load(SCENES / "materials.toml", device)
     renderer = materials.renderer()
     width, height, spp = (160, 90, 1) if quick else (1280, 720, 4)
@@ -152,11 +170,15 @@ def main(argv=None) -> dict:
                      f"{found['camera']['kernel_mrays_per_s']:.1f} "
                      f"({100 * found['camera']['wall_share_of_kernel']:.0f} %)",
                      f"{found['small']['call_ms']['median']:.3f}",
+                     f"{found['on_device']['wall_mrays_per_s']:.1f} "
+                     f"({100 * found['on_device']['wall_share_of_kernel']:.0f} %) / "
+                     f"{found['on_device']['small_call_ms']['median']:.3f}",
                      f"{found['path']['msamples_per_s']:.2f}",
                      ", ".join(found["interop"]["extensions"] + found["interop"]["import_handle_types"])
                      or "none"])
     print(table(["device", "build ms (wall / device)", "camera Mrays/s (wall / kernel)",
-                 "1K-ray call ms", "path Msamples/s", "external memory"], rows,
+                 "1K-ray call ms", "on device: camera Mrays/s (% of kernel) / 1K-ray call ms",
+                 "path Msamples/s", "external memory"], rows,
                 title=f"issue 57's measurements (targets: {TARGETS})"))
     return finish(results, "gpu", args, elapsed)
 

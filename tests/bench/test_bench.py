@@ -72,6 +72,9 @@ def test_gpu_quick_takes_every_measurement_of_issue_57(suite_device, tmp_path, c
     assert found["build"]["wall_ms"]["median"] > 0 and found["build"]["device_ms"]["median"] > 0
     assert 0 < found["camera"]["wall_share_of_kernel"]
     assert found["small"]["rays"] == 1024 and found["small"]["call_ms"]["median"] > 0
+    assert found["on_device"]["rays"] == found["camera"]["rays"]
+    assert 0 < found["on_device"]["wall_share_of_kernel"]
+    assert found["on_device"]["small_call_ms"]["median"] > 0
     assert found["path"]["msamples_per_s"] > 0
     offered = sorted(e for e in suite_device.cl_device.extensions.split()
                      if "external" in e or "semaphore" in e)
