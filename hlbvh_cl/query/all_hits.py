@@ -289,7 +289,8 @@ class AllHitsQuery:
             stepped={"tmin": tmin, "tmax": tmax, "mask": mask}, order=order, whole=whole,
             segments=offsets, max_rows=None if whole else HITS_PER_LAUNCH,
             most=None if whole else min(self.query.max_rays_per_launch,
-                                        COPIED_RAYS_PER_LAUNCH)), launch)
+                                        COPIED_RAYS_PER_LAUNCH),
+            key="count" if offsets is None else "fill"), launch)
         if counters[1]:
             raise RuntimeError("hlbvh_cl internal error: intersect_all's fill pass found fewer "
                                "hits than its count pass")

@@ -12,7 +12,10 @@ it.  The engine does the rest, the same way for every query:
   FIRST_LAUNCH (the query's), each later one as many as the last to end
   says fit in LAUNCH_SECONDS (LaunchSizes), so that Ctrl-C, which waits for
   the launches in flight, is answered within a second whatever a ray costs;
-  at most two are in flight.
+  at most two are in flight.  A batch with a ``key`` (its kernel's name)
+  starts where the last batch of that key ended: a scene whose items cost
+  much (a crowd of overlapping instances) pays the query's first launch
+  once, not per call.
 - **Zero copy or copy.**  On PoCL's CPU device the kernels use the numpy
   arrays themselves (CL_MEM_USE_HOST_PTR, zero_copy); elsewhere the inputs
   go up into device buffers reused between launches, and the results come
@@ -246,6 +249,9 @@ class Batch:
     slots: bool = True
     #: items per launch are a multiple of this, but for the last
     granule: int = 1
+    #: the batches of one key (the kernel's name) size their first launch
+    #: as the last one's ended (Engine.paced)
+    key: str | None = None
 
 
 class Engine:
@@ -271,6 +277,8 @@ class Engine:
         self._lock = threading.Lock()
         #: device time of the last batch's kernels, milliseconds
         self.last_kernel_ms = 0.0
+        #: by Batch.key: the launch size the last batch of that key ended on
+        self.paced: dict[str, int] = {}
 
     def run(self, batch: Batch, launch) -> np.ndarray:
         """Runs ``launch(n, Launch)`` over the batch; returns the counters
@@ -330,7 +338,7 @@ class Engine:
         # launches in flight: (events, what ends them, the objects they use, items)
         flight: list[tuple[list, object, object, int]] = []
         events = []
-        sizes = LaunchSizes(batch.most or self.most, batch.first)
+        sizes = LaunchSizes(batch.most or self.most, self.paced.get(batch.key, batch.first))
 
         def retire(keep: int) -> None:
             while len(flight) > keep:
@@ -352,9 +360,12 @@ class Engine:
         counters = np.zeros(COUNTERS, np.int32)
         finish.append(cl.enqueue_copy(queue, counters, self.counters, is_blocking=False))
         rt.wait([*uploads, *(event for waited, *_ in flight for event in waited), *finish])
-        for _, put_back, _, _ in flight:
+        for waited, put_back, _, items in flight:
+            sizes.ended(waited[0], items)
             put_back()
         flight.clear()
+        if batch.key is not None:
+            self.paced[batch.key] = sizes.size
         self.last_kernel_ms = sum((e.profile.end - e.profile.start) * 1e-6 for e in events)
         if counters[0]:
             raise RuntimeError("a query's walk overflowed its stack (sized from Tree.depth): "

@@ -202,14 +202,15 @@ class PointQuery:
             return ClosestPoints(**self._on_device(
                 tree, *on_device_points, fields, lambda t: self._closest(
                     t, squared_limit(max_distance)),
-                lambda host: vars(self.closest_points(tree, host, max_distance))))
+                lambda host: vars(self.closest_points(tree, host, max_distance)), "closest"))
         points, shape = inputs.points(points)
         count = len(points)
         out = {name: self.results.empty((count, n) if n > 1 else count, dtype)
                for name, (dtype, n) in CLOSEST_FIELDS.items()}
         if count and check_tree(self.rt, tree):
             framed = self._into_frame(points, shape, tree)
-            self._run(framed, self._closest(tree, squared_limit(max_distance * tree.scale)), out)
+            self._run(framed, self._closest(tree, squared_limit(max_distance * tree.scale)), out,
+                      "closest")
             if tree.scale != 1.0:  # back from the frame: powers of two, exact
                 out["distance"][:] = frame.to_frame(out["distance"], 1.0 / tree.scale)
                 out["points"][:] = frame.to_frame(out["points"], 1.0 / tree.scale)
@@ -225,13 +226,13 @@ class PointQuery:
         if on_device_points is not None:
             return self._on_device(
                 tree, *on_device_points, {"winding": ((), np.float32)}, self._winding,
-                lambda host: {"winding": self.winding_numbers(tree, host)})["winding"]
+                lambda host: {"winding": self.winding_numbers(tree, host)}, "winding")["winding"]
         points, shape = inputs.points(points)
         out = {"winding": self.results.empty(len(points), np.float32)}
         if not (len(points) and check_tree(self.rt, tree)):
             out["winding"][:] = 0.0
         else:
-            self._run(self._into_frame(points, shape, tree), self._winding(tree), out)
+            self._run(self._into_frame(points, shape, tree), self._winding(tree), out, "winding")
         return out["winding"].reshape(shape)
 
     def signed_distance(self, tree: Tree, points) -> np.ndarray:
@@ -244,14 +245,14 @@ class PointQuery:
                 tree, *on_device_points, {name: ((), np.float32) for name in ("distance",
                                                                              "winding")},
                 self._signed, lambda host: {"distance": self.signed_distance(tree, host)},
-                )["distance"]
+                "signed")["distance"]
         points, shape = inputs.points(points)
         out = {name: self.results.empty(len(points), np.float32)
                for name in ("distance", "winding")}
         if not (len(points) and check_tree(self.rt, tree)):
             out["distance"][:] = np.inf
         else:
-            self._run(self._into_frame(points, shape, tree), self._signed(tree), out)
+            self._run(self._into_frame(points, shape, tree), self._signed(tree), out, "signed")
             if tree.scale != 1.0:
                 out["distance"][:] = frame.to_frame(out["distance"], 1.0 / tree.scale)
         return out["distance"].reshape(shape)
@@ -282,13 +283,14 @@ class PointQuery:
         return self._launch(tree, "signed_distances", (make_dipoles(self.rt, tree),), (),
                             ("distance", "winding"))
 
-    def _on_device(self, tree, points, shape: tuple, fields: dict, launch_of, host_query) -> dict:
+    def _on_device(self, tree, points, shape: tuple, fields: dict, launch_of, host_query,
+                   key: str) -> dict:
         """A point query of points on the device: the results, by
         ``fields`` (name: (trailing shape, dtype)), as pyopencl arrays in
         the points' leading shape.  The points are checked there
         (query/on_device.py) and walked in the order given; a scene in a
         scaled frame takes them through ``host_query`` (the numpy query,
-        whose results go back up)."""
+        whose results go back up); ``key`` paces the launches (Batch.key)."""
         if self._device_results is None:
             self._device_results = on_device.ResultArrays(self.rt.queue)
         pool, count = self._device_results, len(points)
@@ -304,7 +306,8 @@ class PointQuery:
             packet = self._kernel(tree, "closest_points")[1]
             counters = self.engine.run(Batch(
                 count, {"input": points}, out, whole=True, slots=False, granule=packet,
-                first=FIRST_LAUNCH, check=lambda buffers, steps: on_device.check_points(
+                first=FIRST_LAUNCH, key=key,
+                check=lambda buffers, steps: on_device.check_points(
                     self.rt, points, POINT_RANGE, self.engine.counters)), launch_of(tree))
             if counters[2]:  # named as the numpy query names it
                 host = points.get().reshape(*shape, 3)
@@ -345,7 +348,7 @@ class PointQuery:
         return self.rt.kernel(KERNEL, name, **kernel_defines(self.rt, tree, self.variant,
                                                               packet)), packet
 
-    def _run(self, points: np.ndarray, launch, outputs: dict[str, np.ndarray]) -> None:
+    def _run(self, points: np.ndarray, launch, outputs: dict[str, np.ndarray], key: str) -> None:
         """Runs ``launch`` over the points (the engine's launches; the
         points are ``input``; slots and indexed: QUERY_POINTS in
         kernels/query/points.cl); the results land in the arrays of
@@ -369,4 +372,4 @@ class PointQuery:
                 engine.zero_copy or (engine.outputs_in_place and starts_on_page(*arrays)))
             order = device_order(self.rt, points, FINE_ORDER_BITS, whole)
         engine.run(Batch(len(points), {"input": points}, outputs, order=order, whole=whole,
-                         first=FIRST_LAUNCH), launch)
+                         first=FIRST_LAUNCH, key=key), launch)

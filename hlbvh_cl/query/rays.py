@@ -170,7 +170,7 @@ class RayQuery:
         batch, t_factor = into_frame(batch, tree)
         if count and check_tree(self.rt, tree):
             self._run(batch, self._closest(tree), {name: getattr(hits, name)
-                                                   for name in HIT_ARRAYS})
+                                                   for name in HIT_ARRAYS}, "closest")
             if t_factor is not None:  # back from the frame
                 hit = np.flatnonzero(hits.prim_id >= 0)
                 found = hits.t[hit]
@@ -196,7 +196,7 @@ class RayQuery:
         count = len(batch)
         result = self.results.empty(count, np.uint8)
         if count and check_tree(self.rt, tree):
-            self._run(batch, self._any(tree), {"occluded": result})
+            self._run(batch, self._any(tree), {"occluded": result}, "any")
         return result.view(bool).reshape(batch.shape)  # the kernel writes 0 or 1
 
     def _closest(self, tree):
@@ -272,8 +272,8 @@ class RayQuery:
                 "given_tmax", steps["tmax"])}, self.engine.counters)
         counters = self.engine.run(Batch(
             len(rays), {"origins": rays.origins, "directions": rays.directions}, outputs,
-            stepped=stepped, whole=True, check=check, slots=False, granule=self.packet_size),
-            launch)
+            stepped=stepped, whole=True, check=check, slots=False, granule=self.packet_size,
+            key="closest" if "t" in outputs else "any"), launch)
         self.last_packets = int(counters[1]) if self.count_packets else None
         if counters[2]:
             on_device.raise_for_bad_ray(rays)
@@ -324,12 +324,13 @@ class RayQuery:
         if not check_tree(self.rt, tree):
             raise ValueError("the tree holds no triangle: there is nothing to trace rays against")
 
-    def _run(self, batch: inputs.Rays, launch, outputs: dict) -> None:
+    def _run(self, batch: inputs.Rays, launch, outputs: dict, key: str) -> None:
         """The launches over the rays (the engine's chunks), the results
-        into the arrays of ``outputs``."""
+        into the arrays of ``outputs``; ``key`` paces them (Batch.key)."""
         counters = self.engine.run(Batch(
             len(batch), {"origins": batch.origins, "directions": batch.directions}, outputs,
-            stepped={"tmin": batch.tmin, "tmax": batch.tmax, "mask": batch.mask}), launch)
+            stepped={"tmin": batch.tmin, "tmax": batch.tmax, "mask": batch.mask}, key=key),
+            launch)
         self.last_packets = int(counters[1]) if self.count_packets else None
 
 

@@ -141,3 +141,30 @@ def test_a_tree_deeper_than_the_first_round_of_levels_reads_once_more(suite_devi
     first_round = widen.EXTRA_LEVELS + -(-(scene.stats.triangles - 2).bit_length() // 3)
     assert scene.stats.wide_depth > first_round
     assert counted["sync"] == BUILD_SYNCS + 1
+
+
+def test_a_query_call_starts_its_launches_where_the_last_call_ended(suite_device, monkeypatch):
+    """The engine paces launches by what the last one took (Ctrl-C waits for
+    those in flight); a call of the same kernel starts from the last call's
+    pace rather than the query's FIRST_LAUNCH, so that a scene whose items
+    cost much pays that first launch once."""
+    from hlbvh_cl.query.rays import RayQuery
+    scene = hlbvh_cl.Scene([grid_mesh(6)], device=suite_device)
+    rng = np.random.default_rng(2)
+    origins = rng.uniform(-0.5, 1.5, (3000, 3)).astype(np.float32)
+    directions = np.tile(np.float32([0.05, 0.02, 1.0]), (3000, 1))
+    firsts = []
+
+    class Recorded(engine.LaunchSizes):
+        def __init__(self, most, first=None):
+            firsts.append(first)
+            super().__init__(most, first)
+    monkeypatch.setattr(engine, "LaunchSizes", Recorded)
+    with scene.borrow() as built:
+        query = RayQuery(built.runtime)
+        query.intersect(built.tree, origins, directions)
+        paced = query.engine.paced["closest"]
+        query.intersect(built.tree, origins, directions)
+        query.occluded(built.tree, origins, directions)
+    assert firsts == [None, paced, None]  # occluded is paced on its own
+    assert paced >= 1
