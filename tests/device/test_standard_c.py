@@ -95,6 +95,10 @@ def _exercise(device) -> None:
         scene.signed_distance(origins)
         scene.contains(origins)
         camera = hlbvh_cl.Camera(eye=(0, 0, 4), target=(0, 0, 0))
+        # rays and points on the device (on_device.cl; camera.cl's camera_rays)
+        on_device = camera.rays(8, 6, scene=scene)
+        scene.intersect(*on_device)
+        scene.closest_points(on_device[1])
         for shading in ("diffuse", "normals", "depth", "ao"):
             hlbvh_cl.Renderer(scene).render(camera, 8, 6, shading=shading, ao_samples=2)
         # the path stages with every BSDF and light kind, and the film's float image
