@@ -33,8 +33,9 @@ it.  The engine does the rest, the same way for every query:
   wait.
 - **Arrays on the device.**  A batch's inputs and outputs may be pyopencl
   arrays of the engine's context (query/on_device.py): the kernels use
-  their buffers as they are, over the whole arrays by slots, and nothing
-  of theirs crosses to the host.
+  their buffers as they are, each launch a range of the whole arrays at a
+  global work offset (Batch.slots False), and nothing of theirs crosses to
+  the host.
 
 On any error or Ctrl-C the queue is finished before the exception leaves:
 the launches in flight may still write the caller's arrays.
