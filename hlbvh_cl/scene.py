@@ -439,7 +439,7 @@ class Scene:
             hits = self._all_hits_query().intersect_all(self._built_tree(), origins, directions,
                                                         tmin, tmax, max_hits, mask)
             if self._two_level is not None and not self._instanced:
-                hits.instance_id[...] = -1  # instances of the masks' making
+                on_device.fill(hits.instance_id, -1)  # instances of the masks' making
             return hits
 
     def count_intersections(self, origins, directions=None, tmin=0.0,

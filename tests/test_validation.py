@@ -542,8 +542,8 @@ def test_masked_entries_and_timedeltas_are_refused_everywhere(suite_device):
 
 def test_device_arrays_are_named_and_array_interfaces_read_in_place(suite_device, monkeypatch):
     """A pyopencl array (which numpy reads as one opaque object) is refused
-    by name with what to pass instead where a call takes host arrays (all
-    hits), and rays half on the device are named; an object exposing
+    by name with what to pass instead where a call takes host arrays (a
+    mesh's), and rays half on the device are named; an object exposing
     __array_interface__ is read without a copy on a CPU device: the
     kernel's buffer wraps the caller's memory."""
     import pyopencl.array as cla
@@ -554,10 +554,12 @@ def test_device_arrays_are_named_and_array_interfaces_read_in_place(suite_device
     origins = np.float32([[0.2, 0.2, -1.0]] * 64)
     directions = np.float32([[0.0, 0.0, 1.0]] * 64)
     on_device = cla.to_device(scene.queue, origins)
-    with pytest.raises(TypeError, match=r"origins is a pyopencl array: .* origins\.get\(\)"):
-        scene.intersect_all(on_device, on_device)
+    with pytest.raises(TypeError, match=r"vertices is a pyopencl array: .* vertices\.get\(\)"):
+        Mesh(on_device[:3], [[0, 1, 2]])
     for call, name in [(lambda: scene.intersect(on_device, directions), "directions"),
-                       (lambda: scene.occluded(origins, on_device), "origins")]:
+                       (lambda: scene.occluded(origins, on_device), "origins"),
+                       (lambda: scene.intersect_all(origins, on_device), "origins"),
+                       (lambda: scene.count_intersections(on_device, directions), "directions")]:
         with pytest.raises(TypeError, match=rf"{name} is not a pyopencl array while another"):
             call()
 

@@ -219,12 +219,12 @@ def _from_tensor(value):
 
 def _not_on_a_device(name: str, value) -> None:
     """The TypeError naming ``name`` for a pyopencl array where a host array
-    is taken: numpy would read it as one object.  (intersect, occluded and
-    the point queries take arrays on the device before they get here:
+    is taken: numpy would read it as one object.  (The ray and point
+    queries take arrays on the device before they get here:
     query/on_device.py.)"""
     if type(value).__module__.startswith("pyopencl") and hasattr(value, "get"):
-        raise TypeError(f"{name} is a pyopencl array: this call takes host arrays (intersect, "
-                        f"occluded and the point queries take them on the device); pass "
+        raise TypeError(f"{name} is a pyopencl array: this call takes host arrays (the ray "
+                        f"and point queries take them on the device); pass "
                         f"{name}.get() (a numpy copy)")
 
 

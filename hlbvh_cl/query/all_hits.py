@@ -24,6 +24,12 @@ device buffer, the rays of a run are taken on the host and go up in chunks
 whose hits stay under HITS_PER_LAUNCH, through device buffers reused
 between chunks, and the results are put back.
 
+Rays given as pyopencl arrays (query/on_device.py) stay on the device, and
+so do the results: both passes run over them in their own order, at
+global offsets, and the segments are found there too, by a scan of the
+counts (parallel/scan.py) in the count pass's wait, which reads back only
+the hits' total, to size them.
+
 A ray through an edge or a vertex shared by triangles on opposite sides
 counts that crossing once (triangle.h, OWN_EDGES), so the parity of a count
 tells inside from outside on a closed mesh.  Conventions otherwise as
@@ -39,6 +45,8 @@ import pyopencl as cl
 
 from ..core import inputs
 from ..device import probe
+from ..parallel import scan
+from . import on_device
 from .order import COHERENT_MIN, RAY_ORDER_BITS, concurrent_rays, device_order
 from ..build.instances import InstancedTree
 from ..device.profile import PACKET_SIZES
@@ -82,7 +90,8 @@ class AllHits:
     """Every hit of R rays, H in all, as flat arrays: ray r's hits are
     [offsets[r], offsets[r + 1]), sorted by t (ties in a fixed order).  Rays
     given with leading dimensions (e.g. (H, W, 3)) are numbered in C order,
-    and ``shape`` keeps those dimensions (``counts`` has them)."""
+    and ``shape`` keeps those dimensions (``counts`` has them).  Rays given
+    as pyopencl arrays get pyopencl arrays."""
 
     offsets: np.ndarray    # int64 (R + 1,)
     ray_index: np.ndarray  # int64 (H,) the ray of each hit
@@ -99,8 +108,9 @@ class AllHits:
 
     @property
     def counts(self) -> np.ndarray:
-        """int64, in the rays' leading shape: hits returned per ray."""
-        return np.diff(self.offsets).reshape(self.shape)
+        """int64, in the rays' leading shape: hits returned per ray (a
+        pyopencl array where the hits are)."""
+        return (self.offsets[1:] - self.offsets[:-1]).reshape(self.shape)
 
 
 def check_max_hits(max_hits) -> int | None:
@@ -153,7 +163,16 @@ class AllHitsQuery:
     def count(self, tree: Tree, origins, directions=None, tmin=0.0,
               tmax=np.inf, mask=None) -> np.ndarray:
         """int32, in the rays' leading shape: the number of hits of each ray
-        with tmin <= t <= tmax (``mask`` as RayQuery.intersect)."""
+        with tmin <= t <= tmax (``mask`` as RayQuery.intersect).  Rays
+        given as pyopencl arrays get a pyopencl array (query/on_device.py)."""
+        on_device_rays = on_device.device_rays(self.rt, origins, directions, tmin, tmax, mask,
+                                               self.query.device_pool())
+        if on_device_rays is not None:
+            found = self._on_device(tree, on_device_rays, self._device_counts)
+            if found is None:  # from the host: its frame, and the counts back up
+                found = self.query.device_pool().upload(self.count(
+                    tree, *on_device_rays.host(), mask=on_device_rays.host_mask()))
+            return found.reshape(on_device_rays.shape)
         rays, _, batch = _rays(origins, directions, tmin, tmax, mask, tree)
         with self._lock:
             counts = self._count(tree, self._placed(rays), self.query.results.empty)
@@ -165,6 +184,18 @@ class AllHitsQuery:
         max_hits=k only the k nearest of each ray (``mask`` as
         RayQuery.intersect)."""
         max_hits = check_max_hits(max_hits)
+        on_device_rays = on_device.device_rays(self.rt, origins, directions, tmin, tmax, mask,
+                                               self.query.device_pool())
+        if on_device_rays is not None:
+            found = self._on_device(tree, on_device_rays, lambda tree, rays: self._all_on_device(
+                tree, rays, max_hits))
+            if found is None:  # from the host: its frame, and the hits back up
+                host = self.intersect_all(tree, *on_device_rays.host(), max_hits=max_hits,
+                                          mask=on_device_rays.host_mask())
+                found = AllHits(**{name: self.query.device_pool().upload(value)
+                                   for name, value in vars(host).items() if name != "shape"},
+                                shape=host.shape)
+            return found
         rays, t_factor, batch = _rays(origins, directions, tmin, tmax, mask, tree)
         pool = self.query.results
         with self._lock:
@@ -210,19 +241,25 @@ class AllHitsQuery:
         if keep and not isinstance(tree, InstancedTree):
             outputs["known"] = empty((count, KEEP_HITS), np.uint32)
         results = (outputs["counts"], outputs.get("known")) if keep else outputs["counts"]
-        keep = "known" in outputs
         if not (count and check_tree(self.rt, tree)):
             outputs["counts"][:] = 0
             return results
+        launch, _ = self._count_launch(tree, "known" in outputs)
+        self._launches(rays, _coherent_order(self.query, rays), None, {}, outputs, launch)
+        return results
+
+    def _count_launch(self, tree, keep: bool):
+        """The count pass's launch (the engine's ``launch``), writing the
+        outputs "counts" and, with ``keep``, "known"; and its rays per
+        work-item."""
         kernel, packet = self.kernel(tree, "count_hits_arrays", keep, self.count_packet_size)
 
         def launch(n, run):
             # not keeping: the kernel writes no known triangle (a stand-in buffer)
-            tail = [np.uint32(1)] if keep else [self.engine.unused, np.uint32(0)]
-            outs = [run.buffers[name] for name in outputs]
-            return self._launch(kernel, packet, tree, n, run, [], [*outs, *tail])
-        self._launches(rays, _coherent_order(self.query, rays), None, {}, outputs, launch)
-        return results
+            tail = [run.buffers["known"], np.uint32(1)] if keep else \
+                [self.engine.unused, np.uint32(0)]
+            return self._launch(kernel, packet, tree, n, run, [], [run.buffers["counts"], *tail])
+        return launch, packet
 
     def _placed(self, rays: tuple) -> tuple:
         """The rays' arrays (_rays's) on pages (results.on_page) where the
@@ -238,16 +275,9 @@ class AllHitsQuery:
         t_factor and batch: _rays's (t back in the caller's units).
         The rays go in their own order: most only have their known triangles
         tested again, and the results then land in order."""
-        kernel, packet = self.kernel(tree, "fill_hits_arrays")
         counts, triangles = known
         inputs = {} if triangles is None else {"counts": counts, "known": triangles}
-
-        def launch(n, run):
-            b = run.buffers
-            given = [b["counts"], b["known"], np.uint32(1)] if inputs else \
-                [self.engine.unused, self.engine.unused, np.uint32(0)]
-            return self._launch(kernel, packet, tree, n, run, [*run.segments, *given],
-                                [b[name] for name in outputs])
+        launch, _ = self._fill_launch(tree, bool(inputs), outputs)
         self._launches(rays, None, offsets, inputs, outputs, launch)
         if t_factor is not None:  # back from the frame
             t, ray_index = outputs["t"], outputs["ray_index"]
@@ -257,15 +287,116 @@ class AllHitsQuery:
                 part = slice(int(offsets[start]), int(offsets[stop]))
                 caller_t(t[part], t_factor, ray_index[part], batch)
 
+    def _fill_launch(self, tree, known: bool, outputs: dict):
+        """The fill pass's launch, writing ``outputs`` (HIT_FIELDS and
+        ray_index) into the segments of the engine's Launch.segments; with
+        ``known``, the count pass's "counts" and "known" triangles are
+        inputs; and its rays per work-item."""
+        kernel, packet = self.kernel(tree, "fill_hits_arrays")
+
+        def launch(n, run):
+            b = run.buffers
+            given = [b["counts"], b["known"], np.uint32(1)] if known else \
+                [self.engine.unused, self.engine.unused, np.uint32(0)]
+            return self._launch(kernel, packet, tree, n, run, [*run.segments, *given],
+                                [b[name] for name in outputs])
+        return launch, packet
+
     def _launch(self, kernel, packet, tree, n, run, inputs, outputs) -> cl.Event:
         """One launch of a pass: the scene (scene_args, with the rays'
         masks), the rays (RAY_PARAMS in kernels/query/all_hits.cl), then the
-        pass's inputs and outputs, the counters and the ray count."""
+        pass's inputs and outputs, the counters and the ray count; over the
+        rays [first, first + n) where the engine gives a range (a global
+        offset of whole packets: Launch.first)."""
         b, steps = run.buffers, run.steps
         return self.rt.run(kernel, -(-n // packet), *scene_args(tree, *steps["mask"]),
                            b["origins"], b["directions"], *steps["tmin"], *steps["tmax"],
                            run.slots, run.indexed, *inputs, *outputs, self.engine.counters,
-                           np.uint32(n), local_size=self.query.work_group_size)
+                           np.uint32(run.first + n), local_size=self.query.work_group_size,
+                           offset=run.first // packet)
+
+    # -- rays on the device (query/on_device.py) ---------------------------
+
+    def _on_device(self, tree, rays: on_device.DeviceRays, run):
+        """``run(tree, rays)``'s result for rays on the device, under the
+        query's lock; no rays or no triangles make no hits; None where the
+        rays go from the host instead (a tree in a scaled frame, or a ray
+        whose hit may lie past float32's range), as RayQuery's do."""
+        with self._lock:
+            if len(rays) and check_tree(self.rt, tree):
+                return None if getattr(tree, "scale", 1.0) != 1.0 else run(tree, rays)
+            return run(None, rays)
+
+    def _device_counts(self, tree, rays: on_device.DeviceRays):
+        """count of rays on the device (``tree`` None: no hits); None where
+        they go from the host instead (_on_device)."""
+        if tree is None:
+            counts = self.query.device_pool().empty(len(rays), np.int32)
+            counts.fill(0)
+            return counts
+        found = self._count_on_device(tree, rays, self.query.walk_limits(tree, rays))
+        return None if found is None else found[0]
+
+    def _count_on_device(self, tree, rays: on_device.DeviceRays, stepped: dict,
+                         keep: bool = False, then=None):
+        """The count pass over rays on the device, checked there: counts
+        (int32 (R,)) and, with ``keep`` on a flat scene, known triangles
+        (uint32 (R, KEEP_HITS), else None), pyopencl arrays, and the
+        counters; ``stepped``: the query's walk_limits; ``then(counts)``
+        (Batch.then) follows the launches.  None where the rays go from
+        the host instead (_on_device)."""
+        pool = self.query.device_pool()
+        counts = pool.empty(len(rays), np.int32)
+        known = pool.empty((len(rays), KEEP_HITS), np.uint32) \
+            if keep and not isinstance(tree, InstancedTree) else None
+        outputs = {"counts": counts, **({} if known is None else {"known": known})}
+        launch, packet = self._count_launch(tree, known is not None)
+        counters = self.engine.run(self.query.device_batch(
+            tree, rays, {}, outputs, stepped, check=True, granule=packet, key="count",
+            then=None if then is None else lambda: then(counts)), launch)
+        return None if self.query.checked(rays, counters) else (counts, known, counters)
+
+    def _all_on_device(self, tree, rays: on_device.DeviceRays, max_hits) -> AllHits | None:
+        """intersect_all of rays on the device, all of it there: the count
+        pass, then (before its one wait) each ray's kept hits scanned into
+        its segment's offset and the total read, which sizes the hits; then
+        the fill pass into them, with its own wait.  ``tree`` None: no hits.
+        None where the rays go from the host instead (_on_device)."""
+        pool, count = self.query.device_pool(), len(rays)
+        if count >= scan.MAX_COUNT:
+            raise ValueError(f"{count} rays in one intersect_all call of rays on the device: "
+                             f"at most {scan.MAX_COUNT - 1} (the device scan's limit)")
+        offsets = pool.empty(count + 1, np.int64)
+        total = np.zeros(1, np.int64)
+        known = None
+        if tree is None:
+            offsets.fill(0)
+        else:
+            limit = np.uint32(np.iinfo(np.int32).max if max_hits is None else max_hits)
+
+            def segments(counts):
+                scanned = self.engine.reserve({"scanned": 4 * (count + 1)})["scanned"]
+                on_device.hit_offsets(self.rt, counts, limit, scanned, offsets,
+                                      self.engine.counters)
+                return [cl.enqueue_copy(self.rt.queue, total, offsets.data,
+                                        src_offset=8 * count, is_blocking=False)]
+            stepped = self.query.walk_limits(tree, rays)
+            found = self._count_on_device(tree, rays, stepped, keep=True, then=segments)
+            if found is None:
+                return None
+            counts, known, counters = found
+            if counters[1]:  # hit_offsets's: the uint32 scan wrapped
+                raise ValueError("intersect_all: more than 2**32 - 1 hits in one call of rays "
+                                 "on the device; split the batch, or give max_hits")
+        fields = {name: pool.empty(int(total[0]), dtype) for name, dtype in HIT_FIELDS.items()}
+        outputs = {**fields, "ray_index": pool.empty(int(total[0]), np.int64)}
+        if total[0]:
+            inputs = {} if known is None else {"counts": counts, "known": known}
+            launch, packet = self._fill_launch(tree, bool(inputs), outputs)
+            _check_fill(self.engine.run(self.query.device_batch(
+                tree, rays, inputs, outputs, stepped, check=False, segments=offsets,
+                granule=packet, key="fill"), launch))
+        return AllHits(offsets=offsets, **outputs, shape=rays.shape)
 
     def _launches(self, rays, order, offsets, inputs, outputs, launch) -> None:
         """A pass over the rays (the engine's launches), in `order` (None: as
@@ -291,9 +422,15 @@ class AllHitsQuery:
             most=None if whole else min(self.query.max_rays_per_launch,
                                         COPIED_RAYS_PER_LAUNCH),
             key="count" if offsets is None else "fill"), launch)
-        if counters[1]:
-            raise RuntimeError("hlbvh_cl internal error: intersect_all's fill pass found fewer "
-                               "hits than its count pass")
+        _check_fill(counters)
+
+
+def _check_fill(counters: np.ndarray) -> None:
+    """After a pass: counters[1], which only the fill pass sets, means it
+    found fewer hits than the count pass."""
+    if counters[1]:
+        raise RuntimeError("hlbvh_cl internal error: intersect_all's fill pass found fewer "
+                           "hits than its count pass")
 
 
 def whole_arrays(query: RayQuery, count: int) -> bool:

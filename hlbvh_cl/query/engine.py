@@ -35,7 +35,9 @@ it.  The engine does the rest, the same way for every query:
   arrays of the engine's context (query/on_device.py): the kernels use
   their buffers as they are, each launch a range of the whole arrays at a
   global work offset (Batch.slots False), and nothing of theirs crosses to
-  the host.
+  the host.  A batch's ``then`` enqueues more work on its results before
+  that one wait, with reads of its own that the wait covers (intersect_all
+  on the device: its segments' scan, and the read of the hits' total).
 
 On any error or Ctrl-C the queue is finished before the exception leaves:
 the launches in flight may still write the caller's arrays.
@@ -237,7 +239,9 @@ class Batch:
     stepped: dict = field(default_factory=dict)  # name -> 0-d value or a row per item
     order: np.ndarray | None = None   # uint32: run the items in this order
     whole: bool = False               # whole arrays in place, items by slots
-    segments: np.ndarray | None = None  # int64 (count + 1,): item i's output rows
+    #: int64 (count + 1,): item i's output rows (a pyopencl array: whole
+    #: arrays, runs by items alone)
+    segments: object = None
     max_rows: int | None = None       # segmented: output rows per launch at most
     most: int | None = None           # items per launch at most (None: the engine's)
     first: int | None = None          # items in the first launch (None: FIRST_LAUNCH)
@@ -253,6 +257,11 @@ class Batch:
     #: the batches of one key (the kernel's name) size their first launch
     #: as the last one's ended (Engine.paced)
     key: str | None = None
+    #: enqueues work after the last launch, before the counters are read:
+    #: then() -> the events of its reads into host arrays, which the
+    #: call's one wait covers too (intersect_all on the device: the scan of
+    #: its counts, and the read of their total)
+    then: object = None
 
 
 class Engine:
@@ -358,6 +367,8 @@ class Engine:
             if stop < batch.count:
                 retire(1 if sizes.measured else 0)
         finish = [collect(queue, buffer, array, True) for buffer, array in results]
+        if batch.then is not None:
+            finish += batch.then()
         counters = np.zeros(COUNTERS, np.int32)
         finish.append(cl.enqueue_copy(queue, counters, self.counters, is_blocking=False))
         rt.wait([*uploads, *(event for waited, *_ in flight for event in waited), *finish])
@@ -385,7 +396,7 @@ class Engine:
         steps = {name: (read[name], np.uint32(1)) if name in read else
                  (scalars[name], np.uint32(0)) for name in batch.stepped}
         segments = () if batch.segments is None else \
-            (self._wrap(batch.segments, flags.READ_ONLY), np.int64(0), np.int64(0))
+            (self._whole_buffer(batch.segments, flags.READ_ONLY), np.int64(0), np.int64(0))
         order = batch.order if batch.order is not None or not batch.slots else \
             np.arange(batch.count, dtype=np.uint32)
         if batch.check is not None:
@@ -484,7 +495,9 @@ def _runs(batch: Batch, sizes: LaunchSizes):
     it stands when each run is cut, rounded down to the batch's granule) and, for segmented outputs, at most
     max_rows rows unless one item alone has more; runs with no rows are
     skipped."""
-    start, count, offsets = 0, batch.count, batch.segments
+    start, count = 0, batch.count
+    # offsets on the device are not read: their runs are by items alone
+    offsets = batch.segments if isinstance(batch.segments, np.ndarray) else None
     while start < count:
         stop = min(start + max(batch.granule, sizes.size // batch.granule * batch.granule),
                    count)

@@ -4,9 +4,12 @@ queries take and give device arrays the same way).
 
 What is taken: ``origins`` and ``directions``, both pyopencl arrays of
 float32 of the same shape (..., 3), on the scene's context (Scene.queue
-makes them); ``tmin`` and ``tmax`` as numbers or float32 pyopencl arrays
-of the rays' leading shape; ``mask`` as one integer or None.  Anything else
-is refused by name.  The rays are checked on the device
+makes them), or Open3D's packed (..., 6) rays as one such array in
+``origins`` (unpacked on the device); ``tmin`` and ``tmax`` as numbers or
+float32 pyopencl arrays of the rays' leading shape; ``mask`` as one
+integer, None, or a uint32 pyopencl array of the rays' leading shape (one
+per ray, Embree's rule as on the numpy path).  Anything else is refused by
+name.  The rays are checked on the device
 (kernels/query/on_device.cl) as core/inputs.py checks numpy rays, in the
 same queue as the query's own kernel, so that the call still waits once; a
 ray that fails is then named as inputs.rays names it, from a copy of the
@@ -19,6 +22,12 @@ walked in Morton order where a batch is big: a caller on the device orders
 them).
 
 Results are pyopencl arrays on Scene.queue, in the inputs' leading shape.
+count_intersections counts on the device; intersect_all's hits, whose
+number only its count pass finds, are sized there too (query/all_hits.py):
+the count pass, then a scan of each ray's kept hits into its segment's
+offset and one read of their total, then the fill pass; the rays are
+walked in the order given (numpy rays of a big batch are counted in Morton
+order).
 Where the scene's tree is built in a scaled frame (hlbvh_cl.core.frame), or
 where a ray's hit could lie past float32's range, the rays are traced from
 the host instead (query/rays.py's into_frame scales them there) and the
@@ -37,6 +46,7 @@ from ..core import frame
 from ..core import inputs
 from ..core.paths import kernel_of
 from ..device.runtime import Runtime
+from ..parallel import scan
 
 KERNEL = kernel_of(__name__)
 
@@ -54,50 +64,69 @@ def is_device_array(value) -> bool:
 class DeviceRays:
     """Rays on the device, their shapes checked: (R, 3) float32 arrays
     without offset, limits as float32 0-d numpy values or (R,) pyopencl
-    arrays, the mask as uint32 0-d, and the leading shape of the results."""
+    arrays, the mask as uint32 0-d or an (R,) pyopencl array, and the
+    leading shape of the results; ``packed``: the caller's (R, 6) rays,
+    where they came so (the error path names their rows)."""
 
     origins: cla.Array
     directions: cla.Array
     tmin: object
     tmax: object
-    mask: np.ndarray
+    mask: object
     shape: tuple
+    packed: cla.Array | None = None
 
     def __len__(self) -> int:
         return len(self.origins)
 
     def host(self) -> tuple:
         """origins, directions, tmin and tmax copied to the host in the
-        caller's shapes, as the numpy queries take them (the fallback's and
-        the error path's)."""
-        return (self.origins.get().reshape(*self.shape, 3),
-                self.directions.get().reshape(*self.shape, 3),
-                *(limit if isinstance(limit, np.ndarray) else limit.get().reshape(self.shape)
-                  for limit in (self.tmin, self.tmax)))
+        caller's shapes (packed rays as one (..., 6) array, directions
+        None), as the numpy queries take them (the fallback's and the error
+        path's)."""
+        rays = (self.packed.get().reshape(*self.shape, 6), None) if self.packed is not None \
+            else (self.origins.get().reshape(*self.shape, 3),
+                  self.directions.get().reshape(*self.shape, 3))
+        return (*rays, *(limit if isinstance(limit, np.ndarray) else
+                         limit.get().reshape(self.shape) for limit in (self.tmin, self.tmax)))
+
+    def host_mask(self) -> np.ndarray:
+        """The masks as the numpy queries take them (the fallback's)."""
+        return self.mask if isinstance(self.mask, np.ndarray) else \
+            self.mask.get().reshape(self.shape)
 
 
-def device_rays(rt: Runtime, origins, directions, tmin, tmax, mask) -> DeviceRays | None:
+def device_rays(rt: Runtime, origins, directions, tmin, tmax, mask,
+                pool: "ResultArrays") -> DeviceRays | None:
     """The rays as DeviceRays when any of them is a pyopencl array, else
     None (numpy rays: core/inputs.py's).  Shapes, types and the context are
-    checked here; values on the device (check_rays)."""
+    checked here; values on the device (check_rays).  Packed rays are
+    unpacked into arrays from ``pool``."""
     given = {"origins": origins, "directions": directions, "tmin": tmin, "tmax": tmax,
              "mask": mask}
     if not any(is_device_array(value) for value in given.values()):
         return None
-    for name in ("origins", "directions"):
+    packed = directions is None and is_device_array(origins) and origins.ndim >= 1 \
+        and origins.shape[-1] == 6
+    for name in ("origins",) if packed else ("origins", "directions"):
         if not is_device_array(given[name]):
             raise TypeError(f"{name} is {'missing' if given[name] is None else 'not a pyopencl array'}"
                             " while another ray input is one: give origins and directions as "
-                            "two pyopencl arrays of shape (..., 3), or all inputs as numpy arrays")
-    if is_device_array(mask):
-        raise TypeError("mask is a pyopencl array: rays on the device take one integer mask "
-                        "(or none); give per-ray masks with numpy rays")
+                            "two pyopencl arrays of shape (..., 3) (or packed rays (..., 6) as "
+                            "one), or all inputs as numpy arrays")
+    for name, one, per_ray in (("tmin", "number", "float32"), ("tmax", "number", "float32"),
+                               ("mask", "integer", "uint32")):
+        if not is_device_array(given[name]) and np.ndim(given[name]):
+            raise TypeError(f"{name} is a host array while the rays are pyopencl arrays: give "
+                            f"one {one}, or one per ray as a {per_ray} pyopencl array")
     for name, value in given.items():
         if is_device_array(value) and value.context != rt.context:
             raise ValueError(f"{name} is a pyopencl array of another OpenCL context than this "
                              f"scene's ({rt.device.id}): make it with scene.queue")
     shape = origins.shape[:-1]
-    for name, value in (("origins", origins), ("directions", directions)):
+    if packed:
+        _check_array("rays", origins, np.float32)
+    for name, value in () if packed else (("origins", origins), ("directions", directions)):
         _check_array(name, value, np.float32)
         if value.ndim < 1 or value.shape[-1] != 3 or value.shape[:-1] != shape:
             raise ValueError(f"{name} must have shape (..., 3) like origins {origins.shape}, "
@@ -124,10 +153,23 @@ def device_rays(rt: Runtime, origins, directions, tmin, tmax, mask) -> DeviceRay
     for name, value in zip(("tmin", "tmax"), scalars):
         if not is_device_array(limits[name]):
             limits[name] = value.reshape(())
-    masks = np.array(inputs.ALL_BITS, np.uint32) if mask is None else \
-        inputs.ray_masks(mask, ())
+    if is_device_array(mask):
+        _check_array("mask", mask, np.uint32)
+        if mask.shape != shape:
+            raise ValueError(f"mask must have the rays' leading shape {shape}, got {mask.shape}")
+        masks = _flat(mask, count)
+    else:
+        masks = (np.array(inputs.ALL_BITS, np.uint32) if mask is None else
+                 inputs.ray_masks(mask, ())).reshape(())
+    if packed:
+        rows = _flat(origins, count, 6)
+        o, d = pool.empty((count, 3), np.float32), pool.empty((count, 3), np.float32)
+        if count:
+            rt.run(rt.kernel(KERNEL, "unpack_rays"), count, rows.data, o.data, d.data,
+                   np.uint32(count))
+        return DeviceRays(o, d, limits["tmin"], limits["tmax"], masks, shape, rows)
     return DeviceRays(_flat(origins, count, 3), _flat(directions, count, 3), limits["tmin"],
-                      limits["tmax"], masks.reshape(()), shape)
+                      limits["tmax"], masks, shape)
 
 
 def device_points(rt: Runtime, points) -> tuple[cla.Array, tuple] | None:
@@ -151,7 +193,8 @@ def device_points(rt: Runtime, points) -> tuple[cla.Array, tuple] | None:
 
 def _check_array(name: str, value: cla.Array, dtype) -> None:
     if value.dtype != dtype:
-        raise TypeError(f"{name} is a pyopencl array of {value.dtype}; rays on the device must "
+        what = "masks" if name == "mask" else "rays"
+        raise TypeError(f"{name} is a pyopencl array of {value.dtype}; {what} on the device must "
                         f"be {np.dtype(dtype).name} ({name}.astype(np.{np.dtype(dtype).name}))")
     if not value.flags.c_contiguous:
         raise ValueError(f"{name} is a pyopencl array that is not C-contiguous; give a "
@@ -167,13 +210,39 @@ def _flat(value: cla.Array, count: int, width: int = 0) -> cla.Array:
     return value.reshape((count, width) if width else (count,))
 
 
+def walk_limits(rays: DeviceRays, flat: bool, pool: "ResultArrays") -> dict:
+    """The stepped values (engine.Batch.stepped) of the walks of the rays:
+    tmin, tmax and mask as given, but on a flat scene, whose kernels take no
+    mask (query/rays.py's masked), a ray of mask 0 walks with tmax -inf:
+    one mask 0 for all here, per-ray masks by check_rays, which then writes
+    each ray's walked tmax into an array from ``pool``; the caller's tmax
+    is then ``given_tmax`` (what check_rays checks)."""
+    stepped = {"tmin": rays.tmin, "tmax": rays.tmax, "mask": rays.mask}
+    if flat and is_device_array(rays.mask):
+        stepped.update(given_tmax=rays.tmax, tmax=pool.empty(len(rays), np.float32))
+    elif flat and rays.mask == 0:
+        stepped.update(given_tmax=rays.tmax, tmax=np.array(-np.inf, np.float32))
+    return stepped
+
+
+def checker(rt: Runtime, rays: DeviceRays, counters: cl.Buffer):
+    """The engine's Batch.check for the rays (check_rays), over the steps
+    of walk_limits's values."""
+    def check(buffers, steps):
+        check_rays(rt, rays, steps, counters)
+    return check
+
+
 def check_rays(rt: Runtime, rays: DeviceRays, steps: dict, counters: cl.Buffer) -> None:
     """Enqueues check_rays over the rays (the buffers and steps of the
-    engine's launch), setting counters[2] and [3]."""
+    engine's launch of walk_limits's values), setting counters[2] and [3],
+    and each ray's walked tmax where walk_limits asks for it."""
     kernel = rt.kernel(KERNEL, "check_rays")
+    walked, _ = steps["tmax"]
     rt.run(kernel, len(rays), rays.origins.data, rays.directions.data, *steps["tmin"],
-           *steps["tmax"], np.float32(frame.SAFE_RANGE[1]), SAFE_T, counters,
-           np.uint32(len(rays)))
+           *steps.get("given_tmax", steps["tmax"]), *steps["mask"], walked,
+           np.uint32(is_device_array(rays.mask) and "given_tmax" in steps),
+           np.float32(frame.SAFE_RANGE[1]), SAFE_T, counters, np.uint32(len(rays)))
 
 
 def check_points(rt: Runtime, points: cla.Array, limit: float, counters: cl.Buffer) -> None:
@@ -182,6 +251,20 @@ def check_points(rt: Runtime, points: cla.Array, limit: float, counters: cl.Buff
     kernel = rt.kernel(KERNEL, "check_points")
     rt.run(kernel, len(points), points.data, np.float32(limit), counters,
            np.uint32(len(points)))
+
+
+def hit_offsets(rt: Runtime, counts: cla.Array, limit: np.uint32, scanned: cl.Buffer,
+                offsets: cla.Array, counters: cl.Buffer) -> None:
+    """Enqueues intersect_all's segments for the int32 ``counts`` of rays on
+    the device: ``offsets`` (int64 (R + 1,)) the exclusive prefix sum of
+    min(counts, limit), through ``scanned`` (uint32, R + 1: the project's
+    scan is uint32), with counters[1] set where that sum wraps
+    (kernels/query/on_device.cl)."""
+    count = len(counts)
+    rt.run(rt.kernel(KERNEL, "kept_hits"), count, counts.data, limit, scanned, np.uint32(count))
+    scan.exclusive_scan(rt, scanned, count)
+    rt.run(rt.kernel(KERNEL, "hit_offsets"), count + 1, scanned, counts.data, limit,
+           offsets.data, counters, np.uint32(count))
 
 
 def raise_for_bad_ray(rays: DeviceRays) -> None:

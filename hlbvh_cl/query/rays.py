@@ -158,7 +158,8 @@ class RayQuery:
         whose mask shares no bit with its own (``mask``: scalar or per ray).
         Rays given as pyopencl arrays get a Hits of pyopencl arrays
         (query/on_device.py)."""
-        rays = on_device.device_rays(self.rt, origins, directions, tmin, tmax, mask)
+        rays = on_device.device_rays(self.rt, origins, directions, tmin, tmax, mask,
+                                     self.device_pool())
         if rays is not None:
             return self._on_device(tree, rays, self.intersect, {
                 name: ((n,) if n > 1 else (), dtype) for name, (dtype, n) in HIT_FIELDS.items()},
@@ -187,7 +188,8 @@ class RayQuery:
         """bool in the rays' leading shape: whether anything is hit with
         tmin <= t <= tmax (stops at the first hit); ``mask`` as intersect.
         Rays given as pyopencl arrays get a pyopencl array."""
-        rays = on_device.device_rays(self.rt, origins, directions, tmin, tmax, mask)
+        rays = on_device.device_rays(self.rt, origins, directions, tmin, tmax, mask,
+                                     self.device_pool())
         if rays is not None:
             return self._on_device(tree, rays, self.occluded, {"occluded": ((), np.uint8)},
                                    lambda found: found["occluded"].view(bool))
@@ -236,9 +238,7 @@ class RayQuery:
         arrays, made into the query's result by ``make``; traced from the
         host where the tree's frame or a ray's reach asks for it
         (query/on_device.py)."""
-        if self._device_results is None:
-            self._device_results = on_device.ResultArrays(self.rt.queue)
-        pool, count = self._device_results, len(rays)
+        pool, count = self.device_pool(), len(rays)
         found = {name: pool.empty((count, *trailing), dtype)
                  for name, (trailing, dtype) in fields.items()}
         fallback = False
@@ -250,7 +250,7 @@ class RayQuery:
         elif count:
             missed(found)
         if fallback:  # from the host: its frame, and the results back up
-            result = query(tree, *rays.host(), mask=rays.mask)
+            result = query(tree, *rays.host(), mask=rays.host_mask())
             host = vars(result) if "t" in fields else {"occluded": result.view(np.uint8)}
             found = {name: pool.upload(host[name].reshape(count, *fields[name][0]))
                      for name in fields}
@@ -261,20 +261,41 @@ class RayQuery:
         """The launches over rays on the device, checked there; raises for
         a ray that fails the checks; True where a ray's hit may lie past
         float32's range (the caller traces from the host instead)."""
-        stepped = {"tmin": rays.tmin, "tmax": rays.tmax, "mask": rays.mask}
-        if not isinstance(tree, InstancedTree) and rays.mask == 0:
-            # a flat tree's meshes have every bit (masked): these rays see
-            # nothing; the checks still see the caller's tmax
-            stepped.update(given_tmax=rays.tmax, tmax=np.array(-np.inf, np.float32))
-
-        def check(buffers, steps):
-            on_device.check_rays(self.rt, rays, {"tmin": steps["tmin"], "tmax": steps.get(
-                "given_tmax", steps["tmax"])}, self.engine.counters)
-        counters = self.engine.run(Batch(
-            len(rays), {"origins": rays.origins, "directions": rays.directions}, outputs,
-            stepped=stepped, whole=True, check=check, slots=False, granule=self.packet_size,
-            key="closest" if "t" in outputs else "any"), launch)
+        counters = self.engine.run(self.device_batch(
+            tree, rays, {}, outputs, self.walk_limits(tree, rays), check=True,
+            granule=self.packet_size, key="closest" if "t" in outputs else "any"), launch)
         self.last_packets = int(counters[1]) if self.count_packets else None
+        return self.checked(rays, counters)
+
+    def device_pool(self) -> on_device.ResultArrays:
+        """The device memory of the results of rays given on the device
+        (made on the first such call)."""
+        if self._device_results is None:
+            self._device_results = on_device.ResultArrays(self.rt.queue)
+        return self._device_results
+
+    def walk_limits(self, tree, rays: on_device.DeviceRays) -> dict:
+        """The stepped values of walks of rays on the device over ``tree``
+        (on_device.walk_limits)."""
+        return on_device.walk_limits(rays, not isinstance(tree, InstancedTree),
+                                     self.device_pool())
+
+    def device_batch(self, tree, rays: on_device.DeviceRays, inputs: dict, outputs: dict,
+                     stepped: dict, check: bool, **fields) -> Batch:
+        """The engine's batch over rays on the device: their arrays and
+        ``inputs`` read, ``outputs`` written, in place, each launch a range
+        of them at a global offset (Batch.slots False); with ``check`` the
+        rays are checked first (on_device.check_rays)."""
+        return Batch(len(rays), {"origins": rays.origins, "directions": rays.directions,
+                                 **inputs}, outputs, stepped=stepped, whole=True, slots=False,
+                     check=on_device.checker(self.rt, rays, self.engine.counters) if check
+                     else None, **fields)
+
+    @staticmethod
+    def checked(rays: on_device.DeviceRays, counters: np.ndarray) -> bool:
+        """After a checked batch: raises for a ray that failed the checks,
+        named as the numpy queries name it; True where a ray's hit may lie
+        past float32's range (the caller traces from the host instead)."""
         if counters[2]:
             on_device.raise_for_bad_ray(rays)
         return bool(counters[3])

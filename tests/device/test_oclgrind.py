@@ -206,9 +206,51 @@ def check_device_rays(query, tree, oracle) -> None:
         np.testing.assert_array_equal(getattr(hits, name).get(), value, name)
     occluded = query.occluded(tree, *on_device)
     np.testing.assert_array_equal(occluded.get(), expected.hit)
+    # a mask per ray, on the device (0 sees nothing: check_rays writes the
+    # tmax such a ray walks with), and the rays packed (..., 6) as one array
+    masks = np.arange(len(origins), dtype=np.uint32) % 3
+    on_masks = cla.to_device(query.rt.queue, masks)
+    masked = query.intersect(tree, *on_device, mask=on_masks)
+    for name, value in vars(query.intersect(tree, origins, directions, mask=masks)).items():
+        np.testing.assert_array_equal(getattr(masked, name).get(), value, name)
+    assert not masked.hit.get()[masks == 0].any()
+    packed = cla.to_device(query.rt.queue, np.concatenate([origins, directions], axis=1))
+    occluded_packed = query.occluded(tree, packed)
+    np.testing.assert_array_equal(occluded_packed.get(), expected.hit)
     # pyopencl arrays' buffers are not cl.Buffer objects made in Python:
     # kept alive here as uninitialized_mode keeps those (its point 3)
-    KEPT_DEVICE_ARRAYS.append((query, on_device, hits, occluded))
+    KEPT_DEVICE_ARRAYS.append((query, on_device, hits, occluded, on_masks, masked, packed,
+                               occluded_packed))
+
+
+def check_device_all_hits(query, tree, origins, directions, tmax) -> None:
+    """count_intersections and intersect_all (every hit and the first two)
+    of rays as pyopencl arrays (query/on_device.py: checked, counted, their
+    segments scanned and the hits filled on the device, in launches of three
+    packets at global offsets), with a mask per ray there: the numpy rays'
+    answers."""
+    import pyopencl.array as cla
+    query.query.max_rays_per_launch = 3 * query.query.packet_size
+    masks = (np.arange(len(origins)) % 4).astype(np.uint32)
+    queue = query.rt.queue
+    on_device = [cla.to_device(queue, a) for a in (origins, directions, tmax, masks)]
+    kept = [on_device]
+    for mask, on_device_mask in ((None, None), (masks, on_device[3])):
+        counts = query.count(tree, *on_device[:2], tmax=on_device[2], mask=on_device_mask)
+        np.testing.assert_array_equal(counts.get(), query.count(tree, origins, directions,
+                                                                tmax=tmax, mask=mask))
+        for max_hits in (None, 2):
+            got = query.intersect_all(tree, *on_device[:2], tmax=on_device[2], max_hits=max_hits,
+                                      mask=on_device_mask)
+            want = query.intersect_all(tree, origins, directions, tmax=tmax, max_hits=max_hits,
+                                       mask=mask)
+            for name, value in vars(want).items():
+                if name != "shape":
+                    np.testing.assert_array_equal(getattr(got, name).get(), value,
+                                                  f"{name}, max_hits {max_hits}, mask {mask}")
+            kept.append(got)
+        kept.append(counts)
+    KEPT_DEVICE_ARRAYS.append(kept)
 
 
 def check_device_points(query, tree, points) -> None:
@@ -226,6 +268,25 @@ def check_device_points(query, tree, points) -> None:
     distance = query.signed_distance(tree, on_device)
     np.testing.assert_allclose(distance.get(), query.signed_distance(tree, points), rtol=1e-6)
     KEPT_DEVICE_ARRAYS.append((query, on_device, found, winding, distance))
+
+
+def check_device_masks(query, tree, origins, directions) -> None:
+    """Rays and a mask per ray as pyopencl arrays on a two-level scene (the
+    instances' masks read by the walk): closest hits and counts, the numpy
+    rays' answers."""
+    import pyopencl.array as cla
+    from hlbvh_cl.query.all_hits import AllHitsQuery
+    masks = (np.arange(len(origins)) % 4).astype(np.uint32)
+    on_device = [cla.to_device(query.rt.queue, np.ascontiguousarray(a))
+                 for a in (origins, directions, masks)]
+    hits = query.intersect(tree, *on_device[:2], mask=on_device[2])
+    for name, value in vars(query.intersect(tree, origins, directions, mask=masks)).items():
+        np.testing.assert_array_equal(getattr(hits, name).get(), value, name)
+    all_hits = AllHitsQuery(query)
+    counts = all_hits.count(tree, *on_device[:2], mask=on_device[2])
+    np.testing.assert_array_equal(counts.get(), all_hits.count(tree, origins, directions,
+                                                               mask=masks))
+    KEPT_DEVICE_ARRAYS.append((on_device, hits, counts))
 
 
 #: What check_device_rays and check_device_points keep alive until the
@@ -348,6 +409,10 @@ def case_all_hits(uninitialized: bool) -> dict:
     counts = stack.scene.count_intersections(origins.astype(np.float32),
                                              directions.astype(np.float32), tmax=tmax)
     assert (counts > all_hits.KEEP_HITS).sum() > 3 and ((counts > 0) & (counts < 4)).sum() > 3
+    # the same rays on the device
+    check_device_all_hits(AllHitsQuery(RayQuery(built.runtime(stack.scene), packet_size=8)),
+                          built.tree(stack.scene), origins.astype(np.float32),
+                          directions.astype(np.float32), tmax)
     # a batch aimed at one vertex from scattered origins, ordered by
     # direction (the keys' other kind), in packets whose interval ray starts
     # from origins moved along the rays
@@ -398,6 +463,8 @@ def case_instances(uninitialized: bool) -> dict:
             occluded = query.occluded(built.tree(scene), origins, directions, mask=1)
             assert occluded.tolist() == brute_force_occluded(
                 vertices, faces[keep], origins, directions).tolist(), label
+            if step == "built" and packet_size == 8:
+                check_device_masks(query, built.tree(scene), origins, directions)
         maps[1:3] = random_transforms(rng, 2, spread=1.5)
         scene.set_transforms([1, 2], maps[1:3])
     return {}

@@ -112,27 +112,41 @@ def test_camera_rays_made_on_the_device(suite_device, meshes):
     assert hits.hit.get().sum() > 200
 
 
-def test_bad_rays_on_the_device_are_named(suite_device):
+@pytest.mark.parametrize("query", ["intersect", "occluded", "count_intersections",
+                                   "intersect_all"])
+def test_bad_ray_values_on_the_device_are_named(suite_device, query):
+    """Each ray query's checks made on the device: a bad ray named as the
+    numpy queries name it; nothing stays set for the next call."""
     scene = hlbvh_cl.Scene([grid_mesh(4)], device=suite_device)
-    q = scene.queue
+    call, q = getattr(scene, query), scene.queue
     origins = np.zeros((4, 5, 3), np.float32)
     directions = np.ones((4, 5, 3), np.float32)
     bad = origins.copy()
     bad[2, 3, 1] = np.nan
     with pytest.raises(ValueError, match=r"origins\[2, 3\] = .* is not finite"):
-        scene.intersect(cla.to_device(q, bad), cla.to_device(q, directions))
+        call(cla.to_device(q, bad), cla.to_device(q, directions))
     short = directions.copy()
     short[1, 4] = 0.0
     with pytest.raises(ValueError, match=r"directions\[1, 4\]"):
-        scene.occluded(cla.to_device(q, origins), cla.to_device(q, short))
+        call(cla.to_device(q, origins), cla.to_device(q, short))
     tmin = np.zeros((4, 5), np.float32)
     tmin[3, 0] = -1.0
-    with pytest.raises(ValueError, match=r"tmin\[.*\] = -1.0 must be finite and >= 0"):
-        scene.intersect(cla.to_device(q, origins), cla.to_device(q, directions),
-                        tmin=cla.to_device(q, tmin))
+    with pytest.raises(ValueError, match=r"tmin\[3, 0\] = -1.0 must be finite and >= 0"):
+        call(cla.to_device(q, origins), cla.to_device(q, directions),
+             tmin=cla.to_device(q, tmin))
     with pytest.raises(ValueError, match="is greater than tmax"):
-        scene.intersect(cla.to_device(q, origins), cla.to_device(q, directions), tmin=2.0,
-                        tmax=cla.to_device(q, np.ones((4, 5), np.float32)))
+        call(cla.to_device(q, origins), cla.to_device(q, directions), tmin=2.0,
+             tmax=cla.to_device(q, np.ones((4, 5), np.float32)))
+    result = call(cla.to_device(q, origins), cla.to_device(q, directions))
+    assert (result.counts if query == "intersect_all" else
+            getattr(result, "t", result)).shape == (4, 5)
+
+
+def test_bad_ray_arrays_on_the_device_are_named(suite_device):
+    scene = hlbvh_cl.Scene([grid_mesh(4)], device=suite_device)
+    q = scene.queue
+    origins = np.zeros((4, 5, 3), np.float32)
+    directions = np.ones((4, 5, 3), np.float32)
     o, d = cla.to_device(q, origins), cla.to_device(q, directions)
     with pytest.raises(TypeError, match=r"origins is a pyopencl array of float64; .*astype"):
         scene.intersect(cla.to_device(q, origins.astype(np.float64)), d)
@@ -144,8 +158,17 @@ def test_bad_rays_on_the_device_are_named(suite_device):
         scene.intersect(o, cla.to_device(q, directions.reshape(20, 3)))
     with pytest.raises(ValueError, match="tmax must have the rays' leading shape"):
         scene.intersect(o, d, tmax=cla.to_device(q, np.ones(20, np.float32)))
-    with pytest.raises(TypeError, match="mask is a pyopencl array"):
-        scene.intersect(o, d, mask=cla.to_device(q, np.ones((4, 5), np.uint32)))
+    with pytest.raises(TypeError, match=r"mask is a pyopencl array of int32; masks on the "
+                                        r"device must be uint32 .*astype"):
+        scene.intersect(o, d, mask=cla.to_device(q, np.ones((4, 5), np.int32)))
+    with pytest.raises(ValueError, match="mask must have the rays' leading shape"):
+        scene.occluded(o, d, mask=cla.to_device(q, np.ones(20, np.uint32)))
+    with pytest.raises(TypeError, match="mask is a host array while the rays are pyopencl"):
+        scene.intersect(o, d, mask=np.ones((4, 5), np.uint32))
+    with pytest.raises(TypeError, match="tmax is a host array while the rays are pyopencl"):
+        scene.occluded(o, d, tmax=[[1.0] * 5] * 4)
+    with pytest.raises(TypeError, match="origins is not a pyopencl array while another"):
+        scene.intersect(origins, directions, mask=cla.to_device(q, np.ones((4, 5), np.uint32)))
     context = cl.Context([q.device])  # kept: Intel's runtime drops a context nothing holds
     other = cl.CommandQueue(context)
     with pytest.raises(ValueError, match="another OpenCL context"):
@@ -210,3 +233,165 @@ def test_bad_points_on_the_device_are_named(suite_device):
     np.testing.assert_array_equal(
         small.closest_points(cla.to_device(small.queue, near)).distance.get(),
         small.closest_points(near).distance)
+
+
+def assert_same_all_hits(on_device, on_host, what=""):
+    assert on_device.shape == on_host.shape, what
+    for name, expected in vars(on_host).items():
+        if name != "shape":
+            got = getattr(on_device, name)
+            assert isinstance(got, cla.Array), (what, name)
+            np.testing.assert_array_equal(got.get(), expected, err_msg=f"{what} {name}")
+    np.testing.assert_array_equal(on_device.counts.get(), on_host.counts, err_msg=what)
+
+
+@pytest.fixture(scope="module")
+def stacked():
+    """The two meshes and stacked plates: rays through them have more hits
+    than the count pass keeps (the fill pass walks again) and fewer."""
+    from all_hits_cases import plates
+    from hlbvh_cl.query.all_hits import KEEP_HITS
+    return plates(KEEP_HITS + 3)
+
+
+def test_all_hits_and_counts_on_the_device_are_the_numpy_ones(suite_device, stacked):
+    """count_intersections and intersect_all of rays on the device, in an
+    (H, W) shape and in launches of a few packets at global offsets, with
+    limits given once and per ray there, every hit and the first k: the
+    numpy queries' answers bit for bit, and the float64 brute force's
+    counts where float32 cannot decide otherwise."""
+    from all_hits_cases import EDGE_TOLERANCE
+    from oracle import brute_force_all_hits
+    from hlbvh_cl.query.all_hits import AllHitsQuery, wide_count_packets
+    from hlbvh_cl.query.rays import RayQuery
+    import built
+    scene = hlbvh_cl.Scene([stacked], device=suite_device)
+    rng = np.random.default_rng(11)
+    origins = np.column_stack([rng.uniform(-1.2, 1.2, (600, 2)), np.full(600, -0.5)])
+    directions = np.column_stack([rng.uniform(-0.1, 0.1, (600, 2)), np.ones(600)])
+    origins, directions = (a.astype(np.float32).reshape(20, 30, 3) for a in (origins,
+                                                                             directions))
+    tmax = rng.uniform(0.0, 13.0, (20, 30)).astype(np.float32)
+    q = scene.queue
+    o, d, t = (cla.to_device(q, a) for a in (origins, directions, tmax))
+    query = RayQuery(built.runtime(scene))
+    query.max_rays_per_launch = 48  # a few packets per launch, at global offsets
+    all_hits, tree = AllHitsQuery(query, wide_count_packets(query)), built.tree(scene)
+    for limits in ({}, {"tmin": 2.5, "tmax": 9.0}, {"tmax": t}):
+        host = {k: (v.get() if isinstance(v, cla.Array) else v) for k, v in limits.items()}
+        counts = all_hits.count(tree, o, d, **limits)
+        expected = all_hits.count(tree, origins, directions, **host)
+        assert isinstance(counts, cla.Array) and counts.shape == (20, 30)
+        np.testing.assert_array_equal(counts.get(), expected)
+        for max_hits in (None, 1, 3):
+            assert_same_all_hits(all_hits.intersect_all(tree, o, d, max_hits=max_hits, **limits),
+                                 all_hits.intersect_all(tree, origins, directions,
+                                                        max_hits=max_hits, **host),
+                                 f"{limits} {max_hits}")
+    want = brute_force_all_hits(stacked.vertices, stacked.faces, origins.reshape(-1, 3),
+                                directions.reshape(-1, 3), 0.0, tmax.reshape(-1))
+    clear = want["margin"] > EDGE_TOLERANCE
+    assert clear.sum() > 400
+    from hlbvh_cl.query.all_hits import KEEP_HITS
+    found = scene.count_intersections(o, d, tmax=t).get().reshape(-1)
+    np.testing.assert_array_equal(found[clear], np.diff(want["offsets"])[clear])
+    assert (found > KEEP_HITS).sum() > 20 and ((found > 0) & (found <= KEEP_HITS)).sum() > 20
+
+
+def test_masks_per_ray_on_the_device(suite_device, two_meshes):
+    """A uint32 pyopencl array of masks, one per ray: every ray query gives
+    the numpy queries' answers to the same masks given as a numpy array,
+    flat (where a ray of mask 0 sees nothing) and instanced with masks."""
+    maps = [np.eye(3, 4), np.hstack([np.eye(3), [[1.5], [0.0], [0.0]]])]
+    origins, directions = sphere_rays(np.random.default_rng(12), 4_000, radius=3.0)
+    masks = np.random.default_rng(13).integers(0, 4, 4_000).astype(np.uint32)
+    masks[:4] = [0, 1, 2, 3]
+    for scene in (hlbvh_cl.Scene(two_meshes, device=suite_device),
+                  hlbvh_cl.Scene(two_meshes, device=suite_device,
+                                 instances=[(0, maps[0]), (1, maps[1])], masks=[1, 2])):
+        q = scene.queue
+        o, d, m = (cla.to_device(q, a) for a in (origins, directions, masks))
+        assert_same_hits(scene.intersect(o, d, mask=m), scene.intersect(origins, directions,
+                                                                         mask=masks))
+        np.testing.assert_array_equal(scene.occluded(o, d, mask=m).get(),
+                                      scene.occluded(origins, directions, mask=masks))
+        counts = scene.count_intersections(o, d, mask=m).get()
+        np.testing.assert_array_equal(counts, scene.count_intersections(origins, directions,
+                                                                        mask=masks))
+        assert_same_all_hits(scene.intersect_all(o, d, mask=m, tmax=2.5),
+                             scene.intersect_all(origins, directions, mask=masks, tmax=2.5))
+        # the rays of mask 0 see nothing; the others of mask 3 what unmasked rays see
+        unmasked = scene.count_intersections(origins, directions)
+        assert (counts[masks == 0] == 0).all() and unmasked[masks == 0].sum() > 100
+        np.testing.assert_array_equal(counts[masks == 3], unmasked[masks == 3])
+
+
+def test_packed_rays_on_the_device(suite_device, two_meshes):
+    """Open3D's (..., 6) rays as one pyopencl array: the answers of the same
+    rays given as two arrays; a bad one named as the numpy queries name it."""
+    scene = hlbvh_cl.Scene(two_meshes, device=suite_device)
+    origins, directions = sphere_rays(np.random.default_rng(14), 3_000)
+    packed = np.concatenate([origins, directions], axis=1).reshape(30, 100, 6)
+    rays = cla.to_device(scene.queue, packed)
+    apart = origins.reshape(30, 100, 3), directions.reshape(30, 100, 3)
+    assert_same_hits(scene.intersect(rays, tmax=2.0), scene.intersect(*apart, tmax=2.0))
+    np.testing.assert_array_equal(scene.occluded(rays).get(), scene.occluded(*apart))
+    np.testing.assert_array_equal(scene.count_intersections(rays).get(),
+                                  scene.count_intersections(*apart))
+    assert_same_all_hits(scene.intersect_all(rays, max_hits=2),
+                         scene.intersect_all(*apart, max_hits=2))
+    packed[1, 2, 4] = np.inf
+    with pytest.raises(ValueError, match=r"rays\[1, 2\]\[3:6\] = .* is not finite"):
+        scene.intersect_all(cla.to_device(scene.queue, packed))
+    with pytest.raises(TypeError, match="rays is a pyopencl array of float64"):
+        scene.count_intersections(cla.to_device(scene.queue, packed.astype(np.float64)))
+
+
+def test_bad_arguments_for_all_hits_on_the_device_are_named(suite_device):
+    scene = hlbvh_cl.Scene([grid_mesh(4)], device=suite_device)
+    q = scene.queue
+    o, d = (cla.to_device(q, np.ones((4, 5, 3), np.float32)) for _ in range(2))
+    with pytest.raises(TypeError, match="directions is not a pyopencl array while another"):
+        scene.intersect_all(o, np.ones((4, 5, 3), np.float32))
+    with pytest.raises(TypeError, match="mask is a pyopencl array of int64"):
+        scene.count_intersections(o, d, mask=cla.to_device(q, np.ones((4, 5), np.int64)))
+    with pytest.raises(ValueError, match="max_hits"):
+        scene.intersect_all(o, d, max_hits=0)
+
+
+def test_all_hits_on_the_device_of_no_rays_and_no_hits(suite_device):
+    scene = hlbvh_cl.Scene([grid_mesh(4)], device=suite_device)
+    q = scene.queue
+    empty = cla.to_device(q, np.zeros((0, 3), np.float32))
+    none = scene.intersect_all(empty, empty)
+    assert none.offsets.get().tolist() == [0] and len(none) == 0
+    assert scene.count_intersections(empty, empty).shape == (0,)
+    away = cla.to_device(q, np.tile(np.float32([1, 0, 0]), (7, 1)))
+    origins = cla.to_device(q, np.tile(np.float32([10, 10, 10]), (7, 1)))
+    missed = scene.intersect_all(origins, away)
+    assert len(missed) == 0 and missed.offsets.get().tolist() == [0] * 8
+    assert missed.t.dtype == np.float32 and missed.ray_index.dtype == np.int64
+
+
+def test_all_hits_on_the_device_in_a_scaled_frame_or_past_float32(suite_device):
+    """A tiny scene's tree (a scaled frame), and rays whose hits could lie
+    past float32's t: counted and filled from the host, same answers."""
+    tiny = grid_mesh(6)
+    tiny = Mesh(tiny.vertices * 1e-9, tiny.faces)
+    scene = hlbvh_cl.Scene([tiny], device=suite_device)
+    origins, directions = sphere_rays(np.random.default_rng(15), 2_000)
+    origins *= np.float32(1e-9)
+    o, d = cla.to_device(scene.queue, origins), cla.to_device(scene.queue, directions)
+    expected = scene.intersect_all(origins, directions)
+    assert len(expected) > 100
+    assert_same_all_hits(scene.intersect_all(o, d), expected)
+    np.testing.assert_array_equal(scene.count_intersections(o, d).get(),
+                                  scene.count_intersections(origins, directions))
+    flat = hlbvh_cl.Scene([grid_mesh(6)], device=suite_device)
+    origins = np.tile(np.float32([0.3, 0.4, -1.0]), (40, 1))
+    directions = np.tile(np.float32([0.0, 0.0, 1e-30]), (40, 1))
+    origins[::2, 2] = -1e9  # a hit at t = 1e39, past float32
+    o, d = cla.to_device(flat.queue, origins), cla.to_device(flat.queue, directions)
+    counts = flat.count_intersections(o, d).get()
+    np.testing.assert_array_equal(counts, flat.count_intersections(origins, directions))
+    assert counts.tolist() == [1] * 40

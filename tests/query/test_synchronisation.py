@@ -17,6 +17,7 @@ import pytest
 
 import hlbvh_cl
 from hlbvh_cl.build import widen
+from hlbvh_cl.parallel import scan
 from hlbvh_cl.query import engine
 from shapes import deep_scene, grid_mesh
 
@@ -30,6 +31,14 @@ BUILD_SYNCS = 2
 #: empty: the SAH top's levels and the wide levels are launched for the
 #: deepest tree their sizes allow without reading them (pipeline.py).
 BUILD_LAUNCHES = 34
+
+
+#: intersect_all of rays on the device (query/all_hits.py), a batch of one
+#: launch per pass: the rays' checks, the count pass, the segments (each
+#: ray's kept hits, their scan, one launch where one work-group does it, and
+#: their int64 offsets), then the fill pass, into hits sized by the one read
+#: of their total.
+INTERSECT_ALL_ON_DEVICE = 6
 
 
 @pytest.fixture
@@ -96,27 +105,44 @@ def test_a_call_on_device_arrays_waits_once_and_moves_no_rays(suite_device, coun
                                                               monkeypatch):
     """Rays (and points) given as pyopencl arrays: the checks' kernel and the query's,
     one wait (for the counters: the results stay on the device), and no
-    copy between host and device but that wait's."""
+    copy between host and device but that wait's; intersect_all, whose
+    hits' number only the count pass finds, two (INTERSECT_ALL_ON_DEVICE)."""
     import pyopencl.array as cla
     scene = hlbvh_cl.Scene([grid_mesh(6)], device=suite_device)
     rng = np.random.default_rng(5)
     origins = cla.to_device(scene.queue, rng.uniform(-0.5, 1.5, (300, 3)).astype(np.float32))
     directions = cla.to_device(scene.queue, np.tile(np.float32([0.05, 0.02, 1.0]), (300, 1)))
+    # the scan's kernels launch through pyopencl's Kernel.__call__, which
+    # the fixture does not see: counted by the events it returns
+    scanned = scan.exclusive_scan
+    monkeypatch.setattr(scan, "exclusive_scan", lambda *args, **kwargs: (
+        events := scanned(*args, **kwargs), counted.update(launch=len(events)))[0])
     moved = []  # bytes of each copy between the host and the device
     original = cl.enqueue_copy
     monkeypatch.setattr(cl, "enqueue_copy", lambda queue, dest, src, **kw: (
         moved.append(sum(a.nbytes for a in (dest, src) if isinstance(a, np.ndarray))),
         original(queue, dest, src, **kw))[1])
-    for call in (lambda: scene.intersect(origins, directions, tmax=9.0),
-                 lambda: scene.occluded(origins, directions),
-                 lambda: scene.closest_points(origins), lambda: scene.contains(origins)):
+    # up: tmin, tmax and the mask, a number each; back: the counters
+    one_wait = 3 * 4 + 4 * engine.COUNTERS
+    calls = {"intersect": lambda: scene.intersect(origins, directions, tmax=9.0),
+             "occluded": lambda: scene.occluded(origins, directions),
+             "count_intersections": lambda: scene.count_intersections(origins, directions),
+             "closest_points": lambda: scene.closest_points(origins),
+             "contains": lambda: scene.contains(origins),
+             "intersect_all": lambda: scene.intersect_all(origins, directions, max_hits=2)}
+    for name, call in calls.items():
         call()
         counted.clear()
         moved.clear()
         call()
-        assert dict(counted) == {"launch": 2, "sync": 1}
-        # up: tmin, tmax and the mask, a number each; back: the counters
-        assert 0 < sum(moved) <= 3 * 4 + 4 * engine.COUNTERS
+        if name == "intersect_all":
+            # INTERSECT_ALL_ON_DEVICE's launches; a wait for the count
+            # pass's counters and the hits' total (int64), then the fill's
+            assert dict(counted) == {"launch": INTERSECT_ALL_ON_DEVICE, "sync": 2}, name
+            assert 0 < sum(moved) <= 2 * one_wait + 8, name
+        else:
+            assert dict(counted) == {"launch": 2, "sync": 1}, name
+            assert 0 < sum(moved) <= one_wait, name
 
 
 def test_a_build_waits_for_one_batch_of_reads_and_for_its_last_kernel(suite_device, counted):
