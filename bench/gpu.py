@@ -6,6 +6,10 @@
              and out: wall Mrays/s against the traversal kernel's own
              (target: wall >= 30 % of kernel)
   small      the latency of a 1K-ray intersect call (target <= 0.5 ms)
+  unstaged   on a device whose queries take the staging path (pinned
+             buffers, copies overlapping the kernels: the GPU profile,
+             hlbvh_cl/query/engine.py), the same two through plain device
+             buffers, the path before it, for the A/B
   on device  the same two with rays made on the device (Camera.rays with
              scene=) and results left there as pyopencl arrays
              (docs/queries.md, "Rays and points on the device")
@@ -125,6 +129,17 @@ def measure(device: str, quick: bool) -> dict:
         small_o, small_d = origins[:1024].copy(), directions[:1024].copy()
         walls = timed(lambda: query.intersect(built.tree, small_o, small_d), 20 * repeats)
         found["small"] = {"rays": 1024, "call_ms": summary([w * 1e3 for w in walls])}
+        found["engine"] = {"zero_copy": query.zero_copy, "staging": query.staging}
+        if query.staging:
+            query.staging = False
+            kernel_ms.clear()
+            walls = timed(camera, repeats)
+            walls_small = timed(lambda: query.intersect(built.tree, small_o, small_d),
+                                20 * repeats)
+            query.staging = True
+            found["unstaged"] = {
+                "camera_wall_mrays_per_s": count / summary(walls)["median"] / 1e6,
+                "small_call_ms": summary([w * 1e3 for w in walls_small])}
         kernel_ms.clear()
 
         def camera_on_device():
@@ -169,7 +184,10 @@ def main(argv=None) -> dict:
                      f"{found['camera']['wall_mrays_per_s']:.1f} / "
                      f"{found['camera']['kernel_mrays_per_s']:.1f} "
                      f"({100 * found['camera']['wall_share_of_kernel']:.0f} %)",
-                     f"{found['small']['call_ms']['median']:.3f}",
+                     f"{found['small']['call_ms']['median']:.3f}"
+                     + (f" ({found['unstaged']['small_call_ms']['median']:.3f} unstaged, "
+                        f"{found['unstaged']['camera_wall_mrays_per_s']:.1f} Mrays/s)"
+                        if "unstaged" in found else ""),
                      f"{found['on_device']['wall_mrays_per_s']:.1f} "
                      f"({100 * found['on_device']['wall_share_of_kernel']:.0f} %) / "
                      f"{found['on_device']['small_call_ms']['median']:.3f}",
@@ -177,7 +195,8 @@ def main(argv=None) -> dict:
                      ", ".join(found["interop"]["extensions"] + found["interop"]["import_handle_types"])
                      or "none"])
     print(table(["device", "build ms (wall / device)", "camera Mrays/s (wall / kernel)",
-                 "1K-ray call ms", "on device: camera Mrays/s (% of kernel) / 1K-ray call ms",
+                 "1K-ray call ms (staging off: call ms, camera)",
+                 "on device: camera Mrays/s (% of kernel) / 1K-ray call ms",
                  "path Msamples/s", "external memory"], rows,
                 title=f"issue 57's measurements (targets: {TARGETS})"))
     return finish(results, "gpu", args, elapsed)

@@ -375,19 +375,35 @@ def test_an_advised_buffer_is_backed_by_huge_pages_and_keeps_its_data():
 
 # -- the ray query's buffers ---------------------------------------------------------
 
-def test_buffers_are_reused_and_only_grow():
-    """Where the kernels cannot use the numpy arrays in place (GPUs)."""
+@pytest.mark.parametrize("staging", [False, True], ids=["device-buffers", "staging"])
+def test_buffers_are_reused_and_only_grow(staging):
+    """Where the kernels cannot use the numpy arrays in place: device
+    buffers, or (GPUs) pinned staging buffers and the device buffers of
+    each of their sets."""
     case = scene_case("cube")
     q = RayQuery(built.runtime(case.scene))
-    q.zero_copy = False
+    q.zero_copy, q.staging = False, staging
+
+    def held() -> dict:
+        if not staging:
+            return dict(q.engine.reused)
+        stage = q.engine.stage
+        return {(kind, i, name): buffer
+                for kind, sets in (("pinned", stage.pinned), ("device", stage.device))
+                for i, held_set in enumerate(sets) for name, buffer in held_set.items()}
     origins, directions = random_rays(case, 300, seed=13)
     q.intersect(built.tree(case.scene), origins, directions)
-    buffers = dict(q.engine.reused)
+    buffers = held()
+    assert len(buffers) >= (2 * 2 * 10 if staging else 10)  # rays' 2, hits' 8
     q.intersect(built.tree(case.scene), origins[:100], directions[:100])
     q.occluded(built.tree(case.scene), origins[:200], directions[:200])
-    assert all(q.engine.reused[name] is buffer for name, buffer in buffers.items())
+    now = held()
+    assert all(now[name] is buffer for name, buffer in buffers.items())
     q.intersect(built.tree(case.scene), np.repeat(origins, 4, 0), np.repeat(directions, 4, 0))
-    assert q.engine.reused["origins"] is not buffers["origins"]
+    now = held()
+    grown = {name[-1] if staging else name for name in buffers if now[name] is not buffers[name]}
+    kept = {name[-1] if staging else name for name in buffers if now[name] is buffers[name]}
+    assert {"origins", "directions", "t", "normal"} <= grown and not kept & grown
 
 
 def test_chunk_size_follows_device_memory():

@@ -21,6 +21,15 @@ it.  The engine does the rest, the same way for every query:
   go up into device buffers reused between launches, and the results come
   back from others, or are written in place where the runtime can use the
   arrays there (Intel's, for arrays that start on a page: outputs_in_place).
+- **Staging** (GPUs: devices whose memory is not the host's).  Each run's
+  rows are taken straight into pinned host memory (Staging: buffers made
+  with CL_MEM_ALLOC_HOST_PTR and mapped once, the way NVIDIA's OpenCL
+  gives pinned memory) and copied up on a queue of their own, the results
+  copied down into pinned memory on another, both chunked by the runs: two
+  runs alternate between two sets of these buffers, so that one run's
+  copies overlap the other's kernel.  The host waits for a run's results
+  only to put them into the result arrays (the pacing's wait); the buffers
+  are reused between calls.
 - **Whole arrays by slots** (``whole``, CPU devices): every launch reads and
   writes the whole arrays in place, the items of a run of ``order`` given
   as slots, so that nothing is gathered or scattered on the host.
@@ -39,11 +48,13 @@ it.  The engine does the rest, the same way for every query:
   that one wait, with reads of its own that the wait covers (intersect_all
   on the device: its segments' scan, and the read of the hits' total).
 
-On any error or Ctrl-C the queue is finished before the exception leaves:
-the launches in flight may still write the caller's arrays.
+On any error or Ctrl-C the queues are finished before the exception leaves:
+the launches and copies in flight may still write the caller's arrays and
+the reused buffers.
 """
 from __future__ import annotations
 
+import itertools
 import threading
 from dataclasses import dataclass, field
 
@@ -66,6 +77,10 @@ LAUNCH_SECONDS = 0.25
 #: int32 counters a batch clears and reads back (the module's docstring).
 COUNTERS = 4
 
+#: Launches in flight at most, and so the sets of buffers the staging path
+#: alternates between (Staging).
+IN_FLIGHT = 2
+
 #: Stack sizes are rounded up to a multiple of this so that few program
 #: variants get compiled.
 STACK_GRANULE = 16
@@ -81,6 +96,20 @@ def zero_copy(rt: Runtime) -> bool:
     """
     return (not rt.profile.gpu and rt.device.id.startswith("pocl")
             and bool(rt.device.cl_device.host_unified_memory))
+
+
+def staging(rt: Runtime) -> bool:
+    """Whether, off zero copy, the rows and results travel through pinned
+    staging buffers, with their copies on queues of their own (Staging).
+
+    On the GPU profile: a GPU's memory is its own, and only a copy from
+    pinned memory can run by DMA while the host goes on (from pageable
+    memory the driver stages it through pinned memory of its own).
+    HLBVH_CL_PROFILE=gpu takes this path on a CPU device too (tests).  CPU
+    devices keep zero copy (PoCL) and device buffers with results in place
+    (Intel's): there a copy is a memcpy, and a staged one two.
+    """
+    return rt.profile.gpu
 
 
 def outputs_in_place(rt: Runtime) -> bool:
@@ -165,13 +194,17 @@ def collect(queue: cl.CommandQueue, buffer: cl.Buffer, array: np.ndarray,
     return cl.enqueue_copy(queue, array, buffer, is_blocking=False)
 
 
-def take_rows(array: np.ndarray, order: np.ndarray) -> np.ndarray:
+def take_rows(array: np.ndarray, order: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """array[order], a 2-D array's rows gathered as one item each (numpy's
-    fancy indexing of an (N, 3) array goes element by element)."""
+    fancy indexing of an (N, 3) array goes element by element); into
+    ``out`` (contiguous) where given."""
     if array.ndim == 1:
-        return np.take(array, order)
+        return np.take(array, order, out=out)
     item = np.dtype((np.void, array.itemsize * array.shape[1]))
     rows = np.ascontiguousarray(array).view(item).reshape(-1)
+    if out is not None:
+        np.take(rows, order, out=out.view(item).reshape(-1))
+        return out
     return np.take(rows, order).view(array.dtype).reshape(-1, array.shape[1])
 
 
@@ -199,6 +232,8 @@ class LaunchSizes:
     def __init__(self, most: int, first: int | None = None):
         self.most = most
         self.size = max(1, min(most, FIRST_LAUNCH if first is None else first))
+        #: whether ``size`` comes from a launch that ended (this batch's, or
+        #: the last batch's of its key: Engine.paced)
         self.measured = False
 
     def ended(self, event, items: int) -> None:
@@ -264,6 +299,62 @@ class Batch:
     then: object = None
 
 
+class Staging:
+    """The staging path's memory and queues (``staging``): IN_FLIGHT sets of
+    pinned host buffers and of device buffers, by name, grow-only and reused
+    between calls, and two queues for the copies, ``up`` (host to device)
+    and ``down``.  Off the kernels' queue, a run's copies wait for their own
+    kernel only (events), not for everything enqueued before them; one queue
+    per direction, as a GPU has a copy engine per direction, so that one
+    run's results go down while the next run's rows go up.
+
+    Pinned memory is a buffer made with CL_MEM_ALLOC_HOST_PTR and mapped
+    once, for good; its mapping is the host side of the copies (NVIDIA's
+    OpenCL Best Practices Guide, "Pinned Memory")."""
+
+    def __init__(self, rt: Runtime):
+        self.rt = rt
+        self.up = cl.CommandQueue(rt.context, rt.device.cl_device)
+        self.down = cl.CommandQueue(rt.context, rt.device.cl_device)
+        #: per set: name -> (pinned buffer, its mapping as uint8)
+        self.pinned: list[dict] = [{} for _ in range(IN_FLIGHT)]
+        #: per set: name -> device buffer
+        self.device: list[dict] = [{} for _ in range(IN_FLIGHT)]
+
+    def reserve(self, sizes: dict[str, int]) -> None:
+        """Every set with at least ``sizes`` bytes by name, pinned and on
+        the device (the maps of new pinned buffers wait, once each)."""
+        context, flags = self.rt.context, cl.mem_flags
+        for pinned, device in zip(self.pinned, self.device):
+            short = {name: max(4, size) for name, size in sizes.items()
+                     if name not in device or device[name].size < size}
+            if not short:
+                continue
+            for name in short:  # release the old ones before allocating
+                device.pop(name, None)
+                old = pinned.pop(name, None)
+                if old is not None:
+                    old[1].base.release(self.up)
+            self.rt.check_allocation("query staging buffers", short)
+            for name, size in short.items():
+                device[name] = cl.Buffer(context, flags.READ_WRITE, size)
+                buffer = cl.Buffer(context, flags.READ_WRITE | flags.ALLOC_HOST_PTR, size)
+                mapped, _ = cl.enqueue_map_buffer(self.up, buffer,
+                                                  cl.map_flags.READ | cl.map_flags.WRITE, 0,
+                                                  (size,), np.uint8, is_blocking=True)
+                pinned[name] = (buffer, mapped)
+
+    def host(self, slot: int, name: str, like: np.ndarray, rows: int) -> np.ndarray:
+        """``rows`` rows shaped as ``like``'s in set ``slot``'s pinned ``name``."""
+        shape = (rows, *like.shape[1:])
+        nbytes = int(np.prod(shape)) * like.itemsize
+        return self.pinned[slot][name][1][:nbytes].view(like.dtype).reshape(shape)
+
+    def finish(self) -> None:
+        self.up.finish()
+        self.down.finish()
+
+
 class Engine:
     """Runs a query's batches (``run``) on one runtime, with the buffers it
     reuses between launches: one batch at a time."""
@@ -278,6 +369,10 @@ class Engine:
         #: without zero_copy: whether results that start on a page are
         #: written in place (outputs_in_place)
         self.outputs_in_place = not self.zero_copy and outputs_in_place(rt)
+        #: without zero_copy: whether rows and results travel through pinned
+        #: staging buffers (staging; made on first use: self.stage)
+        self.staging = not self.zero_copy and staging(rt)
+        self.stage: Staging | None = None
         self.counters = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 4 * COUNTERS)
         self.unused = cl.Buffer(rt.context, cl.mem_flags.READ_ONLY, 4)  # a stand-in argument
         self._scalars: dict[str, cl.Buffer] = {}
@@ -301,6 +396,8 @@ class Engine:
                 # may still write into the caller's arrays (zero copy) and the
                 # reused buffers; let them end before anyone reuses those.
                 self.rt.queue.finish()
+                if self.stage is not None:
+                    self.stage.finish()
                 raise
 
     def reserve(self, sizes: dict[str, int]) -> dict[str, cl.Buffer]:
@@ -344,11 +441,17 @@ class Engine:
                    for name, value in batch.stepped.items() if value.ndim == 0}
         rows = {**batch.inputs, **{name: value for name, value in batch.stepped.items()
                                    if value.ndim}}
-        cut, results = (self._whole if batch.whole else self._chunk)(batch, rows, scalars)
+        staged = not batch.whole and self.staging and not self.zero_copy
+        cut, results = (self._whole if batch.whole else self._staged if staged else
+                        self._chunk)(batch, rows, scalars)
         # launches in flight: (events, what ends them, the objects they use, items)
         flight: list[tuple[list, object, object, int]] = []
         events = []
         sizes = LaunchSizes(batch.most or self.most, self.paced.get(batch.key, batch.first))
+        # staged and paced by the last batch of its key: two launches may be
+        # in flight from the first, so that the second's copies overlap the
+        # first's kernel (elsewhere nothing would overlap: one queue)
+        sizes.measured = staged and batch.key in self.paced
 
         def retire(keep: int) -> None:
             while len(flight) > keep:
@@ -360,7 +463,7 @@ class Engine:
         for start, stop in _runs(batch, sizes):
             arguments, done, put_back, held = cut(start, stop)
             events.append(launch(stop - start, arguments))
-            flight.append(([events[-1], *done()], put_back, held, stop - start))
+            flight.append(([events[-1], *done(events[-1])], put_back, held, stop - start))
             # before the next run is cut: at most one left in flight, none
             # until the first has ended and sized the runs after it (the
             # last run waits with the results, below)
@@ -405,10 +508,10 @@ class Engine:
         def cut(start: int, stop: int):
             if not batch.slots:
                 return (Launch(stop - start, buffers, steps, self.unused, np.uint32(0), segments,
-                               start), list, _nothing, None)
+                               start), _no_copies, _nothing, None)
             slots = self._wrap(order[start:stop], flags.READ_ONLY)
             arguments = Launch(stop - start, buffers, steps, slots, np.uint32(1), segments)
-            return arguments, list, _nothing, slots
+            return arguments, _no_copies, _nothing, slots
         # the results are mapped once, after the last launch (those on the
         # device stay there)
         return cut, [(written[name], array) for name, array in batch.outputs.items()
@@ -431,12 +534,7 @@ class Engine:
         queue, flags = self.rt.queue, cl.mem_flags
         order, segments = batch.order, batch.segments
         if not self.zero_copy:
-            most = min(batch.count, batch.most or self.most)
-            slots = most if segments is None else \
-                max(batch.max_rows or 0, int(np.diff(segments).max(initial=0)))
-            self.reserve({**{name: _row_bytes(array) * most for name, array in rows.items()},
-                          **{name: _row_bytes(array) * min(slots, len(array))
-                             for name, array in batch.outputs.items()}})
+            self.reserve(_run_bytes(batch, rows, self.most))
 
         def cut(start: int, stop: int):
             items = slice(start, stop) if order is None else order[start:stop]
@@ -470,7 +568,7 @@ class Engine:
                 (buffers.pop("segments"), np.int64(first), np.int64(start))
             arguments = Launch(stop - start, buffers, steps, self.unused, np.uint32(0), segment)
 
-            def done():
+            def done(_):
                 return [collect(queue, buffers[name], array, in_place)
                         for name, array in outputs.items()]
 
@@ -481,9 +579,92 @@ class Engine:
             return arguments, done, put_back, (inputs, outputs, buffers, transfers)
         return cut, []
 
+    def _staged(self, batch: Batch, rows: dict, scalars: dict):
+        """Launches over each run's rows through the pinned staging buffers
+        (Staging, reserved at once for the largest run), the runs taking
+        the sets in turn: the rows are taken (in ``order``) straight into
+        pinned memory and go up on their own queue, the kernel waits for
+        them (a barrier on its queue), the results go down into pinned
+        memory after the kernel and are put into the result arrays once
+        the run has ended.  A batch of one run copies on the kernels'
+        queue."""
+        queue = self.rt.queue
+        order, segments = batch.order, batch.segments
+        if self.stage is None:
+            self.stage = Staging(self.rt)
+        stage = self.stage
+        sizes = _run_bytes(batch, rows, self.most)
+        if segments is not None:
+            sizes["segments"] = segments.itemsize * (min(batch.count, batch.most or self.most) + 1)
+        stage.reserve(sizes)
+        turns = itertools.count()
+        given = dict(rows) if segments is None else {**rows, "segments": segments}
+
+        def cut(start: int, stop: int):
+            slot = next(turns) % IN_FLIGHT
+            device = stage.device[slot]
+            items = slice(start, stop) if order is None else order[start:stop]
+            first, last = (start, stop) if segments is None else \
+                (int(segments[start]), int(segments[stop]))
+            # a batch of one run has no other kernel to overlap: its copies
+            # go in order on the kernels' queue, with no event between queues
+            up, down = (queue, queue) if start == 0 and stop == batch.count else \
+                (stage.up, stage.down)
+            uploads = []
+            for name, array in given.items():
+                ends = stop + 1 if name == "segments" else stop
+                pinned = stage.host(slot, name, array, ends - start)
+                if order is None or name == "segments":
+                    pinned[...] = array[start:ends]
+                else:
+                    take_rows(array, items, out=pinned)
+                if pinned.nbytes:
+                    uploads.append(cl.enqueue_copy(up, device[name], pinned, is_blocking=False))
+            if uploads and up is not queue:
+                cl.enqueue_barrier(queue, wait_for=uploads)
+            buffers = {name: device[name] for name in (*rows, *batch.outputs)}
+            steps = {name: (buffers[name], np.uint32(1)) if name in buffers else
+                     (scalars[name], np.uint32(0)) for name in batch.stepped}
+            segment = () if segments is None else \
+                (device["segments"], np.int64(first), np.int64(start))
+            arguments = Launch(stop - start, buffers, steps, self.unused, np.uint32(0), segment)
+            results = {name: stage.host(slot, name, array, last - first)
+                       for name, array in batch.outputs.items()}
+
+            def done(kernel: cl.Event):
+                return [cl.enqueue_copy(down, pinned, device[name], wait_for=[kernel],
+                                        is_blocking=False)
+                        for name, pinned in results.items() if pinned.nbytes]
+
+            def put_back():
+                for name, pinned in results.items():
+                    if order is None:
+                        batch.outputs[name][first:last] = pinned
+                    else:
+                        put_rows(batch.outputs[name], items, pinned)
+            # the uploads' events are kept until the run ends (pyopencl's
+            # events of copies from host memory wait when dropped)
+            return arguments, done, put_back, uploads
+        return cut, []
+
 
 def _nothing() -> None:
     pass
+
+
+def _no_copies(_) -> list:
+    return []
+
+
+def _run_bytes(batch: Batch, rows: dict, most: int) -> dict[str, int]:
+    """The bytes of each input and output of the batch's largest run."""
+    most = min(batch.count, batch.most or most)
+    segments = batch.segments
+    slots = most if segments is None else \
+        max(batch.max_rows or 0, int(np.diff(segments).max(initial=0)))
+    return {**{name: _row_bytes(array) * most for name, array in rows.items()},
+            **{name: _row_bytes(array) * min(slots, len(array))
+               for name, array in batch.outputs.items()}}
 
 
 def _row_bytes(array: np.ndarray) -> int:

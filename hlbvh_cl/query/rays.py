@@ -91,9 +91,10 @@ class RayQuery:
     """Closest-hit and any-hit queries on one device, through the launch
     engine (hlbvh_cl.query.engine: zero copy on PoCL, device buffers reused
     between calls elsewhere, results written in place on Intel's CPU
-    runtime).  The host memory of results the caller has dropped is reused
-    too (ResultPool).  Rays go up and results come back as the numpy arrays
-    themselves (one buffer per field, no packing on the host).
+    runtime, pinned staging buffers on GPUs).  The host memory of results
+    the caller has dropped is reused too (ResultPool).  Rays go up and
+    results come back as the numpy arrays themselves (one buffer per field,
+    no packing on the host).
     ``max_rays_per_launch`` caps the rays per kernel launch (bigger batches
     are split into chunks); by default it follows the device's memory
     limits.  ``packet_size`` is the rays each work-item traces
@@ -132,6 +133,10 @@ class RayQuery:
     outputs_in_place = engine_setting(
         "outputs_in_place", "Off zero copy: whether results that start on a page are written "
         "in place (the engine's choice; settable, for tests of each path).")
+    staging = engine_setting(
+        "staging", "Off zero copy: whether rays and results travel through pinned staging "
+        "buffers, their copies overlapping the kernels (the engine's choice: GPUs; settable, "
+        "for tests of each path).")
     max_rays_per_launch = engine_setting("most", "Rays per kernel launch at most.")
 
     @property

@@ -76,6 +76,12 @@ def test_gpu_quick_takes_every_measurement_of_issue_57(suite_device, tmp_path, c
     assert 0 < found["on_device"]["wall_share_of_kernel"]
     assert found["on_device"]["small_call_ms"]["median"] > 0
     assert found["path"]["msamples_per_s"] > 0
+    # the staging path where the queries take it (the GPU profile), with its A/B
+    assert found["engine"]["staging"] == suite_device.profile.gpu
+    assert ("unstaged" in found) == found["engine"]["staging"]
+    if "unstaged" in found:
+        assert found["unstaged"]["small_call_ms"]["median"] > 0
+        assert found["unstaged"]["camera_wall_mrays_per_s"] > 0
     offered = sorted(e for e in suite_device.cl_device.extensions.split()
                      if "external" in e or "semaphore" in e)
     assert found["interop"]["extensions"] == offered

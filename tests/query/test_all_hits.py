@@ -334,12 +334,14 @@ def test_bunny_agrees_with_open3d(meshes):
         assert set(every.prim_id[mine_r]) == set(prim_theirs[theirs_r])
 
 
-@pytest.mark.parametrize("copies", [False, True], ids=["in-place", "device-copies"])
-def test_small_chunks_give_the_same_hits(tiny, monkeypatch, copies):
+@pytest.mark.parametrize("copies, staging", [(False, False), (True, False), (True, True)],
+                         ids=["in-place", "device-copies", "staging"])
+def test_small_chunks_give_the_same_hits(tiny, monkeypatch, copies, staging):
     """Launches cut into chunks of few rays and few hits (a ray with more
     hits than a chunk holds goes alone) give what one launch gives: in
     place over the whole arrays (CPU devices), and with each chunk's rays
-    and results copied (GPUs; forced here by INDEXED_COPY_MAX 0)."""
+    and results copied, through device buffers or pinned staging buffers
+    (GPUs; forced here by INDEXED_COPY_MAX 0)."""
     from hlbvh_cl.query import all_hits
     origins, directions = random_rays(tiny, 300, seed=11)
     tmax = np.random.default_rng(12).uniform(0.5, 3, len(origins)).astype(np.float32)
@@ -350,6 +352,7 @@ def test_small_chunks_give_the_same_hits(tiny, monkeypatch, copies):
     batches = recording(monkeypatch, every.engine)
     if copies:
         monkeypatch.setattr(query, "zero_copy", False)
+        monkeypatch.setattr(query, "staging", staging)
         monkeypatch.setattr(all_hits, "INDEXED_COPY_MAX", 0)
     monkeypatch.setattr(all_hits, "HITS_PER_LAUNCH", 2)
     monkeypatch.setattr(all_hits, "COPIED_RAYS_PER_LAUNCH", 5)
@@ -460,8 +463,8 @@ def test_big_batches_traced_in_morton_order_answer_in_the_callers_order(tiny, mo
     hits, counts and t (with per-ray limits) are those it gets in small
     batches, which run as given.  Both ways to run that order: slots into
     the whole arrays (CPU devices), and rays taken per launch with the
-    results put back (device copies: on GPUs, forced with `copies`, and for
-    batches over INDEXED_COPY_MAX off zero copy)."""
+    results put back (staged copies on GPUs, forced with `copies`, and
+    device copies for batches over INDEXED_COPY_MAX off zero copy)."""
     from hlbvh_cl.query import all_hits, engine, order
     from hlbvh_cl.query.order import COHERENT_MIN
     traced = []  # the orders the big batches were traced in
@@ -476,13 +479,14 @@ def test_big_batches_traced_in_morton_order_answer_in_the_callers_order(tiny, mo
     monkeypatch.setattr(all_hits, "COPIED_RAYS_PER_LAUNCH", 300)
     taken = []  # the launches whose rays the host took
     take_rows = engine.take_rows
-    monkeypatch.setattr(engine, "take_rows",
-                        lambda array, rows: taken.append(len(rows)) or take_rows(array, rows))
+    monkeypatch.setattr(engine, "take_rows", lambda array, rows, **out: taken.append(len(rows))
+                        or take_rows(array, rows, **out))
     if copies:
         monkeypatch.setattr(query, "zero_copy", False)
-    if copies == "gpu":
+    if copies == "gpu":  # as a GPU takes them: through pinned staging buffers
         from hlbvh_cl.device.profile import Profile
         monkeypatch.setattr(query.rt, "profile", Profile("gpu"))
+        monkeypatch.setattr(query, "staging", True)
     if copies == "big":
         monkeypatch.setattr(all_hits, "INDEXED_COPY_MAX", count - 1)
     for max_hits in (None, 2):

@@ -526,6 +526,24 @@ def test_chunks_give_the_same_answers(sphere_scene):
                                   small.signed_distance(tree, points))
 
 
+def test_the_staging_path_answers_as_the_others(sphere_scene, monkeypatch):
+    """Points and results through pinned staging buffers (GPUs; forced
+    here), in chunks and in Morton order (a batch this big), give every
+    point query's answers bit for bit as the scene's own path."""
+    from hlbvh_cl.query.order import COHERENT_MIN
+    from hlbvh_cl.query.points import PointQuery
+    points = np.random.default_rng(17).uniform(-2, 2, (COHERENT_MIN + 999, 3)).astype(np.float32)
+    want = _answers(sphere_scene, points)
+    query = PointQuery(built.runtime(sphere_scene), max_points_per_launch=1000)
+    query.engine.zero_copy, query.engine.outputs_in_place, query.staging = False, False, True
+    batches = _recording(monkeypatch, query)
+    got = _answers(_Through(sphere_scene, query), points)
+    assert query.engine.stage is not None
+    assert all(batch.order is not None and not batch.whole for batch in batches)
+    for name, array in want.items():
+        np.testing.assert_array_equal(got[name], array, err_msg=name)
+
+
 def test_points_keep_their_leading_shape(sphere_scene):
     """(H, W, 3) points give (H, W) answers, equal to the flat query's."""
     points = np.random.default_rng(13).uniform(-2, 2, (4, 5, 3)).astype(np.float32)

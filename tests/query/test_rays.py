@@ -342,10 +342,16 @@ def test_empty_batch():
     assert occluded.shape == (0,) and occluded.dtype == bool
 
 
-@pytest.mark.parametrize("zero_copy", [True, False], ids=["in-place", "device-copies"])
-def test_batches_split_into_chunks_equal_one_launch(zero_copy):
-    """Also: the kernels on the numpy arrays in place (CPUs) and through device
-    buffers (GPUs) give the same results."""
+#: The launch engine's paths, (zero_copy, staging): the kernels on the
+#: numpy arrays in place (PoCL), through device buffers (Intel's), and
+#: through pinned staging buffers (GPUs).
+PATHS = {"in-place": (True, False), "device-copies": (False, False), "staging": (False, True)}
+
+
+@pytest.mark.parametrize("path", PATHS)
+def test_batches_split_into_chunks_equal_one_launch(path):
+    """Also: the kernels on the numpy arrays in place (CPUs), through device
+    buffers and through pinned staging buffers (GPUs) give the same results."""
     case = scene_case("bunny_small")
     origins, directions = random_rays(case, 5000, seed=11)
     rng = np.random.default_rng(12)
@@ -353,7 +359,7 @@ def test_batches_split_into_chunks_equal_one_launch(zero_copy):
     tmax = tmin + rng.uniform(0.5, 3, len(origins))
     whole = RayQuery(built.runtime(case.scene))
     chunked = RayQuery(built.runtime(case.scene), max_rays_per_launch=777)
-    chunked.zero_copy = zero_copy
+    chunked.zero_copy, chunked.staging = PATHS[path]
     assert chunked.max_rays_per_launch == 777 and whole.max_rays_per_launch >= 5000
     a = whole.intersect(built.tree(case.scene), origins, directions, tmin, tmax)
     b = chunked.intersect(built.tree(case.scene), origins, directions, tmin, tmax)
@@ -365,8 +371,8 @@ def test_batches_split_into_chunks_equal_one_launch(zero_copy):
     assert 0 < a.hit.mean() < 1
 
 
-@pytest.mark.parametrize("zero_copy", [True, False], ids=["in-place", "device-copies"])
-def test_launches_sized_by_their_cost_equal_one_launch(zero_copy, monkeypatch):
+@pytest.mark.parametrize("path", PATHS)
+def test_launches_sized_by_their_cost_equal_one_launch(path, monkeypatch):
     """Launches of varying sizes (engine.LaunchSizes: a small first one, then
     what each costs allows, here a few rays) give the results of one."""
     from hlbvh_cl.query import engine
@@ -377,7 +383,7 @@ def test_launches_sized_by_their_cost_equal_one_launch(zero_copy, monkeypatch):
     monkeypatch.setattr(engine, "FIRST_LAUNCH", 1000)
     monkeypatch.setattr(engine, "LAUNCH_SECONDS", 1e-6)  # a launch's worth: a few rays
     varied = RayQuery(built.runtime(case.scene))
-    varied.zero_copy = zero_copy
+    varied.zero_copy, varied.staging = PATHS[path]
     got = varied.intersect(built.tree(case.scene), origins, directions)
     for field in ("t", "prim_id", "geom_id", "u", "v", "normal", "points"):
         np.testing.assert_array_equal(getattr(got, field), getattr(expected, field))

@@ -85,13 +85,26 @@ def queries(scene):
     }
 
 
-@pytest.mark.parametrize("zero_copy", [True, False], ids=["in place", "device buffers"])
-def test_a_query_call_launches_once_and_waits_once_for_its_results(zero_copy, suite_device,
+#: The engine's paths: (zero_copy, staging).
+PATHS = {"in place": (True, False), "device buffers": (False, False), "staging": (False, True)}
+
+
+def force_path(monkeypatch, path: str) -> None:
+    """The engines made from here on take ``path`` (PATHS), whatever the device."""
+    zero_copy, staged = PATHS[path]
+    monkeypatch.setattr(engine, "zero_copy", lambda rt: zero_copy)
+    monkeypatch.setattr(engine, "staging", lambda rt: staged)
+    if staged:  # (Intel's results in place would take the point queries off it)
+        monkeypatch.setattr(engine, "outputs_in_place", lambda rt: False)
+
+
+@pytest.mark.parametrize("path", PATHS)
+def test_a_query_call_launches_once_and_waits_once_for_its_results(path, suite_device,
                                                                   counted, monkeypatch):
     """Every query family, with the kernels on the caller's arrays (CPU
-    devices) and through device buffers (GPUs; forced here): one launch
-    and one wait per pass."""
-    monkeypatch.setattr(engine, "zero_copy", lambda rt: zero_copy)
+    devices), through device buffers, and through pinned staging buffers
+    (GPUs; forced here): one launch and one wait per pass."""
+    force_path(monkeypatch, path)
     scene = hlbvh_cl.Scene([grid_mesh(6)], device=suite_device)
     for name, call in queries(scene).items():
         call()  # programs built, buffers reserved
@@ -99,6 +112,61 @@ def test_a_query_call_launches_once_and_waits_once_for_its_results(zero_copy, su
         call()
         passes = 2 if name == "intersect_all" else 1
         assert dict(counted) == {"launch": passes, "sync": passes}, name
+
+
+def test_a_staged_call_moves_each_row_once_while_the_other_run_traces(suite_device, counted,
+                                                                      monkeypatch):
+    """The staging path (GPUs; forced here) over a call of several runs:
+    a launch per run; a wait per run at most (for a run's results, to put
+    them into the result arrays: runs - 1, the last two in one wait); each
+    row up once and each result down once, on queues of their own and
+    through pinned buffers (CL_MEM_ALLOC_HOST_PTR) reused between calls;
+    and the second run's rows go up before the host first waits, so that
+    they overlap the first run's kernel."""
+    from hlbvh_cl.query.rays import HIT_ARRAYS, RayQuery
+    force_path(monkeypatch, "staging")
+    scene = hlbvh_cl.Scene([grid_mesh(6)], device=suite_device)
+    rng = np.random.default_rng(5)
+    origins = rng.uniform(-0.5, 1.5, (300, 3)).astype(np.float32)
+    origins[:, 2] = -1.0
+    directions = np.tile(np.float32([0.05, 0.02, 1.0]), (300, 1))
+    story = []  # ("copy", queue, host array) and "launch" / "sync", in order
+    for name, kind in (("enqueue_nd_range_kernel", "launch"), ("wait_for_events", "sync")):
+        original = getattr(cl, name)
+        monkeypatch.setattr(cl, name, lambda *args, _original=original, _kind=kind, **kw: (
+            story.append(_kind), _original(*args, **kw))[1])
+    copy = cl.enqueue_copy
+    monkeypatch.setattr(cl, "enqueue_copy", lambda queue, dest, src, **kw: (
+        story.append(("copy", queue, dest if isinstance(dest, np.ndarray) else src)),
+        copy(queue, dest, src, **kw))[1])
+    with scene.borrow() as built:
+        query = RayQuery(built.runtime, max_rays_per_launch=64)
+        expected = query.intersect(built.tree, origins, directions)  # buffers made, paced
+        stage = query.engine.stage
+        kept = [dict(pinned) for pinned in stage.pinned] + [dict(d) for d in stage.device]
+        counted.clear()
+        story.clear()
+        hits = query.intersect(built.tree, origins, directions)
+    runs = -(-len(origins) // 64)
+    assert counted["launch"] == runs
+    assert 1 <= counted["sync"] <= runs - 1
+    for field in vars(hits):
+        np.testing.assert_array_equal(getattr(hits, field), getattr(expected, field))
+    # reused: the same buffers, pinned ones made to be
+    assert [dict(pinned) for pinned in stage.pinned] + [dict(d) for d in stage.device] == kept
+    mappings = [mapped for pinned in stage.pinned for buffer, mapped in pinned.values()
+                if buffer.flags & cl.mem_flags.ALLOC_HOST_PTR]
+    copies = [step for step in story if isinstance(step, tuple)]
+    moved = {queue: sum(host.nbytes for _, q, host in copies if q == queue)
+             for queue in (stage.up, stage.down, scene.queue)}
+    assert moved[stage.up] == origins.nbytes + directions.nbytes
+    assert moved[stage.down] == len(origins) * sum(HIT_ARRAYS.values())
+    # the kernels' queue: tmin, tmax and the mask, a number each, and the counters
+    assert 0 < moved[scene.queue] <= 3 * 4 + 4 * engine.COUNTERS
+    assert all(any(np.shares_memory(host, mapped) for mapped in mappings)
+               for _, q, host in copies if q in (stage.up, stage.down))
+    second_launch = [i for i, step in enumerate(story) if step == "launch"][1]
+    assert story.index("sync") > second_launch
 
 
 def test_a_call_on_device_arrays_waits_once_and_moves_no_rays(suite_device, counted,
