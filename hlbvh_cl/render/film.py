@@ -141,7 +141,8 @@ class Film:
         weights = np.empty((height, width), np.float32)
         rt.wait([cl.enqueue_copy(rt.queue, sums, self.splat["sums"], is_blocking=False),
                  cl.enqueue_copy(rt.queue, weights, self.splat["weights"], is_blocking=False)])
-        return sums / weights[:, :, None, None]
+        # in place: no second image-sized array to allocate and fault in
+        return np.divide(sums, weights[:, :, None, None], out=sums)
 
     def read(self, rt: Runtime, image: np.ndarray) -> cl.Event:
         """Enqueues the image's copy into ``image`` (height, width, 3),

@@ -172,16 +172,17 @@ __kernel void splat_round(__global const float4* round,
     for (int g = 0; g < GROUPS; ++g)
         gathered[g] = (float4)(0.0f);
     float total = 0.0f;
-    for (int dy = -REACH; dy <= REACH; ++dy) {
-        int sy = y + dy;
-        if (sy < 0 || sy >= (int)height)
-            continue;
-        for (int dx = -REACH; dx <= REACH; ++dx) {
-            int sx = x + dx;
-            if (sx < 0 || sx >= (int)width)
-                continue;
+    /* the samples of the image's pixels within REACH, rows then columns
+     * (the sums' order); bounds taken once rather than tested per tap */
+    int dy_first = y < REACH ? -y : -REACH;
+    int dy_last = (int)height - 1 - y < REACH ? (int)height - 1 - y : REACH;
+    int dx_first = x < REACH ? -x : -REACH;
+    int dx_last = (int)width - 1 - x < REACH ? (int)width - 1 - x : REACH;
+    for (int dy = dy_first; dy <= dy_last; ++dy) {
+        size_t row = (size_t)(y + dy) * width;
+        for (int dx = dx_first; dx <= dx_last; ++dx) {
             /* this pixel is column -dx and row -dy from the sample's */
-            size_t source = (size_t)sy * width + (size_t)sx;
+            size_t source = row + (size_t)(x + dx);
             __global const float* tap = taps + source * (2 * TAPS);
             float w = tap[REACH - dx] * tap[TAPS + REACH - dy];
             for (int g = 0; g < GROUPS; ++g)

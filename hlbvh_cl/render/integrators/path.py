@@ -28,10 +28,10 @@ the next closest hits (its closest-hit walk).  The paths that go on are
 compacted on the device into the next bounce's first slots (an atomic
 counter; a path's random numbers follow its pixel, so the image does not
 depend on the order).  No bounce waits on the host: it reads each bounce's
-count of live paths two bounces behind the device, launches the next
-bounces over that many (an upper bound, as paths only end; the slots past
-the live ones hold empty rays, which cost one node), and stops when none
-is left.
+count of live paths one bounce behind the device (while the device works
+on the bounce it has queued), launches the next bounce over that many (an
+upper bound, as paths only end; the slots past the live ones hold empty
+rays, which cost one node), and stops when none is left.
 
 Shading follows Mitsuba 3's rules (shading_tables; kernels/render/
 integrators/path.cl): BSDFs and area emitters see each mesh's shading
@@ -58,8 +58,11 @@ KERNEL = kernel_of(__name__)
 #: path long before, with probability 1 - 0.95^(1024 - 5) at the least.
 UNLIMITED_BOUNCES = 1024
 
-#: How many bounces the host runs ahead of its count of live paths.
-LOOKAHEAD = 2
+#: How many bounces the host runs ahead of its count of live paths: one
+#: keeps a bounce queued on the device while the host waits, and launches
+#: each bounce over the paths of the one before; more would launch it over
+#: an earlier bounce's, whose paths that ended since are empty rays.
+LOOKAHEAD = 1
 
 #: DeltaLight.type (kernels/render/integrators/path.h).
 LIGHT_POINT, LIGHT_DIRECTIONAL = 0, 1
@@ -216,8 +219,7 @@ class Path(Integrator):
     def prepare(self, rt: Runtime, settings, tree, look: Look, pixels: int) -> None:
         self.rt, self.settings = rt, settings
         self._kernels = {name: rt.kernel(KERNEL, name) for name in
-                         ("path_start", "path_surface", "path_empty_tail", "path_unoccluded",
-                          "path_finish")}
+                         ("path_surface", "path_unoccluded", "path_finish")}
         if pixels > self._pixels:
             context, rw = rt.context, cl.mem_flags.READ_WRITE
             self.states = cl.Buffer(context, rw, pixels * layout.PATH_STATE.itemsize)
@@ -327,7 +329,6 @@ class Path(Integrator):
         stream, first_pixel = np.uint32(step.stream), np.uint32(int(band.first_row) * band.width)
         tables = self._tables
         bounces = self.settings.max_depth if self.settings.max_depth > 0 else UNLIMITED_BOUNCES
-        events["shade"].append(rt.run(kernels["path_start"], band.count, count, self.states))
         events["shade"].append(cl.enqueue_fill_buffer(rt.queue, self.live, np.uint32(0), 0,
                                                       4 * (bounces + 1)))
         events["shade"].append(cl.enqueue_copy(rt.queue, self.live, np.array([count]),
@@ -356,13 +357,11 @@ class Path(Integrator):
                 tables["envmap_image"], tables["envmap_cdf"],
                 self._params, np.uint32(bound), first_pixel, stream, at,
                 self.live, next_rays, next_numbers, self.shadow, self.pending))
-            events["shade"].append(rt.run(kernels["path_empty_tail"], bound, self.live, at,
-                                          np.uint32(bound), next_rays))
             events["occluded"].append(step.query.enqueue_occluded(
                 step.tree, self.shadow, self.occluded, bound, step.overflow))
             events["resolve"].append(rt.run(
                 kernels["path_unoccluded"], bound, self.occluded, self.pending, numbers,
-                self.live, at, np.uint32(bound), self.states))
+                self.live, at, np.uint32(bound), self.states, next_rays))
             reads.append(cl.enqueue_copy(rt.queue, self._live[depth:depth + 1], self.live,
                                          src_offset=4 * (depth + 1), is_blocking=False))
             rays, next_rays = next_rays, rays

@@ -9,13 +9,14 @@
  * Kernels (one work-item per live path of the pass, in ray order; the
  * first pass's paths are the camera's rays, a later pass's those that went
  * on, compacted into its first live[depth] slots with their path numbers)
- *   path_start      a fresh path behind each camera ray
- *   path_surface    at the path's hit (or miss): the light it sees there,
- *                   a light sample (its shadow ray, and what it carries to
- *                   `pending`), and the next ray, sampled from the BSDF,
- *                   in the next pass's next free slot
- *   path_empty_tail empty rays in the next pass's slots past its live paths
- *   path_unoccluded a path's radiance += pending where its shadow ray was free
+ *   path_surface    at the path's hit (or miss; on the first pass, a fresh
+ *                   path): the light it sees there, a light sample (its
+ *                   shadow ray, and what it carries to `pending`), and the
+ *                   next ray, sampled from the BSDF, in the next pass's
+ *                   next free slot
+ *   path_unoccluded a path's radiance += pending where its shadow ray was
+ *                   free; empty rays in the next pass's slots past its live
+ *                   paths
  *   path_finish     the film's sum += each path's radiance (by path)
  *   path_aovs       (when asked, before the first path_surface) each pixel's
  *                   sums of its first hit's albedo, shading normal and depth
@@ -205,23 +206,18 @@ FORCE_INLINE LightSample sample_light(float3 x, const PathParams* params,
     return out;
 }
 
-__kernel void path_start(const uint count, __global PathState* states)
+/* The radiance a path has gathered before this vertex: none on the first
+ * pass (depth 0), which starts fresh paths. */
+inline float3 radiance_before(__global const PathState* s, bool first)
 {
-    uint gid = get_global_id(0);
-    if (gid >= count)
-        return;
-    __global PathState* s = states + gid;
-    store3(s->throughput, (float3)(1.0f));
-    s->bsdf_pdf = 0.0f;
-    store3(s->radiance, (float3)(0.0f));
-    s->eta = 1.0f;
+    return first ? (float3)(0.0f) : LOAD_XYZ(s->radiance);
 }
 
 /* The path ends here, with what it gathered at this vertex: it takes no
  * slot in the next pass. */
-inline void end_path(__global PathState* s, float3 gathered)
+inline void end_path(__global PathState* s, bool first, float3 gathered)
 {
-    store3(s->radiance, LOAD_XYZ(s->radiance) + gathered);
+    store3(s->radiance, radiance_before(s, first) + gathered);
 }
 
 /* No light sample at this vertex. */
@@ -239,7 +235,11 @@ inline void no_shadow_ray(__global Ray* shadow, __global float4* pending, float3
  * -cl-opt-disable, or fewer work-items a register, it is right (on AVX2
  * hosts, 8 a register, the suite passed).  The hint is standard OpenCL C,
  * which other compilers (PoCL's) may ignore: the same image there, bit for
- * bit. */
+ * bit.
+ *
+ * The first pass (depth 0) starts fresh paths: throughput 1, no BSDF
+ * density behind them, no radiance, eta 1 (these values, where later
+ * passes read the path's state). */
 __kernel __attribute__((vec_type_hint(float4)))
 void path_surface(__global const Ray* rays,         /* the live paths' rays */
                            __global const Hit* hits,
@@ -261,7 +261,8 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
                            const uint bound,          /* work-items: >= live[depth] */
                            const uint first_pixel,    /* the pass's first pixel: random streams */
                            const uint sample,
-                           const int depth,           /* segments the paths have so far, - 1 */
+                           const int depth,           /* segments the paths have so far, - 1;
+                                                       * 0: fresh paths */
                            __global uint* live,       /* live[depth]: paths in `rays`;
                                                        * live[depth + 1] += paths that go on */
                            __global Ray* next_rays,   /* the paths that go on, compacted */
@@ -283,15 +284,17 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
     __global const Hit* hit = hits + gid;
     float length_d = length3(d);
     float3 wo = -d / length_d;  /* unit, towards where the path came from */
-    float3 throughput = LOAD_XYZ(s->throughput);
+    bool first = depth == 0;
+    float3 throughput = first ? (float3)(1.0f) : LOAD_XYZ(s->throughput);
+    float bsdf_pdf = first ? 0.0f : s->bsdf_pdf;
     float3 gathered = (float3)(0.0f);
 
     if (hit->geom_id < 0) {  /* the environment */
         float light_pdf;
         float3 escaped = environment_light(&params, envmap_image, envmap_cdf, -wo, &light_pdf);
-        float weight = s->bsdf_pdf > 0.0f ? power_heuristic(s->bsdf_pdf, light_pdf) : 1.0f;
+        float weight = bsdf_pdf > 0.0f ? power_heuristic(bsdf_pdf, light_pdf) : 1.0f;
         no_shadow_ray(shadow + gid, pending + gid, d);
-        end_path(s, throughput * escaped * weight);
+        end_path(s, first, throughput * escaped * weight);
         return;
     }
     __global const PathMaterial* m = materials + hit->geom_id;
@@ -303,8 +306,8 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
     float3 emitted = LOAD_XYZ(m->radiance);
     if (cos_out > 0.0f && luminance_max(emitted) > 0.0f) {
         float distance = hit->t * length_d;
-        float weight = s->bsdf_pdf > 0.0f
-            ? power_heuristic(s->bsdf_pdf, m->emitter_pdf * distance * distance / cos_out)
+        float weight = bsdf_pdf > 0.0f
+            ? power_heuristic(bsdf_pdf, m->emitter_pdf * distance * distance / cos_out)
             : 1.0f;
         gathered += throughput * emitted * weight;
     }
@@ -318,7 +321,7 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
     }
     if (last || cos_out == 0.0f) {
         no_shadow_ray(shadow + gid, pending + gid, d);
-        end_path(s, gathered);
+        end_path(s, first, gathered);
         return;
     }
     float3 x = LOAD_XYZ(ray->origin) + hit->t * d;
@@ -362,9 +365,9 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
                                   random_unit(pixel, sample, base + 5),
                                   random_unit(pixel, sample, base + 6));
     throughput *= next.weight;
-    float eta = s->eta * next.eta;
+    float eta = (first ? 1.0f : s->eta) * next.eta;
     if (!(luminance_max(throughput) > 0.0f)) {
-        end_path(s, gathered);
+        end_path(s, first, gathered);
         return;
     }
     /* Russian roulette (Mitsuba's rule): from rr_depth on, a path goes on
@@ -373,7 +376,7 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
         float q = luminance_max(throughput) * eta * eta;
         q = q < 0.95f ? q : 0.95f;
         if (!(random_unit(pixel, sample, base + 7) < q)) {
-            end_path(s, gathered);  /* its light sample above still counts */
+            end_path(s, first, gathered);  /* its light sample above still counts */
             return;
         }
         throughput /= q;
@@ -381,7 +384,7 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
     store3(s->throughput, throughput);
     s->bsdf_pdf = next.delta ? 0.0f : next.pdf;  /* 0: the next emitter hit takes no MIS */
     s->eta = eta;
-    store3(s->radiance, LOAD_XYZ(s->radiance) + gathered);
+    store3(s->radiance, radiance_before(s, first) + gathered);
     float3 side = dot3(geometric, next.direction) > 0.0f ? geometric : -geometric;
     /* compaction (Laine, Karras & Aila 2013, sec. 4): the paths that go on
      * take the next pass's first slots, in whatever order the atomic gives
@@ -391,29 +394,24 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
     next_paths[slot] = path;
 }
 
-/* The next pass's slots from live[depth + 1] to `bound`: empty rays, which
- * the closest-hit walk leaves after one node. */
-__kernel void path_empty_tail(__global const uint* live,
-                              const int depth,
-                              const uint bound,
-                              __global Ray* next_rays)
-{
-    uint gid = get_global_id(0);
-    if (gid >= bound || gid < live[depth + 1])
-        return;
-    write_empty_ray(next_rays + gid, (float3)(0.0f, 0.0f, 1.0f));
-}
-
+/* After the shadow rays: a path's radiance += pending where its shadow ray
+ * was free; and the next pass's slots from live[depth + 1] to `bound` get
+ * empty rays, which the closest-hit walk leaves after one node. */
 __kernel void path_unoccluded(__global const uchar* occluded,
                               __global const float4* pending,
                               __global const uint* paths,   /* as path_surface's */
                               __global const uint* live,
                               const int depth,
                               const uint bound,
-                              __global PathState* states)
+                              __global PathState* states,
+                              __global Ray* next_rays)
 {
     uint gid = get_global_id(0);
-    if (gid >= bound || gid >= live[depth] || occluded[gid])
+    if (gid >= bound)
+        return;
+    if (gid >= live[depth + 1])
+        write_empty_ray(next_rays + gid, (float3)(0.0f, 0.0f, 1.0f));
+    if (gid >= live[depth] || occluded[gid])
         return;
     __global PathState* s = states + (depth == 0 ? gid : paths[gid]);
     store3(s->radiance, LOAD_XYZ(s->radiance) + pending[gid].xyz);
