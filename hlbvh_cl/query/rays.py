@@ -352,11 +352,13 @@ class RayQuery:
 
     def _run(self, batch: inputs.Rays, launch, outputs: dict, key: str) -> None:
         """The launches over the rays (the engine's chunks), the results
-        into the arrays of ``outputs``; ``key`` paces them (Batch.key)."""
+        into the arrays of ``outputs``; ``key`` paces them (Batch.key).
+        Launches take whole packets (granule), so that a packet is the
+        caller's consecutive rays however the pacing cuts the batch."""
         counters = self.engine.run(Batch(
             len(batch), {"origins": batch.origins, "directions": batch.directions}, outputs,
-            stepped={"tmin": batch.tmin, "tmax": batch.tmax, "mask": batch.mask}, key=key),
-            launch)
+            stepped={"tmin": batch.tmin, "tmax": batch.tmax, "mask": batch.mask}, key=key,
+            granule=self.packet_size), launch)
         self.last_packets = int(counters[1]) if self.count_packets else None
 
 

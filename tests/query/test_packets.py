@@ -98,6 +98,24 @@ def test_camera_rays_match_oracle(name, packet_size):
 
 
 @pytest.mark.parametrize("packet_size", [8, 16])
+def test_paced_launches_keep_the_callers_packets(packet_size):
+    """A call paced by the last call of its kernel (Engine.paced) at a size
+    that is not a whole number of packets still launches whole packets: each
+    packet is the caller's consecutive rays, so the packets formed (and the
+    hits) do not depend on how fast the last call ran."""
+    case = scene_case("bunny_small")
+    origins, directions = camera_rays(case, 48, 32)
+    q = query(case, packet_size)
+    whole = traced(q, "intersect", case, origins, directions)
+    for paced in (1, packet_size + 3, 5 * packet_size - 1):
+        q.engine.paced.update(closest=paced, any=paced)
+        hits = traced(q, "intersect", case, origins, directions)
+        np.testing.assert_array_equal(hits.t, whole.t)
+        np.testing.assert_array_equal(hits.prim_id, whole.prim_id)
+        np.testing.assert_array_equal(traced(q, "occluded", case, origins, directions), whole.hit)
+
+
+@pytest.mark.parametrize("packet_size", [8, 16])
 @pytest.mark.parametrize("mixed", [False, True], ids=["coherent", "mixed"])
 def test_partial_and_mixed_packets_match_oracle(packet_size, mixed):
     """Ray counts that leave the last packet part-full, on camera rays, and on
