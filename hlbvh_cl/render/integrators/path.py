@@ -25,9 +25,10 @@ The stages run as a wavefront (Laine, Karras & Aila 2013): the path states
 live in a device buffer, and per bounce the host enqueues the surface
 stage, the shadow rays (query/rays.cl's any-hit walk), their resolve, and
 the next closest hits (its closest-hit walk).  The paths that go on are
-compacted on the device into the next bounce's first slots (an atomic
-counter; a path's random numbers follow its pixel, so the image does not
-depend on the order).  No bounce waits on the host: it reads each bounce's
+compacted on the device into the next bounce's first slots (a counter that
+each work-group advances once, by atomic, for all its paths that go on; a
+path's random numbers follow its pixel, so the image does not depend on the
+order).  No bounce waits on the host: it reads each bounce's
 count of live paths one bounce behind the device (while the device works
 on the bounce it has queued), launches the next bounce over that many (an
 upper bound, as paths only end; the slots past the live ones hold empty

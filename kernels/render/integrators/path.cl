@@ -57,6 +57,24 @@ inline float luminance_max(float3 v)
     return v.x > v.y ? (v.x > v.z ? v.x : v.z) : (v.y > v.z ? v.y : v.z);
 }
 
+/* The tables a path vertex reads besides its own state (path_surface's
+ * arguments of the same names), gathered so that the stages' helpers take
+ * them as one. */
+typedef struct {
+    __global const PathMaterial* materials;  /* per geom_id */
+    __global const float* light_vertices;    /* 9 floats per emissive triangle */
+    __global const float* light_normals;     /* 9 floats per emissive triangle */
+    __global const float* light_cdf;
+    __global const int* light_geom;
+    __global const DeltaLight* delta_lights;
+    __global const uint* shading_faces;      /* 3 vertices per triangle */
+    __global const float* shading_normals;   /* 3 floats per vertex */
+    __global const int* hit_instances;       /* per ray */
+    __global const float* instance_maps;     /* 9 floats per instance */
+    __global const float* envmap_image;      /* H x W RGB (envmap.h) */
+    __global const float* envmap_cdf;        /* its marginal, conditionals */
+} PathTables;
+
 /* A light sample seen from x: the direction to it (unit), how far it
  * reaches, its radiance and its solid-angle density (0: none). */
 typedef struct {
@@ -115,15 +133,8 @@ inline float3 shading_normal(__global const Hit* hit, __global const PathMateria
  * radiance's luminance); the lights themselves are picked by power
  * (hlbvh_cl/render/emitters.py). */
 FORCE_INLINE LightSample sample_light(float3 x, const PathParams* params,
-                                __global const PathMaterial* materials,
-                                __global const float* light_vertices,
-                                __global const float* light_normals,
-                                __global const float* light_cdf,
-                                __global const int* light_geom,
-                                __global const DeltaLight* delta_lights,
-                                __global const float* envmap_image,
-                                __global const float* envmap_cdf,
-                                uint pixel, uint sample, uint base, bool* delta)
+                                      const PathTables* tables, uint pixel, uint sample,
+                                      uint base, bool* delta)
 {
     LightSample out = {(float3)(0.0f), 0.0f, (float3)(0.0f), 0.0f};
     float choice = random_unit(pixel, sample, base);
@@ -133,9 +144,10 @@ FORCE_INLINE LightSample sample_light(float3 x, const PathParams* params,
     if (choice < params->environment_probability) {
         out.reach = INFINITY;
         if (params->envmap_width > 0) {
-            out.direction = envmap_sample(params, envmap_cdf, random_unit(pixel, sample, base + 1),
+            out.direction = envmap_sample(params, tables->envmap_cdf,
+                                          random_unit(pixel, sample, base + 1),
                                           u1, u2, &out.pdf);
-            out.radiance = envmap_radiance(params, envmap_image, out.direction);
+            out.radiance = envmap_radiance(params, tables->envmap_image, out.direction);
             out.pdf *= params->environment_probability;
             return out;
         }
@@ -151,7 +163,7 @@ FORCE_INLINE LightSample sample_light(float3 x, const PathParams* params,
     if (choice < params->delta_probability) {
         *delta = true;
         for (uint i = 0; i < params->delta_lights; ++i) {
-            __global const DeltaLight* light = delta_lights + i;
+            __global const DeltaLight* light = tables->delta_lights + i;
             if (choice >= light->probability && i + 1 < params->delta_lights) {
                 choice -= light->probability;
                 continue;
@@ -177,8 +189,9 @@ FORCE_INLINE LightSample sample_light(float3 x, const PathParams* params,
     }
     if (params->light_triangles == 0)
         return out;
-    uint k = pick(light_cdf, params->light_triangles, random_unit(pixel, sample, base + 1));
-    __global const float* v = light_vertices + 9 * (size_t)k;
+    uint k = pick(tables->light_cdf, params->light_triangles,
+                  random_unit(pixel, sample, base + 1));
+    __global const float* v = tables->light_vertices + 9 * (size_t)k;
     float3 v0 = LOAD_XYZ(v), v1 = LOAD_XYZ(v + 3), v2 = LOAD_XYZ(v + 6);
     float root = SQRT(u1);  /* uniform in the triangle: pbrt-v4 SampleUniformTriangle's map */
     float b0 = 1.0f - root, b1 = u2 * root;
@@ -186,7 +199,7 @@ FORCE_INLINE LightSample sample_light(float3 x, const PathParams* params,
     float3 normal = normalize3(cross3(v1 - v0, v2 - v0));
     /* the shading normal there (Mitsuba's Mesh::sample_position), unless the
      * mesh has face normals (zeros in the table) */
-    __global const float* ln = light_normals + 9 * (size_t)k;
+    __global const float* ln = tables->light_normals + 9 * (size_t)k;
     float3 smooth = b0 * LOAD_XYZ(ln) + b1 * LOAD_XYZ(ln + 3) + (1.0f - b0 - b1) * LOAD_XYZ(ln + 6);
     if (dot3(smooth, smooth) > 0.0f)
         normal = normalize3(smooth);
@@ -199,7 +212,7 @@ FORCE_INLINE LightSample sample_light(float3 x, const PathParams* params,
     float cosine = -dot3(normal, out.direction);
     if (!(cosine > 0.0f))  /* its back side: area lights emit on the front only */
         return out;
-    __global const PathMaterial* light = materials + light_geom[k];
+    __global const PathMaterial* light = tables->materials + tables->light_geom[k];
     out.reach = distance;
     out.radiance = LOAD_XYZ(light->radiance);
     out.pdf = light->emitter_pdf * squared / cosine;
@@ -225,6 +238,129 @@ inline void no_shadow_ray(__global Ray* shadow, __global float4* pending, float3
 {
     write_empty_ray(shadow, direction);
     *pending = (float4)(0.0f);
+}
+
+/* One path vertex (path_surface's work-item gid, path `path`): the light it
+ * sees there, its light sample (its shadow ray and what it carries to
+ * `pending`), and whether the path goes on, from *next_origin along
+ * *next_direction. */
+FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel, uint sample,
+                               __global const Ray* rays, __global const Hit* hits,
+                               __global PathState* states, const PathTables* tables,
+                               const PathParams* params,
+                               __global Ray* shadow, __global float4* pending,
+                               float3* next_origin, float3* next_direction)
+{
+    __global PathState* s = states + path;
+    __global const Ray* ray = rays + gid;
+    float3 d = LOAD_XYZ(ray->direction);
+    __global const Hit* hit = hits + gid;
+    float length_d = length3(d);
+    float3 wo = -d / length_d;  /* unit, towards where the path came from */
+    bool first = depth == 0;
+    float3 throughput = first ? (float3)(1.0f) : LOAD_XYZ(s->throughput);
+    float bsdf_pdf = first ? 0.0f : s->bsdf_pdf;
+    float3 gathered = (float3)(0.0f);
+
+    if (hit->geom_id < 0) {  /* the environment */
+        float light_pdf;
+        float3 escaped = environment_light(params, tables->envmap_image, tables->envmap_cdf, -wo,
+                                           &light_pdf);
+        float weight = bsdf_pdf > 0.0f ? power_heuristic(bsdf_pdf, light_pdf) : 1.0f;
+        no_shadow_ray(shadow + gid, pending + gid, d);
+        end_path(s, first, throughput * escaped * weight);
+        return false;
+    }
+    __global const PathMaterial* m = tables->materials + hit->geom_id;
+    float3 geometric = LOAD_XYZ(hit->normal);
+    float3 shading = shading_normal(hit, m, tables->hit_instances[gid], tables->shading_faces,
+                                    tables->shading_normals, tables->instance_maps,
+                                    params->instance_maps);
+    float cos_out = dot3(shading, wo);
+    float cos_geometric = dot3(geometric, wo);
+    float3 emitted = LOAD_XYZ(m->radiance);
+    if (cos_out > 0.0f && luminance_max(emitted) > 0.0f) {
+        float distance = hit->t * length_d;
+        float weight = bsdf_pdf > 0.0f
+            ? power_heuristic(bsdf_pdf, m->emitter_pdf * distance * distance / cos_out)
+            : 1.0f;
+        gathered += throughput * emitted * weight;
+    }
+    bool last = params->max_depth > 0 && depth + 1 >= params->max_depth;
+    /* n: the BSDF's normal, turned to the viewer for one with sides */
+    float3 n = shading;
+    if (bsdf_has_sides(m) && !(cos_out > 0.0f)) {
+        if (!m->twosided)
+            last = true;  /* the back of a one-sided BSDF is black */
+        n = -n;
+    }
+    if (last || cos_out == 0.0f) {
+        no_shadow_ray(shadow + gid, pending + gid, d);
+        end_path(s, first, gathered);
+        return false;
+    }
+    float3 x = LOAD_XYZ(ray->origin) + hit->t * d;
+    /* secondary rays start off the surface on their own side of it */
+    float3 lift = params->ray_offset * (cos_geometric > 0.0f ? geometric : -geometric);
+    uint pixel = first_pixel + path, base = 2 + DIMENSIONS_PER_BOUNCE * (uint)depth;
+
+    /* next-event estimation, for a BSDF with a density: one light sample,
+     * weighed against the BSDF's density of its direction (delta lights: no MIS) */
+    bool delta_light = false;
+    LightSample light = {(float3)(0.0f), 0.0f, (float3)(0.0f), 0.0f};
+    if (bsdf_has_density(m))
+        light = sample_light(x + lift, params, tables, pixel, sample, base, &delta_light);
+    float bsdf_pdf_of_light;
+    float3 f_cos = light.pdf > 0.0f ? bsdf_eval(m, n, wo, light.direction, &bsdf_pdf_of_light)
+                                    : (float3)(0.0f);
+    if (light.pdf > 0.0f && luminance_max(f_cos * light.radiance) > 0.0f) {
+        float weight = delta_light ? 1.0f : power_heuristic(light.pdf, bsdf_pdf_of_light);
+        float3 carried = throughput * f_cos * light.radiance * (weight / light.pdf);
+        /* stop short of the light itself: by the offset, or 0.1% of a short reach */
+        float margin = params->ray_offset < 1e-3f * light.reach ? params->ray_offset
+                                                               : 1e-3f * light.reach;
+        /* on the light's side (Mitsuba's spawn_ray_to): through a
+         * transmitting BSDF, or with shading normals, it may be the
+         * geometric back of the surface, up to twice the offset nearer the
+         * light than the point it was sampled from */
+        float3 toward = dot3(geometric, light.direction) > 0.0f ? geometric : -geometric;
+        bool behind = dot3(toward, lift) < 0.0f;
+        float reach = light.reach - margin - (behind ? 2.0f * params->ray_offset : 0.0f);
+        write_ray(shadow + gid, x + params->ray_offset * toward, light.direction, reach);
+        pending[gid] = (float4)(carried, 0.0f);
+    } else {
+        no_shadow_ray(shadow + gid, pending + gid, d);
+    }
+
+    /* the BSDF sample: the throughput takes its weight f cos / pdf */
+    BsdfSample next = bsdf_sample(m, n, wo, random_unit(pixel, sample, base + 4),
+                                  random_unit(pixel, sample, base + 5),
+                                  random_unit(pixel, sample, base + 6));
+    throughput *= next.weight;
+    float eta = (first ? 1.0f : s->eta) * next.eta;
+    if (!(luminance_max(throughput) > 0.0f)) {
+        end_path(s, first, gathered);
+        return false;
+    }
+    /* Russian roulette (Mitsuba's rule): from rr_depth on, a path goes on
+     * with probability q = min(max channel of its throughput * eta^2, 0.95) */
+    if (depth + 1 >= params->rr_depth) {
+        float q = luminance_max(throughput) * eta * eta;
+        q = q < 0.95f ? q : 0.95f;
+        if (!(random_unit(pixel, sample, base + 7) < q)) {
+            end_path(s, first, gathered);  /* its light sample above still counts */
+            return false;
+        }
+        throughput /= q;
+    }
+    store3(s->throughput, throughput);
+    s->bsdf_pdf = next.delta ? 0.0f : next.pdf;  /* 0: the next emitter hit takes no MIS */
+    s->eta = eta;
+    store3(s->radiance, radiance_before(s, first) + gathered);
+    float3 side = dot3(geometric, next.direction) > 0.0f ? geometric : -geometric;
+    *next_origin = x + params->ray_offset * side;
+    *next_direction = next.direction;
+    return true;
 }
 
 /* vec_type_hint(float4): Intel's CPU compiler packs a kernel's work-items
@@ -270,128 +406,45 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
                            __global Ray* shadow,      /* by work-item */
                            __global float4* pending)
 {
-    uint gid = get_global_id(0);
-    if (gid >= bound)
-        return;
-    if (gid >= live[depth]) {  /* past the live paths: nothing for the shadow pass */
-        no_shadow_ray(shadow + gid, pending + gid, (float3)(0.0f, 0.0f, 1.0f));
-        return;
-    }
-    uint path = depth == 0 ? gid : paths[gid];
-    __global PathState* s = states + path;
-    __global const Ray* ray = rays + gid;
-    float3 d = LOAD_XYZ(ray->direction);
-    __global const Hit* hit = hits + gid;
-    float length_d = length3(d);
-    float3 wo = -d / length_d;  /* unit, towards where the path came from */
-    bool first = depth == 0;
-    float3 throughput = first ? (float3)(1.0f) : LOAD_XYZ(s->throughput);
-    float bsdf_pdf = first ? 0.0f : s->bsdf_pdf;
-    float3 gathered = (float3)(0.0f);
-
-    if (hit->geom_id < 0) {  /* the environment */
-        float light_pdf;
-        float3 escaped = environment_light(&params, envmap_image, envmap_cdf, -wo, &light_pdf);
-        float weight = bsdf_pdf > 0.0f ? power_heuristic(bsdf_pdf, light_pdf) : 1.0f;
-        no_shadow_ray(shadow + gid, pending + gid, d);
-        end_path(s, first, throughput * escaped * weight);
-        return;
-    }
-    __global const PathMaterial* m = materials + hit->geom_id;
-    float3 geometric = LOAD_XYZ(hit->normal);
-    float3 shading = shading_normal(hit, m, hit_instances[gid], shading_faces, shading_normals,
-                                    instance_maps, params.instance_maps);
-    float cos_out = dot3(shading, wo);
-    float cos_geometric = dot3(geometric, wo);
-    float3 emitted = LOAD_XYZ(m->radiance);
-    if (cos_out > 0.0f && luminance_max(emitted) > 0.0f) {
-        float distance = hit->t * length_d;
-        float weight = bsdf_pdf > 0.0f
-            ? power_heuristic(bsdf_pdf, m->emitter_pdf * distance * distance / cos_out)
-            : 1.0f;
-        gathered += throughput * emitted * weight;
-    }
-    bool last = params.max_depth > 0 && depth + 1 >= params.max_depth;
-    /* n: the BSDF's normal, turned to the viewer for one with sides */
-    float3 n = shading;
-    if (bsdf_has_sides(m) && !(cos_out > 0.0f)) {
-        if (!m->twosided)
-            last = true;  /* the back of a one-sided BSDF is black */
-        n = -n;
-    }
-    if (last || cos_out == 0.0f) {
-        no_shadow_ray(shadow + gid, pending + gid, d);
-        end_path(s, first, gathered);
-        return;
-    }
-    float3 x = LOAD_XYZ(ray->origin) + hit->t * d;
-    /* secondary rays start off the surface on their own side of it */
-    float3 lift = params.ray_offset * (cos_geometric > 0.0f ? geometric : -geometric);
-    uint pixel = first_pixel + path, base = 2 + DIMENSIONS_PER_BOUNCE * (uint)depth;
-
-    /* next-event estimation, for a BSDF with a density: one light sample,
-     * weighed against the BSDF's density of its direction (delta lights: no MIS) */
-    bool delta_light = false;
-    LightSample light = {(float3)(0.0f), 0.0f, (float3)(0.0f), 0.0f};
-    if (bsdf_has_density(m))
-        light = sample_light(x + lift, &params, materials, light_vertices, light_normals,
-                             light_cdf, light_geom, delta_lights, envmap_image, envmap_cdf,
-                             pixel, sample, base,
-                             &delta_light);
-    float bsdf_pdf_of_light;
-    float3 f_cos = light.pdf > 0.0f ? bsdf_eval(m, n, wo, light.direction, &bsdf_pdf_of_light)
-                                    : (float3)(0.0f);
-    if (light.pdf > 0.0f && luminance_max(f_cos * light.radiance) > 0.0f) {
-        float weight = delta_light ? 1.0f : power_heuristic(light.pdf, bsdf_pdf_of_light);
-        float3 carried = throughput * f_cos * light.radiance * (weight / light.pdf);
-        /* stop short of the light itself: by the offset, or 0.1% of a short reach */
-        float margin = params.ray_offset < 1e-3f * light.reach ? params.ray_offset
-                                                               : 1e-3f * light.reach;
-        /* on the light's side (Mitsuba's spawn_ray_to): through a
-         * transmitting BSDF, or with shading normals, it may be the
-         * geometric back of the surface, up to twice the offset nearer the
-         * light than the point it was sampled from */
-        float3 toward = dot3(geometric, light.direction) > 0.0f ? geometric : -geometric;
-        bool behind = dot3(toward, lift) < 0.0f;
-        float reach = light.reach - margin - (behind ? 2.0f * params.ray_offset : 0.0f);
-        write_ray(shadow + gid, x + params.ray_offset * toward, light.direction, reach);
-        pending[gid] = (float4)(carried, 0.0f);
-    } else {
-        no_shadow_ray(shadow + gid, pending + gid, d);
-    }
-
-    /* the BSDF sample: the throughput takes its weight f cos / pdf */
-    BsdfSample next = bsdf_sample(m, n, wo, random_unit(pixel, sample, base + 4),
-                                  random_unit(pixel, sample, base + 5),
-                                  random_unit(pixel, sample, base + 6));
-    throughput *= next.weight;
-    float eta = (first ? 1.0f : s->eta) * next.eta;
-    if (!(luminance_max(throughput) > 0.0f)) {
-        end_path(s, first, gathered);
-        return;
-    }
-    /* Russian roulette (Mitsuba's rule): from rr_depth on, a path goes on
-     * with probability q = min(max channel of its throughput * eta^2, 0.95) */
-    if (depth + 1 >= params.rr_depth) {
-        float q = luminance_max(throughput) * eta * eta;
-        q = q < 0.95f ? q : 0.95f;
-        if (!(random_unit(pixel, sample, base + 7) < q)) {
-            end_path(s, first, gathered);  /* its light sample above still counts */
-            return;
-        }
-        throughput /= q;
-    }
-    store3(s->throughput, throughput);
-    s->bsdf_pdf = next.delta ? 0.0f : next.pdf;  /* 0: the next emitter hit takes no MIS */
-    s->eta = eta;
-    store3(s->radiance, radiance_before(s, first) + gathered);
-    float3 side = dot3(geometric, next.direction) > 0.0f ? geometric : -geometric;
     /* compaction (Laine, Karras & Aila 2013, sec. 4): the paths that go on
-     * take the next pass's first slots, in whatever order the atomic gives
-     * (a path's numbers depend on its pixel, not its slot) */
-    uint slot = atomic_inc(live + depth + 1);
-    write_ray(next_rays + slot, x + params.ray_offset * side, next.direction, INFINITY);
-    next_paths[slot] = path;
+     * take the next pass's first slots.  A work-group counts its own in
+     * local memory and reserves their slots with one global atomic: an
+     * atomic per path had the CPU threads contend for the counter's cache
+     * line (perf: most of this kernel's time on PoCL).  Slots follow no
+     * order: a path's numbers depend on its pixel, not its slot. */
+    __local uint group_paths;
+    __local uint group_first;
+    uint gid = get_global_id(0);
+    bool leader = get_local_id(0) == 0;
+    if (leader)
+        group_paths = 0;
+    barrier(CLK_LOCAL_MEM_FENCE);
+    const PathTables tables = {materials, light_vertices, light_normals, light_cdf,
+                               light_geom, delta_lights, shading_faces, shading_normals,
+                               hit_instances, instance_maps, envmap_image, envmap_cdf};
+    bool goes_on = false;
+    uint path = 0, slot = 0;
+    float3 origin = (float3)(0.0f), direction = (float3)(0.0f);
+    if (gid < bound) {
+        if (gid >= live[depth]) {  /* past the live paths: nothing for the shadow pass */
+            no_shadow_ray(shadow + gid, pending + gid, (float3)(0.0f, 0.0f, 1.0f));
+        } else {
+            path = depth == 0 ? gid : paths[gid];
+            goes_on = shade_vertex(gid, path, depth, first_pixel, sample, rays, hits, states,
+                                   &tables, &params, shadow, pending, &origin, &direction);
+        }
+    }
+    if (goes_on)
+        slot = atomic_inc(&group_paths);
+    barrier(CLK_LOCAL_MEM_FENCE);
+    if (leader && group_paths > 0)
+        group_first = atomic_add(live + depth + 1, group_paths);
+    barrier(CLK_LOCAL_MEM_FENCE);
+    if (goes_on) {
+        slot += group_first;
+        write_ray(next_rays + slot, origin, direction, INFINITY);
+        next_paths[slot] = path;
+    }
 }
 
 /* After the shadow rays: a path's radiance += pending where its shadow ray
