@@ -20,7 +20,10 @@ on 2 threads, in a child process too, in the same rounds.  Its time is the
 wall time from its session's Start returning (its scene compiled and BVH
 built) until the last sample is done, polled every 2 ms: like ours and
 Mitsuba's, a render of a built scene.  Each scene's image means (linear,
-over pixels and channels) are printed side by side as a translation check.
+over pixels and channels) are printed side by side as a translation check,
+and each of our renders' device time per stage (Renderer.stats: closest
+hits, shading, shadow rays, ...) as a share of its total: where the next
+speed-up must come from.
 
 Equal-time quality: a reference of REFERENCE_SPP samples per pixel by
 Mitsuba, then each renderer for the time Mitsuba takes for EQUAL_TIME_SPP
@@ -44,6 +47,7 @@ import numpy as np
 
 from hlbvh_cl.io.scenefile import load
 from hlbvh_cl.io.to_mitsuba import write_xml
+from hlbvh_cl.render.renderer import STAGES as RENDER_STAGES
 
 from . import luxcore
 from .common import (BENCH, arguments, devices_or_exit, finish, machine_info, say, stopwatch,
@@ -164,6 +168,14 @@ def mitsuba_child(paths: dict, sizes: dict) -> MitsubaChild:
         return MitsubaChild(("scalar_rgb",))
 
 
+def stage_medians(rounds: list[dict]) -> dict:
+    """The median over rounds of each stage's device time in a render, in
+    milliseconds (Renderer.stats["times_ms"]: the stages, and their
+    "total"), which says where the next speed-up must come from."""
+    return {stage: float(np.median([r[stage] for r in rounds]))
+            for stage in (*RENDER_STAGES, "total")}
+
+
 def relmse(image: np.ndarray, reference: np.ndarray) -> float:
     """Mean of (image - reference)^2 / (reference^2 + 0.01) over pixels and
     channels (the 0.01 keeps black pixels from dominating)."""
@@ -248,6 +260,7 @@ def main(argv=None) -> dict:
                  + [(n, "mitsuba") for n in paths]
                  + [(n, "luxcore") for n in paths if lux is not None]}
         means = {key: [] for key in times}
+        stages = {key: [] for key in ours}
         for _ in range(args.rounds):
             for name, path in paths.items():
                 width, height, spp = sizes[name]
@@ -257,6 +270,7 @@ def main(argv=None) -> dict:
                     image = renderer.render(loaded.camera, width, height, hdr=True, **options)
                     times[name, device].append(time.perf_counter() - started)
                     means[name, device].append(float(image.mean()))
+                    stages[name, device].append(renderer.stats["times_ms"])
                 answer = child.render(name, path, width, height, spp)
                 times[name, "mitsuba"].append(answer["seconds"])
                 means[name, "mitsuba"].append(answer["mean"])
@@ -270,7 +284,7 @@ def main(argv=None) -> dict:
         child.close()
         if lux is not None:
             lux.close()
-    rows, mean_rows = [], []
+    rows, mean_rows, stage_rows = [], [], []
     for name in paths:
         width, height, spp = sizes[name]
         samples = width * height * spp
@@ -287,7 +301,11 @@ def main(argv=None) -> dict:
             rate = samples / summary(times[name, device])["median"]
             entry[device] = {"msamples_per_s": rate / 1e6, "ratio_to_mitsuba": rate / theirs,
                              "mean": summary(means[name, device])["median"],
-                             "seconds": summary(times[name, device])}
+                             "seconds": summary(times[name, device]),
+                             "stages_ms": stage_medians(stages[name, device])}
+            stage_rows.append([name, device] + [
+                f"{entry[device]['stages_ms'][stage] / entry[device]['stages_ms']['total']:.0%}"
+                for stage in RENDER_STAGES] + [f"{entry[device]['stages_ms']['total']:.0f}"])
             rows.append([name, f"{width}x{height}, {spp} spp", device, f"{rate / 1e6:.2f}",
                          f"{theirs / 1e6:.2f}", f"{rate / theirs:.2f}x"])
             if lux_rate is not None:
@@ -302,6 +320,8 @@ def main(argv=None) -> dict:
     print(table(["scene", "size", "device", "ours (Msamples/s)",
                  f"Mitsuba {results['mitsuba']}", "ratio", *lux_columns], rows,
                 title="path tracing, samples per second (median of the rounds)"))
+    print(table(["scene", "device", *RENDER_STAGES, "device total (ms)"], stage_rows,
+                title="where our render's device time goes (median of the rounds)"))
     if lux is not None:  # the translation's check (bench/luxcore.py)
         print(table(["scene", *devices, "Mitsuba", "LuxCore"], mean_rows,
                     title="image means (linear; median of the rounds)"))

@@ -1,0 +1,34 @@
+"""python -m bench.path --quick: its figures follow from the times it
+measured, and it says where our render's device time went.  Never asserts
+speed."""
+import json
+
+import pytest
+
+from bench import path as bench_path
+from hlbvh_cl.render.renderer import STAGES
+
+pytest.importorskip("mitsuba")
+
+
+def test_quick_run_writes_rates_ratios_and_stage_times(suite_device, tmp_path, capsys):
+    returned = bench_path.main(["--quick", "--devices", suite_device.id, "--rounds", "1",
+                                "--out", str(tmp_path)])
+    written = json.loads((tmp_path / "path.json").read_text())
+    assert set(written["scenes"]) == set(returned["scenes"]) == {"cornell", "materials"}
+    for name, entry in written["scenes"].items():
+        width, height, spp = bench_path.QUICK[name]
+        assert entry["samples"] == width * height * spp
+        ours = entry[suite_device.id]
+        rate = entry["samples"] / ours["seconds"]["median"] / 1e6
+        assert ours["msamples_per_s"] == pytest.approx(rate)
+        assert ours["ratio_to_mitsuba"] == pytest.approx(rate / entry["mitsuba_msamples_per_s"])
+        stages = ours["stages_ms"]
+        assert set(stages) == {*STAGES, "total"}
+        assert all(stages[stage] >= 0.0 for stage in STAGES)
+        assert stages["closest"] > 0.0 and stages["shade"] > 0.0
+        assert sum(stages[stage] for stage in STAGES) == pytest.approx(stages["total"])
+        # device time of the stages cannot exceed the render's wall time
+        assert stages["total"] <= 1e3 * ours["seconds"]["max"]
+    out = capsys.readouterr().out
+    assert "where our render's device time goes" in out
