@@ -480,9 +480,9 @@ _renderers_lock = threading.Lock()
 
 def task_renderer(scene: Scene, look: dict) -> Renderer:
     """This process's Renderer of ``scene`` with this look (Renderer's
-    colors, light, materials and emitters, checked), as render_frames'
-    tasks use it: made once (the last RENDERERS kept), as its pipeline
-    compiles kernels and allocates buffers."""
+    colors, light, materials, emitters and instance_materials, checked), as
+    render_frames' tasks use it: made once (the last RENDERERS kept), as its
+    pipeline compiles kernels and allocates buffers."""
     key = (id(scene), dask.base.tokenize(look))
     with _renderers_lock:
         if key in _renderers:
@@ -518,12 +518,13 @@ def _render_frames(shipped, cameras, paths, look, options) -> list:
 def render_frames(scene: Scene, cameras, width: int, height: int, client=None, output=None, *,
                   colors=None, light=None, shading: str = "diffuse", shadows: bool = True,
                   spp: int = 1, ao_samples: int = AO_SAMPLES, ao_distance: float | None = None,
-                  materials=None, emitters=None, max_depth: int = -1, rr_depth: int = RR_DEPTH,
-                  seed: int = 0, rfilter: str = "box", hdr: bool = False,
+                  materials=None, emitters=None, instance_materials=None, max_depth: int = -1,
+                  rr_depth: int = RR_DEPTH, seed: int = 0, rfilter: str = "box", hdr: bool = False,
                   frames_per_task: int = 1, progress: bool = True,
                   name: str | None = None) -> list:
     """Renders each of ``cameras`` (hlbvh_cl.Camera) as a Renderer of
-    ``colors``, ``light``, ``materials`` and ``emitters`` would render it
+    ``colors``, ``light``, ``materials``, ``emitters`` and
+    ``instance_materials`` would render it
     with the options given (Renderer.render's), ``frames_per_task`` frames
     a task, on ``client``'s cluster (else the default client's, else dask's
     local threads).  Returns the (height, width, 3) images in the cameras'
@@ -549,7 +550,8 @@ def render_frames(scene: Scene, cameras, width: int, height: int, client=None, o
     options = dict(width=width, height=height, hdr=bool(hdr), **settings)
     if not isinstance(scene, Scene):
         raise TypeError(f"scene must be a hlbvh_cl.Scene, got {type(scene).__name__}")
-    look = dict(colors=colors, light=light, materials=materials, emitters=emitters)
+    look = dict(colors=colors, light=light, materials=materials, emitters=emitters,
+                instance_materials=instance_materials)
     Renderer(scene, **look).look()  # its errors, before any task
     if name is None:
         name = "frame_{:05d}" + (".exr" if hdr else ".png")

@@ -44,6 +44,7 @@ class InstanceEntry:
     """One [[instance]] table: copies of meshes[mesh]."""
     mesh: int
     transforms: np.ndarray  # (copies, 3, 4) float64, object -> world: [A | t]
+    material: dict | None = None  # every copy's own BSDF spec (None: its mesh's)
 
 
 @dataclass
@@ -101,6 +102,17 @@ class SceneDescription:
                  for transform in entry.transforms]
         if self.ground is not None:
             found.append((len(self.meshes), np.eye(3, 4)))
+        return found
+
+    def instance_materials(self) -> list[dict | None] | None:
+        """Renderer.instance_materials, in placements' order: each copy's
+        [[instance]] material (None: its mesh's, and the ground's); None when
+        no table names one."""
+        if all(entry.material is None for entry in self.instances):
+            return None
+        found = [entry.material for entry in self.instances for _ in entry.transforms]
+        if self.ground is not None:
+            found.append(None)
         return found
 
     def geometries(self) -> list[tuple[Mesh, Color]]:

@@ -157,7 +157,7 @@ _MESH_KEYS = ("path", "shape", "color", "material", "emitter", "split", "scale",
 #: Mitsuba's shapes a [[mesh]] table may name instead of a file.
 SHAPES = ("rectangle", "cube", "sphere")
 _INSTANCE_KEYS = ("mesh", "scale", "rotate_deg", "translate", "grid", "random_yaw_deg", "seed",
-                  "place_on_ground")
+                  "place_on_ground", "material")
 _GRID_KEYS = ("count", "spacing", "origin", "jitter")
 
 
@@ -252,6 +252,7 @@ class _InstanceSpec:
     positions: np.ndarray  # (copies, 3) float64
     yaw_deg: np.ndarray  # (copies,) float64
     place_on_ground: bool
+    material: dict | None = None
 
 
 @dataclass(frozen=True)
@@ -273,12 +274,14 @@ class LoadedScene:
     materials: list | None = None
     emitters: list | None = None
     options: dict = field(default_factory=dict)  # SceneDescription.options
+    instance_materials: list | None = None
 
     def renderer(self) -> Renderer:
         """A Renderer of the scene with the file's colours, light, materials
-        and emitters."""
+        (the instances' own too) and emitters."""
         return Renderer(self.scene, colors=list(self.colors), light=self.light,
-                        materials=self.materials, emitters=self.emitters)
+                        materials=self.materials, emitters=self.emitters,
+                        instance_materials=self.instance_materials)
 
 
 def load(path, device=None, builder: str = "hlbvh", morton_bits: int = 30,
@@ -305,7 +308,8 @@ def load(path, device=None, builder: str = "hlbvh", morton_bits: int = 30,
                        load_seconds=loaded - started,
                        build_seconds=time.perf_counter() - loaded,
                        materials=description.materials(), emitters=description.all_emitters(),
-                       options=dict(description.options))
+                       options=dict(description.options),
+                       instance_materials=description.instance_materials())
 
 
 def _name_the_entry(description: SceneDescription, error: ValueError) -> ValueError:
@@ -558,6 +562,7 @@ def _read_instance_specs(reader: _Reader, value, mesh_count: int) -> list[_Insta
             yaw_deg=yaw,
             place_on_ground=reader.boolean(table.get("place_on_ground", False),
                                            f"{key}.place_on_ground"),
+            material=_material(reader, table, key),
         ))
     drawn = {spec.mesh for spec in specs}
     for mesh in range(mesh_count):
@@ -717,7 +722,7 @@ def _place(reader: _Reader, spec: _InstanceSpec, mesh: Mesh, ground_y: float
         check_resolved(copies_lo, copies_hi, lambda k: f"copy {k}'s transform")
     except ValueError as error:
         raise reader.error(spec.key, str(error)) from None
-    return InstanceEntry(mesh=spec.mesh, transforms=transforms), box
+    return InstanceEntry(mesh=spec.mesh, transforms=transforms, material=spec.material), box
 
 
 def _make_ground(reader: _Reader, spec: dict, lo: np.ndarray, hi: np.ndarray) -> Ground:

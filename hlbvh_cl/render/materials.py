@@ -207,3 +207,34 @@ def material_table(materials, colors: np.ndarray) -> np.ndarray:
     for i, spec in enumerate(materials):
         table[i] = _bsdf(f"materials[{i}]", spec)
     return table
+
+
+def instance_material_table(instance_materials, instance_meshes) -> tuple[np.ndarray, np.ndarray]:
+    """Renderer.instance_materials (None, or a sequence with one entry per
+    instance: None for its mesh's material, else a material spec) ->
+    (PathMaterial records of the instances that have their own, with no
+    emission yet; int32 per instance: its row among those records, -1 for
+    its mesh's).  ``instance_meshes``: the scene's mesh per instance (None
+    for a scene without instances)."""
+    if instance_materials is None:
+        count = 0 if instance_meshes is None else len(instance_meshes)
+        return np.zeros(0, layout.PATH_MATERIAL), np.full(count, -1, np.int32)
+    if instance_meshes is None:
+        raise ValueError("instance_materials is for a scene with instances "
+                         "(Scene(meshes, instances=...)); this scene has none: give each "
+                         "mesh its material in materials")
+    if isinstance(instance_materials, (str, bytes, Mapping)) \
+            or not isinstance(instance_materials, Sequence):
+        raise TypeError("instance_materials must be a list with one entry per instance (None: "
+                        f"its mesh's material), got {type(instance_materials).__name__}")
+    if len(instance_materials) != len(instance_meshes):
+        raise ValueError(f"instance_materials has {len(instance_materials)} entries but the "
+                         f"scene has {len(instance_meshes)} instances: one per instance "
+                         "(None: its mesh's material)")
+    rows = np.full(len(instance_meshes), -1, np.int32)
+    own = [k for k, spec in enumerate(instance_materials) if spec is not None]
+    table = np.zeros(len(own), layout.PATH_MATERIAL)
+    for row, k in enumerate(own):
+        table[row] = _bsdf(f"instance_materials[{k}]", instance_materials[k])
+        rows[k] = row
+    return table, rows

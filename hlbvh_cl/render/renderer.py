@@ -35,7 +35,7 @@ from .integrators import SHADINGS, integrator_for
 from .emitters import check_emitters
 from .integrators.base import Band, Look, Step
 from .light import Light, check_light
-from .materials import material_table
+from .materials import instance_material_table, material_table
 from .settings import AO_SAMPLES, MAX_SPP, RR_DEPTH, RenderSettings, check_colors, default_colors
 
 #: Pixels per pass at most (whole rows): enough work-items for any device,
@@ -350,15 +350,19 @@ class Renderer:
     ``colors`` holds one RGB triple (0..1) per mesh (by default
     settings.PALETTE, cycled) and ``light`` a Light, which the preview modes
     read; ``materials`` (materials.py: one per mesh, Mitsuba 3's names) and
-    ``emitters`` (emitters.py) are what the path integrator reads.  Each
-    may be reassigned between renders, None giving the defaults again.
+    ``emitters`` (emitters.py) are what the path integrator reads; in a
+    scene with instances, ``instance_materials`` (one entry per instance:
+    a material spec, or None for its mesh's) gives instances materials of
+    their own, while emission stays its mesh's (an area emitter's mesh
+    emits in every instance).  Each may be reassigned between renders,
+    None giving the defaults again.
     ``stats`` describes the last render ({} before one):
     Pipeline.last_stats.  The first render compiles kernels: render once,
     small, to keep that out of a measurement.
     """
 
     def __init__(self, scene, colors=None, light: Light | None = None, materials=None,
-                 emitters=None):
+                 emitters=None, instance_materials=None):
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a hlbvh_cl.Scene, got {type(scene).__name__}")
         self.scene = scene
@@ -366,6 +370,7 @@ class Renderer:
         self.light = Light() if light is None else light
         self.materials = materials
         self.emitters = emitters
+        self.instance_materials = instance_materials
         self._pipeline: Pipeline | None = None
 
     @property
@@ -435,9 +440,12 @@ class Renderer:
         transforms = self.scene.transforms
         instance_maps = None if transforms is None else \
             np.linalg.inv(np.asarray(transforms, np.float64)[:, :, :3]).transpose(0, 2, 1)
+        instance_meshes = self.scene.instance_meshes
+        own, rows = instance_material_table(self.instance_materials, instance_meshes)
         return Look(colors, light, material_table(self.materials, colors), emitters,
                     triangles, normals, tuple(self.scene.meshes), instance_maps,
-                    self._surface_area(transforms))
+                    self._surface_area(transforms), own,
+                    None if transforms is None else rows, instance_meshes)
 
     def _surface_area(self, transforms) -> float:
         """The scene's world surface area: its meshes', each instance's scaled

@@ -174,6 +174,28 @@ def test_dask_local_scheduler_matches_one_process(meshes, suite_device):
     assert travel.cached_count() == 0  # the scene itself served the tasks: none rebuilt
 
 
+
+def test_render_frames_takes_the_instances_own_materials(meshes, suite_device):
+    """render_frames(instance_materials=...) renders as a local Renderer
+    with them does, frame for frame."""
+    shift = np.hstack([np.eye(3), [[12.0], [0.0], [0.0]]])
+    scene = hlbvh_cl.Scene([meshes["bunny_small"]], device=suite_device,
+                           instances=[(0, np.eye(3, 4)), (0, shift)])
+    own = [{"type": "roughconductor", "material": "Au", "alpha": 0.3}, None]
+    lo, hi = meshes["bunny_small"].bounds
+    centre = (np.asarray(lo) + np.asarray(hi)) / 2 + [6.0, 0.0, 0.0]
+    cameras = [hlbvh_cl.Camera(tuple(centre + [0.0, 5.0, 40.0]), tuple(centre))]
+    seen = scene.intersect(*cameras[0].rays(24, 16)).instance_id
+    assert (seen == 0).any() and (seen == 1).any()  # both copies in the frame
+    options = dict(shading="path", spp=2, max_depth=3, hdr=True)
+    images = hd.render_frames(scene, cameras, 24, 16, progress=False, instance_materials=own,
+                              **options)
+    renderer = hlbvh_cl.Renderer(scene, instance_materials=own)
+    np.testing.assert_array_equal(images[0], renderer.render(cameras[0], 24, 16, **options))
+    with pytest.raises(ValueError, match="instance_materials has 1 entries"):
+        hd.render_frames(scene, cameras, 24, 16, progress=False, instance_materials=own[:1],
+                         **options)
+
 @pytest.mark.parametrize("chunks", [(700, 0, 500), (0, 1200), (1200, 0)])
 def test_every_hit_over_empty_chunks_has_the_local_offsets(meshes, suite_device, chunks):
     """Rays chunked with empty chunks (a filter's leftovers): the offsets

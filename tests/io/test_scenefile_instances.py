@@ -279,6 +279,7 @@ def instance(text):
      "3 numbers"),
     (instance("mesh = 0\nrandom_yaw_deg = 200.0\n"), "instance[0].random_yaw_deg", "<= 180"),
     (instance("mesh = 0\nseed = -1\n"), "instance[0].seed", ">= 0"),
+    (instance('mesh = 0\nmaterial = { type = "velvet" }\n'), "instance[0].material", "velvet"),
     (instance("mesh = 0\nscale = 0.0\n"), "instance[0].scale", "> 0"),
     (instance("mesh = 0\nscale = 5e38\n"), "instance[0]", "scale and positions put copies at"),
     (instance("mesh = 0\ntranslate = [0.0, 1e39, 0.0]\n"), "instance[0]", "beyond float32"),
@@ -460,3 +461,30 @@ def test_a_mesh_no_instance_draws_is_an_error(tmp_path):
     with pytest.raises(SceneFileError, match=r"scene.toml: mesh\[0\]: no \[\[instance\]\] table "
                                              r"draws it.*add one with mesh = 0, or remove"):
         read(write(tmp_path, text))
+
+
+def test_an_instance_table_s_material_is_every_copy_s(tmp_path, suite_device):
+    """[[instance]] material: each copy of that table takes it as
+    Renderer.instance_materials, in the scene's instance order; other copies
+    and the ground keep their mesh's (None); a file that names none gives
+    None, the Renderer's default."""
+    gold = {"type": "roughconductor", "material": "Au", "alpha": 0.2}
+    path = write(tmp_path, BASE + KNIGHT_MESH + """
+[ground]
+y = 0.0
+
+[[instance]]
+mesh = 0
+translate = [[-2.0, 0.0, 0.0], [2.0, 0.0, 0.0]]
+
+[[instance]]
+mesh = 0
+translate = [[0.0, 0.0, -2.0], [0.0, 0.0, 2.0], [0.0, 0.0, 4.0]]
+material = { type = "roughconductor", material = "Au", alpha = 0.2 }
+""")
+    loaded = load(path, suite_device)
+    assert loaded.instance_materials == [None, None, gold, gold, gold, None]
+    assert list(loaded.scene.instance_meshes) == [0, 0, 0, 0, 0, 1]
+    assert loaded.renderer().instance_materials == loaded.instance_materials
+    plain = write(tmp_path, BASE + KNIGHT_MESH + "\n[[instance]]\nmesh = 0\n", name="plain.toml")
+    assert load(plain, suite_device).instance_materials is None

@@ -42,6 +42,14 @@ class Look:
     #: the scene's world surface area (every instance's), which bounds the
     #: power an environment delivers to it (the path integrator's light choice)
     surface_area: float = 0.0
+    #: the instances' own materials: layout.PATH_MATERIAL records, no emission
+    #: (materials.instance_material_table)
+    instance_materials: object = None
+    #: int32 per instance: its row of instance_materials, -1 for its mesh's
+    #: material; None for a flat scene
+    instance_material_rows: object = None
+    #: int32 per instance: its mesh (Scene.instance_meshes); None for a flat scene
+    instance_meshes: object = None
 
 
 @dataclass

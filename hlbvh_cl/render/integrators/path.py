@@ -171,6 +171,24 @@ def shading_tables(meshes) -> dict:
             "bases": bases}
 
 
+def instance_materials(materials: np.ndarray, look: Look) -> tuple[np.ndarray, np.ndarray]:
+    """The meshes' PathMaterial records (emission and shading normals set)
+    followed by the instances' own (look.instance_materials), each taking its
+    mesh's emission and shading normals; and int32 per instance, the record
+    its hits read (-1: its mesh's, geom_id; a stand-in row for a flat
+    scene, which reads none)."""
+    rows = look.instance_material_rows
+    if rows is None:
+        return materials, np.full(1, -1, np.int32)
+    own = np.asarray(look.instance_materials).copy()
+    which = np.flatnonzero(rows >= 0)
+    meshes = np.asarray(look.instance_meshes)[which]
+    for name in ("radiance", "emitter_pdf", "shading_base"):
+        own[name][rows[which]] = materials[name][meshes]
+    index = np.where(rows >= 0, rows + len(materials), -1).astype(np.int32)
+    return np.concatenate([materials, own]), (index if len(index) else np.full(1, -1, np.int32))
+
+
 def envmap_params(params: np.ndarray, envmap) -> None:
     """PathParams' environment map fields: its size and rotation (width 0
     without one: the environment is constant)."""
@@ -243,8 +261,10 @@ class Path(Integrator):
         maps = np.zeros((0, 9)) if look.instance_maps is None else \
             np.asarray(look.instance_maps).reshape(-1, 9)
         tables["instance_maps"] = maps.astype(np.float32)
+        tables["materials"], tables["instance_materials"] = instance_materials(
+            tables["materials"], look)
         for name in ("materials", "vertices", "normals", "cdf", "owners", "deltas",
-                     "instance_maps", "envmap_image", "envmap_cdf"):
+                     "instance_maps", "instance_materials", "envmap_image", "envmap_cdf"):
             self._tables[name] = _upload(rt, tables[name])
         self._tables["shading_faces"] = shading["faces"]
         self._tables["shading_normals"] = shading["normals"]
@@ -338,7 +358,8 @@ class Path(Integrator):
             events["shade"].append(rt.run(
                 self._aov_kernels["path_aovs"], band.count, step.rays, step.hits,
                 tables["materials"], tables["shading_faces"], tables["shading_normals"],
-                step.instances, tables["instance_maps"], self._params, self._length_scale,
+                step.instances, tables["instance_maps"], tables["instance_materials"],
+                self._params, self._length_scale,
                 count, sample, self.aov_sums))
         rays, next_rays = step.rays, self.next_rays
         numbers, next_numbers = self.numbers
@@ -355,7 +376,7 @@ class Path(Integrator):
                 tables["materials"], tables["vertices"], tables["normals"], tables["cdf"],
                 tables["owners"], tables["deltas"], tables["shading_faces"],
                 tables["shading_normals"], step.instances, tables["instance_maps"],
-                tables["envmap_image"], tables["envmap_cdf"],
+                tables["instance_materials"], tables["envmap_image"], tables["envmap_cdf"],
                 self._params, np.uint32(bound), first_pixel, stream, at,
                 self.live, next_rays, next_numbers, self.shadow, self.pending))
             events["occluded"].append(step.query.enqueue_occluded(

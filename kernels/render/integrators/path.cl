@@ -71,6 +71,7 @@ typedef struct {
     __global const float* shading_normals;   /* 3 floats per vertex */
     __global const int* hit_instances;       /* per ray */
     __global const float* instance_maps;     /* 9 floats per instance */
+    __global const int* instance_materials;  /* per instance: its material, -1: its mesh's */
     __global const float* envmap_image;      /* H x W RGB (envmap.h) */
     __global const float* envmap_cdf;        /* its marginal, conditionals */
 } PathTables;
@@ -123,6 +124,18 @@ inline float3 shading_normal(__global const Hit* hit, __global const PathMateria
     }
     float squared = dot3(n, n);
     return squared > 0.0f ? n * (1.0f / SQRT(squared)) : geometric;
+}
+
+/* The material a hit shows: its instance's own where the instance has one
+ * (instance_materials, after the meshes' records), else its mesh's. */
+inline __global const PathMaterial* hit_material(__global const Hit* hit, int instance,
+                                                 __global const PathMaterial* materials,
+                                                 __global const int* instance_materials,
+                                                 uint instance_count)
+{
+    int own = instance >= 0 && (uint)instance < instance_count ? instance_materials[instance]
+                                                               : -1;
+    return materials + (own >= 0 ? own : hit->geom_id);
 }
 
 /* One light sample: uniform on the sphere for the constant environment
@@ -271,9 +284,12 @@ FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel,
         end_path(s, first, throughput * escaped * weight);
         return false;
     }
-    __global const PathMaterial* m = tables->materials + hit->geom_id;
+    int instance = tables->hit_instances[gid];
+    __global const PathMaterial* m = hit_material(hit, instance, tables->materials,
+                                                  tables->instance_materials,
+                                                  params->instance_maps);
     float3 geometric = LOAD_XYZ(hit->normal);
-    float3 shading = shading_normal(hit, m, tables->hit_instances[gid], tables->shading_faces,
+    float3 shading = shading_normal(hit, m, instance, tables->shading_faces,
                                     tables->shading_normals, tables->instance_maps,
                                     params->instance_maps);
     float cos_out = dot3(shading, wo);
@@ -391,6 +407,7 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
                            __global const float* shading_normals,   /* 3 floats per vertex */
                            __global const int* hit_instances,       /* per ray */
                            __global const float* instance_maps,     /* 9 floats per instance */
+                           __global const int* instance_materials,  /* per instance, -1: none */
                            __global const float* envmap_image,  /* H x W RGB (envmap.h) */
                            __global const float* envmap_cdf,    /* its marginal, conditionals */
                            const PathParams params,
@@ -421,7 +438,8 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
     barrier(CLK_LOCAL_MEM_FENCE);
     const PathTables tables = {materials, light_vertices, light_normals, light_cdf,
                                light_geom, delta_lights, shading_faces, shading_normals,
-                               hit_instances, instance_maps, envmap_image, envmap_cdf};
+                               hit_instances, instance_maps, instance_materials,
+                               envmap_image, envmap_cdf};
     bool goes_on = false;
     uint path = 0, slot = 0;
     float3 origin = (float3)(0.0f), direction = (float3)(0.0f);
@@ -496,6 +514,7 @@ __kernel void path_aovs(__global const Ray* rays,
                         __global const float* shading_normals,
                         __global const int* hit_instances,
                         __global const float* instance_maps,
+                        __global const int* instance_materials,
                         const PathParams params,
                         const float length_scale,
                         const uint count,
@@ -508,10 +527,12 @@ __kernel void path_aovs(__global const Ray* rays,
     __global const Hit* hit = hits + gid;
     float4 first = (float4)(0.0f), second = (float4)(0.0f);
     if (hit->geom_id >= 0) {
-        __global const PathMaterial* m = materials + hit->geom_id;
+        int instance = hit_instances[gid];
+        __global const PathMaterial* m = hit_material(hit, instance, materials,
+                                                      instance_materials, params.instance_maps);
         float reach = hit->t * length3(LOAD_XYZ(rays[gid].direction)) * length_scale;
         first = (float4)(LOAD_XYZ(m->reflectance), reach);
-        second = (float4)(shading_normal(hit, m, hit_instances[gid], shading_faces,
+        second = (float4)(shading_normal(hit, m, instance, shading_faces,
                                          shading_normals, instance_maps, params.instance_maps),
                           0.0f);
     }
