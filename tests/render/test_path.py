@@ -572,6 +572,61 @@ def test_a_ball_of_each_rough_or_coated_material_agrees_with_mitsuba_3(material,
     assert_agrees(theirs, ours, block=4)
 
 
+def relmse(image, reference) -> float:
+    """Relative MSE as bench/path.py scores renders: mean((image - ref)^2 /
+    (ref^2 + 0.01)) over pixels and channels."""
+    image, reference = np.asarray(image, np.float64), np.asarray(reference, np.float64)
+    return float(((image - reference) ** 2 / (reference ** 2 + 0.01)).mean())
+
+
+def test_relmse_against_a_high_spp_mitsuba_reference_falls_as_one_over_spp(tmp_path,
+                                                                           suite_device):
+    """Issue 55's convergence check: a glass ball and a gold one on a diffuse
+    ground under an area light and a sky, against Mitsuba 3's render of the
+    same scene at REFERENCE spp.  An unbiased estimator's relMSE is its
+    variance over spp plus the reference's own (a bias would level it off):
+    over 4 to 64 spp (averaged over SEEDS seeds) the log-log slope is -1
+    within 0.2 once the reference's share is counted."""
+    mi = pytest.importorskip("mitsuba")
+    mi.set_variant("scalar_rgb")
+    reference_spp = 1024
+    ground = trimesh.Trimesh([[-3, 0, -3], [3, 0, -3], [3, 0, 3], [-3, 0, 3]],
+                             [[0, 2, 1], [0, 3, 2]], process=False)
+    glass = trimesh.creation.icosphere(subdivisions=3, radius=0.45)
+    glass.apply_translation((-0.5, 0.45, 0.0))
+    gold = trimesh.creation.icosphere(subdivisions=3, radius=0.45)
+    gold.apply_translation((0.5, 0.45, 0.0))
+    lamp = trimesh.Trimesh([[-0.5, 2.2, -0.5], [0.5, 2.2, -0.5], [0.5, 2.2, 0.5],
+                            [-0.5, 2.2, 0.5]], [[0, 1, 2], [0, 2, 3]], process=False)
+    shapes = [ground, glass, gold, lamp]
+    materials = [{"type": "diffuse", "reflectance": 0.5}, {"type": "dielectric", "int_ior": 1.5},
+                 {"type": "roughconductor", "material": "Au", "alpha": 0.2},
+                 {"type": "diffuse", "reflectance": 0.0}]
+    width, height, depth = 32, 24, 6
+    eye, target, fov = (0.0, 1.4, 3.0), (0.0, 0.5, 0.0), 45.0
+    described = mitsuba_scene(mi, shapes, materials, tmp_path, eye, target, fov, width, height,
+                              reference_spp, depth)
+    reference = np.asarray(mi.render(mi.load_dict(described), seed=99))[..., :3]
+    scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(s.vertices, s.faces, face_normals=True)
+                            for s in shapes], device=suite_device)
+    renderer = hlbvh_cl.Renderer(scene, materials=materials, emitters=[
+        {"type": "area", "mesh": len(shapes) - 1, "radiance": 5.0},
+        {"type": "constant", "radiance": 0.2}])
+    camera = hlbvh_cl.Camera(eye=eye, target=target, fov_deg=fov)
+    counts = np.array([4, 16, 64])
+    errors = np.array([np.mean([relmse(renderer.render(camera, width, height, shading="path",
+                                                       spp=int(n), max_depth=depth, hdr=True,
+                                                       seed=seed), reference)
+                                for seed in range(1, SEEDS + 1)]) for n in counts])
+    # relMSE(n) = a / n + a / reference_spp: fit a, then the slope of what
+    # is left once the reference's share is taken off
+    a = float(np.mean(errors / (1.0 / counts + 1.0 / reference_spp)))
+    own = errors - a / reference_spp
+    assert (own > 0).all(), (errors, a)
+    slope = np.polyfit(np.log(counts), np.log(own), 1)[0]
+    assert -1.2 < slope < -0.8, (slope, errors)
+
+
 @pytest.mark.parametrize("rfilter", ["box", "gaussian"])
 def test_a_sharp_edge_is_blurred_by_the_filter_and_no_more(rfilter, suite_device):
     """An emitting half-plane facing the camera, seen directly (max_depth
