@@ -7,6 +7,7 @@ tests do; a user can check a material the same way.
     eval_bsdf(material, wo, wi)       -> f cos, pdfs
     sample_envmap(emitter, count)     -> directions, radiance, pdfs
     eval_envmap(emitter, wi)          -> radiance, pdfs
+    sample_lights(renderer, point, count) -> directions, radiance, pdfs, reaches
     turn_angles(u)                    -> sin and cos of 2 pi u, as the samplers take them
 
 ``material`` is a materials.py spec; ``wo`` the unit direction towards the
@@ -24,7 +25,7 @@ from ..core import inputs, layout
 from ..core.paths import kernel_of
 from ..device.runtime import runtime
 from .envmap import check_envmap
-from .integrators.path import envmap_params
+from .integrators.path import envmap_params, light_tables, upload_table
 from .materials import check_material
 
 KERNEL = kernel_of(__name__)
@@ -131,6 +132,43 @@ def eval_envmap(emitter, wi, device=None) -> dict[str, np.ndarray]:
     return _launch(rt, "envmap_values", count, [*arguments, np.uint32(count), directions],
                    {"radiance": np.empty((count, 3), np.float32),
                     "pdfs": np.empty(count, np.float32)})
+
+
+def sample_lights(renderer, point, count: int, seed: int = 0) -> dict[str, np.ndarray]:
+    """``count`` light samples that the path integrator's next-event
+    estimation draws at ``point`` (world) in ``renderer``'s scene with its
+    emitters: "directions" (count, 3) unit, towards the light; "radiance"
+    (count, 3) arriving from it; "pdfs" (count,), the density with which
+    the sample was drawn, per solid angle (0: no sample, such as a point on
+    a light's back; a delta light's: the chance of picking it); "reaches"
+    (count,), the distance to the light (inf for the environment or a
+    directional light); float32.  The lights are picked by power as in a
+    render (the environment against the scene's surface area)."""
+    count = inputs.integer("count", count, 1, 1 << 26)
+    seed = inputs.integer("seed", seed, 0, 2**32 - 1)
+    x = inputs.vector3("point", point)
+    look = renderer.look()
+    lo = np.min([np.asarray(m.bounds[0]) for m in renderer.scene.meshes], 0)
+    hi = np.max([np.asarray(m.bounds[1]) for m in renderer.scene.meshes], 0)
+    tables = light_tables(look, 1.0, lo, hi)
+    params = np.zeros((), layout.PATH_PARAMS)
+    environment = look.emitters.environment
+    params["environment"] = environment if environment is not None else 0.0
+    params["environment_probability"] = tables["environment_probability"]
+    params["delta_probability"] = tables["delta_probability"]
+    params["light_triangles"] = len(tables["cdf"])
+    params["delta_lights"] = tables["delta_count"]
+    envmap_params(params, look.emitters.envmap)
+    rt = runtime(renderer.scene.device)
+    buffers = [upload_table(rt, tables[name])
+               for name in ("materials", "vertices", "normals", "cdf", "owners", "deltas",
+                            "envmap_image", "envmap_cdf")]
+    return _launch(rt, "light_samples", count,
+                   [params, *buffers, *[np.float32(v) for v in x], np.uint32(count),
+                    np.uint32(seed)],
+                   {"directions": np.empty((count, 3), np.float32),
+                    "radiance": np.empty((count, 3), np.float32),
+                    "pdfs": np.empty(count, np.float32), "reaches": np.empty(count, np.float32)})
 
 
 def turn_angles(u, device=None) -> dict[str, np.ndarray]:

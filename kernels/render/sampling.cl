@@ -12,6 +12,9 @@
  *                   (render/envmap.h): direction, radiance, density;
  *                   random_unit(k, seed, 0..2)
  *   envmap_values   its radiance and density towards each of `wi`
+ *   light_samples   sample k of next-event estimation at a point x
+ *                   (render/lights.h): direction, radiance, density (0:
+ *                   none), reach; random_unit(k, seed, 0..3)
  *   turn_angles     sin and cos of 2 pi u as the samplers take them
  *                   (render/angles.h), for each u given
  * The normal given is used as the integrator uses it: turned towards wo for
@@ -21,6 +24,7 @@
 #include "render/bsdfs/bsdf.h"
 #include "render/random.h"
 #include "render/envmap.h"
+#include "render/lights.h"
 
 /* The BSDF's normal as path_surface computes it; false where the back of
  * a one-sided BSDF is seen (black). */
@@ -97,6 +101,30 @@ __kernel void envmap_values(const PathParams params, __global const float* image
     float3 d = LOAD_XYZ(wi + 3 * (size_t)k);
     store3(radiance + 3 * (size_t)k, envmap_radiance(&params, image, d));
     pdfs[k] = envmap_pdf(&params, cdf, d);
+}
+
+__kernel void light_samples(const PathParams params, __global const PathMaterial* materials,
+                            __global const float* light_vertices,
+                            __global const float* light_normals,
+                            __global const float* light_cdf, __global const int* light_geom,
+                            __global const DeltaLight* delta_lights,
+                            __global const float* envmap_image, __global const float* envmap_cdf,
+                            const float x, const float y, const float z, const uint count,
+                            const uint seed, __global float* directions,
+                            __global float* radiance, __global float* pdfs,
+                            __global float* reaches)
+{
+    uint k = get_global_id(0);
+    if (k >= count)
+        return;
+    const LightTables tables = {materials, light_vertices, light_normals, light_cdf,
+                                light_geom, delta_lights, envmap_image, envmap_cdf};
+    bool delta;
+    LightSample s = sample_light((float3)(x, y, z), &params, &tables, k, seed, 0, &delta);
+    store3(directions + 3 * (size_t)k, s.direction);
+    store3(radiance + 3 * (size_t)k, s.radiance);
+    pdfs[k] = s.pdf;
+    reaches[k] = s.reach;
 }
 
 __kernel void turn_angles(const uint count, __global const float* turns, __global float* sines,

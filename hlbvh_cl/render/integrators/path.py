@@ -254,7 +254,7 @@ class Path(Integrator):
         if len(meshes) != len(look.meshes) or any(a is not b for a, b in zip(meshes, look.meshes)):
             # Meshes are immutable: their normals go to the device once
             found = shading_tables(look.meshes)
-            shading = {name: _upload(rt, found[name]) for name in ("faces", "normals")}
+            shading = {name: upload_table(rt, found[name]) for name in ("faces", "normals")}
             shading["bases"] = found["bases"]
             self._shading = (look.meshes, shading)
         tables["materials"]["shading_base"] = shading["bases"]
@@ -265,7 +265,7 @@ class Path(Integrator):
             tables["materials"], look)
         for name in ("materials", "vertices", "normals", "cdf", "owners", "deltas",
                      "instance_maps", "instance_materials", "envmap_image", "envmap_cdf"):
-            self._tables[name] = _upload(rt, tables[name])
+            self._tables[name] = upload_table(rt, tables[name])
         self._tables["shading_faces"] = shading["faces"]
         self._tables["shading_normals"] = shading["normals"]
         params = np.zeros((), layout.PATH_PARAMS)
@@ -400,7 +400,7 @@ class Path(Integrator):
         step.done(events["resolve"][-1])
 
 
-def _upload(rt: Runtime, array: np.ndarray) -> cl.Buffer:
+def upload_table(rt: Runtime, array: np.ndarray) -> cl.Buffer:
     """A read-only device copy of ``array``, of one element at least (OpenCL
     has no empty buffers)."""
     data = np.ascontiguousarray(array)

@@ -40,9 +40,9 @@
 #include "render/tiles.h"
 #include "render/random.h"
 #include "render/envmap.h"
+#include "render/lights.h"
 
 #define DIMENSIONS_PER_BOUNCE 8
-#define INV_FOUR_PI 0.07957747154594767f
 
 /* The power heuristic with beta = 2 (Veach 1997, eq. 9.13) for a sample
  * drawn with density `chosen` where the other strategy has `other`. */
@@ -59,47 +59,16 @@ inline float luminance_max(float3 v)
 
 /* The tables a path vertex reads besides its own state (path_surface's
  * arguments of the same names), gathered so that the stages' helpers take
- * them as one. */
+ * them as one: the lights' (render/lights.h), and the shading normals and
+ * instances'. */
 typedef struct {
-    __global const PathMaterial* materials;  /* per geom_id */
-    __global const float* light_vertices;    /* 9 floats per emissive triangle */
-    __global const float* light_normals;     /* 9 floats per emissive triangle */
-    __global const float* light_cdf;
-    __global const int* light_geom;
-    __global const DeltaLight* delta_lights;
+    LightTables lights;
     __global const uint* shading_faces;      /* 3 vertices per triangle */
     __global const float* shading_normals;   /* 3 floats per vertex */
     __global const int* hit_instances;       /* per ray */
     __global const float* instance_maps;     /* 9 floats per instance */
     __global const int* instance_materials;  /* per instance: its material, -1: its mesh's */
-    __global const float* envmap_image;      /* H x W RGB (envmap.h) */
-    __global const float* envmap_cdf;        /* its marginal, conditionals */
 } PathTables;
-
-/* A light sample seen from x: the direction to it (unit), how far it
- * reaches, its radiance and its solid-angle density (0: none). */
-typedef struct {
-    float3 direction;
-    float reach;
-    float3 radiance;
-    float pdf;
-} LightSample;
-
-/* The environment's radiance along -direction (direction: unit, the way
- * a ray escapes) and the density with which a light sample picks that
- * direction (0 when it cannot): the constant environment's, uniform on the
- * sphere, or the map's (render/envmap.h). */
-inline float3 environment_light(const PathParams* params, __global const float* envmap_image,
-                                __global const float* envmap_cdf, float3 direction, float* pdf)
-{
-    if (params->envmap_width == 0) {
-        *pdf = params->environment_probability * INV_FOUR_PI;
-        return LOAD_XYZ(params->environment);
-    }
-    *pdf = params->environment_probability > 0.0f
-        ? params->environment_probability * envmap_pdf(params, envmap_cdf, direction) : 0.0f;
-    return envmap_radiance(params, envmap_image, direction);
-}
 
 /* The shading normal at a hit, as Mitsuba 3's Mesh::compute_surface_interaction
  * takes it: the mesh's vertex normals interpolated by the hit's barycentrics
@@ -136,100 +105,6 @@ inline __global const PathMaterial* hit_material(__global const Hit* hit, int in
     int own = instance >= 0 && (uint)instance < instance_count ? instance_materials[instance]
                                                                : -1;
     return materials + (own >= 0 ? own : hit->geom_id);
-}
-
-/* One light sample: uniform on the sphere for the constant environment
- * (as Mitsuba's constant emitter), by the map's density for an environment
- * map (render/envmap.h), a point or directional light (a delta:
- * its pdf is the chance of picking it, and MIS leaves it alone), or uniform
- * in area on an emissive triangle picked by power (its area times its
- * radiance's luminance); the lights themselves are picked by power
- * (hlbvh_cl/render/emitters.py). */
-FORCE_INLINE LightSample sample_light(float3 x, const PathParams* params,
-                                      const PathTables* tables, uint pixel, uint sample,
-                                      uint base, bool* delta)
-{
-    LightSample out = {(float3)(0.0f), 0.0f, (float3)(0.0f), 0.0f};
-    float choice = random_unit(pixel, sample, base);
-    *delta = false;
-    float u1 = random_unit(pixel, sample, base + 2);
-    float u2 = random_unit(pixel, sample, base + 3);
-    if (choice < params->environment_probability) {
-        out.reach = INFINITY;
-        if (params->envmap_width > 0) {
-            out.direction = envmap_sample(params, tables->envmap_cdf,
-                                          random_unit(pixel, sample, base + 1),
-                                          u1, u2, &out.pdf);
-            out.radiance = envmap_radiance(params, tables->envmap_image, out.direction);
-            out.pdf *= params->environment_probability;
-            return out;
-        }
-        float z = 1.0f - 2.0f * u1;
-        float r = SQRT(1.0f - z * z > 0.0f ? 1.0f - z * z : 0.0f);
-        float cosine, sine = sincos_turn(u2, &cosine);
-        out.direction = (float3)(r * cosine, r * sine, z);
-        out.radiance = LOAD_XYZ(params->environment);
-        out.pdf = params->environment_probability * INV_FOUR_PI;
-        return out;
-    }
-    choice -= params->environment_probability;
-    if (choice < params->delta_probability) {
-        *delta = true;
-        for (uint i = 0; i < params->delta_lights; ++i) {
-            __global const DeltaLight* light = tables->delta_lights + i;
-            if (choice >= light->probability && i + 1 < params->delta_lights) {
-                choice -= light->probability;
-                continue;
-            }
-            float3 value = LOAD_XYZ(light->value);
-            if (light->type == LIGHT_DIRECTIONAL) {
-                out.direction = -LOAD_XYZ(light->position);
-                out.reach = INFINITY;
-                out.radiance = value;  /* irradiance: a delta in direction */
-            } else {
-                float3 to_light = LOAD_XYZ(light->position) - x;
-                float squared = dot3(to_light, to_light);
-                out.reach = SQRT(squared);
-                if (!(out.reach > 0.0f))
-                    return out;
-                out.direction = to_light / out.reach;
-                out.radiance = value / squared;  /* intensity over distance squared */
-            }
-            out.pdf = light->probability;
-            return out;
-        }
-        return out;
-    }
-    if (params->light_triangles == 0)
-        return out;
-    uint k = pick(tables->light_cdf, params->light_triangles,
-                  random_unit(pixel, sample, base + 1));
-    __global const float* v = tables->light_vertices + 9 * (size_t)k;
-    float3 v0 = LOAD_XYZ(v), v1 = LOAD_XYZ(v + 3), v2 = LOAD_XYZ(v + 6);
-    float root = SQRT(u1);  /* uniform in the triangle: pbrt-v4 SampleUniformTriangle's map */
-    float b0 = 1.0f - root, b1 = u2 * root;
-    float3 p = b0 * v0 + b1 * v1 + (1.0f - b0 - b1) * v2;
-    float3 normal = normalize3(cross3(v1 - v0, v2 - v0));
-    /* the shading normal there (Mitsuba's Mesh::sample_position), unless the
-     * mesh has face normals (zeros in the table) */
-    __global const float* ln = tables->light_normals + 9 * (size_t)k;
-    float3 smooth = b0 * LOAD_XYZ(ln) + b1 * LOAD_XYZ(ln + 3) + (1.0f - b0 - b1) * LOAD_XYZ(ln + 6);
-    if (dot3(smooth, smooth) > 0.0f)
-        normal = normalize3(smooth);
-    float3 to_light = p - x;
-    float squared = dot3(to_light, to_light);
-    float distance = SQRT(squared);
-    if (!(distance > 0.0f))
-        return out;
-    out.direction = to_light / distance;
-    float cosine = -dot3(normal, out.direction);
-    if (!(cosine > 0.0f))  /* its back side: area lights emit on the front only */
-        return out;
-    __global const PathMaterial* light = tables->materials + tables->light_geom[k];
-    out.reach = distance;
-    out.radiance = LOAD_XYZ(light->radiance);
-    out.pdf = light->emitter_pdf * squared / cosine;
-    return out;
 }
 
 /* The radiance a path has gathered before this vertex: none on the first
@@ -277,15 +152,15 @@ FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel,
 
     if (hit->geom_id < 0) {  /* the environment */
         float light_pdf;
-        float3 escaped = environment_light(params, tables->envmap_image, tables->envmap_cdf, -wo,
-                                           &light_pdf);
+        float3 escaped = environment_light(params, tables->lights.envmap_image,
+                                           tables->lights.envmap_cdf, -wo, &light_pdf);
         float weight = bsdf_pdf > 0.0f ? power_heuristic(bsdf_pdf, light_pdf) : 1.0f;
         no_shadow_ray(shadow + gid, pending + gid, d);
         end_path(s, first, throughput * escaped * weight);
         return false;
     }
     int instance = tables->hit_instances[gid];
-    __global const PathMaterial* m = hit_material(hit, instance, tables->materials,
+    __global const PathMaterial* m = hit_material(hit, instance, tables->lights.materials,
                                                   tables->instance_materials,
                                                   params->instance_maps);
     float3 geometric = LOAD_XYZ(hit->normal);
@@ -325,7 +200,7 @@ FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel,
     bool delta_light = false;
     LightSample light = {(float3)(0.0f), 0.0f, (float3)(0.0f), 0.0f};
     if (bsdf_has_density(m))
-        light = sample_light(x + lift, params, tables, pixel, sample, base, &delta_light);
+        light = sample_light(x + lift, params, &tables->lights, pixel, sample, base, &delta_light);
     float bsdf_pdf_of_light;
     float3 f_cos = light.pdf > 0.0f ? bsdf_eval(m, n, wo, light.direction, &bsdf_pdf_of_light)
                                     : (float3)(0.0f);
@@ -436,10 +311,10 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
     if (leader)
         group_paths = 0;
     barrier(CLK_LOCAL_MEM_FENCE);
-    const PathTables tables = {materials, light_vertices, light_normals, light_cdf,
-                               light_geom, delta_lights, shading_faces, shading_normals,
-                               hit_instances, instance_maps, instance_materials,
-                               envmap_image, envmap_cdf};
+    const PathTables tables = {{materials, light_vertices, light_normals, light_cdf,
+                                light_geom, delta_lights, envmap_image, envmap_cdf},
+                               shading_faces, shading_normals, hit_instances, instance_maps,
+                               instance_materials};
     bool goes_on = false;
     uint path = 0, slot = 0;
     float3 origin = (float3)(0.0f), direction = (float3)(0.0f);

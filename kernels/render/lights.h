@@ -1,0 +1,148 @@
+/* The path integrator's lights as next-event estimation samples them, and
+ * the environment as an escaping path sees it (render/integrators/path.cl;
+ * hlbvh_cl/render/emitters.py picks lights by power): written once for the
+ * integrator and for sampling.cl's light_samples, which tests check
+ * against their densities. */
+#ifndef RENDER_LIGHTS_H
+#define RENDER_LIGHTS_H
+
+#include "core/portable.h"
+#include "core/spelled.h"
+#include "render/integrators/path.h"
+#include "render/random.h"
+#include "render/envmap.h"
+
+#define INV_FOUR_PI 0.07957747154594767f
+
+/* The lights' tables, as path_surface takes them. */
+typedef struct {
+    __global const PathMaterial* materials;  /* per geom_id: an emitter's radiance, emitter_pdf */
+    __global const float* light_vertices;    /* 9 floats per emissive triangle */
+    __global const float* light_normals;     /* 9 floats per emissive triangle */
+    __global const float* light_cdf;         /* the triangles' CDF by power */
+    __global const int* light_geom;          /* the mesh of each */
+    __global const DeltaLight* delta_lights;
+    __global const float* envmap_image;      /* H x W RGB (envmap.h) */
+    __global const float* envmap_cdf;        /* its marginal, conditionals */
+} LightTables;
+
+/* A light sample seen from x: the direction to it (unit), how far it
+ * reaches, its radiance and its solid-angle density (0: none). */
+typedef struct {
+    float3 direction;
+    float reach;
+    float3 radiance;
+    float pdf;
+} LightSample;
+
+/* The environment's radiance along -direction (direction: unit, the way
+ * a ray escapes) and the density with which a light sample picks that
+ * direction (0 when it cannot): the constant environment's, uniform on the
+ * sphere, or the map's (render/envmap.h). */
+inline float3 environment_light(const PathParams* params, __global const float* envmap_image,
+                                __global const float* envmap_cdf, float3 direction, float* pdf)
+{
+    if (params->envmap_width == 0) {
+        *pdf = params->environment_probability * INV_FOUR_PI;
+        return LOAD_XYZ(params->environment);
+    }
+    *pdf = params->environment_probability > 0.0f
+        ? params->environment_probability * envmap_pdf(params, envmap_cdf, direction) : 0.0f;
+    return envmap_radiance(params, envmap_image, direction);
+}
+
+/* One light sample: uniform on the sphere for the constant environment
+ * (as Mitsuba's constant emitter), by the map's density for an environment
+ * map (render/envmap.h), a point or directional light (a delta:
+ * its pdf is the chance of picking it, and MIS leaves it alone), or uniform
+ * in area on an emissive triangle picked by power (its area times its
+ * radiance's luminance); the lights themselves are picked by power
+ * (hlbvh_cl/render/emitters.py). */
+FORCE_INLINE LightSample sample_light(float3 x, const PathParams* params,
+                                      const LightTables* tables, uint pixel, uint sample,
+                                      uint base, bool* delta)
+{
+    LightSample out = {(float3)(0.0f), 0.0f, (float3)(0.0f), 0.0f};
+    float choice = random_unit(pixel, sample, base);
+    *delta = false;
+    float u1 = random_unit(pixel, sample, base + 2);
+    float u2 = random_unit(pixel, sample, base + 3);
+    if (choice < params->environment_probability) {
+        out.reach = INFINITY;
+        if (params->envmap_width > 0) {
+            out.direction = envmap_sample(params, tables->envmap_cdf,
+                                          random_unit(pixel, sample, base + 1),
+                                          u1, u2, &out.pdf);
+            out.radiance = envmap_radiance(params, tables->envmap_image, out.direction);
+            out.pdf *= params->environment_probability;
+            return out;
+        }
+        float z = 1.0f - 2.0f * u1;
+        float r = SQRT(1.0f - z * z > 0.0f ? 1.0f - z * z : 0.0f);
+        float cosine, sine = sincos_turn(u2, &cosine);
+        out.direction = (float3)(r * cosine, r * sine, z);
+        out.radiance = LOAD_XYZ(params->environment);
+        out.pdf = params->environment_probability * INV_FOUR_PI;
+        return out;
+    }
+    choice -= params->environment_probability;
+    if (choice < params->delta_probability) {
+        *delta = true;
+        for (uint i = 0; i < params->delta_lights; ++i) {
+            __global const DeltaLight* light = tables->delta_lights + i;
+            if (choice >= light->probability && i + 1 < params->delta_lights) {
+                choice -= light->probability;
+                continue;
+            }
+            float3 value = LOAD_XYZ(light->value);
+            if (light->type == LIGHT_DIRECTIONAL) {
+                out.direction = -LOAD_XYZ(light->position);
+                out.reach = INFINITY;
+                out.radiance = value;  /* irradiance: a delta in direction */
+            } else {
+                float3 to_light = LOAD_XYZ(light->position) - x;
+                float squared = dot3(to_light, to_light);
+                out.reach = SQRT(squared);
+                if (!(out.reach > 0.0f))
+                    return out;
+                out.direction = to_light / out.reach;
+                out.radiance = value / squared;  /* intensity over distance squared */
+            }
+            out.pdf = light->probability;
+            return out;
+        }
+        return out;
+    }
+    if (params->light_triangles == 0)
+        return out;
+    uint k = pick(tables->light_cdf, params->light_triangles,
+                  random_unit(pixel, sample, base + 1));
+    __global const float* v = tables->light_vertices + 9 * (size_t)k;
+    float3 v0 = LOAD_XYZ(v), v1 = LOAD_XYZ(v + 3), v2 = LOAD_XYZ(v + 6);
+    float root = SQRT(u1);  /* uniform in the triangle: pbrt-v4 SampleUniformTriangle's map */
+    float b0 = 1.0f - root, b1 = u2 * root;
+    float3 p = b0 * v0 + b1 * v1 + (1.0f - b0 - b1) * v2;
+    float3 normal = normalize3(cross3(v1 - v0, v2 - v0));
+    /* the shading normal there (Mitsuba's Mesh::sample_position), unless the
+     * mesh has face normals (zeros in the table) */
+    __global const float* ln = tables->light_normals + 9 * (size_t)k;
+    float3 smooth = b0 * LOAD_XYZ(ln) + b1 * LOAD_XYZ(ln + 3) + (1.0f - b0 - b1) * LOAD_XYZ(ln + 6);
+    if (dot3(smooth, smooth) > 0.0f)
+        normal = normalize3(smooth);
+    float3 to_light = p - x;
+    float squared = dot3(to_light, to_light);
+    float distance = SQRT(squared);
+    if (!(distance > 0.0f))
+        return out;
+    out.direction = to_light / distance;
+    float cosine = -dot3(normal, out.direction);
+    if (!(cosine > 0.0f))  /* its back side: area lights emit on the front only */
+        return out;
+    __global const PathMaterial* light = tables->materials + tables->light_geom[k];
+    out.reach = distance;
+    out.radiance = LOAD_XYZ(light->radiance);
+    out.pdf = light->emitter_pdf * squared / cosine;
+    return out;
+}
+
+#endif /* RENDER_LIGHTS_H */
