@@ -25,7 +25,7 @@ from ..core import inputs, layout
 from ..core.paths import kernel_of
 from ..device.runtime import runtime
 from .envmap import check_envmap
-from .integrators.path import envmap_params, light_tables, upload_table
+from .integrators.path import envmap_params, light_params, light_tables, upload_table
 from .materials import check_material
 
 KERNEL = kernel_of(__name__)
@@ -146,29 +146,26 @@ def sample_lights(renderer, point, count: int, seed: int = 0) -> dict[str, np.nd
     render (the environment against the scene's surface area)."""
     count = inputs.integer("count", count, 1, 1 << 26)
     seed = inputs.integer("seed", seed, 0, 2**32 - 1)
-    x = inputs.vector3("point", point)
+    x = np.asarray(inputs.vector3("point", point), np.float64)
     look = renderer.look()
-    lo = np.min([np.asarray(m.bounds[0]) for m in renderer.scene.meshes], 0)
-    hi = np.max([np.asarray(m.bounds[1]) for m in renderer.scene.meshes], 0)
-    tables = light_tables(look, 1.0, lo, hi)
-    params = np.zeros((), layout.PATH_PARAMS)
-    environment = look.emitters.environment
-    params["environment"] = environment if environment is not None else 0.0
-    params["environment_probability"] = tables["environment_probability"]
-    params["delta_probability"] = tables["delta_probability"]
-    params["light_triangles"] = len(tables["cdf"])
-    params["delta_lights"] = tables["delta_count"]
-    envmap_params(params, look.emitters.envmap)
-    rt = runtime(renderer.scene.device)
-    buffers = [upload_table(rt, tables[name])
-               for name in ("materials", "vertices", "normals", "cdf", "owners", "deltas",
-                            "envmap_image", "envmap_cdf")]
-    return _launch(rt, "light_samples", count,
-                   [params, *buffers, *[np.float32(v) for v in x], np.uint32(count),
-                    np.uint32(seed)],
-                   {"directions": np.empty((count, 3), np.float32),
-                    "radiance": np.empty((count, 3), np.float32),
-                    "pdfs": np.empty(count, np.float32), "reaches": np.empty(count, np.float32)})
+    # as a render: in the tree's frame (coordinates times its scale), where
+    # the directional lights' power follows the scene's bounds
+    with renderer.scene.borrow() as built:
+        rt, tree = built.runtime, built.tree
+        tables = light_tables(look, tree.scale, tree.bounds_lo, tree.bounds_hi)
+        buffers = [upload_table(rt, tables[name])
+                   for name in ("materials", "vertices", "normals", "cdf", "owners", "deltas",
+                                "envmap_image", "envmap_cdf")]
+        out = _launch(rt, "light_samples", count,
+                      [light_params(look, tables), *buffers,
+                       *[np.float32(v) for v in x * tree.scale], np.uint32(count),
+                       np.uint32(seed)],
+                      {"directions": np.empty((count, 3), np.float32),
+                       "radiance": np.empty((count, 3), np.float32),
+                       "pdfs": np.empty(count, np.float32),
+                       "reaches": np.empty(count, np.float32)})
+        out["reaches"] /= np.float32(tree.scale)
+    return out
 
 
 def turn_angles(u, device=None) -> dict[str, np.ndarray]:

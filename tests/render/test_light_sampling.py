@@ -128,3 +128,16 @@ def test_a_light_sample_s_density_and_radiance_are_its_light_s(renderer):
     points = X + directions[~sky] * reach[~sky, None]
     lamp_y = points[on_lamp[~sky], 1]
     np.testing.assert_allclose(lamp_y, 2.0, atol=1e-4)
+
+
+def test_an_instanced_scene_samples_its_lights_as_the_flat_one(renderer, suite_device):
+    """The same meshes drawn as identity instances: the emissive triangles
+    are every instance's, in the world, so the samples are the flat scene's."""
+    flat = renderer.scene
+    instanced = hlbvh_cl.Scene(list(flat.meshes), device=suite_device,
+                               instances=[(k, np.eye(3, 4)) for k in range(len(flat.meshes))])
+    twin = hlbvh_cl.Renderer(instanced, emitters=renderer.emitters)
+    ours, theirs = (sample_lights(r, X, 5000, seed=2) for r in (twin, renderer))
+    for name in ("directions", "radiance", "pdfs", "reaches"):
+        np.testing.assert_allclose(ours[name], theirs[name], rtol=1e-5, atol=1e-6,
+                                   err_msg=name)

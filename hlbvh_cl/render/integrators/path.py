@@ -189,6 +189,22 @@ def instance_materials(materials: np.ndarray, look: Look) -> tuple[np.ndarray, n
     return np.concatenate([materials, own]), (index if len(index) else np.full(1, -1, np.int32))
 
 
+def light_params(look: Look, tables: dict) -> np.ndarray:
+    """PathParams with the lights' fields set from light_tables' ``tables``
+    (the environment, the chances of picking it or a delta light, the
+    counts of emissive triangles and delta lights, the map's size and
+    rotation); the path's fields are the caller's."""
+    params = np.zeros((), layout.PATH_PARAMS)
+    environment = look.emitters.environment
+    params["environment"] = environment if environment is not None else 0.0
+    params["environment_probability"] = tables["environment_probability"]
+    params["delta_probability"] = tables["delta_probability"]
+    params["light_triangles"] = len(tables["cdf"])
+    params["delta_lights"] = tables["delta_count"]
+    envmap_params(params, look.emitters.envmap)
+    return params
+
+
 def envmap_params(params: np.ndarray, envmap) -> None:
     """PathParams' environment map fields: its size and rotation (width 0
     without one: the environment is constant)."""
@@ -268,18 +284,11 @@ class Path(Integrator):
             self._tables[name] = upload_table(rt, tables[name])
         self._tables["shading_faces"] = shading["faces"]
         self._tables["shading_normals"] = shading["normals"]
-        params = np.zeros((), layout.PATH_PARAMS)
-        environment = look.emitters.environment
-        params["environment"] = environment if environment is not None else 0.0
-        params["environment_probability"] = tables["environment_probability"]
-        params["delta_probability"] = tables["delta_probability"]
+        params = light_params(look, tables)
         params["ray_offset"] = ray_offset(tree.bounds_lo, tree.bounds_hi)
-        params["light_triangles"] = len(tables["cdf"])
-        params["delta_lights"] = tables["delta_count"]
         params["max_depth"] = settings.max_depth
         params["rr_depth"] = settings.rr_depth
         params["instance_maps"] = len(maps)
-        envmap_params(params, look.emitters.envmap)
         self._params = params
         self._aovs = False
         self._length_scale = np.float32(1.0 / tree.scale)
