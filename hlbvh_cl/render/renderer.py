@@ -444,8 +444,7 @@ class Renderer:
         own, rows = instance_material_table(self.instance_materials, instance_meshes)
         return Look(colors, light, material_table(self.materials, colors), emitters,
                     triangles, normals, tuple(self.scene.meshes), instance_maps,
-                    self._surface_area(transforms), own,
-                    None if transforms is None else rows, instance_meshes)
+                    self._surface_area(transforms), own, rows, instance_meshes)
 
     def _surface_area(self, transforms) -> float:
         """The scene's world surface area: its meshes', each instance's scaled

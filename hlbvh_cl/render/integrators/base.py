@@ -46,7 +46,7 @@ class Look:
     #: (materials.instance_material_table)
     instance_materials: object = None
     #: int32 per instance: its row of instance_materials, -1 for its mesh's
-    #: material; None for a flat scene
+    #: material (none for a flat scene)
     instance_material_rows: object = None
     #: int32 per instance: its mesh (Scene.instance_meshes); None for a flat scene
     instance_meshes: object = None

@@ -178,7 +178,7 @@ def instance_materials(materials: np.ndarray, look: Look) -> tuple[np.ndarray, n
     its hits read (-1: its mesh's, geom_id; a stand-in row for a flat
     scene, which reads none)."""
     rows = look.instance_material_rows
-    if rows is None:
+    if look.instance_meshes is None or not len(rows):
         return materials, np.full(1, -1, np.int32)
     own = np.asarray(look.instance_materials).copy()
     which = np.flatnonzero(rows >= 0)
@@ -186,7 +186,7 @@ def instance_materials(materials: np.ndarray, look: Look) -> tuple[np.ndarray, n
     for name in ("radiance", "emitter_pdf", "shading_base"):
         own[name][rows[which]] = materials[name][meshes]
     index = np.where(rows >= 0, rows + len(materials), -1).astype(np.int32)
-    return np.concatenate([materials, own]), (index if len(index) else np.full(1, -1, np.int32))
+    return np.concatenate([materials, own]), index
 
 
 def light_params(look: Look, tables: dict) -> np.ndarray:
