@@ -99,9 +99,26 @@ TRAVERSAL_INLINE float8 abs_lanes(float8 x) { return as_float8(as_int8(x) & (int
  * lane checks for EMPTY_CHILD (measured slower).  A macro, as the lanes are
  * children (one ray, float_lanes) or rays (a packet at one child). */
 #define SLABS_MEET(type, nx, ny, nz, fx, fy, fz, tmin, limit, entry)                     \
-    ((entry) = GROW_HI(GROW_HI(GROW_HI(tmin, nx), ny), nz),                             \
-     (entry) <= GROW_LO(GROW_LO(GROW_LO(GROW_LO((type)(INFINITY), fx), fy), fz), limit)   \
-                    * EXIT_SCALE)
+    ((entry) = CONCAT(HI_, type)(CONCAT(HI_, type)(CONCAT(HI_, type)(tmin, nx), ny), nz),   \
+     (entry) <= CONCAT(LO_, type)(CONCAT(LO_, type)(CONCAT(LO_, type)(CONCAT(LO_, type)(    \
+                    (type)(INFINITY), fx), fy), fz), limit) * EXIT_SCALE)
+
+/* SLABS_MEET's GROW_LO / GROW_HI for its lane types.  A node's 8 children
+ * (float_lanes) as x86's vminps / vmaxps where the compiler exposes them:
+ * minps(a, b) is a < b ? a : b, and maxps(a, b) a > b ? a : b, NaN and
+ * signed zeros alike, the very selects GROW_LO(b, a) and GROW_HI(b, a)
+ * spell, so the lanes are the same bits.  Spelled as selects, the exit's
+ * chain became a compare, a blend and a min per plane on PoCL (the selects
+ * kept beside the mins they equal).  Packets keep the selects. */
+#if HAS_BUILTIN(__builtin_ia32_minps256) && HAS_BUILTIN(__builtin_ia32_maxps256)
+#define LO_float_lanes(acc, value) __builtin_ia32_minps256(value, acc)
+#define HI_float_lanes(acc, value) __builtin_ia32_maxps256(value, acc)
+#else
+#define LO_float_lanes GROW_LO
+#define HI_float_lanes GROW_HI
+#endif
+#define LO_float_packet GROW_LO
+#define HI_float_packet GROW_HI
 
 /* The slab test of ray or packet r, whose near_* offsets pick the entry
  * plane rows by the sign of the inverse direction (Williams et al. 2005; the
