@@ -480,6 +480,11 @@ def test_colors_and_light_of_none_are_the_defaults(scene, renderer):
      "fov_deg must be a finite number, got an integer of 1329 bits, beyond float's range"),
     ({"eye": (0, 0, -1e39), "target": (0, 0, 0)}, r"eye \[0.0, 0.0, -1e\+39\] does not fit float32"),
     ({"eye": (-1e308, 0, 0), "target": (1e308, 0, 0)}, "eye .* does not fit float32"),
+    ({"eye": (0, 0, 0), "target": (0, 0, 1), "near_clip": -1}, "near_clip must be .* >= 0"),
+    ({"eye": (0, 0, 0), "target": (0, 0, 1), "near_clip": np.inf}, "near_clip must be a finite"),
+    ({"eye": (0, 0, 0), "target": (0, 0, 1), "near_clip": 2, "far_clip": 2},
+     "far_clip must be a finite number > 2"),
+    ({"eye": (0, 0, 0), "target": (0, 0, 1), "far_clip": np.nan}, "far_clip"),
 ])
 def test_bad_cameras_are_named(kwargs, words):
     with pytest.raises(ValueError, match=words):
@@ -489,7 +494,7 @@ def test_bad_cameras_are_named(kwargs, words):
 @pytest.mark.parametrize("kwargs, words", [
     ({"direction": (0, 0, 0)}, "zero vector"),
     ({"intensity": -1}, "intensity"),
-    ({"intensity": 1e39}, r"intensity must be a finite number >= 0 and <= 3\.40282e\+38"),
+    ({"intensity": 1e39}, r"intensity must be a finite number >= 0 and <= 1e\+20"),
     ({"intensity": 10**400}, "intensity must be a finite number, got an integer of 1329 bits"),
     ({"ambient": 2}, "ambient"),
 ])

@@ -8,7 +8,8 @@ The subset::
       <default name="spp" value="64"/>            $spp substitutions
       <integrator type="path">                      max_depth (default -1), rr_depth (5)
       <sensor type="perspective">                   fov (deg), fov_axis (x, y, diagonal,
-        <transform name="to_world">...</transform>  smaller, larger; default x), to_world
+        <transform name="to_world">...</transform>  smaller, larger; default x), to_world,
+                                                    near_clip, far_clip (0.01, 10000)
         <film type="hdrfilm">                       width, height (768 x 576)
           <rfilter type="box"/>                     box or gaussian (the default)
         <sampler type="independent">                sample_count (default 4)
@@ -53,6 +54,7 @@ from .description import MeshEntry, SceneDescription, SceneFileError, shape_mesh
 #: Mitsuba's defaults that the subset uses.
 FILM_SIZE = (768, 576)
 SAMPLE_COUNT = 4
+NEAR_CLIP, FAR_CLIP = 0.01, 10000.0
 
 #: Named indices of refraction Mitsuba accepts for int_ior and ext_ior.
 IORS = {"vacuum": 1.0, "air": 1.000277, "water": 1.3330, "bk7": 1.5046, "glass": 1.5,
@@ -72,6 +74,20 @@ _SHAPES = {"ply": ("filename", "face_normals", "to_world", "flip_normals"),
            "obj": ("filename", "face_normals", "to_world", "flip_normals"),
            "rectangle": ("to_world", "flip_normals"), "cube": ("to_world", "flip_normals"),
            "sphere": ("to_world", "center", "radius", "flip_normals")}
+
+#: The value elements each parameter outside the BSDFs takes, as Mitsuba's
+#: properties are typed (a float also takes an integer, a colour a number);
+#: the BSDFs' are checked by materials.check_material.
+_NUMBER, _COLOUR = ("float", "integer"), ("rgb", "float", "integer")
+_TAGS = {**{name: ("integer",) for name in ("max_depth", "rr_depth", "sample_count", "seed",
+                                            "width", "height")},
+         **{name: _NUMBER for name in ("fov", "near_clip", "far_clip", "radius", "scale")},
+         **{name: ("string",) for name in ("fov_axis", "filename", "pixel_format",
+                                           "component_format")},
+         **{name: ("boolean",) for name in ("face_normals", "flip_normals")},
+         **{name: _COLOUR for name in ("radiance", "intensity", "irradiance")},
+         **{name: ("point", "vector") for name in ("center", "position", "direction")},
+         "to_world": ("transform",)}
 
 
 @dataclass
@@ -157,6 +173,19 @@ class _Reader:
             raise self.error(node, f"expected {count} finite numbers, got {node.get(key)!r}")
         return values
 
+    def _coordinate(self, node: _Node, axis: str, default: float) -> float:
+        """The finite number in attribute ``axis`` (x, y or z), or ``default``."""
+        if node.get(axis) is None:
+            return default
+        try:
+            value = float(self.text(node, axis))
+        except ValueError:
+            raise self.error(node, f"expected a number for {axis}, got {node.get(axis)!r}") \
+                from None
+        if not math.isfinite(value):
+            raise self.error(node, f"expected a finite number for {axis}, got {node.get(axis)!r}")
+        return value
+
     def value(self, node: _Node):
         """A parameter's value: float, int, str, bool, RGB list, point."""
         if node.tag == "float":
@@ -179,8 +208,7 @@ class _Reader:
         if node.tag in ("point", "vector"):
             if node.get("value") is not None:
                 return self.numbers(node, 3)
-            return [float(self.text(node, axis)) if node.get(axis) is not None else 0.0
-                    for axis in "xyz"]
+            return [self._coordinate(node, axis, 0.0) for axis in "xyz"]
         if node.tag == "transform":
             return self.transform(node)
         raise self.error(node, "is not a value this reader takes (rgb, float, integer, string, "
@@ -200,6 +228,9 @@ class _Reader:
             if name not in known:
                 raise self.error(child, f"{node.get('type')} takes {known or 'no parameters'}, "
                                         f"not {name!r}")
+            tags = _TAGS.get(name)
+            if tags is not None and child.tag not in tags:
+                raise self.error(child, f"{name} takes <{'>, <'.join(tags)}>, not <{child.tag}>")
             found[name] = self.value(child)
         return found
 
@@ -221,7 +252,7 @@ class _Reader:
         """One step of a <transform> as a 4 x 4 matrix."""
         if step.tag == "translate":
             offset = (self.numbers(step, 3) if step.get("value") is not None else
-                      [float(self.text(step, a)) if step.get(a) else 0.0 for a in "xyz"])
+                      [self._coordinate(step, a, 0.0) for a in "xyz"])
             change = np.eye(4)
             change[:3, 3] = offset
         elif step.tag == "scale":
@@ -229,19 +260,26 @@ class _Reader:
                 parts = re.split(r"[,\s]+", self.text(step).strip())
                 factors = [float(parts[0])] * 3 if len(parts) == 1 else self.numbers(step, 3)
             else:
-                factors = [float(self.text(step, a)) if step.get(a) else 1.0 for a in "xyz"]
+                factors = [self._coordinate(step, a, 1.0) for a in "xyz"]
             change = np.diag([*factors, 1.0])
         elif step.tag == "rotate":
             axis = (self.numbers(step, 3, "value") if step.get("value") is not None else
-                    [float(self.text(step, a)) if step.get(a) else 0.0 for a in "xyz"])
+                    [self._coordinate(step, a, 0.0) for a in "xyz"])
             change = _rotation(np.array(axis), float(self.text(step, "angle")))
         elif step.tag == "matrix":
             change = np.array(self.numbers(step, 16)).reshape(4, 4)
+            if not np.array_equal(change[3], [0.0, 0.0, 0.0, 1.0]):
+                raise self.error(step, f"the last row must be 0 0 0 1 (an affine map), got "
+                                       f"{' '.join(f'{x:g}' for x in change[3])}")
         elif step.tag == "lookat":
-            change = _look_at(np.array(self.numbers(step, 3, "origin")),
-                              np.array(self.numbers(step, 3, "target")),
-                              np.array(self.numbers(step, 3, "up")
-                                       if step.get("up") else [0.0, 1.0, 0.0]))
+            origin, target = self.numbers(step, 3, "origin"), self.numbers(step, 3, "target")
+            up = self.numbers(step, 3, "up") if step.get("up") else [0.0, 1.0, 0.0]
+            view = np.subtract(target, origin)
+            if not np.any(view):
+                raise self.error(step, "its target is its origin: no direction to look in")
+            if not np.any(np.cross(up, view)):
+                raise self.error(step, "its up is parallel to the direction it looks in")
+            change = _look_at(np.array(origin), np.array(target), np.array(up))
         else:
             raise self.error(step, "is not a transform step this reader takes (translate, "
                                    "rotate, scale, matrix, lookat)")
@@ -331,7 +369,10 @@ def _sensor(reader: _Reader, node: _Node, options: dict):
                 raise reader.error(child, "only the hdrfilm film is read")
             film = reader.parameters(child, ("width", "height", "pixel_format",
                                              "component_format"), skip=("rfilter",))
-            size = (int(film.get("width", FILM_SIZE[0])), int(film.get("height", FILM_SIZE[1])))
+            size = (film.get("width", FILM_SIZE[0]), film.get("height", FILM_SIZE[1]))
+            if min(size) < 1:
+                raise reader.error(child, f"width and height must be at least 1, got "
+                                          f"{size[0]} x {size[1]}")
             for kid in child.children:
                 if kid.tag == "rfilter":
                     if kid.get("type") not in ("box", "gaussian"):
@@ -345,6 +386,8 @@ def _sensor(reader: _Reader, node: _Node, options: dict):
             options["spp"] = int(sampler.get("sample_count", SAMPLE_COUNT))
     if "fov" not in values:
         raise reader.error(node, "needs its fov (degrees)")
+    if not 0 < values["fov"] < 180:
+        raise reader.error(node, f"fov must be between 0 and 180 degrees, got {values['fov']:g}")
     matrix = values.get("to_world", np.eye(4))
     if np.linalg.det(matrix[:3, :3]) < 0:  # look_at's frame (left, up, direction) has det 1
         raise reader.error(node, "a to_world that mirrors the image (det < 0) is not read")
@@ -360,7 +403,19 @@ def _sensor(reader: _Reader, node: _Node, options: dict):
     if axis not in vertical:
         raise reader.error(node, f"fov_axis {axis!r} is not one of {tuple(vertical)}")
     fov_deg = math.degrees(2 * math.atan(vertical[axis]))
-    camera = Camera(tuple(eye), tuple(eye + forward), tuple(up), fov_deg=fov_deg)
+    # a to_world that scales is refused, as Mitsuba refuses it: the clip
+    # distances are then the same in the world
+    if not np.allclose(np.linalg.norm(matrix[:3, :3], axis=0), 1.0, rtol=0, atol=1e-5):
+        raise reader.error(node, "its to_world scales (a scale step, or a matrix whose columns "
+                                 "are not unit vectors), which a camera may not")
+    near, far = values.get("near_clip", NEAR_CLIP), values.get("far_clip", FAR_CLIP)
+    if not 0 < near < far:
+        raise reader.error(node, f"needs 0 < near_clip < far_clip, got {near:g} and {far:g}")
+    try:
+        camera = Camera(tuple(eye), tuple(eye + forward), tuple(up), fov_deg=fov_deg,
+                        near_clip=near, far_clip=far)
+    except ValueError as error:
+        raise reader.error(node, f"its to_world makes no camera: {error}") from None
     return camera, size
 
 
@@ -420,6 +475,9 @@ def _shape(reader: _Reader, node: _Node) -> MeshEntry:
         centre, radius = np.array(values.get("center", [0.0] * 3)), values.get("radius", 1.0)
         matrix = matrix @ np.array([[radius, 0, 0, centre[0]], [0, radius, 0, centre[1]],
                                     [0, 0, radius, centre[2]], [0, 0, 0, 1]])
+    if not np.linalg.det(matrix[:3, :3]):
+        raise reader.error(node, "its to_world (with its radius) is singular: it would flatten "
+                                 "the shape to a plane, a line or a point")
     points = mesh.vertices.astype(np.float64) @ matrix[:3, :3].T + matrix[:3, 3]
     faces = mesh.faces
     # normals go by the inverse transpose; computed ones are computed anew

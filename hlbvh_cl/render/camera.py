@@ -61,12 +61,19 @@ def view_problem(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> tuple[s
 @dataclass(frozen=True)
 class Camera:
     """A pinhole camera looking from ``eye`` at ``target``; ``fov_deg`` is the
-    vertical field of view (the module's convention)."""
+    vertical field of view (the module's convention).  A render's camera
+    rays see only what lies between the planes ``near_clip`` and
+    ``far_clip`` away from the eye along the view direction, as Mitsuba 3's
+    perspective sensor's clip planes (its defaults are 0.01 and 10000; here
+    nothing is cut unless asked).  Camera.rays leaves the limits to the
+    query's tmin and tmax."""
 
     eye: tuple[float, float, float]
     target: tuple[float, float, float]
     up: tuple[float, float, float] = (0.0, 1.0, 0.0)
     fov_deg: float = 45.0  # a scene file's default too (hlbvh_cl.io.scenefile)
+    near_clip: float = 0.0
+    far_clip: float = math.inf
 
     def __post_init__(self):
         eye, target, up = (inputs.vector3(name, getattr(self, name))
@@ -75,9 +82,16 @@ class Camera:
         problem = view_problem(eye, target, up)
         if problem is not None:
             raise ValueError(" ".join(problem))
+        near = inputs.number("near_clip", self.near_clip, 0.0)
+        far = self.far_clip
+        unbounded = (isinstance(far, inputs.REAL) and not isinstance(far, bool)
+                     and float(far) == math.inf)
+        far = math.inf if unbounded else inputs.number("far_clip", far, near, low_open=True)
         for name, value in (("eye", eye), ("target", target), ("up", up)):
             object.__setattr__(self, name, tuple(float(x) for x in value))
         object.__setattr__(self, "fov_deg", fov)
+        object.__setattr__(self, "near_clip", near)
+        object.__setattr__(self, "far_clip", far)
 
     def basis(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """forward, right, true_up: unit vectors (float64)."""
@@ -200,12 +214,15 @@ def filter_table(rt: Runtime, kind: str = "offsets") -> cl.Buffer:
 _FILTER_TABLES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def enqueue_primary_rays(rt: Runtime, pinhole: np.ndarray, width: int, height: int,
-                         band, sample: int, jitter: int, rays: cl.Buffer) -> cl.Event:
+def enqueue_primary_rays(rt: Runtime, camera: Camera, pinhole: np.ndarray, width: int,
+                         height: int, band, sample: int, jitter: int,
+                         rays: cl.Buffer) -> cl.Event:
     """One Ray per pixel of ``band`` (the rows of a pass, renderer.Band) into
-    ``rays``, in the band's tile order; ``jitter`` 0 through the pixels'
-    centres, else a FILTERS value."""
+    ``rays``, in the band's tile order, between ``camera``'s clip planes
+    (``pinhole``, its record, has a unit forward, so t is the distance along
+    it); ``jitter`` 0 through the pixels' centres, else a FILTERS value."""
     kernel = rt.kernel(KERNEL, "primary_rays", FILTER_INTERVALS=FILTER_INTERVALS)
     return rt.run(kernel, band.tile_range, pinhole,
                   np.uint32(width), np.uint32(height), band.first_row, band.rows,
-                  np.uint32(sample), np.int32(jitter), filter_table(rt), rays)
+                  np.uint32(sample), np.int32(jitter), np.float32(camera.near_clip),
+                  np.float32(camera.far_clip), filter_table(rt), rays)

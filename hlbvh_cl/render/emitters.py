@@ -42,6 +42,7 @@ import numpy as np
 
 from ..core import inputs
 from .envmap import LUMINANCE, Envmap, check_envmap
+from .film import BRIGHTEST
 from .plugins import plugin_type
 
 #: The emitter types written so far, and the parameters each takes.
@@ -56,8 +57,6 @@ VALUES = {"area": "radiance", "constant": "radiance", "point": "intensity",
 #: Renderer.emitters = None: a white sky all around.
 DEFAULT = ({"type": "constant", "radiance": 1.0},)
 
-
-_FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 @dataclass(frozen=True)
@@ -97,7 +96,7 @@ def check_emitters(emitters, mesh_count: int, names=None) -> Emitters:
         value = VALUES[kind]
         if value not in spec:
             raise ValueError(f"{name}: {kind} needs its {value!r}")
-        radiance = inputs.color(f"{name}[{value!r}]", spec[value], _FLOAT32_MAX)
+        radiance = inputs.color(f"{name}[{value!r}]", spec[value], BRIGHTEST)
         if kind in ("point", "directional"):
             where = "position" if kind == "point" else "direction"
             if where not in spec:

@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core import inputs
+from .film import BRIGHTEST
 
 #: Mitsuba pads smaller images to this width and height (Bitmap::pad_to).
 MIN_WIDTH, MIN_HEIGHT = 2, 3
@@ -118,8 +119,9 @@ def check_envmap(name: str, spec) -> Envmap:
         raise ValueError(f"{what}: pixel (row {y}, column {x}) channel {c} is {image[y, x, c]}:"
                          f" radiance must be finite and >= 0")
     scale = inputs.number(f"{name}['scale']", spec.get("scale", 1.0), 0.0, _FLOAT32_MAX)
-    if float(image.max(initial=0)) * scale > _FLOAT32_MAX:
-        raise ValueError(f"{what} times scale {scale} overflows float32")
+    if float(image.max(initial=0)) * scale > BRIGHTEST:
+        raise ValueError(f"{what} times scale {scale} is brighter than {BRIGHTEST:g}, "
+                         "which the film's float32 sums could not hold")
     scaled = image.astype(np.float32) * np.float32(scale)  # Mitsuba scales in float32 too
     height, width = image.shape[:2]
     if height < MIN_HEIGHT or width < MIN_WIDTH:
@@ -209,8 +211,16 @@ def _read_rgbe(data: bytes) -> np.ndarray:
     size = data[header_end + 2:line_end].split()
     if len(size) != 4 or size[0] != b"-Y" or size[2] != b"+X":
         raise ValueError(f"only the -Y H +X W orientation is read, got {size}")
+    if not (size[1].isdigit() and size[3].isdigit()) or int(size[1]) < 1 or int(size[3]) < 1:
+        raise ValueError(f"the size line must give a positive height and width, got {size}")
     height, width = int(size[1]), int(size[3])
     body, at = memoryview(data), line_end + 1
+    # the fewest bytes a scanline takes: run-length coded, a run of 2 bytes per 127 pixels
+    # of each channel after its 4-byte marker; checked before the image is allocated
+    fewest = height * min(4 * width, 4 + 8 * -(-width // 127))
+    if len(data) - at < fewest:
+        raise ValueError(f"its header gives {width} x {height} pixels, more than its "
+                         f"{len(data) - at} bytes of scanlines can hold")
     pixels = np.zeros((height, width, 4), np.uint8)
     for y in range(height):
         try:

@@ -29,6 +29,12 @@ from ..core.paths import kernel_of
 from ..device.runtime import Runtime
 from .camera import GAUSSIAN_RADIUS, SPLAT_REACH, WEIGHT_INTERVALS, filter_table
 
+#: The brightest a light may be (a radiance, intensity or irradiance, an
+#: environment map's pixels times its scale): a pixel's float32 sums add up
+#: to settings.MAX_SPP samples of a light's value times path weights, and
+#: this leaves them many orders of magnitude below float32's 3.4e38.
+BRIGHTEST = 1e20
+
 KERNEL = kernel_of(__name__)
 
 

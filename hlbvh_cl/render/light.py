@@ -4,10 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
 from ..core import inputs
 from .camera import unit
+from .film import BRIGHTEST
 
 
 @dataclass(frozen=True)
@@ -26,7 +25,7 @@ class Light:
             raise ValueError("light.direction is the zero vector")
         object.__setattr__(self, "direction", tuple(float(x) for x in direction))
         object.__setattr__(self, "intensity", inputs.number(
-            "light.intensity", self.intensity, 0.0, float(np.finfo(np.float32).max)))
+            "light.intensity", self.intensity, 0.0, BRIGHTEST))
         object.__setattr__(self, "ambient", inputs.number("light.ambient", self.ambient, 0.0, 1.0))
 
 

@@ -314,7 +314,7 @@ class _Run:
         p, settings, events = self.pipeline, self.settings, self.events
         stream = settings.stream(sample)
         events["camera"].append(enqueue_primary_rays(
-            p.rt, self.pinhole, settings.width, settings.height, band, stream,
+            p.rt, settings.camera, self.pinhole, settings.width, settings.height, band, stream,
             settings.jitter(), p.primary))
         instances = p.instances if self.integrator.needs_instances else None
         events["closest"].append(p.query.enqueue_intersect(

@@ -137,6 +137,8 @@ class RenderSettings:
                                  "(hlbvh_cl/core/frame.py), and there the point would not fit "
                                  f"float32; keep the camera within {largest / scale:.3g}")
         camera = dataclasses.replace(self.camera, eye=tuple(np.multiply(self.camera.eye, scale)),
-                                     target=tuple(np.multiply(self.camera.target, scale)))
+                                     target=tuple(np.multiply(self.camera.target, scale)),
+                                     near_clip=self.camera.near_clip * scale,
+                                     far_clip=self.camera.far_clip * scale)
         distance = None if self.ao_distance is None else self.ao_distance * scale
         return dataclasses.replace(self, camera=camera, ao_distance=distance)

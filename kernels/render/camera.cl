@@ -52,6 +52,8 @@ inline float gaussian_offset(__global const float* table, float u)
 __kernel void primary_rays(const PinholeCamera camera, const uint width, const uint height,
                            const uint first_row, const uint rows, const uint sample,
                            const int jitter,
+                           const float tmin,   /* the clip planes' distances along */
+                           const float tmax,   /* camera.forward, a unit vector */
                            __global const float* table,  /* the Gaussian filter's */
                            __global Ray* rays)
 {
@@ -75,8 +77,8 @@ __kernel void primary_rays(const PinholeCamera camera, const uint width, const u
         ray->origin[k] = camera.eye[k];
         ray->direction[k] = camera.forward[k] + sx * camera.right[k] + sy * camera.up[k];
     }
-    ray->tmin = 0.0f;
-    ray->tmax = INFINITY;
+    ray->tmin = tmin;
+    ray->tmax = tmax;
 }
 
 __kernel void camera_rays(const PinholeCamera camera, const uint width, const uint height,

@@ -70,6 +70,26 @@ def test_the_camera_sends_mitsuba_s_rays(tmp_path, axis, size):
     assert np.linalg.norm(np.cross(behind, np.array(ray.d))) < 1e-5 and behind @ ray.d < 0
 
 
+@pytest.mark.parametrize("near, far", [(None, None), (4.6, None), (None, 5.0), (4.8, 5.6)])
+def test_the_clip_planes_cut_what_mitsuba_s_cut(tmp_path, suite_device, near, far):
+    """With near_clip and far_clip (or Mitsuba's defaults), each pixel's
+    camera ray hits a cube exactly where Mitsuba's sensor ray does: the
+    planes cut away the near faces, the far ones, or both."""
+    clips = "".join(f'<float name="{name}" value="{value}"/>'
+                    for name, value in (("near_clip", near), ("far_clip", far)) if value)
+    path = tmp_path / "scene.xml"
+    path.write_text(scene_xml(CUBE).replace("<film", clips + "<film"))
+    loaded = load(path, suite_device.id)
+    depth = loaded.renderer().render(loaded.camera, 40, 24, shading="depth", hdr=True)[..., 0]
+    scene = mi.load_file(str(path))
+    sensor = scene.sensors()[0]
+    theirs = np.array([[scene.ray_intersect(sensor.sample_ray(
+        0.0, 0.0, [(x + 0.5) / 40, (y + 0.5) / 24], [0.5, 0.5])[0]).is_valid()
+        for x in range(40)] for y in range(24)])
+    assert 0 < theirs.sum() < theirs.size
+    np.testing.assert_array_equal(depth > 0, theirs)
+
+
 def test_shapes_land_where_mitsuba_puts_them(tmp_path):
     """Every transform step (translate, rotate, scale, matrix) in Mitsuba's
     order, a sphere by centre and radius, and a rectangle: the same boxes
@@ -237,6 +257,23 @@ def test_an_environment_map_lights_a_scene_as_in_mitsuba(rotated, tmp_path, suit
     ('<medium type="homogeneous"/>', "is not an element this reader takes"),
     ('<shape type="sphere"><float name="radius" value="$missing"/></shape>',
      "$missing has no <default name=\"missing\">"),
+    ('<shape type="sphere"><string name="radius" value="big"/></shape>',
+     "<string name=\"radius\">: radius takes <float>, <integer>, not <string>"),
+    ('<shape type="sphere"><float name="radius" value="0"/></shape>',
+     "its to_world (with its radius) is singular"),
+    ('<shape type="cube"><transform name="to_world"><scale value="0"/></transform></shape>',
+     "its to_world (with its radius) is singular"),
+    ('<shape type="sphere"><point name="center" x="abc"/></shape>',
+     "<point name=\"center\">: expected a number for x, got 'abc'"),
+    ('<shape type="cube"><float name="to_world" value="1"/></shape>',
+     "to_world takes <transform>, not <float>"),
+    ('<shape type="cube"><transform name="to_world"><matrix value="1 0 0 0 0 1 0 0 0 0 1 0 '
+     '0 0 1 1"/></transform></shape>', "the last row must be 0 0 0 1 (an affine map), got "
+                                       "0 0 1 1"),
+    ('<integrator type="path"><float name="max_depth" value="8.5"/></integrator>',
+     "max_depth takes <integer>, not <float>"),
+    ('<emitter type="point"><float name="to_world" value="1"/><rgb name="intensity" '
+     'value="1"/></emitter>', "to_world takes <transform>, not <float>"),
 ])
 def test_an_element_outside_the_subset_names_itself_and_its_line(tmp_path, body, words):
     from hlbvh_cl.io.exr import write_exr
@@ -320,11 +357,44 @@ def test_the_cli_renders_an_xml_scene_with_its_own_options(tmp_path, capsys, sui
     assert isinstance(hlbvh_cl.Renderer, type)
 
 
+@pytest.mark.parametrize("change, words", [
+    (('name="width" value="40"', 'name="width" value="abc"'), "expected an integer, got 'abc'"),
+    (('<integer name="width" value="40"/>', '<float name="width" value="8.7"/>'),
+     "width takes <integer>, not <float>"),
+    (('name="height" value="24"', 'name="height" value="0"'),
+     "width and height must be at least 1, got 40 x 0"),
+    (('name="width" value="40"', 'name="width" value="-8"'),
+     "width and height must be at least 1, got -8 x 24"),
+    (('<float name="fov" value="50.0"/>', '<string name="fov" value="45"/>'),
+     "fov takes <float>, <integer>, not <string>"),
+    (('name="fov" value="50.0"', 'name="fov" value="180"'),
+     "fov must be between 0 and 180 degrees, got 180"),
+    (('target="0, 0.5, 0"', 'target="1, 2, 5"'), "its target is its origin"),
+    (('up="0, 1, 0"', 'up="-1, -1.5, -5"'), "its up is parallel to the direction it looks in"),
+    (('<film', '<float name="near_clip" value="2"/><float name="far_clip" value="1"/><film'),
+     "needs 0 < near_clip < far_clip, got 2 and 1"),
+    (('<film', '<float name="near_clip" value="0"/><film'),
+     "needs 0 < near_clip < far_clip, got 0 and 10000"),
+    (('</transform>', '<scale value="2"/></transform>'), "its to_world scales"),
+])
+def test_a_bad_sensor_names_its_element_and_line(tmp_path, change, words):
+    """A sensor value of the wrong element, out of range, or a camera that
+    cannot be: an error naming the element and its line, not Python's."""
+    text = scene_xml(CUBE)
+    assert change[0] in text
+    path = tmp_path / "scene.xml"
+    path.write_text(text.replace(change[0], change[1], 1))
+    with pytest.raises(SceneFileError) as error:
+        read_xml(path)
+    assert str(error.value).startswith(f"{path}:") and words in str(error.value), error.value
+
+
 def test_a_bad_number_in_a_transform_names_its_step(tmp_path):
     path = tmp_path / "scene.xml"
     path.write_text(scene_xml('<shape type="cube"><transform name="to_world">'
                               '<translate x="one"/></transform></shape>'))
-    with pytest.raises(SceneFileError, match=r"scene.xml:11: <translate>: expected numbers"):
+    with pytest.raises(SceneFileError,
+                       match=r"scene.xml:11: <translate>: expected a number for x, got 'one'"):
         read_xml(path)
 
 

@@ -135,3 +135,17 @@ def test_rgbe_and_exr_files_read_as_mitsuba_reads_them(width, tmp_path):
     assert (np.abs(theirs - image) <= image.max(-1, keepdims=True) / 128 + 1e-7).all()
     write_exr(tmp_path / "sky.exr", image)
     np.testing.assert_array_equal(read_radiance(tmp_path / "sky.exr"), image)
+
+
+@pytest.mark.parametrize("size, words", [
+    (b"-Y 400000 +X 800000", "gives 800000 x 400000 pixels, more than its 8 bytes"),
+    (b"-Y 0 +X 8", "must give a positive height and width"),
+    (b"-Y two +X 8", "must give a positive height and width"),
+])
+def test_an_rgbe_header_that_its_bytes_cannot_fill_is_refused(size, words, tmp_path):
+    """A size line the file cannot hold (or no size at all) is an error
+    naming the file, before anything is allocated for it."""
+    path = tmp_path / "sky.hdr"
+    path.write_bytes(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n" + size + b"\nabcdefgh")
+    with pytest.raises(ValueError, match=f"cannot read the environment map .*sky.hdr: .*{words}"):
+        read_radiance(path)

@@ -377,6 +377,10 @@ def test_a_seed_fixes_the_image(suite_device):
      "materials[0]['distribution'] must be one of ('ggx', 'beckmann')"),
     (None, [{"type": "constant"}], "emitters[0]: constant needs its 'radiance'"),
     (None, [{"type": "constant", "radiance": -1.0}], "emitters[0]['radiance'] must be"),
+    (None, [{"type": "constant", "radiance": 1e37}],  # its film sums would overflow
+     "emitters[0]['radiance'] must be a finite number >= 0 and <= 1e+20, got 1e+37"),
+    (None, [{"type": "envmap", "image": SKY, "scale": 1e38}],
+     "emitters[0]['image'] times scale 1e+38 is brighter than 1e+20"),
     (None, [{"type": "area", "mesh": 3, "radiance": 1.0}], "emitters[0]['mesh'] = 3"),
     (None, [{"type": "constant", "radiance": 1.0}] * 2,
      "emitters[1]: a second environment (constant) besides emitters[0] (constant)"),
