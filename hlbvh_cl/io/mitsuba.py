@@ -151,14 +151,16 @@ class _Reader:
             raise self.error(node, f"${name} has no <default name=\"{name}\">")
         return self.defaults[name]
 
-    def number(self, node: _Node) -> float:
-        text = self.text(node)
+    def number(self, node: _Node, key: str = "value") -> float:
+        """The finite number in attribute ``key``."""
+        text = self.text(node, key)
+        which = "" if key == "value" else f" for {key}"
         try:
             value = float(text)
         except ValueError:
-            raise self.error(node, f"expected a number, got {node.get('value')!r}") from None
+            raise self.error(node, f"expected a number{which}, got {node.get(key)!r}") from None
         if not math.isfinite(value):
-            raise self.error(node, f"expected a finite number, got {node.get('value')!r}")
+            raise self.error(node, f"expected a finite number{which}, got {node.get(key)!r}")
         return value
 
     def numbers(self, node: _Node, count: int, key: str = "value") -> list[float]:
@@ -174,17 +176,8 @@ class _Reader:
         return values
 
     def _coordinate(self, node: _Node, axis: str, default: float) -> float:
-        """The finite number in attribute ``axis`` (x, y or z), or ``default``."""
-        if node.get(axis) is None:
-            return default
-        try:
-            value = float(self.text(node, axis))
-        except ValueError:
-            raise self.error(node, f"expected a number for {axis}, got {node.get(axis)!r}") \
-                from None
-        if not math.isfinite(value):
-            raise self.error(node, f"expected a finite number for {axis}, got {node.get(axis)!r}")
-        return value
+        """The number in attribute ``axis`` (x, y or z), or ``default``."""
+        return default if node.get(axis) is None else self.number(node, axis)
 
     def value(self, node: _Node):
         """A parameter's value: float, int, str, bool, RGB list, point."""
