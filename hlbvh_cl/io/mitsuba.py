@@ -28,8 +28,17 @@ The subset::
                                                     to_world, a rotation)
 
 Values: rgb, float, integer, string, boolean and point, and ref.  Anything
-else, an element or a parameter, is an error naming it and its line: the
-loader never renders a silently different scene.  Mesh shapes shade as
+else, an element, an attribute or a parameter, is an error naming it and
+its line: the loader never renders a silently different scene.  What
+Mitsuba refuses is refused (a value, child or id given twice, a light placed
+by both a vector and to_world, depths out of range, an unknown index name),
+and so is what Mitsuba would render otherwise (pixel formats other than
+rgb, a shearing camera, a stretched or mirrored sphere).  Mitsuba's rules
+hold elsewhere: the first <default> of a name wins from its line on, a
+default the caller gives must be used, a <lookat> without up takes
+Mitsuba's, and of several sensors the first frames the render (as
+mi.render takes sensors()[0]); no <integrator> renders with path's
+defaults.  Mesh shapes shade as
 Mitsuba's: with the file's vertex normals, or ones computed as Mitsuba
 computes them (hlbvh_cl.mesh.vertex_normals), after to_world; with each
 triangle's own normal where face_normals is true.
@@ -56,10 +65,14 @@ FILM_SIZE = (768, 576)
 SAMPLE_COUNT = 4
 NEAR_CLIP, FAR_CLIP = 0.01, 10000.0
 
-#: Named indices of refraction Mitsuba accepts for int_ior and ext_ior.
-IORS = {"vacuum": 1.0, "air": 1.000277, "water": 1.3330, "bk7": 1.5046, "glass": 1.5,
-        "polycarbonate": 1.58, "diamond": 2.419, "acrylic glass": 1.49, "fused quartz": 1.458,
-        "polypropylene": 1.49}
+#: Named indices of refraction Mitsuba accepts for int_ior and ext_ior: its
+#: whole table (include/mitsuba/render/ior.h), no name it lacks.
+IORS = {"vacuum": 1.0, "helium": 1.000036, "hydrogen": 1.000132, "air": 1.000277,
+        "carbon dioxide": 1.00045, "water": 1.3330, "acetone": 1.36, "ethanol": 1.361,
+        "carbon tetrachloride": 1.461, "glycerol": 1.4729, "benzene": 1.501,
+        "silicone oil": 1.52045, "bromine": 1.661, "water ice": 1.31, "fused quartz": 1.458,
+        "pyrex": 1.470, "acrylic glass": 1.49, "polypropylene": 1.49, "bk7": 1.5046,
+        "sodium chloride": 1.544, "amber": 1.55, "pet": 1.5750, "diamond": 2.419}
 
 _VALUE_TAGS = ("rgb", "float", "integer", "string", "boolean", "point", "vector", "transform",
                "ref", "bsdf", "emitter", "rfilter", "film", "sampler")
@@ -88,6 +101,25 @@ _TAGS = {**{name: ("integer",) for name in ("max_depth", "rr_depth", "sample_cou
          **{name: _COLOUR for name in ("radiance", "intensity", "irradiance")},
          **{name: ("point", "vector") for name in ("center", "position", "direction")},
          "to_world": ("transform",)}
+
+#: The attributes each element takes (Mitsuba refuses any other, so a typo
+#: such as <translate X="5"/> is an error, not a step of 0).
+_OBJECT_ATTRIBUTES = ("type", "id", "name")
+_ATTRIBUTES = {"scene": ("version",), "default": ("name", "value"),
+               **{tag: _OBJECT_ATTRIBUTES for tag in ("integrator", "sensor", "film", "sampler",
+                                                      "rfilter", "bsdf", "shape", "emitter")},
+               **{tag: ("name", "value") for tag in ("float", "integer", "string", "boolean",
+                                                     "rgb")},
+               **{tag: ("name", "value", "x", "y", "z") for tag in ("point", "vector")},
+               "transform": ("name",), "ref": ("id", "name"),
+               **{tag: ("value", "x", "y", "z") for tag in ("translate", "scale")},
+               "rotate": ("value", "x", "y", "z", "angle"), "matrix": ("value",),
+               "lookat": ("origin", "target", "up")}
+
+#: The pixel and component formats of an hdrfilm that the image we return
+#: is (RGB, float32; Mitsuba's default stores float16, which only the
+#: file's precision changes).
+PIXEL_FORMATS, COMPONENT_FORMATS = ("rgb",), ("float16", "float32")
 
 
 @dataclass
@@ -127,12 +159,36 @@ def _parse(path: Path) -> _Node:
 class _Reader:
     def __init__(self, path: Path, scene: _Node, overrides: dict):
         self.path = path
+        # Mitsuba's: the first <default> of a name holds, from its line on
+        # (a use above it is an error), and an override holds everywhere
         self.defaults: dict[str, str] = {}
+        self.default_lines: dict[str, int] = {}
         self.ids: dict[str, _Node] = {}
         for node in scene.children:
             if node.tag == "default":
-                self.defaults[node.get("name")] = node.get("value")
-        self.defaults.update({name: str(value) for name, value in overrides.items()})
+                name, value = node.get("name"), node.get("value")
+                if name is None or value is None:
+                    raise self.error(node, "needs a name and a value attribute")
+                if name not in self.defaults:
+                    self.defaults[name] = value
+                    self.default_lines[name] = node.line
+        self.overrides = {name: str(value) for name, value in overrides.items()}
+        self.defaults.update(self.overrides)
+        self.used: set[str] = set()
+
+    def check_attributes(self, node: _Node) -> None:
+        """Every element under ``node`` has only the attributes it takes,
+        and a vector's value or its x, y, z, not both."""
+        allowed = _ATTRIBUTES.get(node.tag)
+        if allowed is not None:
+            for key in node.attributes:
+                if key not in allowed:
+                    raise self.error(node, f"takes the attributes {', '.join(allowed)}, "
+                                           f"not {key!r}")
+            if node.get("value") is not None and any(node.get(a) is not None for a in "xyz"):
+                raise self.error(node, "give either its value or x, y, z, not both")
+        for child in node.children:
+            self.check_attributes(child)
 
     def error(self, node: _Node, message: str) -> SceneFileError:
         return SceneFileError(f"{self.path}:{node.line}: <{node.tag}"
@@ -149,6 +205,10 @@ class _Reader:
     def _default(self, node: _Node, name: str) -> str:
         if name not in self.defaults:
             raise self.error(node, f"${name} has no <default name=\"{name}\">")
+        if name not in self.overrides and self.default_lines[name] > node.line:
+            raise self.error(node, f"${name} is used above its <default name=\"{name}\"> "
+                                   f"(line {self.default_lines[name]})")
+        self.used.add(name)
         return self.defaults[name]
 
     def number(self, node: _Node, key: str = "value") -> float:
@@ -224,6 +284,9 @@ class _Reader:
             tags = _TAGS.get(name)
             if tags is not None and child.tag not in tags:
                 raise self.error(child, f"{name} takes <{'>, <'.join(tags)}>, not <{child.tag}>")
+            if name in found:
+                raise self.error(child, f"{name} is given twice in <{node.tag} "
+                                        f"type=\"{node.get('type')}\"> (line {node.line})")
             found[name] = self.value(child)
         return found
 
@@ -266,10 +329,10 @@ class _Reader:
                                        f"{' '.join(f'{x:g}' for x in change[3])}")
         elif step.tag == "lookat":
             origin, target = self.numbers(step, 3, "origin"), self.numbers(step, 3, "target")
-            up = self.numbers(step, 3, "up") if step.get("up") else [0.0, 1.0, 0.0]
             view = np.subtract(target, origin)
             if not np.any(view):
                 raise self.error(step, "its target is its origin: no direction to look in")
+            up = self.numbers(step, 3, "up") if step.get("up") else _default_up(view)
             if not np.any(np.cross(up, view)):
                 raise self.error(step, "its up is parallel to the direction it looks in")
             change = _look_at(np.array(origin), np.array(target), np.array(up))
@@ -291,6 +354,16 @@ def _rotation(axis: np.ndarray, degrees: float) -> np.ndarray:
     return out
 
 
+def _default_up(view) -> list[float]:
+    """The up Mitsuba's <lookat> takes where none is given: the first
+    vector of its coordinate_system around the unit view direction (Duff et
+    al. 2017, "Building an Orthonormal Basis, Revisited")."""
+    x, y, z = np.asarray(view, np.float64) / np.linalg.norm(view)
+    sign = math.copysign(1.0, z)
+    a = -1.0 / (sign + z)
+    return [1.0 + sign * x * x * a, sign * x * y * a, -sign * x]
+
+
 def _look_at(origin, target, up) -> np.ndarray:
     """Mitsuba's look_at: columns left, up, direction, origin."""
     direction = (target - origin) / np.linalg.norm(target - origin)
@@ -310,23 +383,39 @@ def read_xml(path, defaults: dict | None = None) -> SceneDescription:
     path = Path(os.fspath(path))
     scene = _parse(path)
     reader = _Reader(path, scene, defaults or {})
-    for node in scene.children:
-        if node.get("id") is not None:
-            reader.ids[node.get("id")] = node
+    if scene.get("version") is None:
+        raise reader.error(scene, "needs its version attribute (e.g. version=\"3.0.0\"), "
+                                  "as Mitsuba does")
+    reader.check_attributes(scene)
+    _collect_ids(reader, scene)
     options = {"shading": "path", "spp": SAMPLE_COUNT, "max_depth": -1, "rr_depth": 5,
                "rfilter": "gaussian"}
     camera, size = None, FILM_SIZE
     meshes, emitters, emitter_names = [], [], []
+    integrator = None
     for node in scene.children:
         if node.tag == "default":
             continue
         if node.tag == "integrator":
+            if integrator is not None:
+                raise reader.error(node, f"a second <integrator> (the first is on line "
+                                         f"{integrator.line})")
+            integrator = node
             if node.get("type") != "path":
                 raise reader.error(node, "only the path integrator is read")
             values = reader.parameters(node, ("max_depth", "rr_depth"))
+            if values.get("max_depth", -1) < -1:
+                raise reader.error(node, f"max_depth must be -1 (no limit) or >= 0, got "
+                                         f"{values['max_depth']}")
+            if values.get("rr_depth", 1) < 1:
+                raise reader.error(node, f"rr_depth must be at least 1, got {values['rr_depth']}")
             options.update({k: int(v) for k, v in values.items()})
         elif node.tag == "sensor":
-            camera, size = _sensor(reader, node, options)
+            # every sensor is read (and checked); a render takes the first, as
+            # Mitsuba's mi.render(scene) takes sensors()[0]
+            found = _sensor(reader, node, options if camera is None else dict(options))
+            if camera is None:
+                camera, size = found
         elif node.tag == "bsdf":
             _bsdf(reader, node)  # checked here; used where a shape refers to it
         elif node.tag == "shape":
@@ -342,6 +431,10 @@ def read_xml(path, defaults: dict | None = None) -> SceneDescription:
         check_emitters(emitters, 0, names=emitter_names)
     except (TypeError, ValueError) as error:
         raise SceneFileError(str(error)) from None
+    unused = sorted(set(reader.overrides) - reader.used)
+    if unused:
+        raise SceneFileError(f"{path}: defaults given that the file never uses (no $name): "
+                             f"{', '.join(unused)}")
     if camera is None:
         raise SceneFileError(f"{path}: no <sensor>: the scene needs a camera")
     if not meshes:
@@ -350,12 +443,38 @@ def read_xml(path, defaults: dict | None = None) -> SceneDescription:
                             light=Light(), meshes=meshes, emitters=emitters, options=options)
 
 
+def _collect_ids(reader: _Reader, node: _Node) -> None:
+    """Every element's id, each once (Mitsuba refuses a duplicate); a <ref>'s
+    id names another's."""
+    for child in node.children:
+        name = child.get("id")
+        if name is not None and child.tag != "ref":
+            if name in reader.ids:
+                raise reader.error(child, f"id {name!r} is already the id of the element on "
+                                          f"line {reader.ids[name].line}")
+            reader.ids[name] = child
+        _collect_ids(reader, child)
+
+
+def _one_each(reader: _Reader, node: _Node, tags: tuple) -> None:
+    """At most one child of each tag in ``tags`` inside ``node``."""
+    seen: dict[str, _Node] = {}
+    for child in node.children:
+        key = "bsdf" if child.tag == "ref" else child.tag
+        if key in tags:
+            if key in seen:
+                raise reader.error(child, f"a second <{key}> inside <{node.tag}> (the first is "
+                                          f"on line {seen[key].line})")
+            seen[key] = child
+
+
 def _sensor(reader: _Reader, node: _Node, options: dict):
     if node.get("type") != "perspective":
         raise reader.error(node, "only the perspective sensor is read")
     values = reader.parameters(node, ("fov", "fov_axis", "to_world", "near_clip", "far_clip"),
                                skip=("film", "sampler"))
     size = FILM_SIZE
+    _one_each(reader, node, ("film", "sampler"))
     for child in node.children:
         if child.tag == "film":
             if child.get("type") != "hdrfilm":
@@ -366,6 +485,12 @@ def _sensor(reader: _Reader, node: _Node, options: dict):
             if min(size) < 1:
                 raise reader.error(child, f"width and height must be at least 1, got "
                                           f"{size[0]} x {size[1]}")
+            for key, formats in (("pixel_format", PIXEL_FORMATS),
+                                 ("component_format", COMPONENT_FORMATS)):
+                if film.get(key, formats[0]) not in formats:
+                    raise reader.error(child, f"{key} {film[key]!r} is not read (this reader "
+                                              f"renders {' or '.join(formats)})")
+            _one_each(reader, child, ("rfilter",))
             for kid in child.children:
                 if kid.tag == "rfilter":
                     if kid.get("type") not in ("box", "gaussian"):
@@ -377,6 +502,9 @@ def _sensor(reader: _Reader, node: _Node, options: dict):
                 raise reader.error(child, "only the independent sampler is read")
             sampler = reader.parameters(child, ("sample_count", "seed"))
             options["spp"] = int(sampler.get("sample_count", SAMPLE_COUNT))
+            if options["spp"] < 1:
+                raise reader.error(child, f"sample_count must be at least 1, got "
+                                          f"{options['spp']}")
     if "fov" not in values:
         raise reader.error(node, "needs its fov (degrees)")
     if not 0 < values["fov"] < 180:
@@ -398,9 +526,9 @@ def _sensor(reader: _Reader, node: _Node, options: dict):
     fov_deg = math.degrees(2 * math.atan(vertical[axis]))
     # a to_world that scales is refused, as Mitsuba refuses it: the clip
     # distances are then the same in the world
-    if not np.allclose(np.linalg.norm(matrix[:3, :3], axis=0), 1.0, rtol=0, atol=1e-5):
-        raise reader.error(node, "its to_world scales (a scale step, or a matrix whose columns "
-                                 "are not unit vectors), which a camera may not")
+    if not np.allclose(matrix[:3, :3].T @ matrix[:3, :3], np.eye(3), rtol=0, atol=1e-5):
+        raise reader.error(node, "its to_world scales or shears (a scale step, or a matrix "
+                                 "whose columns are not orthonormal), which a camera may not")
     near, far = values.get("near_clip", NEAR_CLIP), values.get("far_clip", FAR_CLIP)
     if not 0 < near < far:
         raise reader.error(node, f"needs 0 < near_clip < far_clip, got {near:g} and {far:g}")
@@ -449,6 +577,7 @@ def _shape(reader: _Reader, node: _Node) -> MeshEntry:
         raise reader.error(node, f"shape type {kind!r} is not read (this reader takes "
                                  f"{', '.join(_SHAPES)})")
     values = reader.parameters(node, _SHAPES[kind], skip=("bsdf", "ref", "emitter"))
+    _one_each(reader, node, ("bsdf", "emitter"))
     if values.get("flip_normals"):
         raise reader.error(node, "flip_normals is not read")
     if kind in ("ply", "obj"):
@@ -464,10 +593,14 @@ def _shape(reader: _Reader, node: _Node) -> MeshEntry:
     else:
         mesh = shape_mesh(kind)
     matrix = values.get("to_world", np.eye(4))
-    if kind == "sphere" and ("center" in values or "radius" in values):
+    if kind == "sphere":
+        if values.get("radius", 1.0) < 0:
+            raise reader.error(node, f"a sphere's radius must be positive, got "
+                                     f"{values['radius']:g}")
         centre, radius = np.array(values.get("center", [0.0] * 3)), values.get("radius", 1.0)
         matrix = matrix @ np.array([[radius, 0, 0, centre[0]], [0, radius, 0, centre[1]],
                                     [0, 0, radius, centre[2]], [0, 0, 0, 1]])
+        _check_sphere_map(reader, node, matrix[:3, :3])
     if not np.linalg.det(matrix[:3, :3]):
         raise reader.error(node, "its to_world (with its radius) is singular: it would flatten "
                                  "the shape to a plane, a line or a point")
@@ -494,6 +627,21 @@ def _shape(reader: _Reader, node: _Node) -> MeshEntry:
                      or {"type": "diffuse", "reflectance": 0.5}, emitter=emitter)
 
 
+def _check_sphere_map(reader: _Reader, node: _Node, linear: np.ndarray) -> None:
+    """A sphere's to_world (with its radius) may only rotate, move and scale
+    alike on every axis: Mitsuba's sphere stays a sphere under any other
+    map (it warns and keeps one radius) and turns dark inside out under a
+    mirror, where the mesh would follow the map.  A zero scale is left to
+    the singular-map check."""
+    gram = linear.T @ linear
+    scale = float(np.trace(gram)) / 3
+    if scale and (np.linalg.det(linear) < 0
+                  or not np.allclose(gram, scale * np.eye(3), rtol=0, atol=1e-6 * scale)):
+        raise reader.error(node, "a sphere's to_world may rotate, translate and scale alike on "
+                                 "every axis, not stretch, shear or mirror it (Mitsuba renders "
+                                 "a sphere whatever the map)")
+
+
 def _emitter(reader: _Reader, node: _Node, area: bool = False) -> dict:
     kind = node.get("type")
     if kind not in _EMITTERS or (kind == "area") != area:
@@ -509,10 +657,12 @@ def _emitter(reader: _Reader, node: _Node, area: bool = False) -> dict:
         if matrix is not None:
             values["to_world"] = matrix
     elif matrix is not None:
-        if kind == "point":
-            values.setdefault("position", list(matrix[:3, 3]))
-        else:
-            values.setdefault("direction", list(matrix[:3, :3] @ [0.0, 0.0, 1.0]))
+        key = "position" if kind == "point" else "direction"
+        if key in values:
+            raise reader.error(node, f"give either its {key} or its to_world, not both "
+                                     "(Mitsuba refuses both)")
+        values[key] = list(matrix[:3, 3]) if kind == "point" else \
+            list(matrix[:3, :3] @ [0.0, 0.0, 1.0])
     spec = {"type": kind, **values}
     for needed in {"area": ("radiance",), "constant": ("radiance",), "envmap": ("filename",),
                    "point": ("position", "intensity"),

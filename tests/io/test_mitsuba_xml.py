@@ -430,3 +430,167 @@ def test_mesh_normals_are_mitsuba_s_after_to_world(tmp_path, file_normals):
     np.testing.assert_allclose(unit, theirs, atol=2e-5)
     path.write_text(scene_xml(shape.format('<boolean name="face_normals" value="true"/>')))
     assert read_xml(path).meshes[0].mesh.face_normals
+
+
+def scene_of(tmp_path, text: str):
+    path = tmp_path / "scene.xml"
+    path.write_text(text)
+    return path
+
+
+SPHERE = '<shape type="sphere">{}</shape>'
+SHAPE_INSIDE = '<shape type="cube">{}</shape>'
+DIFFUSE = '<bsdf type="diffuse"/>'
+LIGHT = '<emitter type="area"><rgb name="radiance" value="1"/></emitter>'
+
+
+@pytest.mark.parametrize("body, words", [
+    ('<shape type="cube"><transform name="to_world"><translate X="5"/></transform></shape>',
+     "<translate>: takes the attributes value, x, y, z, not 'X'"),
+    ('<shape type="cube"><transform name="to_world"><translate value="1 0 0" x="5"/>'
+     '</transform></shape>', "<translate>: give either its value or x, y, z, not both"),
+    (SPHERE.format('<float name="radius" value="1" foo="2"/>'),
+     "takes the attributes name, value, not 'foo'"),
+    (SPHERE.format('<float name="radius" value="1"/><float name="radius" value="2"/>'),
+     "radius is given twice in <shape type=\"sphere\">"),
+    (SHAPE_INSIDE.format(DIFFUSE + DIFFUSE), "a second <bsdf> inside <shape>"),
+    (SHAPE_INSIDE.format(LIGHT + LIGHT), "a second <emitter> inside <shape>"),
+    ('<bsdf type="diffuse" id="a"/><bsdf type="diffuse" id="a"/>',
+     "id 'a' is already the id of the element on line 11"),
+    ('<integrator type="path"/><integrator type="path"/>', "a second <integrator>"),
+    ('<emitter type="point"><point name="position" value="0 1 0"/><rgb name="intensity" '
+     'value="1"/><transform name="to_world"><translate y="2"/></transform></emitter>',
+     "give either its position or its to_world, not both"),
+    ('<emitter type="directional"><vector name="direction" value="0 -1 0"/><rgb '
+     'name="irradiance" value="1"/><transform name="to_world"><lookat origin="0 0 0" '
+     'target="0 0 1" up="0 1 0"/></transform></emitter>',
+     "give either its direction or its to_world, not both"),
+    ('<integrator type="path"><integer name="max_depth" value="-2"/></integrator>',
+     "max_depth must be -1 (no limit) or >= 0, got -2"),
+    ('<integrator type="path"><integer name="rr_depth" value="0"/></integrator>',
+     "rr_depth must be at least 1, got 0"),
+    (SHAPE_INSIDE.format('<bsdf type="dielectric"><string name="int_ior" value="glass"/>'
+                         '</bsdf>'), "int_ior 'glass' is not a named index"),
+])
+def test_what_mitsuba_refuses_is_refused_with_its_line(tmp_path, body, words):
+    """Files Mitsuba 3 refuses to load (a mistyped attribute, a value given
+    twice, two BSDFs or area lights in one shape, a duplicate id, a light
+    placed twice over, depths out of range, an index of refraction it does
+    not name): an error naming the element and its line here too, never
+    one of the clashing values kept in silence."""
+    path = scene_of(tmp_path, scene_xml(body))
+    with pytest.raises(Exception):
+        mi.load_file(str(path))
+    with pytest.raises(SceneFileError) as error:
+        read_xml(path)
+    assert str(error.value).startswith(f"{path}:") and words in str(error.value), error.value
+
+
+@pytest.mark.parametrize("change, words", [
+    (('</film>', '</film><film type="hdrfilm"/>'), "a second <film> inside <sensor>"),
+    (('</film>', '</film><sampler type="independent"/><sampler type="independent"/>'),
+     "a second <sampler> inside <sensor>"),
+    (('</film>', '<rfilter type="box"/><rfilter type="box"/></film>'),
+     "a second <rfilter> inside <film>"),
+    (('</film>', '<string name="pixel_format" value="luminance"/></film>'),
+     "pixel_format 'luminance' is not read (this reader renders rgb)"),
+    (('</film>', '<string name="component_format" value="bogus"/></film>'),
+     "component_format 'bogus' is not read"),
+    (('</film>', '</film><sampler type="independent"><integer name="sample_count" '
+                 'value="0"/></sampler>'), "sample_count must be at least 1, got 0"),
+    (('<lookat origin="1, 2, 5" target="0, 0.5, 0" up="0, 1, 0"/>',
+      '<matrix value="-1 0.6 0 0  0 0.8 0 0  0 0 -1 4  0 0 0 1"/>'), "its to_world scales or "
+                                                                      "shears"),
+])
+def test_a_sensor_mitsuba_refuses_or_renders_otherwise_is_an_error(tmp_path, change, words):
+    """Inside a sensor: two films, samplers or filters; a pixel format
+    other than the RGB this renders (Mitsuba would write luminance, XYZ or
+    alpha) or one that is none; no samples; a to_world that shears."""
+    text = scene_xml(CUBE)
+    assert change[0] in text
+    path = scene_of(tmp_path, text.replace(change[0], change[1], 1))
+    with pytest.raises(SceneFileError) as error:
+        read_xml(path)
+    assert str(error.value).startswith(f"{path}:") and words in str(error.value), error.value
+
+
+@pytest.mark.parametrize("inside, words", [
+    ('<float name="radius" value="-1.5"/>', "a sphere's radius must be positive, got -1.5"),
+    ('<transform name="to_world"><scale x="2" y="0.6" z="1"/></transform>',
+     "a sphere's to_world may rotate, translate and scale alike on every axis"),
+    ('<transform name="to_world"><scale value="-1"/></transform>',
+     "a sphere's to_world may rotate, translate and scale alike on every axis"),
+])
+def test_a_sphere_that_mitsuba_would_not_render_as_placed_is_an_error(tmp_path, inside, words):
+    """Mitsuba keeps a sphere a sphere under a stretching to_world (it warns,
+    and renders one radius) and turns it inside out, dark, under a mirror or
+    a negative radius, where the mesh here would follow the map: refused."""
+    path = scene_of(tmp_path, scene_xml(SPHERE.format(inside)))
+    mi.load_file(str(path))  # Mitsuba loads it ...
+    with pytest.raises(SceneFileError) as error:  # ... and renders something else
+        read_xml(path)
+    assert words in str(error.value)
+    # a uniform scale, a rotation and a move keep a sphere
+    path = scene_of(tmp_path, scene_xml(SPHERE.format(
+        '<float name="radius" value="0.5"/><transform name="to_world"><rotate x="1" '
+        'angle="30"/><scale value="2"/><translate x="1"/></transform>')))
+    vertices = read_xml(path).meshes[0].mesh.vertices
+    np.testing.assert_allclose(np.linalg.norm(vertices - [1, 0, 0], axis=1), 1.0, atol=1e-5)
+
+
+def test_defaults_hold_as_mitsuba_s(tmp_path):
+    """The first <default> of a name holds (Mitsuba keeps the first); a $name
+    above its <default> is an error unless given by the caller; a default
+    given by the caller that the file never uses is an error (Mitsuba's
+    "Found unused parameters"); a scene needs its version."""
+    body = CUBE.replace("/>", "></shape>")
+    text = scene_xml(body, fov="$fov").replace(
+        "<sensor", '<default name="fov" value="40"/><default name="fov" value="80"/><sensor', 1)
+    path = scene_of(tmp_path, text)
+    theirs = mi.traverse(mi.load_file(str(path)).sensors()[0])["x_fov"]
+    assert read_xml(path).camera == read_xml(scene_of(tmp_path, scene_xml(body, fov=40.0))
+                                             ).camera
+    assert float(np.ravel(theirs)[0]) == pytest.approx(40.0)
+    late = scene_xml(body, fov="$fov").replace("</scene>", '<default name="fov" value="40"/>'
+                                                           "</scene>")
+    path = scene_of(tmp_path, late)
+    with pytest.raises(SceneFileError, match=r"scene.xml:3: <float name=\"fov\">: \$fov is used "
+                                             r"above its <default name=\"fov\"> \(line 12\)"):
+        read_xml(path)
+    assert read_xml(path, {"fov": 40}).camera.fov_deg == pytest.approx(
+        read_xml(scene_of(tmp_path, scene_xml(body, fov=40.0))).camera.fov_deg)
+    with pytest.raises(SceneFileError, match="defaults given that the file never uses "
+                                             r"\(no \$name\): spp"):
+        read_xml(scene_of(tmp_path, scene_xml(body)), {"spp": 4})
+    with pytest.raises(SceneFileError, match="scene.xml:1: <scene>: needs its version"):
+        read_xml(scene_of(tmp_path, scene_xml(body).replace(' version="3.0.0"', "")))
+
+
+def test_a_lookat_without_up_and_several_sensors_frame_as_in_mitsuba(tmp_path):
+    """<lookat> without up takes Mitsuba's own up (its coordinate_system
+    around the view direction), for views along and across the axes; of
+    several sensors, the first frames the render, as mi.render(scene)
+    renders sensors()[0]."""
+    for target in ("0, 0, 0", "0.3, -2, 0.1", "1, 2, 4", "2, 5, 5"):
+        path = scene_of(tmp_path, scene_xml(CUBE, to_world=f'<lookat origin="1, 2, 5" '
+                                                           f'target="{target}"/>'))
+        camera = read_xml(path).camera
+        matrix = np.array(mi.load_file(str(path)).sensors()[0].world_transform().matrix)
+        forward, _, up = camera.basis()
+        np.testing.assert_allclose(forward, matrix[:3, 2], atol=1e-6)
+        np.testing.assert_allclose(up, matrix[:3, 1], atol=1e-6)
+    second = scene_xml(CUBE, fov=40.0).replace("</scene>", """<sensor type="perspective">
+    <float name="fov" value="70"/></sensor></scene>""")
+    path = scene_of(tmp_path, second)
+    assert mi.traverse(mi.load_file(str(path)).sensors()[0])["x_fov"] == pytest.approx(40.0)
+    assert read_xml(path).camera == read_xml(scene_of(tmp_path, scene_xml(CUBE, fov=40.0))
+                                             ).camera
+
+
+def test_every_index_mitsuba_names_reads_as_its_value(tmp_path):
+    """Mitsuba's whole table of named indices of refraction, each the eta
+    Mitsuba 3 loads for it."""
+    from hlbvh_cl.io.mitsuba import IORS
+    for name, value in IORS.items():
+        bsdf = mi.load_dict({"type": "dielectric", "int_ior": name, "ext_ior": "vacuum"})
+        assert float(np.ravel(mi.traverse(bsdf)["eta"])[0]) == pytest.approx(value, rel=1e-6)
