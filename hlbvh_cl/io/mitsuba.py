@@ -33,7 +33,8 @@ its line: the loader never renders a silently different scene.  What
 Mitsuba refuses is refused (a value, child or id given twice, a light placed
 by both a vector and to_world, depths out of range, an unknown index name),
 and so is what Mitsuba would render otherwise (pixel formats other than
-rgb, a shearing camera, a stretched or mirrored sphere).  Mitsuba's rules
+rgb, a shearing camera, a stretched or mirrored sphere, a rotate about an
+axis that is not a unit vector, max_depth 0).  Mitsuba's rules
 hold elsewhere: the first <default> of a name wins from its line on, a
 default the caller gives must be used, a <lookat> without up takes
 Mitsuba's, and of several sensors the first frames the render (as
@@ -321,7 +322,13 @@ class _Reader:
         elif step.tag == "rotate":
             axis = (self.numbers(step, 3, "value") if step.get("value") is not None else
                     [self._coordinate(step, a, 0.0) for a in "xyz"])
-            change = _rotation(np.array(axis), float(self.text(step, "angle")))
+            if not math.isclose(float(np.linalg.norm(axis)), 1.0, rel_tol=1e-5):
+                # Mitsuba builds a longer axis's matrix (which then scales) but
+                # keeps its transpose as its inverse, so it shades with normals
+                # that are not the surface's
+                raise self.error(step, f"its axis must be a unit vector, got length "
+                                       f"{np.linalg.norm(axis):g}")
+            change = _rotation(np.array(axis), self.number(step, "angle"))
         elif step.tag == "matrix":
             change = np.array(self.numbers(step, 16)).reshape(4, 4)
             if not np.array_equal(change[3], [0.0, 0.0, 0.0, 1.0]):
@@ -343,8 +350,7 @@ class _Reader:
 
 
 def _rotation(axis: np.ndarray, degrees: float) -> np.ndarray:
-    """Rodrigues' rotation about ``axis`` as Mitsuba builds it: the axis is
-    taken as given, not normalised (so a non-unit one also scales)."""
+    """Rodrigues' rotation about the unit ``axis`` as Mitsuba builds it."""
     c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
     x, y, z = axis
     out = np.eye(4)
@@ -407,6 +413,9 @@ def read_xml(path, defaults: dict | None = None) -> SceneDescription:
             if values.get("max_depth", -1) < -1:
                 raise reader.error(node, f"max_depth must be -1 (no limit) or >= 0, got "
                                          f"{values['max_depth']}")
+            if values.get("max_depth") == 0:
+                raise reader.error(node, "max_depth 0 (an image of nothing, in Mitsuba) is not "
+                                         "rendered here: give -1 (no limit) or 1 and more")
             if values.get("rr_depth", 1) < 1:
                 raise reader.error(node, f"rr_depth must be at least 1, got {values['rr_depth']}")
             options.update({k: int(v) for k, v in values.items()})

@@ -594,3 +594,21 @@ def test_every_index_mitsuba_names_reads_as_its_value(tmp_path):
     for name, value in IORS.items():
         bsdf = mi.load_dict({"type": "dielectric", "int_ior": name, "ext_ior": "vacuum"})
         assert float(np.ravel(mi.traverse(bsdf)["eta"])[0]) == pytest.approx(value, rel=1e-6)
+
+
+@pytest.mark.parametrize("body, words", [
+    ('<shape type="cube"><transform name="to_world"><rotate x="1" y="1" angle="40"/>'
+     '</transform></shape>', "<rotate>: its axis must be a unit vector, got length 1.41421"),
+    ('<integrator type="path"><integer name="max_depth" value="0"/></integrator>',
+     "max_depth 0 (an image of nothing, in Mitsuba) is not rendered here"),
+])
+def test_what_mitsuba_loads_but_renders_otherwise_is_an_error(tmp_path, body, words):
+    """A rotate about a longer axis: Mitsuba scales by it but keeps the
+    matrix's transpose as its inverse, so its shading normals leave the
+    surface (a mirror cube's highlights moved, 5 % off in its mean); max
+    depth 0, which this renderer does not take.  Mitsuba loads both."""
+    path = scene_of(tmp_path, scene_xml(body))
+    mi.load_file(str(path))
+    with pytest.raises(SceneFileError) as error:
+        read_xml(path)
+    assert str(error.value).startswith(f"{path}:") and words in str(error.value), error.value
