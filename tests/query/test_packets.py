@@ -269,3 +269,31 @@ def test_float_steps_are_nextafter(suite_device):
             want = np.nextafter(x, np.float32(toward))
         same = (got.view(np.int32) == want.view(np.int32)) | (np.isnan(got) & np.isnan(want))
         assert same.all(), (toward, x[~same], got[~same], want[~same])
+
+
+@pytest.mark.parametrize("packet_size", [8, 16])
+@pytest.mark.parametrize("name", ["knight", "teapot", "grid"])
+def test_interleaved_walks_give_the_walks_one_by_one_s_answers(monkeypatch, name, packet_size):
+    """A CPU work-item's rays that do not go as one packet walk interleaved
+    (query/walk/walk.h's walks) where the tree is larger than a core's cache
+    (engine.INTERLEAVED_MIN_TREE_BYTES, here forced to 0): the same hits
+    and occlusion, bit for bit, as walked one after the other, and the
+    oracle's; the kernels built either way."""
+    from hlbvh_cl.query import engine
+    case = scene_case(name)
+    origins, directions = random_rays(case, 3000, seed=7)
+    tree = built.tree(case.scene)
+    answers = []
+    for smallest in (0, 2**62):
+        monkeypatch.setattr(engine, "INTERLEAVED_MIN_TREE_BYTES", smallest)
+        q = RayQuery(built.runtime(case.scene), packet_size=packet_size)
+        defines = engine.kernel_defines(q.rt, tree, q.variant, q.packet_size)
+        assert ("INTERLEAVED_WALKS" in defines) == (smallest == 0 and not q.rt.profile.gpu)
+        hits = q.intersect(tree, origins, directions)
+        answers.append((hits, q.occluded(tree, origins, directions)))
+    (interleaved, blocked), (alone, alone_blocked) = answers
+    for field in ("t", "prim_id", "geom_id", "u", "v", "normal", "points"):
+        np.testing.assert_array_equal(getattr(interleaved, field), getattr(alone, field))
+    np.testing.assert_array_equal(blocked, alone_blocked)
+    np.testing.assert_array_equal(blocked, interleaved.hit)
+    assert_matches_oracle(case, interleaved, origins, directions)

@@ -96,6 +96,21 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
     } else
 #endif
     {
+#if defined(INTERLEAVED_WALKS) && !defined(INSTANCES) && !defined(QUERY_STATE) \
+    && !defined(QUERY_LANE)
+        /* the rays' walks interleaved (walk.h's walks) */
+        RayData r[PACKET_SIZE];
+        Found_ray s[PACKET_SIZE];
+        for (uint l = 0; l < used; ++l) {
+            prepare_lane(r + l, lanes, l);
+            start_ray(s + l, r + l);
+        }
+        out_of_stack = QUERY_FN(walks, _ray)(r, nodes, triangles, s, used TRACE_ARGS);
+#define PATH_SUFFIX _ray
+        for (uint l = 0; l < used; ++l)
+            QUERY_END(s + l, out, l);
+#undef PATH_SUFFIX
+#else
         for (uint l = 0; l < used; ++l) {
 #ifdef QUERY_LANE
             if (!QUERY_LANE(out, l))
@@ -105,6 +120,7 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
             prepare_lane(&r, lanes, l);
             out_of_stack |= QUERY_FN(trace, _ray)(&r, nodes, triangles, out, l TRACE_ARGS);
         }
+#endif
     }
 #ifdef INSTANCES
     out_of_stack |= mesh_out_of_stack;

@@ -117,6 +117,7 @@ TRAVERSAL_INLINE void push_sorted(__global const WideNode* n, uint mask,
 #define NEXT_ITEM 0
 #define NO_ITEM 1
 #define STACK_FULL 2
+#define WALK_ENDED 3 /* (walk.h: a query's node hook ended the walk) */
 TRAVERSAL_INLINE int next_item(__global const WideNode* n, uint mask,
                                const ChildEntries* entries,
                                __global const WideNode* nodes,

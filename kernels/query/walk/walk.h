@@ -140,6 +140,27 @@ TRAVERSAL_INLINE bool WALK_NAME(leaves_first)(PATH(Found)* s, const PATH(Rays)* 
     return false;
 }
 
+/* Node *index's visit: its children met, the query's node hook, and the
+ * walk's next item (*index, *count): NEXT_ITEM, NO_ITEM, STACK_FULL, or
+ * WALK_ENDED where the hook ended the walk. */
+TRAVERSAL_INLINE int WALK_NAME(node)(const PATH(Rays)* r, __global const WideNode* nodes,
+                                     __global const Triangle* triangles, PATH(Found)* s,
+                                     StackItem* stack, int* sp, int* index,
+                                     uint* count WALK_PARAMS)
+{
+    __global const WideNode* n = nodes + *index;
+    ChildEntries entry;
+    uint mask = WALK_CHILDREN(r, n, s, &entry);
+    if (QUERY_NODE(s, r, n, &mask))
+        return WALK_ENDED;
+#ifdef QUERY_UNORDERED
+    return next_item_any(n, mask, nodes, triangles, stack, sp, PATH(reach)(s), index, count);
+#else
+    return next_item(n, mask, &entry, nodes, triangles, stack, sp, PATH(reach)(s), index,
+                     count);
+#endif
+}
+
 /* Walks the tree from the root (always an interior node) for the query, with
  * s holding its start (no hit, limit tmax) and ending with its result.
  * Returns true when the stack was too small (the host then raises). */
@@ -155,18 +176,10 @@ TRAVERSAL_INLINE bool WALK_NAME(walk)(const PATH(Rays)* r, __global const WideNo
 
     while (!done) {
         while (!done && count == 0) {
-            __global const WideNode* n = nodes + index;
-            ChildEntries entry;
-            uint mask = WALK_CHILDREN(r, n, s, &entry);
-            if (QUERY_NODE(s, r, n, &mask))
+            int next = WALK_NAME(node)(r, nodes, triangles, s, stack, &sp, &index, &count
+                                       WALK_ARGS);
+            if (next == WALK_ENDED)
                 return false;
-#ifdef QUERY_UNORDERED
-            int next = next_item_any(n, mask, nodes, triangles, stack, &sp, PATH(reach)(s),
-                                     &index, &count);
-#else
-            int next = next_item(n, mask, &entry, nodes, triangles, stack, &sp,
-                                 PATH(reach)(s), &index, &count);
-#endif
             if (next == STACK_FULL)
                 return true;
             done = next == NO_ITEM;
@@ -179,6 +192,55 @@ TRAVERSAL_INLINE bool WALK_NAME(walk)(const PATH(Rays)* r, __global const WideNo
     }
     return false;
 }
+
+#if defined(INTERLEAVED_WALKS) && !defined(QUERY_INSTANCE) && !defined(QUERY_STATE)
+/* One step of walk r: a node, or a leaf and then the next stacked item;
+ * true when the walk is over (*full: its stack ran out). */
+TRAVERSAL_INLINE bool WALK_NAME(step)(const PATH(Rays)* r, __global const WideNode* nodes,
+                                      __global const Triangle* triangles, PATH(Found)* s,
+                                      StackItem* stack, int* sp, int* index, uint* count,
+                                      bool* full WALK_PARAMS)
+{
+    if (*count == 0) {
+        int next = WALK_NAME(node)(r, nodes, triangles, s, stack, sp, index, count WALK_ARGS);
+        *full |= next == STACK_FULL;
+        return next != NEXT_ITEM;
+    }
+    return WALK_NAME(leaf)(r, triangles, *index, *count, s WALK_ARGS)
+           || !pop(stack, sp, PATH(reach)(s), index, count);
+}
+
+/* The walks of rays r[0, n) (n <= PACKET_SIZE), each as WALK_NAME(walk)
+ * walks it, taken a step each in turn: one ray's walk is a chain of
+ * dependent loads (a node, then the child it chose), which stalls a CPU
+ * core on every cache miss; the steps of other rays, independent, fill
+ * those stalls (the core runs them out of order).  Each walk visits the
+ * same nodes and leaves in the same order as alone, so the results are
+ * the same bits.  True when a stack ran out. */
+TRAVERSAL_INLINE bool WALK_NAME(walks)(const PATH(Rays)* r, __global const WideNode* nodes,
+                                       __global const Triangle* triangles, PATH(Found)* s,
+                                       uint n WALK_PARAMS)
+{
+    StackItem stack[PACKET_SIZE][STACK_SIZE + 1];
+    int sp[PACKET_SIZE], index[PACKET_SIZE];
+    uint count[PACKET_SIZE];
+    for (uint k = 0; k < PACKET_SIZE; ++k) {
+        sp[k] = 0;
+        index[k] = 0;
+        count[k] = 0;
+    }
+    uint live = (2u << (n - 1u)) - 1u;  /* n >= 1 */
+    bool full = false;
+    while (live != 0)
+        for (uint rest = live; rest != 0; rest &= rest - 1u) {
+            uint k = (uint)lowest_slot(rest);
+            if (WALK_NAME(step)(r + k, nodes, triangles, s + k, stack[k], sp + k, index + k,
+                                count + k, &full WALK_ARGS))
+                live ^= 1u << k;
+        }
+    return full;
+}
+#endif
 
 #undef WALK_QUERY
 #undef WALK_PARAMS
