@@ -170,8 +170,8 @@ INTERLEAVED_STACK_BYTES = 32 * 1024
 
 #: Trees whose nodes and triangles take less than this fit a core's L2
 #: cache (512 KiB and up on the CPUs seen): their walks do not wait on
-#: memory, and interleaving them only costs (the Cornell box, a few KiB,
-#: path-traced 5 % slower; the bunny's 5.75 MiB traced 15 % faster).
+#: memory, and interleaving them only costs (measured on the Cornell box;
+#: figures in the commit that brought interleaving).
 INTERLEAVED_MIN_TREE_BYTES = 512 * 1024
 
 
