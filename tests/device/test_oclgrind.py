@@ -356,11 +356,15 @@ def case_all_hits(uninitialized: bool) -> dict:
     float64 brute force, and rays through its vertices, which cross twice,
     counted and filled one ray per work-item and in packets of 8; and a
     batch in Morton order through stacked plates (slots, kept hits,
-    walks)."""
+    walks).  Under the CPU profile the rays of a work-item that do not go as
+    a packet walk interleaved, each with its own count or segment (forced on
+    for these tiny trees)."""
     import trimesh
 
     import hlbvh_cl
     import built
+    from hlbvh_cl.query import engine
+    engine.INTERLEAVED_MIN_TREE_BYTES = 0  # this child process's own
     from ray_cases import SceneCase, random_rays
     from all_hits_cases import assert_matches_brute_force
     sphere = trimesh.creation.icosphere(subdivisions=1)

@@ -507,6 +507,56 @@ def test_big_batches_traced_in_morton_order_answer_in_the_callers_order(tiny, mo
     assert bool(taken) == (copies is not None or query.rt.profile.gpu)
 
 
+def test_orders_the_count_chooses(tiny, monkeypatch):
+    """The count sorts a big batch only where sorting makes packets of it:
+    not rays in a coherent order already (a camera's pixels), nor, where
+    the kernel interleaves the walks of rays that make no packet (forced
+    here), rays neither nearly parallel nor aimed at one point, which
+    walk faster one by one; parallel rays from random points and rays aimed
+    at one point are sorted.  Every way, the counts are those of one ray a
+    work-item."""
+    from hlbvh_cl.query import all_hits, engine, order
+    from hlbvh_cl.query.all_hits import AllHitsQuery
+    from hlbvh_cl.query.rays import RayQuery
+    sorted_batches = []
+    monkeypatch.setattr(all_hits, "device_order", lambda *args, **named: sorted_batches.append(
+        named["by_direction"]) or order.device_order(*args, **named))
+    rng = np.random.default_rng(51)
+    count = 3 * order.COHERENT_MIN
+    points = rng.uniform(tiny.lo - 0.2, tiny.hi + 0.2, (count, 3)).astype(np.float32)
+    side = np.linspace(-0.4, 0.4, 64)
+    pixels = np.stack(np.broadcast_arrays(side[None, :], side[:, None], -1.0), axis=-1)
+    camera = (np.broadcast_to(np.float32([0.05, 0.1, 4.0]), (64 * 64, 3)),
+              pixels.reshape(-1, 3).astype(np.float32))
+    shuffle = rng.permutation(len(camera[0]))
+    cone = np.float32([0.2, -1.0, 0.1]) + rng.normal(0, 0.3, (count, 3)).astype(np.float32)
+    batches = {  # name: (rays, sorted without interleaving, sorted interleaved)
+        "camera": (camera, False, False),
+        "camera shuffled": ((camera[0], camera[1][shuffle]), True, False),
+        "random": (random_rays(tiny, count, seed=52), True, False),
+        "wide cone": ((points, cone), True, False),
+        "parallel": ((points, np.broadcast_to(np.float32([0.2, -1.0, 0.1]), (count, 3))), True,
+                     True),
+        "aimed": ((points, (np.float32(tiny.lo + tiny.hi) / 2 - points)), True, True)}
+    assert order.rays_in_order(*camera) and not order.rays_in_order(*batches["random"][0])
+    assert order.nearly_parallel(batches["parallel"][0][1])
+    assert not order.nearly_parallel(cone)
+    tree = built.tree(tiny.scene)
+    alone = AllHitsQuery(RayQuery(built.runtime(tiny.scene), packet_size=1))
+    for smallest in (2**62, 0):
+        monkeypatch.setattr(engine, "INTERLEAVED_MIN_TREE_BYTES", smallest)
+        query = AllHitsQuery(RayQuery(built.runtime(tiny.scene), packet_size=8))
+        interleaved = "INTERLEAVED_WALKS" in engine.kernel_defines(
+            query.rt, tree, query.query.variant, query.count_packet_size)
+        assert interleaved == (smallest == 0 and not query.rt.profile.gpu)
+        for name, (rays, plain, when_interleaved) in batches.items():
+            sorted_batches.clear()
+            counts = query.count(tree, *rays)
+            assert bool(sorted_batches) == (when_interleaved if interleaved else plain), name
+            np.testing.assert_array_equal(counts, alone.count(tree, *rays), err_msg=name)
+            assert counts.max() >= 2, name
+
+
 @settings(max_examples=15, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), k=st.integers(1, 4),
        window=st.tuples(st.floats(0, 2), st.floats(0, 3)))

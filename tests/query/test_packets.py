@@ -32,20 +32,47 @@ def coherent_fraction(directions: np.ndarray, packet_size: int) -> float:
     return float(np.mean(np.all(keys == keys[:, :1], axis=1)))
 
 
-def expected_packets(directions: np.ndarray, packet_size: int) -> int:
-    """Work-items whose rays the kernel should trace as one packet: a last,
-    part-full packet repeats its last ray in the lanes past the end."""
+def expected_packets(directions: np.ndarray, packet_size: int, origins=None, tree=None) -> int:
+    """Work-items whose rays the kernel should trace as one packet: their
+    lanes share packet_keys and, given the origins and the tree, their
+    interval ray's origins (moved along the rays onto the plane across kz
+    through the middle of theirs, where that brings them closer:
+    packet.h's interval_origins) span at most 1/16 of the scene's largest
+    extent on each axis (packet_compact).  A last, part-full packet
+    repeats its last ray in the lanes past the end."""
     keys = packet_keys(directions)
     pad = -len(keys) % packet_size
     keys = np.concatenate([keys, np.repeat(keys[-1:], pad)]).reshape(-1, packet_size)
-    return int(np.sum(np.all(keys == keys[:, :1], axis=1)))
+    whole = np.all(keys == keys[:, :1], axis=1)
+    if origins is not None:
+        def lanes(a):
+            a = np.concatenate([a, np.repeat(a[-1:], pad, 0)]).astype(np.float32)
+            return a.reshape(-1, packet_size, 3)[whole]
+        o, d = lanes(origins), lanes(directions)
+        kz = keys[whole, 0] // 8
+        rows = np.arange(len(o))
+        okz, dkz = o[rows, :, kz], d[rows, :, kz]
+        mid = np.float32(0.5) * (okz.min(axis=1) + okz.max(axis=1))
+        with np.errstate(all="ignore"):
+            move = (mid[:, None] - okz) * (np.float32(1) / dkz)
+            moved = o + move[..., None] * d
+        moved[rows, :, kz] = mid[:, None]
+        spread = lambda a: a.max(axis=1) - a.min(axis=1)  # noqa: E731
+        closer = np.isfinite(moved).all(axis=(1, 2)) & (
+            spread(moved).sum(axis=1) < spread(o).sum(axis=1))
+        o = np.where(closer[:, None, None], moved, o)
+        scene = np.max(tree.bounds_hi.astype(np.float32) - tree.bounds_lo.astype(np.float32))
+        whole[whole] = np.all(spread(o) <= scene * np.float32(1 / 16), axis=1)
+    return int(np.sum(whole))
 
 
 def traced(q: RayQuery, query: str, case, origins, directions, **limits):
     """q's query, checking that the kernel formed exactly the packets expected."""
     q.count_packets = True
-    result = getattr(q, query)(built.tree(case.scene), origins, directions, **limits)
-    expected = expected_packets(directions, q.packet_size) if q.packet_size > 1 else 0
+    tree = built.tree(case.scene)
+    result = getattr(q, query)(tree, origins, directions, **limits)
+    expected = (expected_packets(directions, q.packet_size, origins, tree)
+                if q.packet_size > 1 else 0)
     assert q.last_packets == expected
     return result
 
@@ -174,9 +201,10 @@ def test_axis_parallel_packets_match_oracle(name, zero):
     so lanes start on box planes, and spread so that part of each packet
     misses: every answer is the oracle's, and the rays do form packets."""
     case = scene_case(name)
-    steps = np.linspace(0.0, 1.0, 16)
-    x, y = np.meshgrid(case.lo[0] + steps * (case.hi[0] - case.lo[0]) * 1.25,
-                       case.lo[1] + steps * (case.hi[1] - case.lo[1]))
+    # rows of 160 origins 1/128 of the box apart, through its planes at 0 and 128: each
+    # packet's 8 lanes within 1/16 of the mesh's extent (origins_compact)
+    x, y = np.meshgrid(case.lo[0] + np.arange(160) / 128 * (case.hi[0] - case.lo[0]),
+                       case.lo[1] + np.linspace(0.0, 1.0, 16) * (case.hi[1] - case.lo[1]))
     origins = np.stack([x.ravel(), y.ravel(), np.full(x.size, case.hi[2] + 1.0)], axis=1)
     origins = origins.astype(np.float32)
     directions = np.tile(np.array([zero, zero, -1.0], np.float32), (len(origins), 1))
@@ -278,8 +306,11 @@ def test_interleaved_walks_give_the_walks_one_by_one_s_answers(monkeypatch, name
     (query/walk/walk.h's walks) where the tree is larger than a core's cache
     (engine.INTERLEAVED_MIN_TREE_BYTES, here forced to 0): the same hits
     and occlusion, bit for bit, as walked one after the other, and the
-    oracle's; the kernels built either way."""
+    oracle's; and the same counts and all hits (the walks with a state
+    each), where max_hits=2 shrinks a ray's limit once its segment fills;
+    the kernels built either way."""
     from hlbvh_cl.query import engine
+    from hlbvh_cl.query.all_hits import AllHitsQuery
     case = scene_case(name)
     origins, directions = random_rays(case, 3000, seed=7)
     tree = built.tree(case.scene)
@@ -290,10 +321,25 @@ def test_interleaved_walks_give_the_walks_one_by_one_s_answers(monkeypatch, name
         defines = engine.kernel_defines(q.rt, tree, q.variant, q.packet_size)
         assert ("INTERLEAVED_WALKS" in defines) == (smallest == 0 and not q.rt.profile.gpu)
         hits = q.intersect(tree, origins, directions)
-        answers.append((hits, q.occluded(tree, origins, directions)))
-    (interleaved, blocked), (alone, alone_blocked) = answers
+        every = AllHitsQuery(q)
+        answers.append((hits, q.occluded(tree, origins, directions),
+                        every.count(tree, origins, directions),
+                        [every.intersect_all(tree, origins, directions, max_hits=k)
+                         for k in (None, 2)]))
+    (interleaved, blocked, counts, all_hits), (alone, alone_blocked, alone_counts,
+                                               alone_all_hits) = answers
     for field in ("t", "prim_id", "geom_id", "u", "v", "normal", "points"):
         np.testing.assert_array_equal(getattr(interleaved, field), getattr(alone, field))
     np.testing.assert_array_equal(blocked, alone_blocked)
     np.testing.assert_array_equal(blocked, interleaved.hit)
     assert_matches_oracle(case, interleaved, origins, directions)
+    np.testing.assert_array_equal(counts, alone_counts)
+    if name == "grid":
+        assert counts.max() == 1  # one sheet: a ray crosses it once
+    else:
+        assert (counts > 2).any()  # rays that cross a closed mesh more than once
+    for got, want in zip(all_hits, alone_all_hits):
+        for field in ("offsets", "ray_index", "t", "prim_id", "geom_id", "u", "v"):
+            np.testing.assert_array_equal(getattr(got, field), getattr(want, field))
+    np.testing.assert_array_equal(all_hits[0].counts, counts)
+    assert (all_hits[1].counts == np.minimum(counts, 2)).all()

@@ -3,9 +3,9 @@
  * scene (INSTANCES) also the top tree's walks, whose leaves walk each
  * instance's mesh with the query's own walks and state (below); and
  * trace_QUERY, which traces the rays lanes[0, used) of a work-item as one
- * packet when prepare_packet accepts them, else one by one, each walk from
- * its start (start_ray, start_packet) over the scene's tree (on a two-level
- * scene the top tree).  Include it as walk.h, without QUERY_PATH, with
+ * packet when prepare_packet accepts them and they lie close
+ * (packet_compact), else one by one, each walk from its start (start_ray,
+ * start_packet) over the scene's tree (on a two-level scene the top tree).  Include it as walk.h, without QUERY_PATH, with
  * walk.h's hooks and these:
  *   QUERY_OUT                the type of what the work-item's walks read and
  *                            leave, one lane each: trace_QUERY's `out`
@@ -74,7 +74,8 @@
 #endif
 
 /* The query for the rays lanes[0, used) of a work-item: as one packet when
- * prepare_packet accepts them, else one by one; results in out. */
+ * prepare_packet accepts them and they lie close, else one by one;
+ * results in out. */
 TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
                                             __global const WideNode* nodes,
                                             __global const Triangle* triangles
@@ -88,7 +89,7 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
     bool out_of_stack = false;
 #if PACKET_SIZE > 1
     Packet p;
-    if (prepare_packet(lanes, &p)) {
+    if (prepare_packet(lanes, &p) && packet_compact(&p, nodes)) {
 #ifdef COUNT_PACKETS
         atomic_inc(overflow + 1);
 #endif
@@ -96,19 +97,43 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
     } else
 #endif
     {
-#if defined(INTERLEAVED_WALKS) && !defined(INSTANCES) && !defined(QUERY_STATE) \
-    && !defined(QUERY_LANE)
-        /* the rays' walks interleaved (walk.h's walks) */
+#if defined(INTERLEAVED_WALKS) && !defined(INSTANCES)
+        /* the walks of the lanes that take one, interleaved (walk.h's
+         * walks): walk k is lane lane_of[k]'s, with its own state */
         RayData r[PACKET_SIZE];
         Found_ray s[PACKET_SIZE];
-        for (uint l = 0; l < used; ++l) {
-            prepare_lane(r + l, lanes, l);
-            start_ray(s + l, r + l);
-        }
-        out_of_stack = QUERY_FN(walks, _ray)(r, nodes, triangles, s, used TRACE_ARGS);
+        uint lane_of[PACKET_SIZE];
+        uint n = 0;
 #define PATH_SUFFIX _ray
-        for (uint l = 0; l < used; ++l)
-            QUERY_END(s + l, out, l);
+#ifdef QUERY_STATE
+        PATH(QUERY_STATE) states[PACKET_SIZE];
+#endif
+        for (uint l = 0; l < used; ++l) {
+#ifdef QUERY_LANE
+            if (!QUERY_LANE(out, l))
+                continue;
+#endif
+            prepare_lane(r + n, lanes, l);
+            start_ray(s + n, r + n);
+#ifdef QUERY_STATE
+            PATH(QUERY_STATE)* state = states + n;
+            QUERY_BEGIN(out, l);
+#endif
+            lane_of[n++] = l;
+        }
+        if (n > 0) {
+#ifdef QUERY_STATE
+            PATH(QUERY_STATE)* state = states;
+#endif
+            out_of_stack = QUERY_FN(walks, _ray)(r, nodes, triangles, s, n TRACE_ARGS
+                                                 WALK_STATE_ARG);
+        }
+        for (uint k = 0; k < n; ++k) {
+#ifdef QUERY_STATE
+            PATH(QUERY_STATE)* state = states + k;
+#endif
+            QUERY_END(s + k, out, lane_of[k]);
+        }
 #undef PATH_SUFFIX
 #else
         for (uint l = 0; l < used; ++l) {

@@ -193,7 +193,7 @@ TRAVERSAL_INLINE bool WALK_NAME(walk)(const PATH(Rays)* r, __global const WideNo
     return false;
 }
 
-#if defined(INTERLEAVED_WALKS) && !defined(QUERY_INSTANCE) && !defined(QUERY_STATE)
+#if defined(INTERLEAVED_WALKS) && !defined(QUERY_INSTANCE)
 /* One step of walk r: a node, or a leaf and then the next stacked item;
  * true when the walk is over (*full: its stack ran out). */
 TRAVERSAL_INLINE bool WALK_NAME(step)(const PATH(Rays)* r, __global const WideNode* nodes,
@@ -216,7 +216,8 @@ TRAVERSAL_INLINE bool WALK_NAME(step)(const PATH(Rays)* r, __global const WideNo
  * core on every cache miss; the steps of other rays, independent, fill
  * those stalls (the core runs them out of order).  Each walk visits the
  * same nodes and leaves in the same order as alone, so the results are
- * the same bits.  True when a stack ran out. */
+ * the same bits.  With QUERY_STATE, `state` is an array: walk k's is
+ * state[k].  True when a stack ran out. */
 TRAVERSAL_INLINE bool WALK_NAME(walks)(const PATH(Rays)* r, __global const WideNode* nodes,
                                        __global const Triangle* triangles, PATH(Found)* s,
                                        uint n WALK_PARAMS)
@@ -229,11 +230,17 @@ TRAVERSAL_INLINE bool WALK_NAME(walks)(const PATH(Rays)* r, __global const WideN
         index[k] = 0;
         count[k] = 0;
     }
+#ifdef QUERY_STATE
+    PATH(QUERY_STATE)* states = state;
+#endif
     uint live = (2u << (n - 1u)) - 1u;  /* n >= 1 */
     bool full = false;
     while (live != 0)
         for (uint rest = live; rest != 0; rest &= rest - 1u) {
             uint k = (uint)lowest_slot(rest);
+#ifdef QUERY_STATE
+            PATH(QUERY_STATE)* state = states + k;  /* the hooks' (WALK_ARGS) */
+#endif
             if (WALK_NAME(step)(r + k, nodes, triangles, s + k, stack[k], sp + k, index + k,
                                 count + k, &full WALK_ARGS))
                 live ^= 1u << k;
