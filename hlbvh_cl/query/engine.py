@@ -168,11 +168,13 @@ def kernel_defines(rt: Runtime, tree, variant, packet: int, **extra) -> dict:
 #: 12 bytes); a deeper tree walks its rays one after the other.
 INTERLEAVED_STACK_BYTES = 32 * 1024
 
-#: Trees whose nodes and triangles take less than this fit a core's L2
-#: cache (512 KiB and up on the CPUs seen): their walks do not wait on
-#: memory, and interleaving them only costs (measured on the Cornell box;
-#: figures in the commit that brought interleaving).
-INTERLEAVED_MIN_TREE_BYTES = 512 * 1024
+#: Trees whose nodes and triangles take less than this stay mostly in a
+#: core's caches: their walks seldom wait on memory, and interleaving them
+#: only costs.  Measured on parts of the bunny's triangles (trees of 0.5 to
+#: 5.5 MiB, random rays): a loss up to 1.7 MiB on PoCL, even near 2.8 MiB,
+#: a gain from there on both runtimes; the Cornell box's tree (0.55 MiB)
+#: path-traced slower interleaved (figures in the commit that set this).
+INTERLEAVED_MIN_TREE_BYTES = 2 * 1024 * 1024
 
 
 def interleaved_walks(rt: Runtime, tree, stack: int, packet: int) -> bool:
