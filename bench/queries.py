@@ -10,7 +10,9 @@ Workloads, made once in numpy, the same float32 arrays for everyone:
   - "near surface": points uniform on the surface (by area) moved by an
     offset uniform in a ball of 1% of the box's diagonal;
   - "at centre": ray origins uniform in the box, each aimed at the box's
-    centre (how the issue's Open3D count_intersections figure was taken).
+    centre (how the issue's Open3D count_intersections figure was taken);
+  - "random": ray origins uniform in the box, directions uniform on the
+    sphere (visibility and LiDAR-like returns: no two rays alike).
 The box and the surface leave out a scene file's flat ground (as
 bench/trace.py does): it would take most of the points.
 
@@ -153,6 +155,18 @@ def centre_rays(lo, hi, count: int, seed: int) -> trace.Rays:
                       np.ascontiguousarray(directions, np.float32))
 
 
+def random_rays(lo, hi, count: int, seed: int) -> trace.Rays:
+    """Origins uniform in the box [lo, hi], directions uniform on the sphere."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    rng = np.random.default_rng(seed)
+    origins = lo + rng.random((count, 3)) * (hi - lo)
+    directions = rng.normal(size=(count, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    return trace.Rays(f"random {count:,}", "random",
+                      np.ascontiguousarray(origins, np.float32),
+                      np.ascontiguousarray(directions, np.float32))
+
+
 def workloads(case: trace.SceneCase, config: Config) -> dict:
     """{query: [workloads]} of one case."""
     lo, hi = case.box
@@ -160,7 +174,8 @@ def workloads(case: trace.SceneCase, config: Config) -> dict:
     points = [uniform_points(lo, hi, config.points, config.box_factor, config.seed),
               near_surface_points(solid_meshes(case), config.near_fraction * diagonal,
                                   config.points, config.seed + 1)]
-    rays = [centre_rays(lo, hi, config.rays, config.seed + 2)]
+    rays = [centre_rays(lo, hi, config.rays, config.seed + 2),
+            random_rays(lo, hi, config.rays, config.seed + 3)]
     return {q: points if q in POINT_QUERIES else rays for q in QUERIES}
 
 

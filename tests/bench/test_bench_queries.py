@@ -73,7 +73,7 @@ def bunny():
     return case, queries.workloads(case, config)
 
 
-def test_workloads_fill_the_box_hug_the_surface_and_aim_at_the_centre(bunny):
+def test_workloads_fill_the_box_hug_the_surface_aim_at_the_centre_or_anywhere(bunny):
     case, works = bunny
     lo, hi = (np.asarray(x, np.float64) for x in case.box)
     centre, diagonal = (lo + hi) / 2, np.linalg.norm(hi - lo)
@@ -85,12 +85,18 @@ def test_workloads_fill_the_box_hug_the_surface_and_aim_at_the_centre(bunny):
     d = point_distance(vertices, faces, near.points)
     assert d.max() <= queries.QUICK.near_fraction * diagonal * (1 + 1e-5)
     assert d.max() > queries.QUICK.near_fraction * diagonal * 0.5
-    (rays,) = works["count_intersections"]
-    assert (np.abs(rays.origins - centre) <= (hi - lo) / 2 * (1 + 1e-6)).all()
-    np.testing.assert_allclose(np.linalg.norm(rays.directions, axis=1), 1, atol=1e-6)
+    rays, wild = works["count_intersections"]
+    for some in (rays, wild):
+        assert (np.abs(some.origins - centre) <= (hi - lo) / 2 * (1 + 1e-6)).all()
+        np.testing.assert_allclose(np.linalg.norm(some.directions, axis=1), 1, atol=1e-6)
     to_centre = centre - rays.origins
     np.testing.assert_allclose(np.cross(rays.directions, to_centre), 0, atol=1e-5 * diagonal)
     assert ((rays.directions * to_centre).sum(axis=1) > 0).all()
+    # random directions: every octant, and a mean near 0 (|mean| of n random unit
+    # vectors is about 1 / sqrt(n): here below 4 times that)
+    octants = np.bincount((np.signbit(wild.directions) * [1, 2, 4]).sum(axis=1), minlength=8)
+    assert octants.min() > 0
+    assert np.linalg.norm(wild.directions.mean(axis=0)) < 4 / np.sqrt(len(wild))
 
 
 @pytest.mark.parametrize("name", list(queries.PEERS))
@@ -181,7 +187,7 @@ def test_quick_run_writes_agreeing_answers_and_ratios(suite_device, tmp_path, ca
     assert [c["name"] for c in written["cases"]] == list(queries.QUICK.cases)
     ours = suite_device.id
     for case in written["cases"]:
-        assert case["errors"] == {} and len(case["runs"]) == 6  # 2 point sets x 2, 1 ray set x 2
+        assert case["errors"] == {} and len(case["runs"]) == 8  # 2 point sets x 2, 2 ray sets x 2
         for run in case["runs"]:
             results = run["results"]
             assert run["errors"] == {} and run["reference"] == ours
