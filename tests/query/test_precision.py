@@ -161,3 +161,29 @@ def test_packets_match_single_rays_bitwise():
     for other in results[1:]:
         for name in ("t", "u", "v", "prim_id"):
             assert np.array_equal(getattr(results[0], name), getattr(other, name)), name
+
+
+@pytest.mark.parametrize("packet_size", PACKET_SIZES)
+def test_rays_from_afar_that_pass_by_hit_nothing(packet_size):
+    """Rays from about 1e30 away whose lines pass far (1e23 and more) from a
+    unit sphere: the sheared vertices' edge functions overflow to inf - inf
+    (NaN), which the inside test must reject, alone as in packets (it once
+    took NaN as inside, and such a ray hit every triangle it met).  No hit,
+    no occlusion, no count, whatever the packet size and walk."""
+    from hlbvh_cl.query.all_hits import AllHitsQuery
+    trimesh = pytest.importorskip("trimesh")
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(sphere.vertices, sphere.faces, name="sphere")])
+    rng = np.random.default_rng(21)
+    origins = (1e30 + rng.uniform(-1e24, 1e24, (64, 3))).astype(np.float32)
+    directions = np.tile(np.float32([-1, -1, -1]), (64, 1))
+    o, u = origins.astype(np.float64), directions[0] / np.linalg.norm(directions[0])
+    assert (np.linalg.norm(o - (o @ u)[:, None] * u, axis=1) > 1e22).all()  # far from it
+    q = RayQuery(built.runtime(scene), packet_size=packet_size)
+    tree = built.tree(scene)
+    hits = q.intersect(tree, origins, directions)
+    assert np.isinf(hits.t).all() and (hits.prim_id == -1).all()
+    assert not q.occluded(tree, origins, directions).any()
+    every = AllHitsQuery(q)
+    assert (every.count(tree, origins, directions) == 0).all()
+    assert len(every.intersect_all(tree, origins, directions)) == 0

@@ -269,9 +269,8 @@ TRAVERSAL_INLINE void start_packet(Found_packet* s, const Packet* p)
     *s = start;
 }
 
-/* inside_ray's test, written as the lanes where all three are >= 0 or all
- * are <= 0.  It differs from inside_ray only in a lane with a NaN.
- * (Negating the straddle test became an xor of the compare lanes with an i1
+/* inside_ray's test, in lanes: all three >= 0 or all <= 0, so a NaN fails.
+ * (Negating a straddle test became an xor of the compare lanes with an i1
  * true vector, which Oclgrind gets wrong: its vector compares give -1 per
  * true lane.) */
 TRAVERSAL_INLINE int_packet inside_packet(float_packet e_u, float_packet e_v, float_packet e_w)

@@ -162,14 +162,17 @@ TRAVERSAL_INLINE void start_ray(Found_ray* s, const RayData* r)
 TRAVERSAL_INLINE float reach_ray(const Found_ray* s) { return s->limit; }
 TRAVERSAL_INLINE void update_reach_ray(Found_ray* s) {}
 
-/* Woop et al.'s inside test: the three edge functions do not straddle 0.
- * Bitwise | and & rather than || and &&: one branch instead of up to six,
- * which the sign pattern of rejected triangles mispredicts (measured
- * faster). */
+/* Woop et al.'s inside test: the three edge functions have one sign (0
+ * counts as either), as the packet's inside_packet.  Written so that a NaN
+ * edge function (the products overflow, inf - inf, for a ray from ~1e30
+ * away) fails it: "do not straddle 0" took NaN as inside, and such a ray
+ * hit every triangle it was tested against.  Bitwise | and & rather than
+ * || and &&: one branch instead of up to six, which the sign pattern of
+ * rejected triangles mispredicts (measured faster). */
 TRAVERSAL_INLINE int inside_ray(float e_u, float e_v, float e_w)
 {
-    return !(((e_u < 0.0f) | (e_v < 0.0f) | (e_w < 0.0f))
-             & ((e_u > 0.0f) | (e_v > 0.0f) | (e_w > 0.0f)));
+    return ((e_u >= 0.0f) & (e_v >= 0.0f) & (e_w >= 0.0f))
+           | ((e_u <= 0.0f) & (e_v <= 0.0f) & (e_w <= 0.0f));
 }
 
 /* The slab test of a wide node's WIDE_ARITY child boxes at once, one vector
