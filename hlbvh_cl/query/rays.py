@@ -99,7 +99,7 @@ class RayQuery:
     are split into chunks); by default it follows the device's memory
     limits.  ``packet_size`` is the rays each work-item traces
     (PACKET_SIZES; by default the runtime's kernel variant's): every size
-    gives the same hits, ties aside.
+    gives the same hits (of hits at one t, the triangle first in the tree).
     """
 
     def __init__(self, rt: Runtime, max_rays_per_launch: int | None = None,

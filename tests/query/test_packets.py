@@ -343,3 +343,40 @@ def test_interleaved_walks_give_the_walks_one_by_one_s_answers(monkeypatch, name
             np.testing.assert_array_equal(getattr(got, field), getattr(want, field))
     np.testing.assert_array_equal(all_hits[0].counts, counts)
     assert (all_hits[1].counts == np.minimum(counts, 2)).all()
+
+
+def test_ties_at_shared_vertices_give_the_first_triangle_every_way(monkeypatch):
+    """Rays from one eye through the vertices of nested subdivided boxes:
+    each closest hit is at one t on every triangle around the vertex (or the
+    edge) it meets first.  Of those the triangle first in the tree wins,
+    so packets of 1, 8 and 16, walks interleaved or not, and a ray alone or
+    among rays that make it walk one by one, give the same t, prim_id, u
+    and v (a walk's order once decided)."""
+    from hlbvh_cl.query import engine
+    trimesh = pytest.importorskip("trimesh")
+    box = trimesh.creation.box(extents=(2, 2, 2)).subdivide().subdivide()
+    vertices = np.concatenate([box.vertices * s for s in (1.0, 0.75, 0.5, 0.25, 0.125)])
+    faces = np.concatenate([box.faces + len(box.vertices) * k for k in range(5)])
+    scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(vertices, faces, name="boxes")])
+    eye = np.float32([0, 0, 5])
+    targets = vertices[np.lexsort((vertices[:, 0], vertices[:, 1]))]
+    directions = (targets - eye).astype(np.float32)
+    origins = np.broadcast_to(eye, directions.shape)
+    # each ray first, then 15 reversed rays: its work-item walks one by one
+    mixed = np.concatenate([directions[:, None], np.repeat(-directions[:, None], 15, 1)],
+                           axis=1).reshape(-1, 3)
+    tree = built.tree(scene)
+    fields = ("t", "prim_id", "u", "v")
+    answers = []
+    for smallest in (0, 2**62):
+        monkeypatch.setattr(engine, "INTERLEAVED_MIN_TREE_BYTES", smallest)
+        for packet_size in (1, 8, 16):
+            q = RayQuery(built.runtime(scene), packet_size=packet_size)
+            hits = q.intersect(tree, origins, directions)
+            answers.append([getattr(hits, name) for name in fields])
+            hits = q.intersect(tree, np.broadcast_to(eye, mixed.shape), mixed)
+            answers.append([getattr(hits, name)[::16] for name in fields])
+    assert np.isfinite(answers[0][0]).mean() > 0.9
+    for other in answers[1:]:
+        for name, got, want in zip(fields, other, answers[0]):
+            np.testing.assert_array_equal(got, want, name)

@@ -101,8 +101,11 @@
 
 /* The leaf's triangles [first, first + count) against every lane: each hit
  * goes to QUERY_HIT; true when it ends the walk.  A lane takes a hit at
- * t == limit only while it has none (hit_triangle's `strict`).  Or the
- * query's own QUERY_LEAF, or a top tree's instances. */
+ * t == limit only while it has none or its hit's triangle comes later in
+ * the tree (hit_triangle's `strict`): of hits at one t, the closest hit is
+ * the first triangle, whatever order the walk met them in (a packet's and
+ * one ray's walks differ), so every packet size and walk gives the same
+ * hit.  Or the query's own QUERY_LEAF, or a top tree's instances. */
 TRAVERSAL_INLINE bool WALK_NAME(leaf)(const PATH(Rays)* r, __global const Triangle* triangles,
                                       int first, uint count, PATH(Found)* s WALK_PARAMS)
 {
@@ -113,8 +116,8 @@ TRAVERSAL_INLINE bool WALK_NAME(leaf)(const PATH(Rays)* r, __global const Triang
 #else
     for (uint i = (uint)first; i < (uint)first + count; ++i) {
         PATH(real) t, u, v;
-        PATH(flags) hit = PATH(hit_triangle)(r, triangles + i, s->limit, s->index >= 0, &t, &u,
-                                             &v);
+        PATH(flags) hit = PATH(hit_triangle)(r, triangles + i, s->limit,
+                                             (s->index >= 0) & (s->index < (int)i), &t, &u, &v);
         if (PATH(some)(hit) && QUERY_HIT(s, i, hit, t, u, v))
             return true;
     }
