@@ -216,9 +216,10 @@ TRAVERSAL_INLINE bool prepare_packet(const RayLanes* in, Packet* p)
  * largest axis) on every axis.  The interval ray spans that box, so rays
  * from origins spread across the scene, such as parallel rays from random
  * points, meet most of the tree together, where one by one (interleaved on
- * CPUs) each meets its own few nodes: such rays traced 1.25x faster so.
- * Rays from one point (a camera's), sorted by origin, or aimed at one point
- * and sorted by direction (query/order.py) pass. */
+ * CPUs) each meets its own few nodes (measured faster so; figures in the
+ * commit that brought this).  Rays from one point (a camera's), sorted by
+ * origin, or aimed at one point and sorted by direction (query/order.py)
+ * pass. */
 #define PACKET_SPREAD 16.0f
 TRAVERSAL_INLINE bool packet_compact(const Packet* p, __global const WideNode* root)
 {

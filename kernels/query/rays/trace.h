@@ -5,8 +5,8 @@
  * trace_QUERY, which traces the rays lanes[0, used) of a work-item as one
  * packet when prepare_packet accepts them and they lie close
  * (packet_compact), else one by one, each walk from its start (start_ray,
- * start_packet) over the scene's tree (on a two-level scene the top tree).  Include it as walk.h, without QUERY_PATH, with
- * walk.h's hooks and these:
+ * start_packet) over the scene's tree (on a two-level scene the top tree).
+ * Include it as walk.h, without QUERY_PATH, with walk.h's hooks and these:
  *   QUERY_OUT                the type of what the work-item's walks read and
  *                            leave, one lane each: trace_QUERY's `out`
  *   QUERY_END(s, out, l)     optional: stores a walk's results (s, and
