@@ -409,3 +409,22 @@ class LuxCoreChild:
     def close(self) -> None:
         self.process.stdin.close()
         self.process.wait()
+
+
+def start_child(paths: dict, max_depth: int) -> tuple[LuxCoreChild | None, str | None]:
+    """A LuxCoreChild that has rendered each scene file of ``paths`` once
+    (16x16, 1 spp), and None; or None and why LuxCore is left out: pyluxcore
+    does not import, or its child died on one of them (pyluxcore 2.11 aborts
+    with "double free or corruption" in RenderSession.Start on a 2-core Zen 4
+    VM), so that a peer's crash costs the bench only its columns."""
+    problem = available()
+    if problem:
+        return None, f"pyluxcore does not import: {problem}"
+    child = LuxCoreChild()
+    for path in paths.values():
+        try:
+            child.render(path, 16, 16, 1, max_depth)
+        except RuntimeError as error:
+            child.process.kill()
+            return None, f"{error} (a 16x16 probe)"
+    return child, None

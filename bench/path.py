@@ -242,11 +242,10 @@ def main(argv=None) -> dict:
         paths = {"cornell": cornell_xml(folder), "materials": materials_xml(folder)}
         child = mitsuba_child(paths, sizes)
         results["mitsuba"] = child.variant
-        lux_problem = luxcore.available()
-        lux = None if lux_problem else luxcore.LuxCoreChild()
+        lux, lux_problem = luxcore.start_child(paths, MAX_DEPTH)
         results["luxcore"] = f"skipped: {lux_problem}" if lux_problem else "PATHCPU"
         if lux_problem:
-            say(f"LuxCore PATHCPU: skipped (pyluxcore does not import: {lux_problem})")
+            say(f"LuxCore PATHCPU: skipped ({lux_problem})")
         ours = {}
         for name, path in paths.items():
             width, height, spp = sizes[name]
