@@ -309,29 +309,35 @@ class RayQuery:
 
     def enqueue_intersect(self, tree: Tree, rays: cl.Buffer, hits: cl.Buffer, count: int,
                           overflow: cl.Buffer, wait_for=None,
-                          instances: cl.Buffer | None = None) -> cl.Event:
+                          instances: cl.Buffer | None = None,
+                          counted: tuple[cl.Buffer, int] | None = None) -> cl.Event:
         """Enqueue intersect_closest over `count` Ray records already on the
         device; it writes `count` Hit records to `hits`, and with `instances`
-        each hit's instance (int32, -1: none).  Nothing is checked or
-        read back: the rays must follow the conventions above (a ray with
-        tmin > tmax hits nothing), and the caller clears the int32 `overflow`
-        flag beforehand and raises if a traversal set it."""
+        each hit's instance (int32, -1: none).  With ``counted`` = (buffer,
+        k), only the first min(count, buffer[k]) rays (uint32 k of a buffer
+        the device fills before the launch runs), and only their records are
+        written.  Nothing is checked or read back: the rays must follow the
+        conventions above (a ray with tmin > tmax hits nothing), and the
+        caller clears the int32 `overflow` flag beforehand and raises if a
+        traversal set it."""
         self._require_triangles(tree)
         kernel = self._kernel(tree, "intersect_closest")
         return self.rt.run(kernel, self._work_items(count),
                            *scene_args(tree, self._all_bits, 0), rays, hits, instances,
-                           overflow, np.uint32(count), wait_for=wait_for,
-                           local_size=self.work_group_size)
+                           overflow, np.uint32(count), *counted_args(counted),
+                           wait_for=wait_for, local_size=self.work_group_size)
 
     def enqueue_occluded(self, tree: Tree, rays: cl.Buffer, occluded: cl.Buffer, count: int,
-                         overflow: cl.Buffer, wait_for=None) -> cl.Event:
+                         overflow: cl.Buffer, wait_for=None,
+                         counted: tuple[cl.Buffer, int] | None = None) -> cl.Event:
         """As enqueue_intersect, with intersect_any: occluded[i] = 1 (uchar)
         where ray i hits anything."""
         self._require_triangles(tree)
         kernel = self._kernel(tree, "intersect_any")
         return self.rt.run(kernel, self._work_items(count),
                            *scene_args(tree, self._all_bits, 0), rays, occluded, overflow,
-                           np.uint32(count), wait_for=wait_for, local_size=self.work_group_size)
+                           np.uint32(count), *counted_args(counted), wait_for=wait_for,
+                           local_size=self.work_group_size)
 
     # -- internals ----------------------------------------------------------
 
@@ -360,6 +366,15 @@ class RayQuery:
             stepped={"tmin": batch.tmin, "tmax": batch.tmax, "mask": batch.mask}, key=key,
             granule=self.packet_size), launch)
         self.last_packets = int(counters[1]) if self.count_packets else None
+
+
+def counted_args(counted: tuple[cl.Buffer, int] | None) -> tuple:
+    """The kernels' (counts, count_at) for enqueue_intersect's ``counted``:
+    a null buffer for none."""
+    if counted is None:
+        return None, np.uint32(0)
+    buffer, at = counted
+    return buffer, np.uint32(at)
 
 
 def missed(hits) -> None:

@@ -133,15 +133,25 @@ TRAVERSAL_INLINE void any_hits(RayLanes* lanes, uint used, uint first, SCENE_PAR
         occluded[l] = found.index[l] >= 0 ? 1 : 0;
 }
 
-/* Closest hit of rays[0, ray_count) -> hits, and where instance_out is not
- * null, the instance each hit (-1: none, or a flat scene): the path
+/* The rays a launch over Ray records traces: ray_count, or where `counts`
+ * is not null at most counts[count_at], a count the device wrote after the
+ * host sized the launch (the path integrator's live paths and shadow rays:
+ * the work-items past it return at once rather than trace empty rays). */
+TRAVERSAL_INLINE uint rays_to_trace(uint ray_count, __global const uint* counts, uint count_at)
+{
+    return counts != 0 ? LESSER(ray_count, counts[count_at]) : ray_count;
+}
+
+/* Closest hit of rays[0, rays_to_trace) -> hits, and where instance_out is
+ * not null, the instance each hit (-1: none, or a flat scene): the path
  * integrator maps a mesh's shading normals to the world by it. */
 TRAVERSAL_KERNEL void intersect_closest(SCENE_PARAMS, __global const Ray* rays, __global Hit* hits,
-        __global int* instance_out, __global int* overflow, const uint ray_count)
+        __global int* instance_out, __global int* overflow, const uint ray_count,
+        __global const uint* counts, const uint count_at)
 {
     RayLanes lanes;
     Hit found[PACKET_SIZE];
-    uint first, used = packet_rays(ray_count, &first);
+    uint first, used = packet_rays(rays_to_trace(ray_count, counts, count_at), &first);
     if (used == 0)
         return;
     load_records(rays, first, used, &lanes);
@@ -154,12 +164,13 @@ TRAVERSAL_KERNEL void intersect_closest(SCENE_PARAMS, __global const Ray* rays, 
             instance_out[first + l] = instance[l];
 }
 
-/* Occlusion of rays[0, ray_count): occluded[i] = 1 if anything is hit. */
+/* Occlusion of rays[0, rays_to_trace): occluded[i] = 1 if anything is hit. */
 TRAVERSAL_KERNEL void intersect_any(SCENE_PARAMS, __global const Ray* rays,
         __global uchar* occluded,
-        __global int* overflow, const uint ray_count)
+        __global int* overflow, const uint ray_count,
+        __global const uint* counts, const uint count_at)
 {
-    uint first, used = packet_rays(ray_count, &first);
+    uint first, used = packet_rays(rays_to_trace(ray_count, counts, count_at), &first);
     RayLanes lanes;
     if (used != 0) {
         load_records(rays, first, used, &lanes);

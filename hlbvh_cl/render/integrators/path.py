@@ -31,8 +31,9 @@ path's random numbers follow its pixel, so the image does not depend on the
 order).  No bounce waits on the host: it reads each bounce's
 count of live paths one bounce behind the device (while the device works
 on the bounce it has queued), launches the next bounce over that many (an
-upper bound, as paths only end; the slots past the live ones hold empty
-rays, which cost one node), and stops when none is left.
+upper bound, as paths only end), and stops when none is left.  The shadow
+rays are compacted too, and each stage reads its count on the device: the
+work-items past it return at once.
 
 Shading follows Mitsuba 3's rules (shading_tables; kernels/render/
 integrators/path.cl): BSDFs and area emitters see each mesh's shading
@@ -64,6 +65,13 @@ UNLIMITED_BOUNCES = 1024
 #: each bounce over the paths of the one before; more would launch it over
 #: an earlier bounce's, whose paths that ended since are empty rays.
 LOOKAHEAD = 1
+
+#: path_surface's work-group size.  A CPU runtime keeps the values a
+#: work-item holds across the kernel's barriers (its next ray and its shadow
+#: ray) in arrays of one element per work-item; for 64 work-items they stay
+#: in L1, where 256 made the stage slower than before its shadow rays were
+#: compacted.  GPUs run groups of 64 well.
+SURFACE_GROUP = 64
 
 #: DeltaLight.type (kernels/render/integrators/path.h).
 LIGHT_POINT, LIGHT_DIRECTIONAL = 0, 1
@@ -226,8 +234,8 @@ class Path(Integrator):
 
     #: Bytes per pixel of a pass of the integrator's own buffers.
     PER_PIXEL = {"path states": layout.PATH_STATE.itemsize, "shadow rays": layout.RAY.itemsize,
-                 "occluded": 1, "pending light": 16, "next rays": layout.RAY.itemsize,
-                 "path numbers": 8}
+                 "occluded": 1, "pending light": 16, "shadow paths": 4,
+                 "next rays": layout.RAY.itemsize, "path numbers": 8}
 
     #: float4 of AOV sums per pixel: (albedo, depth) and (shading normal, 0);
     #: bytes per pixel of the AOV sums and of the AOV image (7 floats).
@@ -261,9 +269,11 @@ class Path(Integrator):
             self.shadow = cl.Buffer(context, rw, pixels * layout.RAY.itemsize)
             self.occluded = cl.Buffer(context, rw, pixels)
             self.pending = cl.Buffer(context, rw, pixels * 16)  # float4
+            self.shadow_paths = cl.Buffer(context, rw, pixels * 4)
             self.next_rays = cl.Buffer(context, rw, pixels * layout.RAY.itemsize)
             self.numbers = [cl.Buffer(context, rw, pixels * 4) for _ in range(2)]
             self.live = cl.Buffer(context, rw, 4 * (UNLIMITED_BOUNCES + 1))
+            self.shadows = cl.Buffer(context, rw, 4 * UNLIMITED_BOUNCES)  # per pass
             self._pixels = pixels
         tables = light_tables(look, tree.scale, tree.bounds_lo, tree.bounds_hi)
         meshes, shading = self._shading
@@ -350,10 +360,10 @@ class Path(Integrator):
     def shade(self, step: Step) -> None:
         """The bounces of one sample of a band.  Pass d traces the
         live[d] paths that went on from pass d - 1, compacted on the device
-        (path_surface); the host does not wait for that count but launches
-        over the last count it has read, LOOKAHEAD passes behind (never
-        fewer, since paths only end), and the slots past live[d] hold empty
-        rays."""
+        (path_surface), and their shadows[d] shadow rays; the host does not
+        wait for those counts but launches over the last count it has read,
+        LOOKAHEAD passes behind (never fewer, since paths only end), and the
+        kernels read the counts on the device."""
         rt, band, kernels, events = step.rt, step.band, self._kernels, step.events
         count, sample = np.uint32(band.count), np.uint32(step.sample)
         stream, first_pixel = np.uint32(step.stream), np.uint32(int(band.first_row) * band.width)
@@ -361,6 +371,8 @@ class Path(Integrator):
         bounces = self.settings.max_depth if self.settings.max_depth > 0 else UNLIMITED_BOUNCES
         events["shade"].append(cl.enqueue_fill_buffer(rt.queue, self.live, np.uint32(0), 0,
                                                       4 * (bounces + 1)))
+        events["shade"].append(cl.enqueue_fill_buffer(rt.queue, self.shadows, np.uint32(0), 0,
+                                                      4 * bounces))
         events["shade"].append(cl.enqueue_copy(rt.queue, self.live, np.array([count]),
                                                is_blocking=False))
         if self._aovs:
@@ -379,7 +391,7 @@ class Path(Integrator):
             if depth > 0:
                 events["closest"].append(step.query.enqueue_intersect(
                     step.tree, rays, step.hits, bound, step.overflow,
-                    instances=step.instances))
+                    instances=step.instances, counted=(self.live, depth)))
             events["shade"].append(rt.run(
                 kernels["path_surface"], bound, rays, step.hits, numbers, self.states,
                 tables["materials"], tables["vertices"], tables["normals"], tables["cdf"],
@@ -387,12 +399,14 @@ class Path(Integrator):
                 tables["shading_normals"], step.instances, tables["instance_maps"],
                 tables["instance_materials"], tables["envmap_image"], tables["envmap_cdf"],
                 self._params, np.uint32(bound), first_pixel, stream, at,
-                self.live, next_rays, next_numbers, self.shadow, self.pending))
+                self.live, next_rays, next_numbers, self.shadows, self.shadow, self.pending,
+                self.shadow_paths, local_size=SURFACE_GROUP))
             events["occluded"].append(step.query.enqueue_occluded(
-                step.tree, self.shadow, self.occluded, bound, step.overflow))
+                step.tree, self.shadow, self.occluded, bound, step.overflow,
+                counted=(self.shadows, depth)))
             events["resolve"].append(rt.run(
-                kernels["path_unoccluded"], bound, self.occluded, self.pending, numbers,
-                self.live, at, np.uint32(bound), self.states, next_rays))
+                kernels["path_unoccluded"], bound, self.occluded, self.pending,
+                self.shadow_paths, self.shadows, at, np.uint32(bound), self.states))
             reads.append(cl.enqueue_copy(rt.queue, self._live[depth:depth + 1], self.live,
                                          src_offset=4 * (depth + 1), is_blocking=False))
             rays, next_rays = next_rays, rays

@@ -11,12 +11,11 @@
  * on, compacted into its first live[depth] slots with their path numbers)
  *   path_surface    at the path's hit (or miss; on the first pass, a fresh
  *                   path): the light it sees there, a light sample (its
- *                   shadow ray, and what it carries to `pending`), and the
- *                   next ray, sampled from the BSDF, in the next pass's
- *                   next free slot
+ *                   shadow ray, what it carries to `pending` and its path,
+ *                   in the pass's next free shadow slot), and the next ray,
+ *                   sampled from the BSDF, in the next pass's next free slot
  *   path_unoccluded a path's radiance += pending where its shadow ray was
- *                   free; empty rays in the next pass's slots past its live
- *                   paths
+ *                   free
  *   path_finish     the film's sum += each path's radiance (by path)
  *   path_aovs       (when asked, before the first path_surface) each pixel's
  *                   sums of its first hit's albedo, shading normal and depth
@@ -121,22 +120,24 @@ inline void end_path(__global PathState* s, bool first, float3 gathered)
     store3(s->radiance, radiance_before(s, first) + gathered);
 }
 
-/* No light sample at this vertex. */
-inline void no_shadow_ray(__global Ray* shadow, __global float4* pending, float3 direction)
-{
-    write_empty_ray(shadow, direction);
-    *pending = (float4)(0.0f);
-}
+/* A vertex's light sample as its shadow ray: from `origin` along the unit
+ * `direction` up to `reach`, carrying `carried` to the path where it is
+ * free. */
+typedef struct {
+    float3 origin;
+    float3 direction;
+    float reach;
+    float3 carried;
+} ShadowRay;
 
 /* One path vertex (path_surface's work-item gid, path `path`): the light it
- * sees there, its light sample (its shadow ray and what it carries to
- * `pending`), and whether the path goes on, from *next_origin along
+ * sees there, its light sample (*shadow, where it returns with *casts
+ * set), and whether the path goes on, from *next_origin along
  * *next_direction. */
 FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel, uint sample,
                                __global const Ray* rays, __global const Hit* hits,
                                __global PathState* states, const PathTables* tables,
-                               const PathParams* params,
-                               __global Ray* shadow, __global float4* pending,
+                               const PathParams* params, ShadowRay* shadow, bool* casts,
                                float3* next_origin, float3* next_direction)
 {
     __global PathState* s = states + path;
@@ -155,7 +156,6 @@ FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel,
         float3 escaped = environment_light(params, tables->lights.envmap_image,
                                            tables->lights.envmap_cdf, -wo, &light_pdf);
         float weight = bsdf_pdf > 0.0f ? power_heuristic(bsdf_pdf, light_pdf) : 1.0f;
-        no_shadow_ray(shadow + gid, pending + gid, d);
         end_path(s, first, throughput * escaped * weight);
         return false;
     }
@@ -186,7 +186,6 @@ FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel,
         n = -n;
     }
     if (last || cos_out == 0.0f) {
-        no_shadow_ray(shadow + gid, pending + gid, d);
         end_path(s, first, gathered);
         return false;
     }
@@ -217,10 +216,11 @@ FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel,
         float3 toward = dot3(geometric, light.direction) > 0.0f ? geometric : -geometric;
         bool behind = dot3(toward, lift) < 0.0f;
         float reach = light.reach - margin - (behind ? 2.0f * params->ray_offset : 0.0f);
-        write_ray(shadow + gid, x + params->ray_offset * toward, light.direction, reach);
-        pending[gid] = (float4)(carried, 0.0f);
-    } else {
-        no_shadow_ray(shadow + gid, pending + gid, d);
+        shadow->origin = x + params->ray_offset * toward;
+        shadow->direction = light.direction;
+        shadow->reach = reach;
+        shadow->carried = carried;
+        *casts = true;
     }
 
     /* the BSDF sample: the throughput takes its weight f cos / pdf */
@@ -295,71 +295,79 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
                                                        * live[depth + 1] += paths that go on */
                            __global Ray* next_rays,   /* the paths that go on, compacted */
                            __global uint* next_paths,
-                           __global Ray* shadow,      /* by work-item */
-                           __global float4* pending)
+                           __global uint* shadows,    /* shadows[depth] += the shadow rays */
+                           __global Ray* shadow,      /* the shadow rays, compacted */
+                           __global float4* pending,  /* what each carries */
+                           __global uint* shadow_paths)  /* and its path */
 {
     /* compaction (Laine, Karras & Aila 2013, sec. 4): the paths that go on
-     * take the next pass's first slots.  A work-group counts its own in
+     * take the next pass's first slots, and the shadow rays this pass's, so
+     * that the walks' work-items past their counts (read on the device)
+     * return at once: empty rays in those slots cost the materials scene's
+     * shadow pass about half its time.  A work-group counts its own in
      * local memory and reserves their slots with one global atomic: an
      * atomic per path had the CPU threads contend for the counter's cache
      * line (perf: most of this kernel's time on PoCL).  Slots follow no
      * order: a path's numbers depend on its pixel, not its slot. */
-    __local uint group_paths;
-    __local uint group_first;
+    __local uint group_paths, group_shadows;
+    __local uint group_first, group_first_shadow;
     uint gid = get_global_id(0);
     bool leader = get_local_id(0) == 0;
-    if (leader)
+    if (leader) {
         group_paths = 0;
+        group_shadows = 0;
+    }
     barrier(CLK_LOCAL_MEM_FENCE);
     const PathTables tables = {{materials, light_vertices, light_normals, light_cdf,
                                 light_geom, delta_lights, envmap_image, envmap_cdf},
                                shading_faces, shading_normals, hit_instances, instance_maps,
                                instance_materials};
-    bool goes_on = false;
-    uint path = 0, slot = 0;
+    bool goes_on = false, casts = false;
+    uint path = 0, slot = 0, shadow_slot = 0;
     float3 origin = (float3)(0.0f), direction = (float3)(0.0f);
-    if (gid < bound) {
-        if (gid >= live[depth]) {  /* past the live paths: nothing for the shadow pass */
-            no_shadow_ray(shadow + gid, pending + gid, (float3)(0.0f, 0.0f, 1.0f));
-        } else {
-            path = depth == 0 ? gid : paths[gid];
-            goes_on = shade_vertex(gid, path, depth, first_pixel, sample, rays, hits, states,
-                                   &tables, &params, shadow, pending, &origin, &direction);
-        }
+    ShadowRay light = {(float3)(0.0f), (float3)(0.0f), 0.0f, (float3)(0.0f)};
+    if (gid < bound && gid < live[depth]) {
+        path = depth == 0 ? gid : paths[gid];
+        goes_on = shade_vertex(gid, path, depth, first_pixel, sample, rays, hits, states,
+                               &tables, &params, &light, &casts, &origin, &direction);
     }
     if (goes_on)
         slot = atomic_inc(&group_paths);
+    if (casts)
+        shadow_slot = atomic_inc(&group_shadows);
     barrier(CLK_LOCAL_MEM_FENCE);
     if (leader && group_paths > 0)
         group_first = atomic_add(live + depth + 1, group_paths);
+    if (leader && group_shadows > 0)
+        group_first_shadow = atomic_add(shadows + depth, group_shadows);
     barrier(CLK_LOCAL_MEM_FENCE);
     if (goes_on) {
         slot += group_first;
         write_ray(next_rays + slot, origin, direction, INFINITY);
         next_paths[slot] = path;
     }
+    if (casts) {
+        shadow_slot += group_first_shadow;
+        write_ray(shadow + shadow_slot, light.origin, light.direction, light.reach);
+        pending[shadow_slot] = (float4)(light.carried, 0.0f);
+        shadow_paths[shadow_slot] = path;
+    }
 }
 
 /* After the shadow rays: a path's radiance += pending where its shadow ray
- * was free; and the next pass's slots from live[depth + 1] to `bound` get
- * empty rays, which the closest-hit walk leaves after one node. */
+ * was free (a path casts one shadow ray a pass at most). */
 __kernel void path_unoccluded(__global const uchar* occluded,
                               __global const float4* pending,
-                              __global const uint* paths,   /* as path_surface's */
-                              __global const uint* live,
+                              __global const uint* shadow_paths,  /* as path_surface's */
+                              __global const uint* shadows,
                               const int depth,
                               const uint bound,
-                              __global PathState* states,
-                              __global Ray* next_rays)
+                              __global PathState* states)
 {
     uint gid = get_global_id(0);
-    if (gid >= bound)
+    if (gid >= bound || gid >= shadows[depth] || occluded[gid])
         return;
-    if (gid >= live[depth + 1])
-        write_empty_ray(next_rays + gid, (float3)(0.0f, 0.0f, 1.0f));
-    if (gid >= live[depth] || occluded[gid])
-        return;
-    __global PathState* s = states + (depth == 0 ? gid : paths[gid]);
+    __global PathState* s = states + shadow_paths[gid];
     store3(s->radiance, LOAD_XYZ(s->radiance) + pending[gid].xyz);
 }
 
