@@ -367,15 +367,20 @@ def test_a_variant_that_crashes_the_compiler_falls_back_with_one_warning(fresh_p
     monkeypatch.setenv("HLBVH_CL_PROBE_FAULT", f"{best.name}:abort")
     verdict = device.verdict  # the child aborts as LLVM does; this process goes on
     assert verdict.chosen is not None and verdict.chosen != best
-    (failed, reason), = verdict.failures
-    assert failed == best and "injected" in reason and "signal 6" in reason
+    # the injected abort; a variant that fails on its own here (PyPI's PoCL 3.0
+    # on a Zen 4 host cannot compile packet8) is listed beside it
+    reasons = dict(verdict.failures)
+    assert "injected" in reasons[best] and "signal 6" in reasons[best]
+    assert all("injected" not in reason for failed, reason in reasons.items() if failed != best)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         rt = Runtime(device)
     assert rt.variant == verdict.chosen
     messages = [str(w.message) for w in caught if "hlbvh_cl" in str(w.message)]
-    assert len(messages) == 1 and f"cannot run kernel variant {best.name}" in messages[0]
-    assert "\n" not in messages[0]
+    # one warning a failed variant, each one line
+    assert len(messages) == len(reasons)
+    assert sum(f"cannot run kernel variant {best.name} (" in m for m in messages) == 1
+    assert all("\n" not in m for m in messages)
 
 
 def _saved_verdicts() -> dict:
