@@ -44,13 +44,17 @@ def describe(devices) -> str:
 
 def best(candidates):
     """The device to take among ``candidates``: one whose kernels run, of
-    the type TYPES prefers, then the fastest camera rays in its probe (a
-    device that had to fall back to a narrower kernel variant traces
-    slower there); None when none runs.  Probes only the candidates given."""
+    the type TYPES prefers, then one that runs the first kernel variant its
+    profile names over one that fell back to another (PyPI's PoCL 3.0 on a
+    Zen 4 host runs only packet1, beside Debian's PoCL that runs packet16:
+    the probe's speeds, a second each on a shared machine, ranked them
+    either way), then the fastest camera rays in its probe; None when none
+    runs.  Probes only the candidates given."""
     working = [d for d in candidates if d.problem is None]
     if not working:
         return None
-    return max(working, key=lambda d: (-_type_rank(d.type), d.verdict.mrays_per_s or 0.0))
+    return max(working, key=lambda d: (-_type_rank(d.type), not d.verdict.failures,
+                                       d.verdict.mrays_per_s or 0.0))
 
 
 def _type_rank(device_type: str) -> int:

@@ -25,6 +25,7 @@ class Fake:
     type: str = "cpu"
     problem: str | None = None
     mrays: float = 10.0
+    fell_back: bool = False  # its probe failed its first kernel variant
 
     @property
     def simulator(self) -> bool:
@@ -32,7 +33,8 @@ class Fake:
 
     @property
     def verdict(self) -> Verdict:
-        return Verdict(mrays_per_s=self.mrays)
+        failures = (("packet8", "LLVM ERROR (killed by signal 6)"),) if self.fell_back else ()
+        return Verdict(failures=failures, mrays_per_s=self.mrays)
 
     def __str__(self) -> str:
         return f"{self.id} ({self.type}) {self.name} [{self.platform}]"
@@ -158,3 +160,15 @@ def test_the_default_prefers_a_working_gpu_then_the_fastest_cpu_never_a_simulato
     only_simulator = [d for d in intel_host() if d.simulator]
     assert default(only_simulator) is None
     assert default([Fake("pocl:0", "x", POCL, problem="fails")]) is None
+
+
+@pytest.mark.parametrize("fallback_mrays", [5.0, 15.0])
+def test_a_device_that_runs_its_first_variant_beats_one_that_fell_back(fallback_mrays):
+    """A Zen 4 host: PyPI's PoCL runs only packet1 there, Debian's packet16; the
+    probes' speeds on a shared 2-core machine ranked them either way."""
+    host = [Fake("pocl:0", f"pthread-{EPYC}", POCL, mrays=10.0),
+            Fake("pocl:1", f"pthread-{EPYC}", POCL, mrays=fallback_mrays, fell_back=True),
+            Fake("intel:0", EPYC, INTEL_CPU, mrays=8.0)]
+    assert choose("pocl", host, "device").id == "pocl:0"
+    assert default(host).id == "pocl:0"
+    assert choose("pocl", host[1:], "device").id == "pocl:1"  # the one there is

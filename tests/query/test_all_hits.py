@@ -548,7 +548,10 @@ def test_orders_the_count_chooses(tiny, monkeypatch):
         query = AllHitsQuery(RayQuery(built.runtime(tiny.scene), packet_size=8))
         interleaved = "INTERLEAVED_WALKS" in engine.kernel_defines(
             query.rt, tree, query.query.variant, query.count_packet_size)
-        assert interleaved == (smallest == 0 and not query.rt.profile.gpu)
+        # interleaving takes a work-item of several rays: not on a device that
+        # cannot compile packets (PyPI's PoCL on a Zen 4 runs packet1 only)
+        assert interleaved == (smallest == 0 and not query.rt.profile.gpu
+                               and query.query.variant.packet_size > 1)
         for name, (rays, plain, when_interleaved) in batches.items():
             sorted_batches.clear()
             counts = query.count(tree, *rays)

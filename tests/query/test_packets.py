@@ -93,8 +93,20 @@ def camera_rays(case, width: int, height: int):
     return origins.astype(np.float32), directions.astype(np.float32)
 
 
+def packet_query(scene, packet_size: int) -> RayQuery:
+    """A RayQuery of ``packet_size`` rays a work-item on ``scene``'s device;
+    skips where the device cannot compile that packet (its probe fell back:
+    PyPI's PoCL 3.0 on a Zen 4 host runs packet1 only), as these tests are
+    about packets."""
+    q = RayQuery(built.runtime(scene), packet_size=packet_size)
+    if q.packet_size != packet_size:
+        pytest.skip(f"{q.rt.device.id} cannot run {packet_size}-ray packets "
+                    f"(it runs {q.packet_size})")
+    return q
+
+
 def query(case, packet_size: int) -> RayQuery:
-    return RayQuery(built.runtime(case.scene), packet_size=packet_size)
+    return packet_query(case.scene, packet_size)
 
 
 @pytest.mark.parametrize("packet_size", PACKET_SIZES)
@@ -171,7 +183,7 @@ def test_rays_from_inside_in_packets_always_hit(name, packet_size):
     they form packets."""
     mesh = hlbvh_cl.Mesh.load(MESHES / f"{name}.ply")
     scene = hlbvh_cl.Scene([mesh])
-    q = RayQuery(built.runtime(scene), packet_size=packet_size)
+    q = packet_query(scene, packet_size)
     vertices = mesh.vertices.astype(np.float64)
     edges = unique_edges(mesh.faces)
     midpoints = (vertices[edges[:, 0]] + vertices[edges[:, 1]]) / 2
@@ -253,7 +265,7 @@ def test_packets_with_zero_components_on_a_node_plane(sign, packet_size):
                     * (packet_size // 8), np.float32)
     tree = built.tree(scene)
     for size in (1, packet_size):
-        q = RayQuery(built.runtime(scene), packet_size=size)
+        q = packet_query(scene, size)
         q.count_packets = True
         hits = q.intersect(tree, origins, directions)
         assert q.last_packets == (1 if size > 1 else 0)
@@ -280,6 +292,8 @@ def test_float_steps_are_nextafter(suite_device):
     from hlbvh_cl.device.runtime import quiet_build, runtime
     from hlbvh_cl.core.paths import kernel_dir
     rt = runtime(suite_device)
+    if RayQuery(rt, packet_size=8).packet_size != 8:
+        pytest.skip(f"{rt.device.id} cannot compile 8-ray packets")
     options = ["-I", str(kernel_dir())] + [f"-D{name}={value}" for name, value in
                                            {**rt.variant.defines, "PACKET_SIZE": 8}.items()]
     program = quiet_build(cl.Program(rt.context, STEPS), options, rt.device.cl_device)
@@ -317,7 +331,7 @@ def test_interleaved_walks_give_the_walks_one_by_one_s_answers(monkeypatch, name
     answers = []
     for smallest in (0, 2**62):
         monkeypatch.setattr(engine, "INTERLEAVED_MIN_TREE_BYTES", smallest)
-        q = RayQuery(built.runtime(case.scene), packet_size=packet_size)
+        q = packet_query(case.scene, packet_size)
         defines = engine.kernel_defines(q.rt, tree, q.variant, q.packet_size)
         assert ("INTERLEAVED_WALKS" in defines) == (smallest == 0 and not q.rt.profile.gpu)
         hits = q.intersect(tree, origins, directions)
@@ -371,7 +385,7 @@ def test_ties_at_shared_vertices_give_the_first_triangle_every_way(monkeypatch):
     for smallest in (0, 2**62):
         monkeypatch.setattr(engine, "INTERLEAVED_MIN_TREE_BYTES", smallest)
         for packet_size in (1, 8, 16):
-            q = RayQuery(built.runtime(scene), packet_size=packet_size)
+            q = packet_query(scene, packet_size)
             hits = q.intersect(tree, origins, directions)
             answers.append([getattr(hits, name) for name in fields])
             hits = q.intersect(tree, np.broadcast_to(eye, mixed.shape), mixed)
