@@ -303,12 +303,12 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
     /* compaction (Laine, Karras & Aila 2013, sec. 4): the paths that go on
      * take the next pass's first slots, and the shadow rays this pass's, so
      * that the walks' work-items past their counts (read on the device)
-     * return at once: empty rays in those slots cost the materials scene's
-     * shadow pass about half its time.  A work-group counts its own in
-     * local memory and reserves their slots with one global atomic: an
-     * atomic per path had the CPU threads contend for the counter's cache
-     * line (perf: most of this kernel's time on PoCL).  Slots follow no
-     * order: a path's numbers depend on its pixel, not its slot. */
+     * return at once instead of walking empty rays.  A work-group counts
+     * its own in local memory and reserves their slots with one global
+     * atomic: an atomic per path had the CPU threads contend for the
+     * counter's cache line (perf: most of this kernel's time on PoCL).
+     * Slots follow no order: a path's numbers depend on its pixel, not its
+     * slot. */
     __local uint group_paths, group_shadows;
     __local uint group_first, group_first_shadow;
     uint gid = get_global_id(0);
