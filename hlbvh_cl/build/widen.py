@@ -1,8 +1,9 @@
 """Build stage 7 host side (kernels/build/widen.cl): the binary tree collapsed into
-the 8-wide nodes that traversal reads, level by level from the root
-(Dammertz et al. 2008, "Shallow Bounding Volume Hierarchies"; Wald, Benthin
-& Boulos 2008, "Getting Rid of Packets").  The levels come out breadth-first,
-which is what the refit (hlbvh_cl.build.refit) walks back up.
+the 8-wide nodes that traversal reads (Dammertz et al. 2008, "Shallow Bounding
+Volume Hierarchies"; Wald, Benthin & Boulos 2008, "Getting Rid of Packets"),
+along the cuts of least SAH cost (Ylitie, Karras & Laine 2017), found in one
+bottom-up pass, then level by level from the root.  The levels come out
+breadth-first, which is what the refit (hlbvh_cl.build.refit) walks back up.
 
 The level sizes stay on the device (issue 57): the host launches a round of
 levels without reading them, then reads the round's sizes once, with
@@ -56,7 +57,9 @@ class Widening:
         # each wide node stands for a distinct BVH2 node
         rt.check_allocation("widening the tree", {
             "sources": capacity * 4, "slots": capacity * arity * 4, "first children": capacity * 4,
-            "interior counts": (capacity + 1) * 4})
+            "interior counts": (capacity + 1) * 4, "cut costs": capacity * arity * 4,
+            "cut choices": capacity * arity, "subtree runs": capacity * 8,
+            "parents and visits": capacity * 8})
         spare = [] if spare is None else spare
 
         def take(nbytes):
@@ -65,20 +68,44 @@ class Widening:
         self.bvh2_count = bvh2_count
         self.slots, self.interior = take(capacity * arity * 4), take((capacity + 1) * 4)
         self.source, self.first_child = take(capacity * 4), take(capacity * 4)
+        self.choice, self.spans = take(capacity * arity), take(capacity * 8)
         units = rt.device.compute_units
         self.most_items = units * (GPU_ITEMS_PER_UNIT if rt.profile.gpu else CPU_ITEMS_PER_UNIT)
         self.levels: list[tuple[int, int]] = []  # read back so far, root first
         self.launched = 0  # levels launched so far
+        self.defines = rt.handoff_defines
         self.events = [cl.enqueue_fill_buffer(rt.queue, self.source, np.int32(0), 0, 4,
                                               wait_for=wait_for)]
+        self._cut_costs(take(capacity * arity * 4), take(capacity * 4), take(capacity * 4), spare)
         self._round(0, 1, EXTRA_LEVELS + -(-(capacity - 1).bit_length() // 3))
+
+    def _cut_costs(self, costs: cl.Buffer, parent: cl.Buffer, visits: cl.Buffer,
+                   spare: list) -> None:
+        """The optimal cuts' choices and runs (widen.cl's wide_costs), over
+        the whole BVH2, before the first level; their other buffers go back
+        to ``spare`` once enqueued."""
+        rt, q, capacity, arity = self.rt, self.rt.queue, self.capacity, layout.WIDE_ARITY
+        fills = [cl.enqueue_fill_buffer(q, visits, np.int32(0), 0, capacity * 4),
+                 # a BVH2 that is not a tree leaves choices unwritten: zero cuts stay in bounds
+                 cl.enqueue_fill_buffer(q, self.choice, np.uint8(0), 0, capacity * arity)]
+        if not self.defines["ACQUIRE_RELEASE"]:
+            # words handed on by atomics start defined (as in radix_tree.py, for Oclgrind)
+            fills += [cl.enqueue_fill_buffer(q, costs, np.int32(0), 0, capacity * 4 * arity),
+                      cl.enqueue_fill_buffer(q, self.spans, np.int32(0), 0, capacity * 8)]
+        parents = rt.run(rt.kernel(KERNEL_FILE, "link_wide_parents", **self.defines), capacity,
+                         self.bvh2_count, self.bvh2_nodes, parent,
+                         wait_for=self.events[-1:] + fills)
+        self.events += [*fills, parents, rt.run(
+            rt.kernel(KERNEL_FILE, "wide_costs", **self.defines), capacity, self.bvh2_count,
+            self.bvh2_nodes, parent, visits, costs, self.spans, self.choice, wait_for=[parents])]
+        spare += [costs, parent, visits]
 
     def _round(self, first: int, count: int, launched: int) -> None:
         """Launch ``launched`` levels from the level (first, count), the
         one after those read back so far."""
         rt, q = self.rt, self.rt.queue
-        choose = rt.kernel(KERNEL_FILE, "choose_wide_slots", **rt.prefetch_defines)
-        link = rt.kernel(KERNEL_FILE, "link_wide_children")
+        choose = rt.kernel(KERNEL_FILE, "choose_wide_slots", **self.defines)
+        link = rt.kernel(KERNEL_FILE, "link_wide_children", **self.defines)
         # (first, count) of each level of the round and the next, then the overflow flag
         start = np.zeros(2 * (launched + 1) + 1, np.int32)
         start[:2] = first, count
@@ -91,7 +118,7 @@ class Widening:
             most = min(self.capacity, count * 8 ** min(at, 11))
             items = min(most, self.most_items)
             self.events.append(rt.run(choose, items, at, self._sizes, self.source,
-                                      self.bvh2_nodes, self.slots, self.interior,
+                                      self.bvh2_nodes, self.choice, self.slots, self.interior,
                                       wait_for=self.events[-1:]))
             self.events += exclusive_scan_counted(rt, self.interior, self._sizes, 2 * at + 1,
                                                   most, wait_for=self.events[-1:])
@@ -130,9 +157,10 @@ class Widening:
         rt.check_allocation("wide tree", {"nodes": node_count * layout.WIDE_NODE.itemsize})
         nodes = rt.pool.take(node_count * layout.WIDE_NODE.itemsize)
         rt.pool.keep(nodes)
-        self.events.append(rt.run(rt.kernel(KERNEL_FILE, "write_wide_nodes"), node_count,
-                                  node_count, self.slots, self.first_child, self.bvh2_nodes,
-                                  nodes, wait_for=self.events[-1:]))
+        self.events.append(rt.run(rt.kernel(KERNEL_FILE, "write_wide_nodes", **self.defines),
+                                  node_count, node_count, self.slots, self.first_child,
+                                  self.bvh2_nodes, self.spans, nodes,
+                                  wait_for=self.events[-1:]))
         return nodes, tuple(self.levels), self.events
 
 

@@ -25,6 +25,12 @@
 #define SAH_TRAVERSAL_COST 1.0f
 #define SAH_INTERSECT_COST 1.0f
 
+/* The wide tree's cost model, for the collapse into 8-wide nodes (widen.cl):
+ * a wide node's test of all its lanes against one triangle's test.  Ylitie
+ * et al. 2017 (sec. 4.1) weigh a triangle 0.3 of a node on GPUs. */
+#define WIDE_NODE_COST 1.0f
+#define WIDE_TRIANGLE_COST 0.3f
+
 /* Bins per axis of the binned SAH that builds the top of the HLBVH over the
  * clusters (Wald 2007, "On fast construction of SAH-based BVHs").  64 rather
  * than 32 lowers the bunny's SAH cost slightly for a slightly longer build. */

@@ -1,14 +1,16 @@
 /* Stage 7, the build's last: the 8-wide tree that traversal reads, collapsed
  * from the binary tree (the build's scratch, freed when it ends).
  *
- * Each wide node stands for one interior node b of the BVH2.  Its children
- * are found by opening, starting from b's two child slots, the interior slot
- * of largest surface area until WIDE_ARITY slots are held or none is interior
- * (collapsing a binary BVH as in Dammertz et al. 2008, "Shallow Bounding
- * Volume Hierarchies", and Wald, Benthin & Boulos 2008, "Getting Rid of
- * Packets"; Embree's BVH4/BVH8 builders open the largest child the same way).
- * Every interior slot left over is a wide node of the next level.
+ * Each wide node stands for one interior node b of the BVH2 (Dammertz et al.
+ * 2008, "Shallow Bounding Volume Hierarchies"; Wald, Benthin & Boulos 2008,
+ * "Getting Rid of Packets").  Its children are a cut through b's subtree of
+ * at most WIDE_ARITY slots, each a BVH2 leaf, a subtree merged into one leaf,
+ * or an interior node, which becomes a wide node of the next level; the cut
+ * is the one of least SAH cost, found bottom-up first (wide_costs, below).
  *
+ * Before the levels, over the whole BVH2:
+ *   link_wide_parents   each node's parent
+ *   wide_costs          the optimal cuts' costs and choices, bottom-up
  * Levels are made top-down, one launch per kernel and level (hlbvh_cl/build/widen.py):
  *   choose_wide_slots   the slots of each node of the level, and how many are interior
  *   (exclusive scan of those counts)
@@ -24,12 +26,15 @@
  * share of the nodes the level has (group_block).
  *
  * A slot is named by the BVH2 child slot it copies: 2 * node + side (side 0
- * left, 1 right), or NO_SLOT.
+ * left, 1 right), with MERGED_SLOT set where its subtree is one leaf, or
+ * NO_SLOT.
  */
 #include "core/portable.h"
 #include "core/aabb.h"
 #include "core/tree.h"
+#include "build/config.h"
 #include "build/flat_node.h"
+#include "build/handoff.h"
 
 #define NO_SLOT 0xffffffffu
 
@@ -69,88 +74,214 @@ inline Aabb slot_box(__global const FlatNode *nodes, uint slot)
     return box;
 }
 
-/* Starts loading the BVH2 node behind an interior slot, which the greedy
- * opening will likely read: the openings of a wide node are a chain of
- * dependent loads, and prefetching every candidate overlaps them. */
-inline void prefetch_slot_node(__global const FlatNode *nodes, uint slot)
+/* Which slots a wide node takes is decided by the SAH, not greedily: the
+ * collapse that minimises the wide tree's SAH cost over every way to cut
+ * the BVH2 into wide nodes and leaves (Ylitie, Karras & Laine 2017,
+ * "Efficient Incoherent Ray Traversal on GPUs Through Compressed Wide BVHs",
+ * sec. 4.1).  Opening the largest slot first (Wald et al. 2008) fills the
+ * nodes high in the tree and leaves small subtrees, often two leaves, as
+ * whole nodes of their own; the optimal cut opens those into their parent's
+ * slots instead, and merges small subtrees whose triangles are contiguous
+ * into one leaf (at most MAX_LEAF_SIZE triangles).
+ *
+ * C(n, i), for i = 1..WIDE_ARITY, is the least cost of subtree n as at
+ * most i slots of its parent, with one slot (i = 1) a leaf or a wide node:
+ *   C(n, 1) = min(WIDE_TRIANGLE_COST * A(n) * triangles(n),
+ *                 WIDE_NODE_COST * A(n) + D(n, WIDE_ARITY)),
+ *   C(n, i) = min(C(n, i - 1), D(n, i)),
+ *   D(n, i) = min over k of C(left, k) + C(right, i - k),
+ * a BVH2 leaf slot costing its triangles whatever i, an empty slot 0 with
+ * no slot.  wide_costs finds it bottom-up (one walker per BVH2 node whose
+ * children are leaves, the second arrival at a node going on, as in
+ * radix_tree.cl), choose_slots reads its choices top-down. */
+
+/* A slot whose BVH2 subtree is merged into one leaf of the wide tree. */
+#define MERGED_SLOT 0x80000000u
+/* choice[WIDE_ARITY * n + i - 1] for i >= 2: the slots k given to the left
+ * child for D(n, i), or KEEP_FEWER where C(n, i) = C(n, i - 1).  For i = 1:
+ * the split of D(n, WIDE_ARITY) in the low bits, LEAF_CHOICE set where the
+ * subtree is best one leaf. */
+#define KEEP_FEWER 0xffu
+#define LEAF_CHOICE 0x80u
+#define SPLIT_BITS 0x0fu
+
+inline int interior_children(__global const FlatNode *nodes, int node)
 {
-#ifdef PREFETCH
-    if (slot_is_interior(nodes, slot))
-        __builtin_prefetch(nodes + slot_child(nodes, slot));
-#endif
+    return (int)slot_is_interior(nodes, 2u * (uint)node) +
+           (int)slot_is_interior(nodes, 2u * (uint)node + 1u);
 }
 
-/* What a slot bids to be opened: its box's area if it is interior, else -1
- * (never chosen). */
-inline float opening_bid(__global const FlatNode *nodes, uint slot)
+/* parent[m] of every BVH2 node m (-1 for the root, node 0), for the walk up. */
+__kernel void link_wide_parents(__global const int *bvh2_count, __global const FlatNode *nodes,
+                                __global int *parent)
 {
-    return slot_is_interior(nodes, slot) ? aabb_area(slot_box(nodes, slot)) : -1.0f;
-}
-
-/* Replaces slots[at] (an interior slot) by the non-empty child slots of its
- * node, in place, keeping the left-to-right order and each slot's bid;
- * returns the new count. */
-inline int open_slot(__global const FlatNode *nodes, uint *slots, float *bids, int used, int at)
-{
-    int node = slot_child(nodes, slots[at]);
-    uint left = 2u * (uint)node, right = left + 1u;
-    bool keep_left = !slot_is_empty(nodes, left), keep_right = !slot_is_empty(nodes, right);
-    int added = (int)keep_left + (int)keep_right;
-    /* shift the slots after `at` by added - 1 (at most one place right) */
-    if (added == 2) {
-        for (int k = used - 1; k > at; --k) {
-            slots[k + 1] = slots[k];
-            bids[k + 1] = bids[k];
-        }
-    } else if (added == 0) {
-        for (int k = at; k + 1 < used; ++k) {
-            slots[k] = slots[k + 1];
-            bids[k] = bids[k + 1];
-        }
-    }
-    int k = at;
-    if (keep_left) {
-        prefetch_slot_node(nodes, left);
-        slots[k] = left;
-        bids[k++] = opening_bid(nodes, left);
-    }
-    if (keep_right) {
-        prefetch_slot_node(nodes, right);
-        slots[k] = right;
-        bids[k] = opening_bid(nodes, right);
-    }
-    return used - 1 + added;
-}
-
-/* The child slots of the wide node made from BVH2 node `node` (greedy
- * opening, largest area first; ties go to the leftmost slot).  Each slot's
- * bid is computed once, when it enters the list (not at every round). */
-inline int choose_slots(__global const FlatNode *nodes, int node, uint *slots)
-{
-    float bids[WIDE_ARITY];
-    int used = 0;
+    int node = get_global_id(0);
+    if (node >= *bvh2_count)
+        return;
+    if (node == 0)
+        parent[0] = -1;
     for (uint side = 0; side < 2; ++side) {
         uint slot = 2u * (uint)node + side;
-        if (!slot_is_empty(nodes, slot)) {
-            prefetch_slot_node(nodes, slot);
-            slots[used] = slot;
-            bids[used++] = opening_bid(nodes, slot);
-        }
+        if (slot_is_interior(nodes, slot))
+            parent[slot_child(nodes, slot)] = node;
     }
-    /* every opening descends one BVH2 level, so this ends */
-    while (used < WIDE_ARITY) {
-        int best = -1;
-        float best_bid = -1.0f;
-        for (int k = 0; k < used; ++k) {
-            bool better = bids[k] > best_bid;
-            best = better ? k : best;
-            best_bid = better ? bids[k] : best_bid;
+}
+
+/* A child slot's cost with k = 0..WIDE_ARITY slots (c[k]), and its
+ * triangles as a run: (first, count), count 0 for an empty slot, -1 where
+ * they are not one run of at most MAX_LEAF_SIZE. */
+inline void slot_costs(__global const FlatNode *nodes, uint slot, __global float *costs,
+                       __global int *spans, float *c, int *first, int *count)
+{
+    if (slot_is_empty(nodes, slot)) {
+        for (int k = 0; k <= WIDE_ARITY; ++k)
+            c[k] = 0.0f;
+        *first = 0;
+        *count = 0;
+        return;
+    }
+    c[0] = INFINITY;
+    if (slot_is_interior(nodes, slot)) {
+        int m = slot_child(nodes, slot);
+        for (int k = 1; k <= WIDE_ARITY; ++k)
+            c[k] = handoff_load_float(costs + (size_t)WIDE_ARITY * m + k - 1);
+        *first = handoff_load(spans + 2 * (size_t)m);
+        *count = handoff_load(spans + 2 * (size_t)m + 1);
+        return;
+    }
+    uint triangles = slot_count(nodes, slot);
+    float leaf = WIDE_TRIANGLE_COST * aabb_area(slot_box(nodes, slot)) * (float)triangles;
+    for (int k = 1; k <= WIDE_ARITY; ++k)
+        c[k] = leaf;
+    *first = slot_child(nodes, slot);
+    *count = triangles <= MAX_LEAF_SIZE ? (int)triangles : -1;
+}
+
+/* The run of two children's runs, if they join into one of at most
+ * MAX_LEAF_SIZE triangles; count -1 otherwise. */
+inline void join_spans(int first_a, int count_a, int first_b, int count_b, int *first,
+                       int *count)
+{
+    *first = count_a == 0 ? first_b : (count_b == 0 ? first_a : min(first_a, first_b));
+    int total = count_a + count_b;
+    bool adjacent = count_a == 0 || count_b == 0 || first_a + count_a == first_b ||
+                    first_b + count_b == first_a;
+    *count = count_a < 0 || count_b < 0 || !adjacent || total > MAX_LEAF_SIZE ? -1 : total;
+}
+
+/* C(node, i) for every i, its choices and its triangles' run, from its
+ * children's (handed on by their walkers). */
+inline void node_costs(__global const FlatNode *nodes, int node, __global float *costs,
+                       __global int *spans, __global uchar *choice)
+{
+    uint left = 2u * (uint)node, right = left + 1u;
+    float cl[WIDE_ARITY + 1], cr[WIDE_ARITY + 1];
+    int first_l, count_l, first_r, count_r, first, count;
+    slot_costs(nodes, left, costs, spans, cl, &first_l, &count_l);
+    slot_costs(nodes, right, costs, spans, cr, &first_r, &count_r);
+    join_spans(first_l, count_l, first_r, count_r, &first, &count);
+    bool left_empty = slot_is_empty(nodes, left), right_empty = slot_is_empty(nodes, right);
+    float area = aabb_area(aabb_union(slot_box(nodes, left), slot_box(nodes, right)));
+
+    float d[WIDE_ARITY + 1];
+    uchar split[WIDE_ARITY + 1];
+    for (int i = 2; i <= WIDE_ARITY; ++i) {
+        /* a split that fits whatever the costs (infinite areas compare false) */
+        int best_k = left_empty ? 0 : (right_empty ? i : 1);
+        float best = cl[best_k] + cr[i - best_k];
+        for (int k = 0; k <= i; ++k) {
+            float sum = cl[k] + cr[i - k];
+            bool better = sum < best;
+            best = better ? sum : best;
+            best_k = better ? k : best_k;
         }
-        if (best < 0)
-            break;
-        used = open_slot(nodes, slots, bids, used, best);
+        d[i] = best;
+        split[i] = (uchar)best_k;
+    }
+    float as_node = WIDE_NODE_COST * area + d[WIDE_ARITY];
+    float as_leaf = count > 0 ? WIDE_TRIANGLE_COST * area * (float)count : INFINITY;
+    bool leaf = as_leaf <= as_node;
+    float c = leaf ? as_leaf : as_node;
+    __global float *out = costs + (size_t)WIDE_ARITY * node;
+    __global uchar *chosen = choice + (size_t)WIDE_ARITY * node;
+    handoff_store_float(out, c);
+    chosen[0] = (uchar)((leaf ? LEAF_CHOICE : 0u) | split[WIDE_ARITY]);
+    for (int i = 2; i <= WIDE_ARITY; ++i) {
+        bool fewer = !(d[i] < c);
+        c = fewer ? c : d[i];
+        handoff_store_float(out + i - 1, c);
+        chosen[i - 1] = fewer ? (uchar)KEEP_FEWER : split[i];
+    }
+    handoff_store(spans + 2 * (size_t)node, first);
+    handoff_store(spans + 2 * (size_t)node + 1, count);
+}
+
+/* The DP bottom-up: a walker from each BVH2 node with no interior child;
+ * at a node with two, the first arrival stops and the second goes on. */
+__kernel void wide_costs(__global const int *bvh2_count, __global const FlatNode *nodes,
+                         __global const int *parent, __global int *visits,
+                         __global float *costs, __global int *spans, __global uchar *choice)
+{
+    int node = get_global_id(0);
+    if (node >= *bvh2_count || interior_children(nodes, node) > 0)
+        return;
+    for (;;) {
+        node_costs(nodes, node, costs, spans, choice);
+        int up = parent[node];
+        if (up < 0)
+            return;
+        if (interior_children(nodes, up) == 2 && handoff_arrive(visits + up) == 0)
+            return; /* the sibling subtree is not done; its walker goes on */
+        node = up;
+    }
+}
+
+/* The child slots of the wide node made from BVH2 node `node`: the cut
+ * D(node, WIDE_ARITY) chose, left to right.  A choice table that is not
+ * the DP's (a BVH2 that is not a tree leaves it zero) still gives at most
+ * WIDE_ARITY slots. */
+inline int choose_slots(__global const FlatNode *nodes, __global const uchar *choice, int node,
+                        uint *slots)
+{
+    uint stack_slot[2 * WIDE_ARITY];
+    int stack_budget[2 * WIDE_ARITY];
+    int k = min((int)(choice[(size_t)WIDE_ARITY * node] & SPLIT_BITS), WIDE_ARITY);
+    stack_slot[0] = 2u * (uint)node + 1u;
+    stack_budget[0] = WIDE_ARITY - k;
+    stack_slot[1] = 2u * (uint)node;
+    stack_budget[1] = k;
+    int depth = 2, used = 0;
+    while (depth > 0 && used < WIDE_ARITY) {
+        --depth;
+        uint slot = stack_slot[depth];
+        int budget = stack_budget[depth];
+        if (slot_is_empty(nodes, slot))
+            continue;
+        if (!slot_is_interior(nodes, slot)) {
+            slots[used++] = slot;
+            continue;
+        }
+        __global const uchar *chosen = choice + (size_t)WIDE_ARITY * slot_child(nodes, slot);
+        while (budget > 1 && chosen[budget - 1] == KEEP_FEWER)
+            --budget;
+        if (budget <= 1 || depth + 2 > 2 * WIDE_ARITY) {
+            slots[used++] = (chosen[0] & LEAF_CHOICE) ? slot | MERGED_SLOT : slot;
+            continue;
+        }
+        k = min((int)chosen[budget - 1], budget);
+        uint left = 2u * (uint)slot_child(nodes, slot);
+        stack_slot[depth] = left + 1u;
+        stack_budget[depth++] = budget - k;
+        stack_slot[depth] = left;
+        stack_budget[depth++] = k;
     }
     return used;
+}
+
+/* A chosen slot (not NO_SLOT) that becomes a wide node of the next level. */
+inline bool chosen_is_interior(__global const FlatNode *nodes, uint slot)
+{
+    return !(slot & MERGED_SLOT) && slot_is_interior(nodes, slot);
 }
 
 /* The block [*begin, *end) of the level's nodes (as indices into it) that
@@ -171,7 +302,8 @@ inline void group_block(int count, int *begin, int *end)
  * (i = w - first).  Slot indices are size_t, as WIDE_ARITY * w passes int's
  * range from 2^28 wide nodes. */
 __kernel void choose_wide_slots(int at, __global const int *levels, __global const int *source,
-                                __global const FlatNode *nodes, __global uint *slots,
+                                __global const FlatNode *nodes, __global const uchar *choice,
+                                __global uint *slots,
                                 __global uint *interior_count)
 {
     int first = levels[2 * at], begin, end;
@@ -179,12 +311,12 @@ __kernel void choose_wide_slots(int at, __global const int *levels, __global con
     for (int i = begin + (int)get_local_id(0); i < end; i += (int)get_local_size(0)) {
         int w = first + i;
         uint chosen[WIDE_ARITY];
-        int used = choose_slots(nodes, source[w], chosen);
+        int used = choose_slots(nodes, choice, source[w], chosen);
         uint interior = 0;
         for (int k = 0; k < WIDE_ARITY; ++k) {
             uint slot = k < used ? chosen[k] : NO_SLOT;
             slots[(size_t)WIDE_ARITY * w + k] = slot;
-            if (slot != NO_SLOT && slot_is_interior(nodes, slot))
+            if (slot != NO_SLOT && chosen_is_interior(nodes, slot))
                 ++interior;
         }
         interior_count[i] = interior;
@@ -225,16 +357,17 @@ __kernel void link_wide_children(int at, __global int *levels, int overflow_at,
         first_child[w] = next;
         for (int k = 0; k < WIDE_ARITY; ++k) {
             uint slot = slots[(size_t)WIDE_ARITY * w + k];
-            if (slot != NO_SLOT && slot_is_interior(nodes, slot))
+            if (slot != NO_SLOT && chosen_is_interior(nodes, slot))
                 source[next++] = slot_child(nodes, slot);
         }
     }
 }
 
-/* Every wide node from its chosen slots and the BVH2's boxes. */
+/* Every wide node from its chosen slots, the BVH2's boxes and, for a
+ * merged slot, its subtree's run of triangles. */
 __kernel void write_wide_nodes(int wide_count, __global const uint *slots,
                                __global const int *first_child, __global const FlatNode *nodes,
-                               __global WideNode *wide)
+                               __global const int *spans, __global WideNode *wide)
 {
     int w = get_global_id(0);
     if (w >= wide_count)
@@ -246,7 +379,13 @@ __kernel void write_wide_nodes(int wide_count, __global const uint *slots,
         Aabb box = aabb_empty();
         int child = EMPTY_CHILD;
         uint count = 0;
-        if (slot != NO_SLOT) {
+        if (slot != NO_SLOT && (slot & MERGED_SLOT)) {
+            slot &= ~MERGED_SLOT;
+            box = slot_box(nodes, slot);
+            size_t m = (size_t)slot_child(nodes, slot);
+            child = spans[2 * m];
+            count = (uint)spans[2 * m + 1];
+        } else if (slot != NO_SLOT) {
             box = slot_box(nodes, slot);
             count = slot_count(nodes, slot);
             child = count > 0 ? slot_child(nodes, slot) : next++;
