@@ -127,34 +127,64 @@ __kernel void link_wide_parents(__global const int *bvh2_count, __global const F
     }
 }
 
-/* A child slot's cost with k = 0..WIDE_ARITY slots (c[k]), and its
- * triangles as a run: (first, count), count 0 for an empty slot, -1 where
- * they are not one run of at most MAX_LEAF_SIZE. */
-inline void slot_costs(__global const FlatNode *nodes, uint slot, __global float *costs,
-                       __global int *spans, float *c, int *first, int *count)
+#if WIDE_ARITY != 8
+#error "wide_costs holds a node's costs in one 8-lane vector"
+#endif
+
+/* The costs C(m, k), k = 1..8, as a vector (lane k - 1): WIDE_ARITY is 8,
+ * and vectors of fixed lanes, not arrays indexed in loops, are what the CPU
+ * compilers that vectorise across work-items keep in registers. */
+inline float8 load_costs(__global float *costs, size_t m)
+{
+#if ACQUIRE_RELEASE
+    return vload8(m, costs);
+#else
+    __global float *c = costs + 8 * m;
+    return (float8)(handoff_load_float(c), handoff_load_float(c + 1), handoff_load_float(c + 2),
+                    handoff_load_float(c + 3), handoff_load_float(c + 4),
+                    handoff_load_float(c + 5), handoff_load_float(c + 6),
+                    handoff_load_float(c + 7));
+#endif
+}
+
+inline void store_costs(__global float *costs, size_t m, float8 v)
+{
+#if ACQUIRE_RELEASE
+    vstore8(v, m, costs);
+#else
+    __global float *c = costs + 8 * m;
+    handoff_store_float(c, v.s0);
+    handoff_store_float(c + 1, v.s1);
+    handoff_store_float(c + 2, v.s2);
+    handoff_store_float(c + 3, v.s3);
+    handoff_store_float(c + 4, v.s4);
+    handoff_store_float(c + 5, v.s5);
+    handoff_store_float(c + 6, v.s6);
+    handoff_store_float(c + 7, v.s7);
+#endif
+}
+
+/* A non-empty child slot's costs with k = 1..8 slots (an empty slot costs
+ * 0 with any), and its triangles as a run: (first, count), count 0 for an
+ * empty slot, -1 where they are not one run of at most MAX_LEAF_SIZE. */
+inline float8 slot_costs(__global const FlatNode *nodes, uint slot, __global float *costs,
+                         __global int *spans, int *first, int *count)
 {
     if (slot_is_empty(nodes, slot)) {
-        for (int k = 0; k <= WIDE_ARITY; ++k)
-            c[k] = 0.0f;
         *first = 0;
         *count = 0;
-        return;
+        return (float8)(0.0f);
     }
-    c[0] = INFINITY;
     if (slot_is_interior(nodes, slot)) {
-        int m = slot_child(nodes, slot);
-        for (int k = 1; k <= WIDE_ARITY; ++k)
-            c[k] = handoff_load_float(costs + (size_t)WIDE_ARITY * m + k - 1);
-        *first = handoff_load(spans + 2 * (size_t)m);
-        *count = handoff_load(spans + 2 * (size_t)m + 1);
-        return;
+        size_t m = (size_t)slot_child(nodes, slot);
+        *first = handoff_load(spans + 2 * m);
+        *count = handoff_load(spans + 2 * m + 1);
+        return load_costs(costs, m);
     }
     uint triangles = slot_count(nodes, slot);
-    float leaf = WIDE_TRIANGLE_COST * aabb_area(slot_box(nodes, slot)) * (float)triangles;
-    for (int k = 1; k <= WIDE_ARITY; ++k)
-        c[k] = leaf;
     *first = slot_child(nodes, slot);
     *count = triangles <= MAX_LEAF_SIZE ? (int)triangles : -1;
+    return (float8)(WIDE_TRIANGLE_COST * aabb_area(slot_box(nodes, slot)) * (float)triangles);
 }
 
 /* The run of two children's runs, if they join into one of at most
@@ -169,49 +199,66 @@ inline void join_spans(int first_a, int count_a, int first_b, int count_b, int *
     *count = count_a < 0 || count_b < 0 || !adjacent || total > MAX_LEAF_SIZE ? -1 : total;
 }
 
+/* D(n, i) of the splits that give the left child k slots, lane i - 1: the
+ * left's C(., k) plus the right's C(., i - k), the right's costs moved up
+ * k lanes (shuffle2 index 8 takes the infinity: no such split).  Where it
+ * is less than the best so far, it and k replace them: the least k wins
+ * ties. */
+#define TRY_SPLIT(k, left_cost, mask)                                                   \
+    {                                                                                   \
+        float8 v = (float8)(left_cost) + shuffle2(cr, none, (uint8)mask);               \
+        int8 better = isless(v, d);                                                     \
+        d = select(d, v, better);                                                       \
+        split = select(split, (int8)(k), better);                                       \
+    }
+
 /* C(node, i) for every i, its choices and its triangles' run, from its
  * children's (handed on by their walkers). */
 inline void node_costs(__global const FlatNode *nodes, int node, __global float *costs,
                        __global int *spans, __global uchar *choice)
 {
     uint left = 2u * (uint)node, right = left + 1u;
-    float cl[WIDE_ARITY + 1], cr[WIDE_ARITY + 1];
     int first_l, count_l, first_r, count_r, first, count;
-    slot_costs(nodes, left, costs, spans, cl, &first_l, &count_l);
-    slot_costs(nodes, right, costs, spans, cr, &first_r, &count_r);
+    float8 cl = slot_costs(nodes, left, costs, spans, &first_l, &count_l);
+    float8 cr = slot_costs(nodes, right, costs, spans, &first_r, &count_r);
     join_spans(first_l, count_l, first_r, count_r, &first, &count);
     bool left_empty = slot_is_empty(nodes, left), right_empty = slot_is_empty(nodes, right);
     float area = aabb_area(aabb_union(slot_box(nodes, left), slot_box(nodes, right)));
 
-    float d[WIDE_ARITY + 1];
-    uchar split[WIDE_ARITY + 1];
-    for (int i = 2; i <= WIDE_ARITY; ++i) {
-        /* a split that fits whatever the costs (infinite areas compare false) */
-        int best_k = left_empty ? 0 : (right_empty ? i : 1);
-        float best = cl[best_k] + cr[i - best_k];
-        for (int k = 0; k <= i; ++k) {
-            float sum = cl[k] + cr[i - k];
-            bool better = sum < best;
-            best = better ? sum : best;
-            best_k = better ? k : best_k;
-        }
-        d[i] = best;
-        split[i] = (uchar)best_k;
+    /* D(node, i) and its split, lane i - 1; an empty child takes no slot */
+    float8 d, none = (float8)(INFINITY);
+    int8 split;
+    if (left_empty || right_empty) {
+        d = left_empty ? cr : cl;
+        split = left_empty ? (int8)(0) : (int8)(1, 2, 3, 4, 5, 6, 7, 8);
+    } else {
+        d = (float8)(cl.s0) + shuffle2(cr, none, (uint8)(8, 0, 1, 2, 3, 4, 5, 6));
+        split = (int8)(1);
+        TRY_SPLIT(2, cl.s1, (8, 8, 0, 1, 2, 3, 4, 5))
+        TRY_SPLIT(3, cl.s2, (8, 8, 8, 0, 1, 2, 3, 4))
+        TRY_SPLIT(4, cl.s3, (8, 8, 8, 8, 0, 1, 2, 3))
+        TRY_SPLIT(5, cl.s4, (8, 8, 8, 8, 8, 0, 1, 2))
+        TRY_SPLIT(6, cl.s5, (8, 8, 8, 8, 8, 8, 0, 1))
+        TRY_SPLIT(7, cl.s6, (8, 8, 8, 8, 8, 8, 8, 0))
     }
-    float as_node = WIDE_NODE_COST * area + d[WIDE_ARITY];
+    float as_node = WIDE_NODE_COST * area + d.s7;
     float as_leaf = count > 0 ? WIDE_TRIANGLE_COST * area * (float)count : INFINITY;
     bool leaf = as_leaf <= as_node;
-    float c = leaf ? as_leaf : as_node;
-    __global float *out = costs + (size_t)WIDE_ARITY * node;
+
+    /* C(node, i) = min(C(node, i - 1), D(node, i)), lane by lane */
+    float dd[8], c[8];
+    int ss[8];
+    vstore8(d, 0, dd);
+    vstore8(split, 0, ss);
     __global uchar *chosen = choice + (size_t)WIDE_ARITY * node;
-    handoff_store_float(out, c);
-    chosen[0] = (uchar)((leaf ? LEAF_CHOICE : 0u) | split[WIDE_ARITY]);
-    for (int i = 2; i <= WIDE_ARITY; ++i) {
-        bool fewer = !(d[i] < c);
-        c = fewer ? c : d[i];
-        handoff_store_float(out + i - 1, c);
-        chosen[i - 1] = fewer ? (uchar)KEEP_FEWER : split[i];
+    c[0] = leaf ? as_leaf : as_node;
+    chosen[0] = (uchar)((leaf ? LEAF_CHOICE : 0u) | (uint)ss[7]);
+    for (int i = 1; i < 8; ++i) {
+        bool fewer = !(dd[i] < c[i - 1]);
+        c[i] = fewer ? c[i - 1] : dd[i];
+        chosen[i] = fewer ? (uchar)KEEP_FEWER : (uchar)ss[i];
     }
+    store_costs(costs, (size_t)node, vload8(0, c));
     handoff_store(spans + 2 * (size_t)node, first);
     handoff_store(spans + 2 * (size_t)node + 1, count);
 }
