@@ -26,6 +26,12 @@ TRAVERSAL_INLINE uint packet_rays(uint ray_count, uint* first)
 TRAVERSAL_INLINE void load_records(__global const Ray* rays, uint first, uint used,
                                    RayLanes* lanes)
 {
+#ifdef PREFETCH
+    /* The next work-item's records, as load_arrays asks for its arrays
+     * (perf: the loads of a path's bounce rays stalled on their lines). */
+    for (uint offset = 0; offset < PACKET_SIZE * sizeof(Ray); offset += 64)
+        __builtin_prefetch((__global const char*)(rays + (size_t)first + PACKET_SIZE) + offset);
+#endif
     for (uint l = 0; l < PACKET_SIZE; ++l) {
         __global const Ray* ray = rays + first + LESSER(l, used - 1);
         set_lane(lanes, l, LOAD_XYZ(ray->origin), LOAD_XYZ(ray->direction), ray->tmin,
