@@ -112,7 +112,7 @@ PATH_PARAMS = np.dtype([
 ])
 
 PATH_STATE = np.dtype([("throughput", *_f3), ("bsdf_pdf", np.float32), ("radiance", *_f3),
-                       ("eta", np.float32), ("reserved", np.float32, 4)])
+                       ("eta", np.float32)])
 
 #: name in HEADERS -> dtype, for the layout test
 STRUCTS = {"Aabb": AABB, "FlatNode": FLAT_NODE, "FlatSummary": FLAT_SUMMARY, "WideNode": WIDE_NODE,

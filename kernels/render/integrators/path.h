@@ -61,13 +61,14 @@ typedef struct {
     uint envmap_height;             /* its rows (render/envmap.h) */
 } PathParams;
 
-/* One path of the pass: what it still carries and what it has gathered. */
+/* One path of the pass: what it still carries and what it has gathered;
+ * 32 bytes, two to a cache line and none across two (path_unoccluded adds
+ * to states at random). */
 typedef struct {
     float throughput[3];
     float bsdf_pdf;   /* solid-angle density of the last bounce's direction; 0 after the camera */
     float radiance[3];
     float eta;        /* the product of the index ratios crossed (Russian roulette's eta^2) */
-    float reserved[4];  /* 48 bytes: whole 16-byte lines */
 } PathState;
 
 #endif /* INTEGRATORS_PATH_H */
