@@ -155,13 +155,10 @@ TRAVERSAL_KERNEL void intersect_closest(SCENE_PARAMS, __global const Ray* rays, 
     if (used == 0)
         return;
     load_records(rays, first, used, &lanes);
-#if defined(PREFETCH) && !defined(NO_HIT_PREFETCH)
     /* The lines this work-item's hits go to, asked for while it walks. */
-    for (uint offset = 0; offset < PACKET_SIZE * sizeof(Hit); offset += 64)
-        __builtin_prefetch((__global const char*)(hits + first) + offset, 1);
+    PREFETCH_LINES(hits + first, PACKET_SIZE * sizeof(Hit), 1);
     if (instance_out != 0)
-        __builtin_prefetch(instance_out + first, 1);
-#endif
+        PREFETCH_LINES(instance_out + first, PACKET_SIZE * sizeof(int), 1);
     int instance[PACKET_SIZE];
     closest_hits(&lanes, used, first, SCENE_ARGS, overflow, found, instance);
     for (uint l = 0; l < used; ++l)

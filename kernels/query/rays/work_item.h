@@ -21,17 +21,25 @@ TRAVERSAL_INLINE uint packet_rays(uint ray_count, uint* first)
     return *first < ray_count ? LESSER((uint)PACKET_SIZE, ray_count - *first) : 0;
 }
 
+/* Under PREFETCH, asks for the cache lines of `bytes` bytes from `start`
+ * (rw 1: to be written).  A prefetch may ask for memory past an array's
+ * end, which it never reads: a prefetch never faults. */
+#ifdef PREFETCH
+#define PREFETCH_LINES(start, bytes, rw)                                              \
+    for (uint line_ = 0; line_ < (uint)(bytes); line_ += 64)                           \
+        __builtin_prefetch((__global const char*)(start) + line_, rw)
+#else
+#define PREFETCH_LINES(start, bytes, rw) do {} while (0)
+#endif
+
 /* The rays as Ray records (the renderer's); lanes past `used` repeat the
  * last ray. */
 TRAVERSAL_INLINE void load_records(__global const Ray* rays, uint first, uint used,
                                    RayLanes* lanes)
 {
-#ifdef PREFETCH
     /* The next work-item's records, as load_arrays asks for its arrays
      * (perf: the loads of a path's bounce rays stalled on their lines). */
-    for (uint offset = 0; offset < PACKET_SIZE * sizeof(Ray); offset += 64)
-        __builtin_prefetch((__global const char*)(rays + (size_t)first + PACKET_SIZE) + offset);
-#endif
+    PREFETCH_LINES(rays + (size_t)first + PACKET_SIZE, PACKET_SIZE * sizeof(Ray), 0);
     for (uint l = 0; l < PACKET_SIZE; ++l) {
         __global const Ray* ray = rays + first + LESSER(l, used - 1);
         set_lane(lanes, l, LOAD_XYZ(ray->origin), LOAD_XYZ(ray->direction), ray->tmin,
@@ -116,17 +124,12 @@ TRAVERSAL_INLINE void load_arrays(uint first, uint used, __global const float* o
                                   uint tmin_step, __global const float* tmax, uint tmax_step,
                                   RayLanes* lanes)
 {
-#ifdef PREFETCH
     /* The next work-item's rays (CPUs run a group's items in order): between
      * two work-items' loads lie thousands of random reads, and the hardware
-     * prefetcher loses the stream (measured faster).  Past the last ray this
-     * asks for memory the kernel never reads, which a prefetch may: it never
-     * faults. */
-    for (uint offset = 0; offset < 3 * PACKET_SIZE * sizeof(float); offset += 64) {
-        __builtin_prefetch((__global const char*)(origins + 3 * ((size_t)first + PACKET_SIZE)) + offset);
-        __builtin_prefetch((__global const char*)(directions + 3 * ((size_t)first + PACKET_SIZE)) + offset);
-    }
-#endif
+     * prefetcher loses the stream (measured faster). */
+    PREFETCH_LINES(origins + 3 * ((size_t)first + PACKET_SIZE), 3 * PACKET_SIZE * sizeof(float), 0);
+    PREFETCH_LINES(directions + 3 * ((size_t)first + PACKET_SIZE),
+                   3 * PACKET_SIZE * sizeof(float), 0);
     uint at[PACKET_SIZE];
     for (uint l = 0; l < PACKET_SIZE; ++l)
         at[l] = first + LESSER(l, used - 1);
