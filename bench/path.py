@@ -215,7 +215,9 @@ def equal_time(child, lux, ours, paths, sizes, devices, times, folder, kind) -> 
             image = renderer.render(loaded.camera, width, height, hdr=True,
                                     **{**options, "spp": None, "seed": 7},
                                     time_budget=budget)
-            renders[device] = {"spp": renderer.stats["spp"], "relmse": relmse(image, reference)}
+            # the budget's last round may cover the image's first rows only
+            renders[device] = {"spp": round(renderer.stats["mean_spp"], 2),
+                               "relmse": relmse(image, reference)}
         if lux is not None:
             lux_spp = max(1, int(budget * spp / summary(times[name, "luxcore"])["median"]))
             lux.render(path, width, height, lux_spp, MAX_DEPTH, rr_depth_of(ours, name, devices),
@@ -327,7 +329,7 @@ def main(argv=None) -> dict:
     rows = [[name, q["seconds"] and f"{q['seconds']:.2f} s", who, str(r["spp"]),
              f"{r['relmse']:.4g}"]
             for name, q in quality.items() for who, r in q["renders"].items()]
-    print(table(["scene", "time", "renderer", "spp", "relMSE"], rows,
+    print(table(["scene", "time", "renderer", "spp (mean)", "relMSE"], rows,
                 title=f"equal time: relMSE against Mitsuba at "
                       f"{quality[next(iter(quality))]['reference_spp']} spp"))
     return finish(results, "path", args, elapsed)

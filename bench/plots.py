@@ -118,6 +118,9 @@ def trace(results: dict, path: Path) -> Path:
             _errorbar(scaling, [p["triangles"] for p in points],
                       [p["results"][name]["intersect_s"] for p in points], 1e3, marker="o",
                       label=name + (f" (alpha {alpha:.3f})" if alpha is not None else ""))
+    if not data["points"]:  # bench.trace --scene: no scaling sweep
+        scaling.set_axis_off()
+        return save(figure, path)
     scaling.set(xscale="log", yscale="log", xlabel="triangles", ylabel="closest hit, wall ms",
                 title=f"scaling: {data['workload']},\none surface tessellated finer")
     plain_log(scaling, x=True)

@@ -2,9 +2,12 @@
 peers of bench/peers.py, on the same rays.
 
     python -m bench.trace [--quick] [--devices pocl,intel] [--peers embreex,mitsuba] [--docs]
+    python -m bench.trace --scene cornell_box.xml    (that scene file alone)
 
 Scenes: the bunny, the armadillo and Lucy as they are, and the reference
-scene (scenes/reference.toml).  Workloads per scene, made once in numpy and
+scene (scenes/reference.toml); or with --scene one file of scenes/ alone
+(the Cornell box: a path tracer's small closed room), without the scaling
+sweep.  Workloads per scene, made once in numpy and
 given to every participant as the same float32 arrays:
   - primary rays through the pixel centres of a pinhole camera: the scene
     file's, or one framed on a lone mesh (framed_camera);
@@ -38,7 +41,7 @@ import gc
 import math
 import sys
 import traceback
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -493,8 +496,15 @@ def format_results(results: dict) -> str:
 def main(argv=None) -> dict:
     args = arguments(__doc__.splitlines()[0], argv,
                      (["--peers"], {"default": ",".join(PEERS),
-                                    "help": f"comma-separated peers (default: {','.join(PEERS)})"}))
+                                    "help": f"comma-separated peers (default: {','.join(PEERS)})"}),
+                     (["--scene"], {"default": None, "metavar": "FILE",
+                                    "help": "trace only this scene file of scenes/ "
+                                            "(e.g. cornell_box.xml): no lone meshes, no scaling"}))
     config = QUICK if args.quick else FULL
+    if args.scene is not None:
+        if not (SCENES / args.scene).is_file():
+            sys.exit(f"bench.trace: no scene file {args.scene!r} in {SCENES}")
+        config = replace(config, meshes=(), scene=args.scene, scaling=())
     elapsed = stopwatch()
     chosen = devices_or_exit(args.devices)
     peers, missing = load_peers([p.strip() for p in args.peers.split(",") if p.strip()])

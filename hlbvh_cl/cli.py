@@ -170,7 +170,9 @@ def _cmd_render(args) -> int:
     written_started = time.perf_counter()
     _write_image(output, image)
     written = time.perf_counter() - written_started
-    spp = renderer.stats["spp"]
+    spp = f"{renderer.stats['spp']} spp"
+    if renderer.stats["mean_spp"] != renderer.stats["spp"]:  # a time budget's last round
+        spp += f" ({renderer.stats['mean_spp']:.2f} on average)"
 
     build_ms = scene.stats.device_ms
     widen_ms = scene.stats.times_ms["widen"]  # the wide tree traversal reads
@@ -197,7 +199,7 @@ def _cmd_render(args) -> int:
     print(f"build        {build_ms:7.1f} ms  device: BVH {bvh_ms:.1f} + wide tree {widen_ms:.1f} "
           f"(wall {build_wall * 1e3:.0f} ms)")
     print(f"trace+shade  {times['total']:7.1f} ms  device (wall {times['wall']:.0f} ms): "
-          f"{width}x{height}, {described}, {spp} spp, {rays}")
+          f"{width}x{height}, {described}, {spp}, {rays}")
     print(f"compile      {build_compile + render_compile:7.2f} s   kernels built or loaded from "
           f"the cache: build {build_compile:.2f} s (wall - device), render {render_compile:.2f} s "
           f"(a 1-pixel render)")
@@ -346,8 +348,9 @@ def main(argv=None) -> int:
                         help="with --shading path: segments per path at most, -1 for no limit "
                              "(Mitsuba's max_depth; default -1, or a Mitsuba scene's)")
     render.add_argument("--time", type=_seconds, default=None, metavar="SECONDS",
-                        help="with --shading path: render rounds of one sample per pixel until "
-                             "the next would end past SECONDS (at most --spp if given)")
+                        help="with --shading path: render rounds of one sample per pixel while "
+                             "they fit in SECONDS (at most --spp if given), then one over the "
+                             "first rows that still fit")
     render.set_defaults(run=_cmd_render)
     try:
         args = parser.parse_args(argv)

@@ -134,11 +134,15 @@ class Film:
                       filter_table(rt, "weights"), np.float32(GAUSSIAN_RADIUS),
                       self.splat["round"], self.splat["taps"])
 
-    def splat_round(self, rt: Runtime, width: int, height: int) -> cl.Event:
-        """The stored round's samples splatted onto every pixel's sums."""
-        return rt.run(self._splat_kernel(rt, "splat_round"), (width, height),
+    def splat_round(self, rt: Runtime, width: int, height: int, stored: int) -> cl.Event:
+        """The stored round's samples, those of the image's first ``stored``
+        rows (all ``height`` but in a round cut short by a time budget),
+        splatted onto the sums of the pixels they reach."""
+        reached = min(height, stored + SPLAT_REACH)
+        return rt.run(self._splat_kernel(rt, "splat_round"), (width, reached),
                       self.splat["round"], self.splat["taps"], np.uint32(width),
-                      np.uint32(height), self.splat["sums"], self.splat["weights"])
+                      np.uint32(height), np.uint32(stored), self.splat["sums"],
+                      self.splat["weights"])
 
     def read_splatted(self, rt: Runtime, height: int, width: int) -> np.ndarray:
         """float32 (height, width, groups, 4): each pixel's splatted sums over

@@ -76,6 +76,8 @@ class Pipeline:
     query, the integrators and the film, with buffers reused across renders.
 
     ``last_stats`` describes the last render: image size and options,
+    spp (samples every pixel took) and mean_spp (their mean over the
+    pixels: more where a time budget's last round covered the first rows),
     primary_rays and secondary_rays (rays launched past the primary ones,
     one per pixel and pass: pixels that need none get an empty one), and
     device times in milliseconds per stage (STAGES, and "total") plus
@@ -173,10 +175,11 @@ class Pipeline:
         steps: list[cl.Event] = []
         run = _Run(self, tree, settings, integrator, events, steps)
         if progressive:
-            image, taken, interrupted = self._progressive(run, bands, hdr, progress, budget,
-                                                          aovs)
+            image, taken, mean_spp, interrupted = self._progressive(run, bands, hdr, progress,
+                                                                    budget, aovs)
         else:
             image, taken, interrupted = self._band_by_band(run, bands, hdr, progress, passes)
+            mean_spp = float(taken)
         overflow = np.zeros(1, np.int32)
         rt.wait([cl.enqueue_copy(rt.queue, overflow, self.overflow, is_blocking=False)])
         if overflow[0]:
@@ -186,12 +189,13 @@ class Pipeline:
         times["total"] = sum(times.values())
         times["setup"] = setup * 1e3
         times["wall"] = (time.perf_counter() - started) * 1e3
-        pixels = width * height * taken
+        pixels = round(width * height * mean_spp)  # camera rays
         secondary = pixels * passes
         if hasattr(integrator, "last_bounces"):  # paths: each bounce a closest and a shadow ray
             secondary = 2 * sum(integrator.last_bounces) + pixels
         self.last_stats = {"width": width, "height": height, "shading": settings.shading,
                            "shadows": settings.shadows, "spp": taken,
+                           "mean_spp": mean_spp,
                            "primary_rays": pixels, "secondary_rays": secondary,
                            "times_ms": times, "interrupted": interrupted}
         if interrupted:
@@ -219,10 +223,14 @@ class Pipeline:
 
     def _progressive(self, run, bands, hdr, progress, budget, aovs):
         """Rounds of one sample per pixel over the whole image, each band's
-        sums added to the image's, until spp rounds are done or the next
-        would end past ``budget`` seconds (None: no limit).  Ctrl-C stops
-        it at once: the rounds every band finished make the image.
-        -> (image, spp taken, interrupted)."""
+        sums added to the image's, until spp rounds are done or, with a
+        ``budget`` in seconds, the time left holds no more whole round: then
+        a last round over the first bands that fit (bands_in_time), so that
+        the budget's tail is not left idle (Mitsuba's timeout leaves the
+        image's last blocks with a sample fewer alike).  Each pixel is the
+        mean of its own samples.  Ctrl-C stops it at once: the rounds every
+        band finished make the image.  -> (image, spp every pixel took,
+        mean spp over the pixels, interrupted)."""
         rt, settings, width = self.rt, run.settings, run.settings.width
         film, integrator, splats = self.film, run.integrator, settings.splats()
         taken = np.zeros(len(bands), np.int64)  # samples added to each band's sums
@@ -237,9 +245,10 @@ class Pipeline:
                                          1 + integrator.AOV_GROUPS * aovs)
                 else:
                     film.clear(rt, settings.width * settings.height)
+                used = len(bands)  # bands in this round
                 for sample in range(settings.spp):
                     stream, jitter = settings.stream(sample), settings.jitter()
-                    for b, band in enumerate(bands):
+                    for b, band in enumerate(bands[:used]):
                         run.sample(band, sample, 0)
                         if splats:
                             added = film.store_round(rt, band, width, film.accum, 1, 0, stream,
@@ -255,22 +264,31 @@ class Pipeline:
                         run.events["encode"].append(added)
                         taken[b] += 1
                     if splats:
-                        added = film.splat_round(rt, width, settings.height)
+                        stored = sum(int(band.rows) for band in bands[:used])
+                        added = film.splat_round(rt, width, settings.height, stored)
                         run.events["encode"].append(added)
-                        splatted += 1
+                        splatted += used == len(bands)
                     rt.wait([added])
                     bar.update(1)
-                    spent = time.perf_counter() - started
-                    if budget is not None and spent * (sample + 2) / (sample + 1) > budget:
-                        break  # the next round would end past the budget
+                    if used < len(bands):
+                        break  # the budget's last round, cut short
+                    if budget is not None:
+                        spent = time.perf_counter() - started
+                        used = bands_in_time(bands, budget - spent, spent / (sample + 1))
+                        if used == 0:
+                            break  # not one band fits
             except KeyboardInterrupt:
                 rt.queue.finish()  # what was enqueued is in the sums
                 if (splatted if splats else taken.min()) == 0:
                     raise  # not one whole image yet
                 interrupted = True
+        mean_spp = float(sum(int(band.count) * int(count) for band, count in zip(bands, taken))
+                         / sum(int(band.count) for band in bands))
         if splats:
             means = film.read_splatted(rt, settings.height, width)
             spp, image = splatted, means[:, :, 0, :3]
+            if interrupted:
+                mean_spp = float(splatted)  # a round cut short is not splatted
             if aovs:
                 found = integrator.aovs_of_groups(means[:, :, 1:])
         else:
@@ -286,7 +304,24 @@ class Pipeline:
         image = np.ascontiguousarray(image) if hdr else srgb_encode(image)
         if aovs:
             image = RenderResult(image=image, **found)
-        return image, spp, interrupted
+        return image, spp, mean_spp, interrupted
+
+
+def bands_in_time(bands, left: float, per_round: float) -> int:
+    """How many of ``bands``, from the first, the next round takes when
+    ``left`` seconds remain and a round has taken ``per_round`` (each band
+    its share by pixels): all of them when a whole round fits, else the
+    first bands that end within the time left (0: none)."""
+    if per_round <= 0.0 or left >= per_round:
+        return len(bands)
+    total = sum(int(band.count) for band in bands)
+    used, pixels = 0, 0
+    for band in bands:
+        pixels += int(band.count)
+        if per_round * pixels / total > left:
+            break
+        used += 1
+    return used
 
 
 class _Run:
@@ -399,11 +434,13 @@ class Renderer:
 
         "path" renders progressively, a sample per pixel over the whole
         image at a time: to ``spp`` samples, or with ``time_budget``
-        (seconds) until the next round would end past it (at most ``spp``
-        if given; at least one round).  Ctrl-C then stops within a round's
-        time and raises RenderInterrupted, whose ``image`` holds the
-        samples every pixel had taken; stats["spp"] says how many were
-        taken.  With ``aovs`` (shading "path" only) it returns a
+        (seconds) while whole rounds fit in it (at most ``spp`` if given;
+        at least one round), then over the image's first rows that still
+        fit: each pixel is the mean of its own samples.  stats["spp"] says
+        how many samples every pixel took, stats["mean_spp"] their mean
+        over the pixels.  Ctrl-C stops within a round's time and raises
+        RenderInterrupted, whose ``image`` holds the samples every pixel
+        had taken.  With ``aovs`` (shading "path" only) it returns a
         RenderResult: the image, and the first hit's albedo, shading normal
         and depth beside it, float32."""
         if time_budget is not None:

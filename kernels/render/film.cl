@@ -24,9 +24,11 @@
  *                 into the whole image's round buffer, row-major, and (group
  *                 0) the filter's weights for the columns and rows around
  *                 each sample, from where it fell in its pixel (camera.h)
- *   splat_round   over (width, height), once every band of the round is
+ *   splat_round   over (width, rows reached), once the round's bands are
  *                 stored: each pixel's weighted sums of the samples of the
- *                 (2 REACH + 1)^2 pixels around, added to its sums
+ *                 (2 REACH + 1)^2 pixels around, added to its sums.  A round
+ *                 cut short by a time budget stored only its first rows:
+ *                 the rows below hold no sample of it
  *
  * Compile-time parameters (-D)
  *   RADIANCE  1: the sums are radiance, encoded with display gamma 2 (sqrt,
@@ -162,11 +164,12 @@ __kernel void splat_round(__global const float4* round,
                           __global const float* taps,
                           const uint width,
                           const uint height,
+                          const uint stored,             /* rows [0, stored) hold samples */
                           __global float4* sums,         /* GROUPS float4 per pixel */
                           __global float* weights)       /* per pixel */
 {
     int x = (int)get_global_id(0), y = (int)get_global_id(1);
-    if (x >= (int)width || y >= (int)height)
+    if (x >= (int)width || y >= (int)height || y >= (int)stored + REACH)
         return;
     float4 gathered[GROUPS];
     for (int g = 0; g < GROUPS; ++g)
@@ -175,7 +178,7 @@ __kernel void splat_round(__global const float4* round,
     /* the samples of the image's pixels within REACH, rows then columns
      * (the sums' order); bounds taken once rather than tested per tap */
     int dy_first = y < REACH ? -y : -REACH;
-    int dy_last = (int)height - 1 - y < REACH ? (int)height - 1 - y : REACH;
+    int dy_last = (int)stored - 1 - y < REACH ? (int)stored - 1 - y : REACH;
     int dx_first = x < REACH ? -x : -REACH;
     int dx_last = (int)width - 1 - x < REACH ? (int)width - 1 - x : REACH;
     for (int dy = dy_first; dy <= dy_last; ++dy) {

@@ -257,3 +257,20 @@ def test_quick_run_writes_agreeing_hits_ratios_and_fits(suite_device, tmp_path, 
     out = capsys.readouterr().out
     assert "closest hit, Mrays/s" in out and "time ~ triangles^alpha" in out
     assert (ROOT / "docs" / "bench_trace.png").stat().st_mtime == committed  # no --docs
+
+
+def test_scene_option_traces_that_scene_file_alone(suite_device, tmp_path, capsys):
+    returned = trace.main(["--quick", "--scene", "cornell_box.xml", "--devices", suite_device.id,
+                           "--peers", "embreex", "--out", str(tmp_path), "--no-progress"])
+    assert [s["name"] for s in returned["scenes"]] == ["cornell_box.xml"]
+    assert returned["scaling"]["points"] == []
+    (scene,) = returned["scenes"]
+    assert scene["errors"] == {} and [w["kind"] for w in scene["workloads"]] == [
+        "primary", "incoherent", "bounce"]
+    for w in scene["workloads"]:
+        assert w["results"][suite_device.id]["hits"] == w["results"]["embreex"]["hits"] > 0
+        assert w["results"][suite_device.id]["disagreement"] == {"intersect": 0.0,
+                                                                 "occluded": 0.0}
+    assert (tmp_path / "trace.png").read_bytes()[:8] == PNG
+    with pytest.raises(SystemExit, match="no scene file 'attic.xml'"):
+        trace.main(["--quick", "--scene", "attic.xml", "--out", str(tmp_path)])

@@ -4,6 +4,7 @@ the rounds every pixel finished.  The oracle is the renderer itself on one
 band: the same seed gives every pixel the same random streams however the
 image is cut into bands and rounds."""
 import numpy as np
+import pyopencl as cl
 import pytest
 import trimesh
 
@@ -11,6 +12,7 @@ import hlbvh_cl
 from hlbvh_cl.cli import main
 from hlbvh_cl.io.exr import read_exr
 from hlbvh_cl.render import renderer as renderer_module
+from hlbvh_cl.render.camera import SPLAT_REACH
 from hlbvh_cl import RenderInterrupted
 
 WIDTH, HEIGHT = 48, 40
@@ -53,6 +55,48 @@ def test_a_time_budget_stops_between_rounds(bunny_renderer):
     np.testing.assert_allclose(image, path(bunny_renderer, spp=1), rtol=1e-6, atol=1e-7)
     path(bunny_renderer, time_budget=3600.0, spp=2)
     assert bunny_renderer.stats["spp"] == 2  # spp caps a budget
+
+
+def test_bands_in_time_takes_the_first_bands_that_fit():
+    bands = [renderer_module.Band(np.uint32(row), np.uint32(rows), 10, 10 * rows, None)
+             for row, rows in ((0, 4), (4, 4), (8, 2))]  # 40 + 40 + 20 pixels
+    fits = renderer_module.bands_in_time
+    assert fits(bands, left=1.0, per_round=1.0) == 3  # a whole round fits
+    assert fits(bands, left=0.95, per_round=1.0) == 2  # 0.4 + 0.4 fit, + 0.2 does not
+    assert fits(bands, left=0.5, per_round=1.0) == 1
+    assert fits(bands, left=0.39, per_round=1.0) == 0
+    assert fits(bands, left=-1.0, per_round=1.0) == 0
+
+
+@pytest.mark.parametrize("rfilter", ["box", "gaussian"])
+def test_a_budget_cut_round_adds_its_first_bands(bunny_renderer, bands_of_8_rows, monkeypatch,
+                                                 rfilter):
+    """When no whole round is left in the budget, the last round takes the
+    first bands that fit: their pixels are the mean of one sample more.
+    The gaussian film splats that round from its first rows only."""
+    one, two = path(bunny_renderer, spp=1, rfilter=rfilter), path(bunny_renderer, spp=2,
+                                                                  rfilter=rfilter)
+    monkeypatch.setattr(renderer_module, "bands_in_time", lambda bands, left, per_round: 2)
+    splat = renderer_module.Film.splat_round
+
+    def splat_then_poison(self, rt, width, height, stored):
+        """NaN in the round's samples once splatted: the rows a cut round
+        does not store again must never be read."""
+        done = splat(self, rt, width, height, stored)
+        round_buffer = self.splat["round"]
+        cl.enqueue_fill_buffer(rt.queue, round_buffer, np.float32(np.nan), 0, round_buffer.size)
+        return done
+    monkeypatch.setattr(renderer_module.Film, "splat_round", splat_then_poison)
+    cut = path(bunny_renderer, time_budget=3600.0, rfilter=rfilter)
+    stats = bunny_renderer.stats
+    assert stats["spp"] == 1 and stats["mean_spp"] == pytest.approx((16 * 2 + 24 * 1) / 40)
+    assert stats["primary_rays"] == WIDTH * (16 * 2 + 24)
+    reach = 0 if rfilter == "box" else SPLAT_REACH
+    # rows 0..15 (bands 0 and 1) took the second sample; rows the filter
+    # carries it to lie within reach of row 16
+    np.testing.assert_allclose(cut[:16 - reach], two[:16 - reach], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(cut[16 + reach:], one[16 + reach:], rtol=1e-5, atol=1e-6)
+    assert np.isfinite(cut).all() and not np.allclose(cut[:16], one[:16], rtol=1e-3)
 
 
 @pytest.mark.parametrize("time_budget, message", [(0, "time_budget"), (-1.0, "time_budget"),
