@@ -254,20 +254,19 @@ FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel,
     return true;
 }
 
-/* vec_type_hint(float4): Intel's CPU compiler packs a kernel's work-items
- * into its SIMD lanes, as many as the hint leaves room for.  Packed 16 to
- * an AVX-512 register (no hint), this kernel came out wrong there: in a
- * white furnace 40 % of a mirror's reflected rays were lost, and on the
- * Cornell box it wrote rays that overflowed the walk's stack; with
- * -cl-opt-disable, or fewer work-items a register, it is right (on AVX2
- * hosts, 8 a register, the suite passed).  The hint is standard OpenCL C,
- * which other compilers (PoCL's) may ignore: the same image there, bit for
- * bit.
+/* NARROW_KERNEL (core/portable.h): Intel's CPU compiler packs a kernel's
+ * work-items into its SIMD lanes, as many as the hint leaves room for.
+ * Packed 16 to an AVX-512 register (no hint), this kernel came out wrong
+ * there besides: in a white furnace 40 % of a mirror's reflected rays were
+ * lost, and on the Cornell box it wrote rays that overflowed the walk's
+ * stack; with -cl-opt-disable, or fewer work-items a register, it is right
+ * (on AVX2 hosts, 8 a register, the suite passed).  PoCL ignores the hint:
+ * the same image there, bit for bit.
  *
  * The first pass (depth 0) starts fresh paths: throughput 1, no BSDF
  * density behind them, no radiance, eta 1 (these values, where later
  * passes read the path's state). */
-__kernel __attribute__((vec_type_hint(float4)))
+NARROW_KERNEL
 void path_surface(__global const Ray* rays,         /* the live paths' rays */
                            __global const Hit* hits,
                            __global const uint* paths,       /* their paths (depth > 0) */
@@ -356,13 +355,13 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
 
 /* After the shadow rays: a path's radiance += pending where its shadow ray
  * was free (a path casts one shadow ray a pass at most). */
-__kernel void path_unoccluded(__global const uchar* occluded,
-                              __global const float4* pending,
-                              __global const uint* shadow_paths,  /* as path_surface's */
-                              __global const uint* shadows,
-                              const int depth,
-                              const uint bound,
-                              __global PathState* states)
+NARROW_KERNEL void path_unoccluded(__global const uchar* occluded,
+                                   __global const float4* pending,
+                                   __global const uint* shadow_paths,  /* as path_surface's */
+                                   __global const uint* shadows,
+                                   const int depth,
+                                   const uint bound,
+                                   __global PathState* states)
 {
     uint gid = get_global_id(0);
     if (gid >= bound || gid >= shadows[depth] || occluded[gid])
@@ -371,10 +370,10 @@ __kernel void path_unoccluded(__global const uchar* occluded,
     store3(s->radiance, LOAD_XYZ(s->radiance) + pending[gid].xyz);
 }
 
-__kernel void path_finish(__global const PathState* states,
-                          const uint count,
-                          const uint sample,          /* 0 starts the sum */
-                          __global float4* accum)
+NARROW_KERNEL void path_finish(__global const PathState* states,
+                               const uint count,
+                               const uint sample,          /* 0 starts the sum */
+                               __global float4* accum)
 {
     uint gid = get_global_id(0);
     if (gid >= count)
@@ -390,19 +389,19 @@ __kernel void path_finish(__global const PathState* states,
  * ray, `length_scale` back from the tree's frame); a miss gives zeros.
  * Each pixel sums them over its samples, two float4 per pixel: (albedo,
  * depth) and (normal, 0); sample 0 starts the sums. */
-__kernel void path_aovs(__global const Ray* rays,
-                        __global const Hit* hits,
-                        __global const PathMaterial* materials,
-                        __global const uint* shading_faces,
-                        __global const float* shading_normals,
-                        __global const int* hit_instances,
-                        __global const float* instance_maps,
-                        __global const int* instance_materials,
-                        const PathParams params,
-                        const float length_scale,
-                        const uint count,
-                        const uint sample,
-                        __global float4* aovs)
+NARROW_KERNEL void path_aovs(__global const Ray* rays,
+                             __global const Hit* hits,
+                             __global const PathMaterial* materials,
+                             __global const uint* shading_faces,
+                             __global const float* shading_normals,
+                             __global const int* hit_instances,
+                             __global const float* instance_maps,
+                             __global const int* instance_materials,
+                             const PathParams params,
+                             const float length_scale,
+                             const uint count,
+                             const uint sample,
+                             __global float4* aovs)
 {
     uint gid = get_global_id(0);
     if (gid >= count)
@@ -430,11 +429,11 @@ __kernel void path_aovs(__global const Ray* rays,
 /* Over pixel_in_pass's 2D range (render/tiles.h): each pixel's AOV sums
  * added to the whole image's, 7 floats (albedo RGB, normal XYZ, depth); the
  * host divides by the samples each band took (the film's add_to_image). */
-__kernel void path_aov_add(__global const float4* aovs,
-                           const uint width,
-                           const uint first_row,
-                           const uint rows,
-                           __global float* image)
+NARROW_KERNEL void path_aov_add(__global const float4* aovs,
+                                const uint width,
+                                const uint first_row,
+                                const uint rows,
+                                __global float* image)
 {
     uint gid;
     uint2 at;
