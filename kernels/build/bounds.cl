@@ -13,9 +13,10 @@
 #include "core/aabb.h"
 #include "build/mesh.h"
 
-__kernel void reduce_triangle_bounds(__global const float *vertices, __global const int *faces,
-                                     int triangle_count, __global Aabb *partial_geometry,
-                                     __global Aabb *partial_centroids, __global float4 *centroids)
+NARROW_KERNEL
+void reduce_triangle_bounds(__global const float *vertices, __global const int *faces,
+                            int triangle_count, __global Aabb *partial_geometry,
+                            __global Aabb *partial_centroids, __global float4 *centroids)
 {
     int gid = get_global_id(0);
 #if STRIDED_SLICES
@@ -86,9 +87,10 @@ inline float divide_nearest(float a, float b)
  * a tree in local memory (issue 57: a GPU has hundreds of thousands of
  * partials, which one work-item folded serially).  min and max are exact,
  * so any order of folding gives the same boxes. */
-__kernel void fold_partial_bounds(__global const Aabb *partial_geometry,
-                                  __global const Aabb *partial_centroids, int partial_count,
-                                  __global Aabb *bounds, __global float4 *inverse_extent)
+NARROW_KERNEL
+void fold_partial_bounds(__global const Aabb *partial_geometry,
+                         __global const Aabb *partial_centroids, int partial_count,
+                         __global Aabb *bounds, __global float4 *inverse_extent)
 {
     __local Aabb geometry[FOLD_GROUP];
     __local Aabb centroids[FOLD_GROUP];

@@ -24,9 +24,10 @@ inline int spans_clusters(__global const morton_t *keys, int first, int last)
 }
 
 /* live[i] = 1 if radix-tree node i is an interior node of the flat tree. */
-__kernel void mark_live_nodes(__global const morton_t *keys, int n, __global const int *parent,
-                              __global const int *range_first, __global const int *range_last,
-                              __global const int *collapsed, __global uint *live)
+NARROW_KERNEL
+void mark_live_nodes(__global const morton_t *keys, int n, __global const int *parent,
+                     __global const int *range_first, __global const int *range_last,
+                     __global const int *collapsed, __global uint *live)
 {
     int i = get_global_id(0);
     if (i >= n - 1)
@@ -85,12 +86,13 @@ inline void write_node(__global FlatNode *out, Aabb left_box, Aabb right_box, in
     *out = node;
 }
 
-__kernel void write_flat_nodes(int n, __global const int *top_info,
-                               __global const uint *live_scan,
-                               __global const int *left_child, __global const int *right_child,
-                               __global const int *range_first, __global const int *range_last,
-                               __global const int *collapsed, __global const Aabb *boxes,
-                               __global FlatNode *nodes)
+NARROW_KERNEL
+void write_flat_nodes(int n, __global const int *top_info,
+                      __global const uint *live_scan,
+                      __global const int *left_child, __global const int *right_child,
+                      __global const int *range_first, __global const int *range_last,
+                      __global const int *collapsed, __global const Aabb *boxes,
+                      __global FlatNode *nodes)
 {
     int i = get_global_id(0);
     if (i >= n - 1 || live_scan[i] == live_scan[i + 1])
@@ -137,13 +139,14 @@ inline void top_child(int ref, int n, int top_count, int top_root,
 /* Two calls to top_child rather than a loop over the sides: PoCL keeps a
  * work-item's private arrays in memory, and copying them took half the
  * kernel's time.  Launched for as many top nodes as there can be. */
-__kernel void write_top_nodes(int n, __global const int *top_info,
-                              __global const uint *live_scan,
-                              __global const int *top_left, __global const int *top_right,
-                              __global const Aabb *top_boxes, __global const int *cluster_roots,
-                              __global const Aabb *cluster_boxes, __global const int *range_first,
-                              __global const int *range_last, __global const int *collapsed,
-                              __global FlatNode *nodes)
+NARROW_KERNEL
+void write_top_nodes(int n, __global const int *top_info,
+                     __global const uint *live_scan,
+                     __global const int *top_left, __global const int *top_right,
+                     __global const Aabb *top_boxes, __global const int *cluster_roots,
+                     __global const Aabb *cluster_boxes, __global const int *range_first,
+                     __global const int *range_last, __global const int *collapsed,
+                     __global FlatNode *nodes)
 {
     int t = get_global_id(0), top_count = top_node_count(top_info), top_root = top_info[1];
     if (t >= top_count)
@@ -165,12 +168,13 @@ __kernel void write_top_nodes(int n, __global const int *top_info,
  * and a tree whose root is a leaf gets its one node here, whose left slot
  * holds all n triangles (the scan marked no node live, so no other kernel
  * wrote one).  Without the scan (n == 1) live_scan is not read. */
-__kernel void summarise_flat_tree(int n, __global const int *top_info,
-                                  __global const uint *live_scan, __global const int *collapsed,
-                                  __global const Aabb *boxes, __global const float *sah_cost,
-                                  __global const int *height, __global const Aabb *top_boxes,
-                                  __global const float *top_cost, __global FlatNode *nodes,
-                                  __global FlatSummary *out)
+NARROW_KERNEL
+void summarise_flat_tree(int n, __global const int *top_info,
+                         __global const uint *live_scan, __global const int *collapsed,
+                         __global const Aabb *boxes, __global const float *sah_cost,
+                         __global const int *height, __global const Aabb *top_boxes,
+                         __global const float *top_cost, __global FlatNode *nodes,
+                         __global FlatSummary *out)
 {
     if (get_global_id(0) != 0)
         return;

@@ -47,9 +47,10 @@ inline ulong4 spread_bits(uint4 x)
  * inverse_extent: 1 / the centroid box's extent per axis, correctly rounded
  * (0 on a flat axis), so that the scale AXIS_CELLS * inverse_extent is
  * AXIS_CELLS / extent correctly rounded, as on a host (bounds.cl). */
-__kernel void morton_codes(__global const float4 *centroids, int triangle_count,
-                           __global const Aabb *bounds, __global const float4 *inverse_extent,
-                           __global morton_t *keys, __global uint *primitive_ids)
+NARROW_KERNEL
+void morton_codes(__global const float4 *centroids, int triangle_count,
+                  __global const Aabb *bounds, __global const float4 *inverse_extent,
+                  __global morton_t *keys, __global uint *primitive_ids)
 {
     int face = get_global_id(0);
     if (face >= triangle_count)

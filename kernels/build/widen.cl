@@ -112,8 +112,9 @@ inline int interior_children(__global const FlatNode *nodes, int node)
 }
 
 /* parent[m] of every BVH2 node m (-1 for the root, node 0), for the walk up. */
-__kernel void link_wide_parents(__global const int *bvh2_count, __global const FlatNode *nodes,
-                                __global int *parent)
+NARROW_KERNEL
+void link_wide_parents(__global const int *bvh2_count, __global const FlatNode *nodes,
+                       __global int *parent)
 {
     int node = get_global_id(0);
     if (node >= *bvh2_count)
@@ -265,9 +266,10 @@ inline void node_costs(__global const FlatNode *nodes, int node, __global float 
 
 /* The DP bottom-up: a walker from each BVH2 node with no interior child;
  * at a node with two, the first arrival stops and the second goes on. */
-__kernel void wide_costs(__global const int *bvh2_count, __global const FlatNode *nodes,
-                         __global const int *parent, __global int *visits,
-                         __global float *costs, __global int *spans, __global uchar *choice)
+NARROW_KERNEL
+void wide_costs(__global const int *bvh2_count, __global const FlatNode *nodes,
+                __global const int *parent, __global int *visits,
+                __global float *costs, __global int *spans, __global uchar *choice)
 {
     int node = get_global_id(0);
     if (node >= *bvh2_count || interior_children(nodes, node) > 0)
@@ -348,10 +350,11 @@ inline void group_block(int count, int *begin, int *end)
  * levels[2 * at + 1]): slots[WIDE_ARITY * w + k] and interior_count[i]
  * (i = w - first).  Slot indices are size_t, as WIDE_ARITY * w passes int's
  * range from 2^28 wide nodes. */
-__kernel void choose_wide_slots(int at, __global const int *levels, __global const int *source,
-                                __global const FlatNode *nodes, __global const uchar *choice,
-                                __global uint *slots,
-                                __global uint *interior_count)
+NARROW_KERNEL
+void choose_wide_slots(int at, __global const int *levels, __global const int *source,
+                       __global const FlatNode *nodes, __global const uchar *choice,
+                       __global uint *slots,
+                       __global uint *interior_count)
 {
     int first = levels[2 * at], begin, end;
     group_block(levels[2 * at + 1], &begin, &end);
@@ -378,11 +381,12 @@ __kernel void choose_wide_slots(int at, __global const int *levels, __global con
  * nodes than *bvh2_count means the BVH2 is not a tree: then nothing is
  * linked, the next level is empty and levels[overflow_at] is set, which the
  * host reports. */
-__kernel void link_wide_children(int at, __global int *levels, int overflow_at,
-                                 __global const int *bvh2_count,
-                                 __global const uint *interior_offset,
-                                 __global const FlatNode *nodes, __global const uint *slots,
-                                 __global int *source, __global int *first_child)
+NARROW_KERNEL
+void link_wide_children(int at, __global int *levels, int overflow_at,
+                        __global const int *bvh2_count,
+                        __global const uint *interior_offset,
+                        __global const FlatNode *nodes, __global const uint *slots,
+                        __global int *source, __global int *first_child)
 {
     int first = levels[2 * at], count = levels[2 * at + 1];
     int next_first = first + count;
@@ -412,9 +416,10 @@ __kernel void link_wide_children(int at, __global int *levels, int overflow_at,
 
 /* Every wide node from its chosen slots, the BVH2's boxes and, for a
  * merged slot, its subtree's run of triangles. */
-__kernel void write_wide_nodes(int wide_count, __global const uint *slots,
-                               __global const int *first_child, __global const FlatNode *nodes,
-                               __global const int *spans, __global WideNode *wide)
+NARROW_KERNEL
+void write_wide_nodes(int wide_count, __global const uint *slots,
+                      __global const int *first_child, __global const FlatNode *nodes,
+                      __global const int *spans, __global WideNode *wide)
 {
     int w = get_global_id(0);
     if (w >= wide_count)
