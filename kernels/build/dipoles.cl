@@ -102,9 +102,10 @@ inline void node_dipole(__global const WideNode* nodes, __global const WideDipol
  * dipoles[node_base]: one tree among the meshes' trees of a two-level scene
  * (hlbvh_cl/build/instances.py's MeshTrees), its indices its own; 0 and 0 for a
  * flat scene's one tree. */
-__kernel void dipoles_level(int level_first, int level_count, int node_base, int triangle_base,
-                            __global const WideNode* nodes, __global const Triangle* triangles,
-                            __global WideDipoles* dipoles)
+NARROW_KERNEL
+void dipoles_level(int level_first, int level_count, int node_base, int triangle_base,
+                   __global const WideNode* nodes, __global const Triangle* triangles,
+                   __global WideDipoles* dipoles)
 {
     int i = get_global_id(0);
     if (i >= level_count)

@@ -66,9 +66,10 @@ inline void node_box(__global WideNode *node, Aabb *box)
 
 /* Every lane of the wide nodes [level_first, level_first + level_count),
  * whose children (the next level down) are already refit. */
-__kernel void refit_wide_level(int level_first, int level_count, __global WideNode *nodes,
-                               __global const float *vertices, __global const int *vertex_ids,
-                               __global Triangle *triangles)
+NARROW_KERNEL
+void refit_wide_level(int level_first, int level_count, __global WideNode *nodes,
+                      __global const float *vertices, __global const int *vertex_ids,
+                      __global Triangle *triangles)
 {
     int i = get_global_id(0);
     if (i >= level_count)

@@ -49,13 +49,14 @@ inline float gaussian_offset(__global const float* table, float u)
     return mix(table[i], table[i + 1], at - (float)i);
 }
 
-__kernel void primary_rays(const PinholeCamera camera, const uint width, const uint height,
-                           const uint first_row, const uint rows, const uint sample,
-                           const int jitter,
-                           const float tmin,   /* the clip planes' distances along */
-                           const float tmax,   /* camera.forward, a unit vector */
-                           __global const float* table,  /* the Gaussian filter's */
-                           __global Ray* rays)
+NARROW_KERNEL
+void primary_rays(const PinholeCamera camera, const uint width, const uint height,
+                  const uint first_row, const uint rows, const uint sample,
+                  const int jitter,
+                  const float tmin,   /* the clip planes' distances along */
+                  const float tmax,   /* camera.forward, a unit vector */
+                  __global const float* table,  /* the Gaussian filter's */
+                  __global Ray* rays)
 {
     uint gid;
     uint2 at;
@@ -81,8 +82,9 @@ __kernel void primary_rays(const PinholeCamera camera, const uint width, const u
     ray->tmax = tmax;
 }
 
-__kernel void camera_rays(const PinholeCamera camera, const uint width, const uint height,
-                          __global float* origins, __global float* directions)
+NARROW_KERNEL
+void camera_rays(const PinholeCamera camera, const uint width, const uint height,
+                 __global float* origins, __global float* directions)
 {
     size_t pixel = get_global_id(0);
     if (pixel >= (size_t)width * height)

@@ -46,12 +46,13 @@
 #error "RADIANCE must be defined (-D RADIANCE=1 for radiance, 0 for data)"
 #endif
 
-NARROW_KERNEL void encode_image(__global const float4* accum,
-                                const uint width,
-                                const uint first_row,
-                                const uint rows,
-                                const float scale,          /* 1 / samples per pixel */
-                                __global uchar* image)      /* the whole image */
+NARROW_KERNEL
+void encode_image(__global const float4* accum,
+                  const uint width,
+                  const uint first_row,
+                  const uint rows,
+                  const float scale,          /* 1 / samples per pixel */
+                  __global uchar* image)      /* the whole image */
 {
     uint gid;
     uint2 at;
@@ -72,12 +73,13 @@ NARROW_KERNEL void encode_image(__global const float4* accum,
     pixel[2] = rgb.z;
 }
 
-NARROW_KERNEL void radiance_image(__global const float4* accum,
-                                  const uint width,
-                                  const uint first_row,
-                                  const uint rows,
-                                  const float scale,        /* 1 / samples per pixel */
-                                  __global float* image)    /* the whole image, RGB */
+NARROW_KERNEL
+void radiance_image(__global const float4* accum,
+                    const uint width,
+                    const uint first_row,
+                    const uint rows,
+                    const float scale,        /* 1 / samples per pixel */
+                    __global float* image)    /* the whole image, RGB */
 {
     uint gid;
     uint2 at;
@@ -90,11 +92,12 @@ NARROW_KERNEL void radiance_image(__global const float4* accum,
     pixel[2] = mean.z;
 }
 
-NARROW_KERNEL void add_to_image(__global const float4* accum,
-                                const uint width,
-                                const uint first_row,
-                                const uint rows,
-                                __global float* image)      /* the whole image's sums, RGB */
+NARROW_KERNEL
+void add_to_image(__global const float4* accum,
+                  const uint width,
+                  const uint first_row,
+                  const uint rows,
+                  __global float* image)      /* the whole image's sums, RGB */
 {
     uint gid;
     uint2 at;
@@ -126,18 +129,19 @@ inline float filter_weight(__global const float* table, float radius, float t)
     return table[i] + (table[i + 1] - table[i]) * (at - (float)i);
 }
 
-NARROW_KERNEL void store_round(__global const float4* values,  /* the band's, in tile order */
-                               const uint value_groups,        /* float4 per pixel in values */
-                               const uint to_group,            /* where they go among GROUPS */
-                               const uint width,
-                               const uint first_row,
-                               const uint rows,
-                               const uint sample,              /* the round's random stream */
-                               const int jitter,               /* the camera's (0 or 1) */
-                               __global const float* table,    /* the filter's weights */
-                               const float radius,             /* the filter's, in pixels */
-                               __global float4* round,         /* GROUPS float4 per image pixel */
-                               __global float* taps)           /* 2 TAPS per image pixel */
+NARROW_KERNEL
+void store_round(__global const float4* values,  /* the band's, in tile order */
+                 const uint value_groups,        /* float4 per pixel in values */
+                 const uint to_group,            /* where they go among GROUPS */
+                 const uint width,
+                 const uint first_row,
+                 const uint rows,
+                 const uint sample,              /* the round's random stream */
+                 const int jitter,               /* the camera's (0 or 1) */
+                 __global const float* table,    /* the filter's weights */
+                 const float radius,             /* the filter's, in pixels */
+                 __global float4* round,         /* GROUPS float4 per image pixel */
+                 __global float* taps)           /* 2 TAPS per image pixel */
 {
     uint gid;
     uint2 at;
@@ -160,13 +164,14 @@ NARROW_KERNEL void store_round(__global const float4* values,  /* the band's, in
     }
 }
 
-NARROW_KERNEL void splat_round(__global const float4* round,
-                               __global const float* taps,
-                               const uint width,
-                               const uint height,
-                               const uint stored,             /* rows [0, stored) hold samples */
-                               __global float4* sums,         /* GROUPS float4 per pixel */
-                               __global float* weights)       /* per pixel */
+NARROW_KERNEL
+void splat_round(__global const float4* round,
+                 __global const float* taps,
+                 const uint width,
+                 const uint height,
+                 const uint stored,             /* rows [0, stored) hold samples */
+                 __global float4* sums,         /* GROUPS float4 per pixel */
+                 __global float* weights)       /* per pixel */
 {
     int x = (int)get_global_id(0), y = (int)get_global_id(1);
     if (x >= (int)width || y >= (int)height || y >= (int)stored + REACH)

@@ -69,15 +69,16 @@ inline float3 sky(const ShadeParams* params, float3 direction)
     return horizon + rise; /* mix, unfused (see dot3) */
 }
 
-__kernel void shade_hits(__global const Ray* rays,
-                         __global const Hit* hits,
-                         __global const float* albedo,    /* RGB per geom_id */
-                         const ShadeParams params,
-                         const uint ray_count,
-                         const uint sample,               /* 0 starts the sum */
-                         __global Ray* secondary,
-                         __global float4* pending,
-                         __global float4* accum)
+NARROW_KERNEL
+void shade_hits(__global const Ray* rays,
+                __global const Hit* hits,
+                __global const float* albedo,    /* RGB per geom_id */
+                const ShadeParams params,
+                const uint ray_count,
+                const uint sample,               /* 0 starts the sum */
+                __global Ray* secondary,
+                __global float4* pending,
+                __global float4* accum)
 {
     uint gid = get_global_id(0);
     if (gid >= ray_count)
@@ -134,10 +135,11 @@ __kernel void shade_hits(__global const Ray* rays,
 /* The k-th AO ray of each pixel: cosine_direction about n from
  * random_unit(pixel, sample, 2 + 2k) and (..., 3 + 2k), reaching
  * ao_distance.  Misses get an empty ray. */
-__kernel void ao_rays(__global const Ray* rays, __global const Hit* hits,
-                      const ShadeParams params, const uint width, const uint first_row,
-                      const uint rows, const uint sample, const uint ao_index,
-                      __global Ray* secondary)
+NARROW_KERNEL
+void ao_rays(__global const Ray* rays, __global const Hit* hits,
+             const ShadeParams params, const uint width, const uint first_row,
+             const uint rows, const uint sample, const uint ao_index,
+             __global Ray* secondary)
 {
     uint gid;
     uint2 at;
@@ -157,10 +159,11 @@ __kernel void ao_rays(__global const Ray* rays, __global const Hit* hits,
               params.ao_distance);
 }
 
-__kernel void add_unoccluded(__global const uchar* occluded,
-                             __global const float4* pending,
-                             const uint ray_count,
-                             __global float4* accum)
+NARROW_KERNEL
+void add_unoccluded(__global const uchar* occluded,
+                    __global const float4* pending,
+                    const uint ray_count,
+                    __global float4* accum)
 {
     uint gid = get_global_id(0);
     if (gid >= ray_count || occluded[gid])

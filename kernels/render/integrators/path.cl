@@ -355,13 +355,14 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
 
 /* After the shadow rays: a path's radiance += pending where its shadow ray
  * was free (a path casts one shadow ray a pass at most). */
-NARROW_KERNEL void path_unoccluded(__global const uchar* occluded,
-                                   __global const float4* pending,
-                                   __global const uint* shadow_paths,  /* as path_surface's */
-                                   __global const uint* shadows,
-                                   const int depth,
-                                   const uint bound,
-                                   __global PathState* states)
+NARROW_KERNEL
+void path_unoccluded(__global const uchar* occluded,
+                     __global const float4* pending,
+                     __global const uint* shadow_paths,  /* as path_surface's */
+                     __global const uint* shadows,
+                     const int depth,
+                     const uint bound,
+                     __global PathState* states)
 {
     uint gid = get_global_id(0);
     if (gid >= bound || gid >= shadows[depth] || occluded[gid])
@@ -370,10 +371,11 @@ NARROW_KERNEL void path_unoccluded(__global const uchar* occluded,
     store3(s->radiance, LOAD_XYZ(s->radiance) + pending[gid].xyz);
 }
 
-NARROW_KERNEL void path_finish(__global const PathState* states,
-                               const uint count,
-                               const uint sample,          /* 0 starts the sum */
-                               __global float4* accum)
+NARROW_KERNEL
+void path_finish(__global const PathState* states,
+                 const uint count,
+                 const uint sample,          /* 0 starts the sum */
+                 __global float4* accum)
 {
     uint gid = get_global_id(0);
     if (gid >= count)
@@ -389,19 +391,20 @@ NARROW_KERNEL void path_finish(__global const PathState* states,
  * ray, `length_scale` back from the tree's frame); a miss gives zeros.
  * Each pixel sums them over its samples, two float4 per pixel: (albedo,
  * depth) and (normal, 0); sample 0 starts the sums. */
-NARROW_KERNEL void path_aovs(__global const Ray* rays,
-                             __global const Hit* hits,
-                             __global const PathMaterial* materials,
-                             __global const uint* shading_faces,
-                             __global const float* shading_normals,
-                             __global const int* hit_instances,
-                             __global const float* instance_maps,
-                             __global const int* instance_materials,
-                             const PathParams params,
-                             const float length_scale,
-                             const uint count,
-                             const uint sample,
-                             __global float4* aovs)
+NARROW_KERNEL
+void path_aovs(__global const Ray* rays,
+               __global const Hit* hits,
+               __global const PathMaterial* materials,
+               __global const uint* shading_faces,
+               __global const float* shading_normals,
+               __global const int* hit_instances,
+               __global const float* instance_maps,
+               __global const int* instance_materials,
+               const PathParams params,
+               const float length_scale,
+               const uint count,
+               const uint sample,
+               __global float4* aovs)
 {
     uint gid = get_global_id(0);
     if (gid >= count)
@@ -429,11 +432,12 @@ NARROW_KERNEL void path_aovs(__global const Ray* rays,
 /* Over pixel_in_pass's 2D range (render/tiles.h): each pixel's AOV sums
  * added to the whole image's, 7 floats (albedo RGB, normal XYZ, depth); the
  * host divides by the samples each band took (the film's add_to_image). */
-NARROW_KERNEL void path_aov_add(__global const float4* aovs,
-                                const uint width,
-                                const uint first_row,
-                                const uint rows,
-                                __global float* image)
+NARROW_KERNEL
+void path_aov_add(__global const float4* aovs,
+                  const uint width,
+                  const uint first_row,
+                  const uint rows,
+                  __global float* image)
 {
     uint gid;
     uint2 at;
