@@ -226,9 +226,8 @@ class Pipeline:
         sums added to the image's, until spp rounds are done or, with a
         ``budget`` in seconds, the time left holds no more whole round: then
         a last round over the first bands that fit (bands_in_time), so that
-        the budget's tail is not left idle (Mitsuba's timeout leaves the
-        image's last blocks with a sample fewer alike).  Each pixel is the
-        mean of its own samples.  Ctrl-C stops it at once: the rounds every
+        the budget's tail is not left idle.  Each pixel is the mean of its
+        own samples.  Ctrl-C stops it at once: the rounds every
         band finished make the image.  -> (image, spp every pixel took,
         mean spp over the pixels, interrupted)."""
         rt, settings, width = self.rt, run.settings, run.settings.width
