@@ -30,9 +30,10 @@
  * gathers and scatters, which cost more than the lanes save: the camera,
  * the preview shading, the path tracer's film and resolve kernels, the
  * build's bounds, Morton, flatten and widen stages, refit and the dipoles
- * ran up to 5x faster with it, the same bits.  Standard OpenCL C that
- * other compilers (PoCL's) may ignore.  (Traversal kernels carry their own
- * hint: query/walk/node.h's TRAVERSAL_KERNEL.) */
+ * measured faster with it, the same bits (figures in the commits that
+ * marked them).  Standard OpenCL C that other compilers (PoCL's) may
+ * ignore.  (Traversal kernels carry their own hint: query/walk/node.h's
+ * TRAVERSAL_KERNEL.) */
 #define NARROW_KERNEL __kernel __attribute__((vec_type_hint(float4)))
 
 /* PREFETCH (set by the host for CPU devices) asks for __builtin_prefetch. */
