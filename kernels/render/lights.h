@@ -57,21 +57,22 @@ inline float3 environment_light(const PathParams* params, __global const float* 
  * its pdf is the chance of picking it, and MIS leaves it alone), or uniform
  * in area on an emissive triangle picked by power (its area times its
  * radiance's luminance); the lights themselves are picked by power
- * (hlbvh_cl/render/emitters.py). */
+ * (hlbvh_cl/render/emitters.py).  Its four numbers are random_salted(pixel,
+ * salts.s0..s3): the choice of light, then three for the point or direction. */
 FORCE_INLINE LightSample sample_light(float3 x, const PathParams* params,
-                                      const LightTables* tables, uint pixel, uint sample,
-                                      uint base, bool* delta)
+                                      const LightTables* tables, uint pixel, uint4 salts,
+                                      bool* delta)
 {
     LightSample out = {(float3)(0.0f), 0.0f, (float3)(0.0f), 0.0f};
-    float choice = random_unit(pixel, sample, base);
+    float choice = random_salted(pixel, salts.s0);
     *delta = false;
-    float u1 = random_unit(pixel, sample, base + 2);
-    float u2 = random_unit(pixel, sample, base + 3);
+    float u1 = random_salted(pixel, salts.s2);
+    float u2 = random_salted(pixel, salts.s3);
     if (choice < params->environment_probability) {
         out.reach = INFINITY;
         if (params->envmap_width > 0) {
             out.direction = envmap_sample(params, tables->envmap_cdf,
-                                          random_unit(pixel, sample, base + 1),
+                                          random_salted(pixel, salts.s1),
                                           u1, u2, &out.pdf);
             out.radiance = envmap_radiance(params, tables->envmap_image, out.direction);
             out.pdf *= params->environment_probability;
@@ -116,19 +117,17 @@ FORCE_INLINE LightSample sample_light(float3 x, const PathParams* params,
     if (params->light_triangles == 0)
         return out;
     uint k = pick(tables->light_cdf, params->light_triangles,
-                  random_unit(pixel, sample, base + 1));
+                  random_salted(pixel, salts.s1));
     __global const float* v = tables->light_vertices + 9 * (size_t)k;
     float3 v0 = LOAD_XYZ(v), v1 = LOAD_XYZ(v + 3), v2 = LOAD_XYZ(v + 6);
     float root = SQRT(u1);  /* uniform in the triangle: pbrt-v4 SampleUniformTriangle's map */
     float b0 = 1.0f - root, b1 = u2 * root;
     float3 p = b0 * v0 + b1 * v1 + (1.0f - b0 - b1) * v2;
-    float3 normal = normalize3(cross3(v1 - v0, v2 - v0));
     /* the shading normal there (Mitsuba's Mesh::sample_position), unless the
      * mesh has face normals (zeros in the table) */
     __global const float* ln = tables->light_normals + 9 * (size_t)k;
     float3 smooth = b0 * LOAD_XYZ(ln) + b1 * LOAD_XYZ(ln + 3) + (1.0f - b0 - b1) * LOAD_XYZ(ln + 6);
-    if (dot3(smooth, smooth) > 0.0f)
-        normal = normalize3(smooth);
+    float3 normal = normalize3(dot3(smooth, smooth) > 0.0f ? smooth : cross3(v1 - v0, v2 - v0));
     float3 to_light = p - x;
     float squared = dot3(to_light, to_light);
     float distance = SQRT(squared);

@@ -11,12 +11,26 @@ inline uint hash_pcg(uint value)
     return (word >> 22u) ^ word;
 }
 
+/* The part of random_unit's hash that every pixel of a sample shares: a
+ * wavefront stage reads its dimensions' salts from the host (the path
+ * integrator's, hlbvh_cl/render/random.py) rather than hash them again in
+ * each work-item. */
+inline uint random_salt(uint sample, uint dimension)
+{
+    return hash_pcg(sample + hash_pcg(dimension));
+}
+
+/* random_unit from its salt. */
+inline float random_salted(uint pixel, uint salt)
+{
+    return (float)(hash_pcg(pixel + salt) >> 8) * 0x1p-24f;
+}
+
 /* A number in [0, 1) fixed by (pixel, sample, dimension), the same on every
  * run and device.  24 bits, so that the float is exact. */
 inline float random_unit(uint pixel, uint sample, uint dimension)
 {
-    uint h = hash_pcg(pixel + hash_pcg(sample + hash_pcg(dimension)));
-    return (float)(h >> 8) * 0x1p-24f;
+    return random_salted(pixel, random_salt(sample, dimension));
 }
 
 #endif /* RANDOM_H */

@@ -120,7 +120,9 @@ __kernel void light_samples(const PathParams params, __global const PathMaterial
     const LightTables tables = {materials, light_vertices, light_normals, light_cdf,
                                 light_geom, delta_lights, envmap_image, envmap_cdf};
     bool delta;
-    LightSample s = sample_light((float3)(x, y, z), &params, &tables, k, seed, 0, &delta);
+    uint4 salts = (uint4)(random_salt(seed, 0), random_salt(seed, 1), random_salt(seed, 2),
+                          random_salt(seed, 3));
+    LightSample s = sample_light((float3)(x, y, z), &params, &tables, k, salts, &delta);
     store3(directions + 3 * (size_t)k, s.direction);
     store3(radiance + 3 * (size_t)k, s.radiance);
     pdfs[k] = s.pdf;

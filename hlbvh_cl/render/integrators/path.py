@@ -51,6 +51,7 @@ from ...core import layout
 from ...core.paths import kernel_of
 from ...device.runtime import Runtime
 from ..emitters import luminance
+from ..random import salts8
 from .base import Integrator, Look, Step
 from .direct import ray_offset
 
@@ -65,6 +66,12 @@ UNLIMITED_BOUNCES = 1024
 #: each bounce over the paths of the one before; more would launch it over
 #: an earlier bounce's, whose paths that ended since are empty rays.
 LOOKAHEAD = 1
+
+#: The random numbers' dimensions (random_unit's, kernels/render/random.h):
+#: the camera's 0 and 1, then each bounce's light choice, three for its light
+#: sample, three for its BSDF sample and its Russian roulette, whose salts
+#: path_surface takes (random.salts8).
+FIRST_BOUNCE_DIMENSION, DIMENSIONS_PER_BOUNCE = 2, 8
 
 #: path_surface's work-group size.  A CPU runtime keeps the values a
 #: work-item holds across the kernel's barriers (its next ray and its shadow
@@ -398,7 +405,8 @@ class Path(Integrator):
                 tables["owners"], tables["deltas"], tables["shading_faces"],
                 tables["shading_normals"], step.instances, tables["instance_maps"],
                 tables["instance_materials"], tables["envmap_image"], tables["envmap_cdf"],
-                self._params, np.uint32(bound), first_pixel, stream, at,
+                self._params, np.uint32(bound), first_pixel,
+                salts8(int(stream), FIRST_BOUNCE_DIMENSION + DIMENSIONS_PER_BOUNCE * depth), at,
                 self.live, next_rays, next_numbers, self.shadows, self.shadow, self.pending,
                 self.shadow_paths, local_size=SURFACE_GROUP))
             events["occluded"].append(step.query.enqueue_occluded(

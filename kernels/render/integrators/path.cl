@@ -28,7 +28,9 @@
  * spawn_ray).  Nothing more corrects the shading normal, as in Mitsuba's path.
  *
  * Random numbers: random_unit(pixel, sample, dimension) (render/random.h),
- * the camera's dimensions 0 and 1, then DIMENSIONS_PER_BOUNCE per bounce.
+ * the camera's dimensions 0 and 1, then 8 per bounce (light choice, 3 for
+ * the light sample, 3 for the BSDF's, Russian roulette), whose salts
+ * path_surface takes from the host (`salts`).
  */
 #include "core/portable.h"
 #include "core/spelled.h"
@@ -40,8 +42,6 @@
 #include "render/random.h"
 #include "render/envmap.h"
 #include "render/lights.h"
-
-#define DIMENSIONS_PER_BOUNCE 8
 
 /* The power heuristic with beta = 2 (Veach 1997, eq. 9.13) for a sample
  * drawn with density `chosen` where the other strategy has `other`. */
@@ -134,7 +134,7 @@ typedef struct {
  * sees there, its light sample (*shadow, where it returns with *casts
  * set), and whether the path goes on, from *next_origin along
  * *next_direction. */
-FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel, uint sample,
+FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel, uint8 salts,
                                __global const Ray* rays, __global const Hit* hits,
                                __global PathState* states, const PathTables* tables,
                                const PathParams* params, ShadowRay* shadow, bool* casts,
@@ -192,14 +192,14 @@ FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel,
     float3 x = LOAD_XYZ(ray->origin) + hit->t * d;
     /* secondary rays start off the surface on their own side of it */
     float3 lift = params->ray_offset * (cos_geometric > 0.0f ? geometric : -geometric);
-    uint pixel = first_pixel + path, base = 2 + DIMENSIONS_PER_BOUNCE * (uint)depth;
+    uint pixel = first_pixel + path;
 
     /* next-event estimation, for a BSDF with a density: one light sample,
      * weighed against the BSDF's density of its direction (delta lights: no MIS) */
     bool delta_light = false;
     LightSample light = {(float3)(0.0f), 0.0f, (float3)(0.0f), 0.0f};
     if (bsdf_has_density(m))
-        light = sample_light(x + lift, params, &tables->lights, pixel, sample, base, &delta_light);
+        light = sample_light(x + lift, params, &tables->lights, pixel, salts.lo, &delta_light);
     float bsdf_pdf_of_light;
     float3 f_cos = light.pdf > 0.0f ? bsdf_eval(m, n, wo, light.direction, &bsdf_pdf_of_light)
                                     : (float3)(0.0f);
@@ -224,9 +224,8 @@ FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel,
     }
 
     /* the BSDF sample: the throughput takes its weight f cos / pdf */
-    BsdfSample next = bsdf_sample(m, n, wo, random_unit(pixel, sample, base + 4),
-                                  random_unit(pixel, sample, base + 5),
-                                  random_unit(pixel, sample, base + 6));
+    BsdfSample next = bsdf_sample(m, n, wo, random_salted(pixel, salts.s4),
+                                  random_salted(pixel, salts.s5), random_salted(pixel, salts.s6));
     throughput *= next.weight;
     float eta = (first ? 1.0f : s->eta) * next.eta;
     if (!(luminance_max(throughput) > 0.0f)) {
@@ -238,7 +237,7 @@ FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel,
     if (depth + 1 >= params->rr_depth) {
         float q = luminance_max(throughput) * eta * eta;
         q = q < 0.95f ? q : 0.95f;
-        if (!(random_unit(pixel, sample, base + 7) < q)) {
+        if (!(random_salted(pixel, salts.s7) < q)) {
             end_path(s, first, gathered);  /* its light sample above still counts */
             return false;
         }
@@ -287,7 +286,7 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
                            const PathParams params,
                            const uint bound,          /* work-items: >= live[depth] */
                            const uint first_pixel,    /* the pass's first pixel: random streams */
-                           const uint sample,
+                           const uint8 salts,         /* random_salt(sample, 2 + 8 depth + k) */
                            const int depth,           /* segments the paths have so far, - 1;
                                                        * 0: fresh paths */
                            __global uint* live,       /* live[depth]: paths in `rays`;
@@ -327,7 +326,7 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
     ShadowRay light = {(float3)(0.0f), (float3)(0.0f), 0.0f, (float3)(0.0f)};
     if (gid < bound && gid < live[depth]) {
         path = depth == 0 ? gid : paths[gid];
-        goes_on = shade_vertex(gid, path, depth, first_pixel, sample, rays, hits, states,
+        goes_on = shade_vertex(gid, path, depth, first_pixel, salts, rays, hits, states,
                                &tables, &params, &light, &casts, &origin, &direction);
     }
     if (goes_on)
