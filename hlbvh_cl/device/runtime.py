@@ -215,6 +215,13 @@ class Runtime:
         source = (folder / filename).read_text()
         std = (self.device.acquire_release_std if defines.get("ACQUIRE_RELEASE") else None) or "CL1.2"
         options = ["-I", str(folder), f"-cl-std={std}"]
+        exact = cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT
+        if self.device.cl_device.single_fp_config & exact:
+            # OpenCL C lets float division be off by 2.5 ulp and sqrt by 3
+            # (OpenCL C spec., "Relative Error as ULPs"), and NVIDIA's default
+            # is: then rays made on the device (camera.cl) and every division
+            # differ from the host's numpy mirrors and from the CPU runtimes
+            options.append("-cl-fp32-correctly-rounded-divide-sqrt")
         options += [f"-D{name}={_define_value(value)}" for name, value in sorted(defines.items())]
         try:
             return quiet_build(cl.Program(self.context, source), options, self.device.cl_device)

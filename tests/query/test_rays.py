@@ -176,7 +176,7 @@ def test_a_hit_exactly_at_tmax_counts(instanced):
     np.testing.assert_array_equal(found.t[found.offsets[1:] - 1], t)
 
 
-def test_float64_limits_keep_every_t_returned_within_them():
+def test_float64_limits_keep_every_t_returned_within_them(suite_device):
     """tmin and tmax given in float64 are rounded inward to float32: a hit
     whose (float32) t lies just outside them as given is not taken, one at
     their float32 rounding is.  Squares at z = float32(0.1) and just below,
@@ -188,7 +188,7 @@ def test_float64_limits_keep_every_t_returned_within_them():
     squares = [hlbvh_cl.Mesh(np.array([[x0, -1.0, z], [x1, -1.0, z], [x1, 1.0, z], [x0, 1.0, z]],
                                       np.float32), [[0, 1, 2], [0, 2, 3]])
                for z, x0, x1 in ((above, -1.0, 0.0), (below, 0.0, 1.0))]
-    scene = hlbvh_cl.Scene(squares, device="pocl:0")
+    scene = hlbvh_cl.Scene(squares, device=suite_device)
     origins = np.array([[-0.5, 0.0, 0.0], [0.5, 0.0, 0.0]], np.float32)
     directions = np.array([[0.0, 0.0, 1.0]] * 2, np.float32)
     assert scene.intersect(origins, directions).t.tolist() == [np.float32(above),
