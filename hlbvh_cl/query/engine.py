@@ -55,6 +55,7 @@ the reused buffers.
 from __future__ import annotations
 
 import itertools
+import math
 import threading
 from dataclasses import dataclass, field
 
@@ -375,7 +376,7 @@ class Staging:
     def host(self, slot: int, name: str, like: np.ndarray, rows: int) -> np.ndarray:
         """``rows`` rows shaped as ``like``'s in set ``slot``'s pinned ``name``."""
         shape = (rows, *like.shape[1:])
-        nbytes = int(np.prod(shape)) * like.itemsize
+        nbytes = math.prod(shape) * like.itemsize
         return self.pinned[slot][name][1][:nbytes].view(like.dtype).reshape(shape)
 
     def finish(self) -> None:
@@ -696,7 +697,7 @@ def _run_bytes(batch: Batch, rows: dict, most: int) -> dict[str, int]:
 
 
 def _row_bytes(array: np.ndarray) -> int:
-    return array.itemsize * int(np.prod(array.shape[1:]))
+    return array.itemsize * math.prod(array.shape[1:])
 
 
 def _runs(batch: Batch, sizes: LaunchSizes):

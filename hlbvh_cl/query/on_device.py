@@ -35,6 +35,7 @@ results copied back up: same answers, a slower call.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -131,7 +132,7 @@ def device_rays(rt: Runtime, origins, directions, tmin, tmax, mask,
         if value.ndim < 1 or value.shape[-1] != 3 or value.shape[:-1] != shape:
             raise ValueError(f"{name} must have shape (..., 3) like origins {origins.shape}, "
                              f"got {value.shape}")
-    count = int(np.prod(shape, dtype=np.int64))
+    count = math.prod(shape)
     if count > inputs.MAX_BATCH:
         raise ValueError(f"{count} rays in one call: at most {inputs.MAX_BATCH}")
     limits = {}
@@ -185,7 +186,7 @@ def device_points(rt: Runtime, points) -> tuple[cla.Array, tuple] | None:
     if points.ndim < 1 or points.shape[-1] != 3:
         raise ValueError(f"points must have shape (..., 3), got {points.shape}")
     shape = points.shape[:-1]
-    count = int(np.prod(shape, dtype=np.int64))
+    count = math.prod(shape)
     if count > inputs.MAX_BATCH:
         raise ValueError(f"{count} points in one call: at most {inputs.MAX_BATCH}")
     return _flat(points, count, 3), shape

@@ -259,7 +259,7 @@ class RayQuery:
             host = vars(result) if "t" in fields else {"occluded": result.view(np.uint8)}
             found = {name: pool.upload(host[name].reshape(count, *fields[name][0]))
                      for name in fields}
-        return make({name: array.reshape(*rays.shape, *fields[name][0])
+        return make({name: shaped(array, (*rays.shape, *fields[name][0]))
                      for name, array in found.items()})
 
     def _run_on_device(self, tree, rays: on_device.DeviceRays, launch, outputs: dict) -> bool:
@@ -480,3 +480,10 @@ def caller_t(t: np.ndarray, t_factor: np.ndarray, rays: np.ndarray, batch: input
                          f"at t = {distance:.4g} direction lengths, past float32's largest "
                          "value (3.4e38); give a longer direction")
     t[...] = scaled
+
+
+def shaped(array, shape: tuple):
+    """``array`` with ``shape``: itself where it has it already (a
+    pyopencl array's reshape makes a new one even then, at a cost a
+    small call notices)."""
+    return array if array.shape == shape else array.reshape(shape)

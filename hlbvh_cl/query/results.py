@@ -22,6 +22,7 @@ pool lives as long as its RayQuery or PointQuery (so its Scene).
 from __future__ import annotations
 
 import collections
+import math
 import queue
 import threading
 import weakref
@@ -57,7 +58,8 @@ class ResultPool:
     def empty(self, shape, dtype) -> np.ndarray:
         """An uninitialised array, lent from a block when it is large."""
         dtype = np.dtype(dtype)
-        nbytes = int(np.prod(shape)) * dtype.itemsize
+        shape = (int(shape),) if np.ndim(shape) == 0 else tuple(shape)
+        nbytes = math.prod(shape) * dtype.itemsize
         if nbytes < MIN_POOLED_BYTES:
             return np.empty(shape, dtype)
         block = self._take(nbytes + ALIGNMENT)
