@@ -38,16 +38,14 @@ from .light import Light, check_light
 from .materials import instance_material_table, material_table
 from .settings import AO_SAMPLES, MAX_SPP, RR_DEPTH, RenderSettings, check_colors, default_colors
 
-#: Pixels per pass at most (whole rows), by device profile.  On the CPU
-#: profile enough work-items for any CPU, and buffers (133 bytes a pixel)
-#: small enough to stay warm between passes rather than touching fresh
-#: memory; 128K rather than more: a pass's rays then cover a narrower band of
-#: the image, so fewer of a large tree's nodes compete for the cache
-#: (measured faster on large scenes).  On a GPU each of a pass's launches
-#: (about four per bounce) costs the host about as much as a bounce of 128K
-#: paths costs the device, so a pass takes a whole frame of up to 2M pixels
-#: (280 MB of buffers): the host then enqueues an image's bounces once.
-PIXELS_PER_PASS = {"cpu": 1 << 17, "gpu": 1 << 21}
+#: Pixels per pass at most (whole rows): a 1280 x 720 frame in one pass
+#: (buffers of 133 bytes a pixel: 140 MB).  A pass costs the host about four
+#: launches a bounce, and its last bounces keep few paths alive, which
+#: leaves a GPU idle: there, 128K-pixel passes made a path-traced render
+#: several times slower.  Both CPU runtimes were faster with 1M than with
+#: 128K too, the reference scene's preview included (which had once
+#: measured the other way).
+PIXELS_PER_PASS = 1 << 20
 
 #: The stages of a render's stats, in order.
 STAGES = ("camera", "closest", "shade", "occluded", "resolve", "encode")
@@ -107,11 +105,11 @@ class Pipeline:
         self.last_stats: dict = {}
 
     def chunk_rows(self, width: int, height: int) -> int:
-        """Image rows rendered per pass (PIXELS_PER_PASS of the device's
-        profile, or fewer if one traversal launch holds fewer rays); whole
-        bands of pixel tiles (layout.TILE_ROWS rows) when a pass holds one, so
-        that only the image's last pass may end in a part band."""
-        pixels = min(PIXELS_PER_PASS[self.rt.profile.name], self.query.max_rays_per_launch)
+        """Image rows rendered per pass (PIXELS_PER_PASS, or fewer if one
+        traversal launch holds fewer rays); whole bands of pixel tiles
+        (layout.TILE_ROWS rows) when a pass holds one, so that only the
+        image's last pass may end in a part band."""
+        pixels = min(PIXELS_PER_PASS, self.query.max_rays_per_launch)
         rows = max(1, min(height, pixels // width))
         if rows < height and rows >= layout.TILE_ROWS:
             rows -= rows % layout.TILE_ROWS

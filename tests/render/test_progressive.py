@@ -36,12 +36,12 @@ def path(renderer, **options):
 @pytest.fixture
 def bands_of_8_rows(monkeypatch):
     """Passes of 8 rows: the image becomes 5 bands."""
-    monkeypatch.setattr(renderer_module, "PIXELS_PER_PASS", {"cpu": 8 * WIDTH, "gpu": 8 * WIDTH})
+    monkeypatch.setattr(renderer_module, "PIXELS_PER_PASS", 8 * WIDTH)
 
 
 def test_bands_and_rounds_do_not_change_the_image(bunny_renderer, monkeypatch):
     whole = path(bunny_renderer, spp=3)
-    monkeypatch.setattr(renderer_module, "PIXELS_PER_PASS", {"cpu": 8 * WIDTH, "gpu": 8 * WIDTH})
+    monkeypatch.setattr(renderer_module, "PIXELS_PER_PASS", 8 * WIDTH)
     banded = path(bunny_renderer, spp=3)
     assert bunny_renderer.stats["spp"] == 3
     assert whole.std() > 0.05  # a lit bunny, not a blank image
@@ -163,7 +163,7 @@ def test_the_cli_renders_to_a_time_budget_and_keeps_an_interrupted_image(
 
 def test_aovs_add_up_over_bands_and_rounds(bunny_renderer, monkeypatch):
     whole = path(bunny_renderer, spp=3, aovs=True)
-    monkeypatch.setattr(renderer_module, "PIXELS_PER_PASS", {"cpu": 8 * WIDTH, "gpu": 8 * WIDTH})
+    monkeypatch.setattr(renderer_module, "PIXELS_PER_PASS", 8 * WIDTH)
     banded = path(bunny_renderer, spp=3, aovs=True)
     assert whole.depth.max() > 0 and np.abs(whole.normal).max() > 0.5
     for name in ("image", "albedo", "normal", "depth"):
