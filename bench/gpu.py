@@ -21,9 +21,10 @@
              imports (CL_DEVICE_EXTERNAL_MEMORY_IMPORT_HANDLE_TYPES_KHR)
 
 It runs on any device (a CPU runtime gives the CPU's figures) and prints
-one table; the JSON goes to bench/results/gpu.json.
+one table; the JSON goes to bench/results/gpu.json, and with --docs the
+figures go into bench/RESULTS.md's "gpu" section.
 
-    python -m bench.gpu [--devices nvidia] [--quick]
+    python -m bench.gpu [--devices nvidia] [--quick] [--docs]
 """
 from __future__ import annotations
 
@@ -38,7 +39,7 @@ from hlbvh_cl.io.scenefile import load
 from hlbvh_cl.query.rays import RayQuery
 
 from .common import (BENCH, arguments, devices_or_exit, finish, machine_info, say, stopwatch,
-                     summary, table)
+                     summary, table, write_section)
 
 SCENES = BENCH.parent / "scenes"
 
@@ -192,14 +193,62 @@ def main(argv=None) -> dict:
                      f"({100 * found['on_device']['wall_share_of_kernel']:.0f} %) / "
                      f"{found['on_device']['small_call_ms']['median']:.3f}",
                      f"{found['path']['msamples_per_s']:.2f}",
-                     ", ".join(found["interop"]["extensions"] + found["interop"]["import_handle_types"])
-                     or "none"])
+                     _interop_text(found["interop"])])
     print(table(["device", "build ms (wall / device)", "camera Mrays/s (wall / kernel)",
                  "1K-ray call ms (staging off: call ms, camera)",
                  "on device: camera Mrays/s (% of kernel) / 1K-ray call ms",
                  "path Msamples/s", "external memory"], rows,
                 title=f"issue 57's measurements (targets: {TARGETS})"))
-    return finish(results, "gpu", args, elapsed)
+    results = finish(results, "gpu", args, elapsed)
+    if args.docs:
+        print(f"wrote {write_section(BENCH / 'RESULTS.md', markdown(results), 'gpu')}")
+    return results
+
+
+def markdown(results: dict) -> str:
+    """bench/RESULTS.md's section of a run: one table per device."""
+    machine = results["machine"]
+    lines = ["<!-- begin gpu -->", "", "## GPU: issue 57's measurements", "",
+             f"Measured on {machine['date']} with `{results['command']}`: "
+             f"{machine['processor']}, {machine['cpus']} logical CPUs, "
+             f"{machine['platform']}; pyopencl {machine['pyopencl']}. Medians; "
+             f"targets {results['targets']}.", ""]
+    for device, found in results["devices"].items():
+        info = next((d for d in machine["devices"] if d["id"] == device), {})
+        build, camera, on_device = found["build"], found["camera"], found["on_device"]
+        stages = ", ".join(f"{name} {value['median']:.2f}"
+                           for name, value in build["stages_ms"].items())
+        rows = [
+            (f"rebuild of the scene's {found['triangles']:,} triangles, ms (wall / device)",
+             f"{build['wall_ms']['median']:.1f} / {build['device_ms']['median']:.1f} "
+             f"({stages})"),
+            (f"{camera['rays']:,} camera rays, numpy in and out, Mrays/s (wall / kernel)",
+             f"{camera['wall_mrays_per_s']:.1f} / {camera['kernel_mrays_per_s']:.1f} "
+             f"({100 * camera['wall_share_of_kernel']:.1f} %)"),
+            ("the same, rays made on the device and results left there",
+             f"{on_device['wall_mrays_per_s']:.1f} / {on_device['kernel_mrays_per_s']:.1f} "
+             f"({100 * on_device['wall_share_of_kernel']:.1f} %)"),
+            ("1K-ray call, ms: numpy / on the device",
+             f"{found['small']['call_ms']['median']:.3f} / "
+             f"{on_device['small_call_ms']['median']:.3f}")]
+        if "unstaged" in found:
+            rows.append(("staging off (plain device buffers): camera Mrays/s, 1K-ray call ms",
+                         f"{found['unstaged']['camera_wall_mrays_per_s']:.1f}, "
+                         f"{found['unstaged']['small_call_ms']['median']:.3f}"))
+        path = found["path"]
+        rows += [(f"path tracing, materials scene, {path['size'][0]}x{path['size'][1]}, "
+                  f"{path['spp']} spp, depth 8, Msamples/s", f"{path['msamples_per_s']:.2f}"),
+                 ("external memory", _interop_text(found["interop"]))]
+        lines += [f"**{device}** ({info.get('name', '?')}, driver {info.get('driver', '?')}, "
+                  f"{info.get('compute_units', '?')} compute units)", "",
+                  "| what | figure |", "| --- | --- |",
+                  *(f"| {what} | {figure} |" for what, figure in rows), ""]
+    lines += ["*JSON: `gpu.json`*", "", "<!-- end gpu -->"]
+    return "\n".join(lines) + "\n"
+
+
+def _interop_text(found: dict) -> str:
+    return ", ".join(found["extensions"] + found["import_handle_types"]) or "none"
 
 
 if __name__ == "__main__":
