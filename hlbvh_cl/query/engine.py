@@ -21,7 +21,8 @@ it.  The engine does the rest, the same way for every query:
   go up into device buffers reused between launches, and the results come
   back from others, or are written in place where the runtime can use the
   arrays there (Intel's, for arrays that start on a page: outputs_in_place).
-- **Staging** (GPUs: devices whose memory is not the host's).  Each run's
+- **Staging** (on request: a query's ``staging``; see ``staging`` for why
+  not by default, GPUs included).  Each run's
   rows are taken straight into pinned host memory (Staging: buffers made
   with CL_MEM_ALLOC_HOST_PTR and mapped once, the way NVIDIA's OpenCL
   gives pinned memory) and copied up on a queue of their own, the results
@@ -100,17 +101,22 @@ def zero_copy(rt: Runtime) -> bool:
 
 
 def staging(rt: Runtime) -> bool:
-    """Whether, off zero copy, the rows and results travel through pinned
-    staging buffers, with their copies on queues of their own (Staging).
+    """Whether, off zero copy, the rows and results travel by default
+    through pinned staging buffers, with their copies on queues of their
+    own (Staging), rather than through plain device buffers.
 
-    On the GPU profile: a GPU's memory is its own, and only a copy from
-    pinned memory can run by DMA while the host goes on (from pageable
-    memory the driver stages it through pinned memory of its own).
-    HLBVH_CL_PROFILE=gpu takes this path on a CPU device too (tests).  CPU
-    devices keep zero copy (PoCL) and device buffers with results in place
-    (Intel's): there a copy is a memcpy, and a staged one two.
+    Never by default.  The path was built for GPUs, where only a copy from
+    pinned memory runs by DMA while the host goes on; but on the one GPU
+    measured (an NVIDIA H200: two runs of bench.gpu and an interleaved sweep
+    of launch sizes) plain device buffers were faster, for 3M camera rays
+    and for a 1K-ray call alike.  Its driver stages a copy from pageable
+    memory through pinned memory of its own and pipelines it, while this
+    path adds a memcpy on the host that overlaps only with other launches.
+    A query's ``staging`` attribute turns it on (bench.gpu measures both).
+    HLBVH_CL_PROFILE=gpu does not change this; CPU devices keep zero copy
+    (PoCL) and device buffers with results in place (Intel's).
     """
-    return rt.profile.gpu
+    return False
 
 
 def outputs_in_place(rt: Runtime) -> bool:

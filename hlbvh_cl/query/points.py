@@ -162,8 +162,8 @@ class PointQuery:
     the numpy arrays themselves: any array on PoCL (query.zero_copy), arrays
     that start on a page on Intel's (the results are lent from a pool that
     starts them there, results.ResultPool); elsewhere through device buffers
-    reused between calls, which only grow (pinned staging buffers on GPUs:
-    hlbvh_cl.query.engine).  ``max_points_per_launch`` caps
+    reused between calls, which only grow (or pinned staging buffers on
+    request: hlbvh_cl.query.engine).  ``max_points_per_launch`` caps
     the points per kernel launch (bigger batches go in chunks).
     ``packet_size`` sets the points a work-item walks together on flat
     trees (query.PACKET_SIZES; by default the runtime's kernel variant's, as
@@ -190,7 +190,7 @@ class PointQuery:
     max_points_per_launch = engine_setting("most", "Points per kernel launch at most.")
     staging = engine_setting(
         "staging", "Off zero copy: whether points and results travel through pinned staging "
-        "buffers (the engine's choice: GPUs; settable, for tests of each path).")
+        "buffers (off by default: hlbvh_cl.query.engine.staging says why; settable).")
 
     # -- public queries ---------------------------------------------------
 

@@ -91,7 +91,7 @@ class RayQuery:
     """Closest-hit and any-hit queries on one device, through the launch
     engine (hlbvh_cl.query.engine: zero copy on PoCL, device buffers reused
     between calls elsewhere, results written in place on Intel's CPU
-    runtime, pinned staging buffers on GPUs).  The host memory of results
+    runtime, pinned staging buffers on request).  The host memory of results
     the caller has dropped is reused too (ResultPool).  Rays go up and
     results come back as the numpy arrays themselves (one buffer per field,
     no packing on the host).
@@ -135,8 +135,8 @@ class RayQuery:
         "in place (the engine's choice; settable, for tests of each path).")
     staging = engine_setting(
         "staging", "Off zero copy: whether rays and results travel through pinned staging "
-        "buffers, their copies overlapping the kernels (the engine's choice: GPUs; settable, "
-        "for tests of each path).")
+        "buffers, their copies overlapping the kernels (off by default on every device: "
+        "hlbvh_cl.query.engine.staging says why; settable).")
     max_rays_per_launch = engine_setting("most", "Rays per kernel launch at most.")
 
     @property

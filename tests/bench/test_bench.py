@@ -76,12 +76,13 @@ def test_gpu_quick_takes_every_measurement_of_issue_57(suite_device, tmp_path, c
     assert 0 < found["on_device"]["wall_share_of_kernel"]
     assert found["on_device"]["small_call_ms"]["median"] > 0
     assert found["path"]["msamples_per_s"] > 0
-    # the staging path where the queries take it (the GPU profile), with its A/B
-    assert found["engine"]["staging"] == suite_device.profile.gpu
-    assert ("unstaged" in found) == found["engine"]["staging"]
-    if "unstaged" in found:
-        assert found["unstaged"]["small_call_ms"]["median"] > 0
-        assert found["unstaged"]["camera_wall_mrays_per_s"] > 0
+    # staging only on request, and off zero copy the A/B of the two copy paths
+    assert found["engine"]["staging"] is False
+    assert ("other_path" in found) == (not found["engine"]["zero_copy"])
+    if "other_path" in found:
+        assert found["other_path"]["staging"] is True
+        assert found["other_path"]["small_call_ms"]["median"] > 0
+        assert found["other_path"]["camera_wall_mrays_per_s"] > 0
     offered = sorted(e for e in suite_device.cl_device.extensions.split()
                      if "external" in e or "semaphore" in e)
     assert found["interop"]["extensions"] == offered
