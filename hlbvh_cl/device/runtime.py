@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from concurrent.futures import TimeoutError as FuturesTimeout
@@ -59,6 +60,9 @@ class Runtime:
         self._lock = threading.Lock()
         self._launch_lock = threading.Lock()
         self._waiter: ThreadPoolExecutor | None = None  # see wait()
+        #: seconds wait() polls on the calling thread first (SPIN_SECONDS on
+        #: a GPU, 0 on other devices: see wait())
+        self.spin_seconds = SPIN_SECONDS if self.device.type == "gpu" else 0.0
         self.build_lock = threading.RLock()  # builds share the pool and the sorter
         #: device buffers the build stages take and recycle (hlbvh_cl.device.pool)
         #: whether allocate() asks for 2 MiB pages (hlbvh_cl.device.hugepages): on
@@ -189,7 +193,10 @@ class Runtime:
         KeyboardInterrupt, so a thread of this runtime's blocks there and this
         one waits on its future, which a signal interrupts.  Blocking (not
         polling) matters: a CPU runtime may run work on the waiting thread
-        (Intel's does), and polling would leave it a core short."""
+        (Intel's does), and polling would leave it a core short.  A GPU's
+        work runs elsewhere, so there the calling thread first polls for
+        spin_seconds: a small call's results come within them, without the
+        two thread switches of the hand-off."""
         check_process()
         events = [event for event in events if event is not None]
         if not events:
@@ -198,6 +205,8 @@ class Runtime:
             # Oclgrind's uninitialised-value check crashed (19.10) when
             # another thread than the caller waited on its kernels.
             cl.wait_for_events(events)
+            return
+        if self.spin_seconds > 0 and polled(events, self.spin_seconds):
             return
         if self._waiter is None:
             self._waiter = ThreadPoolExecutor(max_workers=1,
@@ -255,6 +264,29 @@ class Runtime:
 _quiet_build_lock = threading.Lock()
 
 _log = logging.getLogger("hlbvh_cl")
+
+
+#: How long Runtime.wait polls a GPU's events before it blocks (see wait).
+SPIN_SECONDS = 0.002
+
+
+def polled(events: list, seconds: float) -> bool:
+    """Whether every event completed within ``seconds`` of polling; their
+    queues are flushed first, as only a blocking wait would."""
+    queues = {event.command_queue.int_ptr: event.command_queue for event in events
+              if event.command_queue is not None}  # a user event has none
+    for queue in queues.values():
+        queue.flush()
+    complete = cl.command_execution_status.COMPLETE
+    deadline = time.perf_counter() + seconds
+    while True:
+        status = [event.command_execution_status for event in events]
+        if any(code < 0 for code in status):  # failed: the blocking wait raises for it
+            return False
+        if all(code == complete for code in status):
+            return True
+        if time.perf_counter() > deadline:
+            return False
 
 
 def quiet_build(program: cl.Program, options: list, device: cl.Device) -> cl.Program:

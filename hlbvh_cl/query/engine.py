@@ -411,6 +411,7 @@ class Engine:
         self.counters = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, 4 * COUNTERS)
         self.unused = cl.Buffer(rt.context, cl.mem_flags.READ_ONLY, 4)  # a stand-in argument
         self._scalars: dict[str, cl.Buffer] = {}
+        self._scalar_values: dict[str, bytes] = {}  # what each of them holds
         #: the device buffers reused between launches and batches, by name
         #: (grow-only: reserve)
         self.reused: dict[str, cl.Buffer] = {}
@@ -462,8 +463,13 @@ class Engine:
         buffer = self._scalars.get(name)
         if buffer is None:
             buffer = self._scalars[name] = cl.Buffer(self.rt.context, cl.mem_flags.READ_ONLY, 4)
-        uploads.append(cl.enqueue_copy(self.rt.queue, buffer, np.full(1, value, value.dtype),
-                                       is_blocking=False))
+        given = np.full(1, value, value.dtype)
+        # the value the buffer holds already (or will, the queue being in
+        # order) is not sent again: a small call's copies cost more than
+        # its kernel on a GPU
+        if self._scalar_values.get(name) != given.tobytes():
+            self._scalar_values[name] = given.tobytes()
+            uploads.append(cl.enqueue_copy(self.rt.queue, buffer, given, is_blocking=False))
         return buffer
 
     def _run(self, batch: Batch, launch) -> np.ndarray:

@@ -2,7 +2,8 @@
 kernel launches and the host synchronisations of one query call of each
 family, and of one build.  A synchronisation is anything that blocks the
 calling thread on the device: a blocking copy or map, wait_for_events,
-Event.wait or CommandQueue.finish.  On a GPU each costs a round trip that
+Event.wait, CommandQueue.finish, or a wait that polled its events until
+they completed (a GPU's Runtime.wait first polls: runtime.polled).  On a GPU each costs a round trip that
 dwarfs a small query's kernel, so a query call waits once, for its results.
 
 pyopencl's own functions are counted (wrapped for the test), not the
@@ -17,6 +18,7 @@ import pytest
 
 import hlbvh_cl
 from hlbvh_cl.build import widen
+from hlbvh_cl.device import runtime as device_runtime
 from hlbvh_cl.parallel import scan
 from hlbvh_cl.query import engine
 from shapes import deep_scene, grid_mesh
@@ -61,7 +63,21 @@ def counted(monkeypatch):
     wrap(cl, "wait_for_events", "sync")
     wrap(cl.CommandQueue, "finish", "sync")
     wrap(cl.Event, "wait", "sync")
+    count_polled_waits(monkeypatch, lambda: counts.update(sync=1))
     return counts
+
+
+def count_polled_waits(monkeypatch, record) -> None:
+    """Calls ``record()`` for each wait that ended by polling (one that gave
+    up goes on to wait_for_events, counted there)."""
+    polled = device_runtime.polled
+
+    def counting(*args, **kwargs):
+        done = polled(*args, **kwargs)
+        if done:
+            record()
+        return done
+    monkeypatch.setattr(device_runtime, "polled", counting)
 
 
 def queries(scene):
@@ -98,13 +114,20 @@ def force_path(monkeypatch, path: str) -> None:
         monkeypatch.setattr(engine, "outputs_in_place", lambda rt: False)
 
 
+@pytest.mark.parametrize("waits", ["blocking", "polling"])
 @pytest.mark.parametrize("path", PATHS)
-def test_a_query_call_launches_once_and_waits_once_for_its_results(path, suite_device,
+def test_a_query_call_launches_once_and_waits_once_for_its_results(path, waits, suite_device,
                                                                   counted, monkeypatch):
     """Every query family, with the kernels on the caller's arrays (CPU
     devices), through device buffers, and through pinned staging buffers
-    (GPUs; forced here): one launch and one wait per pass."""
+    (on request; forced here): one launch and one wait per pass, whether
+    the wait blocks or polls (a GPU's first does: Runtime.spin_seconds)."""
     force_path(monkeypatch, path)
+    if waits == "polling":  # a poll that sees every call end, and no blocking wait
+        monkeypatch.setattr(device_runtime.runtime(suite_device), "spin_seconds", 30.0)
+        monkeypatch.setattr(cl, "wait_for_events", lambda events: pytest.fail("it blocked"))
+    else:
+        monkeypatch.setattr(device_runtime.runtime(suite_device), "spin_seconds", 0.0)
     scene = hlbvh_cl.Scene([grid_mesh(6)], device=suite_device)
     for name, call in queries(scene).items():
         call()  # programs built, buffers reserved
@@ -135,6 +158,7 @@ def test_a_staged_call_moves_each_row_once_while_the_other_run_traces(suite_devi
         original = getattr(cl, name)
         monkeypatch.setattr(cl, name, lambda *args, _original=original, _kind=kind, **kw: (
             story.append(_kind), _original(*args, **kw))[1])
+    count_polled_waits(monkeypatch, lambda: story.append("sync"))
     copy = cl.enqueue_copy
     monkeypatch.setattr(cl, "enqueue_copy", lambda queue, dest, src, **kw: (
         story.append(("copy", queue, dest if isinstance(dest, np.ndarray) else src)),
