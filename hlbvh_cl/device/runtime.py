@@ -228,8 +228,9 @@ class Runtime:
         if self.device.cl_device.single_fp_config & exact:
             # OpenCL C lets float division be off by 2.5 ulp and sqrt by 3
             # (OpenCL C spec., "Relative Error as ULPs"), and NVIDIA's default
-            # is: then rays made on the device (camera.cl) and every division
-            # differ from the host's numpy mirrors and from the CPU runtimes
+            # uses that freedom: rays made on the device (camera.cl), and
+            # every division, then differ from the host's numpy mirrors and
+            # from the CPU runtimes
             options.append("-cl-fp32-correctly-rounded-divide-sqrt")
         options += [f"-D{name}={_define_value(value)}" for name, value in sorted(defines.items())]
         try:

@@ -468,8 +468,9 @@ class Engine:
         # order) is not sent again: a small call's copies cost more than
         # its kernel on a GPU
         if self._scalar_values.get(name) != given.tobytes():
-            self._scalar_values[name] = given.tobytes()
+            self._scalar_values.pop(name, None)  # unknown until the copy is enqueued
             uploads.append(cl.enqueue_copy(self.rt.queue, buffer, given, is_blocking=False))
+            self._scalar_values[name] = given.tobytes()
         return buffer
 
     def _run(self, batch: Batch, launch) -> np.ndarray:

@@ -39,7 +39,8 @@ from .materials import instance_material_table, material_table
 from .settings import AO_SAMPLES, MAX_SPP, RR_DEPTH, RenderSettings, check_colors, default_colors
 
 #: Pixels per pass at most (whole rows): a 1280 x 720 frame in one pass
-#: (buffers of 133 bytes a pixel: 140 MB).  A pass costs the host about four
+#: (buffers of 133 bytes a pixel for the previews and about 210 for the
+#: path integrator: up to 220 MB).  A pass costs the host about four
 #: launches a bounce, and its last bounces keep few paths alive, which
 #: leaves a GPU idle: there, 128K-pixel passes made a path-traced render
 #: several times slower.  Both CPU runtimes were faster with 1M than with
