@@ -339,7 +339,7 @@ class AllHitsQuery:
         they go from the host instead (_on_device)."""
         if tree is None:
             counts = self.query.device_pool().empty(len(rays), np.int32)
-            counts.fill(0)
+            on_device.fill(counts, 0)
             return counts
         found = self._count_on_device(tree, rays, self.query.walk_limits(tree, rays))
         return None if found is None else found[0]
@@ -377,7 +377,7 @@ class AllHitsQuery:
         total = np.zeros(1, np.int64)
         known = None
         if tree is None:
-            offsets.fill(0)
+            on_device.fill(offsets, 0)
         else:
             limit = np.uint32(np.iinfo(np.int32).max if max_hits is None else max_hits)
 

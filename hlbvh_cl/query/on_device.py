@@ -277,12 +277,15 @@ def raise_for_bad_ray(rays: DeviceRays) -> None:
 
 
 def fill(array, value) -> None:
-    """Every element of a result array, numpy's or pyopencl's, set to
-    ``value``."""
+    """Every element of a result array, numpy's or pyopencl's (contiguous),
+    set to ``value``.  On the device by clEnqueueFillBuffer rather than
+    pyopencl's Array.fill, whose kernel is built at its first use (and
+    NVIDIA's compiler log then reaches the user as a CompilerWarning)."""
     if isinstance(array, np.ndarray):
         array[...] = value
-    else:
-        array.fill(value)
+    elif array.size:
+        cl.enqueue_fill_buffer(array.queue, array.base_data, np.array(value, array.dtype),
+                               array.offset, array.nbytes)
 
 
 class ResultArrays:
