@@ -89,6 +89,9 @@ def test_gpu_quick_takes_every_measurement_of_issue_57(suite_device, tmp_path, c
     if "cl_khr_external_memory" not in offered:
         assert found["interop"]["import_handle_types"] == []
     assert "1K-ray call ms" in capsys.readouterr().out
+    section = gpu.markdown(result)  # what --docs puts into bench/RESULTS.md
+    assert section.startswith("<!-- begin gpu -->") and section.rstrip().endswith("end gpu -->")
+    assert f"**{suite_device.id}**" in section and "Msamples/s" in section
 
     class Claimed:  # a device that says it has the extension, as a GPU's driver may
         extensions = "cl_khr_external_memory"
