@@ -378,8 +378,8 @@ def test_an_advised_buffer_is_backed_by_huge_pages_and_keeps_its_data():
 @pytest.mark.parametrize("staging", [False, True], ids=["device-buffers", "staging"])
 def test_buffers_are_reused_and_only_grow(staging):
     """Where the kernels cannot use the numpy arrays in place: device
-    buffers, or (GPUs) pinned staging buffers and the device buffers of
-    each of their sets."""
+    buffers, or (on request) pinned staging buffers and the device buffers
+    of each of their sets."""
     case = scene_case("cube")
     q = RayQuery(built.runtime(case.scene))
     q.zero_copy, q.staging = False, staging

@@ -458,8 +458,9 @@ class Engine:
 
     def _scalar(self, name: str, value: np.ndarray, uploads: list) -> cl.Buffer:
         """The buffer of the stepped value ``name`` given once for every item,
-        its upload enqueued (its event added to ``uploads``, which the caller
-        keeps until the call's one wait: a dropped pyopencl copy event waits)."""
+        its upload enqueued where the buffer does not hold the value already
+        (its event added to ``uploads``, which the caller keeps until the
+        call's one wait: a dropped pyopencl copy event waits)."""
         buffer = self._scalars.get(name)
         if buffer is None:
             buffer = self._scalars[name] = cl.Buffer(self.rt.context, cl.mem_flags.READ_ONLY, 4)
@@ -663,6 +664,9 @@ class Engine:
                 if pinned.nbytes:
                     uploads.append(cl.enqueue_copy(up, device[name], pinned, is_blocking=False))
             if uploads and up is not queue:
+                # a queue waiting on another's commands needs them flushed
+                # (the OpenCL spec, clFlush): a blocking wait flushes only its own
+                up.flush()
                 cl.enqueue_barrier(queue, wait_for=uploads)
             buffers = {name: device[name] for name in (*rows, *batch.outputs)}
             steps = {name: (buffers[name], np.uint32(1)) if name in buffers else
@@ -674,6 +678,8 @@ class Engine:
                        for name, array in batch.outputs.items()}
 
             def done(kernel: cl.Event):
+                if down is not queue:
+                    queue.flush()  # the copies down wait on its kernel (as above)
                 return [cl.enqueue_copy(down, pinned, device[name], wait_for=[kernel],
                                         is_blocking=False)
                         for name, pinned in results.items() if pinned.nbytes]

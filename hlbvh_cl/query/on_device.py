@@ -283,9 +283,10 @@ def fill(array, value) -> None:
     NVIDIA's compiler log then reaches the user as a CompilerWarning)."""
     if isinstance(array, np.ndarray):
         array[...] = value
-    elif array.size:
-        cl.enqueue_fill_buffer(array.queue, array.base_data, np.array(value, array.dtype),
-                               array.offset, array.nbytes)
+    elif array.size:  # the array's event, as Array.fill leaves it: its reads wait for it
+        array.add_event(cl.enqueue_fill_buffer(array.queue, array.base_data,
+                                               np.array(value, array.dtype), array.offset,
+                                               array.nbytes))
 
 
 class ResultArrays:

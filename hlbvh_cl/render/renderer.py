@@ -105,12 +105,20 @@ class Pipeline:
         self._lock = threading.Lock()
         self.last_stats: dict = {}
 
-    def chunk_rows(self, width: int, height: int) -> int:
+    def chunk_rows(self, width: int, height: int, per_pixel: dict | None = None) -> int:
         """Image rows rendered per pass (PIXELS_PER_PASS, or fewer if one
-        traversal launch holds fewer rays); whole bands of pixel tiles
+        traversal launch holds fewer rays, or if the pass's buffers,
+        ``per_pixel`` bytes a pixel by name, would not fit one allocation
+        each or would take over a quarter of the device's memory, which the
+        tree and the image share); whole bands of pixel tiles
         (layout.TILE_ROWS rows) when a pass holds one, so that only the
         image's last pass may end in a part band."""
         pixels = min(PIXELS_PER_PASS, self.query.max_rays_per_launch)
+        if per_pixel:
+            d = self.rt.device
+            pixels = min(pixels, d.max_mem_alloc_size // max(1, max(per_pixel.values())),
+                         d.global_mem_size // 4 // max(1, sum(per_pixel.values())))
+            pixels = max(1, pixels)
         rows = max(1, min(height, pixels // width))
         if rows < height and rows >= layout.TILE_ROWS:
             rows -= rows % layout.TILE_ROWS
@@ -134,11 +142,7 @@ class Pipeline:
         """Buffers for passes of ``pixels`` and an image of ``image_pixels``
         (splatting ``splat_groups`` float4 per pixel), checked together
         against the device's limits first."""
-        needed = {**{name: size * pixels for name, size in self.PER_PIXEL.items()},
-                  **self.film.sizes(pixels, image_pixels, hdr, splat_groups),
-                  **integrator.buffer_sizes(pixels),
-                  **(integrator.aov_sizes(pixels, 0 if splat_groups else image_pixels)
-                     if aovs else {})}
+        needed = self._sizes(integrator, pixels, image_pixels, hdr, aovs, splat_groups)
         self.rt.check_allocation(f"rendering {image_pixels:,} pixels, {pixels:,} at a time",
                                  needed)
         if pixels > self._pixels:
@@ -149,6 +153,15 @@ class Pipeline:
             self._pixels = pixels
         self.film.reserve(self.rt, pixels, image_pixels, hdr)
 
+    def _sizes(self, integrator, pixels: int, image_pixels: int, hdr: bool, aovs: bool,
+               splat_groups: int) -> dict[str, int]:
+        """Bytes of each buffer of a render (see _reserve)."""
+        return {**{name: size * pixels for name, size in self.PER_PIXEL.items()},
+                **self.film.sizes(pixels, image_pixels, hdr, splat_groups),
+                **integrator.buffer_sizes(pixels),
+                **(integrator.aov_sizes(pixels, 0 if splat_groups else image_pixels)
+                   if aovs else {})}
+
     def _render(self, tree, settings: RenderSettings, look: Look, progress, hdr, budget,
                 aovs):
         started = time.perf_counter()
@@ -157,8 +170,9 @@ class Pipeline:
         kind = integrator_for(settings.shading)
         integrator = self._integrators.setdefault(kind, kind())
         progressive = integrator.progressive
-        rows = self.chunk_rows(width, height)
         splat_groups = (1 + integrator.AOV_GROUPS * aovs) if settings.splats() else 0
+        rows = self.chunk_rows(width, height, self._sizes(integrator, 1, 0, hdr or progressive,
+                                                          aovs, splat_groups))
         self._reserve(integrator, rows * width, width * height, hdr or progressive, aovs,
                       splat_groups)
         integrator.prepare(rt, settings, tree, look, rows * width)

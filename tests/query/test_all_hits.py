@@ -483,7 +483,7 @@ def test_big_batches_traced_in_morton_order_answer_in_the_callers_order(tiny, mo
                         or take_rows(array, rows, **out))
     if copies:
         monkeypatch.setattr(query, "zero_copy", False)
-    if copies == "gpu":  # as a GPU takes them: through pinned staging buffers
+    if copies == "gpu":  # the GPU profile, through pinned staging buffers (on request)
         from hlbvh_cl.device.profile import Profile
         monkeypatch.setattr(query.rt, "profile", Profile("gpu"))
         monkeypatch.setattr(query, "staging", True)

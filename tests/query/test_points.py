@@ -527,8 +527,8 @@ def test_chunks_give_the_same_answers(sphere_scene):
 
 
 def test_the_staging_path_answers_as_the_others(sphere_scene, monkeypatch):
-    """Points and results through pinned staging buffers (GPUs; forced
-    here), in chunks and in Morton order (a batch this big), give every
+    """Points and results through pinned staging buffers (on request;
+    forced here), in chunks and in Morton order (a batch this big), give every
     point query's answers bit for bit as the scene's own path."""
     from hlbvh_cl.query.order import COHERENT_MIN
     from hlbvh_cl.query.points import PointQuery

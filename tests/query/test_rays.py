@@ -343,15 +343,16 @@ def test_empty_batch():
 
 
 #: The launch engine's paths, (zero_copy, staging): the kernels on the
-#: numpy arrays in place (PoCL), through device buffers (Intel's), and
-#: through pinned staging buffers (GPUs).
+#: numpy arrays in place (PoCL), through device buffers (Intel's, GPUs),
+#: and through pinned staging buffers (on request).
 PATHS = {"in-place": (True, False), "device-copies": (False, False), "staging": (False, True)}
 
 
 @pytest.mark.parametrize("path", PATHS)
 def test_batches_split_into_chunks_equal_one_launch(path):
     """Also: the kernels on the numpy arrays in place (CPUs), through device
-    buffers and through pinned staging buffers (GPUs) give the same results."""
+    buffers and through pinned staging buffers (on request) give the same
+    results."""
     case = scene_case("bunny_small")
     origins, directions = random_rays(case, 5000, seed=11)
     rng = np.random.default_rng(12)

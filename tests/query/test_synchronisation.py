@@ -139,7 +139,7 @@ def test_a_query_call_launches_once_and_waits_once_for_its_results(path, waits, 
 
 def test_a_staged_call_moves_each_row_once_while_the_other_run_traces(suite_device, counted,
                                                                       monkeypatch):
-    """The staging path (GPUs; forced here) over a call of several runs:
+    """The staging path (on request; forced here) over a call of several runs:
     a launch per run; a wait per run at most (for a run's results, to put
     them into the result arrays: runs - 1, the last two in one wait); each
     row up once and each result down once, on queues of their own and
@@ -185,8 +185,9 @@ def test_a_staged_call_moves_each_row_once_while_the_other_run_traces(suite_devi
              for queue in (stage.up, stage.down, scene.queue)}
     assert moved[stage.up] == origins.nbytes + directions.nbytes
     assert moved[stage.down] == len(origins) * sum(HIT_ARRAYS.values())
-    # the kernels' queue: tmin, tmax and the mask, a number each, and the counters
-    assert 0 < moved[scene.queue] <= 3 * 4 + 4 * engine.COUNTERS
+    # the kernels' queue: the counters only (tmin, tmax and the mask went up
+    # with the first call, and their buffers keep them)
+    assert moved[scene.queue] == 4 * engine.COUNTERS
     assert all(any(np.shares_memory(host, mapped) for mapped in mappings)
                for _, q, host in copies if q in (stage.up, stage.down))
     second_launch = [i for i, step in enumerate(story) if step == "launch"][1]
@@ -214,8 +215,8 @@ def test_a_call_on_device_arrays_waits_once_and_moves_no_rays(suite_device, coun
     monkeypatch.setattr(cl, "enqueue_copy", lambda queue, dest, src, **kw: (
         moved.append(sum(a.nbytes for a in (dest, src) if isinstance(a, np.ndarray))),
         original(queue, dest, src, **kw))[1])
-    # up: tmin, tmax and the mask, a number each; back: the counters
-    one_wait = 3 * 4 + 4 * engine.COUNTERS
+    # back: the counters (tmin, tmax and the mask went up with the first call)
+    one_wait = 4 * engine.COUNTERS
     calls = {"intersect": lambda: scene.intersect(origins, directions, tmax=9.0),
              "occluded": lambda: scene.occluded(origins, directions),
              "count_intersections": lambda: scene.count_intersections(origins, directions),
@@ -234,7 +235,30 @@ def test_a_call_on_device_arrays_waits_once_and_moves_no_rays(suite_device, coun
             assert 0 < sum(moved) <= 2 * one_wait + 8, name
         else:
             assert dict(counted) == {"launch": 2, "sync": 1}, name
-            assert 0 < sum(moved) <= one_wait, name
+            assert sum(moved) == one_wait, name
+
+
+def test_a_scalar_goes_up_only_when_it_changes(suite_device, monkeypatch):
+    """tmin, tmax and the mask given once for every ray live in buffers of
+    the query's engine: a call sends those whose value changed since the
+    last (one number each), and answers with the new value."""
+    scene = hlbvh_cl.Scene([grid_mesh(6)], device=suite_device)
+    origins = np.tile(np.float32([0.5, 0.5, -1.0]), (50, 1))
+    directions = np.tile(np.float32([0.0, 0.0, 1.0]), (50, 1))
+    sent = []  # bytes of each copy from the host
+    original = cl.enqueue_copy
+    monkeypatch.setattr(cl, "enqueue_copy", lambda queue, dest, src, **kw: (
+        sent.append(src.nbytes if isinstance(src, np.ndarray) else 0),
+        original(queue, dest, src, **kw))[1])
+    far = scene.intersect(origins, directions, tmax=5.0)
+    assert (far.prim_id >= 0).all()
+    sent.clear()
+    assert (scene.intersect(origins, directions, tmax=5.0).t == far.t).all()
+    again = sum(sent)
+    sent.clear()
+    near = scene.intersect(origins, directions, tmax=0.5)  # the grid lies at t = 1
+    assert (near.prim_id == -1).all()
+    assert sum(sent) == again + 4  # tmax, once
 
 
 def test_a_build_waits_for_one_batch_of_reads_and_for_its_last_kernel(suite_device, counted):

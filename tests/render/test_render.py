@@ -255,6 +255,22 @@ def test_renders_are_deterministic(scene, renderer, options):
     assert np.array_equal(first, second)
 
 
+def test_a_pass_fits_one_allocation_a_buffer_and_a_quarter_of_the_device(scene):
+    """Passes shrink where their buffers (bytes a pixel, by name) would not
+    fit the device: each in one allocation, all in a quarter of its memory."""
+    rt = built.runtime(scene)
+    pipeline = Pipeline(rt)
+    device, width = rt.device, 100
+    assert pipeline.chunk_rows(width, 10_000) > 1_000  # whole passes otherwise
+    quarter = device.global_mem_size // 4
+    per_pixel = {"a": quarter // 3_000, "b": quarter // 3_000}  # 1,500 pixels fit
+    rows = pipeline.chunk_rows(width, 10_000, per_pixel)
+    assert 1 <= rows and rows * width * sum(per_pixel.values()) <= quarter
+    assert rows * width > 1_500 // 2  # not below the last whole band of tiles
+    rows = pipeline.chunk_rows(width, 10_000, {"one": device.max_mem_alloc_size // 250})
+    assert 1 <= rows <= 2
+
+
 @pytest.mark.parametrize("options", [{"spp": 2}, {"shading": "ao", "ao_samples": 3}])
 def test_rendering_in_row_chunks_gives_the_same_image(scene, renderer, options):
     whole = renderer.render(CAMERA, 50, 37, **options)
