@@ -107,8 +107,8 @@ def staging(rt: Runtime) -> bool:
 
     Never by default.  The path was built for GPUs, where only a copy from
     pinned memory runs by DMA while the host goes on; but on the one GPU
-    measured (an NVIDIA H200: two runs of bench.gpu and an interleaved sweep
-    of launch sizes) plain device buffers were faster, for 3M camera rays
+    measured (an NVIDIA H200: three runs of bench.gpu and an interleaved
+    sweep of launch sizes) plain device buffers were faster, for 3M camera rays
     and for a 1K-ray call alike.  Its driver stages a copy from pageable
     memory through pinned memory of its own and pipelines it, while this
     path adds a memcpy on the host that overlaps only with other launches.
