@@ -146,8 +146,8 @@ def test_a_slow_step_says_what_it_does_and_a_quick_one_is_quiet(capsys):
 
 def test_ctrl_c_ends_a_render_with_one_line_and_exit_130(tmp_path, suite_device):
     """SIGINT during a long render: no traceback, the shell's code for it.
-    The render is long on any device: 64 spp of 4096 x 4096 ended within the
-    8 s below on an H200, so it takes MAX_SPP."""
+    The render is long on any device: 64 spp of 4096 x 4096 ended before the
+    signal below on an H200, so it takes MAX_SPP."""
     import os
     import signal
     import time
