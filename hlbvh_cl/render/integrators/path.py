@@ -73,12 +73,8 @@ LOOKAHEAD = 1
 #: path_surface takes (random.salts8).
 FIRST_BOUNCE_DIMENSION, DIMENSIONS_PER_BOUNCE = 2, 8
 
-#: path_surface's work-group size.  A CPU runtime keeps the values a
-#: work-item holds across the kernel's barriers (its next ray and its shadow
-#: ray) in arrays of one element per work-item; for 64 work-items they stay
-#: in L1, where 256 made the stage slower than before its shadow rays were
-#: compacted.  GPUs run groups of 64 well.
-SURFACE_GROUP = 64
+#: path_surface's work-group size (kernels/render/integrators/path.h).
+SURFACE_GROUP: int = layout.CONSTANTS["SURFACE_GROUP"]
 
 #: DeltaLight.type (kernels/render/integrators/path.h).
 LIGHT_POINT, LIGHT_DIRECTIONAL = 0, 1

@@ -253,6 +253,29 @@ FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel,
     return true;
 }
 
+/* The leader's scan of its group's flags (path_surface): slots[i] holds
+ * work-item i's goes_on | casts << 16 and becomes the paths and shadow rays
+ * of the work-items before it, in the same halves; then the group reserves
+ * its totals at *paths and *shadow_rays (the counts of the next pass's paths
+ * and of this pass's shadow rays), giving the first of each (the shadow
+ * rays' in *first_shadow).  A serial scan: a group is at most SURFACE_GROUP
+ * (64) work-items, and neither a CPU nor a GPU pays for it the locked
+ * instruction per work-item that local atomics cost a CPU runtime (one
+ * that waits for the work-item's stores to drain). */
+inline uint take_group_slots(__local uint* slots, __global uint* paths,
+                             __global uint* shadow_rays, __local uint* first_shadow)
+{
+    uint sum = 0, size = (uint)get_local_size(0);
+    for (uint i = 0; i < size; ++i) {
+        uint flags = slots[i];
+        slots[i] = sum;
+        sum += flags;
+    }
+    uint taken = sum & 0xffffu, cast = sum >> 16;
+    *first_shadow = cast > 0 ? atomic_add(shadow_rays, cast) : 0u;
+    return taken > 0 ? atomic_add(paths, taken) : 0u;
+}
+
 /* NARROW_KERNEL (core/portable.h): Intel's CPU compiler packs a kernel's
  * work-items into its SIMD lanes, as many as the hint leaves room for.
  * Packed 16 to an AVX-512 register (no hint), this kernel came out wrong
@@ -301,27 +324,21 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
     /* compaction (Laine, Karras & Aila 2013, sec. 4): the paths that go on
      * take the next pass's first slots, and the shadow rays this pass's, so
      * that the walks' work-items past their counts (read on the device)
-     * return at once instead of walking empty rays.  A work-group counts
-     * its own in local memory and reserves their slots with one global
-     * atomic: an atomic per path had the CPU threads contend for the
-     * counter's cache line (perf: most of this kernel's time on PoCL).
-     * Slots follow no order: a path's numbers depend on its pixel, not its
-     * slot. */
-    __local uint group_paths, group_shadows;
+     * return at once instead of walking empty rays.  A work-group takes its
+     * slots with one global atomic each for paths and shadow rays (an atomic
+     * per path had the CPU threads contend for the counter's cache line),
+     * and its work-items take theirs in local-id order from the leader's
+     * serial scan of their flags (group_slots).  Slots follow no order across
+     * groups: a path's numbers depend on its pixel, not its slot. */
+    __local uint group_slots[SURFACE_GROUP];
     __local uint group_first, group_first_shadow;
-    uint gid = get_global_id(0);
-    bool leader = get_local_id(0) == 0;
-    if (leader) {
-        group_paths = 0;
-        group_shadows = 0;
-    }
-    barrier(CLK_LOCAL_MEM_FENCE);
+    uint gid = get_global_id(0), lid = get_local_id(0);
     const PathTables tables = {{materials, light_vertices, light_normals, light_cdf,
                                 light_geom, delta_lights, envmap_image, envmap_cdf},
                                shading_faces, shading_normals, hit_instances, instance_maps,
                                instance_materials};
     bool goes_on = false, casts = false;
-    uint path = 0, slot = 0, shadow_slot = 0;
+    uint path = 0;
     float3 origin = (float3)(0.0f), direction = (float3)(0.0f);
     ShadowRay light = {(float3)(0.0f), (float3)(0.0f), 0.0f, (float3)(0.0f)};
     if (gid < bound && gid < live[depth]) {
@@ -329,23 +346,19 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
         goes_on = shade_vertex(gid, path, depth, first_pixel, salts, rays, hits, states,
                                &tables, &params, &light, &casts, &origin, &direction);
     }
-    if (goes_on)
-        slot = atomic_inc(&group_paths);
-    if (casts)
-        shadow_slot = atomic_inc(&group_shadows);
+    group_slots[lid] = (uint)goes_on | (uint)casts << 16;
     barrier(CLK_LOCAL_MEM_FENCE);
-    if (leader && group_paths > 0)
-        group_first = atomic_add(live + depth + 1, group_paths);
-    if (leader && group_shadows > 0)
-        group_first_shadow = atomic_add(shadows + depth, group_shadows);
+    if (lid == 0)
+        group_first = take_group_slots(group_slots, live + depth + 1, shadows + depth,
+                                       &group_first_shadow);
     barrier(CLK_LOCAL_MEM_FENCE);
     if (goes_on) {
-        slot += group_first;
+        uint slot = group_first + (group_slots[lid] & 0xffffu);
         write_ray(next_rays + slot, origin, direction, INFINITY);
         next_paths[slot] = path;
     }
     if (casts) {
-        shadow_slot += group_first_shadow;
+        uint shadow_slot = group_first_shadow + (group_slots[lid] >> 16);
         write_ray(shadow + shadow_slot, light.origin, light.direction, light.reach);
         pending[shadow_slot] = (float4)(light.carried, 0.0f);
         shadow_paths[shadow_slot] = path;

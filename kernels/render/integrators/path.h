@@ -4,6 +4,13 @@
 #ifndef INTEGRATORS_PATH_H
 #define INTEGRATORS_PATH_H
 
+/* path_surface's largest work-group (path.py's, read from here): its
+ * local arrays' length.  A CPU runtime keeps the values a work-item holds
+ * across the kernel's barriers (its next ray and its shadow ray) in arrays
+ * of one element per work-item; for 64 work-items they stay in L1, where
+ * 256 made the stage slower.  GPUs run groups of 64 well. */
+#define SURFACE_GROUP 64
+
 /* Entries of a roughplastic's transmittance table (Mitsuba's resolution). */
 #define TRANSMISSION_TABLE 64
 
