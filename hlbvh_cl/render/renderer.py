@@ -183,12 +183,7 @@ class Pipeline:
 
         passes = integrator.passes(settings)
         events = {name: [] for name in STAGES}
-        bands = []
-        for row in range(0, height, rows):
-            band_rows = min(rows, height - row)
-            # pixel_in_pass's 2D range (kernels/render): bands of TILE_ROWS rows
-            bands.append(Band(np.uint32(row), np.uint32(band_rows), width, band_rows * width,
-                              (layout.TILE_ROWS * width, -(-band_rows // layout.TILE_ROWS))))
+        bands = cut_bands(0, height, rows, width)
         steps: list[cl.Event] = []
         run = _Run(self, tree, settings, integrator, events, steps)
         if progressive:
@@ -242,14 +237,15 @@ class Pipeline:
         """Rounds of one sample per pixel over the whole image, each band's
         sums added to the image's, until spp rounds are done or, with a
         ``budget`` in seconds, the time left holds no more whole round: then
-        a last round over the first bands that fit (bands_in_time), so that
-        the budget's tail is not left idle.  Each pixel is the mean of its
-        own samples.  Ctrl-C stops it at once: the rounds every
-        band finished make the image.  -> (image, spp every pixel took,
-        mean spp over the pixels, interrupted)."""
+        a last round over the image cut finer (last_round_bands), as many of
+        its first bands as fit (bands_in_time), so that the budget's tail is
+        not left idle.  Each pixel is the mean of its own samples.  Ctrl-C
+        stops it at once: the rounds every band finished make the image.
+        -> (image, spp every pixel took, mean spp over the pixels,
+        interrupted)."""
         rt, settings, width = self.rt, run.settings, run.settings.width
         film, integrator, splats = self.film, run.integrator, settings.splats()
-        taken = np.zeros(len(bands), np.int64)  # samples added to each band's sums
+        taken = np.zeros(settings.height, np.int64)  # samples added to each row's sums
         splatted = 0  # rounds splatted (splats)
         interrupted = False
         started = time.perf_counter()
@@ -261,10 +257,10 @@ class Pipeline:
                                          1 + integrator.AOV_GROUPS * aovs)
                 else:
                     film.clear(rt, settings.width * settings.height)
-                used = len(bands)  # bands in this round
+                this_round = bands  # a whole round, or the budget's last
                 for sample in range(settings.spp):
                     stream, jitter = settings.stream(sample), settings.jitter()
-                    for b, band in enumerate(bands[:used]):
+                    for band in this_round:
                         run.sample(band, sample, 0)
                         if splats:
                             added = film.store_round(rt, band, width, film.accum, 1, 0, stream,
@@ -278,28 +274,30 @@ class Pipeline:
                                 run.events["encode"].append(added)
                                 added = integrator.add_aovs(band, width)
                         run.events["encode"].append(added)
-                        taken[b] += 1
+                        taken[int(band.first_row):int(band.first_row) + int(band.rows)] += 1
                     if splats:
-                        stored = sum(int(band.rows) for band in bands[:used])
+                        stored = sum(int(band.rows) for band in this_round)
                         added = film.splat_round(rt, width, settings.height, stored)
                         run.events["encode"].append(added)
-                        splatted += used == len(bands)
+                        splatted += this_round is bands
                     rt.wait([added])
                     bar.update(1)
-                    if used < len(bands):
+                    if this_round is not bands:
                         break  # the budget's last round, cut short
                     if budget is not None:
                         spent = time.perf_counter() - started
-                        used = bands_in_time(bands, budget - spent, spent / (sample + 1))
-                        if used == 0:
-                            break  # not one band fits
+                        left, per_round = budget - spent, spent / (sample + 1)
+                        if bands_in_time(bands, left, per_round) < len(bands):
+                            finer = last_round_bands(bands, settings.height, width)
+                            this_round = finer[:bands_in_time(finer, left, per_round)]
+                            if not this_round:
+                                break  # not one band fits
             except KeyboardInterrupt:
                 rt.queue.finish()  # what was enqueued is in the sums
                 if (splatted if splats else taken.min()) == 0:
                     raise  # not one whole image yet
                 interrupted = True
-        mean_spp = float(sum(int(band.count) * int(count) for band, count in zip(bands, taken))
-                         / sum(int(band.count) for band in bands))
+        mean_spp = float(taken.mean())
         if splats:
             means = film.read_splatted(rt, settings.height, width)
             spp, image = splatted, means[:, :, 0, :3]
@@ -310,17 +308,51 @@ class Pipeline:
         else:
             image = np.empty((settings.height, width, 3), np.float32)
             rt.wait([film.read(rt, image)])
-            for band, count in zip(bands, taken):
-                image[int(band.first_row):int(band.first_row) + int(band.rows)] /= count
+            image /= taken[:, None, None]
             spp = int(taken.min())
             if aovs:
-                rows = [(int(band.first_row), int(band.rows), int(count))
-                        for band, count in zip(bands, taken)]
-                found = integrator.read_aovs(settings.height, width, rows)
+                found = integrator.read_aovs(settings.height, width, row_runs(taken))
         image = np.ascontiguousarray(image) if hdr else srgb_encode(image)
         if aovs:
             image = RenderResult(image=image, **found)
         return image, spp, mean_spp, interrupted
+
+
+def cut_bands(first_row: int, end_row: int, rows: int, width: int) -> list[Band]:
+    """Rows [first_row, end_row) of an image ``width`` pixels wide as bands
+    of ``rows`` rows (the last may be fewer), each with pixel_in_pass's 2D
+    range (kernels/render: bands of TILE_ROWS rows)."""
+    bands = []
+    for row in range(first_row, end_row, rows):
+        band_rows = min(rows, end_row - row)
+        bands.append(Band(np.uint32(row), np.uint32(band_rows), width, band_rows * width,
+                          (layout.TILE_ROWS * width, -(-band_rows // layout.TILE_ROWS))))
+    return bands
+
+
+#: A time budget's last round, which no whole round fits, goes over the
+#: image in about this many bands (whole TILE_ROWS, never coarser than the
+#: passes), as many of the first as fit: a pass holds 1M pixels, so a frame
+#: is often one band, and the budget's tail would otherwise be left idle.
+LAST_ROUND_BANDS = 16
+
+
+def last_round_bands(bands: list[Band], height: int, width: int) -> list[Band]:
+    """The image's rows, from the top, as bands of about height /
+    LAST_ROUND_BANDS rows: whole TILE_ROWS, and at most the passes' rows."""
+    tile = layout.TILE_ROWS
+    rows = -(-height // LAST_ROUND_BANDS)
+    rows = min(max(int(band.rows) for band in bands), -(-rows // tile) * tile)
+    return cut_bands(0, height, rows, width)
+
+
+def row_runs(taken: np.ndarray) -> list[tuple[int, int, int]]:
+    """(first row, rows, samples) for each run of rows that took the same
+    number of samples."""
+    edges = np.flatnonzero(np.diff(taken)) + 1
+    starts = np.concatenate([[0], edges])
+    ends = np.concatenate([edges, [len(taken)]])
+    return [(int(a), int(b - a), int(taken[a])) for a, b in zip(starts, ends)]
 
 
 def bands_in_time(bands, left: float, per_round: float) -> int:

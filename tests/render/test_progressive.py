@@ -68,15 +68,41 @@ def test_bands_in_time_takes_the_first_bands_that_fit():
     assert fits(bands, left=-1.0, per_round=1.0) == 0
 
 
+def test_a_budget_cut_round_cuts_the_image_finer():
+    bands = renderer_module.cut_bands(0, 720, 720, 1280)  # a 1280x720 frame, one pass
+    finer = renderer_module.last_round_bands(bands, 720, 1280)
+    tile = renderer_module.layout.TILE_ROWS
+    assert len(finer) >= renderer_module.LAST_ROUND_BANDS - 1
+    assert all(int(band.rows) % tile == 0 for band in finer[:-1])
+    assert [int(band.first_row) for band in finer] == list(
+        np.cumsum([0] + [int(band.rows) for band in finer[:-1]]))
+    assert sum(int(band.rows) for band in finer) == 720
+    passes = renderer_module.cut_bands(0, 720, 8, 1280)  # never coarser than the passes
+    assert {int(band.rows) for band in renderer_module.last_round_bands(passes, 720, 1280)} \
+        == {8}
+
+
+def test_row_runs_group_rows_by_their_samples():
+    taken = np.array([3, 3, 2, 2, 2, 3])
+    assert renderer_module.row_runs(taken) == [(0, 2, 3), (2, 3, 2), (5, 1, 3)]
+    assert renderer_module.row_runs(np.array([1, 1])) == [(0, 2, 1)]
+
+
+@pytest.mark.parametrize("passes", ["one band", "bands of 8 rows"])
 @pytest.mark.parametrize("rfilter", ["box", "gaussian"])
-def test_a_budget_cut_round_adds_its_first_bands(bunny_renderer, bands_of_8_rows, monkeypatch,
-                                                 rfilter):
-    """When no whole round is left in the budget, the last round takes the
-    first bands that fit: their pixels are the mean of one sample more.
-    The gaussian film splats that round from its first rows only."""
+def test_a_budget_cut_round_adds_its_first_bands(bunny_renderer, monkeypatch, rfilter, passes):
+    """When no whole round is left in the budget, the last round goes over
+    the image cut finer (here in 5 bands of 8 rows) and takes the first
+    bands that fit: their pixels are the mean of one sample more, also where
+    the whole frame is one pass.  The gaussian film splats that round from
+    its first rows only."""
+    if passes == "bands of 8 rows":
+        monkeypatch.setattr(renderer_module, "PIXELS_PER_PASS", 8 * WIDTH)
     one, two = path(bunny_renderer, spp=1, rfilter=rfilter), path(bunny_renderer, spp=2,
                                                                   rfilter=rfilter)
-    monkeypatch.setattr(renderer_module, "bands_in_time", lambda bands, left, per_round: 2)
+    monkeypatch.setattr(renderer_module, "LAST_ROUND_BANDS", HEIGHT // 8)
+    monkeypatch.setattr(renderer_module, "bands_in_time",
+                        lambda bands, left, per_round: min(len(bands) - 1, 2))
     splat = renderer_module.Film.splat_round
 
     def splat_then_poison(self, rt, width, height, stored):

@@ -345,7 +345,7 @@ class Path(Integrator):
     def read_aovs(self, height: int, width: int, rows) -> dict[str, np.ndarray]:
         """The AOV image: "albedo" and "normal" (height, width, 3) and "depth"
         (height, width), float32 means over each pixel's samples; ``rows``:
-        (first row, rows, samples) of each band."""
+        (first row, rows, samples) of each run of rows alike (renderer.row_runs)."""
         out = np.empty((height, width, 7), np.float32)
         self.rt.wait([cl.enqueue_copy(self.rt.queue, out, self.aov_image, is_blocking=False)])
         for first, count, samples in rows:
