@@ -331,15 +331,17 @@ def cut_bands(first_row: int, end_row: int, rows: int, width: int) -> list[Band]
 
 
 #: A time budget's last round, which no whole round fits, goes over the
-#: image in about this many bands (whole TILE_ROWS, never coarser than the
-#: passes), as many of the first as fit: a pass holds 1M pixels, so a frame
-#: is often one band, and the budget's tail would otherwise be left idle.
+#: image in about this many bands (whole TILE_ROWS where the passes hold
+#: them, never coarser than the passes), as many of the first as fit: a pass
+#: holds 1M pixels, so a frame is often one band, and the budget's tail
+#: would otherwise be left idle.  The time a band takes is estimated by its
+#: share of pixels; its fixed cost (a few launches a bounce) comes on top.
 LAST_ROUND_BANDS = 16
 
 
 def last_round_bands(bands: list[Band], height: int, width: int) -> list[Band]:
     """The image's rows, from the top, as bands of about height /
-    LAST_ROUND_BANDS rows: whole TILE_ROWS, and at most the passes' rows."""
+    LAST_ROUND_BANDS rows: whole TILE_ROWS, but at most the passes' rows."""
     tile = layout.TILE_ROWS
     rows = -(-height // LAST_ROUND_BANDS)
     rows = min(max(int(band.rows) for band in bands), -(-rows // tile) * tile)

@@ -125,6 +125,21 @@ def test_a_budget_cut_round_adds_its_first_bands(bunny_renderer, monkeypatch, rf
     assert np.isfinite(cut).all() and not np.allclose(cut[:16], one[:16], rtol=1e-3)
 
 
+def test_a_budget_cut_round_divides_the_aovs_by_each_rows_samples(bunny_renderer, monkeypatch):
+    """The AOVs of the rows the cut round took are the means of two samples,
+    the others' of one (read_aovs by row_runs)."""
+    one, two = path(bunny_renderer, spp=1, aovs=True), path(bunny_renderer, spp=2, aovs=True)
+    monkeypatch.setattr(renderer_module, "LAST_ROUND_BANDS", HEIGHT // 8)
+    monkeypatch.setattr(renderer_module, "bands_in_time",
+                        lambda bands, left, per_round: min(len(bands) - 1, 2))
+    cut = path(bunny_renderer, time_budget=3600.0, aovs=True)
+    for name in ("albedo", "normal", "depth"):
+        ours, twice, once = getattr(cut, name), getattr(two, name), getattr(one, name)
+        np.testing.assert_allclose(ours[:16], twice[:16], rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(ours[16:], once[16:], rtol=1e-5, atol=1e-6)
+    assert not np.allclose(one.depth[:16], two.depth[:16], rtol=1e-4)  # the rows differ
+
+
 @pytest.mark.parametrize("time_budget, message", [(0, "time_budget"), (-1.0, "time_budget"),
                                                   (float("nan"), "time_budget")])
 def test_bad_time_budgets_are_named(bunny_renderer, time_budget, message):

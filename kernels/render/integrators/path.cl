@@ -262,6 +262,9 @@ FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel,
  * (64) work-items, and neither a CPU nor a GPU pays for it the locked
  * instruction per work-item that local atomics cost a CPU runtime (one
  * that waits for the work-item's stores to drain). */
+#if SURFACE_GROUP > 0xffff
+#error "take_group_slots packs two counts of up to SURFACE_GROUP in 16 bits each"
+#endif
 inline uint take_group_slots(__local uint* slots, __global uint* paths,
                              __global uint* shadow_rays, __local uint* first_shadow)
 {
