@@ -16,15 +16,23 @@ from hlbvh_cl.query.rays import RayQuery
 import built
 
 
-@pytest.mark.parametrize("counted", [0, 1, 37, 200, 500])
-def test_a_counted_launch_traces_the_first_count_rays_and_writes_nothing_past_them(counted):
+def sphere_and_rays(seed: int, count: int):
+    """A 1,280-triangle sphere and `count` Ray records from around it in
+    random directions (tmax inf)."""
     sphere = trimesh.creation.icosphere(subdivisions=3)
     scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(sphere.vertices, sphere.faces)])
-    rng = np.random.default_rng(5)
-    count = 300
+    rng = np.random.default_rng(seed)
     records = np.zeros(count, layout.RAY)
     records["origin"] = rng.uniform(-2, 2, (count, 3))
     records["direction"] = rng.normal(size=(count, 3))
+    records["tmax"] = np.inf
+    return scene, records
+
+
+@pytest.mark.parametrize("counted", [0, 1, 37, 200, 500])
+def test_a_counted_launch_traces_the_first_count_rays_and_writes_nothing_past_them(counted):
+    count = 300
+    scene, records = sphere_and_rays(5, count)
     records["tmax"] = np.where(np.arange(count) % 3 == 0, 1.0, np.inf)  # some end short
     expected = scene.intersect(records["origin"], records["direction"], tmax=records["tmax"])
     blocked = scene.occluded(records["origin"], records["direction"], tmax=records["tmax"])
@@ -56,3 +64,41 @@ def test_a_counted_launch_traces_the_first_count_rays_and_writes_nothing_past_th
     np.testing.assert_array_equal(got_occluded[:traced], blocked[:traced].astype(np.uint8))
     np.testing.assert_array_equal(got[traced:], sentinel[traced:])
     assert np.all(got_occluded[traced:] == 9)
+
+
+def test_rays_made_on_the_device_with_a_nan_or_infinite_part_meet_nothing():
+    """The renderer's bounce rays reach the kernels unchecked: one with a NaN or
+    infinite origin or direction is a miss, not a walk into the nodes' unused
+    lanes (whose boxes NaN slab distances do not exclude), and the finite
+    rays of the same launch get their own hits."""
+    count = 512
+    scene, records = sphere_and_rays(11, count)
+    expected = scene.intersect(records["origin"], records["direction"])
+    bad = np.arange(count) % 4 != 0
+    for k, value in enumerate((np.nan, np.inf, -np.inf)):
+        records["origin"][bad & (np.arange(count) % 8 == 1 + k), k] = value
+        records["direction"][bad & (np.arange(count) % 8 == 4 + k), k] = value
+    bad &= ~np.isfinite(records["origin"]).all(1) | ~np.isfinite(records["direction"]).all(1)
+    assert bad.sum() > count // 2 and (expected.prim_id[~bad] >= 0).any()
+
+    query, tree = RayQuery(built.runtime(scene)), built.tree(scene)
+    context, queue = query.rt.context, query.rt.queue
+    flags = cl.mem_flags
+    rays = cl.Buffer(context, flags.READ_ONLY | flags.COPY_HOST_PTR, hostbuf=records)
+    hits = cl.Buffer(context, flags.READ_WRITE, count * layout.HIT.itemsize)
+    occluded = cl.Buffer(context, flags.READ_WRITE, count)
+    overflow = cl.Buffer(context, flags.READ_WRITE | flags.COPY_HOST_PTR,
+                         hostbuf=np.zeros(2, np.int32))
+    query.enqueue_intersect(tree, rays, hits, count, overflow).wait()
+    query.enqueue_occluded(tree, rays, occluded, count, overflow).wait()
+    got, got_occluded = np.empty(count, layout.HIT), np.empty(count, np.uint8)
+    flag = np.empty(2, np.int32)
+    cl.enqueue_copy(queue, got, hits)
+    cl.enqueue_copy(queue, got_occluded, occluded)
+    cl.enqueue_copy(queue, flag, overflow)
+
+    assert flag[0] == 0  # no walk ran past its stack
+    assert np.all(got["t"][bad] == np.inf) and np.all(got["prim_id"][bad] == -1)
+    assert np.all(got_occluded[bad] == 0)
+    np.testing.assert_array_equal(got["t"][~bad], expected.t[~bad])
+    np.testing.assert_array_equal(got["prim_id"][~bad], expected.prim_id[~bad])

@@ -102,9 +102,25 @@ typedef struct {
 #endif
 } RayLanes;
 
+/* Whether x is NaN or infinite, by its exponent bits (packet.h's not_finite, one lane). */
+TRAVERSAL_INLINE int float_not_finite(float x)
+{
+    return (as_uint(x) & 0x7f800000u) == 0x7f800000u;
+}
+
+/* Lane l's ray.  One whose origin or direction is not finite meets nothing
+ * (tmax -inf): its slab distances would be NaN, which SLABS_MEET's min and
+ * max pass over, so that it would enter every lane of a node, the unused
+ * ones (an empty box, child EMPTY_CHILD) too, and read outside the tree.
+ * The host checks the rays it is given; rays made on the device (the
+ * renderer's bounces) get here unchecked. */
 TRAVERSAL_INLINE void set_lane(RayLanes* lanes, uint l, float3 origin, float3 direction,
                                float tmin, float tmax)
 {
+    if (float_not_finite(origin.x) | float_not_finite(origin.y) | float_not_finite(origin.z)
+        | float_not_finite(direction.x) | float_not_finite(direction.y)
+        | float_not_finite(direction.z))
+        tmax = -INFINITY;
     lanes->origin[0][l] = origin.x;
     lanes->origin[1][l] = origin.y;
     lanes->origin[2][l] = origin.z;
