@@ -274,18 +274,28 @@ def polygon_irradiance(points, normal, polygon, radiance):
     return radiance / 2 * np.abs(total)
 
 
-def test_a_ground_under_an_area_light_matches_lambert_s_formula(suite_device):
+@pytest.mark.parametrize("wall", [None, 1e4, 1e15], ids=["alone", "wall 1e4", "wall 1e15"])
+def test_a_ground_under_an_area_light_matches_lambert_s_formula(wall, suite_device):
     """Direct light only (max_depth 2): a diffuse ground of albedo rho under
     a square emitter facing down reflects rho / pi * E, E by Lambert's
-    polygon formula; the emitter's back, seen from above, is black."""
+    polygon formula; the emitter's back, seen from above, is black.  The
+    same with a far larger wall behind: new rays start off the surface by
+    the hit point's own precision (Mitsuba's), not the scene's size, which
+    had lifted the ground's shadow rays past the light at 1e4; at 1e15 the
+    scene's frame makes the light's density overflow a float's square."""
     rho, le, h = 0.7, 4.0, 1.2
     ground = hlbvh_cl.Mesh([[-6, 0, -6], [6, 0, -6], [6, 0, 6], [-6, 0, 6]],
                            [[0, 2, 1], [0, 3, 2]], name="ground")  # normal +y
     square = np.array([[-0.4, h, -0.3], [0.4, h, -0.3], [0.4, h, 0.3], [-0.4, h, 0.3]])
     light = hlbvh_cl.Mesh(square, [[0, 1, 2], [0, 2, 3]], name="light")  # normal -y
-    scene = hlbvh_cl.Scene([ground, light], device=suite_device)
+    meshes = [ground, light]
+    if wall is not None:
+        meshes.append(hlbvh_cl.Mesh([[-wall, -wall, -10], [wall, -wall, -10], [wall, wall, -10],
+                                     [-wall, wall, -10]], [[0, 1, 2], [0, 2, 3]], name="wall"))
+    scene = hlbvh_cl.Scene(meshes, device=suite_device)
     renderer = hlbvh_cl.Renderer(scene, materials=[
-        {"type": "diffuse", "reflectance": rho}, {"type": "diffuse", "reflectance": 0.0}],
+        {"type": "diffuse", "reflectance": rho}, {"type": "diffuse", "reflectance": 0.0},
+        {"type": "diffuse", "reflectance": 0.5}][:len(meshes)],
         emitters=[{"type": "area", "mesh": 1, "radiance": le}])
     camera = hlbvh_cl.Camera(eye=(0.0, 2.6, 2.2), target=(0, 0, 0), fov_deg=60)
     width, height = 24, 20
@@ -305,6 +315,22 @@ def test_a_ground_under_an_area_light_matches_lambert_s_formula(suite_device):
     on_light = (hits.geom_id == 1).reshape(height, width)
     assert on_light.any() and (images[:, on_light & np.roll(on_light, 1, 0)
                                       & np.roll(on_light, -1, 0)] == 0).all()
+
+
+def test_an_area_light_too_small_for_its_scene_s_frame_is_refused(suite_device):
+    """A unit light beside a wall of 1e20: the frame that brings the wall to
+    float32's range leaves the light a density per unit area past float32's
+    largest, and the render says so rather than drawing the ground black."""
+    light = hlbvh_cl.Mesh([[-0.4, 1, -0.3], [0.4, 1, -0.3], [0.4, 1, 0.3], [-0.4, 1, 0.3]],
+                          [[0, 1, 2], [0, 2, 3]], name="light")
+    wall = hlbvh_cl.Mesh([[-1e20, -1e20, -10], [1e20, -1e20, -10], [1e20, 1e20, -10],
+                          [-1e20, 1e20, -10]], [[0, 1, 2], [0, 2, 3]], name="wall")
+    renderer = hlbvh_cl.Renderer(hlbvh_cl.Scene([light, wall], device=suite_device),
+                                 emitters=[{"type": "area", "mesh": 0, "radiance": 1.0}])
+    camera = hlbvh_cl.Camera(eye=(0, 2, 4), target=(0, 0, 0))
+    with pytest.raises(ValueError, match=r"area emitter of mesh 0 is too small for its scene: "
+                                         r"its area is 0\.48 where .* about 1\.\d+e\+20"):
+        renderer.render(camera, 8, 8, shading="path")
 
 
 def test_a_seed_fixes_the_image(suite_device):

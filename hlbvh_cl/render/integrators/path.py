@@ -53,7 +53,6 @@ from ...device.runtime import Runtime
 from ..emitters import luminance
 from ..random import salts8
 from .base import Integrator, Look, Step
-from .direct import ray_offset
 
 KERNEL = kernel_of(__name__)
 
@@ -76,8 +75,25 @@ FIRST_BOUNCE_DIMENSION, DIMENSIONS_PER_BOUNCE = 2, 8
 #: path_surface's work-group size (kernels/render/integrators/path.h).
 SURFACE_GROUP: int = layout.CONSTANTS["SURFACE_GROUP"]
 
+#: Mitsuba 3's RayEpsilon: a new ray starts (1 + max |x_i|) RAY_EPSILON off
+#: the surface at x (path.h; path.cl's spawn_offset).
+RAY_EPSILON: float = layout.CONSTANTS["RAY_EPSILON"]
+
 #: DeltaLight.type (kernels/render/integrators/path.h).
 LIGHT_POINT, LIGHT_DIRECTIONAL = 0, 1
+
+
+def check_light_density(mesh: int, pdf: float, area: float, scale: float) -> None:
+    """Refuses an area light (of `area`, the user's units) whose density per
+    unit area in the tree's frame float32 cannot hold: a light far smaller
+    than the scene's largest coordinate, by which the frame scales the scene
+    (hlbvh_cl.core.frame), whose samples would all weigh nothing."""
+    if float(pdf) > float(np.finfo(np.float32).max):
+        raise ValueError(
+            f"the area emitter of mesh {mesh} is too small for its scene: its area is "
+            f"{area:.3g} where the scene's coordinates reach about {1.0 / scale:.3g}, so its "
+            f"sampling density overflows float32 in the scene's frame; bring the scene's "
+            f"extent closer to its lights'")
 
 
 def light_tables(look: Look, scale: float, bounds_lo, bounds_hi) -> dict:
@@ -90,12 +106,13 @@ def light_tables(look: Look, scale: float, bounds_lo, bounds_hi) -> dict:
     and CDFs (envmap.py; stand-ins without one); and the chances a light
     sample picks the environment or a delta light (emitters.py)."""
     materials = look.materials.copy()
-    vertices, normals, weights, owners = [], [], [], []
+    vertices, normals, weights, owners, areas = [], [], [], [], {}
     for mesh, radiance in sorted(look.emitters.area.items()):
         triangles = np.asarray(look.emissive[mesh], np.float64) * scale
         area = 0.5 * np.linalg.norm(np.cross(triangles[:, 1] - triangles[:, 0],
                                              triangles[:, 2] - triangles[:, 0]), axis=1)
         keep = area > 0
+        areas[mesh] = float(area.sum())
         vertices.append(triangles[keep].reshape(-1, 9))
         smooth = look.emissive_normals.get(mesh)
         normals.append(np.zeros((int(keep.sum()), 9)) if smooth is None
@@ -134,8 +151,9 @@ def light_tables(look: Look, scale: float, bounds_lo, bounds_hi) -> dict:
         deltas[k]["probability"] = chance(power)
     if triangle_power > 0:
         for mesh, radiance in look.emitters.area.items():
-            materials[mesh]["emitter_pdf"] = chance(triangle_power) * luminance(radiance) \
-                / triangle_power
+            pdf = chance(triangle_power) * luminance(radiance) / triangle_power
+            check_light_density(mesh, pdf, areas[mesh] / (scale * scale), scale)
+            materials[mesh]["emitter_pdf"] = pdf
         cdf = np.cumsum(weights) / triangle_power
         cdf[-1] = 1.0
     else:
@@ -298,7 +316,7 @@ class Path(Integrator):
         self._tables["shading_faces"] = shading["faces"]
         self._tables["shading_normals"] = shading["normals"]
         params = light_params(look, tables)
-        params["ray_offset"] = ray_offset(tree.bounds_lo, tree.bounds_hi)
+        params["ray_offset"] = RAY_EPSILON * tree.scale  # the user's 1 (path.cl's spawn_offset)
         params["max_depth"] = settings.max_depth
         params["rr_depth"] = settings.rr_depth
         params["instance_maps"] = len(maps)

@@ -44,11 +44,19 @@
 #include "render/lights.h"
 
 /* The power heuristic with beta = 2 (Veach 1997, eq. 9.13) for a sample
- * drawn with density `chosen` where the other strategy has `other`. */
+ * drawn with density `chosen` where the other strategy has `other`.  A
+ * density whose square overflows (past about 1.8e19: a light tiny in the
+ * tree's frame seen from far off, where a and a + b were both inf and the
+ * weight NaN) gives the same ratio as 1 / (1 + (other / chosen)^2). */
 inline float power_heuristic(float chosen, float other)
 {
     float a = chosen * chosen, b = other * other;
-    return a > 0.0f ? a / (a + b) : 0.0f;
+    if (a + b < INFINITY)
+        return a > 0.0f ? a / (a + b) : 0.0f;
+    if (!(chosen > 0.0f))
+        return 0.0f;
+    float ratio = other / chosen;
+    return 1.0f / (1.0f + ratio * ratio);
 }
 
 inline float luminance_max(float3 v)
@@ -111,6 +119,19 @@ inline __global const PathMaterial* hit_material(__global const Hit* hit, int in
 inline float3 radiance_before(__global const PathState* s, bool first)
 {
     return first ? (float3)(0.0f) : LOAD_XYZ(s->radiance);
+}
+
+/* How far off the surface at x a new ray starts: Mitsuba 3's
+ * Interaction::offset_p, (1 + max |x_i|) RayEpsilon, along the geometric
+ * normal, with the 1 in the user's units (params->ray_offset is RayEpsilon
+ * times the tree frame's scale).  It follows the precision of x itself, so
+ * that a large ground or backdrop does not lift every ray of a small object
+ * past its lights, as an offset from the scene's size did. */
+inline float spawn_offset(const PathParams* params, float3 x)
+{
+    float ax = abs_float(x.x), ay = abs_float(x.y), az = abs_float(x.z);
+    float largest = ax > ay ? (ax > az ? ax : az) : (ay > az ? ay : az);
+    return params->ray_offset + RAY_EPSILON * largest;
 }
 
 /* The path ends here, with what it gathered at this vertex: it takes no
@@ -191,7 +212,8 @@ FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel,
     }
     float3 x = LOAD_XYZ(ray->origin) + hit->t * d;
     /* secondary rays start off the surface on their own side of it */
-    float3 lift = params->ray_offset * (cos_geometric > 0.0f ? geometric : -geometric);
+    float offset = spawn_offset(params, x);
+    float3 lift = offset * (cos_geometric > 0.0f ? geometric : -geometric);
     uint pixel = first_pixel + path;
 
     /* next-event estimation, for a BSDF with a density: one light sample,
@@ -207,16 +229,15 @@ FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel,
         float weight = delta_light ? 1.0f : power_heuristic(light.pdf, bsdf_pdf_of_light);
         float3 carried = throughput * f_cos * light.radiance * (weight / light.pdf);
         /* stop short of the light itself: by the offset, or 0.1% of a short reach */
-        float margin = params->ray_offset < 1e-3f * light.reach ? params->ray_offset
-                                                               : 1e-3f * light.reach;
+        float margin = offset < 1e-3f * light.reach ? offset : 1e-3f * light.reach;
         /* on the light's side (Mitsuba's spawn_ray_to): through a
          * transmitting BSDF, or with shading normals, it may be the
          * geometric back of the surface, up to twice the offset nearer the
          * light than the point it was sampled from */
         float3 toward = dot3(geometric, light.direction) > 0.0f ? geometric : -geometric;
         bool behind = dot3(toward, lift) < 0.0f;
-        float reach = light.reach - margin - (behind ? 2.0f * params->ray_offset : 0.0f);
-        shadow->origin = x + params->ray_offset * toward;
+        float reach = light.reach - margin - (behind ? 2.0f * offset : 0.0f);
+        shadow->origin = x + offset * toward;
         shadow->direction = light.direction;
         shadow->reach = reach;
         shadow->carried = carried;
@@ -248,7 +269,7 @@ FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel,
     s->eta = eta;
     store3(s->radiance, radiance_before(s, first) + gathered);
     float3 side = dot3(geometric, next.direction) > 0.0f ? geometric : -geometric;
-    *next_origin = x + params->ray_offset * side;
+    *next_origin = x + offset * side;
     *next_direction = next.direction;
     return true;
 }

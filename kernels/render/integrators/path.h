@@ -52,11 +52,15 @@ typedef struct {
 #define LIGHT_POINT 0
 #define LIGHT_DIRECTIONAL 1
 
+/* Mitsuba 3's RayEpsilon for float (1500 * 2^-24): a new ray starts
+ * (1 + max |x_i|) RAY_EPSILON off the surface at x (path.cl's spawn_offset). */
+#define RAY_EPSILON 0.0000894069671630859375f
+
 typedef struct {
     float environment[3];           /* the constant environment's radiance */
     float environment_probability;  /* the chance a light sample goes to the environment
                                      * (constant or map) */
-    float ray_offset;               /* secondary rays start this far off the surface */
+    float ray_offset;               /* RAY_EPSILON times the frame's scale (spawn_offset) */
     uint light_triangles;           /* emissive triangles in light_cdf */
     uint delta_lights;              /* DeltaLight records */
     int max_depth;                  /* Mitsuba's: the longest path, in segments; <= 0: no limit */
