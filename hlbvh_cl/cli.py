@@ -143,7 +143,7 @@ def _cmd_render(args) -> int:
     spp = args.spp or (None if args.time else given.get("spp", 1))
     options = dict(shading=shading, shadows=not args.no_shadows, spp=spp,
                    ao_samples=args.ao_samples or AO_SAMPLES,
-                   rfilter=given.get("rfilter", "box"))
+                   rfilter=given.get("rfilter", "box"), seed=given.get("seed", 0))
     if shading == "path":
         options.update(max_depth=args.max_depth if args.max_depth is not None
                        else given.get("max_depth", -1), rr_depth=given.get("rr_depth", 5))

@@ -12,7 +12,7 @@ The subset::
                                                     near_clip, far_clip (0.01, 10000)
         <film type="hdrfilm">                       width, height (768 x 576)
           <rfilter type="box"/>                     box or gaussian (the default)
-        <sampler type="independent">                sample_count (default 4)
+        <sampler type="independent">                sample_count (default 4), seed (the render's)
       <bsdf type="..." id="...">                    diffuse, conductor, roughconductor,
                                                     dielectric, roughdielectric, plastic,
                                                     roughplastic, twosided; named or inline
@@ -56,9 +56,10 @@ from pathlib import Path
 import numpy as np
 
 from ..mesh import Mesh
-from ..render.camera import Camera
+from ..render.camera import MAX_IMAGE_SIDE, Camera
 from ..render.light import Light
 from ..render.materials import BSDFS, check_material
+from ..render.settings import MAX_DEPTH, MAX_SPP, MAX_SEED
 from .description import MeshEntry, SceneDescription, SceneFileError, shape_mesh
 
 #: Mitsuba's defaults that the subset uses.
@@ -212,12 +213,20 @@ class _Reader:
         self.used.add(name)
         return self.defaults[name]
 
+    @staticmethod
+    def _parsed(kind, text: str):
+        """float(text) or int(text), without Python's digit separators
+        (float("0_5") is 5.0), which Mitsuba does not read as numbers."""
+        if "_" in text:
+            raise ValueError(text)
+        return kind(text)
+
     def number(self, node: _Node, key: str = "value") -> float:
         """The finite number in attribute ``key``."""
         text = self.text(node, key)
         which = "" if key == "value" else f" for {key}"
         try:
-            value = float(text)
+            value = self._parsed(float, text)
         except ValueError:
             raise self.error(node, f"expected a number{which}, got {node.get(key)!r}") from None
         if not math.isfinite(value):
@@ -227,7 +236,7 @@ class _Reader:
     def numbers(self, node: _Node, count: int, key: str = "value") -> list[float]:
         parts = re.split(r"[,\s]+", self.text(node, key).strip())  # (text raises first)
         try:
-            values = [float(x) for x in parts if x]
+            values = [self._parsed(float, x) for x in parts if x]
         except ValueError:
             raise self.error(node, f"expected {count} numbers, got {node.get(key)!r}") from None
         if len(values) == 1 and count == 3 and node.tag == "rgb":
@@ -247,7 +256,7 @@ class _Reader:
         if node.tag == "integer":
             text = self.text(node)
             try:
-                return int(text)
+                return self._parsed(int, text)
             except ValueError:
                 raise self.error(node, f"expected an integer, got {node.get('value')!r}") from None
         if node.tag == "string":
@@ -315,7 +324,7 @@ class _Reader:
         elif step.tag == "scale":
             if step.get("value") is not None:
                 parts = re.split(r"[,\s]+", self.text(step).strip())
-                factors = [float(parts[0])] * 3 if len(parts) == 1 else self.numbers(step, 3)
+                factors = [self.number(step)] * 3 if len(parts) == 1 else self.numbers(step, 3)
             else:
                 factors = [self._coordinate(step, a, 1.0) for a in "xyz"]
             change = np.diag([*factors, 1.0])
@@ -410,14 +419,15 @@ def read_xml(path, defaults: dict | None = None) -> SceneDescription:
             if node.get("type") != "path":
                 raise reader.error(node, "only the path integrator is read")
             values = reader.parameters(node, ("max_depth", "rr_depth"))
-            if values.get("max_depth", -1) < -1:
-                raise reader.error(node, f"max_depth must be -1 (no limit) or >= 0, got "
-                                         f"{values['max_depth']}")
+            if not -1 <= values.get("max_depth", -1) <= MAX_DEPTH:
+                raise reader.error(node, f"max_depth must be -1 (no limit) or 0..{MAX_DEPTH}, "
+                                         f"got {values['max_depth']}")
             if values.get("max_depth") == 0:
                 raise reader.error(node, "max_depth 0 (an image of nothing, in Mitsuba) is not "
                                          "rendered here: give -1 (no limit) or 1 and more")
-            if values.get("rr_depth", 1) < 1:
-                raise reader.error(node, f"rr_depth must be at least 1, got {values['rr_depth']}")
+            if not 1 <= values.get("rr_depth", 1) <= MAX_DEPTH:
+                raise reader.error(node, f"rr_depth must be 1..{MAX_DEPTH}, got "
+                                         f"{values['rr_depth']}")
             options.update({k: int(v) for k, v in values.items()})
         elif node.tag == "sensor":
             # every sensor is read (and checked); a render takes the first, as
@@ -491,8 +501,8 @@ def _sensor(reader: _Reader, node: _Node, options: dict):
             film = reader.parameters(child, ("width", "height", "pixel_format",
                                              "component_format"), skip=("rfilter",))
             size = (film.get("width", FILM_SIZE[0]), film.get("height", FILM_SIZE[1]))
-            if min(size) < 1:
-                raise reader.error(child, f"width and height must be at least 1, got "
+            if not 1 <= min(size) <= max(size) <= MAX_IMAGE_SIDE:
+                raise reader.error(child, f"width and height must be 1..{MAX_IMAGE_SIDE}, got "
                                           f"{size[0]} x {size[1]}")
             for key, formats in (("pixel_format", PIXEL_FORMATS),
                                  ("component_format", COMPONENT_FORMATS)):
@@ -511,9 +521,14 @@ def _sensor(reader: _Reader, node: _Node, options: dict):
                 raise reader.error(child, "only the independent sampler is read")
             sampler = reader.parameters(child, ("sample_count", "seed"))
             options["spp"] = int(sampler.get("sample_count", SAMPLE_COUNT))
-            if options["spp"] < 1:
-                raise reader.error(child, f"sample_count must be at least 1, got "
+            if not 1 <= options["spp"] <= MAX_SPP:
+                raise reader.error(child, f"sample_count must be 1..{MAX_SPP}, got "
                                           f"{options['spp']}")
+            if "seed" in sampler:  # the render's seed (Renderer.render's)
+                if not 0 <= sampler["seed"] <= MAX_SEED:
+                    raise reader.error(child, f"seed must be 0..{MAX_SEED}, got "
+                                              f"{sampler['seed']}")
+                options["seed"] = sampler["seed"]
     if "fov" not in values:
         raise reader.error(node, "needs its fov (degrees)")
     if not 0 < values["fov"] < 180:
@@ -564,8 +579,9 @@ def _bsdf(reader: _Reader, node: _Node) -> dict:
         inner = [c for c in node.children if c.tag in ("bsdf", "ref")]
         if len(inner) != 1 or len(inner) != len(node.children):
             raise reader.error(node, "twosided takes one <bsdf> (or <ref>) and nothing else")
-        return {"type": "twosided", "bsdf": _bsdf(reader, inner[0])}
-    spec = {"type": kind, **reader.parameters(node, _BSDFS[kind])}
+        spec = {"type": "twosided", "bsdf": _bsdf(reader, inner[0])}
+    else:
+        spec = {"type": kind, **reader.parameters(node, _BSDFS[kind])}
     for key in ("int_ior", "ext_ior"):
         if isinstance(spec.get(key), str):
             name = spec[key].lower()
@@ -573,7 +589,7 @@ def _bsdf(reader: _Reader, node: _Node) -> dict:
                 raise reader.error(node, f"{key} {spec[key]!r} is not a named index this reader "
                                          f"knows ({', '.join(IORS)})")
             spec[key] = IORS[name]
-    try:
+    try:  # (twosided too: what it may wrap)
         check_material(f"{reader.path}:{node.line}: <bsdf type=\"{kind}\">", spec)
     except (TypeError, ValueError) as error:
         raise SceneFileError(str(error)) from None

@@ -13,6 +13,8 @@ from .camera import FILTERS, MAX_IMAGE_SIDE, Camera
 
 #: Samples per pixel, and AO rays per sample, beyond these are taken for mistakes.
 MAX_SPP = 1 << 16
+#: The largest seed: seed * MAX_SPP + sample must fit 32 bits.
+MAX_SEED = 2**32 // MAX_SPP - 1
 MAX_AO_SAMPLES = 1024
 
 #: Default number of AO rays per pixel and sample.
@@ -121,7 +123,7 @@ class RenderSettings:
                    ao_samples=inputs.integer("ao_samples", ao_samples, 1, MAX_AO_SAMPLES),
                    ao_distance=ao_distance, max_depth=max_depth,
                    rr_depth=inputs.integer("rr_depth", rr_depth, 1, MAX_DEPTH),
-                   seed=inputs.integer("seed", seed, 0, 2**32 // MAX_SPP - 1), rfilter=rfilter)
+                   seed=inputs.integer("seed", seed, 0, MAX_SEED), rfilter=rfilter)
 
     def in_frame(self, scale: float) -> RenderSettings:
         """These settings in a tree's frame (hlbvh_cl.core.frame): its positions

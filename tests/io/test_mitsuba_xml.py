@@ -362,9 +362,12 @@ def test_the_cli_renders_an_xml_scene_with_its_own_options(tmp_path, capsys, sui
     (('<integer name="width" value="40"/>', '<float name="width" value="8.7"/>'),
      "width takes <integer>, not <float>"),
     (('name="height" value="24"', 'name="height" value="0"'),
-     "width and height must be at least 1, got 40 x 0"),
+     "width and height must be 1..16384, got 40 x 0"),
+    (('name="width" value="40"', 'name="width" value="20000"'),
+     "width and height must be 1..16384, got 20000 x 24"),
+    (('name="width" value="40"', 'name="width" value="1_6"'), "expected an integer, got '1_6'"),
     (('name="width" value="40"', 'name="width" value="-8"'),
-     "width and height must be at least 1, got -8 x 24"),
+     "width and height must be 1..16384, got -8 x 24"),
     (('<float name="fov" value="50.0"/>', '<string name="fov" value="45"/>'),
      "fov takes <float>, <integer>, not <string>"),
     (('name="fov" value="50.0"', 'name="fov" value="180"'),
@@ -387,6 +390,29 @@ def test_a_bad_sensor_names_its_element_and_line(tmp_path, change, words):
     with pytest.raises(SceneFileError) as error:
         read_xml(path)
     assert str(error.value).startswith(f"{path}:") and words in str(error.value), error.value
+
+
+def test_the_sampler_s_seed_is_the_render_s(tmp_path, suite_device):
+    """<sampler>'s seed reaches the render options (which the CLI renders with):
+    seeds 0 and 7 give two images, seed 7 the image Renderer.render(seed=7)
+    gives."""
+    body = (CUBE + '<emitter type="constant"><rgb name="radiance" value="1"/></emitter>'
+            '<integrator type="path">'
+            '<integer name="max_depth" value="3"/></integrator>')
+    images = []
+    for seed in (0, 7):
+        sampler = (f'</film><sampler type="independent"><integer name="sample_count" '
+                   f'value="2"/><integer name="seed" value="{seed}"/></sampler>')
+        path = tmp_path / f"seed{seed}.xml"
+        path.write_text(scene_xml(body).replace("</film>", sampler, 1))
+        loaded = load(path, suite_device)
+        assert loaded.options["seed"] == seed
+        renderer = loaded.renderer()
+        images.append(renderer.render(loaded.camera, 40, 24, hdr=True, **loaded.options))
+    assert not np.array_equal(images[0], images[1])
+    options = {**loaded.options, "seed": 7}
+    np.testing.assert_array_equal(renderer.render(loaded.camera, 40, 24, hdr=True, **options),
+                                  images[1])
 
 
 def test_a_bad_number_in_a_transform_names_its_step(tmp_path):
@@ -466,9 +492,12 @@ LIGHT = '<emitter type="area"><rgb name="radiance" value="1"/></emitter>'
      'target="0 0 1" up="0 1 0"/></transform></emitter>',
      "give either its direction or its to_world, not both"),
     ('<integrator type="path"><integer name="max_depth" value="-2"/></integrator>',
-     "max_depth must be -1 (no limit) or >= 0, got -2"),
+     "max_depth must be -1 (no limit) or 0..1024, got -2"),
     ('<integrator type="path"><integer name="rr_depth" value="0"/></integrator>',
-     "rr_depth must be at least 1, got 0"),
+     "rr_depth must be 1..1024, got 0"),
+    (SHAPE_INSIDE.format('<bsdf type="twosided"><bsdf type="dielectric"/></bsdf>'),
+     '<bsdf type="twosided">[\'bsdf\'] has no back side to wrap'),
+    (SPHERE.format('<float name="radius" value="0_5"/>'), "expected a number, got \'0_5\'"),
     (SHAPE_INSIDE.format('<bsdf type="dielectric"><string name="int_ior" value="glass"/>'
                          '</bsdf>'), "int_ior 'glass' is not a named index"),
 ])
@@ -497,7 +526,11 @@ def test_what_mitsuba_refuses_is_refused_with_its_line(tmp_path, body, words):
     (('</film>', '<string name="component_format" value="bogus"/></film>'),
      "component_format 'bogus' is not read"),
     (('</film>', '</film><sampler type="independent"><integer name="sample_count" '
-                 'value="0"/></sampler>'), "sample_count must be at least 1, got 0"),
+                 'value="0"/></sampler>'), "sample_count must be 1..65536, got 0"),
+    (('</film>', '</film><sampler type="independent"><integer name="sample_count" '
+                 'value="100000"/></sampler>'), "sample_count must be 1..65536, got 100000"),
+    (('</film>', '</film><sampler type="independent"><integer name="seed" '
+                 'value="-1"/></sampler>'), "seed must be 0..65535, got -1"),
     (('<lookat origin="1, 2, 5" target="0, 0.5, 0" up="0, 1, 0"/>',
       '<matrix value="-1 0.6 0 0  0 0.8 0 0  0 0 -1 4  0 0 0 1"/>'), "its to_world scales or "
                                                                       "shears"),
@@ -601,12 +634,20 @@ def test_every_index_mitsuba_names_reads_as_its_value(tmp_path):
      '</transform></shape>', "<rotate>: its axis must be a unit vector, got length 1.41421"),
     ('<integrator type="path"><integer name="max_depth" value="0"/></integrator>',
      "max_depth 0 (an image of nothing, in Mitsuba) is not rendered here"),
+    ('<integrator type="path"><integer name="max_depth" value="2000"/></integrator>',
+     "max_depth must be -1 (no limit) or 0..1024, got 2000"),
+    ('<integrator type="path"><integer name="rr_depth" value="100000"/></integrator>',
+     "rr_depth must be 1..1024, got 100000"),
+    ('<shape type="cube"><transform name="to_world"><scale value="inf"/></transform></shape>',
+     "<scale>: expected a finite number, got \'inf\'"),
 ])
 def test_what_mitsuba_loads_but_renders_otherwise_is_an_error(tmp_path, body, words):
     """A rotate about a longer axis: Mitsuba scales by it but keeps the
     matrix's transpose as its inverse, so its shading normals leave the
     surface (a mirror cube's highlights moved, 5 % off in its mean); max
-    depth 0, which this renderer does not take.  Mitsuba loads both."""
+    depth 0, which this renderer does not take; depths past the renderer's
+    limits (which a render would refuse, naming no file); an infinite
+    scale.  Mitsuba loads them all."""
     path = scene_of(tmp_path, scene_xml(body))
     mi.load_file(str(path))
     with pytest.raises(SceneFileError) as error:
