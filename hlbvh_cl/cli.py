@@ -135,6 +135,7 @@ def _cmd_render(args) -> int:
     build_wall = loaded.build_seconds
     width = args.width or loaded.width
     height = args.height or loaded.height
+    camera = loaded.camera_at(width, height)  # a Mitsuba sensor's fov along its own axis
     # the file's own render options (a Mitsuba XML scene's), where no flag is given
     given = loaded.options
     shading = args.shading or given.get("shading", "diffuse")
@@ -151,7 +152,7 @@ def _cmd_render(args) -> int:
     # kernel the render uses, so the real render's times are its own.
     warm_started = time.perf_counter()
     with stage("compiling the render kernels (cached after a first run)"):
-        renderer.render(loaded.camera, 1, 1, **options)
+        renderer.render(camera, 1, 1, **options)
     render_compile = time.perf_counter() - warm_started
     bar = sys.stderr.isatty()  # a tqdm bar on a terminal; else one line if it takes a while
     if args.time:
@@ -160,7 +161,7 @@ def _cmd_render(args) -> int:
     try:
         with contextlib.nullcontext() if bar else stage(f"rendering {width}x{height}"):
             # a path render to EXR carries the AOVs as channels beside R, G, B
-            image = renderer.render(loaded.camera, width, height, progress=bar, hdr=exr,
+            image = renderer.render(camera, width, height, progress=bar, hdr=exr,
                                     aovs=exr and shading == "path", **options)
     except RenderInterrupted as stopped:  # Ctrl-C: keep the rounds done
         _write_image(output, stopped.image)

@@ -61,6 +61,10 @@ class SceneDescription:
     #: what the file says about rendering it besides the size (Mitsuba's
     #: XML: shading, spp, max_depth, rr_depth, rfilter); a TOML file says none
     options: dict = field(default_factory=dict)
+    #: a Mitsuba sensor's (fov in degrees, fov_axis): that fov holds along
+    #: that axis at any image size (LoadedScene.camera_at); None: the
+    #: camera's vertical fov holds (a TOML file's)
+    fov_axis: tuple[float, str] | None = None
 
     def materials(self) -> list[dict] | None:
         """Renderer.materials of every surface (the meshes, then the

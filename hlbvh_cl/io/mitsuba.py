@@ -56,7 +56,7 @@ from pathlib import Path
 import numpy as np
 
 from ..mesh import Mesh
-from ..render.camera import MAX_IMAGE_SIDE, Camera
+from ..render.camera import FOV_AXES, MAX_IMAGE_SIDE, Camera, vertical_fov_deg
 from ..render.light import Light
 from ..render.materials import BSDFS, check_material
 from ..render.settings import MAX_DEPTH, MAX_SPP, MAX_SEED
@@ -405,7 +405,7 @@ def read_xml(path, defaults: dict | None = None) -> SceneDescription:
     _collect_ids(reader, scene)
     options = {"shading": "path", "spp": SAMPLE_COUNT, "max_depth": -1, "rr_depth": 5,
                "rfilter": "gaussian"}
-    camera, size = None, FILM_SIZE
+    camera, size, fov = None, FILM_SIZE, None
     meshes, emitters, emitter_names = [], [], []
     integrator = None
     for node in scene.children:
@@ -434,7 +434,7 @@ def read_xml(path, defaults: dict | None = None) -> SceneDescription:
             # Mitsuba's mi.render(scene) takes sensors()[0]
             found = _sensor(reader, node, options if camera is None else dict(options))
             if camera is None:
-                camera, size = found
+                camera, size, fov = found
         elif node.tag == "bsdf":
             _bsdf(reader, node)  # checked here; used where a shape refers to it
         elif node.tag == "shape":
@@ -459,7 +459,8 @@ def read_xml(path, defaults: dict | None = None) -> SceneDescription:
     if not meshes:
         raise SceneFileError(f"{path}: no <shape>: nothing to render")
     return SceneDescription(path=path, width=size[0], height=size[1], camera=camera,
-                            light=Light(), meshes=meshes, emitters=emitters, options=options)
+                            light=Light(), meshes=meshes, emitters=emitters, options=options,
+                            fov_axis=fov)
 
 
 def _collect_ids(reader: _Reader, node: _Node) -> None:
@@ -538,16 +539,10 @@ def _sensor(reader: _Reader, node: _Node, options: dict):
         raise reader.error(node, "a to_world that mirrors the image (det < 0) is not read")
     eye, forward, up = matrix[:3, 3], matrix[:3, 2], matrix[:3, 1]
     width, height = size
-    half = math.tan(math.radians(values["fov"]) / 2)
     axis = values.get("fov_axis", "x")
-    aspect = width / height
-    vertical = {"x": half / aspect, "y": half,
-                "diagonal": half / math.hypot(aspect, 1.0),
-                "smaller": half if aspect >= 1 else half / aspect,
-                "larger": half / aspect if aspect >= 1 else half}
-    if axis not in vertical:
-        raise reader.error(node, f"fov_axis {axis!r} is not one of {tuple(vertical)}")
-    fov_deg = math.degrees(2 * math.atan(vertical[axis]))
+    if axis not in FOV_AXES:
+        raise reader.error(node, f"fov_axis {axis!r} is not one of {FOV_AXES}")
+    fov_deg = vertical_fov_deg(values["fov"], axis, width / height)
     # a to_world that scales is refused, as Mitsuba refuses it: the clip
     # distances are then the same in the world
     if not np.allclose(matrix[:3, :3].T @ matrix[:3, :3], np.eye(3), rtol=0, atol=1e-5):
@@ -561,7 +556,7 @@ def _sensor(reader: _Reader, node: _Node, options: dict):
                         near_clip=near, far_clip=far)
     except ValueError as error:
         raise reader.error(node, f"its to_world makes no camera: {error}") from None
-    return camera, size
+    return camera, size, (values["fov"], axis)
 
 
 def _bsdf(reader: _Reader, node: _Node) -> dict:

@@ -117,6 +117,7 @@ import math
 import os
 import re
 import sys
+import dataclasses
 import time
 import tomllib
 from dataclasses import dataclass, field
@@ -126,7 +127,7 @@ import numpy as np
 
 from ..build.instances import check_resolved, check_transforms
 from ..mesh import MESH_EXTENSIONS, Mesh
-from ..render.camera import Camera, unit, view_problem
+from ..render.camera import Camera, unit, vertical_fov_deg, view_problem
 from ..render.light import Light
 from ..render.renderer import Renderer
 from ..scene import Scene
@@ -275,6 +276,18 @@ class LoadedScene:
     emitters: list | None = None
     options: dict = field(default_factory=dict)  # SceneDescription.options
     instance_materials: list | None = None
+    fov_axis: tuple[float, str] | None = None  # SceneDescription.fov_axis
+
+    def camera_at(self, width: int, height: int) -> Camera:
+        """The camera for an image of width x height: ``camera`` itself,
+        except for a Mitsuba sensor rendered at another aspect than its
+        film's, whose fov holds along its fov_axis (Mitsuba's rule) where
+        ``camera``'s vertical fov would not."""
+        if self.fov_axis is None or width * self.height == height * self.width:
+            return self.camera
+        fov, axis = self.fov_axis
+        return dataclasses.replace(self.camera,
+                                   fov_deg=vertical_fov_deg(fov, axis, width / height))
 
     def renderer(self) -> Renderer:
         """A Renderer of the scene with the file's colours, light, materials
@@ -309,7 +322,8 @@ def load(path, device=None, builder: str = "hlbvh", morton_bits: int = 30,
                        build_seconds=time.perf_counter() - loaded,
                        materials=description.materials(), emitters=description.all_emitters(),
                        options=dict(description.options),
-                       instance_materials=description.instance_materials())
+                       instance_materials=description.instance_materials(),
+                       fov_axis=description.fov_axis)
 
 
 def _name_the_entry(description: SceneDescription, error: ValueError) -> ValueError:

@@ -58,6 +58,22 @@ def view_problem(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> tuple[s
     return None
 
 
+#: Mitsuba 3's fov_axis values: the image axis along which a sensor's field
+#: of view holds, whatever the image's size.
+FOV_AXES = ("x", "y", "diagonal", "smaller", "larger")
+
+
+def vertical_fov_deg(fov_deg: float, axis: str, aspect: float) -> float:
+    """Camera's vertical field of view for an image of ``aspect`` = width /
+    height whose field of view along ``axis`` (FOV_AXES) is ``fov_deg``."""
+    half = math.tan(math.radians(fov_deg) / 2)
+    vertical = {"x": half / aspect, "y": half,
+                "diagonal": half / math.hypot(aspect, 1.0),
+                "smaller": half if aspect >= 1 else half / aspect,
+                "larger": half / aspect if aspect >= 1 else half}[axis]
+    return math.degrees(2 * math.atan(vertical))
+
+
 @dataclass(frozen=True)
 class Camera:
     """A pinhole camera looking from ``eye`` at ``target``; ``fov_deg`` is the

@@ -70,6 +70,31 @@ def test_the_camera_sends_mitsuba_s_rays(tmp_path, axis, size):
     assert np.linalg.norm(np.cross(behind, np.array(ray.d))) < 1e-5 and behind @ ray.d < 0
 
 
+@pytest.mark.parametrize("axis", ["x", "y", "diagonal", "smaller", "larger"])
+def test_a_render_at_another_size_keeps_the_fov_along_the_sensor_s_axis(tmp_path, suite_device,
+                                                                       axis):
+    """A file's 40x24 film rendered at 24x40 (the CLI's --width, --height):
+    LoadedScene.camera_at sends Mitsuba's rays for a 24x40 film with the
+    same fov and fov_axis, where the file's camera (its vertical fov) would
+    not; at the file's own size it is the file's camera."""
+    path = tmp_path / "scene.xml"
+    path.write_text(scene_xml(CUBE, 40, 24, axis=axis))
+    loaded = load(path, suite_device)
+    assert loaded.camera_at(40, 24) == loaded.camera and loaded.camera_at(20, 12) == loaded.camera
+    other = tmp_path / "other.xml"
+    other.write_text(scene_xml(CUBE, 24, 40, axis=axis))
+    sensor = mi.load_file(str(other)).sensors()[0]
+    _, ours = loaded.camera_at(24, 40).rays(24, 40)
+    ours = ours / np.linalg.norm(ours, axis=1, keepdims=True)
+    theirs = np.array([np.array(sensor.sample_ray(0.0, 0.0, [(x + 0.5) / 24, (y + 0.5) / 40],
+                                                  [0.5, 0.5])[0].d)
+                       for y in range(40) for x in range(24)])
+    np.testing.assert_allclose(ours, theirs, atol=2e-5)
+    if axis != "y":  # a vertical fov holds under "y" alone
+        assert not np.allclose(loaded.camera.rays(24, 40)[1][0] / np.linalg.norm(
+            loaded.camera.rays(24, 40)[1][0]), theirs[0], atol=1e-3)
+
+
 @pytest.mark.parametrize("near, far", [(None, None), (4.6, None), (None, 5.0), (4.8, 5.6)])
 def test_the_clip_planes_cut_what_mitsuba_s_cut(tmp_path, suite_device, near, far):
     """With near_clip and far_clip (or Mitsuba's defaults), each pixel's
