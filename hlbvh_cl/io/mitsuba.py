@@ -90,9 +90,9 @@ _SHAPES = {"ply": ("filename", "face_normals", "to_world", "flip_normals"),
            "rectangle": ("to_world", "flip_normals"), "cube": ("to_world", "flip_normals"),
            "sphere": ("to_world", "center", "radius", "flip_normals")}
 
-#: The value elements each parameter outside the BSDFs takes, as Mitsuba's
-#: properties are typed (a float also takes an integer, a colour a number);
-#: the BSDFs' are checked by materials.check_material.
+#: The value elements each parameter takes, as Mitsuba's properties are
+#: typed (a float also takes an integer, a colour a number); the values
+#: themselves are checked by materials.check_material for the BSDFs'.
 _NUMBER, _COLOUR = ("float", "integer"), ("rgb", "float", "integer")
 _TAGS = {**{name: ("integer",) for name in ("max_depth", "rr_depth", "sample_count", "seed",
                                             "width", "height")},
@@ -100,7 +100,12 @@ _TAGS = {**{name: ("integer",) for name in ("max_depth", "rr_depth", "sample_cou
          **{name: ("string",) for name in ("fov_axis", "filename", "pixel_format",
                                            "component_format")},
          **{name: ("boolean",) for name in ("face_normals", "flip_normals")},
-         **{name: _COLOUR for name in ("radiance", "intensity", "irradiance")},
+         **{name: _COLOUR for name in ("radiance", "intensity", "irradiance", "reflectance",
+                                       "diffuse_reflectance", "specular_reflectance",
+                                       "specular_transmittance", "eta", "k")},
+         **{name: ("string",) for name in ("distribution", "material")},
+         **{name: _NUMBER + ("string",) for name in ("int_ior", "ext_ior")},
+         "alpha": _NUMBER, "nonlinear": ("boolean",),
          **{name: ("point", "vector") for name in ("center", "position", "direction")},
          "to_world": ("transform",)}
 
@@ -401,6 +406,11 @@ def read_xml(path, defaults: dict | None = None) -> SceneDescription:
     if scene.get("version") is None:
         raise reader.error(scene, "needs its version attribute (e.g. version=\"3.0.0\"), "
                                   "as Mitsuba does")
+    if not re.fullmatch(r"3\.\d+\.\d+", scene.get("version")):
+        # Mitsuba 3 renames an older file's parameters as it loads it; this
+        # reader does not, so it reads version 3 files only
+        raise reader.error(scene, f"version {scene.get('version')!r}: this reader reads "
+                                  f"Mitsuba 3 files (version=\"3.x.y\")")
     reader.check_attributes(scene)
     _collect_ids(reader, scene)
     options = {"shading": "path", "spp": SAMPLE_COUNT, "max_depth": -1, "rr_depth": 5,
@@ -604,6 +614,8 @@ def _shape(reader: _Reader, node: _Node) -> MeshEntry:
         if "filename" not in values:
             raise reader.error(node, "needs its filename")
         file = reader.path.parent / values["filename"]
+        if file.suffix.lower() != f".{kind}":  # Mitsuba's ply and obj read their own format
+            raise reader.error(node, f"{kind} shapes read .{kind} files, got {file.name}")
         try:
             mesh = Mesh.load(file)
         except FileNotFoundError:

@@ -781,6 +781,9 @@ def _area_emitter(reader: _Reader, table: dict, key: str) -> dict | None:
         raise reader.error(f"{key}.emitter", "expected an area emitter: { type = \"area\", "
                                              "radiance = [r, g, b] }, got "
                                              f"{inputs.describe(spec)}")
+    if "mesh" in spec:  # check_emitters would take it; here the table's mesh is the one lit
+        raise reader.error(f"{key}.emitter.mesh", "a [[mesh]]'s emitter lights that mesh: "
+                                                  "give no mesh key")
     from ..render.emitters import check_emitters
     try:
         check_emitters([{**spec, "mesh": 0}], 1, names=[f"{key}.emitter"])

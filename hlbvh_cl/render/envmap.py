@@ -139,12 +139,21 @@ def to_world_rotation(name: str, value) -> np.ndarray:
         return np.eye(3)
     try:
         matrix = np.asarray(value, np.float64)
+        numbers = np.asarray(value, object).ravel()
     except (TypeError, ValueError):
         raise TypeError(f"{name} must be a 3 x 3 or 4 x 4 matrix, got "
                         f"{inputs.describe(value)}") from None
+    # numbers, not what numpy would turn into them ("1", True)
+    if not all(isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(
+            x, (bool, np.bool_)) for x in numbers):
+        raise TypeError(f"{name} must be a 3 x 3 or 4 x 4 matrix of numbers, got "
+                        f"{inputs.describe(value)}")
     if matrix.shape not in ((3, 3), (4, 4)) or not np.isfinite(matrix).all():
         raise ValueError(f"{name} must be a finite 3 x 3 or 4 x 4 matrix, got shape "
                          f"{matrix.shape}")
+    if matrix.shape == (4, 4) and not np.array_equal(matrix[3], [0.0, 0.0, 0.0, 1.0]):
+        raise ValueError(f"{name}'s last row must be 0 0 0 1 (an affine map), got "
+                         f"{matrix[3].tolist()}")
     rotation = matrix[:3, :3]
     if np.abs(rotation.T @ rotation - np.eye(3)).max() > 1e-5:
         raise ValueError(f"{name} must be a rotation (orthonormal columns): an environment map "

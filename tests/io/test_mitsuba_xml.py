@@ -520,6 +520,8 @@ LIGHT = '<emitter type="area"><rgb name="radiance" value="1"/></emitter>'
      "max_depth must be -1 (no limit) or 0..1024, got -2"),
     ('<integrator type="path"><integer name="rr_depth" value="0"/></integrator>',
      "rr_depth must be 1..1024, got 0"),
+    (SHAPE_INSIDE.format('<bsdf type="diffuse"><point name="reflectance" value="0.5 0.5 0.5"/>'
+                         '</bsdf>'), "reflectance takes <rgb>, <float>, <integer>, not <point>"),
     (SHAPE_INSIDE.format('<bsdf type="twosided"><bsdf type="dielectric"/></bsdf>'),
      '<bsdf type="twosided">[\'bsdf\'] has no back side to wrap'),
     (SPHERE.format('<float name="radius" value="0_5"/>'), "expected a number, got \'0_5\'"),
@@ -538,6 +540,38 @@ def test_what_mitsuba_refuses_is_refused_with_its_line(tmp_path, body, words):
     with pytest.raises(SceneFileError) as error:
         read_xml(path)
     assert str(error.value).startswith(f"{path}:") and words in str(error.value), error.value
+
+
+@pytest.mark.parametrize("version, mitsuba_loads", [("banana", False), ("2.0.0", True)])
+def test_a_file_of_another_version_than_3_is_refused(tmp_path, version, mitsuba_loads):
+    """Mitsuba refuses a version it cannot parse and renames an older file's
+    parameters as it loads it, which this reader does not: it reads version
+    3 files only, and says so on the scene's line."""
+    path = scene_of(tmp_path, scene_xml(CUBE).replace('version="3.0.0"', f'version="{version}"'))
+    if mitsuba_loads:
+        mi.load_file(str(path))
+    else:
+        with pytest.raises(Exception):
+            mi.load_file(str(path))
+    with pytest.raises(SceneFileError, match=rf"scene.xml:1: <scene>: version '{version}': "
+                                             r"this reader reads Mitsuba 3 files"):
+        read_xml(path)
+
+
+@pytest.mark.parametrize("kind, other", [("ply", "obj"), ("obj", "ply")])
+def test_a_mesh_shape_reads_its_own_format_only(tmp_path, kind, other):
+    """A ply shape naming an .obj file (or the reverse) is refused, as
+    Mitsuba's parsers refuse the other format, rather than read by its
+    extension."""
+    import trimesh
+    trimesh.creation.box().export(tmp_path / f"m.{other}")
+    path = scene_of(tmp_path, scene_xml(f'<shape type="{kind}"><string name="filename" '
+                                        f'value="m.{other}"/></shape>'))
+    with pytest.raises(Exception):
+        mi.load_file(str(path))
+    with pytest.raises(SceneFileError, match=rf"{kind} shapes read \.{kind} files, got "
+                                             rf"m\.{other}"):
+        read_xml(path)
 
 
 @pytest.mark.parametrize("change, words", [

@@ -358,6 +358,8 @@ def test_materials_emitters_and_shapes_reach_the_renderer(tmp_path):
       "material = { type = \"glass\" }"), "mesh[1].material: type 'glass' is not one of"),
     (("radiance = [4.0, 4.0, 4.0]", "radiance = -1.0"),
      "mesh[2].emitter['radiance'] must be a finite number >= 0"),
+    (("radiance = [4.0, 4.0, 4.0]", "radiance = 1.0, mesh = 1"),
+     "mesh[2].emitter.mesh: a [[mesh]]'s emitter lights that mesh: give no mesh key"),
     (("type = \"point\"", "type = \"area\""), "emitter[0]: an area emitter belongs in its"),
     (("shape = \"sphere\"", "shape = \"cylinder\""), "mesh[1].shape: expected one of"),
     (("shape = \"sphere\"", "shape = \"sphere\"\npath = \"knight.ply\""),
@@ -407,6 +409,9 @@ def test_an_envmap_table_finds_its_file_beside_the_scene_and_renders(tmp_path, s
     ("maps/sky.exr", "emitter[0]: cannot read the environment map"),
     ("scale = 2.0", "emitter[0]['scale'] must be a finite number >= 0"),
     ("[-1.0, 0.0, 0.0]]", "emitter[0]['to_world'] must be a rotation"),
+    ('"1.0"', "emitter[0]['to_world'] must be a 3 x 3 or 4 x 4 matrix of numbers"),
+    ("0 0 0 1", "emitter[0]['to_world']'s last row must be 0 0 0 1 (an affine map), got "
+                "[1.0, 1.0, 1.0, 1.0]"),
     ("[[emitter]]", "emitter[1]: a second environment (envmap) besides emitter[0] (constant)"),
 ])
 def test_a_bad_envmap_table_is_named(tmp_path, change, words):
@@ -416,6 +421,10 @@ def test_a_bad_envmap_table_is_named(tmp_path, change, words):
     text = {"maps/sky.exr": SKY.replace("maps/sky.exr", "missing.exr"),
             "scale = 2.0": text.replace("scale = 2.0", "scale = -2.0"),
             "[-1.0, 0.0, 0.0]]": text.replace("[-1.0, 0.0, 0.0]]", "[-2.0, 0.0, 0.0]]"),
+            '"1.0"': text.replace("[0.0, 1.0, 0.0]", '[0.0, "1.0", 0.0]'),
+            "0 0 0 1": text.replace("[[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]",
+                                    "[[1.0, 0.0, 0.0, 5.0], [0.0, 1.0, 0.0, 0.0], "
+                                    "[0.0, 0.0, 1.0, 0.0], [1.0, 1.0, 1.0, 1.0]]"),
             "[[emitter]]": '[[emitter]]\ntype = "constant"\nradiance = 1.0\n' + text}[change]
     with pytest.raises(SceneFileError) as error:
         read(write(tmp_path, BASE + text + '\n[[mesh]]\nshape = "sphere"\n'))
