@@ -123,6 +123,9 @@ _ATTRIBUTES = {"scene": ("version",), "default": ("name", "value"),
                "rotate": ("value", "x", "y", "z", "angle"), "matrix": ("value",),
                "lookat": ("origin", "target", "up")}
 
+#: The largest <lookat> coordinate: squared norms of its frame stay finite.
+LOOKAT_RANGE = 1e150
+
 #: The pixel and component formats of an hdrfilm that the image we return
 #: is (RGB, float32; Mitsuba's default stores float16, which only the
 #: file's precision changes).
@@ -209,6 +212,11 @@ class _Reader:
             raise self.error(node, f"needs a {key} attribute")
         return re.sub(r"\$(\w+)", lambda m: self._default(node, m.group(1)), value)
 
+    def shown(self, node: _Node, key: str = "value") -> str:
+        """Attribute ``key`` as written, with what its $names made of it."""
+        raw, text = node.get(key), self.text(node, key)
+        return repr(raw) if text == raw else f"{raw!r} (= {text!r})"
+
     def _default(self, node: _Node, name: str) -> str:
         if name not in self.defaults:
             raise self.error(node, f"${name} has no <default name=\"{name}\">")
@@ -233,9 +241,11 @@ class _Reader:
         try:
             value = self._parsed(float, text)
         except ValueError:
-            raise self.error(node, f"expected a number{which}, got {node.get(key)!r}") from None
+            raise self.error(node, f"expected a number{which}, "
+                                   f"got {self.shown(node, key)}") from None
         if not math.isfinite(value):
-            raise self.error(node, f"expected a finite number{which}, got {node.get(key)!r}")
+            raise self.error(node, f"expected a finite number{which}, "
+                                   f"got {self.shown(node, key)}")
         return value
 
     def numbers(self, node: _Node, count: int, key: str = "value") -> list[float]:
@@ -243,11 +253,13 @@ class _Reader:
         try:
             values = [self._parsed(float, x) for x in parts if x]
         except ValueError:
-            raise self.error(node, f"expected {count} numbers, got {node.get(key)!r}") from None
+            raise self.error(node, f"expected {count} numbers, "
+                                   f"got {self.shown(node, key)}") from None
         if len(values) == 1 and count == 3 and node.tag == "rgb":
             values *= 3
         if len(values) != count or not all(math.isfinite(v) for v in values):
-            raise self.error(node, f"expected {count} finite numbers, got {node.get(key)!r}")
+            raise self.error(node, f"expected {count} finite numbers, "
+                                   f"got {self.shown(node, key)}")
         return values
 
     def _coordinate(self, node: _Node, axis: str, default: float) -> float:
@@ -263,7 +275,7 @@ class _Reader:
             try:
                 return self._parsed(int, text)
             except ValueError:
-                raise self.error(node, f"expected an integer, got {node.get('value')!r}") from None
+                raise self.error(node, f"expected an integer, got {self.shown(node)}") from None
         if node.tag == "string":
             return self.text(node)
         if node.tag == "boolean":
@@ -350,6 +362,10 @@ class _Reader:
                                        f"{' '.join(f'{x:g}' for x in change[3])}")
         elif step.tag == "lookat":
             origin, target = self.numbers(step, 3, "origin"), self.numbers(step, 3, "target")
+            if max(map(abs, origin + target)) > LOOKAT_RANGE:  # the frame's norms overflow past it
+                raise self.error(step, f"its origin and target must lie within "
+                                       f"{LOOKAT_RANGE:g} of 0, got {self.shown(step, 'origin')} "
+                                       f"and {self.shown(step, 'target')}")
             view = np.subtract(target, origin)
             if not np.any(view):
                 raise self.error(step, "its target is its origin: no direction to look in")
@@ -572,6 +588,8 @@ def _sensor(reader: _Reader, node: _Node, options: dict):
 def _bsdf(reader: _Reader, node: _Node) -> dict:
     """A <bsdf> (or a <ref> to one) as a materials.py spec."""
     if node.tag == "ref":
+        if node.get("id") is None:
+            raise reader.error(node, "needs the id of the <bsdf> it refers to")
         target = reader.ids.get(node.get("id"))
         if target is None or target.tag != "bsdf":
             raise reader.error(node, f"refers to no <bsdf id=\"{node.get('id')}\">")

@@ -404,6 +404,12 @@ def test_the_cli_renders_an_xml_scene_with_its_own_options(tmp_path, capsys, sui
     (('<film', '<float name="near_clip" value="0"/><film'),
      "needs 0 < near_clip < far_clip, got 0 and 10000"),
     (('</transform>', '<scale value="2"/></transform>'), "its to_world scales"),
+    (('<sensor type="perspective">\n    <float name="fov" value="50.0"/>',
+      '<default name="fov" value="abc"/><sensor type="perspective">'
+      '<float name="fov" value="$fov"/>'),
+     "<float name=\"fov\">: expected a number, got '$fov' (= 'abc')"),
+    (('origin="1, 2, 5"', 'origin="1, 2, 1e300"'),
+     "its origin and target must lie within 1e+150 of 0, got '1, 2, 1e300' and '0, 0.5, 0'"),
 ])
 def test_a_bad_sensor_names_its_element_and_line(tmp_path, change, words):
     """A sensor value of the wrong element, out of range, or a camera that
@@ -520,6 +526,7 @@ LIGHT = '<emitter type="area"><rgb name="radiance" value="1"/></emitter>'
      "max_depth must be -1 (no limit) or 0..1024, got -2"),
     ('<integrator type="path"><integer name="rr_depth" value="0"/></integrator>',
      "rr_depth must be 1..1024, got 0"),
+    (SHAPE_INSIDE.format('<ref/>'), "<ref>: needs the id of the <bsdf> it refers to"),
     (SHAPE_INSIDE.format('<bsdf type="diffuse"><point name="reflectance" value="0.5 0.5 0.5"/>'
                          '</bsdf>'), "reflectance takes <rgb>, <float>, <integer>, not <point>"),
     (SHAPE_INSIDE.format('<bsdf type="twosided"><bsdf type="dielectric"/></bsdf>'),
