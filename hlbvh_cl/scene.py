@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import time
+import warnings
 import weakref
 from collections.abc import Sequence
 
@@ -125,12 +126,28 @@ class Scene:
         vertices = np.concatenate([m.vertices for m in self.meshes])
         self._largest = [frame.largest_used(m.vertices, m.faces) for m in self.meshes]
         self._scale = frame.scale_for(max(self._largest))  # the tree's frame (hlbvh_cl.core.frame)
+        self._warn_vanishing(range(len(self.meshes)))
         self._geometry = Geometry.upload(rt, frame.to_frame(vertices, self._scale),
                                          faces, first_face)
         self._stale_vertices = False  # the device's vertices lag self.meshes (_build)
         # the runtime's pool keeps this scene's build scratch for its rebuilds; not beyond it
         weakref.finalize(self, rt.pool.clear)
         self._build()
+
+    def _warn_vanishing(self, geom_ids) -> None:
+        """A RuntimeWarning for each mesh of ``geom_ids`` whose triangles the
+        tree's frame makes degenerate (frame.vanishing): one far larger
+        mesh, or coordinate, sets a frame in which float32 cannot hold them."""
+        for geom_id in geom_ids:
+            mesh = self.meshes[geom_id]
+            lost = frame.vanishing(mesh.vertices, mesh.faces, self._scale)
+            if lost:
+                warnings.warn(
+                    f"hlbvh_cl: {lost} of mesh {geom_id}'s {mesh.triangle_count} triangles are "
+                    f"too small for the scene's frame (its coordinates times "
+                    f"{frame.describe(self._scale)}, set by its largest, "
+                    f"{max(self._largest):.3g}): their normals underflow float32 there, so "
+                    f"no ray hits them", RuntimeWarning, stacklevel=3)
 
     @property
     def device(self):
@@ -213,6 +230,7 @@ class Scene:
             else:
                 if self._stale_vertices:  # all of them again, in the frame they now need
                     self._scale = frame.scale_for(max(self._largest))
+                    self._warn_vanishing(range(len(self.meshes)))
                     vertices = np.concatenate([m.vertices for m in self.meshes])
                     cl.enqueue_copy(rt.queue, self._geometry.vertices,
                                     frame.to_frame(vertices, self._scale))
@@ -387,6 +405,7 @@ class Scene:
                     # out of this frame (or no tree since a failed rebuild): build anew
                     self.rebuild()
                     return
+                self._warn_vanishing([geom_id])
                 upload = cl.enqueue_copy(rt.queue, self._geometry.vertices,
                                          frame.to_frame(moved.vertices, self._scale),
                                          dst_offset=int(self._vertex_offsets[geom_id]) * 12,

@@ -60,3 +60,29 @@ def to_frame(points: np.ndarray, scale: float) -> np.ndarray:
 
 def describe(scale: float) -> str:
     return f"2^{round(math.log2(scale))}"
+
+
+def vanishing(vertices: np.ndarray, faces: np.ndarray, scale: float, chunk: int = 1 << 20) -> int:
+    """How many faces the frame makes degenerate: their float32 edge cross
+    product (as the kernels' triangle test takes it, kernels/query/rays/
+    triangle.h's geometric_normal) has a nonzero component with the given
+    vertices and none with the vertices times ``scale``: rays never hit them
+    there.  0 for a scale of 1."""
+    if scale == 1.0:
+        return 0
+    given, framed = np.asarray(vertices, np.float32), to_frame(vertices, scale)
+    lost = 0
+    for start in range(0, len(faces), chunk):
+        part = np.asarray(faces[start:start + chunk])
+        lost += int(np.count_nonzero(_zero_normals(framed, part)
+                                     & ~_zero_normals(given, part)))
+    return lost
+
+
+def _zero_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    a, b, c = points[faces[:, 0]], points[faces[:, 1]], points[faces[:, 2]]
+    e1, e2 = b - a, c - a
+    with np.errstate(all="ignore"):
+        return ((e1[:, 1] * e2[:, 2] - e1[:, 2] * e2[:, 1] == 0)
+                & (e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2] == 0)
+                & (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0] == 0))

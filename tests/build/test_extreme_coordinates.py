@@ -7,6 +7,7 @@ those of the unscaled scene, bit for bit."""
 from __future__ import annotations
 
 import re
+import warnings
 
 import numpy as np
 import pytest
@@ -90,12 +91,17 @@ def test_renders_at_any_scale_are_the_same_image():
 
 def test_update_vertices_across_frames():
     """Moving a mesh to 1e30 and back rebuilds in the frame each needs; the
-    hits follow the float64 brute force each time."""
+    hits follow the float64 brute force each time.  At 1e30 the unit ground
+    is lost in that frame, and the rebuild says so."""
     rng = np.random.default_rng(9)
     scene = scene_at(1.0)
     (v, f), _ = sphere_and_ground()
     for scale in (1e30, 1e-3, 1.0):
-        scene.update_vertices(0, v * scale + [0.0, 2.0 * scale, 0.0])
+        with (pytest.warns(RuntimeWarning, match="of mesh 1's 12 triangles are too small")
+              if scale == 1e30 else warnings.catch_warnings()):
+            if scale != 1e30:
+                warnings.simplefilter("error")
+            scene.update_vertices(0, v * scale + [0.0, 2.0 * scale, 0.0])
         assert built.tree(scene).scale == frame.scale_for(
             max(np.abs(m.vertices).max() for m in scene.meshes))
         origins = np.tile([[0.0, 10.0 * scale, 0.0]], (50, 1)).astype(np.float32)
@@ -208,3 +214,31 @@ def test_a_vertex_no_face_uses_does_not_set_the_frame(far):
     instanced = hlbvh_cl.Scene([hlbvh_cl.Mesh(with_far, f)],
                                instances=[(0, np.hstack([np.eye(3), np.zeros((3, 1))]))])
     np.testing.assert_array_equal(instanced.intersect(origins, directions).t, expected.t)
+
+
+@pytest.mark.parametrize("wall", [1e10, 1e19, 1e25])
+def test_a_mesh_the_frame_makes_degenerate_is_named(wall):
+    """A unit tetrahedron beside a wall of `wall`: the frame set by the wall
+    (2^-84 at 1e25) underflows the tetrahedron's edge cross products, so no
+    ray hits it there.  Scene warns, naming the mesh and how many of its
+    triangles are lost (frame.vanishing, which takes them as the triangle
+    test does); at 1e10 and 1e19 the tetrahedron is hit and nothing is
+    said."""
+    tet = hlbvh_cl.Mesh([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]],
+                        [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    far = hlbvh_cl.Mesh([[-wall, -wall, -10], [wall, -wall, -10], [wall, wall, -10],
+                         [-wall, wall, -10]], [[0, 1, 2], [0, 2, 3]])
+    lost = frame.vanishing(tet.vertices, tet.faces, frame.scale_for(wall))
+    if wall < 1e20:
+        assert lost == 0
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            scene = hlbvh_cl.Scene([tet, far])
+    else:
+        assert lost == 4
+        with pytest.warns(RuntimeWarning, match=r"4 of mesh 0's 4 triangles are too small for "
+                                                r"the scene's frame \(its coordinates times "
+                                                r"2\^-84, set by its largest, 1e\+25\)"):
+            scene = hlbvh_cl.Scene([tet, far])
+    hits = scene.intersect(np.array([[0.2, 0.2, 5.0]]), np.array([[0.0, 0.0, -1.0]]))
+    assert hits.geom_id[0] == (1 if lost else 0)
