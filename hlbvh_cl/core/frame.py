@@ -67,8 +67,9 @@ def vanishing(vertices: np.ndarray, faces: np.ndarray, scale: float, chunk: int 
     product (as the kernels' triangle test takes it, kernels/query/rays/
     triangle.h's geometric_normal) has a nonzero component with the given
     vertices and none with the vertices times ``scale``: rays never hit them
-    there.  0 for a scale of 1."""
-    if scale == 1.0:
+    there.  0 for a scale of 1 or more (the frame then holds coordinates
+    below 1, whose products do not overflow, and no product shrinks)."""
+    if scale >= 1.0:
         return 0
     given, framed = np.asarray(vertices, np.float32), to_frame(vertices, scale)
     lost = 0

@@ -64,7 +64,7 @@ class SceneDescription:
     #: a Mitsuba sensor's (fov in degrees, fov_axis): that fov holds along
     #: that axis at any image size (LoadedScene.camera_at); None: the
     #: camera's vertical fov holds (a TOML file's)
-    fov_axis: tuple[float, str] | None = None
+    sensor_fov: tuple[float, str] | None = None
 
     def materials(self) -> list[dict] | None:
         """Renderer.materials of every surface (the meshes, then the

@@ -12,7 +12,8 @@ The subset::
                                                     near_clip, far_clip (0.01, 10000)
         <film type="hdrfilm">                       width, height (768 x 576)
           <rfilter type="box"/>                     box or gaussian (the default)
-        <sampler type="independent">                sample_count (default 4), seed (the render's)
+        <sampler type="independent">                sample_count (default 4), seed (the
+                                                    render's, modulo 65536)
       <bsdf type="..." id="...">                    diffuse, conductor, roughconductor,
                                                     dielectric, roughdielectric, plastic,
                                                     roughplastic, twosided; named or inline
@@ -59,7 +60,7 @@ from ..mesh import Mesh
 from ..render.camera import FOV_AXES, MAX_IMAGE_SIDE, Camera, vertical_fov_deg
 from ..render.light import Light
 from ..render.materials import BSDFS, check_material
-from ..render.settings import MAX_DEPTH, MAX_SPP, MAX_SEED
+from ..render.settings import MAX_DEPTH, MAX_SEED, MAX_SPP
 from .description import MeshEntry, SceneDescription, SceneFileError, shape_mesh
 
 #: Mitsuba's defaults that the subset uses.
@@ -370,6 +371,9 @@ class _Reader:
             if not np.any(view):
                 raise self.error(step, "its target is its origin: no direction to look in")
             up = self.numbers(step, 3, "up") if step.get("up") else _default_up(view)
+            if max(map(abs, up)) > LOOKAT_RANGE:
+                raise self.error(step, f"its up must lie within {LOOKAT_RANGE:g} of 0, got "
+                                       f"{self.shown(step, 'up')}")
             if not np.any(np.cross(up, view)):
                 raise self.error(step, "its up is parallel to the direction it looks in")
             change = _look_at(np.array(origin), np.array(target), np.array(up))
@@ -446,7 +450,7 @@ def read_xml(path, defaults: dict | None = None) -> SceneDescription:
                 raise reader.error(node, "only the path integrator is read")
             values = reader.parameters(node, ("max_depth", "rr_depth"))
             if not -1 <= values.get("max_depth", -1) <= MAX_DEPTH:
-                raise reader.error(node, f"max_depth must be -1 (no limit) or 0..{MAX_DEPTH}, "
+                raise reader.error(node, f"max_depth must be -1 (no limit) or 1..{MAX_DEPTH}, "
                                          f"got {values['max_depth']}")
             if values.get("max_depth") == 0:
                 raise reader.error(node, "max_depth 0 (an image of nothing, in Mitsuba) is not "
@@ -486,7 +490,7 @@ def read_xml(path, defaults: dict | None = None) -> SceneDescription:
         raise SceneFileError(f"{path}: no <shape>: nothing to render")
     return SceneDescription(path=path, width=size[0], height=size[1], camera=camera,
                             light=Light(), meshes=meshes, emitters=emitters, options=options,
-                            fov_axis=fov)
+                            sensor_fov=fov)
 
 
 def _collect_ids(reader: _Reader, node: _Node) -> None:
@@ -552,10 +556,10 @@ def _sensor(reader: _Reader, node: _Node, options: dict):
                 raise reader.error(child, f"sample_count must be 1..{MAX_SPP}, got "
                                           f"{options['spp']}")
             if "seed" in sampler:  # the render's seed (Renderer.render's)
-                if not 0 <= sampler["seed"] <= MAX_SEED:
-                    raise reader.error(child, f"seed must be 0..{MAX_SEED}, got "
-                                              f"{sampler['seed']}")
-                options["seed"] = sampler["seed"]
+                if sampler["seed"] < 0:  # Mitsuba's is a size_t
+                    raise reader.error(child, f"seed must be >= 0, got {sampler['seed']}")
+                # a render's seeds are 16 bits (render.settings); Mitsuba's any size
+                options["seed"] = sampler["seed"] % (MAX_SEED + 1)
     if "fov" not in values:
         raise reader.error(node, "needs its fov (degrees)")
     if not 0 < values["fov"] < 180:

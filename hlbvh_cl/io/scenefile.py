@@ -117,10 +117,9 @@ import math
 import os
 import re
 import sys
-import dataclasses
 import time
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -276,18 +275,17 @@ class LoadedScene:
     emitters: list | None = None
     options: dict = field(default_factory=dict)  # SceneDescription.options
     instance_materials: list | None = None
-    fov_axis: tuple[float, str] | None = None  # SceneDescription.fov_axis
+    sensor_fov: tuple[float, str] | None = None  # SceneDescription.sensor_fov
 
     def camera_at(self, width: int, height: int) -> Camera:
         """The camera for an image of width x height: ``camera`` itself,
         except for a Mitsuba sensor rendered at another aspect than its
         film's, whose fov holds along its fov_axis (Mitsuba's rule) where
         ``camera``'s vertical fov would not."""
-        if self.fov_axis is None or width * self.height == height * self.width:
+        if self.sensor_fov is None or width * self.height == height * self.width:
             return self.camera
-        fov, axis = self.fov_axis
-        return dataclasses.replace(self.camera,
-                                   fov_deg=vertical_fov_deg(fov, axis, width / height))
+        fov, axis = self.sensor_fov
+        return replace(self.camera, fov_deg=vertical_fov_deg(fov, axis, width / height))
 
     def renderer(self) -> Renderer:
         """A Renderer of the scene with the file's colours, light, materials
@@ -323,7 +321,7 @@ def load(path, device=None, builder: str = "hlbvh", morton_bits: int = 30,
                        materials=description.materials(), emitters=description.all_emitters(),
                        options=dict(description.options),
                        instance_materials=description.instance_materials(),
-                       fov_axis=description.fov_axis)
+                       sensor_fov=description.sensor_fov)
 
 
 def _name_the_entry(description: SceneDescription, error: ValueError) -> ValueError:

@@ -380,6 +380,23 @@ def test_the_cli_renders_an_xml_scene_with_its_own_options(tmp_path, capsys, sui
     image = read_exr(out)
     assert image.shape == (24, 24, 3) and 0.05 < image.mean() < 1.0
     assert isinstance(hlbvh_cl.Renderer, type)
+    # the file's sampler seed is the CLI render's: a seed of 7 written in, the
+    # image is the API's render at seed 7 (not seed 0's)
+    seeded = tmp_path / "cbox7.xml"
+    seeded.write_text(CORNELL.read_text().replace(
+        '<sampler type="independent">', '<sampler type="independent">'
+        '<integer name="seed" value="7"/>', 1))
+    assert 'name="seed"' in seeded.read_text()
+    out7 = tmp_path / "cbox7.exr"
+    assert main(["render", str(seeded), "-o", str(out7), "--width", "24", "--height", "24",
+                 "--spp", "2", "--device", suite_device.id]) == 0
+    loaded = load(seeded, suite_device)
+    options = {**loaded.options, "spp": 2}
+    api = loaded.renderer().render(loaded.camera_at(24, 24), 24, 24, hdr=True, aovs=True,
+                                   **options)
+    cli = read_exr(out7)
+    np.testing.assert_allclose(cli, api.image, rtol=1e-6, atol=1e-7)
+    assert not np.allclose(cli, image)
 
 
 @pytest.mark.parametrize("change, words", [
@@ -444,6 +461,9 @@ def test_the_sampler_s_seed_is_the_render_s(tmp_path, suite_device):
     options = {**loaded.options, "seed": 7}
     np.testing.assert_array_equal(renderer.render(loaded.camera, 40, 24, hdr=True, **options),
                                   images[1])
+    # Mitsuba's seeds are any size; a render's 16 bits: 65543 is seed 7
+    path.write_text(path.read_text().replace('name="seed" value="7"', 'name="seed" value="65543"'))
+    assert load(path, suite_device).options["seed"] == 7
 
 
 def test_a_bad_number_in_a_transform_names_its_step(tmp_path):
@@ -523,7 +543,7 @@ LIGHT = '<emitter type="area"><rgb name="radiance" value="1"/></emitter>'
      'target="0 0 1" up="0 1 0"/></transform></emitter>',
      "give either its direction or its to_world, not both"),
     ('<integrator type="path"><integer name="max_depth" value="-2"/></integrator>',
-     "max_depth must be -1 (no limit) or 0..1024, got -2"),
+     "max_depth must be -1 (no limit) or 1..1024, got -2"),
     ('<integrator type="path"><integer name="rr_depth" value="0"/></integrator>',
      "rr_depth must be 1..1024, got 0"),
     (SHAPE_INSIDE.format('<ref/>'), "<ref>: needs the id of the <bsdf> it refers to"),
@@ -596,7 +616,7 @@ def test_a_mesh_shape_reads_its_own_format_only(tmp_path, kind, other):
     (('</film>', '</film><sampler type="independent"><integer name="sample_count" '
                  'value="100000"/></sampler>'), "sample_count must be 1..65536, got 100000"),
     (('</film>', '</film><sampler type="independent"><integer name="seed" '
-                 'value="-1"/></sampler>'), "seed must be 0..65535, got -1"),
+                 'value="-1"/></sampler>'), "seed must be >= 0, got -1"),
     (('<lookat origin="1, 2, 5" target="0, 0.5, 0" up="0, 1, 0"/>',
       '<matrix value="-1 0.6 0 0  0 0.8 0 0  0 0 -1 4  0 0 0 1"/>'), "its to_world scales or "
                                                                       "shears"),
@@ -701,7 +721,7 @@ def test_every_index_mitsuba_names_reads_as_its_value(tmp_path):
     ('<integrator type="path"><integer name="max_depth" value="0"/></integrator>',
      "max_depth 0 (an image of nothing, in Mitsuba) is not rendered here"),
     ('<integrator type="path"><integer name="max_depth" value="2000"/></integrator>',
-     "max_depth must be -1 (no limit) or 0..1024, got 2000"),
+     "max_depth must be -1 (no limit) or 1..1024, got 2000"),
     ('<integrator type="path"><integer name="rr_depth" value="100000"/></integrator>',
      "rr_depth must be 1..1024, got 100000"),
     ('<shape type="cube"><transform name="to_world"><scale value="inf"/></transform></shape>',

@@ -77,9 +77,10 @@ def test_rays_made_on_the_device_with_a_nan_or_infinite_part_meet_nothing():
     bad = np.arange(count) % 4 != 0
     for k, value in enumerate((np.nan, np.inf, -np.inf)):
         records["origin"][bad & (np.arange(count) % 8 == 1 + k), k] = value
-        records["direction"][bad & (np.arange(count) % 8 == 4 + k), k] = value
+        records["direction"][bad & (np.arange(count) % 8 == 5 + k), k] = value
     bad &= ~np.isfinite(records["origin"]).all(1) | ~np.isfinite(records["direction"]).all(1)
     assert bad.sum() > count // 2 and (expected.prim_id[~bad] >= 0).any()
+    assert np.isnan(records["direction"][bad]).any() and np.isinf(records["origin"][bad]).any()
 
     query, tree = RayQuery(built.runtime(scene)), built.tree(scene)
     context, queue = query.rt.context, query.rt.queue

@@ -281,8 +281,8 @@ def test_a_ground_under_an_area_light_matches_lambert_s_formula(wall, suite_devi
     polygon formula; the emitter's back, seen from above, is black.  The
     same with a far larger wall behind: new rays start off the surface by
     the hit point's own precision (Mitsuba's), not the scene's size, which
-    had lifted the ground's shadow rays past the light at 1e4; at 1e15 the
-    scene's frame makes the light's density overflow a float's square."""
+    had lifted the ground's shadow rays past the light (black at 1e4 and,
+    in the frame that scales the scene by 2^-50, at 1e15)."""
     rho, le, h = 0.7, 4.0, 1.2
     ground = hlbvh_cl.Mesh([[-6, 0, -6], [6, 0, -6], [6, 0, 6], [-6, 0, 6]],
                            [[0, 2, 1], [0, 3, 2]], name="ground")  # normal +y
@@ -315,6 +315,25 @@ def test_a_ground_under_an_area_light_matches_lambert_s_formula(wall, suite_devi
     on_light = (hits.geom_id == 1).reshape(height, width)
     assert on_light.any() and (images[:, on_light & np.roll(on_light, 1, 0)
                                       & np.roll(on_light, -1, 0)] == 0).all()
+
+
+def test_a_lamp_seen_from_far_off_weighs_its_light_samples(suite_device):
+    """A ball 1e15 across, 1e15 away, lit by a unit lamp: from there the lamp
+    subtends about 1e-30 sr, its light samples' density is past 1e30, and
+    the power heuristic's squares overflowed (inf / inf: NaN pixels).  The
+    image is finite, and the ball, lit, is not black."""
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=1e15)
+    ball.apply_translation((0.0, 0.0, -2e15))
+    lamp = hlbvh_cl.Mesh([[-0.5, 3, -0.5], [0.5, 3, -0.5], [0.5, 3, 0.5], [-0.5, 3, 0.5]],
+                         [[0, 1, 2], [0, 2, 3]], name="lamp")  # normal -y
+    far = hlbvh_cl.Mesh(ball.vertices, ball.faces, name="ball")
+    renderer = hlbvh_cl.Renderer(hlbvh_cl.Scene([lamp, far], device=suite_device),
+                                 materials=[{"type": "diffuse", "reflectance": 0.0},
+                                            {"type": "twosided", "bsdf": {"type": "diffuse"}}],
+                                 emitters=[{"type": "area", "mesh": 0, "radiance": 10.0}])
+    camera = hlbvh_cl.Camera(eye=(0, 1, 4), target=(0, 0.5, 0), fov_deg=40)
+    image = renderer.render(camera, 16, 12, shading="path", spp=2, max_depth=2, hdr=True)
+    assert np.isfinite(image).all() and (image > 0).mean() > 0.5
 
 
 def test_an_area_light_too_small_for_its_scene_s_frame_is_refused(suite_device):

@@ -88,7 +88,9 @@ def check_light_density(mesh: int, pdf: float, area: float, scale: float) -> Non
     unit area in the tree's frame float32 cannot hold: a light far smaller
     than the scene's largest coordinate, by which the frame scales the scene
     (hlbvh_cl.core.frame), whose samples would all weigh nothing."""
-    if float(pdf) > float(np.finfo(np.float32).max):
+    # headroom: the kernel multiplies it by a squared distance (up to 12 in
+    # the frame) before it divides by a cosine
+    if float(pdf) > float(np.finfo(np.float32).max) / 16:
         raise ValueError(
             f"the area emitter of mesh {mesh} is too small for its scene: its area is "
             f"{area:.3g} where the scene's coordinates reach about {1.0 / scale:.3g}, so its "
@@ -316,7 +318,8 @@ class Path(Integrator):
         self._tables["shading_faces"] = shading["faces"]
         self._tables["shading_normals"] = shading["normals"]
         params = light_params(look, tables)
-        params["ray_offset"] = RAY_EPSILON * tree.scale  # the user's 1 (path.cl's spawn_offset)
+        # the user's 1 in the frame, no more than the frame's (path.cl's spawn_offset)
+        params["ray_offset"] = RAY_EPSILON * min(tree.scale, 1.0)
         params["max_depth"] = settings.max_depth
         params["rr_depth"] = settings.rr_depth
         params["instance_maps"] = len(maps)

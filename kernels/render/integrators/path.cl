@@ -44,19 +44,17 @@
 #include "render/lights.h"
 
 /* The power heuristic with beta = 2 (Veach 1997, eq. 9.13) for a sample
- * drawn with density `chosen` where the other strategy has `other`.  A
- * density whose square overflows (past about 1.8e19: a light tiny in the
- * tree's frame seen from far off, where a and a + b were both inf and the
- * weight NaN) gives the same ratio as 1 / (1 + (other / chosen)^2). */
+ * drawn with density `chosen` where the other strategy has `other`, as
+ * 1 / (1 + (other / chosen)^2): the squares of a / (a + b) overflow for a
+ * light that subtends a tiny solid angle (a lamp seen from 1e15 away, whose
+ * density is past 1e30), where the weight was inf / inf, and underflow for
+ * densities below 1e-19.  Both infinite: an even split. */
 inline float power_heuristic(float chosen, float other)
 {
-    float a = chosen * chosen, b = other * other;
-    if (a + b < INFINITY)
-        return a > 0.0f ? a / (a + b) : 0.0f;
     if (!(chosen > 0.0f))
         return 0.0f;
     float ratio = other / chosen;
-    return 1.0f / (1.0f + ratio * ratio);
+    return ratio == ratio ? 1.0f / (1.0f + ratio * ratio) : 0.5f;
 }
 
 inline float luminance_max(float3 v)
@@ -123,15 +121,21 @@ inline float3 radiance_before(__global const PathState* s, bool first)
 
 /* How far off the surface at x a new ray starts: Mitsuba 3's
  * Interaction::offset_p, (1 + max |x_i|) RayEpsilon, along the geometric
- * normal, with the 1 in the user's units (params->ray_offset is RayEpsilon
- * times the tree frame's scale).  It follows the precision of x itself, so
- * that a large ground or backdrop does not lift every ray of a small object
- * past its lights, as an offset from the scene's size did. */
-inline float spawn_offset(const PathParams* params, float3 x)
+ * normal, with the 1 in the user's units where the tree's frame is theirs or
+ * smaller (params->ray_offset: RayEpsilon times min(scale, 1)), so that a
+ * large ground or backdrop does not lift every ray of a small object past
+ * its lights, as an offset from the scene's size did.  Mitsuba takes x from
+ * the triangle's barycentrics; here x = o + t d, which is off by a few ulps
+ * of |o| and of the distance t |d| as well (a bounce 5e3 long onto a unit
+ * sphere): X_ULPS of those are added. */
+#define X_ULPS (8.0f * 0x1p-24f)
+inline float spawn_offset(const PathParams* params, float3 x, float3 o, float distance)
 {
     float ax = abs_float(x.x), ay = abs_float(x.y), az = abs_float(x.z);
+    float ox = abs_float(o.x), oy = abs_float(o.y), oz = abs_float(o.z);
     float largest = ax > ay ? (ax > az ? ax : az) : (ay > az ? ay : az);
-    return params->ray_offset + RAY_EPSILON * largest;
+    float origin = ox > oy ? (ox > oz ? ox : oz) : (oy > oz ? oy : oz);
+    return params->ray_offset + RAY_EPSILON * largest + X_ULPS * (origin + distance);
 }
 
 /* The path ends here, with what it gathered at this vertex: it takes no
@@ -210,9 +214,9 @@ FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel,
         end_path(s, first, gathered);
         return false;
     }
-    float3 x = LOAD_XYZ(ray->origin) + hit->t * d;
+    float3 o = LOAD_XYZ(ray->origin), x = o + hit->t * d;
     /* secondary rays start off the surface on their own side of it */
-    float offset = spawn_offset(params, x);
+    float offset = spawn_offset(params, x, o, hit->t * length_d);
     float3 lift = offset * (cos_geometric > 0.0f ? geometric : -geometric);
     uint pixel = first_pixel + path;
 
@@ -228,8 +232,11 @@ FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel,
     if (light.pdf > 0.0f && luminance_max(f_cos * light.radiance) > 0.0f) {
         float weight = delta_light ? 1.0f : power_heuristic(light.pdf, bsdf_pdf_of_light);
         float3 carried = throughput * f_cos * light.radiance * (weight / light.pdf);
-        /* stop short of the light itself: by the offset, or 0.1% of a short reach */
-        float margin = offset < 1e-3f * light.reach ? offset : 1e-3f * light.reach;
+        /* stop short of the light itself by Mitsuba's spawn_ray_to margin,
+         * ShadowEpsilon of the distance, which the rounding of the light's
+         * point and of the direction to it grows with (none for a light
+         * at infinity: its shadow ray runs to infinity) */
+        float margin = light.reach < INFINITY ? SHADOW_EPSILON * light.reach : 0.0f;
         /* on the light's side (Mitsuba's spawn_ray_to): through a
          * transmitting BSDF, or with shading normals, it may be the
          * geometric back of the surface, up to twice the offset nearer the

@@ -55,12 +55,15 @@ typedef struct {
 /* Mitsuba 3's RayEpsilon for float (1500 * 2^-24): a new ray starts
  * (1 + max |x_i|) RAY_EPSILON off the surface at x (path.cl's spawn_offset). */
 #define RAY_EPSILON 0.0000894069671630859375f
+/* And its ShadowEpsilon (10 RayEpsilon): a shadow ray stops this fraction of
+ * its length short of the light (Mitsuba's spawn_ray_to). */
+#define SHADOW_EPSILON 0.000894069671630859375f
 
 typedef struct {
     float environment[3];           /* the constant environment's radiance */
     float environment_probability;  /* the chance a light sample goes to the environment
                                      * (constant or map) */
-    float ray_offset;               /* RAY_EPSILON times the frame's scale (spawn_offset) */
+    float ray_offset;               /* RAY_EPSILON times min(the frame's scale, 1) */
     uint light_triangles;           /* emissive triangles in light_cdf */
     uint delta_lights;              /* DeltaLight records */
     int max_depth;                  /* Mitsuba's: the longest path, in segments; <= 0: no limit */
