@@ -9,10 +9,11 @@ max depth 8, as issue 55 asks:
              XML (its meshes as PLY files, in place)
 
 Each round renders every scene once on every device and once in Mitsuba
-(llvm_ad_rgb where it runs, else scalar_rgb; in a child process, since the
-LLVM variant can abort a process on some hosts), in turn: a burst of load
-falls on all alike.  A render's time is its wall time after a warm-up render
-that compiles everything (Mitsuba's JIT included: its wall time is
+(llvm_ad_rgb, or the --mitsuba variant, where it runs, else scalar_rgb; in a
+child process, since the LLVM variant can abort a process on some hosts), in
+turn: a burst of load falls on all alike.  A render's time is its wall time
+after a warm-up render at the same spp that compiles everything (Mitsuba's
+JIT included: its CUDA variant compiles a kernel per spp; its wall time is
 mi.render plus the image's numpy copy, RENDERING.md).  Samples per second =
 width x height x spp / seconds.
 
@@ -34,7 +35,10 @@ time), each scored by relMSE = mean((image - reference)^2 / (reference^2 +
 0.01)) over pixels and channels.  The reference is Mitsuba's own: a bias of
 ours against Mitsuba counts against us.
 
+On a GPU, Mitsuba's CUDA variant renders the same files on the same card:
+
     python -m bench.path [--quick] [--devices pocl,intel] [--rounds 3]
+    python -m bench.path --devices nvidia --mitsuba cuda_ad_rgb
 """
 from __future__ import annotations
 
@@ -81,14 +85,17 @@ for variant in sys.argv[1:]:
         break
     except Exception:
         continue
-scenes = {}
+scenes, warm = {}, set()
 print(json.dumps({"variant": mi.variant()}), flush=True)
 for line in sys.stdin:
     name, path, width, height, spp, seed, out = line.split()
     key = (path, width, height)
     if key not in scenes:
         scenes[key] = mi.load_file(path, res_x=int(width), res_y=int(height))
-        np.asarray(mi.render(scenes[key], spp=1))  # compiles (the JIT variants)
+    if out == "-" and (key, spp) not in warm:
+        # a timed render: compile first (cuda_ad_rgb's kernel depends on spp)
+        np.asarray(mi.render(scenes[key], spp=int(spp), seed=int(seed)))
+        warm.add((key, spp))
     started = time.perf_counter()
     image = np.asarray(mi.render(scenes[key], spp=int(spp), seed=int(seed)))
     seconds = time.perf_counter() - started
@@ -156,10 +163,13 @@ class MitsubaChild:
         self.process.wait()
 
 
-def mitsuba_child(paths: dict, sizes: dict) -> MitsubaChild:
-    """A Mitsuba child in llvm_ad_rgb if it renders every scene (its LLVM
-    can abort the process), else in scalar_rgb."""
-    child = MitsubaChild(("llvm_ad_rgb", "scalar_rgb"))
+def mitsuba_child(paths: dict, variant: str = "llvm_ad_rgb") -> MitsubaChild:
+    """A Mitsuba child in ``variant`` if it renders every scene (its LLVM
+    can abort the process; cuda_ad_rgb needs a GPU and OptiX), else in
+    scalar_rgb."""
+    child = MitsubaChild((variant, "scalar_rgb"))
+    if child.variant != variant:
+        say(f"Mitsuba's {variant} does not start here; timing {child.variant}")
     try:
         for name, path in paths.items():
             child.render(name, path, 8, 8, 1)
@@ -232,7 +242,9 @@ def equal_time(child, lux, ours, paths, sizes, devices, times, folder, kind) -> 
 
 def main(argv=None) -> dict:
     args = arguments(__doc__.splitlines()[0], argv,
-                     (["--rounds"], {"type": int, "default": 3, "help": "timed rounds"}))
+                     (["--rounds"], {"type": int, "default": 3, "help": "timed rounds"}),
+                     (["--mitsuba"], {"default": "llvm_ad_rgb",
+                                      "help": "Mitsuba's variant (cuda_ad_rgb on a GPU)"}))
     elapsed = stopwatch()
     sizes = QUICK if args.quick else FULL
     devices = [d.id for d in devices_or_exit(args.devices or "pocl,intel")]
@@ -244,7 +256,7 @@ def main(argv=None) -> dict:
     with tempfile.TemporaryDirectory() as temporary:
         folder = Path(temporary)
         paths = {"cornell": cornell_xml(folder), "materials": materials_xml(folder)}
-        child = mitsuba_child(paths, sizes)
+        child = mitsuba_child(paths, args.mitsuba)
         results["mitsuba"] = child.variant
         lux, lux_problem = luxcore.start_child(paths, MAX_DEPTH)
         results["luxcore"] = f"skipped: {lux_problem}" if lux_problem else "PATHCPU"
@@ -293,7 +305,8 @@ def main(argv=None) -> dict:
         samples = width * height * spp
         theirs = samples / summary(times[name, "mitsuba"])["median"]
         entry = {"samples": samples, "mitsuba_msamples_per_s": theirs / 1e6,
-                 "mitsuba_mean": summary(means[name, "mitsuba"])["median"]}
+                 "mitsuba_mean": summary(means[name, "mitsuba"])["median"],
+                 "mitsuba_seconds": summary(times[name, "mitsuba"])}
         lux_rate = None
         if lux is not None:
             lux_rate = samples / summary(times[name, "luxcore"])["median"]
