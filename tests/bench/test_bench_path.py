@@ -32,3 +32,22 @@ def test_quick_run_writes_rates_ratios_and_stage_times(suite_device, tmp_path, c
         assert stages["total"] <= 1e3 * ours["seconds"]["max"]
     out = capsys.readouterr().out
     assert "where our render's device time goes" in out
+    for entry in written["scenes"].values():
+        # Mitsuba's rate is its rounds' median time
+        seconds = entry["mitsuba_seconds"]
+        assert seconds["min"] <= seconds["median"] <= seconds["max"]
+        assert entry["mitsuba_msamples_per_s"] == pytest.approx(
+            entry["samples"] / seconds["median"] / 1e6)
+
+
+def test_a_mitsuba_variant_that_does_not_start_is_named_and_scalar_rgb_timed(tmp_path, capsys):
+    # --mitsuba cuda_ad_rgb on a machine without a GPU: the table must not
+    # pass scalar_rgb off as the variant asked for
+    child = bench_path.mitsuba_child({"cornell": bench_path.cornell_xml(tmp_path)},
+                                     "no_such_variant")
+    try:
+        assert child.variant == "scalar_rgb"
+    finally:
+        child.close()
+    assert "Mitsuba's no_such_variant does not start here; timing scalar_rgb" in \
+        capsys.readouterr().out
