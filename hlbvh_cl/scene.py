@@ -139,15 +139,8 @@ class Scene:
         tree's frame makes degenerate (frame.vanishing): one far larger
         mesh, or coordinate, sets a frame in which float32 cannot hold them."""
         for geom_id in geom_ids:
-            mesh = self.meshes[geom_id]
-            lost = frame.vanishing(mesh.vertices, mesh.faces, self._scale)
-            if lost:
-                warnings.warn(
-                    f"hlbvh_cl: {lost} of mesh {geom_id}'s {mesh.triangle_count} triangles are "
-                    f"too small for the scene's frame (its coordinates times "
-                    f"{frame.describe(self._scale)}, set by its largest, "
-                    f"{max(self._largest):.3g}): their normals underflow float32 there, so "
-                    f"no ray hits them", RuntimeWarning, stacklevel=3)
+            frame.warn_vanishing(self.meshes[geom_id], geom_id, self._scale, max(self._largest),
+                                 "the scene's")
 
     @property
     def device(self):

@@ -182,8 +182,12 @@ def build_mesh_trees(rt: Runtime, meshes: list[Mesh], builder: str,
                          "and triangle_base) by which instances find their mesh's tree")
     trees, stats, scales = [], [], []
     try:
-        for mesh in meshes:
-            scale = frame.scale_for(frame.largest_used(mesh.vertices, mesh.faces))
+        for geom_id, mesh in enumerate(meshes):
+            largest = frame.largest_used(mesh.vertices, mesh.faces)
+            scale = frame.scale_for(largest)
+            # each mesh has a frame of its own: only its own largest coordinate can
+            # make its small triangles degenerate
+            frame.warn_vanishing(mesh, geom_id, scale, largest, "its own")
             geometry = Geometry.upload(rt, frame.to_frame(mesh.vertices, scale), mesh.faces,
                                        np.zeros(1, np.int32))
             tree, stat = build(rt, geometry, builder, morton_bits, scale)

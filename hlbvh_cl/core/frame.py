@@ -14,7 +14,10 @@ of 1 and nothing is copied.
 """
 from __future__ import annotations
 
+import inspect
 import math
+import os
+import warnings
 
 import numpy as np
 
@@ -78,6 +81,25 @@ def vanishing(vertices: np.ndarray, faces: np.ndarray, scale: float, chunk: int 
         lost += int(np.count_nonzero(_zero_normals(framed, part)
                                      & ~_zero_normals(given, part)))
     return lost
+
+
+def warn_vanishing(mesh, geom_id: int, scale: float, largest: float, frame_of: str) -> None:
+    """A RuntimeWarning if the frame of ``scale`` (``frame_of``: whose, set
+    by a largest coordinate of ``largest``) makes some of ``mesh``'s
+    triangles degenerate (vanishing): float32 cannot hold them there.  It
+    names the user's line that built or changed the scene, however deep in
+    the package the build was."""
+    lost = vanishing(mesh.vertices, mesh.faces, scale)
+    if lost:
+        package = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+        level, caller = 1, inspect.currentframe()
+        while caller is not None and caller.f_code.co_filename.startswith(package):
+            caller, level = caller.f_back, level + 1
+        warnings.warn(
+            f"hlbvh_cl: {lost} of mesh {geom_id}'s {mesh.triangle_count} triangles are "
+            f"too small for {frame_of} frame (its coordinates times {describe(scale)}, set by "
+            f"its largest, {largest:.3g}): their normals underflow float32 there, so no ray "
+            f"hits them", RuntimeWarning, stacklevel=level)
 
 
 def _zero_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:

@@ -242,3 +242,29 @@ def test_a_mesh_the_frame_makes_degenerate_is_named(wall):
             scene = hlbvh_cl.Scene([tet, far])
     hits = scene.intersect(np.array([[0.2, 0.2, 5.0]]), np.array([[0.0, 0.0, -1.0]]))
     assert hits.geom_id[0] == (1 if lost else 0)
+
+
+def test_an_instanced_mesh_its_own_frame_makes_degenerate_is_named():
+    """Instanced scenes build each mesh in a frame of its own: the unit
+    tetrahedron beside a 1e25 wall is hit when the two are meshes of their
+    own, and named (with the user's line) when one mesh holds both, whose
+    frame of 2^-84 underflows the tetrahedron as a flat scene's would."""
+    wall = 1e25
+    tet = hlbvh_cl.Mesh([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]],
+                        [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    far = hlbvh_cl.Mesh([[-wall, -wall, -10], [wall, -wall, -10], [wall, wall, -10],
+                         [-wall, wall, -10]], [[0, 1, 2], [0, 2, 3]])
+    both = hlbvh_cl.Mesh(np.vstack([tet.vertices, far.vertices]),
+                         np.vstack([tet.faces, far.faces + 4]))
+    identity = np.hstack([np.eye(3), np.zeros((3, 1))])
+    down = (np.array([[0.2, 0.2, 5.0]]), np.array([[0.0, 0.0, -1.0]]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        apart = hlbvh_cl.Scene([tet, far], instances=[(0, identity), (1, identity)])
+    assert apart.intersect(*down).geom_id[0] == 0
+    with pytest.warns(RuntimeWarning, match=r"4 of mesh 0's 6 triangles are too small for its "
+                                            r"own frame \(its coordinates times 2\^-84, set "
+                                            r"by its largest, 1e\+25\)") as caught:
+        joined = hlbvh_cl.Scene([both], instances=[(0, identity)])
+    assert caught[0].filename == __file__
+    assert joined.intersect(*down).prim_id[0] in (4, 5)  # the wall, under the tetrahedron
