@@ -57,6 +57,7 @@ class Runtime:
         self._programs: dict[tuple, cl.Program] = {}
         self._kernels: dict[tuple, cl.Kernel] = {}
         self._group_limits: dict[int, tuple] = {}  # see largest_group
+        self._signatures: dict[int, tuple] = {}  # see run
         self._lock = threading.Lock()
         self._launch_lock = threading.Lock()
         self._waiter: ThreadPoolExecutor | None = None  # see wait()
@@ -174,6 +175,11 @@ class Runtime:
         check_process()
         local_size = min(local_size or self.group_size, self.largest_group(kernel))
         values = [_kernel_arg(a) for a in args]
+        # The scalar arguments' types, declared to pyopencl once per kernel:
+        # its typed set_args packs them all in one go, where an undeclared
+        # numpy scalar costs it microseconds each (a launch's host time, which
+        # a GPU's wavefront renders wait on)
+        signature = tuple(v.dtype if isinstance(v, np.generic) else None for v in values)
         columns, rows = work_items if isinstance(work_items, tuple) else (work_items, None)
         size = max(1, -(-columns // local_size)) * local_size
         global_size, group = ((size,), (local_size,)) if rows is None else \
@@ -181,6 +187,10 @@ class Runtime:
         # Kernel objects are shared by every scene and thread of this runtime:
         # setting the arguments and enqueueing must not interleave.
         with self._launch_lock:
+            # keyed by address, with the kernel kept alive (see largest_group)
+            if self._signatures.get(kernel.int_ptr, (None, None))[1] != signature:
+                kernel.set_scalar_arg_dtypes(list(signature))
+                self._signatures[kernel.int_ptr] = (kernel, signature)
             kernel.set_args(*values)
             return cl.enqueue_nd_range_kernel(self.queue, kernel, global_size, group,
                                               global_work_offset=(offset,) if offset else None,

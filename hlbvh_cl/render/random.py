@@ -19,4 +19,7 @@ def hash_pcg(value) -> np.ndarray:
 def salts8(sample: int, first: int) -> np.void:
     """random_salt(sample, first + k) for k = 0..7, as a uint8 kernel argument."""
     dimensions = np.arange(first, first + 8, dtype=np.uint32)
-    return cltypes.make_uint8(*(int(s) for s in hash_pcg(np.uint32(sample) + hash_pcg(dimensions))))
+    salts = hash_pcg(np.uint32(sample) + hash_pcg(dimensions))
+    # a view, not cltypes.make_uint8, which builds its value through eval:
+    # this runs once per bounce on the host, which a GPU's render waits on
+    return np.ascontiguousarray(salts, np.uint32).view(cltypes.uint8)[0]
