@@ -7,7 +7,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import time
-import warnings
 import weakref
 from collections.abc import Sequence
 

@@ -91,7 +91,7 @@ def warn_vanishing(mesh, geom_id: int, scale: float, largest: float, frame_of: s
     the package the build was."""
     lost = vanishing(mesh.vertices, mesh.faces, scale)
     if lost:
-        package = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+        package = os.path.dirname(os.path.dirname(os.path.abspath(__file__))) + os.sep
         level, caller = 1, inspect.currentframe()
         while caller is not None and caller.f_code.co_filename.startswith(package):
             caller, level = caller.f_back, level + 1
