@@ -18,6 +18,7 @@ instance visited.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -173,8 +174,10 @@ def _mesh_boxes(meshes: list[Mesh]) -> tuple[np.ndarray, np.ndarray]:
 
 
 def build_mesh_trees(rt: Runtime, meshes: list[Mesh], builder: str,
-                     morton_bits: int) -> MeshTrees:
-    """Each mesh's tree by the usual build, copied into shared buffers."""
+                     morton_bits: int, checked: Sequence[Mesh] = ()) -> MeshTrees:
+    """Each mesh's tree by the usual build, copied into shared buffers.
+    Meshes are immutable: one that is ``checked``'s at its index was warned
+    about (frame.warn_vanishing) when it was built before."""
     total = sum(mesh.triangle_count for mesh in meshes)
     if total > MAX_TRIANGLES:  # each alone may fit; their joined trees not
         raise ValueError(f"the scene's meshes hold {total} triangles together; at most "
@@ -187,7 +190,8 @@ def build_mesh_trees(rt: Runtime, meshes: list[Mesh], builder: str,
             scale = frame.scale_for(largest)
             # each mesh has a frame of its own: only its own largest coordinate can
             # make its small triangles degenerate
-            frame.warn_vanishing(mesh, geom_id, scale, largest, "its own")
+            if geom_id >= len(checked) or checked[geom_id] is not mesh:
+                frame.warn_vanishing(mesh, geom_id, scale, largest, "its own")
             geometry = Geometry.upload(rt, frame.to_frame(mesh.vertices, scale), mesh.faces,
                                        np.zeros(1, np.int32))
             tree, stat = build(rt, geometry, builder, morton_bits, scale)
@@ -402,6 +406,7 @@ class TwoLevel:
         self.transforms = transforms
         self.masks = masks
         self.trees = build_mesh_trees(rt, meshes, builder, morton_bits)
+        self.meshes = tuple(meshes)  # the ones the trees hold
         # The meshes' build scratch is not kept for a rebuild, as a flat
         # scene's is: their trees are rebuilt seldom, the top tree often.
         rt.pool.clear()
@@ -414,7 +419,9 @@ class TwoLevel:
         old, self.trees = self.trees, None
         if old is not None:  # None after a rebuild that failed
             old.release(self.rt.pool)
-        self.trees = build_mesh_trees(self.rt, meshes, self.builder, self.morton_bits)
+        self.trees = build_mesh_trees(self.rt, meshes, self.builder, self.morton_bits,
+                                      checked=self.meshes)
+        self.meshes = tuple(meshes)
         self.rt.pool.clear()
 
     def build_top(self) -> tuple[InstancedTree, BuildStats]:

@@ -179,7 +179,8 @@ class Runtime:
         # its typed set_args packs them all in one go, where an undeclared
         # numpy scalar costs it microseconds each (a launch's host time, which
         # a GPU's wavefront renders wait on)
-        signature = tuple(v.dtype if isinstance(v, np.generic) else None for v in values)
+        # (dtype.str, not the dtype: numpy's dtype == None holds for float64)
+        signature = tuple(v.dtype.str if isinstance(v, np.generic) else None for v in values)
         columns, rows = work_items if isinstance(work_items, tuple) else (work_items, None)
         size = max(1, -(-columns // local_size)) * local_size
         global_size, group = ((size,), (local_size,)) if rows is None else \
@@ -189,7 +190,8 @@ class Runtime:
         with self._launch_lock:
             # keyed by address, with the kernel kept alive (see largest_group)
             if self._signatures.get(kernel.int_ptr, (None, None))[1] != signature:
-                kernel.set_scalar_arg_dtypes(list(signature))
+                kernel.set_scalar_arg_dtypes([v.dtype if isinstance(v, np.generic) else None
+                                              for v in values])
                 self._signatures[kernel.int_ptr] = (kernel, signature)
             kernel.set_args(*values)
             return cl.enqueue_nd_range_kernel(self.queue, kernel, global_size, group,

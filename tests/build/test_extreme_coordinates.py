@@ -256,6 +256,7 @@ def test_an_instanced_mesh_its_own_frame_makes_degenerate_is_named():
                          [-wall, wall, -10]], [[0, 1, 2], [0, 2, 3]])
     both = hlbvh_cl.Mesh(np.vstack([tet.vertices, far.vertices]),
                          np.vstack([tet.faces, far.faces + 4]))
+    aside = hlbvh_cl.Mesh([[100, 0, 0], [101, 0, 0], [100, 1, 0]], [[0, 1, 2]])
     identity = np.hstack([np.eye(3), np.zeros((3, 1))])
     down = (np.array([[0.2, 0.2, 5.0]]), np.array([[0.0, 0.0, -1.0]]))
     with warnings.catch_warnings():
@@ -265,6 +266,10 @@ def test_an_instanced_mesh_its_own_frame_makes_degenerate_is_named():
     with pytest.warns(RuntimeWarning, match=r"4 of mesh 0's 6 triangles are too small for its "
                                             r"own frame \(its coordinates times 2\^-84, set "
                                             r"by its largest, 1e\+25\)") as caught:
-        joined = hlbvh_cl.Scene([both], instances=[(0, identity)])
+        joined = hlbvh_cl.Scene([both, aside], instances=[(0, identity), (1, identity)])
     assert caught[0].filename == __file__
     assert joined.intersect(*down).prim_id[0] in (4, 5)  # the wall, under the tetrahedron
+    with warnings.catch_warnings():  # said once: changing another mesh does not repeat it
+        warnings.simplefilter("error")
+        joined.update_vertices(1, aside.vertices * 2)
+        joined.rebuild()

@@ -20,6 +20,7 @@ from hlbvh_cl.device import probe
 from hlbvh_cl.device.discovery import devices, select_device
 from hlbvh_cl.device.runtime import KernelBuildError, Runtime, quiet_build, runtime
 from hlbvh_cl.core.paths import kernel_dir
+from hlbvh_cl.render.random import salts8
 from hlbvh_cl.device.profile import SAFEST, Profile, Variant, candidates, profile_name, vector_width
 
 import built
@@ -584,3 +585,36 @@ def test_an_edit_in_any_kernel_room_changes_the_probes_key(tmp_path):
     assert edited != before
     header.rename(tmp_path / "core" / "walk.h")  # the same text, moved to another room
     assert sources_digest.__wrapped__(tmp_path) != edited
+
+
+ECHO = """
+__kernel void echo(__global uint* out, const int i, const float f, const uint8 s)
+{
+    out[0] = (uint)i;
+    out[1] = as_uint(f);
+    out[2] = s.s0; out[3] = s.s1; out[4] = s.s2; out[5] = s.s3;
+    out[6] = s.s4; out[7] = s.s5; out[8] = s.s6; out[9] = s.s7;
+}
+"""
+
+
+def test_launch_arguments_reach_the_kernel_bit_for_bit_as_their_types_change(suite_device):
+    """Runtime.run declares a kernel's scalar types to pyopencl (which then
+    packs them in one go) and declares them again when a call's types differ:
+    every value arrives with its bits, a uint8 vector (salts8's) included,
+    whichever types came before."""
+    rt = runtime(suite_device)
+    program = quiet_build(cl.Program(rt.context, ECHO), [], rt.device.cl_device)
+    kernel = cl.Kernel(program, "echo")
+    out = np.zeros(10, np.uint32)
+    buf = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, out.nbytes)
+    salts = salts8(12345, 10)
+    calls = [(7, 2.5), (np.int32(-4), np.float32(1e-3)),
+             (np.uint32(3_000_000_000), np.float32(-0.0)),  # another type in slot 1
+             (-1, 6.25)]
+    for i, f in calls:
+        rt.run(kernel, 1, buf, i, f, salts, local_size=1)
+        cl.enqueue_copy(rt.queue, out, buf)
+        assert out[0] == np.array(i).astype(np.int64).astype(np.uint32)
+        assert out[1] == np.float32(f).view(np.uint32)
+        np.testing.assert_array_equal(out[2:], np.array(salts.tolist(), np.uint32))
