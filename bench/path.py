@@ -321,7 +321,8 @@ def main(argv=None) -> dict:
                              "stages_ms": stage_medians(stages[name, device])}
             stage_rows.append([name, device] + [
                 f"{entry[device]['stages_ms'][stage] / entry[device]['stages_ms']['total']:.0%}"
-                for stage in RENDER_STAGES] + [f"{entry[device]['stages_ms']['total']:.0f}"])
+                for stage in RENDER_STAGES] + [f"{entry[device]['stages_ms']['total']:.0f}",
+                                               f"{1e3 * entry[device]['seconds']['median']:.0f}"])
             rows.append([name, f"{width}x{height}, {spp} spp", device, f"{rate / 1e6:.2f}",
                          f"{theirs / 1e6:.2f}", f"{rate / theirs:.2f}x"])
             if lux_rate is not None:
@@ -336,8 +337,10 @@ def main(argv=None) -> dict:
     print(table(["scene", "size", "device", "ours (Msamples/s)",
                  f"Mitsuba {results['mitsuba']}", "ratio", *lux_columns], rows,
                 title="path tracing, samples per second (median of the rounds)"))
-    print(table(["scene", "device", *RENDER_STAGES, "device total (ms)"], stage_rows,
-                title="where our render's device time goes (median of the rounds)"))
+    # a wall far above the device total is a render the host keeps waiting
+    # (a GPU's, where each launch costs the host about what the device spends on it)
+    print(table(["scene", "device", *RENDER_STAGES, "device total (ms)", "wall (ms)"],
+                stage_rows, title="where our render's device time goes (median of the rounds)"))
     if lux is not None:  # the translation's check (bench/luxcore.py)
         print(table(["scene", *devices, "Mitsuba", "LuxCore"], mean_rows,
                     title="image means (linear; median of the rounds)"))
