@@ -122,6 +122,9 @@ def test_scratch_comes_back_after_an_error(pool):
 
 
 def test_rebuild_reuses_the_old_tree_and_answers_as_a_fresh_scene():
+    # an earlier test's Scene, collected mid-test, would clear the runtime's
+    # pool (its finalizer) and with it the old tree this rebuild reuses
+    gc.collect()
     mesh = Mesh.load(MESH_DIR / "bunny_small.ply")
     scene = Scene([mesh])
     old = built.tree(scene)
