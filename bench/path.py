@@ -337,8 +337,8 @@ def main(argv=None) -> dict:
     print(table(["scene", "size", "device", "ours (Msamples/s)",
                  f"Mitsuba {results['mitsuba']}", "ratio", *lux_columns], rows,
                 title="path tracing, samples per second (median of the rounds)"))
-    # a wall far above the device total is a render the host keeps waiting
-    # (a GPU's, where each launch costs the host about what the device spends on it)
+    # a wall far above the device total is a render whose device waits on
+    # the host (a GPU's, whose launches are short beside their host work)
     print(table(["scene", "device", *RENDER_STAGES, "device total (ms)", "wall (ms)"],
                 stage_rows, title="where our render's device time goes (median of the rounds)"))
     if lux is not None:  # the translation's check (bench/luxcore.py)

@@ -176,9 +176,9 @@ class Runtime:
         local_size = min(local_size or self.group_size, self.largest_group(kernel))
         values = [_kernel_arg(a) for a in args]
         # The scalar arguments' types, declared to pyopencl once per kernel:
-        # its typed set_args packs them all in one go, where an undeclared
-        # numpy scalar costs it microseconds each (a launch's host time, which
-        # a GPU's wavefront renders wait on)
+        # its typed set_args packs them all in one go, where it handles each
+        # undeclared numpy scalar on its own (most of a launch's host time,
+        # which a GPU's wavefront renders wait on)
         # (dtype.str, not the dtype: numpy's dtype == None holds for float64)
         signature = tuple(v.dtype.str if isinstance(v, np.generic) else None for v in values)
         columns, rows = work_items if isinstance(work_items, tuple) else (work_items, None)
