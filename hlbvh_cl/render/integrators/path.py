@@ -284,7 +284,7 @@ class Path(Integrator):
 
     def prepare(self, rt: Runtime, settings, tree, look: Look, pixels: int) -> None:
         self.rt, self.settings = rt, settings
-        self._kernels = {name: rt.kernel(KERNEL, name) for name in
+        self._kernels = {name: path_kernel(rt, name) for name in
                          ("path_surface", "path_unoccluded", "path_finish")}
         if pixels > self._pixels:
             context, rw = rt.context, cl.mem_flags.READ_WRITE
@@ -350,7 +350,7 @@ class Path(Integrator):
         if image_pixels > self._aov_image_pixels:
             self.aov_image = cl.Buffer(context, rw, self.AOV_IMAGE * image_pixels)
             self._aov_image_pixels = image_pixels
-        self._aov_kernels = {name: self.rt.kernel(KERNEL, name)
+        self._aov_kernels = {name: path_kernel(self.rt, name)
                              for name in ("path_aovs", "path_aov_add")}
         self._aovs = True
         if image_pixels == 0:
@@ -446,6 +446,12 @@ class Path(Integrator):
         events["resolve"].append(rt.run(kernels["path_finish"], band.count, self.states, count,
                                         sample, step.accum))
         step.done(events["resolve"][-1])
+
+
+def path_kernel(rt: Runtime, name: str) -> cl.Kernel:
+    """Kernel ``name`` of path.cl, built once per runtime for all of them:
+    on CPUs with PREFETCH (its stages ask for their scattered lines ahead)."""
+    return rt.kernel(KERNEL, name, **rt.prefetch_defines)
 
 
 def upload_table(rt: Runtime, array: np.ndarray) -> cl.Buffer:

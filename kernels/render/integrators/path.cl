@@ -294,7 +294,8 @@ FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel,
 #error "take_group_slots packs two counts of up to SURFACE_GROUP in 16 bits each"
 #endif
 inline uint take_group_slots(__local uint* slots, __global uint* paths,
-                             __global uint* shadow_rays, __local uint* first_shadow)
+                             __global uint* shadow_rays, __local uint* first_shadow,
+                             __local uint* totals)
 {
     uint sum = 0, size = (uint)get_local_size(0);
     for (uint i = 0; i < size; ++i) {
@@ -302,10 +303,28 @@ inline uint take_group_slots(__local uint* slots, __global uint* paths,
         slots[i] = sum;
         sum += flags;
     }
+    *totals = sum;
     uint taken = sum & 0xffffu, cast = sum >> 16;
     *first_shadow = cast > 0 ? atomic_add(shadow_rays, cast) : 0u;
     return taken > 0 ? atomic_add(paths, taken) : 0u;
 }
+
+/* Under PREFETCH (CPUs): how many work-items ahead a stage asks for the
+ * lines a later work-item of its group reads or writes at random (a
+ * path's state) or into buffers far larger than the caches (the next
+ * pass's rays, the shadow rays): a CPU runtime runs a group's work-items
+ * one after another, and each such access stalled on its line (perf: the
+ * stores of the next rays and shadow rays, on their write-allocate
+ * misses). */
+#define STAGE_AHEAD 8u
+
+/* Asks for the cache line at p, to be written (rw 1) or read (0), under
+ * PREFETCH; nothing elsewhere. */
+#if defined(PREFETCH) && HAS_BUILTIN(__builtin_prefetch)
+#define PREFETCH_AT(p, rw) __builtin_prefetch((p), (rw))
+#else
+#define PREFETCH_AT(p, rw) do {} while (0)
+#endif
 
 /* NARROW_KERNEL (core/portable.h): Intel's CPU compiler packs a kernel's
  * work-items into its SIMD lanes, as many as the hint leaves room for.
@@ -362,7 +381,7 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
      * serial scan of their flags (group_slots).  Slots follow no order across
      * groups: a path's numbers depend on its pixel, not its slot. */
     __local uint group_slots[SURFACE_GROUP];
-    __local uint group_first, group_first_shadow;
+    __local uint group_first, group_first_shadow, group_totals;
     uint gid = get_global_id(0), lid = get_local_id(0);
     const PathTables tables = {{materials, light_vertices, light_normals, light_cdf,
                                 light_geom, delta_lights, envmap_image, envmap_cdf},
@@ -372,7 +391,10 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
     uint path = 0;
     float3 origin = (float3)(0.0f), direction = (float3)(0.0f);
     ShadowRay light = {(float3)(0.0f), (float3)(0.0f), 0.0f, (float3)(0.0f)};
-    if (gid < bound && gid < live[depth]) {
+    uint count = live[depth];
+    if (depth > 0 && gid + STAGE_AHEAD < bound && gid + STAGE_AHEAD < count)
+        PREFETCH_AT(states + paths[gid + STAGE_AHEAD], 1);
+    if (gid < bound && gid < count) {
         path = depth == 0 ? gid : paths[gid];
         goes_on = shade_vertex(gid, path, depth, first_pixel, salts, rays, hits, states,
                                &tables, &params, &light, &casts, &origin, &direction);
@@ -381,8 +403,16 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
     barrier(CLK_LOCAL_MEM_FENCE);
     if (lid == 0)
         group_first = take_group_slots(group_slots, live + depth + 1, shadows + depth,
-                                       &group_first_shadow);
+                                       &group_first_shadow, &group_totals);
     barrier(CLK_LOCAL_MEM_FENCE);
+    /* the group's slots are [first, first + its count): ask for the ones a
+     * later work-item writes */
+    if (lid + STAGE_AHEAD < (group_totals & 0xffffu))
+        PREFETCH_AT(next_rays + group_first + lid + STAGE_AHEAD, 1);
+    if (lid + STAGE_AHEAD < (group_totals >> 16)) {
+        PREFETCH_AT(shadow + group_first_shadow + lid + STAGE_AHEAD, 1);
+        PREFETCH_AT(pending + group_first_shadow + lid + STAGE_AHEAD, 1);
+    }
     if (goes_on) {
         uint slot = group_first + (group_slots[lid] & 0xffffu);
         write_ray(next_rays + slot, origin, direction, INFINITY);
