@@ -391,7 +391,14 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
     uint path = 0;
     float3 origin = (float3)(0.0f), direction = (float3)(0.0f);
     ShadowRay light = {(float3)(0.0f), (float3)(0.0f), 0.0f, (float3)(0.0f)};
-    uint count = live[depth];
+    /* this pass's path count, read once per group: live[depth] shares its
+     * cache line with live[depth + 1], which the groups on other cores add
+     * to (take_group_slots), and a read per work-item missed on that line */
+    __local uint group_count;
+    if (lid == 0)
+        group_count = live[depth];
+    barrier(CLK_LOCAL_MEM_FENCE);
+    uint count = group_count;
     if (depth > 0 && gid + STAGE_AHEAD < bound && gid + STAGE_AHEAD < count)
         PREFETCH_AT(states + paths[gid + STAGE_AHEAD], 1);
     if (gid < bound && gid < count) {
