@@ -72,8 +72,10 @@ LOOKAHEAD = 1
 #: path_surface takes (random.salts8).
 FIRST_BOUNCE_DIMENSION, DIMENSIONS_PER_BOUNCE = 2, 8
 
-#: path_surface's work-group size (kernels/render/integrators/path.h).
+#: path_surface's work-group size on CPUs, and on GPUs
+#: (kernels/render/integrators/path.h).
 SURFACE_GROUP: int = layout.CONSTANTS["SURFACE_GROUP"]
+SURFACE_GROUP_GPU: int = layout.CONSTANTS["SURFACE_GROUP_GPU"]
 
 #: Mitsuba 3's RayEpsilon: a new ray starts (1 + max |x_i|) RAY_EPSILON off
 #: the surface at x (path.h; path.cl's spawn_offset).
@@ -425,7 +427,8 @@ class Path(Integrator):
                 self._params, np.uint32(bound), first_pixel,
                 salts8(int(stream), FIRST_BOUNCE_DIMENSION + DIMENSIONS_PER_BOUNCE * depth), at,
                 self.live, next_rays, next_numbers, self.shadows, self.shadow, self.pending,
-                self.shadow_paths, local_size=SURFACE_GROUP))
+                self.shadow_paths,
+                local_size=SURFACE_GROUP_GPU if rt.profile.gpu else SURFACE_GROUP))
             events["occluded"].append(step.query.enqueue_occluded(
                 step.tree, self.shadow, self.occluded, bound, step.overflow,
                 counted=(self.shadows, depth)))

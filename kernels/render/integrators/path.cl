@@ -287,11 +287,14 @@ FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel,
  * its totals at *paths and *shadow_rays (the counts of the next pass's paths
  * and of this pass's shadow rays), giving the first of each (the shadow
  * rays' in *first_shadow).  A serial scan: a group is at most SURFACE_GROUP
- * (64) work-items, and neither a CPU nor a GPU pays for it the locked
+ * (128) work-items, and neither a CPU nor a GPU pays for it the locked
  * instruction per work-item that local atomics cost a CPU runtime (one
  * that waits for the work-item's stores to drain). */
 #if SURFACE_GROUP > 0xffff
 #error "take_group_slots packs two counts of up to SURFACE_GROUP in 16 bits each"
+#endif
+#if SURFACE_GROUP_GPU > SURFACE_GROUP
+#error "path_surface's local arrays hold SURFACE_GROUP work-items: a GPU's group must fit"
 #endif
 inline uint take_group_slots(__local uint* slots, __global uint* paths,
                              __global uint* shadow_rays, __local uint* first_shadow,

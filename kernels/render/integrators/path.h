@@ -4,12 +4,18 @@
 #ifndef INTEGRATORS_PATH_H
 #define INTEGRATORS_PATH_H
 
-/* path_surface's largest work-group (path.py's, read from here): its
- * local arrays' length.  A CPU runtime keeps the values a work-item holds
- * across the kernel's barriers (its next ray and its shadow ray) in arrays
- * of one element per work-item; for 64 work-items they stay in L1, where
- * 256 made the stage slower.  GPUs run groups of 64 well. */
-#define SURFACE_GROUP 64
+/* path_surface's work-groups (path.py's, read from here): SURFACE_GROUP
+ * work-items on CPUs, its local arrays' length, and SURFACE_GROUP_GPU on
+ * GPUs.  A group takes its slots in the next pass with one atomic add on a
+ * counter every group shares (path.cl's take_group_slots), whose line the
+ * CPU cores pass between them: 128 work-items a group measured faster than
+ * 64 on both CPU runtimes.  A CPU runtime keeps the values a work-item
+ * holds across the kernel's barriers in arrays of one element per
+ * work-item, which must stay in L1: 256 was no faster on PoCL.  On a GPU
+ * one work-item of the group scans the group's flags alone (serially),
+ * while the others wait: there groups of 64 run well. */
+#define SURFACE_GROUP 128
+#define SURFACE_GROUP_GPU 64
 
 /* Entries of a roughplastic's transmittance table (Mitsuba's resolution). */
 #define TRANSMISSION_TABLE 64
