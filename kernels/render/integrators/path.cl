@@ -312,13 +312,13 @@ inline uint take_group_slots(__local uint* slots, __global uint* paths,
     return taken > 0 ? atomic_add(paths, taken) : 0u;
 }
 
-/* Under PREFETCH (CPUs): how many work-items ahead a stage asks for the
- * lines a later work-item of its group reads or writes at random (a
+/* Under PREFETCH (CPUs): how many work-items ahead path_surface asks for
+ * the lines a later work-item of its group reads or writes at random (a
  * path's state) or into buffers far larger than the caches (the next
  * pass's rays, the shadow rays): a CPU runtime runs a group's work-items
  * one after another, and each such access stalled on its line (perf: the
  * stores of the next rays and shadow rays, on their write-allocate
- * misses). */
+ * misses).  Further ahead measured slower. */
 #define STAGE_AHEAD 8u
 
 /* Asks for the cache line at p, to be written (rw 1) or read (0), under
