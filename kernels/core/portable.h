@@ -41,6 +41,14 @@
 #undef PREFETCH
 #endif
 
+/* Asks for the cache line at p, to be written (rw 1) or read (0), under
+ * PREFETCH; elsewhere nothing, and p is not evaluated. */
+#ifdef PREFETCH
+#define PREFETCH_AT(p, rw) __builtin_prefetch((p), (rw))
+#else
+#define PREFETCH_AT(p, rw) do {} while (0)
+#endif
+
 /* Inlined whatever the compiler's inliner thinks: PoCL's stops short of
  * the path integrator's light and BSDF samplers, and each call it leaves
  * spills every live vector register (all are caller-saved on x86-64).

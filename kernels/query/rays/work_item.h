@@ -27,7 +27,7 @@ TRAVERSAL_INLINE uint packet_rays(uint ray_count, uint* first)
 #ifdef PREFETCH
 #define PREFETCH_LINES(start, bytes, rw)                                              \
     for (uint line_ = 0; line_ < (uint)(bytes); line_ += 64)                           \
-        __builtin_prefetch((__global const char*)(start) + line_, rw)
+        PREFETCH_AT((__global const char*)(start) + line_, rw)
 #else
 #define PREFETCH_LINES(start, bytes, rw) do {} while (0)
 #endif

@@ -321,14 +321,6 @@ inline uint take_group_slots(__local uint* slots, __global uint* paths,
  * misses).  Further ahead measured slower. */
 #define STAGE_AHEAD 8u
 
-/* Asks for the cache line at p, to be written (rw 1) or read (0), under
- * PREFETCH; nothing elsewhere. */
-#if defined(PREFETCH) && HAS_BUILTIN(__builtin_prefetch)
-#define PREFETCH_AT(p, rw) __builtin_prefetch((p), (rw))
-#else
-#define PREFETCH_AT(p, rw) do {} while (0)
-#endif
-
 /* NARROW_KERNEL (core/portable.h): Intel's CPU compiler packs a kernel's
  * work-items into its SIMD lanes, as many as the hint leaves room for.
  * Packed 16 to an AVX-512 register (no hint), this kernel came out wrong
