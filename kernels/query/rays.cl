@@ -35,6 +35,9 @@
 #include "core/portable.h"
 #include "query/rays/work_item.h"
 #include "query/rays/instance.h"
+#ifdef ROOT_PHASE
+#include "query/rays/mixed.h"
+#endif
 
 /* A closest hit's ids (refs[i]) are read when the traversal ends, a cache
  * miss of their own: start loading them when the hit is found. */
@@ -47,7 +50,9 @@ TRAVERSAL_INLINE void prefetch_hit_ids(__global const TriangleRef* refs, uint i)
 
 /* Closest hit: a hit lowers the lane's limit to its t, and the walk goes on
  * in case a nearer one follows; nearer children first.  An instance's mesh
- * prefetches from its own refs. */
+ * prefetches from its own refs.  Rays traced one by one on a CPU have the
+ * root's leaves that any of the work-item's rays meets tested first, for all
+ * of them at once (trace.h's root phase), and their walks skip those. */
 #define QUERY intersect
 #define QUERY_OUT HitLanes
 #define QUERY_HIT(s, i, hit, t, u, v) \
@@ -56,6 +61,8 @@ TRAVERSAL_INLINE void prefetch_hit_ids(__global const TriangleRef* refs, uint i)
 #define QUERY_PARAMS , __global const TriangleRef* refs
 #define QUERY_ARGS , refs
 #define QUERY_MESH_ARGS(in, id) , refs + (in)->triangle_base
+#define QUERY_ROOT_PHASE
+#define QUERY_NODE(s, r, n, mask) ((n) == nodes && (*(mask) &= ~PATH(root_done)(s), false))
 #include "query/rays/trace.h"
 
 /* Any hit (shadow rays): a lane that hits is done (its limit becomes

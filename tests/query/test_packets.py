@@ -14,7 +14,7 @@ import hlbvh_cl
 from hlbvh_cl.query.rays import PACKET_SIZES, RayQuery
 import built
 from ray_cases import (MESHES, interior_points, unique_edges, assert_matches_oracle, random_rays,
-                       scene_case)
+                       scene_case, SceneCase)
 
 
 def packet_keys(directions: np.ndarray) -> np.ndarray:
@@ -393,4 +393,50 @@ def test_ties_at_shared_vertices_give_the_first_triangle_every_way(monkeypatch):
     assert np.isfinite(answers[0][0]).mean() > 0.9
     for other in answers[1:]:
         for name, got, want in zip(fields, other, answers[0]):
+            np.testing.assert_array_equal(got, want, name)
+
+
+def test_root_phase_gives_the_walks_one_by_one_s_answers(monkeypatch):
+    """A CPU work-item's rays that do not go as one packet first have the
+    root's leaves tested for all of them at once, a vector lane each
+    (kernels/query/rays/trace.h's root phase; here the ground's, which the
+    SAH top keeps at the root), and their walks start from what it found:
+    the same closest hits, bit for bit, as one ray a work-item walked alone
+    (packets of 1, no root phase), walks interleaved or not, with and
+    without limits that cut some hits off, and the oracle's.  The rays end
+    on the ground, on a mesh in front of it, or on nothing."""
+    from hlbvh_cl.query import engine
+    from render_scene import render_meshes
+    case = SceneCase(render_meshes())
+    tree = built.tree(case.scene)
+    root = tree.read_nodes(built.runtime(case.scene).queue)[0]
+    ground = len(case.meshes) - 1
+    leaves = root["child"][root["count"] > 0]
+    assert len(leaves) > 0, "the root holds no leaf: this test would not test the phase"
+    wild_o, wild_d = random_rays(case, 2000, seed=11)
+    rng = np.random.default_rng(12)  # and rays from above at the meshes, some past them
+    meshes = np.concatenate([m.vertices for m in case.meshes[:-1]])
+    lo, hi = meshes.min(axis=0), meshes.max(axis=0)
+    above = lo + rng.random((1000, 3)) * (hi - lo) * [3, 1, 3] - (hi - lo) * [1, -2, 1]
+    aimed = lo + rng.random((1000, 3)) * (hi - lo) - above
+    origins = np.concatenate([wild_o, above]).astype(np.float32)
+    directions = np.concatenate([wild_d, aimed]).astype(np.float32)
+    tmin = np.where(np.arange(len(origins)) % 3 == 0, 0.25, 0.0).astype(np.float32)
+    tmax = np.where(np.arange(len(origins)) % 4 == 0, 0.9, np.inf).astype(np.float32)
+    fields = ("t", "geom_id", "prim_id", "u", "v", "normal")
+    answers = []
+    for smallest in (0, 2**62):
+        monkeypatch.setattr(engine, "INTERLEAVED_MIN_TREE_BYTES", smallest)
+        for packet_size in (1, 8, 16):
+            q = packet_query(case.scene, packet_size)
+            for limits in ({}, {"tmin": tmin, "tmax": tmax}):
+                hits = q.intersect(tree, origins, directions, **limits)
+                answers.append([getattr(hits, name) for name in fields])
+                if packet_size == 1 and smallest == 0:
+                    assert_matches_oracle(case, hits, origins, directions, **limits)
+    first = answers[0][1]
+    assert 0.1 < (first == ground).mean() and 0.1 < ((first >= 0) & (first != ground)).mean()
+    assert (first < 0).any()
+    for at, other in enumerate(answers[2:], 2):
+        for name, got, want in zip(fields, other, answers[at % 2]):
             np.testing.assert_array_equal(got, want, name)

@@ -123,20 +123,25 @@ TRAVERSAL_INLINE float float_below(float x)
     return -float_above(-x);
 }
 
+/* The lanes' origins o and directions d as vectors, and |d| in a.  (fabs,
+ * signbit and select by bits and ?: here and below: PoCL, see LOAD_ROW.) */
+TRAVERSAL_INLINE void lane_vectors(const RayLanes* in, float_packet* o, float_packet* d,
+                                   float_packet* a)
+{
+    for (int k = 0; k < 3; ++k) {
+        o[k] = vload_packet(0, in->origin[k]);
+        d[k] = vload_packet(0, in->direction[k]);
+        a[k] = abs_packet(d[k]);
+    }
+}
+
 /* prepare_ray for every lane, in vector arithmetic; false when the lanes do
  * not share direction signs and kz (then they are traced one by one). */
 TRAVERSAL_INLINE bool prepare_packet(const RayLanes* in, Packet* p)
 {
-    float_packet o[3], d[3];
-    for (int k = 0; k < 3; ++k) {
-        o[k] = vload_packet(0, in->origin[k]);
-        d[k] = vload_packet(0, in->direction[k]);
-    }
-    /* fabs, signbit and select by bits and ?: (PoCL: see LOAD_ROW) */
-    int_packet magnitude = (int_packet)(0x7fffffff);
-    float_packet ax = as_float_packet(as_int_packet(d[0]) & magnitude),
-                 ay = as_float_packet(as_int_packet(d[1]) & magnitude),
-                 az = as_float_packet(as_int_packet(d[2]) & magnitude);
+    float_packet o[3], d[3], a[3];
+    lane_vectors(in, o, d, a);
+    float_packet ax = a[0], ay = a[1], az = a[2];
     /* Each lane's kz, as prepare_ray picks it, held in floats: LLVM makes
      * ?: between integer constants a zext of the compare lanes, which
      * Oclgrind gets wrong (its vector compares give -1 per true lane). */
@@ -257,6 +262,7 @@ typedef struct {
 } Found_packet;
 
 TRAVERSAL_INLINE float reach_packet(const Found_packet* s) { return s->reach; }
+#define root_done_packet(s) 0u  /* packets take no root phase */
 TRAVERSAL_INLINE void update_reach_packet(Found_packet* s) { s->reach = packet_max(s->limit); }
 
 /* A walk's start: no hit in any lane, each lane's limit its tmax. */
@@ -348,6 +354,9 @@ TRAVERSAL_INLINE uint children_packet(const Packet* p, __global const WideNode* 
     return mask;
 }
 #undef CHILD_PLANE
+
+/* A vertex's component k (kx, ky or kz) of the ray's permutation. */
+#define corner_packet(v, r, k) ((v)[(r)->k])
 
 #define PATH_SUFFIX _packet
 #include "query/rays/triangle.h"

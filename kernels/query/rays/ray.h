@@ -14,6 +14,13 @@
 #error "PACKET_SIZE must be defined (-D PACKET_SIZE=...)"
 #endif
 
+/* A flat scene's rays traced one by one on a CPU (PACKET_SIZE > 1) begin
+ * with the root phase (query/rays/trace.h, mixed.h): the root's leaves
+ * tested in SIMD across the work-item's rays. */
+#if PACKET_SIZE > 1 && !defined(INSTANCES)
+#define ROOT_PHASE
+#endif
+
 /* Instanced scenes (instance.h) map rays by their direction, and test
  * instances against their masks. */
 #if defined(cl_khr_fp64) || defined(INSTANCES)
@@ -162,6 +169,9 @@ typedef struct {
 #ifdef INSTANCES
     int instance;  /* whose mesh holds triangle `index` (instance.h) */
 #endif
+#ifdef ROOT_PHASE
+    uint root_done;  /* the root's leaves the work-item's root phase tested (trace.h) */
+#endif
 } Found_ray;
 
 /* A walk's start: no hit, the limit the ray's tmax. */
@@ -171,8 +181,18 @@ TRAVERSAL_INLINE void start_ray(Found_ray* s, const RayData* r)
 #ifdef INSTANCES
     start.instance = -1;
 #endif
+#ifdef ROOT_PHASE
+    start.root_done = 0;
+#endif
     *s = start;
 }
+
+/* The root's leaves that the walk has had tested already (root_done). */
+#ifdef ROOT_PHASE
+#define root_done_ray(s) ((s)->root_done)
+#else
+#define root_done_ray(s) 0u
+#endif
 
 /* The farthest the walk still looks: the limit. */
 TRAVERSAL_INLINE float reach_ray(const Found_ray* s) { return s->limit; }
@@ -202,6 +222,9 @@ TRAVERSAL_INLINE uint children_ray(const RayData* r, __global const WideNode* no
                                (float_lanes)(s->limit), entry->lanes));
 }
 #undef NODE_ROW
+
+/* A vertex's component k (kx, ky or kz) of the ray's permutation. */
+#define corner_ray(v, r, k) ((v)[(r)->k])
 
 #define PATH_SUFFIX _ray
 #include "query/rays/triangle.h"

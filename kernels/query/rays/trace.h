@@ -20,6 +20,19 @@
  *                            instance's mesh is walked (default: false)
  *   QUERY_MESH_ARGS(in, id)  optional: the QUERY_ARGS of the walk of instance
  *                            in's mesh (id: its number; default: QUERY_ARGS)
+ *   QUERY_ROOT_PHASE         optional, defined: the rays of a work-item that
+ *                            go one by one on a flat scene on a CPU
+ *                            (ROOT_PHASE, query/rays/ray.h) first have the
+ *                            root's leaves that any of them meets tested for
+ *                            all of them at once, one vector lane per ray
+ *                            (the root phase, query/rays/mixed.h), with
+ *                            QUERY_HIT; their walks then start from there,
+ *                            and the query's QUERY_NODE drops those leaves at
+ *                            the root (root_done).  For queries that never
+ *                            end at a hit and whose result does not depend
+ *                            on the order of their hits (the closest hit,
+ *                            ties going to the first triangle: walk.h's
+ *                            leaf)
  * trace_QUERY(lanes, used, the scene's trees (instance.h's SCENE_TREES),
  * overflow, out, QUERY_ARGS) sets overflow[0] if a walk ran out of stack, and
  * counts the packets in overflow[1] under COUNT_PACKETS (tests). */
@@ -61,14 +74,22 @@
 #define TRACE_ARGS QUERY_ARGS
 #endif
 
-/* Each path's walks and trace; IS_PACKET tells the packet's. */
+/* Each path's walks and trace, and the root phase's lanes (_mixed);
+ * IS_PACKET tells which. */
 #define IS_PACKET_ray 0
 #define IS_PACKET_packet 1
+#define IS_PACKET_mixed 2
 #define PATH_SUFFIX _ray
 #include "query/rays/trace.h"
 #undef PATH_SUFFIX
 #if PACKET_SIZE > 1
 #define PATH_SUFFIX _packet
+#include "query/rays/trace.h"
+#undef PATH_SUFFIX
+#endif
+#if defined(ROOT_PHASE) && defined(QUERY_ROOT_PHASE)
+#define TRACE_ROOT_PHASE
+#define PATH_SUFFIX _mixed
 #include "query/rays/trace.h"
 #undef PATH_SUFFIX
 #endif
@@ -97,6 +118,13 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
     } else
 #endif
     {
+#ifdef TRACE_ROOT_PHASE
+        Found_ray starts[PACKET_SIZE];
+        QUERY_FN(root, _mixed)(lanes, nodes, triangles, starts QUERY_ARGS);
+#define START_LANE(s, r, l) (*(s) = starts[l])
+#else
+#define START_LANE(s, r, l) start_ray(s, r)
+#endif
 #if defined(INTERLEAVED_WALKS) && !defined(INSTANCES)
         /* the walks of the lanes that take one, interleaved (walk.h's
          * walks): walk k is lane lane_of[k]'s, with its own state */
@@ -114,7 +142,7 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
                 continue;
 #endif
             prepare_lane(r + n, lanes, l);
-            start_ray(s + n, r + n);
+            START_LANE(s + n, r + n, l);
 #ifdef QUERY_STATE
             PATH(QUERY_STATE)* state = states + n;
             QUERY_BEGIN(out, l);
@@ -143,9 +171,18 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
 #endif
             RayData r;
             prepare_lane(&r, lanes, l);
+#ifdef TRACE_ROOT_PHASE
+#define PATH_SUFFIX _ray
+            Found_ray s = starts[l];
+            out_of_stack |= QUERY_FN(walk, _ray)(&r, nodes, triangles, &s TRACE_ARGS);
+            QUERY_END(&s, out, l);
+#undef PATH_SUFFIX
+#else
             out_of_stack |= QUERY_FN(trace, _ray)(&r, nodes, triangles, out, l TRACE_ARGS);
+#endif
         }
 #endif
+#undef START_LANE
     }
 #ifdef INSTANCES
     out_of_stack |= mesh_out_of_stack;
@@ -155,6 +192,8 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
 }
 
 #include "query/walk/walk_end.h"
+#undef TRACE_ROOT_PHASE
+#undef QUERY_ROOT_PHASE
 #undef QUERY_OUT
 #undef QUERY_BEGIN
 #undef QUERY_END
@@ -171,9 +210,60 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
 #undef MESH_WALK_packet
 #undef IS_PACKET_ray
 #undef IS_PACKET_packet
+#undef IS_PACKET_mixed
 
 #else /* one path */
 
+#if CONCAT(IS_PACKET, PATH_SUFFIX) == IS_PACKET_mixed
+/* The root phase of rays lanes[0, PACKET_SIZE) (QUERY_ROOT_PHASE): each leaf
+ * of the root that some lane meets within its limit (SLABS_MEET per lane),
+ * in slot order, tested for every lane, one vector test per triangle.  A
+ * lane that does not meet the leaf's box may take a hit there too, a real
+ * one, which its walk would have found below the same limit: the query's
+ * result does not depend on the order, so it is the same.  Each lane's walk
+ * starts from starts[l]: what the root phase found, and the leaves it
+ * tested (root_done).  On two-level scenes (INSTANCES) there is none: a
+ * leaf of the top tree holds instances. */
+TRAVERSAL_INLINE void QUERY_FN(root, _mixed)(const RayLanes* lanes,
+                                             __global const WideNode* nodes,
+                                             __global const Triangle* triangles,
+                                             Found_ray* starts QUERY_PARAMS)
+{
+    Mixed r;
+    prepare_mixed(lanes, &r);
+    Found_mixed found = {(int_packet)(-1), (float_packet)(INFINITY), (float_packet)(0.0f),
+                         (float_packet)(0.0f), r.tmax, 0.0f};
+    Found_mixed* s = &found;  /* QUERY_HIT's */
+    uint done = 0;
+    for (uint leaves = lane_mask(LOAD_ROW(int_lanes, nodes->count) != (int_lanes)(0));
+         leaves != 0; leaves &= leaves - 1u) {
+        int c = lowest_slot(leaves);
+        if (!mixed_meet(&r, nodes, c, s->limit))
+            continue;
+        done |= 1u << c;
+        uint first = (uint)nodes->child[c];
+        for (uint i = first; i < first + nodes->count[c]; ++i) {
+            float_packet t, u, v;
+            int_packet hit = hit_triangle_mixed(&r, triangles + i, s->limit,
+                                                (s->index >= 0) & (s->index < (int)i), &t,
+                                                &u, &v);
+            if (some_packet(hit))
+                QUERY_HIT(s, i, hit, t, u, v);
+        }
+    }
+    int index[PACKET_SIZE];
+    float t[PACKET_SIZE], u[PACKET_SIZE], v[PACKET_SIZE], limit[PACKET_SIZE];
+    vstore_packet(found.index, 0, index);
+    vstore_packet(found.t, 0, t);
+    vstore_packet(found.u, 0, u);
+    vstore_packet(found.v, 0, v);
+    vstore_packet(found.limit, 0, limit);
+    for (uint l = 0; l < PACKET_SIZE; ++l) {
+        Found_ray start = {index[l], t[l], u[l], v[l], limit[l], done};
+        starts[l] = start;
+    }
+}
+#else
 /* The walk of a flat scene's tree, or of an instance's mesh. */
 #include "query/walk/walk.h"
 
@@ -274,5 +364,6 @@ TRAVERSAL_INLINE bool TRACE_NAME(trace)(const PATH(Rays)* r, __global const Wide
     QUERY_END(&s, out, lane);
     return out_of_stack;
 }
+#endif /* a walk's path */
 
 #endif /* PATH_SUFFIX */

@@ -83,13 +83,17 @@ TRAVERSAL_INLINE PATH(flags) PATH(hit_triangle)(const PATH(Rays)* r,
                                                 PATH(real)* t_out, PATH(real)* u_out,
                                                 PATH(real)* v_out)
 {
-    /* Vertices relative to the origin, permuted (kx, ky, kz). */
-    PATH(real) ax = tri->v0[r->kx] - r->okx, ay = tri->v0[r->ky] - r->oky,
-               az = tri->v0[r->kz] - r->okz;
-    PATH(real) bx = tri->v1[r->kx] - r->okx, by = tri->v1[r->ky] - r->oky,
-               bz = tri->v1[r->kz] - r->okz;
-    PATH(real) cx = tri->v2[r->kx] - r->okx, cy = tri->v2[r->ky] - r->oky,
-               cz = tri->v2[r->kz] - r->okz;
+    /* Vertices relative to the origin, permuted (kx, ky, kz): corner picks
+     * each lane's component (per path: ray.h, packet.h, mixed.h). */
+    PATH(real) ax = PATH(corner)(tri->v0, r, kx) - r->okx,
+               ay = PATH(corner)(tri->v0, r, ky) - r->oky,
+               az = PATH(corner)(tri->v0, r, kz) - r->okz;
+    PATH(real) bx = PATH(corner)(tri->v1, r, kx) - r->okx,
+               by = PATH(corner)(tri->v1, r, ky) - r->oky,
+               bz = PATH(corner)(tri->v1, r, kz) - r->okz;
+    PATH(real) cx = PATH(corner)(tri->v2, r, kx) - r->okx,
+               cy = PATH(corner)(tri->v2, r, ky) - r->oky,
+               cz = PATH(corner)(tri->v2, r, kz) - r->okz;
     /* Shear so that the ray runs along +z. */
     ax = ax - r->sx * az;  ay = ay - r->sy * az;
     bx = bx - r->sx * bz;  by = by - r->sy * bz;
