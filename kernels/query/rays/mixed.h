@@ -68,22 +68,21 @@ TRAVERSAL_INLINE void prepare_mixed(const RayLanes* in, Mixed* m)
     m->neg_z = as_int_packet(d[2]) < 0;
 }
 
-/* Whether some lane meets child c of node n within its limit (SLABS_MEET per lane). */
-TRAVERSAL_INLINE bool mixed_meet(const Mixed* m, __global const WideNode* n, int c,
-                                    float_packet limit)
+/* The lanes that meet child c of node n within their limits (SLABS_MEET
+ * per lane). */
+TRAVERSAL_INLINE int_packet mixed_meet(const Mixed* m, __global const WideNode* n, int c,
+                                       float_packet limit)
 {
     float_packet lx = (float_packet)(n->lo_x[c]), hx = (float_packet)(n->hi_x[c]);
     float_packet ly = (float_packet)(n->lo_y[c]), hy = (float_packet)(n->hi_y[c]);
     float_packet lz = (float_packet)(n->lo_z[c]), hz = (float_packet)(n->hi_z[c]);
     float_packet entry;
-    int_packet met = SLABS_MEET(float_packet, ((m->neg_x ? hx : lx) - m->ox) * m->inv_x,
-                                ((m->neg_y ? hy : ly) - m->oy) * m->inv_y,
-                                ((m->neg_z ? hz : lz) - m->oz) * m->inv_z,
-                                ((m->neg_x ? lx : hx) - m->ox) * m->inv_x,
-                                ((m->neg_y ? ly : hy) - m->oy) * m->inv_y,
-                                ((m->neg_z ? lz : hz) - m->oz) * m->inv_z, m->tmin, limit,
-                                entry);
-    return some_packet(met);
+    return SLABS_MEET(float_packet, ((m->neg_x ? hx : lx) - m->ox) * m->inv_x,
+                      ((m->neg_y ? hy : ly) - m->oy) * m->inv_y,
+                      ((m->neg_z ? hz : lz) - m->oz) * m->inv_z,
+                      ((m->neg_x ? lx : hx) - m->ox) * m->inv_x,
+                      ((m->neg_y ? ly : hy) - m->oy) * m->inv_y,
+                      ((m->neg_z ? lz : hz) - m->oz) * m->inv_z, m->tmin, limit, entry);
 }
 
 /* ---- the root phase's vocabulary (see walk.h): the packet's types, with

@@ -26,9 +26,10 @@
  *                            root's leaves that any of them meets tested for
  *                            all of them at once, one vector lane per ray
  *                            (the root phase, query/rays/mixed.h), with
- *                            QUERY_HIT; their walks then start from there,
- *                            and the query's QUERY_NODE drops those leaves at
- *                            the root (root_done).  For queries that never
+ *                            QUERY_HIT; their walks then start from there
+ *                            (those that still meet an interior child of
+ *                            the root), and the query's QUERY_NODE drops
+ *                            those leaves at the root (root_done).  For queries that never
  *                            end at a hit and whose result does not depend
  *                            on the order of their hits (the closest hit,
  *                            ties going to the first triangle: walk.h's
@@ -120,8 +121,9 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
     {
 #ifdef TRACE_ROOT_PHASE
         Found_ray starts[PACKET_SIZE];
-        QUERY_FN(root, _mixed)(lanes, nodes, triangles, starts QUERY_ARGS);
+        uint walking = QUERY_FN(root, _mixed)(lanes, nodes, triangles, starts QUERY_ARGS);
 #define START_LANE(s, r, l) (*(s) = starts[l])
+#define WALKS(l) ((walking >> (l)) & 1u)
 #else
 #define START_LANE(s, r, l) start_ray(s, r)
 #endif
@@ -140,6 +142,12 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
 #ifdef QUERY_LANE
             if (!QUERY_LANE(out, l))
                 continue;
+#endif
+#ifdef TRACE_ROOT_PHASE
+            if (!WALKS(l)) {  /* the root phase found all there is */
+                QUERY_END(starts + l, out, l);
+                continue;
+            }
 #endif
             prepare_lane(r + n, lanes, l);
             START_LANE(s + n, r + n, l);
@@ -170,19 +178,23 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
                 continue;
 #endif
             RayData r;
-            prepare_lane(&r, lanes, l);
 #ifdef TRACE_ROOT_PHASE
 #define PATH_SUFFIX _ray
             Found_ray s = starts[l];
-            out_of_stack |= QUERY_FN(walk, _ray)(&r, nodes, triangles, &s TRACE_ARGS);
+            if (WALKS(l)) {
+                prepare_lane(&r, lanes, l);
+                out_of_stack |= QUERY_FN(walk, _ray)(&r, nodes, triangles, &s TRACE_ARGS);
+            }
             QUERY_END(&s, out, l);
 #undef PATH_SUFFIX
 #else
+            prepare_lane(&r, lanes, l);
             out_of_stack |= QUERY_FN(trace, _ray)(&r, nodes, triangles, out, l TRACE_ARGS);
 #endif
         }
 #endif
 #undef START_LANE
+#undef WALKS
     }
 #ifdef INSTANCES
     out_of_stack |= mesh_out_of_stack;
@@ -222,9 +234,12 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
  * one, which its walk would have found below the same limit: the query's
  * result does not depend on the order, so it is the same.  Each lane's walk
  * starts from starts[l]: what the root phase found, and the leaves it
- * tested (root_done).  On two-level scenes (INSTANCES) there is none: a
- * leaf of the top tree holds instances. */
-TRAVERSAL_INLINE void QUERY_FN(root, _mixed)(const RayLanes* lanes,
+ * tested (root_done).  Returns the lanes (bit l) that meet an interior child
+ * of the root within their limits then: the others have found all there is
+ * (on a ground or a wall, or nothing), and take no walk.  On two-level
+ * scenes (INSTANCES) there is no root phase: a leaf of the top tree holds
+ * instances. */
+TRAVERSAL_INLINE uint QUERY_FN(root, _mixed)(const RayLanes* lanes,
                                              __global const WideNode* nodes,
                                              __global const Triangle* triangles,
                                              Found_ray* starts QUERY_PARAMS)
@@ -238,7 +253,7 @@ TRAVERSAL_INLINE void QUERY_FN(root, _mixed)(const RayLanes* lanes,
     for (uint leaves = lane_mask(LOAD_ROW(int_lanes, nodes->count) != (int_lanes)(0));
          leaves != 0; leaves &= leaves - 1u) {
         int c = lowest_slot(leaves);
-        if (!mixed_meet(&r, nodes, c, s->limit))
+        if (!some_packet(mixed_meet(&r, nodes, c, s->limit)))
             continue;
         done |= 1u << c;
         uint first = (uint)nodes->child[c];
@@ -251,17 +266,27 @@ TRAVERSAL_INLINE void QUERY_FN(root, _mixed)(const RayLanes* lanes,
                 QUERY_HIT(s, i, hit, t, u, v);
         }
     }
-    int index[PACKET_SIZE];
+    /* the lanes that meet an interior child of the root within their
+     * limits: only they may find more */
+    int_packet further = (int_packet)(0);
+    for (uint inner = lane_mask(LOAD_ROW(int_lanes, nodes->count) == (int_lanes)(0));
+         inner != 0; inner &= inner - 1u)
+        further |= mixed_meet(&r, nodes, lowest_slot(inner), s->limit);
+    int index[PACKET_SIZE], walks[PACKET_SIZE];
     float t[PACKET_SIZE], u[PACKET_SIZE], v[PACKET_SIZE], limit[PACKET_SIZE];
+    vstore_packet(further, 0, walks);
     vstore_packet(found.index, 0, index);
     vstore_packet(found.t, 0, t);
     vstore_packet(found.u, 0, u);
     vstore_packet(found.v, 0, v);
     vstore_packet(found.limit, 0, limit);
+    uint walking = 0;
     for (uint l = 0; l < PACKET_SIZE; ++l) {
         Found_ray start = {index[l], t[l], u[l], v[l], limit[l], done};
         starts[l] = start;
+        walking |= (walks[l] != 0 ? 1u : 0u) << l;
     }
+    return walking;
 }
 #else
 /* The walk of a flat scene's tree, or of an instance's mesh. */
