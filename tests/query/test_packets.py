@@ -411,8 +411,7 @@ def test_root_phase_gives_the_walks_one_by_one_s_answers(monkeypatch):
     tree = built.tree(case.scene)
     root = tree.read_nodes(built.runtime(case.scene).queue)[0]
     ground = len(case.meshes) - 1
-    leaves = root["child"][root["count"] > 0]
-    assert len(leaves) > 0, "the root holds no leaf: this test would not test the phase"
+    assert (root["count"] > 0).any(), "the root holds no leaf: this test would not test the phase"
     wild_o, wild_d = random_rays(case, 2000, seed=11)
     rng = np.random.default_rng(12)  # and rays from above at the meshes, some past them
     meshes = np.concatenate([m.vertices for m in case.meshes[:-1]])
