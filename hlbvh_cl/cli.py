@@ -129,8 +129,13 @@ def _cmd_render(args) -> int:
     with stage(_PROBING):
         select_device(args.device)  # an unknown device fails before the scene loads
     started = time.perf_counter()
+    # the file's values that a flag replaces may lie past the renderer's
+    # limits (Mitsuba loads sample counts and film sizes this renderer does not)
+    flags = {"spp": args.spp or args.time, "max_depth": args.max_depth is not None,
+             "width": args.width, "height": args.height}
     with stage(_BUILDING):
-        loaded = scenefile.load(args.scene, args.device)
+        loaded = scenefile.load(args.scene, args.device,
+                                replaced={name for name, given in flags.items() if given})
     scene, renderer = loaded.scene, loaded.renderer()
     build_wall = loaded.build_seconds
     width = args.width or loaded.width

@@ -51,6 +51,7 @@ import math
 import os
 import re
 import xml.parsers.expat
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -415,11 +416,15 @@ def _look_at(origin, target, up) -> np.ndarray:
     return out
 
 
-def read_xml(path, defaults: dict | None = None) -> SceneDescription:
+def read_xml(path, defaults: dict | None = None,
+             replaced: Collection[str] = ()) -> SceneDescription:
     """A Mitsuba 3 XML scene (the module's subset) as a SceneDescription,
     with its render options (shading "path", spp, max_depth, rr_depth,
     rfilter) in ``options``; ``defaults`` override its <default> values,
-    as mitsuba.load_file's keyword arguments do."""
+    as mitsuba.load_file's keyword arguments do.  ``replaced`` names the
+    values the caller renders with its own ("spp", "max_depth", "width",
+    "height": the CLI's flags): those may exceed this renderer's limits
+    (Mitsuba's are wider), as long as they are values Mitsuba reads."""
     path = Path(os.fspath(path))
     scene = _parse(path)
     reader = _Reader(path, scene, defaults or {})
@@ -449,7 +454,8 @@ def read_xml(path, defaults: dict | None = None) -> SceneDescription:
             if node.get("type") != "path":
                 raise reader.error(node, "only the path integrator is read")
             values = reader.parameters(node, ("max_depth", "rr_depth"))
-            if not -1 <= values.get("max_depth", -1) <= MAX_DEPTH:
+            highest = None if "max_depth" in replaced else MAX_DEPTH
+            if not _within(values.get("max_depth", -1), -1, highest):
                 raise reader.error(node, f"max_depth must be -1 (no limit) or 1..{MAX_DEPTH}, "
                                          f"got {values['max_depth']}")
             if values.get("max_depth") == 0:
@@ -462,7 +468,8 @@ def read_xml(path, defaults: dict | None = None) -> SceneDescription:
         elif node.tag == "sensor":
             # every sensor is read (and checked); a render takes the first, as
             # Mitsuba's mi.render(scene) takes sensors()[0]
-            found = _sensor(reader, node, options if camera is None else dict(options))
+            found = _sensor(reader, node, options if camera is None else dict(options),
+                            replaced)
             if camera is None:
                 camera, size, fov = found
         elif node.tag == "bsdf":
@@ -518,7 +525,12 @@ def _one_each(reader: _Reader, node: _Node, tags: tuple) -> None:
             seen[key] = child
 
 
-def _sensor(reader: _Reader, node: _Node, options: dict):
+def _within(value: int, low: int, high: int | None) -> bool:
+    """low <= value <= high, with no upper limit where high is None."""
+    return low <= value and (high is None or value <= high)
+
+
+def _sensor(reader: _Reader, node: _Node, options: dict, replaced: Collection[str]):
     if node.get("type") != "perspective":
         raise reader.error(node, "only the perspective sensor is read")
     values = reader.parameters(node, ("fov", "fov_axis", "to_world", "near_clip", "far_clip"),
@@ -532,7 +544,8 @@ def _sensor(reader: _Reader, node: _Node, options: dict):
             film = reader.parameters(child, ("width", "height", "pixel_format",
                                              "component_format"), skip=("rfilter",))
             size = (film.get("width", FILM_SIZE[0]), film.get("height", FILM_SIZE[1]))
-            if not 1 <= min(size) <= max(size) <= MAX_IMAGE_SIDE:
+            if not all(_within(side, 1, None if name in replaced else MAX_IMAGE_SIDE)
+                       for name, side in zip(("width", "height"), size)):
                 raise reader.error(child, f"width and height must be 1..{MAX_IMAGE_SIDE}, got "
                                           f"{size[0]} x {size[1]}")
             for key, formats in (("pixel_format", PIXEL_FORMATS),
@@ -552,7 +565,7 @@ def _sensor(reader: _Reader, node: _Node, options: dict):
                 raise reader.error(child, "only the independent sampler is read")
             sampler = reader.parameters(child, ("sample_count", "seed"))
             options["spp"] = int(sampler.get("sample_count", SAMPLE_COUNT))
-            if not 1 <= options["spp"] <= MAX_SPP:
+            if not _within(options["spp"], 1, None if "spp" in replaced else MAX_SPP):
                 raise reader.error(child, f"sample_count must be 1..{MAX_SPP}, got "
                                           f"{options['spp']}")
             if "seed" in sampler:  # the render's seed (Renderer.render's)

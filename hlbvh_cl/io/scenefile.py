@@ -119,6 +119,7 @@ import re
 import sys
 import time
 import tomllib
+from collections.abc import Collection
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -296,11 +297,13 @@ class LoadedScene:
 
 
 def load(path, device=None, builder: str = "hlbvh", morton_bits: int = 30,
-         defaults: dict | None = None) -> LoadedScene:
+         defaults: dict | None = None, replaced: Collection[str] = ()) -> LoadedScene:
     """Read a scene file (``read``) and build its Scene on ``device``;
-    ``defaults`` override a Mitsuba XML file's <default> values."""
+    ``defaults`` override a Mitsuba XML file's <default> values, and the
+    render values named in ``replaced`` may exceed the renderer's limits
+    (the caller renders with its own)."""
     started = time.perf_counter()
-    description = read(path, defaults)
+    description = read(path, defaults, replaced)
     loaded = time.perf_counter()
     geometries = description.geometries()
     meshes = [mesh for mesh, _ in geometries]
@@ -375,10 +378,14 @@ def is_mesh_file(path) -> bool:
     return bool(suffixes) and suffixes[-1][1:] in MESH_EXTENSIONS
 
 
-def read(path, defaults: dict | None = None) -> SceneDescription:
+def read(path, defaults: dict | None = None,
+         replaced: Collection[str] = ()) -> SceneDescription:
     """Read a TOML scene file (schema in this module's docstring); a mesh
     file (``bunny.ply``) is read as a scene of that mesh (read_mesh), and a
     .xml file as Mitsuba 3's scene format (hlbvh_cl.io.mitsuba).
+    ``replaced`` names the render values ("width", "height", and in XML
+    "spp", "max_depth") that the caller replaces with its own: the file's
+    may then exceed the renderer's limits (read_xml).
 
     Raises FileNotFoundError if the scene file itself is missing and
     SceneFileError (a ValueError) for anything wrong inside it, including
@@ -389,7 +396,7 @@ def read(path, defaults: dict | None = None) -> SceneDescription:
         return read_mesh(path)
     if path.suffix.lower() == ".xml":
         from .mitsuba import read_xml
-        return read_xml(path, defaults)
+        return read_xml(path, defaults, replaced)
     reader = _Reader(path)
     try:
         with open(path, "rb") as file:
@@ -413,8 +420,9 @@ def read(path, defaults: dict | None = None) -> SceneDescription:
     for required in _RENDER_KEYS:
         if required not in render:
             raise reader.error(f"render.{required}", "missing (required)")
-    width = reader.integer(render["width"], "render.width", 1, _MAX_IMAGE_SIDE)
-    height = reader.integer(render["height"], "render.height", 1, _MAX_IMAGE_SIDE)
+    width, height = (reader.integer(render[side], f"render.{side}", 1,
+                                    None if side in replaced else _MAX_IMAGE_SIDE)
+                     for side in ("width", "height"))
     camera = _read_camera(reader, data["camera"])
     light = _read_light(reader, data.get("light", {}))
     ground_spec = _read_ground(reader, data["ground"]) if "ground" in data else None

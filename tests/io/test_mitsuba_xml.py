@@ -739,3 +739,45 @@ def test_what_mitsuba_loads_but_renders_otherwise_is_an_error(tmp_path, body, wo
     with pytest.raises(SceneFileError) as error:
         read_xml(path)
     assert str(error.value).startswith(f"{path}:") and words in str(error.value), error.value
+
+
+def test_values_past_the_renderers_limits_yield_to_the_flags_that_replace_them(
+        tmp_path, capsys, suite_device):
+    """Mitsuba loads sample counts, depths and film sides past this
+    renderer's limits.  Read alone, such a file is refused at the line that
+    says them; with the values replaced (the CLI's --spp, --max-depth,
+    --width and --height) it loads, and renders with the flags' values.  A
+    value no flag replaces is still refused, and one Mitsuba itself refuses
+    (a film side of 0) is refused whatever replaces it."""
+    from hlbvh_cl.cli import main
+    from hlbvh_cl.io.exr import read_exr
+    text = CORNELL.read_text()
+    for old, new in (('name="max_depth" value="6"', 'name="max_depth" value="5000"'),
+                     ('name="sample_count" value="$spp"', 'name="sample_count" value="100000"'),
+                     ('name="width" value="$res"', 'name="width" value="20000"')):
+        assert old in text
+        text = text.replace(old, new, 1)
+    path = scene_of(tmp_path, text)
+    for replaced, words in (((), "max_depth must be -1 (no limit) or 1..1024, got 5000"),
+                            ({"max_depth"}, "sample_count must be 1..65536, got 100000"),
+                            ({"max_depth", "spp"}, "width and height must be 1..16384, got 20000"),
+                            ({"max_depth", "spp", "height"}, "got 20000")):
+        with pytest.raises(SceneFileError, match=r"scene\.xml:\d+: ") as error:
+            read_xml(path, replaced=replaced)
+        assert words in str(error.value), (replaced, error.value)
+    read = read_xml(path, replaced={"max_depth", "spp", "width"})
+    assert (read.options["max_depth"], read.options["spp"], read.width) == (5000, 100000, 20000)
+
+    out = tmp_path / "big.exr"
+    argv = ["render", str(path), "-o", str(out), "--device", suite_device.id,
+            "--width", "16", "--height", "12", "--spp", "2"]
+    assert main(argv) == 2  # --max-depth not given: the file's 5000 is refused
+    assert "max_depth must be -1 (no limit) or 1..1024, got 5000" in capsys.readouterr().err
+    assert main(argv + ["--max-depth", "3"]) == 0
+    assert "16x12, path, 2 spp" in capsys.readouterr().out
+    assert read_exr(out).shape == (12, 16, 3)
+
+    zero = scene_of(tmp_path, text.replace('name="width" value="20000"',
+                                           'name="width" value="0"', 1))
+    with pytest.raises(SceneFileError, match="width and height must be 1..16384, got 0"):
+        read_xml(zero, replaced={"max_depth", "spp", "width", "height"})

@@ -267,6 +267,21 @@ def test_errors_name_the_file_and_the_key(tmp_path, text, key, words):
     assert words in message
 
 
+def test_a_render_size_past_the_limit_loads_where_the_caller_replaces_it(tmp_path):
+    """render.width past the renderer's 16384 is refused, naming the key,
+    unless the caller renders at its own width (the CLI's --width); the
+    height it does not replace is still checked."""
+    path = write(tmp_path, BASE.replace("width = 64", "width = 20000") + MESH)
+    with pytest.raises(SceneFileError, match=r"render\.width: .*<= 16384, got 20000"):
+        read(path)
+    with pytest.raises(SceneFileError, match=r"render\.width: "):
+        read(path, replaced={"height"})
+    assert read(path, replaced={"width"}).width == 20000
+    path = write(tmp_path, BASE.replace("height = 48", "height = 0") + MESH)
+    with pytest.raises(SceneFileError, match=r"render\.height: .*>= 1"):
+        read(path, replaced={"height"})
+
+
 def test_huge_but_finite_directions_are_normalised(tmp_path):
     """The length of (0, 1e300, 0) overflows float64: the direction does not."""
     text = BASE + "up = [0.0, 1e300, 0.0]\n[light]\ndirection = [0.0, 0.0, -1e300]\n" + MESH
