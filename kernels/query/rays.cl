@@ -69,17 +69,22 @@ TRAVERSAL_INLINE void prefetch_hit_ids(__global const TriangleRef* refs, uint i)
  * -INFINITY, below every box and triangle) and the walk ends when all are.
  * The root's leaves in reach are tested before its children are descended
  * into: the SAH top isolates the largest triangles (a ground, a wall) at
- * the top of the tree, where they end most shadow rays at once.  Deeper,
- * the children go nearer first, leaves too, as the nearer boxes hold an
- * occluder sooner: leaves tested first there are the far ones as often as
- * not (measured slower on rays leaving a surface). */
+ * the top of the tree, where they end most shadow rays at once.  Rays
+ * traced one by one on a CPU have those leaves tested for all of them at
+ * once, as the closest hit does (trace.h's root phase: which hit a lane
+ * takes does not change whether it has one), and a lane the phase occludes
+ * takes no walk.  Deeper, the children go nearer first, leaves too, as the
+ * nearer boxes hold an occluder sooner: leaves tested first there are the
+ * far ones as often as not (measured slower on rays leaving a surface). */
 #define QUERY occluded
 #define QUERY_OUT HitLanes
 #define QUERY_ENDS(s) PATH(every)((s)->index >= 0)
 #define QUERY_HIT(s, i, hit, t, u, v) \
     (PATH(take_hit)(s, i, hit, t, u, v, -INFINITY), QUERY_ENDS(s))
-#define QUERY_NODE(s, r, n, mask) \
-    ((n) == nodes && WALK_NAME(leaves_first)(s, r, n, mask, triangles WALK_ARGS))
+#define QUERY_ROOT_PHASE
+#define QUERY_NODE(s, r, n, mask)                                    \
+    ((n) == nodes && (*(mask) &= ~PATH(root_done)(s),                \
+                      WALK_NAME(leaves_first)(s, r, n, mask, triangles WALK_ARGS)))
 #define QUERY_END(s, out, l) PATH(store_index)(s, out, l)
 #include "query/rays/trace.h"
 

@@ -404,7 +404,8 @@ def test_root_phase_gives_the_walks_one_by_one_s_answers(monkeypatch):
     the same closest hits, bit for bit, as one ray a work-item walked alone
     (packets of 1, no root phase), walks interleaved or not, with and
     without limits that cut some hits off, and the oracle's.  The rays end
-    on the ground, on a mesh in front of it, or on nothing."""
+    on the ground, on a mesh in front of it, or on nothing.  Any hit takes
+    the phase too: a ray is occluded exactly where it has a closest hit."""
     from hlbvh_cl.query import engine
     from render_scene import render_meshes
     case = SceneCase(render_meshes())
@@ -431,6 +432,8 @@ def test_root_phase_gives_the_walks_one_by_one_s_answers(monkeypatch):
             for limits in ({}, {"tmin": tmin, "tmax": tmax}):
                 hits = q.intersect(tree, origins, directions, **limits)
                 answers.append([getattr(hits, name) for name in fields])
+                np.testing.assert_array_equal(q.occluded(tree, origins, directions, **limits),
+                                              np.isfinite(hits.t))
                 if packet_size == 1 and smallest == 0:
                     assert_matches_oracle(case, hits, origins, directions, **limits)
     first = answers[0][1]

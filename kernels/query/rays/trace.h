@@ -30,10 +30,11 @@
  *                            (those that still meet an interior child of
  *                            the root), and the query's QUERY_NODE drops
  *                            those leaves at the root (root_done).  For
- *                            queries that never end at a hit and whose
- *                            result does not depend on the order of their
- *                            hits (the closest hit, ties going to the first
- *                            triangle: walk.h's leaf)
+ *                            queries whose result does not depend on the
+ *                            order of their hits (the closest hit, ties
+ *                            going to the first triangle: walk.h's leaf;
+ *                            any hit, whose lanes that hit are done: their
+ *                            limit, -inf, meets no child)
  * trace_QUERY(lanes, used, the scene's trees (instance.h's SCENE_TREES),
  * overflow, out, QUERY_ARGS) sets overflow[0] if a walk ran out of stack, and
  * counts the packets in overflow[1] under COUNT_PACKETS (tests). */
