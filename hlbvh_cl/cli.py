@@ -93,8 +93,9 @@ def _instances(scene) -> str:
 def _cmd_info(args) -> int:
     with stage(_PROBING):
         select_device(args.device)
-    with stage(_BUILDING):
-        loaded = scenefile.load(args.scene, args.device, args.builder, args.morton_bits)
+    with stage(_BUILDING):  # nothing rendered: no render value is used
+        loaded = scenefile.load(args.scene, args.device, args.builder, args.morton_bits,
+                                replaced=("spp", "max_depth", "width", "height"))
     scene = loaded.scene
     if args.repeat > 1:  # the first build pays for kernel compilation
         for _ in range(args.repeat - 1):
@@ -129,9 +130,11 @@ def _cmd_render(args) -> int:
     with stage(_PROBING):
         select_device(args.device)  # an unknown device fails before the scene loads
     started = time.perf_counter()
-    # the file's values that a flag replaces may lie past the renderer's
+    # the file's values that a flag replaces, or that the render does not
+    # use (a depth, shading other than path), may lie past the renderer's
     # limits (Mitsuba loads sample counts and film sizes this renderer does not)
-    flags = {"spp": args.spp or args.time, "max_depth": args.max_depth is not None,
+    flags = {"spp": args.spp or args.time,
+             "max_depth": args.max_depth is not None or args.shading not in (None, "path"),
              "width": args.width, "height": args.height}
     with stage(_BUILDING):
         loaded = scenefile.load(args.scene, args.device,

@@ -454,9 +454,9 @@ def read_xml(path, defaults: dict | None = None,
             if node.get("type") != "path":
                 raise reader.error(node, "only the path integrator is read")
             values = reader.parameters(node, ("max_depth", "rr_depth"))
-            highest = None if "max_depth" in replaced else MAX_DEPTH
-            if not _within(values.get("max_depth", -1), -1, highest):
-                raise reader.error(node, f"max_depth must be -1 (no limit) or 1..{MAX_DEPTH}, "
+            highest = _INT32_MAX if "max_depth" in replaced else MAX_DEPTH
+            if not -1 <= values.get("max_depth", -1) <= highest:
+                raise reader.error(node, f"max_depth must be -1 (no limit) or 1..{highest}, "
                                          f"got {values['max_depth']}")
             if values.get("max_depth") == 0:
                 raise reader.error(node, "max_depth 0 (an image of nothing, in Mitsuba) is not "
@@ -525,9 +525,11 @@ def _one_each(reader: _Reader, node: _Node, tags: tuple) -> None:
             seen[key] = child
 
 
-def _within(value: int, low: int, high: int | None) -> bool:
-    """low <= value <= high, with no upper limit where high is None."""
-    return low <= value and (high is None or value <= high)
+#: The largest values Mitsuba reads where a caller replaces this renderer's
+#: (read_xml's ``replaced``): its film sizes and sample counts are uint32,
+#: its depths int.
+_UINT32_MAX = 2**32 - 1
+_INT32_MAX = 2**31 - 1
 
 
 def _sensor(reader: _Reader, node: _Node, options: dict, replaced: Collection[str]):
@@ -544,10 +546,11 @@ def _sensor(reader: _Reader, node: _Node, options: dict, replaced: Collection[st
             film = reader.parameters(child, ("width", "height", "pixel_format",
                                              "component_format"), skip=("rfilter",))
             size = (film.get("width", FILM_SIZE[0]), film.get("height", FILM_SIZE[1]))
-            if not all(_within(side, 1, None if name in replaced else MAX_IMAGE_SIDE)
-                       for name, side in zip(("width", "height"), size)):
-                raise reader.error(child, f"width and height must be 1..{MAX_IMAGE_SIDE}, got "
-                                          f"{size[0]} x {size[1]}")
+            for name, side in zip(("width", "height"), size):
+                highest = _UINT32_MAX if name in replaced else MAX_IMAGE_SIDE
+                if not 1 <= side <= highest:
+                    raise reader.error(child, f"width and height must be 1..{highest}, got "
+                                              f"{size[0]} x {size[1]}")
             for key, formats in (("pixel_format", PIXEL_FORMATS),
                                  ("component_format", COMPONENT_FORMATS)):
                 if film.get(key, formats[0]) not in formats:
@@ -565,8 +568,9 @@ def _sensor(reader: _Reader, node: _Node, options: dict, replaced: Collection[st
                 raise reader.error(child, "only the independent sampler is read")
             sampler = reader.parameters(child, ("sample_count", "seed"))
             options["spp"] = int(sampler.get("sample_count", SAMPLE_COUNT))
-            if not _within(options["spp"], 1, None if "spp" in replaced else MAX_SPP):
-                raise reader.error(child, f"sample_count must be 1..{MAX_SPP}, got "
+            highest = _UINT32_MAX if "spp" in replaced else MAX_SPP
+            if not 1 <= options["spp"] <= highest:
+                raise reader.error(child, f"sample_count must be 1..{highest}, got "
                                           f"{options['spp']}")
             if "seed" in sampler:  # the render's seed (Renderer.render's)
                 if sampler["seed"] < 0:  # Mitsuba's is a size_t

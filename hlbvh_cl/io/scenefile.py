@@ -421,7 +421,7 @@ def read(path, defaults: dict | None = None,
         if required not in render:
             raise reader.error(f"render.{required}", "missing (required)")
     width, height = (reader.integer(render[side], f"render.{side}", 1,
-                                    None if side in replaced else _MAX_IMAGE_SIDE)
+                                    2**32 - 1 if side in replaced else _MAX_IMAGE_SIDE)
                      for side in ("width", "height"))
     camera = _read_camera(reader, data["camera"])
     light = _read_light(reader, data.get("light", {}))

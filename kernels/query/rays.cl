@@ -72,10 +72,11 @@ TRAVERSAL_INLINE void prefetch_hit_ids(__global const TriangleRef* refs, uint i)
  * the top of the tree, where they end most shadow rays at once.  Rays
  * traced one by one on a CPU have those leaves tested for all of them at
  * once, as the closest hit does (trace.h's root phase: which hit a lane
- * takes does not change whether it has one), and a lane the phase occludes
- * takes no walk.  Deeper, the children go nearer first, leaves too, as the
- * nearer boxes hold an occluder sooner: leaves tested first there are the
- * far ones as often as not (measured slower on rays leaving a surface). */
+ * takes does not change whether it has one); a lane the phase occludes, or
+ * that meets no interior child of the root, takes no walk.  Deeper, the
+ * children go nearer first, leaves too, as the nearer boxes hold an occluder
+ * sooner: leaves tested first there are the far ones as often as not
+ * (measured slower on rays leaving a surface). */
 #define QUERY occluded
 #define QUERY_OUT HitLanes
 #define QUERY_ENDS(s) PATH(every)((s)->index >= 0)

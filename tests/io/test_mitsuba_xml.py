@@ -777,7 +777,23 @@ def test_values_past_the_renderers_limits_yield_to_the_flags_that_replace_them(
     assert "16x12, path, 2 spp" in capsys.readouterr().out
     assert read_exr(out).shape == (12, 16, 3)
 
-    zero = scene_of(tmp_path, text.replace('name="width" value="20000"',
-                                           'name="width" value="0"', 1))
-    with pytest.raises(SceneFileError, match="width and height must be 1..16384, got 0"):
-        read_xml(zero, replaced={"max_depth", "spp", "width", "height"})
+    assert main(argv + ["--max-depth", "3", "--time", "0.2"]) == 0  # --time replaces spp too
+    capsys.readouterr()
+    assert main(["info", str(path), "--device", suite_device.id]) == 0  # renders nothing
+    assert "triangles" in capsys.readouterr().out
+
+    # a value replaced must still be one Mitsuba reads (its film sides and
+    # sample counts are uint32, its depths int)
+    every = {"max_depth", "spp", "width", "height"}
+    for old, new, words in (('value="20000"', 'value="0"',
+                             "width and height must be 1..4294967295, got 0"),
+                            ('value="20000"', 'value="1' + "0" * 400 + '"',
+                             "width and height must be 1..4294967295, got 1000"),
+                            ('value="100000"', 'value="4294967296"',
+                             "sample_count must be 1..4294967295, got 4294967296"),
+                            ('value="5000"', 'value="2147483648"',
+                             "max_depth must be -1 (no limit) or 1..2147483647, got 2147483648")):
+        bad = scene_of(tmp_path, text.replace(old, new, 1))
+        with pytest.raises(SceneFileError, match=r"scene\.xml:\d+: ") as error:
+            read_xml(bad, replaced=every)
+        assert words in str(error.value), (new[:20], error.value)
