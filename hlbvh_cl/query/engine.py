@@ -171,8 +171,9 @@ def kernel_defines(rt: Runtime, tree, variant, packet: int, **extra) -> dict:
 
 
 #: Private bytes a work-item's interleaved walks may take for their stacks
-#: (query/walk/walk.h's walks: PACKET_SIZE stacks of STACK_SIZE + 1 items of
-#: 12 bytes); a deeper tree walks its rays one after the other.
+#: (query/walk/walk.h's walks: WALK_LANES stacks of STACK_SIZE + 1 items of
+#: 12 bytes, a work-item's rays: rays.py's lane_groups); a deeper tree walks
+#: its rays one after the other.
 INTERLEAVED_STACK_BYTES = 32 * 1024
 
 #: Trees whose nodes and triangles take less than this stay mostly in a

@@ -25,8 +25,8 @@ from ..core import inputs
 from . import on_device
 from ..device.runtime import Runtime
 from ..device.profile import PACKET_SIZES
-from .engine import (Batch, Engine, check_tree, engine_setting, kernel_defines,
-                     work_group_size)
+from .engine import (Batch, Engine, check_tree, engine_setting, interleaved_walks,
+                     kernel_defines, stack_size, work_group_size)
 from .results import ResultPool
 from ..core.inputs import ALL_BITS
 from ..build.instances import InstancedTree
@@ -175,7 +175,7 @@ class RayQuery:
                        for name, (dtype, n) in HIT_FIELDS.items()})
         batch, t_factor = into_frame(batch, tree)
         if count and check_tree(self.rt, tree):
-            self._run(batch, self._closest(tree), {name: getattr(hits, name)
+            self._run(tree, batch, self._closest(tree), {name: getattr(hits, name)
                                                    for name in HIT_ARRAYS}, "closest")
             if t_factor is not None:  # back from the frame
                 hit = np.flatnonzero(hits.prim_id >= 0)
@@ -203,7 +203,7 @@ class RayQuery:
         count = len(batch)
         result = self.results.empty(count, np.uint8)
         if count and check_tree(self.rt, tree):
-            self._run(batch, self._any(tree), {"occluded": result}, "any")
+            self._run(tree, batch, self._any(tree), {"occluded": result}, "any")
         return result.view(bool).reshape(batch.shape)  # the kernel writes 0 or 1
 
     def _closest(self, tree):
@@ -214,13 +214,13 @@ class RayQuery:
 
         def launch(n, run):
             b, steps = run.buffers, run.steps
-            return self.rt.run(kernel, self._work_items(n),
+            return self.rt.run(kernel, self._work_items(tree, n),
                                *scene_args(tree, *steps["mask"]), b["origins"],
                                b["directions"], *steps["tmin"], *steps["tmax"], b["t"],
                                b["geom_id"], b["prim_id"], b["u"], b["v"], b["normal"],
                                b["points"], b["instance_id"], self.engine.counters,
-                               np.uint32(run.first + n), local_size=self.work_group_size,
-                               offset=run.first // self.packet_size)
+                               np.uint32(run.first + n), local_size=self._group_size(tree),
+                               offset=run.first // self.rays_per_item(tree))
         return launch
 
     def _any(self, tree):
@@ -229,12 +229,12 @@ class RayQuery:
 
         def launch(n, run):
             b, steps = run.buffers, run.steps
-            return self.rt.run(kernel, self._work_items(n),
+            return self.rt.run(kernel, self._work_items(tree, n),
                                *scene_args(tree, *steps["mask"]), b["origins"],
                                b["directions"], *steps["tmin"], *steps["tmax"],
                                b["occluded"], self.engine.counters,
-                               np.uint32(run.first + n), local_size=self.work_group_size,
-                               offset=run.first // self.packet_size)
+                               np.uint32(run.first + n), local_size=self._group_size(tree),
+                               offset=run.first // self.rays_per_item(tree))
         return launch
 
     def _on_device(self, tree, rays: on_device.DeviceRays, query, fields: dict, make):
@@ -268,7 +268,8 @@ class RayQuery:
         float32's range (the caller traces from the host instead)."""
         counters = self.engine.run(self.device_batch(
             tree, rays, {}, outputs, self.walk_limits(tree, rays), check=True,
-            granule=self.packet_size, key="closest" if "t" in outputs else "any"), launch)
+            granule=self.rays_per_item(tree), key="closest" if "t" in outputs else "any"),
+            launch)
         self.last_packets = int(counters[1]) if self.count_packets else None
         return self.checked(rays, counters)
 
@@ -322,10 +323,10 @@ class RayQuery:
         traversal set it."""
         self._require_triangles(tree)
         kernel = self._kernel(tree, "intersect_closest")
-        return self.rt.run(kernel, self._work_items(count),
+        return self.rt.run(kernel, self._work_items(tree, count),
                            *scene_args(tree, self._all_bits, 0), rays, hits, instances,
                            overflow, np.uint32(count), *counted_args(counted),
-                           wait_for=wait_for, local_size=self.work_group_size)
+                           wait_for=wait_for, local_size=self._group_size(tree))
 
     def enqueue_occluded(self, tree: Tree, rays: cl.Buffer, occluded: cl.Buffer, count: int,
                          overflow: cl.Buffer, wait_for=None,
@@ -334,10 +335,10 @@ class RayQuery:
         where ray i hits anything."""
         self._require_triangles(tree)
         kernel = self._kernel(tree, "intersect_any")
-        return self.rt.run(kernel, self._work_items(count),
+        return self.rt.run(kernel, self._work_items(tree, count),
                            *scene_args(tree, self._all_bits, 0), rays, occluded, overflow,
                            np.uint32(count), *counted_args(counted), wait_for=wait_for,
-                           local_size=self.work_group_size)
+                           local_size=self._group_size(tree))
 
     # -- internals ----------------------------------------------------------
 
@@ -345,27 +346,52 @@ class RayQuery:
         """The traversal kernel `name` for `tree` (an instanced one's walks
         its top tree, kernels/query/rays/instance.h)."""
         extra = {"COUNT_PACKETS": 1} if count_packets else {}
+        groups = lane_groups(self.rt, tree, self.packet_size)
+        if groups > 1:
+            extra["LANE_GROUPS"] = groups
         return self.rt.kernel(KERNEL, name, **kernel_defines(self.rt, tree, self.variant,
                                                               self.packet_size, **extra))
 
-    def _work_items(self, rays: int) -> int:
-        """Work-items that trace `rays` rays, packet_size rays each."""
-        return -(-rays // self.packet_size)
+    def rays_per_item(self, tree) -> int:
+        """The rays a work-item of query/rays.cl traces over ``tree``: its
+        lane_groups of packet_size."""
+        return lane_groups(self.rt, tree, self.packet_size) * self.packet_size
+
+    def _work_items(self, tree, rays: int) -> int:
+        """Work-items that trace `rays` rays over ``tree``."""
+        return -(-rays // self.rays_per_item(tree))
+
+    def _group_size(self, tree) -> int:
+        """Work-items per work-group over ``tree``: work_group_size, halved
+        where each takes two lane groups, so that a group holds as many rays
+        (the few groups of a path tracer's last bounces, fewer and larger,
+        left a core idle: measured slower)."""
+        return max(1, self.work_group_size // lane_groups(self.rt, tree, self.packet_size))
 
     def _require_triangles(self, tree: Tree) -> None:
         if not check_tree(self.rt, tree):
             raise ValueError("the tree holds no triangle: there is nothing to trace rays against")
 
-    def _run(self, batch: inputs.Rays, launch, outputs: dict, key: str) -> None:
+    def _run(self, tree, batch: inputs.Rays, launch, outputs: dict, key: str) -> None:
         """The launches over the rays (the engine's chunks), the results
         into the arrays of ``outputs``; ``key`` paces them (Batch.key).
-        Launches take whole packets (granule), so that a packet is the
-        caller's consecutive rays however the pacing cuts the batch."""
+        Launches take whole work-items' rays (granule), so that a packet is
+        the caller's consecutive rays however the pacing cuts the batch."""
         counters = self.engine.run(Batch(
             len(batch), {"origins": batch.origins, "directions": batch.directions}, outputs,
             stepped={"tmin": batch.tmin, "tmax": batch.tmax, "mask": batch.mask}, key=key,
-            granule=self.packet_size), launch)
+            granule=self.rays_per_item(tree)), launch)
         self.last_packets = int(counters[1]) if self.count_packets else None
+
+
+def lane_groups(rt: Runtime, tree, packet: int) -> int:
+    """Groups of ``packet`` rays a work-item of query/rays.cl traces over
+    ``tree`` (its LANE_GROUPS): two on a flat scene whose walks go
+    interleaved (interleaved_walks) with room for both groups' stacks, their
+    walks then interleaved together; else one."""
+    if packet == 1 or isinstance(tree, InstancedTree):
+        return 1
+    return 2 if interleaved_walks(rt, tree, stack_size(tree), 2 * packet) else 1
 
 
 def counted_args(counted: tuple[cl.Buffer, int] | None) -> tuple:

@@ -327,7 +327,7 @@ TRAVERSAL_KERNEL void count_hits_arrays(SCENE_PARAMS, RAY_PARAMS, __global int* 
                indexed ? ray_count : 0u, origins, directions, counts);
     HitCounts found;
     found.ahead = &ahead;
-    trace_count(&rays.lanes, used, SCENE_TREES, overflow, &found);
+    trace_count(&rays.lanes, &used, SCENE_TREES, overflow, &found);
     prefetch_rest(&ahead);
     for (uint l = 0; l < used; ++l) {
         counts[rays.at[l]] = found.count[l];
@@ -410,7 +410,7 @@ TRAVERSAL_KERNEL void fill_hits_arrays(SCENE_PARAMS, RAY_PARAMS, __global const 
         walk |= walks;
     }
     if (walk)
-        trace_fill(&rays.lanes, used, SCENE_TREES, overflow, &g, 0, -1);
+        trace_fill(&rays.lanes, &used, SCENE_TREES, overflow, &g, 0, -1);
     for (uint l = 0; l < used; ++l) {
         if (g.kept[l] != capacity[l])
             overflow[1] = 1;

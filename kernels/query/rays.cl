@@ -39,6 +39,38 @@
 #include "query/rays/mixed.h"
 #endif
 
+/* A work-item traces LANE_GROUPS groups of PACKET_SIZE rays (a -D define of
+ * the host's, hlbvh_cl/query/rays.py's lane_groups, which sizes the
+ * launches so; default 1).  Two on a flat scene on a CPU whose walks go
+ * interleaved: the root phase ends many of a group's rays (on a ground, a
+ * wall), and the walks left from both groups then go in turn together, more
+ * of them to hide one another's cache misses (measured faster on incoherent
+ * rays, and on bounces). */
+#ifndef LANE_GROUPS
+#define LANE_GROUPS 1
+#endif
+#if LANE_GROUPS > 1
+#if !defined(ROOT_PHASE) || !defined(INTERLEAVED_WALKS)
+#error "LANE_GROUPS > 1 is for flat scenes on CPUs whose walks go interleaved"
+#endif
+#define WALK_LANES (LANE_GROUPS * PACKET_SIZE)
+#endif
+
+/* The work-item's rays: LANE_GROUPS groups of PACKET_SIZE from *first, of
+ * which group g has used[g] (0 past ray_count: only the last group that
+ * has any may have fewer than PACKET_SIZE); returns how many in all. */
+TRAVERSAL_INLINE uint group_rays(uint ray_count, uint* first, uint* used)
+{
+    *first = get_global_id(0) * (LANE_GROUPS * PACKET_SIZE);
+    uint total = 0;
+    for (uint g = 0; g < LANE_GROUPS; ++g) {
+        uint at = *first + g * PACKET_SIZE;
+        used[g] = at < ray_count ? LESSER((uint)PACKET_SIZE, ray_count - at) : 0u;
+        total += used[g];
+    }
+    return total;
+}
+
 /* A closest hit's ids (refs[i]) are read when the traversal ends, a cache
  * miss of their own: start loading them when the hit is found. */
 TRAVERSAL_INLINE void prefetch_hit_ids(__global const TriangleRef* refs, uint i)
@@ -115,39 +147,44 @@ TRAVERSAL_INLINE void lane_hit(Hit* out, const HitLanes* found, uint l, SCENE_PA
     make_hit(out, found->index[l], found->t[l], found->u[l], found->v[l], triangles, refs);
 }
 
-/* Closest hits of the rays lanes[0, used) of a work-item as Hit records, and
- * their instances (-1: none).  The hits' ids and normals are read once every
- * lane is traced: their cache misses then overlap instead of ending each ray
+/* Closest hits of a work-item's rays (group g: lanes[g], its first used[g]
+ * lanes) as Hit records, group by group from hits[0], and their instances
+ * (-1: none).  The hits' ids and normals are read once every lane is
+ * traced: their cache misses then overlap instead of ending each ray
  * (measured faster).  `first` is the first ray's index (its mask's). */
-TRAVERSAL_INLINE void closest_hits(RayLanes* lanes, uint used, uint first, SCENE_PARAMS,
+TRAVERSAL_INLINE void closest_hits(RayLanes* lanes, const uint* used, uint first, SCENE_PARAMS,
                                    __global int* overflow, Hit* hits, int* instance)
 {
 #ifdef INSTANCES
-    load_masks(lanes, first, used, ray_masks, mask_step);
+    load_masks(lanes, first, used[0], ray_masks, mask_step);  /* one group (LANE_GROUPS) */
 #endif
-    HitLanes found;
-    trace_intersect(lanes, used, SCENE_TREES, overflow, &found, refs);
-    for (uint l = 0; l < used; ++l) {
-        lane_hit(hits + l, &found, l, SCENE_ARGS);
+    HitLanes found[LANE_GROUPS];
+    trace_intersect(lanes, used, SCENE_TREES, overflow, found, refs);
+    for (uint g = 0; g < LANE_GROUPS; ++g)
+        for (uint l = 0; l < used[g]; ++l) {
+            uint i = g * PACKET_SIZE + l;
+            lane_hit(hits + i, found + g, l, SCENE_ARGS);
 #ifdef INSTANCES
-        instance[l] = found.instance[l];
+            instance[i] = found[g].instance[l];
 #else
-        instance[l] = -1;
+            instance[i] = -1;
 #endif
-    }
+        }
 }
 
-/* Occlusion of the rays lanes[0, used): occluded[l] = 1 if anything is hit. */
-TRAVERSAL_INLINE void any_hits(RayLanes* lanes, uint used, uint first, SCENE_PARAMS,
+/* Occlusion of a work-item's rays, as closest_hits takes them: occluded[i]
+ * = 1 if anything is hit. */
+TRAVERSAL_INLINE void any_hits(RayLanes* lanes, const uint* used, uint first, SCENE_PARAMS,
                                __global int* overflow, __global uchar* occluded)
 {
 #ifdef INSTANCES
-    load_masks(lanes, first, used, ray_masks, mask_step);
+    load_masks(lanes, first, used[0], ray_masks, mask_step);
 #endif
-    HitLanes found;
-    trace_occluded(lanes, used, SCENE_TREES, overflow, &found);
-    for (uint l = 0; l < used; ++l)
-        occluded[l] = found.index[l] >= 0 ? 1 : 0;
+    HitLanes found[LANE_GROUPS];
+    trace_occluded(lanes, used, SCENE_TREES, overflow, found);
+    for (uint g = 0; g < LANE_GROUPS; ++g)
+        for (uint l = 0; l < used[g]; ++l)
+            occluded[g * PACKET_SIZE + l] = found[g].index[l] >= 0 ? 1 : 0;
 }
 
 /* The rays a launch over Ray records traces: ray_count, or where `counts`
@@ -166,23 +203,25 @@ TRAVERSAL_KERNEL void intersect_closest(SCENE_PARAMS, __global const Ray* rays, 
         __global int* instance_out, __global int* overflow, const uint ray_count,
         __global const uint* counts, const uint count_at)
 {
-    RayLanes lanes;
-    Hit found[PACKET_SIZE];
-    uint first, used = packet_rays(rays_to_trace(ray_count, counts, count_at), &first);
-    if (used == 0)
+    RayLanes lanes[LANE_GROUPS];
+    Hit found[LANE_GROUPS * PACKET_SIZE];
+    uint first, used[LANE_GROUPS];
+    uint count = group_rays(rays_to_trace(ray_count, counts, count_at), &first, used);
+    if (count == 0)
         return;
-    load_records(rays, first, used, &lanes);
+    for (uint g = 0; g < LANE_GROUPS && used[g] != 0; ++g)
+        load_records(rays, first + g * PACKET_SIZE, used[g], lanes + g);
     /* The lines this work-item's hits go to, asked for while it walks. */
-    PREFETCH_LINES(hits + first, PACKET_SIZE * sizeof(Hit), 1);
+    PREFETCH_LINES(hits + first, count * sizeof(Hit), 1);
     if (instance_out != 0)
-        PREFETCH_LINES(instance_out + first, PACKET_SIZE * sizeof(int), 1);
-    int instance[PACKET_SIZE];
-    closest_hits(&lanes, used, first, SCENE_ARGS, overflow, found, instance);
-    for (uint l = 0; l < used; ++l)
-        hits[first + l] = found[l];
+        PREFETCH_LINES(instance_out + first, count * sizeof(int), 1);
+    int instance[LANE_GROUPS * PACKET_SIZE];
+    closest_hits(lanes, used, first, SCENE_ARGS, overflow, found, instance);
+    for (uint i = 0; i < count; ++i)
+        hits[first + i] = found[i];
     if (instance_out != 0)
-        for (uint l = 0; l < used; ++l)
-            instance_out[first + l] = instance[l];
+        for (uint i = 0; i < count; ++i)
+            instance_out[first + i] = instance[i];
 }
 
 /* Occlusion of rays[0, rays_to_trace): occluded[i] = 1 if anything is hit. */
@@ -191,12 +230,13 @@ TRAVERSAL_KERNEL void intersect_any(SCENE_PARAMS, __global const Ray* rays,
         __global int* overflow, const uint ray_count,
         __global const uint* counts, const uint count_at)
 {
-    uint first, used = packet_rays(rays_to_trace(ray_count, counts, count_at), &first);
-    RayLanes lanes;
-    if (used != 0) {
-        load_records(rays, first, used, &lanes);
-        any_hits(&lanes, used, first, SCENE_ARGS, overflow, occluded + first);
-    }
+    RayLanes lanes[LANE_GROUPS];
+    uint first, used[LANE_GROUPS];
+    if (group_rays(rays_to_trace(ray_count, counts, count_at), &first, used) == 0)
+        return;
+    for (uint g = 0; g < LANE_GROUPS && used[g] != 0; ++g)
+        load_records(rays, first + g * PACKET_SIZE, used[g], lanes + g);
+    any_hits(lanes, used, first, SCENE_ARGS, overflow, occluded + first);
 }
 
 TRAVERSAL_KERNEL void intersect_closest_arrays(SCENE_PARAMS, __global const float* origins, __global const float* directions,
@@ -207,29 +247,33 @@ TRAVERSAL_KERNEL void intersect_closest_arrays(SCENE_PARAMS, __global const floa
         __global int* overflow,
         const uint ray_count)
 {
-    uint first, used = packet_rays(ray_count, &first);
-    if (used == 0)
+    RayLanes lanes[LANE_GROUPS];
+    uint first, used[LANE_GROUPS];
+    uint count = group_rays(ray_count, &first, used);
+    if (count == 0)
         return;
-    RayLanes lanes;
-    load_arrays(first, used, origins, directions, tmin, tmin_step, tmax, tmax_step, &lanes);
-    Hit found[PACKET_SIZE];
-    int instance[PACKET_SIZE];
-    closest_hits(&lanes, used, first, SCENE_ARGS, overflow, found, instance);
-    for (uint l = 0; l < used; ++l) {
-        uint i = first + l;
-        instance_out[i] = instance[l];
-        t_out[i] = found[l].t;
-        geom_out[i] = found[l].geom_id;
-        prim_out[i] = found[l].prim_id;
-        u_out[i] = found[l].u;
-        v_out[i] = found[l].v;
+    for (uint g = 0; g < LANE_GROUPS && used[g] != 0; ++g)
+        load_arrays(first + g * PACKET_SIZE, used[g], origins, directions, tmin, tmin_step,
+                    tmax, tmax_step, lanes + g);
+    Hit found[LANE_GROUPS * PACKET_SIZE];
+    int instance[LANE_GROUPS * PACKET_SIZE];
+    closest_hits(lanes, used, first, SCENE_ARGS, overflow, found, instance);
+    for (uint j = 0; j < count; ++j) {
+        uint i = first + j, l = j % PACKET_SIZE;
+        const RayLanes* group = lanes + j / PACKET_SIZE;
+        instance_out[i] = instance[j];
+        t_out[i] = found[j].t;
+        geom_out[i] = found[j].geom_id;
+        prim_out[i] = found[j].prim_id;
+        u_out[i] = found[j].u;
+        v_out[i] = found[j].v;
         /* The hit point origin + t * direction, rounded as numpy would
          * (FP_CONTRACT is off), NaN on a miss: written here, where the ray
          * is at hand, rather than kept for the host to compute later. */
         for (uint k = 0; k < 3; ++k) {
-            normal_out[3 * (size_t)i + k] = found[l].normal[k];
-            points_out[3 * (size_t)i + k] = found[l].geom_id >= 0
-                ? lanes.origin[k][l] + found[l].t * lanes.direction[k][l] : NAN;
+            normal_out[3 * (size_t)i + k] = found[j].normal[k];
+            points_out[3 * (size_t)i + k] = found[j].geom_id >= 0
+                ? group->origin[k][l] + found[j].t * group->direction[k][l] : NAN;
         }
     }
 }
@@ -239,10 +283,12 @@ TRAVERSAL_KERNEL void intersect_any_arrays(SCENE_PARAMS, __global const float* o
         __global const float* tmax, const uint tmax_step, __global uchar* occluded,
         __global int* overflow, const uint ray_count)
 {
-    uint first, used = packet_rays(ray_count, &first);
-    RayLanes lanes;
-    if (used != 0) {
-        load_arrays(first, used, origins, directions, tmin, tmin_step, tmax, tmax_step, &lanes);
-        any_hits(&lanes, used, first, SCENE_ARGS, overflow, occluded + first);
-    }
+    RayLanes lanes[LANE_GROUPS];
+    uint first, used[LANE_GROUPS];
+    if (group_rays(ray_count, &first, used) == 0)
+        return;
+    for (uint g = 0; g < LANE_GROUPS && used[g] != 0; ++g)
+        load_arrays(first + g * PACKET_SIZE, used[g], origins, directions, tmin, tmin_step,
+                    tmax, tmax_step, lanes + g);
+    any_hits(lanes, used, first, SCENE_ARGS, overflow, occluded + first);
 }

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 
 import numpy as np
+import pyopencl.array as cl_array
 import pytest
 
 import hlbvh_cl
@@ -442,3 +443,46 @@ def test_root_phase_gives_the_walks_one_by_one_s_answers(monkeypatch):
     for at, other in enumerate(answers[2:], 2):
         for name, got, want in zip(fields, other, answers[at % 2]):
             np.testing.assert_array_equal(got, want, name)
+
+
+def test_two_lane_groups_a_work_item_give_one_group_s_answers(monkeypatch):
+    """On a flat scene whose walks go interleaved, a CPU work-item traces two
+    groups of rays (query/rays.cl's LANE_GROUPS, rays.py's lane_groups),
+    their walks interleaved together: the same hits, occlusion and records,
+    bit for bit, as one group a work-item, for batches that end inside a
+    group or leave the second empty, and for launches cut small (their
+    offsets count whole work-items)."""
+    from hlbvh_cl.query import engine, rays
+    from render_scene import render_meshes
+    case = SceneCase(render_meshes())
+    tree = built.tree(case.scene)
+    monkeypatch.setattr(engine, "INTERLEAVED_MIN_TREE_BYTES", 0)
+    q = packet_query(case.scene, 16)
+    assert rays.lane_groups(q.rt, tree, 16) == 2
+    origins, directions = random_rays(case, 700, seed=5)
+    fields = ("t", "geom_id", "prim_id", "u", "v", "normal", "points")
+    answers = {}
+    for groups in (2, 1):
+        monkeypatch.setattr(rays, "lane_groups", lambda rt, tree, packet, g=groups: g)
+        q = packet_query(case.scene, 16)
+        for count in (1, 15, 17, 33, 700):
+            for most in (None, 48):
+                q.max_rays_per_launch = most or rays.MAX_RAYS_PER_LAUNCH
+                hits = q.intersect(tree, origins[:count], directions[:count])
+                occluded = q.occluded(tree, origins[:count], directions[:count])
+                answers.setdefault((count, most), []).append(
+                    [getattr(hits, name) for name in fields] + [occluded])
+                # rays on the device: launches at global offsets of whole work-items
+                on_device = [cl_array.to_device(q.rt.queue, np.ascontiguousarray(a[:count]))
+                             for a in (origins, directions)]
+                hits = q.intersect(tree, *on_device)
+                answers.setdefault((count, most, "device"), []).append(
+                    [getattr(hits, name).get() for name in fields]
+                    + [q.occluded(tree, *on_device).get()])
+    for key, (two, one) in answers.items():
+        for name, got, want in zip((*fields, "occluded"), two, one):
+            np.testing.assert_array_equal(got, want, f"{name}, {key}")
+    for name, got, want in zip(fields, answers[700, 48][0], answers[700, 48, "device"][0]):
+        np.testing.assert_array_equal(got, want, f"{name}: the device's rays")
+    hits = packet_query(case.scene, 16).intersect(tree, origins, directions)
+    assert_matches_oracle(case, hits, origins, directions)

@@ -2,10 +2,11 @@
  * (_ray) and, where PACKET_SIZE > 1, for a packet (_packet); on a two-level
  * scene (INSTANCES) also the top tree's walks, whose leaves walk each
  * instance's mesh with the query's own walks and state (below); and
- * trace_QUERY, which traces the rays lanes[0, used) of a work-item as one
- * packet when prepare_packet accepts them and they lie close
- * (packet_compact), else one by one, each walk from its start (start_ray,
- * start_packet) over the scene's tree (on a two-level scene the top tree).
+ * trace_QUERY, which traces the rays of a work-item, each of its
+ * LANE_GROUPS groups as one packet when prepare_packet accepts it and its
+ * rays lie close (packet_compact), else one by one, each walk from its start
+ * (start_ray, start_packet) over the scene's tree (on a two-level scene the
+ * top tree).
  * Include it as walk.h, without QUERY_PATH, with walk.h's hooks and these:
  *   QUERY_OUT                the type of what the work-item's walks read and
  *                            leave, one lane each: trace_QUERY's `out`
@@ -36,11 +37,18 @@
  *                            any hit, whose lanes that hit are done: their
  *                            limit, -inf, meets no child)
  * trace_QUERY(lanes, used, the scene's trees (instance.h's SCENE_TREES),
- * overflow, out, QUERY_ARGS) sets overflow[0] if a walk ran out of stack, and
- * counts the packets in overflow[1] under COUNT_PACKETS (tests). */
+ * overflow, out, QUERY_ARGS), with lanes, used and out arrays of LANE_GROUPS,
+ * sets overflow[0] if a walk ran out of stack, and counts the packets in
+ * overflow[1] under COUNT_PACKETS (tests). */
 #ifndef PATH_SUFFIX
 
 #include "query/rays/instance.h"
+
+/* The groups of PACKET_SIZE rays a work-item traces (trace_QUERY): one, or
+ * more where the includer says (query/rays.cl). */
+#ifndef LANE_GROUPS
+#define LANE_GROUPS 1
+#endif
 
 /* QUERY_FN(name, path): the query's function `name` on a path. */
 #define QUERY_FN(name, path) CONCAT(CONCAT(name, CONCAT(_, QUERY)), path)
@@ -96,10 +104,14 @@
 #undef PATH_SUFFIX
 #endif
 
-/* The query for the rays lanes[0, used) of a work-item: as one packet when
- * prepare_packet accepts them and they lie close, else one by one;
- * results in out. */
-TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
+/* The query for the rays of a work-item's LANE_GROUPS groups, group g's
+ * lanes[g] (its first used[g] lanes; none past the end of the rays): each
+ * group as one packet when prepare_packet accepts it and its rays lie close,
+ * else one by one; group g's results in out[g].  With interleaved walks, the
+ * one-by-one walks of every group go in turn together: after a root phase
+ * has ended many of a group's rays, the rest would otherwise have few
+ * others to hide their cache misses behind. */
+TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, const uint* used,
                                             __global const WideNode* nodes,
                                             __global const Triangle* triangles
                                             TRACE_SCENE_PARAMS, __global int* overflow,
@@ -110,72 +122,70 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
     bool* mesh_overflow = &mesh_out_of_stack;
 #endif
     bool out_of_stack = false;
+#if defined(INTERLEAVED_WALKS) && !defined(INSTANCES)
+    /* the walks of the lanes that take one, interleaved (walk.h's walks):
+     * walk k is lane lane_of[k] % PACKET_SIZE of group lane_of[k] /
+     * PACKET_SIZE, with its own state */
+    RayData r[WALK_LANES];
+    Found_ray s[WALK_LANES];
+    uint lane_of[WALK_LANES];
+    uint n = 0;
+#ifdef QUERY_STATE
+#define PATH_SUFFIX _ray
+    PATH(QUERY_STATE) states[WALK_LANES];
+#undef PATH_SUFFIX
+#endif
+#endif
+    for (uint g = 0; g < LANE_GROUPS; ++g) {
+        if (used[g] == 0)
+            continue;
+        const RayLanes* group = lanes + g;
+        QUERY_OUT* group_out = out + g;
 #if PACKET_SIZE > 1
-    Packet p;
-    if (prepare_packet(lanes, &p) && packet_compact(&p, nodes)) {
+        Packet p;
+        if (prepare_packet(group, &p) && packet_compact(&p, nodes)) {
 #ifdef COUNT_PACKETS
-        atomic_inc(overflow + 1);
+            atomic_inc(overflow + 1);
 #endif
-        out_of_stack = QUERY_FN(trace, _packet)(&p, nodes, triangles, out, 0 TRACE_ARGS);
-    } else
+            out_of_stack |= QUERY_FN(trace, _packet)(&p, nodes, triangles, group_out, 0
+                                                     TRACE_ARGS);
+            continue;
+        }
 #endif
-    {
 #ifdef TRACE_ROOT_PHASE
         Found_ray starts[PACKET_SIZE];
-        uint walking = QUERY_FN(root, _mixed)(lanes, nodes, triangles, starts QUERY_ARGS);
+        uint walking = QUERY_FN(root, _mixed)(group, nodes, triangles, starts QUERY_ARGS);
 #define START_LANE(s, r, l) (*(s) = starts[l])
 #define WALKS(l) ((walking >> (l)) & 1u)
 #else
 #define START_LANE(s, r, l) start_ray(s, r)
 #endif
 #if defined(INTERLEAVED_WALKS) && !defined(INSTANCES)
-        /* the walks of the lanes that take one, interleaved (walk.h's
-         * walks): walk k is lane lane_of[k]'s, with its own state */
-        RayData r[PACKET_SIZE];
-        Found_ray s[PACKET_SIZE];
-        uint lane_of[PACKET_SIZE];
-        uint n = 0;
 #define PATH_SUFFIX _ray
-#ifdef QUERY_STATE
-        PATH(QUERY_STATE) states[PACKET_SIZE];
-#endif
-        for (uint l = 0; l < used; ++l) {
+        for (uint l = 0; l < used[g]; ++l) {
 #ifdef QUERY_LANE
-            if (!QUERY_LANE(out, l))
+            if (!QUERY_LANE(group_out, l))
                 continue;
 #endif
 #ifdef TRACE_ROOT_PHASE
             if (!WALKS(l)) {  /* the root phase found all there is */
-                QUERY_END(starts + l, out, l);
+                QUERY_END(starts + l, group_out, l);
                 continue;
             }
 #endif
-            prepare_lane(r + n, lanes, l);
+            prepare_lane(r + n, group, l);
             START_LANE(s + n, r + n, l);
 #ifdef QUERY_STATE
             PATH(QUERY_STATE)* state = states + n;
-            QUERY_BEGIN(out, l);
+            QUERY_BEGIN(group_out, l);
 #endif
-            lane_of[n++] = l;
-        }
-        if (n > 0) {
-#ifdef QUERY_STATE
-            PATH(QUERY_STATE)* state = states;
-#endif
-            out_of_stack = QUERY_FN(walks, _ray)(r, nodes, triangles, s, n TRACE_ARGS
-                                                 WALK_STATE_ARG);
-        }
-        for (uint k = 0; k < n; ++k) {
-#ifdef QUERY_STATE
-            PATH(QUERY_STATE)* state = states + k;
-#endif
-            QUERY_END(s + k, out, lane_of[k]);
+            lane_of[n++] = g * PACKET_SIZE + l;
         }
 #undef PATH_SUFFIX
 #else
-        for (uint l = 0; l < used; ++l) {
+        for (uint l = 0; l < used[g]; ++l) {
 #ifdef QUERY_LANE
-            if (!QUERY_LANE(out, l))
+            if (!QUERY_LANE(group_out, l))
                 continue;
 #endif
             RayData r;
@@ -183,20 +193,38 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, uint used,
 #define PATH_SUFFIX _ray
             Found_ray s = starts[l];
             if (WALKS(l)) {
-                prepare_lane(&r, lanes, l);
+                prepare_lane(&r, group, l);
                 out_of_stack |= QUERY_FN(walk, _ray)(&r, nodes, triangles, &s TRACE_ARGS);
             }
-            QUERY_END(&s, out, l);
+            QUERY_END(&s, group_out, l);
 #undef PATH_SUFFIX
 #else
-            prepare_lane(&r, lanes, l);
-            out_of_stack |= QUERY_FN(trace, _ray)(&r, nodes, triangles, out, l TRACE_ARGS);
+            prepare_lane(&r, group, l);
+            out_of_stack |= QUERY_FN(trace, _ray)(&r, nodes, triangles, group_out, l
+                                                  TRACE_ARGS);
 #endif
         }
 #endif
 #undef START_LANE
 #undef WALKS
     }
+#if defined(INTERLEAVED_WALKS) && !defined(INSTANCES)
+#define PATH_SUFFIX _ray
+    if (n > 0) {
+#ifdef QUERY_STATE
+        PATH(QUERY_STATE)* state = states;
+#endif
+        out_of_stack |= QUERY_FN(walks, _ray)(r, nodes, triangles, s, n TRACE_ARGS
+                                              WALK_STATE_ARG);
+    }
+    for (uint k = 0; k < n; ++k) {
+#ifdef QUERY_STATE
+        PATH(QUERY_STATE)* state = states + k;
+#endif
+        QUERY_END(s + k, out + lane_of[k] / PACKET_SIZE, lane_of[k] % PACKET_SIZE);
+    }
+#undef PATH_SUFFIX
+#endif
 #ifdef INSTANCES
     out_of_stack |= mesh_out_of_stack;
 #endif

@@ -197,6 +197,12 @@ TRAVERSAL_INLINE bool WALK_NAME(walk)(const PATH(Rays)* r, __global const WideNo
 }
 
 #if defined(INTERLEAVED_WALKS) && !defined(QUERY_INSTANCE)
+/* The most walks that `walks` takes at once: a work-item's queries
+ * (PACKET_SIZE), or more where its includer says (query/rays.cl). */
+#ifndef WALK_LANES
+#define WALK_LANES PACKET_SIZE
+#endif
+
 /* One step of walk r: a node, or a leaf and then the next stacked item;
  * true when the walk is over (*full: its stack ran out). */
 TRAVERSAL_INLINE bool WALK_NAME(step)(const PATH(Rays)* r, __global const WideNode* nodes,
@@ -213,7 +219,7 @@ TRAVERSAL_INLINE bool WALK_NAME(step)(const PATH(Rays)* r, __global const WideNo
            || !pop(stack, sp, PATH(reach)(s), index, count);
 }
 
-/* The walks of rays r[0, n) (n <= PACKET_SIZE), each as WALK_NAME(walk)
+/* The walks of rays r[0, n) (n <= WALK_LANES), each as WALK_NAME(walk)
  * walks it, taken a step each in turn: one ray's walk is a chain of
  * dependent loads (a node, then the child it chose), which stalls a CPU
  * core on every cache miss; the steps of other rays, independent, fill
@@ -225,10 +231,10 @@ TRAVERSAL_INLINE bool WALK_NAME(walks)(const PATH(Rays)* r, __global const WideN
                                        __global const Triangle* triangles, PATH(Found)* s,
                                        uint n WALK_PARAMS)
 {
-    StackItem stack[PACKET_SIZE][STACK_SIZE + 1];
-    int sp[PACKET_SIZE], index[PACKET_SIZE];
-    uint count[PACKET_SIZE];
-    for (uint k = 0; k < PACKET_SIZE; ++k) {
+    StackItem stack[WALK_LANES][STACK_SIZE + 1];
+    int sp[WALK_LANES], index[WALK_LANES];
+    uint count[WALK_LANES];
+    for (uint k = 0; k < WALK_LANES; ++k) {
         sp[k] = 0;
         index[k] = 0;
         count[k] = 0;
