@@ -458,6 +458,8 @@ def test_two_lane_groups_a_work_item_give_one_group_s_answers(monkeypatch):
     tree = built.tree(case.scene)
     monkeypatch.setattr(engine, "INTERLEAVED_MIN_TREE_BYTES", 0)
     q = packet_query(case.scene, 16)
+    if q.rt.profile.gpu:  # GPUs hide misses with other work-items: no interleaved walks
+        pytest.skip("the GPU profile walks no rays interleaved, so takes one group")
     assert rays.lane_groups(q.rt, tree, 16) == 2
     origins, directions = random_rays(case, 700, seed=5)
     fields = ("t", "geom_id", "prim_id", "u", "v", "normal", "points")
