@@ -64,8 +64,7 @@ TRAVERSAL_INLINE uint group_rays(uint ray_count, uint* first, uint* used)
     *first = get_global_id(0) * (LANE_GROUPS * PACKET_SIZE);
     uint total = 0;
     for (uint g = 0; g < LANE_GROUPS; ++g) {
-        uint at = *first + g * PACKET_SIZE;
-        used[g] = at < ray_count ? LESSER((uint)PACKET_SIZE, ray_count - at) : 0u;
+        used[g] = rays_from(ray_count, *first + g * PACKET_SIZE);
         total += used[g];
     }
     return total;

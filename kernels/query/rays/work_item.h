@@ -13,12 +13,18 @@
 #include "query/rays/packet.h"
 #endif
 
+/* How many of the PACKET_SIZE rays from ray `at` exist below ray_count. */
+TRAVERSAL_INLINE uint rays_from(uint ray_count, uint at)
+{
+    return at < ray_count ? LESSER((uint)PACKET_SIZE, ray_count - at) : 0u;
+}
+
 /* Work-item i traces rays [i * PACKET_SIZE, ...) : how many of them exist
  * (0 for the items past the end), and the first one. */
 TRAVERSAL_INLINE uint packet_rays(uint ray_count, uint* first)
 {
     *first = get_global_id(0) * PACKET_SIZE;
-    return *first < ray_count ? LESSER((uint)PACKET_SIZE, ray_count - *first) : 0;
+    return rays_from(ray_count, *first);
 }
 
 /* Under PREFETCH, asks for the cache lines of `bytes` bytes from `start`
