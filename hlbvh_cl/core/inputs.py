@@ -121,11 +121,14 @@ def describe(value) -> str:
 
 
 def _bounds(low, high, low_open: bool = False, high_open: bool = False) -> str:
+    def spelled(bound) -> str:  # an integer bound in full (2147483647, not 2.14748e+09)
+        return str(bound) if isinstance(bound, (int, np.integer)) else f"{bound:g}"
+
     parts = []
     if low is not None:
-        parts.append(f"{'>' if low_open else '>='} {low:g}")
+        parts.append(f"{'>' if low_open else '>='} {spelled(low)}")
     if high is not None:
-        parts.append(f"{'<' if high_open else '<='} {high:g}")
+        parts.append(f"{'<' if high_open else '<='} {spelled(high)}")
     return "".join(f" {part}" if i == 0 else f" and {part}" for i, part in enumerate(parts))
 
 

@@ -61,7 +61,7 @@ from ..mesh import Mesh
 from ..render.camera import FOV_AXES, MAX_IMAGE_SIDE, Camera, vertical_fov_deg
 from ..render.light import Light
 from ..render.materials import BSDFS, check_material
-from ..render.settings import MAX_DEPTH, MAX_SEED, MAX_SPP
+from ..render.settings import MAX_DEPTH, MAX_RR_DEPTH, MAX_SEED, MAX_SPP
 from .description import MeshEntry, SceneDescription, SceneFileError, shape_mesh
 
 #: Mitsuba's defaults that the subset uses.
@@ -461,8 +461,10 @@ def read_xml(path, defaults: dict | None = None,
             if values.get("max_depth") == 0:
                 raise reader.error(node, "max_depth 0 (an image of nothing, in Mitsuba) is not "
                                          "rendered here: give -1 (no limit) or 1 and more")
-            if not 1 <= values.get("rr_depth", 1) <= MAX_DEPTH:
-                raise reader.error(node, f"rr_depth must be 1..{MAX_DEPTH}, got "
+            # past every bounce a path takes, roulette never starts: Mitsuba's
+            # render, whatever the value (its rr_depth is an int32 too)
+            if not 1 <= values.get("rr_depth", 1) <= MAX_RR_DEPTH:
+                raise reader.error(node, f"rr_depth must be 1..{MAX_RR_DEPTH}, got "
                                          f"{values['rr_depth']}")
             options.update({k: int(v) for k, v in values.items()})
         elif node.tag == "sensor":

@@ -22,9 +22,12 @@ AO_SAMPLES = 16
 
 #: Path depths (Mitsuba's max_depth: segments per path; -1 for no limit)
 #: beyond this are taken for mistakes; Russian roulette's default start
-#: (Mitsuba's rr_depth).
+#: (Mitsuba's rr_depth), and its latest: any int32, as Mitsuba reads it (the
+#: kernels' PathParams holds an int32).  A start past a path's last bounce
+#: means no roulette, which renders as Mitsuba does.
 MAX_DEPTH = 1024
 RR_DEPTH = 5
+MAX_RR_DEPTH = 2**31 - 1
 
 #: Colours of meshes 0, 1, 2, ... of a Scene that was given none (cycled).
 PALETTE = ((0.85, 0.6, 0.5), (0.55, 0.7, 0.85), (0.9, 0.85, 0.7), (0.6, 0.8, 0.55),
@@ -122,7 +125,7 @@ class RenderSettings:
                    spp=inputs.integer("spp", spp, 1, MAX_SPP),
                    ao_samples=inputs.integer("ao_samples", ao_samples, 1, MAX_AO_SAMPLES),
                    ao_distance=ao_distance, max_depth=max_depth,
-                   rr_depth=inputs.integer("rr_depth", rr_depth, 1, MAX_DEPTH),
+                   rr_depth=inputs.integer("rr_depth", rr_depth, 1, MAX_RR_DEPTH),
                    seed=inputs.integer("seed", seed, 0, MAX_SEED), rfilter=rfilter)
 
     def in_frame(self, scale: float) -> RenderSettings:

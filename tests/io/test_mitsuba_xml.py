@@ -545,7 +545,9 @@ LIGHT = '<emitter type="area"><rgb name="radiance" value="1"/></emitter>'
     ('<integrator type="path"><integer name="max_depth" value="-2"/></integrator>',
      "max_depth must be -1 (no limit) or 1..1024, got -2"),
     ('<integrator type="path"><integer name="rr_depth" value="0"/></integrator>',
-     "rr_depth must be 1..1024, got 0"),
+     "rr_depth must be 1..2147483647, got 0"),
+    ('<integrator type="path"><integer name="rr_depth" value="2147483648"/></integrator>',
+     "rr_depth must be 1..2147483647, got 2147483648"),
     (SHAPE_INSIDE.format('<ref/>'), "<ref>: needs the id of the <bsdf> it refers to"),
     (SHAPE_INSIDE.format('<bsdf type="diffuse"><point name="reflectance" value="0.5 0.5 0.5"/>'
                          '</bsdf>'), "reflectance takes <rgb>, <float>, <integer>, not <point>"),
@@ -722,8 +724,6 @@ def test_every_index_mitsuba_names_reads_as_its_value(tmp_path):
      "max_depth 0 (an image of nothing, in Mitsuba) is not rendered here"),
     ('<integrator type="path"><integer name="max_depth" value="2000"/></integrator>',
      "max_depth must be -1 (no limit) or 1..1024, got 2000"),
-    ('<integrator type="path"><integer name="rr_depth" value="100000"/></integrator>',
-     "rr_depth must be 1..1024, got 100000"),
     ('<shape type="cube"><transform name="to_world"><scale value="inf"/></transform></shape>',
      "<scale>: expected a finite number, got \'inf\'"),
 ])
@@ -739,6 +739,31 @@ def test_what_mitsuba_loads_but_renders_otherwise_is_an_error(tmp_path, body, wo
     with pytest.raises(SceneFileError) as error:
         read_xml(path)
     assert str(error.value).startswith(f"{path}:") and words in str(error.value), error.value
+
+
+def test_a_roulette_that_starts_past_every_bounce_is_no_roulette(tmp_path, suite_device):
+    """Mitsuba reads any int32 rr_depth; one past a path's last bounce never
+    starts the roulette.  Such a file loads here too, and renders the very
+    image of the roulette's latest start that still comes too late (the
+    path's depth), bit for bit; one start sooner, the roulette ends paths
+    and the image differs."""
+    from hlbvh_cl.io.scenefile import load
+    text = CORNELL.read_text()
+    images = {}
+    for rr_depth in (4, 6, 100000, 2**31 - 1):
+        body = text.replace('<integer name="max_depth" value="6"/>',
+                            f'<integer name="max_depth" value="6"/>'
+                            f'<integer name="rr_depth" value="{rr_depth}"/>', 1)
+        assert body != text
+        path = scene_of(tmp_path, body)
+        mi.load_file(str(path))
+        loaded = load(path, suite_device, defaults={"res": 16, "spp": 2})
+        assert loaded.options["rr_depth"] == rr_depth
+        images[rr_depth] = loaded.renderer().render(loaded.camera, 16, 16, hdr=True,
+                                                    **loaded.options)
+    np.testing.assert_array_equal(images[100000], images[6])
+    np.testing.assert_array_equal(images[2**31 - 1], images[6])
+    assert not np.array_equal(images[4], images[6])
 
 
 def test_values_past_the_renderers_limits_yield_to_the_flags_that_replace_them(

@@ -468,6 +468,7 @@ def test_bad_materials_and_emitters_are_named(materials, emitters, message, suit
     ({"max_depth": 0}, "max_depth must be -1 (no limit) or 1..1024"),
     ({"max_depth": -2}, "max_depth must be an integer >= -1"),
     ({"rr_depth": 0}, "rr_depth must be an integer >= 1"),
+    ({"rr_depth": 2**31}, "rr_depth must be an integer >= 1 and <= 2147483647"),
     ({"seed": -1}, "seed must be an integer >= 0"),
     ({"hdr": "yes"}, "hdr must be True or False"),
     ({"rfilter": "tent"}, "rfilter must be one of ('box', 'gaussian')"),
