@@ -156,21 +156,24 @@ def _cmd_render(args) -> int:
     if shading == "path":
         options.update(max_depth=args.max_depth if args.max_depth is not None
                        else given.get("max_depth", -1), rr_depth=given.get("rr_depth", 5))
-    # A one-pixel render first: it compiles (or loads from the cache) every
-    # kernel the render uses, so the real render's times are its own.
+    exr = output.suffix.lower() == ".exr"
+    outputs = {"hdr": exr, "aovs": exr and shading == "path"}
+    # A one-pixel render of one sample first: it compiles (or loads from the
+    # cache) every kernel the render uses, so the real render's times are its
+    # own; one sample, whatever --spp says, so that it takes no time of its own
+    # and Ctrl-C finds the real render running.
     warm_started = time.perf_counter()
     with stage("compiling the render kernels (cached after a first run)"):
-        renderer.render(camera, 1, 1, **options)
+        renderer.render(camera, 1, 1, **{**options, "spp": 1}, **outputs)
     render_compile = time.perf_counter() - warm_started
     bar = sys.stderr.isatty()  # a tqdm bar on a terminal; else one line if it takes a while
     if args.time:
         options["time_budget"] = args.time
-    exr = output.suffix.lower() == ".exr"
     try:
         with contextlib.nullcontext() if bar else stage(f"rendering {width}x{height}"):
             # a path render to EXR carries the AOVs as channels beside R, G, B
-            image = renderer.render(camera, width, height, progress=bar, hdr=exr,
-                                    aovs=exr and shading == "path", **options)
+            image = renderer.render(camera, width, height, progress=bar, **outputs,
+                                    **options)
     except RenderInterrupted as stopped:  # Ctrl-C: keep the rounds done
         _write_image(output, stopped.image)
         print(f"hlbvh-cl: interrupted after {stopped.spp} samples per pixel; wrote {output}",

@@ -197,7 +197,7 @@ class Pipeline:
         if overflow[0]:
             raise RuntimeError("ray traversal overflowed its stack: the tree is deeper than "
                                "its depth field says")
-        times = {name: event_ms(found) for name, found in events.items()}
+        times = {name: run.spent_ms[name] + event_ms(found) for name, found in events.items()}
         times["total"] = sum(times.values())
         times["setup"] = setup * 1e3
         times["wall"] = (time.perf_counter() - started) * 1e3
@@ -230,6 +230,7 @@ class Pipeline:
                 else:
                     run.events["encode"].append(self.film.encode(
                         rt, band, width, settings.spp, run.integrator.radiance(settings)))
+                run.fold_times()
         rt.wait([self.film.read(rt, image)])
         return image, settings.spp, False
 
@@ -281,6 +282,7 @@ class Pipeline:
                         run.events["encode"].append(added)
                         splatted += this_round is bands
                     rt.wait([added])
+                    run.fold_times()
                     bar.update(1)
                     if this_round is not bands:
                         break  # the budget's last round, cut short
@@ -382,6 +384,21 @@ class _Run:
         self.integrator, self.events, self.steps = integrator, events, steps
         self.pinhole = settings.camera.pinhole(settings.width, settings.height)
         self.bar = None
+        self.spent_ms = {name: 0.0 for name in events}  # of the events fold_times dropped
+
+    def fold_times(self) -> None:
+        """Each stage's finished events summed into spent_ms and dropped:
+        a render keeps no more than the events still running, so that one of
+        60,000 rounds holds no more memory than one of a few, and Ctrl-C,
+        after which the render sums the events left, is answered as soon."""
+        complete = cl.command_execution_status.COMPLETE
+        for name, found in self.events.items():
+            done, running = [], []
+            for event in found:
+                if event is not None:
+                    (done if event.command_execution_status == complete else running).append(event)
+            self.spent_ms[name] += event_ms(done)
+            found[:] = running
 
     def step_done(self, event: cl.Event) -> None:
         """At most two steps (a pass's rays of one kind) in flight, so that
@@ -390,6 +407,7 @@ class _Run:
         steps.append(event)
         if len(steps) > 2:
             rt.wait(steps[-3:-2])
+            del steps[:-2]  # only the two in flight are kept
         if self.bar is not None:
             _advance(self.bar, rt, event)
 

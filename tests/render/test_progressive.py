@@ -195,11 +195,34 @@ def test_the_cli_renders_to_a_time_budget_and_keeps_an_interrupted_image(
     image = read_exr(out)
     assert image.shape == (24, 32, 3) and np.isfinite(image).all() and image.max() > 0
     out.unlink()
-    # Ctrl-C in the third round: the CLI's 1-pixel warm-up render takes 16 first
-    interrupt_at(monkeypatch, band_index=0, round_index=16 + 2, bands=1)
+    # Ctrl-C in the third round: the CLI's 1-pixel warm-up render takes one
+    # round first, whatever --spp says (it took all 16 once, and Ctrl-C then
+    # stopped the warm-up and wrote nothing)
+    interrupt_at(monkeypatch, band_index=0, round_index=1 + 2, bands=1)
     assert main(argv + ["--spp", "16"]) == 130
     assert "interrupted after 2 samples per pixel; wrote" in capsys.readouterr().err
     assert read_exr(out).shape == (24, 32, 3)
+
+
+def test_a_long_render_keeps_only_the_events_still_running(bunny_renderer, monkeypatch):
+    """Each round's finished events are summed into the stage times and
+    dropped: a render of many rounds held every event it had enqueued and
+    summed them at its end (a CLI render of 60,000 rounds grew to GBs, and
+    Ctrl-C waited seconds for the sum).  The sums now take a round's events
+    at a time, and the stage times are still the events' own."""
+    sizes = []
+    event_ms = renderer_module.event_ms
+
+    def summing(events):
+        sizes.append(len(events))
+        return event_ms(events)
+    monkeypatch.setattr(renderer_module, "event_ms", summing)
+    bunny_renderer.render(CAMERA, 4, 4, shading="path", hdr=True, spp=400)
+    assert sum(sizes) > 400 * 5 and max(sizes) < 100, (sum(sizes), max(sizes))
+    times = bunny_renderer.stats["times_ms"]
+    assert times["closest"] > 0 and times["shade"] > 0
+    assert times["total"] == pytest.approx(sum(
+        value for name, value in times.items() if name not in ("total", "setup", "wall")))
 
 
 def test_aovs_add_up_over_bands_and_rounds(bunny_renderer, monkeypatch):
