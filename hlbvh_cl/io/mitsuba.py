@@ -684,8 +684,13 @@ def _shape(reader: _Reader, node: _Node) -> MeshEntry:
     normals = mesh.normals.astype(np.float64) @ np.linalg.inv(matrix[:3, :3]) \
         if mesh.has_file_normals else None
     face_normals = mesh.face_normals or bool(values.get("face_normals", False))
-    if np.linalg.det(matrix[:3, :3]) < 0:  # a mirror turns the faces inside out: Mitsuba keeps
-        faces = faces[:, ::-1]              # the normals outward by the transformed frame
+    # A mirror turns the winding inside out, and Mitsuba keeps it for a file's
+    # mesh: its geometric normals and the ones it computes then point inward,
+    # the file's own (by the inverse transpose) outward.  Its cube and
+    # rectangle carry their own normals, outward: there the faces are turned
+    # outward with them (their shading normal is the face's).
+    if np.linalg.det(matrix[:3, :3]) < 0 and kind not in ("ply", "obj"):
+        faces = faces[:, ::-1]
     material, emitter = None, None
     for child in node.children:
         if child.tag in ("bsdf", "ref"):

@@ -475,14 +475,15 @@ def test_a_bad_number_in_a_transform_names_its_step(tmp_path):
         read_xml(path)
 
 
+@pytest.mark.parametrize("mirror", [False, True], ids=["plain", "mirrored"])
 @pytest.mark.parametrize("file_normals", [False, True])
-def test_mesh_normals_are_mitsuba_s_after_to_world(tmp_path, file_normals):
+def test_mesh_normals_are_mitsuba_s_after_to_world(tmp_path, file_normals, mirror):
     """A PLY with or without vertex normals under a shearing, non-uniform
-    to_world: the loaded mesh's shading normals point as Mitsuba's own
-    (the file's by the inverse transpose, or computed after the transform),
-    and face_normals = true turns them off.  (Not a mirror: there this
-    loader turns the faces outward, where Mitsuba 3.9.1 keeps a PLY's
-    winding, inward, and computes its normals inward too.)"""
+    to_world, and under one that also mirrors: the loaded mesh's winding
+    and shading normals point as Mitsuba's own (the file's by the inverse
+    transpose, or computed after the transform: under a mirror Mitsuba keeps
+    the file's winding, which then faces inward, and so do the normals it
+    computes), and face_normals = true turns them off."""
     import trimesh
     s = trimesh.creation.icosphere(subdivisions=1)
     rng = np.random.default_rng(5)
@@ -492,8 +493,8 @@ def test_mesh_normals_are_mitsuba_s_after_to_world(tmp_path, file_normals):
         trimesh.Trimesh(vertices, s.faces, vertex_normals=given, process=False),
         vertex_normal=file_normals))
     shape = ('<shape type="ply"><string name="filename" value="m.ply"/>{}'
-             '<transform name="to_world"><matrix value="1.5 0.4 0 0.2  0 0.8 0.3 0  '
-             '0.1 0 1.2 -0.5  0 0 0 1"/></transform></shape>')
+             '<transform name="to_world"><matrix value="%s 0.4 0 0.2  0 0.8 0.3 0  '
+             '0.1 0 1.2 -0.5  0 0 0 1"/></transform></shape>') % ("-1.5" if mirror else "1.5")
     path = tmp_path / "scene.xml"
     path.write_text(scene_xml(shape.format("")))
     ours = read_xml(path).meshes[0].mesh
@@ -502,6 +503,8 @@ def test_mesh_normals_are_mitsuba_s_after_to_world(tmp_path, file_normals):
     theirs = np.array(mi.traverse(theirs_shape)["vertex_normals"]).reshape(-1, 3)
     np.testing.assert_allclose(np.array(mi.traverse(theirs_shape)["vertex_positions"])
                                .reshape(-1, 3), ours.vertices, atol=1e-5)
+    np.testing.assert_array_equal(np.array(mi.traverse(theirs_shape)["faces"]).reshape(-1, 3),
+                                  ours.faces)
     unit = ours.normals / np.linalg.norm(ours.normals, axis=1, keepdims=True)
     theirs = theirs / np.linalg.norm(theirs, axis=1, keepdims=True)
     np.testing.assert_allclose(unit, theirs, atol=2e-5)
