@@ -19,6 +19,7 @@ import gzip
 import io
 import os
 import re
+import warnings
 import zlib
 from pathlib import Path
 
@@ -149,7 +150,11 @@ class Mesh:
         vertices may be merged, and a PLY or OFF file that mixes triangles
         with larger polygons lists its triangles first, then the others, each
         split into a fan (trimesh groups faces by size).  An OBJ keeps both
-        orders whatever its materials.  A file with several meshes (a GLB
+        orders whatever its materials; where its faces' corners give a vertex
+        more than one texture coordinate or normal (a hard edge, a UV seam),
+        that vertex gets a row for each, as Mitsuba 3's loader makes them (its
+        first in the file's row, the others after the file's rows), so that
+        it shades as in Mitsuba.  A file with several meshes (a GLB
         scene, an OBJ with several objects) becomes one mesh, with each part's
         transform applied.  Vertex normals the file stores (a PLY's nx, ny,
         nz; an OBJ's vn) become ``normals`` where every part has them; else
@@ -270,13 +275,17 @@ def _read_with_trimesh(path: Path, file_type: str, gzipped: bool) -> tuple:
                          f"({path.stat().st_size:,} bytes on disk)") from None
     if file_type == "obj":
         source = io.BytesIO(_obj_geometry(path, source.getvalue()))
+    stores_normals = _stores_normals(source.getvalue(), file_type)
     try:
         # maintain_order: an OBJ's vertex rows as the file lists them, unused
         # ones too, not renumbered by first use
         keep = {"maintain_order": True} if file_type == "obj" else {}
-        scene = trimesh.load_scene(source, file_type=file_type, process=False, **keep)
-        parts, normals = _placed_parts(scene, trimesh.Trimesh,
-                                       _stores_normals(source.getvalue(), file_type))
+        with warnings.catch_warnings():  # trimesh's texture code warns on some OBJs' vt
+            warnings.simplefilter("ignore", RuntimeWarning)
+            scene = trimesh.load_scene(source, file_type=file_type, process=False, **keep)
+        parts, normals = _placed_parts(scene, trimesh.Trimesh, stores_normals)
+        if file_type == "obj" and _has_corner_attributes(source.getvalue()):
+            parts, normals = _obj_corners_split(trimesh, source, parts, normals, stores_normals)
     except Exception as error:  # trimesh raises many types for malformed files
         reason = str(error) or type(error).__name__
         raise ValueError(f"{path}: trimesh cannot read it as {file_type.upper()}: {reason}") from None
@@ -321,6 +330,66 @@ def _placed_parts(scene, kind, stores_normals: bool) -> tuple[list, list]:
             stored = None
         normals.append(stored)
     return parts, normals
+
+
+def _has_corner_attributes(data: bytes) -> bool:
+    """Whether an OBJ lists texture coordinates or normals (vt, vn lines),
+    which its faces' corners index apart from their vertices."""
+    return re.search(rb"(?m)^[ \t]*v[tn][ \t]", data) is not None
+
+
+def _obj_corners_split(trimesh, source: io.BytesIO, parts: list, normals: list,
+                       stores_normals: bool) -> tuple[list, list]:
+    """An OBJ read as Mitsuba 3 reads it where its corners give a vertex
+    more than one (texture coordinate, normal) pair (a hard edge's normals,
+    a UV seam): one vertex for each distinct combination, each with its own
+    normal, given or computed over the faces that use it, so that the
+    shading is Mitsuba's.  trimesh splits them so without maintain_order;
+    here each file row keeps its place, its first combination in it, and
+    the others follow the file's rows in the order the faces first use them.
+    An OBJ whose vertices each keep one pair is returned as it was read
+    (``parts``, ``normals``: the ordered read)."""
+    source.seek(0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        scene = trimesh.load_scene(source, file_type="obj", process=False)
+    split, split_normals = _placed_parts(scene, trimesh.Trimesh, stores_normals)
+    if sum(len(p.vertices) for p in split) <= sum(len(np.unique(np.asarray(p.faces)))
+                                                   for p in parts):
+        return parts, normals
+    if len(split) != len(parts) or any(len(a.faces) != len(b.faces) for a, b in zip(split, parts)):
+        return split, split_normals  # trimesh's two reads differ: its split as it is
+    out, out_normals = [], []
+    for ordered, ordered_normals, cut, cut_normals in zip(parts, normals, split, split_normals):
+        rows, corners = np.asarray(ordered.faces).ravel(), np.asarray(cut.faces).ravel()
+        if not np.array_equal(np.asarray(ordered.vertices)[rows],
+                              np.asarray(cut.vertices)[corners]):
+            return split, split_normals
+        # the split vertex at each corner, and the file row it copies
+        first = np.unique(corners, return_index=True)[1]
+        order = np.sort(first)  # split vertices by their first use
+        vertex_of = np.full(len(cut.vertices), -1, np.int64)
+        row_of = rows[order]
+        taken = np.zeros(len(ordered.vertices), bool)
+        extra = len(ordered.vertices)
+        for corner, row in zip(order, row_of):
+            if not taken[row]:
+                vertex_of[corners[corner]], taken[row] = row, True
+            else:
+                vertex_of[corners[corner]], extra = extra, extra + 1
+        vertices = np.empty((extra, 3))
+        vertices[:len(ordered.vertices)] = ordered.vertices
+        vertices[vertex_of[vertex_of >= 0]] = np.asarray(cut.vertices)[vertex_of >= 0]
+        out.append(trimesh.Trimesh(vertices, vertex_of[corners].reshape(-1, 3), process=False))
+        if cut_normals is None:
+            out_normals.append(None)
+        else:
+            placed = np.empty((extra, 3))
+            placed[:len(ordered.vertices)] = (ordered_normals if ordered_normals is not None
+                                              else [1.0, 0.0, 0.0])
+            placed[vertex_of[vertex_of >= 0]] = cut_normals[vertex_of >= 0]
+            out_normals.append(placed)
+    return out, out_normals
 
 
 def _stores_normals(data: bytes, file_type: str) -> bool:

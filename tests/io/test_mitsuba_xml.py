@@ -512,6 +512,62 @@ def test_mesh_normals_are_mitsuba_s_after_to_world(tmp_path, file_normals, mirro
     assert read_xml(path).meshes[0].mesh.face_normals
 
 
+HARD_CUBE_OBJ = ("".join(f"v {x} {y} {z}\n" for x in (-1, 1) for y in (-1, 1) for z in (-1, 1))
+                 + "vn -1 0 0\nvn 1 0 0\nvn 0 -1 0\nvn 0 1 0\nvn 0 0 -1\nvn 0 0 1\n"
+                 + "".join(f"f {a}//{n} {b}//{n} {c}//{n} {d}//{n}\n" for a, b, c, d, n in
+                           ((1, 2, 4, 3, 1), (5, 7, 8, 6, 2), (1, 5, 6, 2, 3), (3, 4, 8, 7, 4),
+                            (1, 3, 7, 5, 5), (2, 6, 8, 4, 6))))
+# a ridge whose two slopes meet with a UV seam along it (vt only: normals computed)
+SEAM_OBJ = ("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 2 0 0.5\nv 2 1 0.5\n"
+            "vt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nvt 0.5 0.5\n"
+            "f 1/1 2/2 3/3 4/4\nf 2/5 5/2 6/3 3/5\n")
+# smooth: normals indexed apart from the vertices, but one per vertex
+SMOOTH_OBJ = ("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0.2\n"
+              "vn 0 0.1 1\nvn 0.1 0 1\nvn 0 0 1\nvn 0.2 0.2 1\n"
+              "f 1//3 2//1 3//2\nf 2//1 4//4 3//2\n")
+
+
+@pytest.mark.parametrize("text", [HARD_CUBE_OBJ, SEAM_OBJ, SMOOTH_OBJ],
+                         ids=["hard edges", "uv seam", "smooth"])
+def test_an_obj_s_corners_shade_as_in_mitsuba(tmp_path, text):
+    """An OBJ's faces index normals and texture coordinates apart from the
+    vertices.  Mitsuba makes a vertex of each distinct (position, texture
+    coordinate, normal) a corner names, so a hard edge keeps each face's
+    normal and a UV seam computes its normals on each side apart.  The
+    loaded mesh gives every face corner Mitsuba's position and shading
+    normal, and keeps the file's vertex rows first, in place; a smooth
+    file, one normal per vertex, keeps exactly its rows."""
+    path = tmp_path / "m.obj"
+    path.write_text(text)
+    ours = hlbvh_cl.Mesh.load(path)
+    theirs = mi.traverse(mi.load_dict({"type": "obj", "filename": str(path)}))
+    their_points = np.array(theirs["vertex_positions"]).reshape(-1, 3)
+    their_normals = np.array(theirs["vertex_normals"]).reshape(-1, 3)
+    their_faces = np.array(theirs["faces"]).reshape(-1, 3)
+
+    def corners(points, normals, faces):
+        """(face centre, corner position) -> unit shading normal, every corner."""
+        found = {}
+        for face in faces:
+            centre = tuple(np.round(points[face].mean(axis=0), 5))
+            for k in face:
+                normal = normals[k] / np.linalg.norm(normals[k])
+                found[centre, tuple(np.round(points[k], 5))] = normal
+        return found
+
+    ours_at = corners(ours.vertices, ours.normals, ours.faces)
+    theirs_at = corners(their_points, their_normals, their_faces)
+    assert ours_at.keys() == theirs_at.keys()
+    for key, normal in theirs_at.items():
+        np.testing.assert_allclose(ours_at[key], normal, atol=1e-6, err_msg=str(key))
+    rows = np.float32([line.split()[1:] for line in text.splitlines() if line.startswith("v ")])
+    np.testing.assert_array_equal(ours.vertices[:len(rows)], rows)
+    if text is SMOOTH_OBJ:
+        assert ours.vertex_count == len(rows)
+    else:
+        assert ours.vertex_count == len(their_points)
+
+
 def scene_of(tmp_path, text: str):
     path = tmp_path / "scene.xml"
     path.write_text(text)
