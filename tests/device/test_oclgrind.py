@@ -91,14 +91,37 @@ RENDERS = {"diffuse": {"shading": "diffuse", "shadows": True},
            # the environment map's lookups and sampling (render/envmap.h)
            "envmap": {"shading": "path", "spp": 2, "max_depth": 3, "rr_depth": 10,
                       "emitters": [{"type": "envmap", "image": np.linspace(
-                          0.1, 3.0, 5 * 7 * 3, dtype=np.float32).reshape(5, 7, 3)}]}}
+                          0.1, 3.0, 5 * 7 * 3, dtype=np.float32).reshape(5, 7, 3)}]},
+           # every other BSDF (render/bsdfs/) and light (render/lights.h): the
+           # rough ones' microfacet sampling, the smooth ones' delta lobes, an
+           # emitting mesh, a point and a directional light
+           "rough": {"shading": "path", "spp": 2, "max_depth": 3, "rr_depth": 10,
+                     "materials": [{"type": "roughplastic", "alpha": 0.3},
+                                   {"type": "roughconductor", "alpha": 0.2, "material": "Au"}],
+                     "emitters": [{"type": "area", "mesh": 1, "radiance": 0.3},
+                                  {"type": "point", "position": [1.0, 2.0, 1.0],
+                                   "intensity": 4.0},
+                                  {"type": "directional", "direction": [-1.0, -2.0, -0.5],
+                                   "irradiance": 1.5}]},
+           "smooth": {"shading": "path", "spp": 2, "max_depth": 3, "rr_depth": 10,
+                      "materials": [{"type": "dielectric"},
+                                    {"type": "twosided",
+                                     "bsdf": {"type": "plastic", "diffuse_reflectance": 0.4}}],
+                      "emitters": [{"type": "constant", "radiance": 1.0}]},
+           "glossy": {"shading": "path", "spp": 2, "max_depth": 3, "rr_depth": 10,
+                      "materials": [{"type": "roughdielectric", "alpha": 0.25},
+                                    {"type": "conductor"}],
+                      "emitters": [{"type": "constant", "radiance": 1.0},
+                                   {"type": "point", "position": [0.0, 2.5, 0.0],
+                                    "intensity": 3.0}]}}
 WIDTH, HEIGHT = 8, 6
 
 
 def render(scene, name: str) -> np.ndarray:
     import hlbvh_cl
     options = dict(RENDERS[name])
-    renderer = hlbvh_cl.Renderer(scene, emitters=options.pop("emitters", None))
+    renderer = hlbvh_cl.Renderer(scene, materials=options.pop("materials", None),
+                                 emitters=options.pop("emitters", None))
     return renderer.render(camera(), WIDTH, HEIGHT, **options)
 
 
