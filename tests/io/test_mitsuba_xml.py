@@ -12,7 +12,7 @@ from hlbvh_cl.io.mitsuba import read_xml
 from hlbvh_cl.io.scenefile import SceneFileError, load
 from hlbvh_cl.render.materials import check_material
 import places
-from agreement import assert_blocks_agree
+from agreement import assert_blocks_agree, assert_falls_as_one_over_spp, relmse
 
 mi = pytest.importorskip("mitsuba")
 
@@ -166,6 +166,34 @@ def test_the_cornell_box_renders_as_in_mitsuba(suite_device):
     # the glass ball's caustics make heavy-tailed noise: the means agree to a few percent
     assert abs(ours.mean() - theirs.mean()) < 0.05 * theirs.mean()
     assert_blocks_agree(theirs, ours, 8)
+
+
+def test_the_cornell_box_s_relmse_against_mitsuba_falls_as_one_over_spp(tmp_path,
+                                                                       suite_device):
+    """Issue 55's convergence check on its XML file: scenes/cornell_box.xml
+    at 32 x 32 against Mitsuba 3's render of the same file at 4,096 spp.
+    Over 64 to 1,024 spp (4 seeds each) the relMSE falls as 1 / spp once the
+    reference's own share is counted: no bias levels it off (the ball, a
+    mesh here, is Mitsuba's analytic sphere there).  From fewer spp the
+    glass ball's heavy-tailed caustics are seldom met by a few seeds.  With
+    a box filter: the scalar variants tabulate the Gaussian in 31 steps
+    (rfilter.h's eval_discretized), which widens it (a sharp edge's first
+    pixel 0.166 where the Gaussian gives 0.159, as the JIT variants and this
+    renderer do), and the light's edges would differ by a few percent."""
+    text = CORNELL.read_text()
+    assert '<rfilter type="gaussian"/>' in text
+    path = scene_of(tmp_path, text.replace('<rfilter type="gaussian"/>', '<rfilter type="box"/>'))
+    reference_spp, size = 4096, 32
+    reference = np.asarray(mi.render(mi.load_file(str(path), res=size, spp=reference_spp),
+                                     seed=99))[..., :3]
+    loaded = load(path, suite_device.id, defaults={"res": size})
+    assert loaded.options["rfilter"] == "box"
+    renderer = loaded.renderer()
+    counts = np.array([64, 256, 1024])
+    errors = [np.mean([relmse(renderer.render(loaded.camera, size, size, hdr=True,
+                                              **{**loaded.options, "spp": int(n), "seed": s}),
+                              reference) for s in range(1, 5)]) for n in counts]
+    assert_falls_as_one_over_spp(errors, counts, reference_spp)
 
 
 def test_the_materials_scene_renders_as_in_mitsuba(tmp_path, suite_device):

@@ -21,7 +21,7 @@ import pytest
 import trimesh
 
 import hlbvh_cl
-from agreement import assert_blocks_agree
+from agreement import assert_blocks_agree, assert_falls_as_one_over_spp, relmse
 
 #: Independent seeds per comparison: their spread gives the standard error.
 SEEDS = 4
@@ -622,13 +622,6 @@ def test_a_ball_of_each_rough_or_coated_material_agrees_with_mitsuba_3(material,
     assert_agrees(theirs, ours, block=4)
 
 
-def relmse(image, reference) -> float:
-    """Relative MSE as bench/path.py scores renders: mean((image - ref)^2 /
-    (ref^2 + 0.01)) over pixels and channels."""
-    image, reference = np.asarray(image, np.float64), np.asarray(reference, np.float64)
-    return float(((image - reference) ** 2 / (reference ** 2 + 0.01)).mean())
-
-
 def test_relmse_against_a_high_spp_mitsuba_reference_falls_as_one_over_spp(tmp_path,
                                                                            suite_device):
     """Issue 55's convergence check: a glass ball and a gold one on a diffuse
@@ -668,13 +661,7 @@ def test_relmse_against_a_high_spp_mitsuba_reference_falls_as_one_over_spp(tmp_p
                                                        spp=int(n), max_depth=depth, hdr=True,
                                                        seed=seed), reference)
                                 for seed in range(1, SEEDS + 1)]) for n in counts])
-    # relMSE(n) = a / n + a / reference_spp: fit a, then the slope of what
-    # is left once the reference's share is taken off
-    a = float(np.mean(errors / (1.0 / counts + 1.0 / reference_spp)))
-    own = errors - a / reference_spp
-    assert (own > 0).all(), (errors, a)
-    slope = np.polyfit(np.log(counts), np.log(own), 1)[0]
-    assert -1.2 < slope < -0.8, (slope, errors)
+    assert_falls_as_one_over_spp(errors, counts, reference_spp)
 
 
 @pytest.mark.parametrize("rfilter", ["box", "gaussian"])

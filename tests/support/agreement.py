@@ -21,3 +21,24 @@ def assert_blocks_agree(theirs, ours, block: int, sigmas: float = 5.0, slack: fl
             assert (difference <= bound).all(), (
                 f"block ({y}, {x}): reference {a.mean((0, 1))}, ours {b.mean((0, 1))}, "
                 f"allowed {bound}")
+
+
+def relmse(image, reference) -> float:
+    """Relative MSE as bench/path.py scores renders: mean((image - ref)^2 /
+    (ref^2 + 0.01)) over pixels and channels."""
+    image, reference = np.asarray(image, np.float64), np.asarray(reference, np.float64)
+    return float(((image - reference) ** 2 / (reference ** 2 + 0.01)).mean())
+
+
+def assert_falls_as_one_over_spp(errors, counts, reference_spp: int) -> None:
+    """An unbiased estimator's relMSE against a reference of reference_spp
+    is its variance over spp plus the reference's own, a / n + a /
+    reference_spp (a bias would level it off): fit a, then the log-log slope
+    of what is left once the reference's share is taken off is -1 within
+    0.2."""
+    errors, counts = np.asarray(errors, np.float64), np.asarray(counts, np.float64)
+    a = float(np.mean(errors / (1.0 / counts + 1.0 / reference_spp)))
+    own = errors - a / reference_spp
+    assert (own > 0).all(), (errors, a)
+    slope = np.polyfit(np.log(counts), np.log(own), 1)[0]
+    assert -1.2 < slope < -0.8, (slope, errors)
