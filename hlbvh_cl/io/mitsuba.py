@@ -8,8 +8,10 @@ The subset::
       <default name="spp" value="64"/>            $spp substitutions
       <integrator type="path">                      max_depth (default -1), rr_depth (5)
       <sensor type="perspective">                   fov (deg), fov_axis (x, y, diagonal,
-        <transform name="to_world">...</transform>  smaller, larger; default x), to_world,
-                                                    near_clip, far_clip (0.01, 10000)
+        <transform name="to_world">...</transform>  smaller, larger; default x), or
+                                                    focal_length ("50mm" where neither is
+                                                    given), to_world, near_clip, far_clip
+                                                    (0.01, 10000)
         <film type="hdrfilm">                       width, height (768 x 576)
           <rfilter type="box"/>                     box or gaussian (the default)
         <sampler type="independent">                sample_count (default 4), seed (the
@@ -26,7 +28,10 @@ The subset::
                                                     directional (direction, irradiance),
                                                     constant (radiance), envmap (filename,
                                                     relative to the file's folder; scale;
-                                                    to_world, a rotation)
+                                                    to_world, a rotation); a value
+                                                    left out is Mitsuba's 1, a point
+                                                    light's position the origin, a
+                                                    directional light's direction +z
 
 Values: rgb, float, integer, string, boolean and point, and ref.  Anything
 else, an element, an attribute or a parameter, is an error naming it and
@@ -99,8 +104,8 @@ _NUMBER, _COLOUR = ("float", "integer"), ("rgb", "float", "integer")
 _TAGS = {**{name: ("integer",) for name in ("max_depth", "rr_depth", "sample_count", "seed",
                                             "width", "height")},
          **{name: _NUMBER for name in ("fov", "near_clip", "far_clip", "radius", "scale")},
-         **{name: ("string",) for name in ("fov_axis", "filename", "pixel_format",
-                                           "component_format")},
+         **{name: ("string",) for name in ("fov_axis", "focal_length", "filename",
+                                           "pixel_format", "component_format")},
          **{name: ("boolean",) for name in ("face_normals", "flip_normals")},
          **{name: _COLOUR for name in ("radiance", "intensity", "irradiance", "reflectance",
                                        "diffuse_reflectance", "specular_reflectance",
@@ -537,8 +542,8 @@ _INT32_MAX = 2**31 - 1
 def _sensor(reader: _Reader, node: _Node, options: dict, replaced: Collection[str]):
     if node.get("type") != "perspective":
         raise reader.error(node, "only the perspective sensor is read")
-    values = reader.parameters(node, ("fov", "fov_axis", "to_world", "near_clip", "far_clip"),
-                               skip=("film", "sampler"))
+    values = reader.parameters(node, ("fov", "fov_axis", "focal_length", "to_world",
+                                      "near_clip", "far_clip"), skip=("film", "sampler"))
     size = FILM_SIZE
     _one_each(reader, node, ("film", "sampler"))
     for child in node.children:
@@ -579,8 +584,11 @@ def _sensor(reader: _Reader, node: _Node, options: dict, replaced: Collection[st
                     raise reader.error(child, f"seed must be >= 0, got {sampler['seed']}")
                 # a render's seeds are 16 bits (render.settings); Mitsuba's any size
                 options["seed"] = sampler["seed"] % (MAX_SEED + 1)
-    if "fov" not in values:
-        raise reader.error(node, "needs its fov (degrees)")
+    if "fov" in values and "focal_length" in values:
+        raise reader.error(node, "give either its fov or its focal_length, not both")
+    if "fov" not in values:  # Mitsuba's parse_fov: a focal length, 50mm unless given
+        values["fov"], values["fov_axis"] = _focal_fov(reader, node,
+                                                       values.get("focal_length", "50mm"))
     if not 0 < values["fov"] < 180:
         raise reader.error(node, f"fov must be between 0 and 180 degrees, got {values['fov']:g}")
     matrix = values.get("to_world", np.eye(4))
@@ -606,6 +614,21 @@ def _sensor(reader: _Reader, node: _Node, options: dict, replaced: Collection[st
     except ValueError as error:
         raise reader.error(node, f"its to_world makes no camera: {error}") from None
     return camera, size, (values["fov"], axis)
+
+
+def _focal_fov(reader: _Reader, node: _Node, focal_length: str) -> tuple[float, str]:
+    """The diagonal field of view (degrees, "diagonal") of a lens of
+    ``focal_length`` ("<x>mm", or x alone, as Mitsuba reads it) on a 35 mm
+    film frame of 36 x 24 mm, as Mitsuba's parse_fov gives it when a sensor
+    has no fov."""
+    text = focal_length[:-2] if focal_length.endswith("mm") else focal_length
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise reader.error(node, f"focal_length must be <x>mm with x > 0, got {focal_length!r}")
+    return 2.0 * math.degrees(math.atan(math.hypot(36.0, 24.0) / (2.0 * value))), "diagonal"
 
 
 def _bsdf(reader: _Reader, node: _Node) -> dict:
@@ -741,12 +764,11 @@ def _emitter(reader: _Reader, node: _Node, area: bool = False) -> dict:
                                      "(Mitsuba refuses both)")
         values[key] = list(matrix[:3, 3]) if kind == "point" else \
             list(matrix[:3, :3] @ [0.0, 0.0, 1.0])
-    spec = {"type": kind, **values}
-    for needed in {"area": ("radiance",), "constant": ("radiance",), "envmap": ("filename",),
-                   "point": ("position", "intensity"),
-                   "directional": ("direction", "irradiance")}[kind]:
-        if needed not in spec:
-            raise reader.error(node, f"needs its {needed}")
+    # Mitsuba's defaults: a value of 1, a point light at the origin, a
+    # directional light along +z (its frame's z axis); an envmap needs its file
+    spec = {"type": kind, **_EMITTER_DEFAULTS[kind], **values}
+    if kind == "envmap" and "filename" not in spec:
+        raise reader.error(node, "needs its filename")
     from ..render.emitters import check_emitters
     try:
         check_emitters([{**spec, "mesh": 0} if area else spec], 1,
@@ -754,6 +776,13 @@ def _emitter(reader: _Reader, node: _Node, area: bool = False) -> dict:
     except (TypeError, ValueError) as error:
         raise SceneFileError(str(error)) from None
     return spec
+
+
+#: What Mitsuba 3 takes for an emitter's value or placement left out
+#: (get_emissive_texture(..., 1.f); an identity to_world).
+_EMITTER_DEFAULTS = {"area": {"radiance": 1.0}, "constant": {"radiance": 1.0}, "envmap": {},
+                     "point": {"intensity": 1.0, "position": [0.0, 0.0, 0.0]},
+                     "directional": {"irradiance": 1.0, "direction": [0.0, 0.0, 1.0]}}
 
 
 def _emitter_name(reader: _Reader, node: _Node) -> str:

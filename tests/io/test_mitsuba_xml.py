@@ -43,16 +43,23 @@ def scene_xml(body: str, width=40, height=24, fov=50.0, axis="x", to_world=None)
 CUBE = '<shape type="cube"/>'
 
 
-@pytest.mark.parametrize("axis", ["x", "y", "diagonal", "smaller", "larger"])
+@pytest.mark.parametrize("axis", ["x", "y", "diagonal", "smaller", "larger", "no fov", "28mm"])
 @pytest.mark.parametrize("size", [(40, 24), (24, 40)])
 def test_the_camera_sends_mitsuba_s_rays(tmp_path, axis, size):
     """Through each pixel centre, our camera's ray has the direction of
     Mitsuba's sensor ray, for every fov_axis and either orientation, with a
-    look_at turned further by a rotation."""
+    look_at turned further by a rotation; and for a sensor without a fov,
+    whose lens is then a focal length, 50mm unless given."""
     path = tmp_path / "scene.xml"
-    path.write_text(scene_xml(CUBE, *size, axis=axis, to_world=(
+    text = scene_xml(CUBE, *size, axis=axis, to_world=(
         '<lookat origin="1, 2, 5" target="0, 0.5, 0" up="0, 1, 0"/>'
-        '<rotate y="1" angle="20"/>')))
+        '<rotate y="1" angle="20"/>'))
+    if axis in ("no fov", "28mm"):
+        lens = f'<string name="focal_length" value="{axis}"/>' if axis == "28mm" else ""
+        text = text.replace('<float name="fov" value="50.0"/>', lens, 1).replace(
+            f'<string name="fov_axis" value="{axis}"/>', "", 1)
+        assert "fov" not in text.replace("focal", "")
+    path.write_text(text)
     width, height = size
     described = read_xml(path)
     origins, ours = described.camera.rays(width, height)
@@ -442,6 +449,12 @@ def test_the_cli_renders_an_xml_scene_with_its_own_options(tmp_path, capsys, sui
      "fov takes <float>, <integer>, not <string>"),
     (('name="fov" value="50.0"', 'name="fov" value="180"'),
      "fov must be between 0 and 180 degrees, got 180"),
+    (('<float name="fov" value="50.0"/>', '<string name="focal_length" value="-5mm"/>'),
+     "focal_length must be <x>mm with x > 0, got '-5mm'"),
+    (('<float name="fov" value="50.0"/>', '<string name="focal_length" value="wide"/>'),
+     "focal_length must be <x>mm with x > 0, got 'wide'"),
+    (('<float name="fov" value="50.0"/>', '<float name="fov" value="50.0"/><string '
+      'name="focal_length" value="35mm"/>'), "give either its fov or its focal_length, not both"),
     (('target="0, 0.5, 0"', 'target="1, 2, 5"'), "its target is its origin"),
     (('up="0, 1, 0"', 'up="-1, -1.5, -5"'), "its up is parallel to the direction it looks in"),
     (('<film', '<float name="near_clip" value="2"/><float name="far_clip" value="1"/><film'),
@@ -594,6 +607,32 @@ def test_an_obj_s_corners_shade_as_in_mitsuba(tmp_path, text):
         assert ours.vertex_count == len(rows)
     else:
         assert ours.vertex_count == len(their_points)
+
+
+@pytest.mark.parametrize("bare, given", [
+    ('<emitter type="point"/>', '<emitter type="point"><float name="intensity" value="1"/>'
+                                '<point name="position" value="0, 0, 0"/></emitter>'),
+    ('<emitter type="directional"/>', '<emitter type="directional"><float name="irradiance" '
+                                      'value="1"/><vector name="direction" value="0, 0, 1"/>'
+                                      '</emitter>'),
+    ('<emitter type="constant"/>', '<emitter type="constant"><float name="radiance" value="1"/>'
+                                   '</emitter>'),
+    ('<shape type="rectangle"><emitter type="area"/></shape>',
+     '<shape type="rectangle"><emitter type="area"><float name="radiance" value="1"/></emitter>'
+     '</shape>'),
+], ids=["point", "directional", "constant", "area"])
+def test_an_emitter_s_values_left_out_are_mitsuba_s_defaults(tmp_path, bare, given):
+    """Mitsuba gives an emitter without its value a value of 1 (and a point
+    light without a position the origin, a directional light without a
+    direction +z, its frame's z axis): such a file reads as the one that
+    says them, where it was refused."""
+    bare_path = scene_of(tmp_path, scene_xml(CUBE + bare))
+    mi.load_file(str(bare_path))
+    ours = read_xml(bare_path)
+    theirs = read_xml(scene_of(tmp_path, scene_xml(CUBE + given)))
+    assert ours.emitters == theirs.emitters
+    assert [m.emitter for m in ours.meshes] == [m.emitter for m in theirs.meshes]
+    assert ours.emitters or any(m.emitter for m in ours.meshes)
 
 
 def scene_of(tmp_path, text: str):
