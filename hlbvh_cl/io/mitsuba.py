@@ -441,6 +441,7 @@ def read_xml(path, defaults: dict | None = None,
         # reader does not, so it reads version 3 files only
         raise reader.error(scene, f"version {scene.get('version')!r}: this reader reads "
                                   f"Mitsuba 3 files (version=\"3.x.y\")")
+    _substitute_names(reader, scene)
     reader.check_attributes(scene)
     _collect_ids(reader, scene)
     options = {"shading": "path", "spp": SAMPLE_COUNT, "max_depth": -1, "rr_depth": 5,
@@ -614,6 +615,18 @@ def _sensor(reader: _Reader, node: _Node, options: dict, replaced: Collection[st
     except ValueError as error:
         raise reader.error(node, f"its to_world makes no camera: {error}") from None
     return camera, size, (values["fov"], axis)
+
+
+def _substitute_names(reader: _Reader, node: _Node) -> None:
+    """The $names in every element's type, id and name attributes (a
+    value's are read where it is), as Mitsuba substitutes them in every
+    attribute: <bsdf type="$t">."""
+    for child in node.children:
+        if child.tag != "default":
+            for key in ("type", "id", "name"):
+                if "$" in (child.get(key) or ""):
+                    child.attributes[key] = reader.text(child, key)
+            _substitute_names(reader, child)
 
 
 def _focal_fov(reader: _Reader, node: _Node, focal_length: str) -> tuple[float, str]:

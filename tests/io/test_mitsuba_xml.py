@@ -635,6 +635,24 @@ def test_an_emitter_s_values_left_out_are_mitsuba_s_defaults(tmp_path, bare, giv
     assert ours.emitters or any(m.emitter for m in ours.meshes)
 
 
+def test_a_type_id_or_name_takes_its_default_s_value(tmp_path):
+    """Mitsuba substitutes $names in every attribute, a plugin's type, an id
+    and a parameter's name too: such a file reads as the one that spells
+    them out, where it was refused."""
+    spelled = ('<bsdf type="diffuse" id="mat"><rgb name="reflectance" value="0.2, 0.3, 0.4"/>'
+               '</bsdf><shape type="cube"><ref id="mat"/></shape>')
+    named = ('<default name="t" value="diffuse"/><default name="k" value="reflectance"/>'
+             '<default name="i" value="mat"/><bsdf type="$t" id="$i"><rgb name="$k" '
+             'value="0.2, 0.3, 0.4"/></bsdf><shape type="cube"><ref id="$i"/></shape>')
+    path = scene_of(tmp_path, scene_xml(named))
+    assert float(np.ravel(mi.traverse(mi.load_file(str(path)))["mat.reflectance.value"])[1]) \
+        == pytest.approx(0.3)
+    ours = read_xml(path)
+    assert ours.meshes[0].material == read_xml(scene_of(tmp_path, scene_xml(spelled))
+                                               ).meshes[0].material
+    assert ours.meshes[0].material["reflectance"] == pytest.approx([0.2, 0.3, 0.4])
+
+
 def scene_of(tmp_path, text: str):
     path = tmp_path / "scene.xml"
     path.write_text(text)
