@@ -304,8 +304,17 @@ def _read_with_trimesh(path: Path, file_type: str, gzipped: bool) -> tuple:
     offsets = np.cumsum([0] + [len(p.vertices) for p in parts[:-1]])
     vertices = np.concatenate([np.asarray(p.vertices) for p in parts])
     faces = np.concatenate([np.asarray(p.faces, dtype=np.int64) + o for p, o in zip(parts, offsets)])
-    return vertices, faces, (np.concatenate(normals) if all(n is not None for n in normals)
-                             else None)
+    if not all(n is not None for n in normals):
+        return vertices, faces, None
+    normals = np.concatenate(normals)
+    # a row no face uses (an OBJ's stray v) may have no normal (trimesh gives
+    # it zeros, which Mesh refuses): the stand-in Mitsuba gives a vertex
+    # without one
+    unused = np.ones(len(vertices), bool)
+    unused[faces.ravel()] = False
+    missing = unused & ~(np.isfinite(normals).all(axis=1) & (np.abs(normals).sum(axis=1) > 0))
+    normals[missing] = [1.0, 0.0, 0.0]
+    return vertices, faces, normals
 
 
 def _placed_parts(scene, kind, stores_normals: bool) -> tuple[list, list]:

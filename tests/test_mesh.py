@@ -90,6 +90,19 @@ def test_an_obj_keeps_its_vertex_rows_used_or_not(tmp_path):
     np.testing.assert_array_equal(mesh.faces, faces)
 
 
+def test_an_obj_with_normals_keeps_a_row_no_face_uses(tmp_path):
+    """A stray vertex row in an OBJ with normals: trimesh gives it a zero
+    normal, which a Mesh refuses, and the file was refused for a normal it
+    never gave.  It loads, the row in place with Mitsuba's stand-in normal,
+    the used rows with the file's."""
+    path = tmp_path / "stray.obj"
+    path.write_text("v 0 0 0\nv 9 9 9\nv 1 0 0\nv 0 1 0\nvn 0 0 1\nf 1//1 3//1 4//1\n")
+    mesh = Mesh.load(path)
+    np.testing.assert_array_equal(mesh.vertices[1], [9, 9, 9])
+    np.testing.assert_array_equal(mesh.normals, [[0, 0, 1], [1, 0, 0], [0, 0, 1], [0, 0, 1]])
+    assert mesh.has_file_normals
+
+
 def test_an_obj_with_materials_keeps_its_rows_and_face_order(tmp_path):
     """trimesh splits an OBJ per material, each part a copy of the vertices
     with its faces grouped by material; the file's order, which prim_id and

@@ -52,6 +52,7 @@ triangle's own normal where face_normals is true.
 """
 from __future__ import annotations
 
+import copy
 import math
 import os
 import re
@@ -173,6 +174,14 @@ def _parse(path: Path) -> _Node:
     return root.children[0]
 
 
+def _parsed(kind, text: str):
+    """float(text) or int(text), without Python's digit separators
+    (float("0_5") is 5.0), which Mitsuba does not read as numbers."""
+    if "_" in text:
+        raise ValueError(text)
+    return kind(text)
+
+
 class _Reader:
     def __init__(self, path: Path, scene: _Node, overrides: dict):
         self.path = path
@@ -233,20 +242,12 @@ class _Reader:
         self.used.add(name)
         return self.defaults[name]
 
-    @staticmethod
-    def _parsed(kind, text: str):
-        """float(text) or int(text), without Python's digit separators
-        (float("0_5") is 5.0), which Mitsuba does not read as numbers."""
-        if "_" in text:
-            raise ValueError(text)
-        return kind(text)
-
     def number(self, node: _Node, key: str = "value") -> float:
         """The finite number in attribute ``key``."""
         text = self.text(node, key)
         which = "" if key == "value" else f" for {key}"
         try:
-            value = self._parsed(float, text)
+            value = _parsed(float, text)
         except ValueError:
             raise self.error(node, f"expected a number{which}, "
                                    f"got {self.shown(node, key)}") from None
@@ -258,7 +259,7 @@ class _Reader:
     def numbers(self, node: _Node, count: int, key: str = "value") -> list[float]:
         parts = re.split(r"[,\s]+", self.text(node, key).strip())  # (text raises first)
         try:
-            values = [self._parsed(float, x) for x in parts if x]
+            values = [_parsed(float, x) for x in parts if x]
         except ValueError:
             raise self.error(node, f"expected {count} numbers, "
                                    f"got {self.shown(node, key)}") from None
@@ -280,7 +281,7 @@ class _Reader:
         if node.tag == "integer":
             text = self.text(node)
             try:
-                return self._parsed(int, text)
+                return _parsed(int, text)
             except ValueError:
                 raise self.error(node, f"expected an integer, got {self.shown(node)}") from None
         if node.tag == "string":
@@ -588,6 +589,9 @@ def _sensor(reader: _Reader, node: _Node, options: dict, replaced: Collection[st
     if "fov" in values and "focal_length" in values:
         raise reader.error(node, "give either its fov or its focal_length, not both")
     if "fov" not in values:  # Mitsuba's parse_fov: a focal length, 50mm unless given
+        if "fov_axis" in values:  # Mitsuba leaves it unread, and refuses the file
+            raise reader.error(node, "fov_axis applies to a fov; without one the sensor's "
+                                     "focal_length gives the field of view along the diagonal")
         values["fov"], values["fov_axis"] = _focal_fov(reader, node,
                                                        values.get("focal_length", "50mm"))
     if not 0 < values["fov"] < 180:
@@ -636,12 +640,14 @@ def _focal_fov(reader: _Reader, node: _Node, focal_length: str) -> tuple[float, 
     has no fov."""
     text = focal_length[:-2] if focal_length.endswith("mm") else focal_length
     try:
-        value = float(text)
+        value = _parsed(float, text)
     except ValueError:
         value = math.nan
-    if not (math.isfinite(value) and value > 0):
+    fov = 2.0 * math.degrees(math.atan(math.hypot(36.0, 24.0) / (2.0 * value))) \
+        if math.isfinite(value) and value > 0 else math.nan
+    if not 0 < fov < 180:  # a length so short that the view is flat is refused too
         raise reader.error(node, f"focal_length must be <x>mm with x > 0, got {focal_length!r}")
-    return 2.0 * math.degrees(math.atan(math.hypot(36.0, 24.0) / (2.0 * value))), "diagonal"
+    return fov, "diagonal"
 
 
 def _bsdf(reader: _Reader, node: _Node) -> dict:
@@ -720,9 +726,10 @@ def _shape(reader: _Reader, node: _Node) -> MeshEntry:
     normals = mesh.normals.astype(np.float64) @ np.linalg.inv(matrix[:3, :3]) \
         if mesh.has_file_normals else None
     face_normals = mesh.face_normals or bool(values.get("face_normals", False))
-    # A mirror turns the winding inside out, and Mitsuba keeps it for a file's
-    # mesh: its geometric normals and the ones it computes then point inward,
-    # the file's own (by the inverse transpose) outward.  Its cube and
+    # A mirror turns the winding inside out, and Mitsuba 3.9.1 keeps it for a
+    # file's mesh: its geometric normals and the ones it computes then point
+    # inward, the file's own (by the inverse transpose) outward.  (Its source
+    # after 3.9.1 flips the winding of a mirrored mesh: revisit on upgrade.)  Its cube and
     # rectangle carry their own normals, outward: there the faces are turned
     # outward with them (their shading normal is the face's).
     if np.linalg.det(matrix[:3, :3]) < 0 and kind not in ("ply", "obj"):
@@ -779,7 +786,7 @@ def _emitter(reader: _Reader, node: _Node, area: bool = False) -> dict:
             list(matrix[:3, :3] @ [0.0, 0.0, 1.0])
     # Mitsuba's defaults: a value of 1, a point light at the origin, a
     # directional light along +z (its frame's z axis); an envmap needs its file
-    spec = {"type": kind, **_EMITTER_DEFAULTS[kind], **values}
+    spec = {"type": kind, **copy.deepcopy(_EMITTER_DEFAULTS[kind]), **values}
     if kind == "envmap" and "filename" not in spec:
         raise reader.error(node, "needs its filename")
     from ..render.emitters import check_emitters

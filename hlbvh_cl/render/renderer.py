@@ -225,12 +225,12 @@ class Pipeline:
             for band in bands:
                 for sample in range(settings.spp):
                     run.sample(band, sample, sample)
+                    run.fold_times()  # the samples still in flight stay (step_done: two)
                 if hdr:
                     run.events["encode"].append(self.film.resolve(rt, band, width, settings.spp))
                 else:
                     run.events["encode"].append(self.film.encode(
                         rt, band, width, settings.spp, run.integrator.radiance(settings)))
-                run.fold_times()
         rt.wait([self.film.read(rt, image)])
         return image, settings.spp, False
 

@@ -107,13 +107,13 @@ RENDERS = {"diffuse": {"shading": "diffuse", "shadows": True},
                       "materials": [{"type": "dielectric"},
                                     {"type": "twosided",
                                      "bsdf": {"type": "plastic", "diffuse_reflectance": 0.4}}],
-                      "emitters": [{"type": "constant", "radiance": 1.0}]},
+                      "emitters": [{"type": "constant", "radiance": 0.3}]},
            "glossy": {"shading": "path", "spp": 2, "max_depth": 3, "rr_depth": 10,
                       "materials": [{"type": "roughdielectric", "alpha": 0.25},
                                     {"type": "conductor"}],
-                      "emitters": [{"type": "constant", "radiance": 1.0},
+                      "emitters": [{"type": "constant", "radiance": 0.3},
                                    {"type": "point", "position": [0.0, 2.5, 0.0],
-                                    "intensity": 3.0}]}}
+                                    "intensity": 1.0}]}}
 WIDTH, HEIGHT = 8, 6
 
 

@@ -180,8 +180,9 @@ def test_the_cornell_box_s_relmse_against_mitsuba_falls_as_one_over_spp(tmp_path
     """Issue 55's convergence check on its XML file: scenes/cornell_box.xml
     at 32 x 32 against Mitsuba 3's render of the same file at 4,096 spp.
     Over 64 to 1,024 spp (4 seeds each) the relMSE falls as 1 / spp once the
-    reference's own share is counted: no bias levels it off (the ball, a
-    mesh here, is Mitsuba's analytic sphere there).  From fewer spp the
+    reference's own share is counted: no bias levels it off at this size
+    and these counts (the ball, a mesh of 5,120 triangles here, is Mitsuba's
+    analytic sphere there).  From fewer spp the
     glass ball's heavy-tailed caustics are seldom met by a few seeds.  With
     a box filter: the scalar variants tabulate the Gaussian in 31 steps
     (rfilter.h's eval_discretized), which widens it (a sharp edge's first
@@ -434,6 +435,10 @@ def test_the_cli_renders_an_xml_scene_with_its_own_options(tmp_path, capsys, sui
     assert not np.allclose(cli, image)
 
 
+#: A sensor's fov and fov_axis lines in scene_xml.
+LENS = '<float name="fov" value="50.0"/>\n    <string name="fov_axis" value="x"/>'
+
+
 @pytest.mark.parametrize("change, words", [
     (('name="width" value="40"', 'name="width" value="abc"'), "expected an integer, got 'abc'"),
     (('<integer name="width" value="40"/>', '<float name="width" value="8.7"/>'),
@@ -449,10 +454,17 @@ def test_the_cli_renders_an_xml_scene_with_its_own_options(tmp_path, capsys, sui
      "fov takes <float>, <integer>, not <string>"),
     (('name="fov" value="50.0"', 'name="fov" value="180"'),
      "fov must be between 0 and 180 degrees, got 180"),
-    (('<float name="fov" value="50.0"/>', '<string name="focal_length" value="-5mm"/>'),
+    ((LENS, '<string name="focal_length" value="-5mm"/>'),
      "focal_length must be <x>mm with x > 0, got '-5mm'"),
-    (('<float name="fov" value="50.0"/>', '<string name="focal_length" value="wide"/>'),
+    ((LENS, '<string name="focal_length" value="wide"/>'),
      "focal_length must be <x>mm with x > 0, got 'wide'"),
+    ((LENS, '<string name="focal_length" value="5_0mm"/>'),
+     "focal_length must be <x>mm with x > 0, got '5_0mm'"),
+    ((LENS, '<string name="focal_length" value="1e-300mm"/>'),
+     "focal_length must be <x>mm with x > 0, got '1e-300mm'"),
+    (('<float name="fov" value="50.0"/>', ''),
+     "fov_axis applies to a fov; without one the sensor's focal_length gives the field of "
+     "view along the diagonal"),
     (('<float name="fov" value="50.0"/>', '<float name="fov" value="50.0"/><string '
       'name="focal_length" value="35mm"/>'), "give either its fov or its focal_length, not both"),
     (('target="0, 0.5, 0"', 'target="1, 2, 5"'), "its target is its origin"),
@@ -633,6 +645,11 @@ def test_an_emitter_s_values_left_out_are_mitsuba_s_defaults(tmp_path, bare, giv
     assert ours.emitters == theirs.emitters
     assert [m.emitter for m in ours.meshes] == [m.emitter for m in theirs.meshes]
     assert ours.emitters or any(m.emitter for m in ours.meshes)
+    for emitter in ours.emitters:  # each file's defaults its own, not shared lists
+        for value in emitter.values():
+            if isinstance(value, list):
+                value[0] = 7.0
+    assert read_xml(bare_path).emitters == theirs.emitters
 
 
 def test_a_type_id_or_name_takes_its_default_s_value(tmp_path):
