@@ -377,15 +377,15 @@ def _obj_corners_split(trimesh, source: io.BytesIO, parts: list, normals: list,
         # the split vertex at each corner, and the file row it copies
         first = np.unique(corners, return_index=True)[1]
         order = np.sort(first)  # split vertices by their first use
-        vertex_of = np.full(len(cut.vertices), -1, np.int64)
         row_of = rows[order]
-        taken = np.zeros(len(ordered.vertices), bool)
-        extra = len(ordered.vertices)
-        for corner, row in zip(order, row_of):
-            if not taken[row]:
-                vertex_of[corners[corner]], taken[row] = row, True
-            else:
-                vertex_of[corners[corner]], extra = extra, extra + 1
+        # a row's first split vertex takes the row; the others follow the rows
+        leads = np.zeros(len(order), bool)
+        leads[np.unique(row_of, return_index=True)[1]] = True
+        placed_at = np.where(leads, row_of, 0)
+        placed_at[~leads] = len(ordered.vertices) + np.arange(int((~leads).sum()))
+        vertex_of = np.full(len(cut.vertices), -1, np.int64)
+        vertex_of[corners[order]] = placed_at
+        extra = len(ordered.vertices) + int((~leads).sum())
         vertices = np.empty((extra, 3))
         vertices[:len(ordered.vertices)] = ordered.vertices
         vertices[vertex_of[vertex_of >= 0]] = np.asarray(cut.vertices)[vertex_of >= 0]

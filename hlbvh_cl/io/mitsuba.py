@@ -728,10 +728,10 @@ def _shape(reader: _Reader, node: _Node) -> MeshEntry:
     face_normals = mesh.face_normals or bool(values.get("face_normals", False))
     # A mirror turns the winding inside out, and Mitsuba 3.9.1 keeps it for a
     # file's mesh: its geometric normals and the ones it computes then point
-    # inward, the file's own (by the inverse transpose) outward.  (Its source
-    # after 3.9.1 flips the winding of a mirrored mesh: revisit on upgrade.)  Its cube and
-    # rectangle carry their own normals, outward: there the faces are turned
-    # outward with them (their shading normal is the face's).
+    # inward, the file's own (by the inverse transpose) outward.  Its cube
+    # and rectangle carry their own normals, outward: there the faces are
+    # turned outward with them (their shading normal is the face's).  (Its
+    # source after 3.9.1 flips a mirrored mesh's winding: revisit on upgrade.)
     if np.linalg.det(matrix[:3, :3]) < 0 and kind not in ("ply", "obj"):
         faces = faces[:, ::-1]
     material, emitter = None, None
