@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from bench.path import relmse  # noqa: F401  (the score bench/path.py gives renders)
+
 
 def assert_blocks_agree(theirs, ours, block: int, sigmas: float = 5.0, slack: float = 0.02):
     """(seeds, height, width, 3) images: every block x block block's mean
@@ -21,13 +23,6 @@ def assert_blocks_agree(theirs, ours, block: int, sigmas: float = 5.0, slack: fl
             assert (difference <= bound).all(), (
                 f"block ({y}, {x}): reference {a.mean((0, 1))}, ours {b.mean((0, 1))}, "
                 f"allowed {bound}")
-
-
-def relmse(image, reference) -> float:
-    """Relative MSE as bench/path.py scores renders: mean((image - ref)^2 /
-    (ref^2 + 0.01)) over pixels and channels."""
-    image, reference = np.asarray(image, np.float64), np.asarray(reference, np.float64)
-    return float(((image - reference) ** 2 / (reference ** 2 + 0.01)).mean())
 
 
 def assert_falls_as_one_over_spp(errors, counts, reference_spp: int) -> None:
