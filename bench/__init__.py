@@ -8,6 +8,9 @@ The suite (bench/__main__.py) runs the pieces below; the first three also run al
     python -m bench.large    a 10M-triangle build and its memory
     bench/render.py          build + render timings of scene files
     bench/report.py          RESULTS.md; bench/plots.py its figures
+A change that claims speed measures it against the code before it, both
+checkouts interleaved in one run, hits compared:
+    python -m bench.ab BASE CHANGE [--devices pocl,intel]
 Each writes its JSON and plot into bench/results/ (not committed); --docs
 also writes the committed copies: bench/RESULTS.md and docs/bench_*.png.
 """

@@ -1,0 +1,154 @@
+"""A/B of two checkouts' closest hits, interleaved in one run: a speed claim's figure.
+
+    python -m bench.ab BASE CHANGE [--devices pocl,intel] [--rounds 4] [--scene reference.toml]
+                       [--quick]
+
+BASE and CHANGE are checkouts of this repository (git worktrees, say).  The
+workloads are bench.trace's on the scene file: primary rays of its camera
+at 2048x1536, 1M incoherent rays and the diffuse bounces of the camera's
+hits (512x384 and 100K with --quick), made once by BASE's code on the first
+device and given to both checkouts as the same float32 arrays.
+
+Each round runs each checkout, for each device, in a child process of its
+own (its import picks its code), base first on even rounds and change first
+on odd ones, so that a burst of load from other processes falls on both
+alike; a child builds the scene, warms each workload up, then keeps the
+best of CALLS calls (numpy in and out, as bench.trace times them).  The
+summary per workload and device is the median over rounds of each one's
+rays per second and of the rounds' change / base ratios, with their min and
+max.  The first round's hits (t, geom_id, prim_id, u, v) are compared: a
+change of speed alone leaves them identical, and the table says whether
+they are.
+"""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from .common import arguments, devices_or_exit, finish, say, stopwatch, table
+
+#: Timed calls of each workload per child and round (after one warm-up call).
+CALLS = 3
+
+WORKLOADS = ("camera", "incoherent", "bounces")
+
+#: The child: argv = checkout, device, scene file, workloads .npz, hits .npz or "".
+CHILD = r"""
+import json, sys, time
+from pathlib import Path
+import numpy as np
+sys.path.insert(0, sys.argv[1])
+import hlbvh_cl
+if Path(hlbvh_cl.__file__).resolve().parent != Path(sys.argv[1]).resolve() / "hlbvh_cl":
+    sys.exit(f"imported {hlbvh_cl.__file__}, not the checkout's: an install shadows it")
+from bench.trace import scene_file_case
+case = scene_file_case(sys.argv[3], sys.argv[2])
+scene = case.built[sys.argv[2]][0]
+workloads = np.load(sys.argv[4])
+rates, hits = {}, {}
+for name in %(workloads)r:
+    origins, directions = workloads[name + "_origins"], workloads[name + "_directions"]
+    found = scene.intersect(origins, directions)
+    for field in ("t", "geom_id", "prim_id", "u", "v"):
+        hits[name + "_" + field] = getattr(found, field)
+    best = 0.0
+    for _ in range(%(calls)d):
+        started = time.perf_counter()
+        scene.intersect(origins, directions)
+        best = max(best, len(origins) / (time.perf_counter() - started))
+    rates[name] = best
+if sys.argv[5]:
+    np.savez(sys.argv[5], **hits)
+print(json.dumps(rates))
+""" % {"workloads": WORKLOADS, "calls": CALLS}
+
+MAKE_WORKLOADS = r"""
+import sys
+import numpy as np
+sys.path.insert(0, sys.argv[1])
+from bench.trace import scene_file_case
+case = scene_file_case(sys.argv[3], sys.argv[2])
+size, rays = (512, 384) if sys.argv[5] == "quick" else (2048, 1536), int(sys.argv[6])
+camera, incoherent, bounces = case.workloads([size], rays, 1, bounce_device=sys.argv[2])
+np.savez(sys.argv[4], **{name + "_" + part: getattr(w, part) for name, w in
+                         zip(%(workloads)r, (camera, incoherent, bounces))
+                         for part in ("origins", "directions")})
+""" % {"workloads": WORKLOADS}
+
+
+def child(code: str, *args) -> str:
+    """Runs ``code`` in a new interpreter with ``args``; its last stdout line."""
+    done = subprocess.run([sys.executable, "-c", code, *map(str, args)], capture_output=True,
+                          text=True)
+    if done.returncode:
+        sys.exit(f"bench.ab: a child failed ({' '.join(map(str, args[:3]))}):\n"
+                 f"{done.stderr[-3000:]}")
+    return done.stdout.strip().splitlines()[-1] if done.stdout.strip() else ""
+
+
+def identical(base: Path, change: Path, name: str) -> bool:
+    a, b = np.load(base), np.load(change)
+    return all(np.array_equal(a[f"{name}_{field}"], b[f"{name}_{field}"])
+               for field in ("t", "geom_id", "prim_id", "u", "v"))
+
+
+def main(argv=None) -> dict:
+    args = arguments(__doc__.splitlines()[0], argv,
+                     (["base"], {"help": "the checkout to compare against"}),
+                     (["change"], {"help": "the checkout with the change"}),
+                     (["--rounds"], {"type": int, "default": 4, "help": "rounds (default 4)"}),
+                     (["--scene"], {"default": "reference.toml",
+                                    "help": "scene file of scenes/ (default reference.toml)"}))
+    checkouts = {"base": Path(args.base).resolve(), "change": Path(args.change).resolve()}
+    for role, path in checkouts.items():
+        if not (path / "hlbvh_cl" / "__init__.py").is_file():
+            sys.exit(f"bench.ab: {role} {path} is not a checkout of hlbvh_cl")
+    if args.rounds < 1:
+        sys.exit("bench.ab: --rounds must be at least 1")
+    elapsed = stopwatch()
+    devices = [device.id for device in devices_or_exit(args.devices)]
+    results = {"base": str(checkouts["base"]), "change": str(checkouts["change"]),
+               "scene": args.scene, "rounds": args.rounds, "devices": {}}
+    with tempfile.TemporaryDirectory() as folder:
+        folder = Path(folder)
+        workloads = folder / "workloads.npz"
+        say(f"workloads of {args.scene} by {checkouts['base']} on {devices[0]}")
+        child(MAKE_WORKLOADS, checkouts["base"], devices[0], args.scene, workloads,
+              "quick" if args.quick else "full", 100_000 if args.quick else 1_000_000)
+        rates = {(device, role): [] for device in devices for role in checkouts}
+        for round_ in range(args.rounds):
+            order = list(checkouts) if round_ % 2 == 0 else list(checkouts)[::-1]
+            for device in devices:
+                for role in order:
+                    hits = folder / f"{device}-{role}.npz" if round_ == 0 else ""
+                    line = child(CHILD, checkouts[role], device, args.scene, workloads, hits)
+                    rates[device, role].append(json.loads(line))
+            say(f"round {round_ + 1} of {args.rounds} done")
+        rows = []
+        for device in devices:
+            entry = results["devices"][device] = {}
+            for name in WORKLOADS:
+                base = [r[name] for r in rates[device, "base"]]
+                change = [r[name] for r in rates[device, "change"]]
+                ratios = [c / b for b, c in zip(base, change)]
+                same = identical(folder / f"{device}-base.npz", folder / f"{device}-change.npz",
+                                 name)
+                entry[name] = {"base_rays_per_s": base, "change_rays_per_s": change,
+                               "ratios": ratios, "identical_hits": same}
+                rows.append([device, name, f"{np.median(base) / 1e6:.2f}",
+                             f"{np.median(change) / 1e6:.2f}",
+                             f"{np.median(ratios):.3f} ({min(ratios):.3f}-{max(ratios):.3f})",
+                             "yes" if same else "NO"])
+    print(table(["device", "workload", "base Mrays/s", "change Mrays/s",
+                 "change / base (min-max)", "same hits"], rows,
+                title=f"A/B on {args.scene}, {args.rounds} rounds interleaved"))
+    return finish(results, "ab", args, elapsed)
+
+
+if __name__ == "__main__":
+    main()
