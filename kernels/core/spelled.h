@@ -36,4 +36,20 @@
 inline float abs_float(float x) { return as_float(as_uint(x) & 0x7fffffffu); }
 inline float sign_of(float x) { return as_float((as_uint(x) & 0x80000000u) | 0x3f800000u); }
 
+/* nextafter(x, INFINITY) and nextafter(x, -INFINITY), by the bits: the
+ * next float up is the next integer up for a positive x and the next down
+ * for a negative one, from either zero the least subnormal.  (OpenCL's
+ * nextafter is a library call on some CPU runtimes.) */
+inline float float_above(float x)
+{
+    int bits = as_int(x);
+    if ((bits & 0x7f800000) == 0x7f800000)  /* inf or NaN */
+        return x == -INFINITY ? -FLT_MAX : x;
+    if ((bits & 0x7fffffff) == 0)
+        return as_float(1);
+    return as_float(bits >= 0 ? bits + 1 : bits - 1);
+}
+
+inline float float_below(float x) { return -float_above(-x); }
+
 #endif /* SPELLED_H */

@@ -104,25 +104,6 @@ TRAVERSAL_INLINE float3 interval_origins(const Packet* p, const float_packet* o,
     return (float3)(error[0], error[1], error[2]);
 }
 
-/* nextafter(x, INFINITY) and nextafter(x, -INFINITY), by the bits: the
- * next float up is the next integer up for a positive x and the next down
- * for a negative one, from either zero the least subnormal.  (OpenCL's
- * nextafter is a library call on some CPU runtimes, and a packet takes six.) */
-TRAVERSAL_INLINE float float_above(float x)
-{
-    int bits = as_int(x);
-    if ((bits & 0x7f800000) == 0x7f800000)  /* inf or NaN */
-        return x == -INFINITY ? -FLT_MAX : x;
-    if ((bits & 0x7fffffff) == 0)
-        return as_float(1);
-    return as_float(bits >= 0 ? bits + 1 : bits - 1);
-}
-
-TRAVERSAL_INLINE float float_below(float x)
-{
-    return -float_above(-x);
-}
-
 /* The lanes' origins o and directions d as vectors, and |d| in a.  (fabs,
  * signbit and select by bits and ?: here and below: PoCL, see LOAD_ROW.) */
 TRAVERSAL_INLINE void lane_vectors(const RayLanes* in, float_packet* o, float_packet* d,
@@ -242,6 +223,17 @@ TRAVERSAL_INLINE bool packet_compact(const Packet* p, __global const WideNode* r
     float allowed = scene * (1.0f / PACKET_SPREAD);
     return fabs(p->near_ox - p->far_ox) <= allowed && fabs(p->near_oy - p->far_oy) <= allowed
            && fabs(p->near_oz - p->far_oz) <= allowed;
+}
+
+/* float_below (core/spelled.h) of every lane. */
+TRAVERSAL_INLINE float_packet below_packet(float_packet x)
+{
+    int_packet bits = as_int_packet(x);
+    int_packet next = bits >= (int_packet)(0) ? bits - 1 : bits + 1;
+    next = (bits & 0x7fffffff) == (int_packet)(0) ? (int_packet)((int)0x80000001) : next;
+    float_packet finite = as_float_packet(next);
+    float_packet special = x == (float_packet)(INFINITY) ? (float_packet)(FLT_MAX) : x;
+    return (bits & 0x7f800000) == (int_packet)(0x7f800000) ? special : finite;
 }
 
 /* ---- the packet path's vocabulary (see walk.h): one lane per ray */

@@ -194,6 +194,9 @@ TRAVERSAL_INLINE void start_ray(Found_ray* s, const RayData* r)
 #define root_done_ray(s) 0u
 #endif
 
+/* float_below (core/spelled.h), the single-ray path's spelling. */
+#define below_ray float_below
+
 /* The farthest the walk still looks: the limit. */
 TRAVERSAL_INLINE float reach_ray(const Found_ray* s) { return s->limit; }
 TRAVERSAL_INLINE void update_reach_ray(Found_ray* s) {}

@@ -380,7 +380,16 @@ TRAVERSAL_INLINE bool QUERY_FN(mapped, _packet)(const RayLanes* lanes,
  * rays mapped into its mesh's frame, where its mask lets them see it; the
  * mesh's tree walked by the query's walk with the same state, so that what
  * was found so far prunes it; and the instance recorded in the lanes whose
- * walk took a hit (their t changed).  True when that ends the top walk. */
+ * walk took a hit.  True when that ends the top walk.
+ *
+ * A hit of an instance walked before keeps its ties (docs/instances.md):
+ * the walk takes only nearer hits, within a limit one float below the
+ * lane's, and with the lane's hit hidden (index -1), as tree order, which
+ * breaks ties within one mesh, means nothing across two: comparing one
+ * mesh's triangle index with another's let a tie replace the triangle and
+ * u, v but not the instance, a record of a triangle the ray never hit.  A
+ * lane that took no hit gets its hit and limit back.  (The all-hits
+ * queries take none this way: their index stays -1, their limits theirs.) */
 TRAVERSAL_INLINE bool TRACE_NAME(instance)(PATH(Found)* s, const PATH(Rays)* r,
                                            __global const Instance* in,
                                            int id TRACE_PARAMS WALK_STATE_PARAM)
@@ -388,10 +397,19 @@ TRAVERSAL_INLINE bool TRACE_NAME(instance)(PATH(Found)* s, const PATH(Rays)* r,
     PATH(Mapped) mapped;
     if (!PATH(map_instance)(&mapped, in, r))
         return false;
-    PATH(real) before = s->t;
+    PATH(flags) had = s->index >= 0;
+    PATH(flags) index = s->index;
+    PATH(real) limit = s->limit;
+    s->index = (PATH(flags))(-1);
+    s->limit = had ? PATH(below)(limit) : limit;
+    PATH(update_reach)(s);
     *mesh_overflow |= TRACE_NAME(PATH(MESH_WALK))(&mapped, MESH_TREE(in),
                                                   s QUERY_MESH_ARGS(in, id) WALK_STATE_ARG);
-    s->instance = s->t != before ? (PATH(flags))(id) : s->instance;
+    PATH(flags) took = s->index >= 0;
+    s->index = took ? s->index : index;
+    s->limit = (had & ~took) ? limit : s->limit;  /* (all hits keep their own limits) */
+    s->instance = took ? (PATH(flags))(id) : s->instance;
+    PATH(update_reach)(s);
     return QUERY_ENDS(s);
 }
 
