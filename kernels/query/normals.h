@@ -33,4 +33,15 @@ TRAVERSAL_INLINE float3 unit_normal(__global const Triangle* tri)
     return corners_normal(LOAD_XYZ(tri->v0), LOAD_XYZ(tri->v1), LOAD_XYZ(tri->v2));
 }
 
+/* Whether the triangle has zero area: cross(v1 - v0, v2 - v0) exactly 0,
+ * the geometric normal that the ray test refuses to report
+ * (query/rays/triangle.h), without contraction as it computes it. */
+TRAVERSAL_INLINE bool zero_area(__global const Triangle* tri)
+{
+#pragma OPENCL FP_CONTRACT OFF
+    float3 e1 = LOAD_XYZ(tri->v1) - LOAD_XYZ(tri->v0), e2 = LOAD_XYZ(tri->v2) - LOAD_XYZ(tri->v0);
+    return e1.y * e2.z - e1.z * e2.y == 0.0f && e1.z * e2.x - e1.x * e2.z == 0.0f
+           && e1.x * e2.y - e1.y * e2.x == 0.0f;
+}
+
 #endif /* NORMALS_H */

@@ -315,6 +315,26 @@ def test_winding_numbers_match_brute_force(sphere_scene):
     assert np.array_equal(got >= 0.5, expected >= 0.5)
 
 
+@pytest.mark.parametrize("points", [2000, 3])
+def test_zero_area_triangles_add_no_winding(points, suite_device):
+    """Zero-area triangles (a repeated corner, three corners on a line) on an
+    edge of a closed tetrahedron subtend no solid angle; their formula's
+    triple product is 0 up to rounding and its denominator negative seen
+    from near the edge, and atan2 gave +-pi: w off by 0.5, points 1e-5
+    inside called outside."""
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0.5, 0, 0]], np.float64)
+    closed = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    degenerate = np.concatenate([closed, [[0, 0, 1], [0, 4, 1], [4, 1, 1]]])
+    scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(vertices, degenerate)], device=suite_device)
+    rng = np.random.default_rng(0)
+    near = 10.0 ** rng.uniform(-6, -3, points)  # just inside, near the edge 0-1
+    query = np.stack([rng.uniform(0.1, 0.9, points), near * rng.uniform(0.2, 1, points),
+                      near * rng.uniform(0.2, 1, points)], 1).astype(np.float32)
+    expected = brute_force_winding(vertices, closed, query)
+    np.testing.assert_allclose(scene.winding_number(query), expected, atol=0.05)
+    assert scene.contains(query).all() and (scene.signed_distance(query) <= 0).all()
+
+
 def watertight(name, meshes, device):
     """A watertight mesh (an icosphere or one of the project's), and its scene."""
     if name == "icosphere":

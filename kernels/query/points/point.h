@@ -9,6 +9,7 @@
 #define POINT_H
 
 #include "query/walk/node.h"
+#include "query/normals.h"
 
 /* The query point, in the tree's frame. */
 typedef struct {
@@ -168,15 +169,20 @@ TRAVERSAL_INLINE float solid_angle(float3 a, float3 b, float3 c)
     return 2.0f * atan2(det, la * lb * lc + ab * lc + bc * la + ca * lb);
 }
 
-/* The winding walk's leaf: every triangle's exact solid angle. */
+/* The winding walk's leaf: every triangle's exact solid angle.  A
+ * zero-area triangle subtends none, but its formula does not say so: its
+ * corners lie on a line, the triple product is 0 up to rounding, and the
+ * denominator, negative where the point sees the line's ends on either
+ * side of it, took atan2 to +-pi, a whole 0.5 of winding (zero_area). */
 TRAVERSAL_INLINE bool winding_leaf(Found_point* s, const PointData* q,
                                    __global const Triangle* triangles, int first, uint count)
 {
     float3 p = (float3)(q->x, q->y, q->z);
     for (int i = first; i < first + (int)count; ++i) {
         __global const Triangle* t = triangles + i;
-        s->solid_angle += solid_angle(LOAD_XYZ(t->v0) - p, LOAD_XYZ(t->v1) - p,
-                                      LOAD_XYZ(t->v2) - p);
+        if (!zero_area(t))
+            s->solid_angle += solid_angle(LOAD_XYZ(t->v0) - p, LOAD_XYZ(t->v1) - p,
+                                          LOAD_XYZ(t->v2) - p);
     }
     return false;
 }

@@ -367,6 +367,8 @@ TRAVERSAL_INLINE bool walk_winding_points(const PointPacket* q, __global const W
         } else {
             for (int i = index; i < index + (int)count; ++i) {
                 __global const Triangle* t = triangles + i;
+                if (zero_area(t))
+                    continue;  /* none subtended (winding_leaf) */
                 float_packet angle = solid_angle_points(LOAD_XYZ(t->v0), LOAD_XYZ(t->v1),
                                                         LOAD_XYZ(t->v2), q);
                 s->solid_angle += active ? angle : (float_packet)(0.0f);
