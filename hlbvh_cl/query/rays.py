@@ -450,7 +450,9 @@ def into_frame(batch: inputs.Rays, tree) -> tuple[inputs.Rays, np.ndarray | None
     and t stays near the frame's size; tmin and tmax follow.  At scale 1 only
     short directions are, and only when a hit's t could pass float32's range
     (_t_may_overflow): the kernels' box and triangle tests would overflow to
-    inf and miss it.  An origin that the scale takes out of
+    inf and miss it.  A far origin's direction grows further, by a power of
+    two, where its hit could lie past float32's t all the same (the caller's
+    t then raises, caller_t).  An origin that the scale takes out of
     float32 (far from a tiny scene) raises the ValueError that names it."""
     scale = getattr(tree, "scale", 1.0)
     if scale == 1.0 and not _t_may_overflow(batch):
@@ -461,14 +463,25 @@ def into_frame(batch: inputs.Rays, tree) -> tuple[inputs.Rays, np.ndarray | None
         raise ValueError(f"{batch.name_origin(int(np.argmin(finite)))} overflows float32 once "
                          f"multiplied by {frame.describe(scale)}, the scale of this scene's "
                          "frame (hlbvh_cl/core/frame.py)")
-    _, exponent = np.frexp(np.abs(batch.directions).max(axis=1))
+    largest = np.abs(batch.directions).max(axis=1).astype(np.float64)
+    _, exponent = np.frexp(largest)
     per_ray = np.ldexp(1.0, -exponent)
     if scale == 1.0:
         # only short directions are lengthened: shortening a long one would
         # lengthen the t of a far origin's hit
         np.maximum(per_ray, 1.0, out=per_ray)
-        if (per_ray == 1.0).all():
-            return batch, None
+    # a far origin's hit may lie past float32's t even along a direction of
+    # about unit length: such directions grow by a further power of two, up
+    # to where _t_may_overflow's bound, in the frame, holds
+    reach = math.sqrt(3.0) * (np.abs(framed).max(axis=1).astype(np.float64)
+                              + frame.SAFE_RANGE[1])
+    ratio = reach / (_SAFE_T * largest * per_ray)
+    far = ratio > 1.0
+    if far.any():
+        _, more = np.frexp(ratio[far])  # 2^more >= ratio
+        per_ray[far] *= np.ldexp(1.0, more)
+    if scale == 1.0 and (per_ray == 1.0).all():
+        return batch, None
     directions = (batch.directions * per_ray[:, None]).astype(np.float32)
     t_factor = per_ray / scale  # the caller's t = the frame's t * t_factor
     with np.errstate(over="ignore", under="ignore"):

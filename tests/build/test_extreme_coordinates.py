@@ -162,6 +162,26 @@ def test_a_hit_past_float32s_t_is_found_and_its_t_refused(scale, distance):
             query(origins, directions)
 
 
+@pytest.mark.parametrize("instanced", [False, True])
+def test_a_far_origin_s_hit_past_float32s_t_is_found_and_its_t_refused(instanced):
+    """Directions of about unit length, but from an origin so far that the
+    hit's t passes float32's largest value (t = 3e38 / |dz|): seen by
+    occluded and the counts, its t refused by name, as for a short
+    direction.  Lengthened only when short, these directions went as given
+    and the hits past 3.4e38 were silently missed (t inf, count 0)."""
+    mesh = hlbvh_cl.Mesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]])
+    scene = hlbvh_cl.Scene([mesh], instances=[(0, np.eye(3, 4))] if instanced else None)
+    origins = np.tile(np.float32([0.2, 0.2, 3e38]), (5, 1))
+    directions = np.float32([[0, 0, -z] for z in (1.0, 0.9, 0.8, 0.5, 1e-3)])
+    assert scene.occluded(origins, directions).all()
+    assert scene.count_intersections(origins, directions).tolist() == [1] * 5
+    hits = scene.intersect(origins[:2], directions[:2])
+    np.testing.assert_allclose(hits.t, [3e38, 3e38 / 0.9], rtol=1e-6)
+    for query in (scene.intersect, scene.intersect_all):
+        with pytest.raises(ValueError, match=r"directions\[2\] = .* too short .* past float32"):
+            query(origins, directions)
+
+
 @pytest.mark.parametrize("scale", [1e-30, 1.0])
 def test_a_point_too_far_is_refused_with_the_limit_that_holds(scale):
     """The limit the point queries' error quotes is in the caller's units:
