@@ -38,7 +38,7 @@ _OBJ_MATERIALS = re.compile(rb"(?m)^[ \t]*(?:usemtl|mtllib)\b[^\r\n]*")
 
 #: An OBJ face line with a vertex index of 0 (OBJ counts from 1, or back
 #: from -1), which trimesh would read as the first vertex.
-_OBJ_ZERO_INDEX = re.compile(rb"(?m)^[ \t]*f[ \t][^\r\n#]*?[ \t][+-]?0+(?=[/ \t\r]|$)")
+_OBJ_ZERO_INDEX = re.compile(rb"(?m)^[ \t]*f[ \t](?:[^\r\n#]*?[ \t])?[+-]?0+(?=[/ \t\r]|$)")
 
 
 class Mesh:

@@ -319,14 +319,23 @@ def test_a_ply_whose_header_counts_are_wrong_says_so(tmp_path, vertices, faces, 
         f"trimesh read {read}: the file is cut short or its header's counts are wrong")
 
 
-def test_an_obj_face_with_vertex_index_0_is_refused(tmp_path):
-    """OBJ counts vertices from 1; trimesh would read 0 as the first vertex."""
+@pytest.mark.parametrize("face", ["f 2/1 3/0 0/2", "f 0 1 2", "f\t-0 1 2", "f 1 2 00"])
+def test_an_obj_face_with_vertex_index_0_is_refused(tmp_path, face):
+    """OBJ counts vertices from 1; trimesh would read 0 as the first vertex.
+    (A 0 first on its line, right after the f, was let through.)"""
     path = tmp_path / "zero.obj"
-    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3  # 0 in a comment\nf 2/1 3/0 0/2\n")
+    path.write_text(f"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3  # 0 in a comment\n{face}\n")
     with pytest.raises(ValueError) as caught:
         Mesh.load(path)
-    assert str(caught.value) == (f"{path}: line 5: 'f 2/1 3/0 0/2' has vertex index 0; OBJ "
+    assert str(caught.value) == (f"{path}: line 5: {face!r} has vertex index 0; OBJ "
                                  "indices count from 1 (or back from -1 for the last vertex)")
+
+
+@pytest.mark.parametrize("face", ["f 1 2 3", "f 10 2 3", "f 1/10 2/20 3/30", "f 1 2 -3"])
+def test_an_obj_face_with_zeros_inside_its_indices_is_read(tmp_path, face):
+    path = tmp_path / "tens.obj"
+    path.write_text("v 0 0 0\n" * 9 + "v 1 0 0\nv 0 1 0\n" + "vt 0 0\n" * 30 + face + "\n")
+    assert Mesh.load(path).triangle_count == 1
 
 
 def test_bad_data_in_a_file_names_the_file(tmp_path):
