@@ -109,6 +109,11 @@ def device_rays(rt: Runtime, origins, directions, tmin, tmax, mask,
         return None
     packed = directions is None and is_device_array(origins) and origins.ndim >= 1 \
         and origins.shape[-1] == 6
+    if directions is None and is_device_array(origins) and not packed \
+            and (origins.ndim < 1 or origins.shape[-1] != 3):
+        raise ValueError(f"rays must have shape (..., 6): origin then direction, got "
+                         f"{origins.shape} (or give origins and directions as two pyopencl "
+                         "arrays of shape (..., 3))")
     for name in ("origins",) if packed else ("origins", "directions"):
         if not is_device_array(given[name]):
             raise TypeError(f"{name} is {'missing' if given[name] is None else 'not a pyopencl array'}"
@@ -129,9 +134,11 @@ def device_rays(rt: Runtime, origins, directions, tmin, tmax, mask,
         _check_array("rays", origins, np.float32)
     for name, value in () if packed else (("origins", origins), ("directions", directions)):
         _check_array(name, value, np.float32)
-        if value.ndim < 1 or value.shape[-1] != 3 or value.shape[:-1] != shape:
-            raise ValueError(f"{name} must have shape (..., 3) like origins {origins.shape}, "
-                             f"got {value.shape}")
+        if value.ndim < 1 or value.shape[-1] != 3:
+            raise ValueError(f"{name} must have shape (..., 3), got {value.shape}")
+        if value.shape[:-1] != shape:
+            raise ValueError(f"{name} must have the shape of origins {origins.shape}, got "
+                             f"{value.shape}")
     count = math.prod(shape)
     if count > inputs.MAX_BATCH:
         raise ValueError(f"{count} rays in one call: at most {inputs.MAX_BATCH}")
@@ -194,7 +201,8 @@ def device_points(rt: Runtime, points) -> tuple[cla.Array, tuple] | None:
 
 def _check_array(name: str, value: cla.Array, dtype) -> None:
     if value.dtype != dtype:
-        what = "masks" if name == "mask" else "rays"
+        what = {"mask": "masks", "points": "points", "tmin": "limits",
+                "tmax": "limits"}.get(name, "rays")
         raise TypeError(f"{name} is a pyopencl array of {value.dtype}; {what} on the device must "
                         f"be {np.dtype(dtype).name} ({name}.astype(np.{np.dtype(dtype).name}))")
     if not value.flags.c_contiguous:

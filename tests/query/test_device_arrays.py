@@ -154,8 +154,15 @@ def test_bad_ray_arrays_on_the_device_are_named(suite_device):
         scene.intersect(o, directions)
     with pytest.raises(TypeError, match="directions is missing"):
         scene.intersect(o)
-    with pytest.raises(ValueError, match=r"directions must have shape \(\.\.\., 3\)"):
+    with pytest.raises(ValueError, match=r"directions must have the shape of origins "
+                                         r"\(4, 5, 3\), got \(20, 3\)"):
         scene.intersect(o, cla.to_device(q, directions.reshape(20, 3)))
+    four = cla.to_device(q, np.zeros((2, 4), np.float32))
+    with pytest.raises(ValueError, match=r"^origins must have shape \(\.\.\., 3\), got \(2, 4\)$"):
+        scene.intersect(four, four)
+    with pytest.raises(ValueError, match=r"^rays must have shape \(\.\.\., 6\): origin then "
+                                         r"direction, got \(2, 5\)"):
+        scene.intersect(cla.to_device(q, np.zeros((2, 5), np.float32)))
     with pytest.raises(ValueError, match="tmax must have the rays' leading shape"):
         scene.intersect(o, d, tmax=cla.to_device(q, np.ones(20, np.float32)))
     with pytest.raises(TypeError, match=r"mask is a pyopencl array of int32; masks on the "
@@ -223,7 +230,8 @@ def test_bad_points_on_the_device_are_named(suite_device):
     points[1, 2, 0] = 1e30
     with pytest.raises(ValueError, match=r"points\[1, 2\] = .* is too far from the origin"):
         scene.signed_distance(cla.to_device(scene.queue, points))
-    with pytest.raises(TypeError, match="points is a pyopencl array of float64"):
+    with pytest.raises(TypeError, match="points is a pyopencl array of float64; points on the "
+                                        "device must be float32"):
         scene.winding_number(cla.to_device(scene.queue, points.astype(np.float64)))
     with pytest.raises(ValueError, match=r"points must have shape \(\.\.\., 3\)"):
         scene.contains(cla.to_device(scene.queue, np.zeros((4, 2), np.float32)))
