@@ -335,6 +335,29 @@ def test_zero_area_triangles_add_no_winding(points, suite_device):
     assert scene.contains(query).all() and (scene.signed_distance(query) <= 0).all()
 
 
+@pytest.mark.parametrize("height", [1e-4, 1e-6])
+@pytest.mark.parametrize("points", [3000, 3])
+def test_a_sliver_s_winding_is_right_next_to_it(height, points, suite_device):
+    """A closed tetrahedron whose face (1, 2, 3) is a fan about a point
+    `height` from edge 1-2, so that (1, 2, Q) is a sliver; points just
+    inside next to it.  The sliver's solid angle in float32 cancelled to
+    garbage there: w up to 1.49 (or 0.93) where it is 1."""
+    corners = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float64)
+    middle = 0.5 * (corners[1] + corners[2])
+    up = (corners[3] - middle) / np.linalg.norm(corners[3] - middle)
+    vertices = np.vstack([corners, middle + height * up])
+    faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 4], [2, 3, 4], [3, 1, 4]])
+    scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(vertices, faces)], device=suite_device)
+    rng = np.random.default_rng(1)
+    along = corners[1] + rng.uniform(0.05, 0.95, (points, 1)) * (corners[2] - corners[1])
+    on_sliver = along + rng.uniform(0, height, (points, 1)) * up
+    inward = -np.ones(3) / np.sqrt(3.0)
+    query = (on_sliver + 10.0 ** rng.uniform(-7, -4, (points, 1)) * inward).astype(np.float32)
+    expected = brute_force_winding(vertices, faces, query)
+    inside = expected > 0.99  # the few just past an edge of the fan are outside
+    np.testing.assert_allclose(scene.winding_number(query)[inside], expected[inside], atol=0.05)
+
+
 def watertight(name, meshes, device):
     """A watertight mesh (an icosphere or one of the project's), and its scene."""
     if name == "icosphere":

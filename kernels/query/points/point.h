@@ -145,11 +145,18 @@ TRAVERSAL_INLINE uint children_winding(const PointData* q, __global const WideNo
 #undef DIPOLE_ROW
 #undef NODE_ROW
 
+/* Below this fraction of |a| |b| |c|, the triple product and the
+ * denominator of solid_angle are both lost in float's rounding of their
+ * terms (a few eps of |a| |b| |c|): the point lies near the line of an edge
+ * (a sliver is all edge), and the angle may be off by up to pi. */
+#define DOUBTFUL_ANGLE 0x1p-10f
+
 /* The solid angle the triangle (a, b, c), given relative to the point,
  * subtends (Van Oosterom & Strackee 1983): positive when the point lies
  * behind it (on the side its normal cross(b - a, c - a) points away from);
- * a tiny one scaled to about unit size first (UNIT_SCALE). */
-TRAVERSAL_INLINE float solid_angle(float3 a, float3 b, float3 c)
+ * a tiny one scaled to about unit size first (UNIT_SCALE).  *doubtful: its
+ * float terms cannot be trusted (DOUBTFUL_ANGLE). */
+TRAVERSAL_INLINE float solid_angle(float3 a, float3 b, float3 c, bool* doubtful)
 {
     float aa = DOT3(a, a), bb = DOT3(b, b), cc = DOT3(c, c);
     float m = GROW_HI(GROW_HI(aa, bb), cc);
@@ -166,25 +173,9 @@ TRAVERSAL_INLINE float solid_angle(float3 a, float3 b, float3 c)
     float det = a.x * (b.y * c.z - b.z * c.y) + a.y * (b.z * c.x - b.x * c.z)
                 + a.z * (b.x * c.y - b.y * c.x);
     float ab = DOT3(a, b), bc = DOT3(b, c), ca = DOT3(c, a);
-    return 2.0f * atan2(det, la * lb * lc + ab * lc + bc * la + ca * lb);
-}
-
-/* The winding walk's leaf: every triangle's exact solid angle.  A
- * zero-area triangle subtends none, but its formula does not say so: its
- * corners lie on a line, the triple product is 0 up to rounding, and the
- * denominator, negative where the point sees the line's ends on either
- * side of it, took atan2 to +-pi, a whole 0.5 of winding (zero_area). */
-TRAVERSAL_INLINE bool winding_leaf(Found_point* s, const PointData* q,
-                                   __global const Triangle* triangles, int first, uint count)
-{
-    float3 p = (float3)(q->x, q->y, q->z);
-    for (int i = first; i < first + (int)count; ++i) {
-        __global const Triangle* t = triangles + i;
-        if (!zero_area(t))
-            s->solid_angle += solid_angle(LOAD_XYZ(t->v0) - p, LOAD_XYZ(t->v1) - p,
-                                          LOAD_XYZ(t->v2) - p);
-    }
-    return false;
+    float product = la * lb * lc, denominator = product + ab * lc + bc * la + ca * lb;
+    *doubtful = !(GROW_HI(abs_float(det), abs_float(denominator)) >= DOUBTFUL_ANGLE * product);
+    return 2.0f * atan2(det, denominator);
 }
 
 /* Whether the float face formula may not be trusted (a sliver): twice the
@@ -207,6 +198,50 @@ TRAVERSAL_INLINE bool thin_triangle(float3 ab, float3 ac)
     float area2 = aa * cc - ac_dot * ac_dot;
     float longest = GROW_HI(GROW_HI(aa, cc), (aa + cc) - 2.0f * ac_dot);
     return !(area2 >= THIN_RATIO * longest * longest && longest * longest >= THIN_SMALLEST);
+}
+
+#ifdef cl_khr_fp64
+/* solid_angle of the triangle (v0, v1, v2) seen from p, in double, where
+ * float's is doubtful: a sliver's triple product and denominator are both
+ * nearly 0 from a point near it, and float's rounding of them turned its
+ * angle around by up to pi, half a winding, 1e-6 from the surface. */
+TRAVERSAL_INLINE float solid_angle_double(float3 v0, float3 v1, float3 v2, float3 p)
+{
+    double3 q = convert_double3(p);
+    double3 a = convert_double3(v0) - q, b = convert_double3(v1) - q, c = convert_double3(v2) - q;
+    double la = sqrt(DOT3(a, a)), lb = sqrt(DOT3(b, b)), lc = sqrt(DOT3(c, c));
+    double det = a.x * (b.y * c.z - b.z * c.y) + a.y * (b.z * c.x - b.x * c.z)
+                 + a.z * (b.x * c.y - b.y * c.x);
+    double ab = DOT3(a, b), bc = DOT3(b, c), ca = DOT3(c, a);
+    return (float)(2.0 * atan2(det, la * lb * lc + ab * lc + bc * la + ca * lb));
+}
+#endif
+
+/* The winding walk's leaf: every triangle's exact solid angle.  A
+ * zero-area triangle subtends none, but its formula does not say so: its
+ * corners lie on a line, the triple product is 0 up to rounding, and the
+ * denominator, negative where the point sees the line's ends on either
+ * side of it, took atan2 to +-pi, a whole 0.5 of winding (zero_area).
+ * Doubtful angles (a sliver's, near an edge's line) go in double where
+ * the device has it (solid_angle_double). */
+TRAVERSAL_INLINE bool winding_leaf(Found_point* s, const PointData* q,
+                                   __global const Triangle* triangles, int first, uint count)
+{
+    float3 p = (float3)(q->x, q->y, q->z);
+    for (int i = first; i < first + (int)count; ++i) {
+        __global const Triangle* t = triangles + i;
+        if (zero_area(t))
+            continue;
+        float3 v0 = LOAD_XYZ(t->v0), v1 = LOAD_XYZ(t->v1), v2 = LOAD_XYZ(t->v2);
+        bool doubtful;
+        float angle = solid_angle(v0 - p, v1 - p, v2 - p, &doubtful);
+#ifdef cl_khr_fp64
+        if (doubtful)
+            angle = solid_angle_double(v0, v1, v2, p);
+#endif
+        s->solid_angle += angle;
+    }
+    return false;
 }
 
 /* The closest point on a triangle in float, and in double where the device

@@ -263,7 +263,7 @@ TRAVERSAL_INLINE bool closest_leaf_points(Found_points* s, const PointPacket* q,
 
 /* solid_angle for every lane: the triangle (a, b, c) seen from each point. */
 TRAVERSAL_INLINE float_packet solid_angle_points(float3 a, float3 b, float3 c,
-                                                 const PointPacket* q)
+                                                 const PointPacket* q, int_packet* doubtful)
 {
     float_packet ax = a.x - q->x, ay = a.y - q->y, az = a.z - q->z;
     float_packet bx = b.x - q->x, by = b.y - q->y, bz = b.z - q->z;
@@ -282,8 +282,31 @@ TRAVERSAL_INLINE float_packet solid_angle_points(float3 a, float3 b, float3 c,
                        + az * (bx * cy - by * cx);
     float_packet ab = (ax * bx + ay * by) + az * bz, bc = (bx * cx + by * cy) + bz * cz,
                  ca = (cx * ax + cy * ay) + cz * az;
-    return 2.0f * atan2(det, la * lb * lc + ab * lc + bc * la + ca * lb);
+    float_packet product = la * lb * lc, denominator = product + ab * lc + bc * la + ca * lb;
+    *doubtful = !(GROW_HI(abs_packet(det), abs_packet(denominator))
+                  >= (float_packet)(DOUBTFUL_ANGLE) * product);
+    return 2.0f * atan2(det, denominator);
 }
+
+#ifdef cl_khr_fp64
+/* solid_angle_double (point.h) for every lane. */
+TRAVERSAL_INLINE float_packet solid_angle_points_double(float3 v0, float3 v1, float3 v2,
+                                                        const PointPacket* q)
+{
+    wide_packet qx = to_double_packet(q->x), qy = to_double_packet(q->y),
+                qz = to_double_packet(q->z);
+    wide_packet ax = (double)v0.x - qx, ay = (double)v0.y - qy, az = (double)v0.z - qz;
+    wide_packet bx = (double)v1.x - qx, by = (double)v1.y - qy, bz = (double)v1.z - qz;
+    wide_packet cx = (double)v2.x - qx, cy = (double)v2.y - qy, cz = (double)v2.z - qz;
+    wide_packet la = sqrt((ax * ax + ay * ay) + az * az), lb = sqrt((bx * bx + by * by) + bz * bz),
+                lc = sqrt((cx * cx + cy * cy) + cz * cz);
+    wide_packet det = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz)
+                      + az * (bx * cy - by * cx);
+    wide_packet ab = (ax * bx + ay * by) + az * bz, bc = (bx * cx + by * cy) + bz * cz,
+                ca = (cx * ax + cy * ay) + cz * az;
+    return to_float_packet(2.0 * atan2(det, la * lb * lc + ab * lc + bc * la + ca * lb));
+}
+#endif
 
 /* Lane flags (-1 or 0) from a bit mask of lanes, and back. */
 #if PACKET_SIZE == 16
@@ -369,8 +392,14 @@ TRAVERSAL_INLINE bool walk_winding_points(const PointPacket* q, __global const W
                 __global const Triangle* t = triangles + i;
                 if (zero_area(t))
                     continue;  /* none subtended (winding_leaf) */
-                float_packet angle = solid_angle_points(LOAD_XYZ(t->v0), LOAD_XYZ(t->v1),
-                                                        LOAD_XYZ(t->v2), q);
+                float3 v0 = LOAD_XYZ(t->v0), v1 = LOAD_XYZ(t->v1), v2 = LOAD_XYZ(t->v2);
+                int_packet doubtful;
+                float_packet angle = solid_angle_points(v0, v1, v2, q, &doubtful);
+#ifdef cl_khr_fp64
+                doubtful &= active;
+                if (some_packet(doubtful))  /* (winding_leaf) */
+                    angle = doubtful ? solid_angle_points_double(v0, v1, v2, q) : angle;
+#endif
                 s->solid_angle += active ? angle : (float_packet)(0.0f);
             }
         }
