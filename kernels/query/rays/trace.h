@@ -382,7 +382,7 @@ TRAVERSAL_INLINE bool QUERY_FN(mapped, _packet)(const RayLanes* lanes,
  * was found so far prunes it; and the instance recorded in the lanes whose
  * walk took a hit.  True when that ends the top walk.
  *
- * A hit of an instance walked before keeps its ties (docs/instances.md):
+ * A hit of an instance walked before keeps its ties (docs/queries.md):
  * the walk takes only nearer hits, within a limit one float below the
  * lane's, and with the lane's hit hidden (index -1), as tree order, which
  * breaks ties within one mesh, means nothing across two: comparing one
