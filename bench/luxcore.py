@@ -210,14 +210,14 @@ def scene_properties(description, width: int, height: int) -> tuple[list[str], l
              f"scene.camera.up = {_color(camera.up)}",
              f"scene.camera.fieldofview = {camera.fov_deg!r}",
              f"scene.camera.screenwindow = {-aspect!r} {aspect!r} {-1.0 - row!r} {1.0 - row!r}"]
-    materials = description.materials() or [None] * len(description.geometries())
+    surfaces = description.surfaces()  # geom_id order; a sphere as its tessellation
+    materials = description.materials() or [None] * len(surfaces)
     meshes = []
-    for index, ((mesh, color), spec) in enumerate(zip(description.geometries(), materials)):
-        name = f"m{index}"
-        spec = spec or {"type": "diffuse", "reflectance": list(color)}
+    for index, (entry, spec) in enumerate(zip(surfaces, materials)):
+        name, mesh = f"m{index}", entry.mesh
+        spec = spec or {"type": "diffuse", "reflectance": list(entry.color)}
         lines += material_lines(name, spec)
-        entry = description.meshes[index] if index < len(description.meshes) else None
-        if entry is not None and entry.emitter is not None:
+        if getattr(entry, "emitter", None) is not None:
             lines += [f"scene.materials.{name}.emission = {_color(entry.emitter['radiance'])}",
                       f"scene.materials.{name}.emission.gain = 1 1 1",
                       f"scene.materials.{name}.emission.power = 0",

@@ -27,6 +27,7 @@ from .build.instances import InstancedTree, TwoLevel, check_instances, check_mas
 from .query.points import PointQuery
 from .query import on_device
 from .query.rays import RayQuery
+from .query.engine import refuse_spheres
 from .build.refit import refit
 from .core.tree import Tree
 
@@ -75,6 +76,14 @@ class Scene:
     tree over all the triangles (the faster walk); with other masks it is
     traced as one instance per mesh under the identity.
 
+    ``spheres``: (S, 4) rows of centre x, y, z and radius, analytic spheres
+    beside the meshes of a flat scene (Mitsuba's sphere shapes): sphere i
+    has ``geom_id`` len(meshes) + i, prim_id 0, the exact outward normal,
+    and u, v its spherical coordinates (docs/queries.md).  intersect and
+    occluded (and the renderer) see them; the other queries refuse a scene
+    with spheres rather than leave them out.  They take no instances nor
+    masks.
+
     Every method may be called from any thread: each takes the scene's lock,
     so concurrent calls run in some serial order and no call sees a tree
     that a rebuild or refit has half made.  Scenes on one device share its
@@ -82,8 +91,12 @@ class Scene:
     """
 
     def __init__(self, meshes, device=None, builder: str = "hlbvh", morton_bits: int = 30, *,
-                 instances=None, masks=None):
+                 instances=None, masks=None, spheres=None):
         self.meshes = _as_meshes(meshes)
+        self._spheres = inputs.spheres(spheres)
+        if len(self._spheres) and (instances is not None or masks is not None):
+            raise ValueError("spheres are for flat scenes: a Scene with spheres takes no "
+                             "instances nor masks (place the sphere as a mesh instead)")
         if builder not in BUILDERS:
             raise ValueError(f"builder must be one of {BUILDERS}, got {builder!r}")
         key_dtype(morton_bits)
@@ -124,7 +137,11 @@ class Scene:
                                 zip(self.meshes, self._vertex_offsets[:-1])])
         vertices = np.concatenate([m.vertices for m in self.meshes])
         self._largest = [frame.largest_used(m.vertices, m.faces) for m in self.meshes]
-        self._scale = frame.scale_for(max(self._largest))  # the tree's frame (hlbvh_cl.core.frame)
+        # the spheres' farthest points set the frame as well
+        self._sphere_largest = float((np.abs(self._spheres[:, :3]).max(axis=1)
+                                      + self._spheres[:, 3]).max()) if len(self._spheres) else 0.0
+        self._sphere_buffer = None  # their float4 records in the tree's frame (_attach_spheres)
+        self._scale = frame.scale_for(self._largest_extent())  # hlbvh_cl.core.frame
         self._warn_vanishing(range(len(self.meshes)))
         self._geometry = Geometry.upload(rt, frame.to_frame(vertices, self._scale),
                                          faces, first_face)
@@ -138,8 +155,36 @@ class Scene:
         tree's frame makes degenerate (frame.vanishing): one far larger
         mesh, or coordinate, sets a frame in which float32 cannot hold them."""
         for geom_id in geom_ids:
-            frame.warn_vanishing(self.meshes[geom_id], geom_id, self._scale, max(self._largest),
-                                 "the scene's")
+            frame.warn_vanishing(self.meshes[geom_id], geom_id, self._scale,
+                                 self._largest_extent(), "the scene's")
+
+    def _largest_extent(self, largest=None) -> float:
+        """The largest coordinate magnitude of the meshes (``largest``: per
+        mesh, default the scene's) and the spheres: what sets the frame."""
+        return max(max(self._largest if largest is None else largest), self._sphere_largest)
+
+    def _attach_spheres(self) -> None:
+        """The spheres, in the new tree's frame, on the device beside it
+        (Tree.spheres): uploaded again where the frame changed."""
+        if not len(self._spheres):
+            return
+        framed = (self._spheres * self._scale).astype(np.float32)
+        if self._sphere_buffer is None or self._sphere_buffer[1] != self._scale:
+            frame.warn_vanishing_spheres(self._spheres[:, 3], len(self.meshes), self._scale,
+                                         self._largest_extent(), "the scene's")
+            rt = self._runtime
+            buffer = cl.Buffer(rt.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
+                               hostbuf=framed)
+            self._sphere_buffer = (buffer, self._scale)
+        self._tree.spheres = self._sphere_buffer[0]
+        self._tree.sphere_count = len(self._spheres)
+        self._tree.sphere_geom = len(self.meshes)
+
+    @property
+    def spheres(self) -> np.ndarray:
+        """float64 (S, 4): the analytic spheres' centres and radii (a copy);
+        (0, 4) for none."""
+        return self._spheres.copy()
 
     @property
     def device(self):
@@ -221,7 +266,7 @@ class Scene:
                 self._tree, self._stats = self._two_level.build_top()
             else:
                 if self._stale_vertices:  # all of them again, in the frame they now need
-                    self._scale = frame.scale_for(max(self._largest))
+                    self._scale = frame.scale_for(self._largest_extent())
                     self._warn_vanishing(range(len(self.meshes)))
                     vertices = np.concatenate([m.vertices for m in self.meshes])
                     cl.enqueue_copy(rt.queue, self._geometry.vertices,
@@ -229,6 +274,7 @@ class Scene:
                     self._stale_vertices = False
                 self._tree, self._stats = build(rt, self._geometry, self.builder,
                                                 self.morton_bits, self._scale)
+                self._attach_spheres()
 
     def _change(self, apply, undo, meshes: bool = False) -> None:
         """`apply` a change of content, then build the tree over it (its
@@ -272,8 +318,9 @@ class Scene:
                     instances = (self._two_level.instance_meshes.copy(),
                                  self._two_level.transforms.copy())
                 masks = self._masks.copy() if (self._masks != ALL_BITS).any() else None
-                self._spec = travel.SceneSpec.make(self.meshes, instances, masks, self.builder,
-                                                   self.morton_bits, self._device_spec)
+                self._spec = travel.SceneSpec.make(
+                    self.meshes, instances, masks, self.builder, self.morton_bits,
+                    self._device_spec, self._spheres.copy() if len(self._spheres) else None)
             return self._spec
 
     def _changing(self) -> None:
@@ -393,7 +440,8 @@ class Scene:
                 # the upload is done, a build uploads them all (_build)
                 self._stale_vertices = True
                 self.meshes, self._largest = meshes, largest
-                if tree is None or frame.scale_for(max(largest) * self._scale) != 1.0:
+                if tree is None or frame.scale_for(self._largest_extent(largest)
+                                                   * self._scale) != 1.0:
                     # out of this frame (or no tree since a failed rebuild): build anew
                     self.rebuild()
                     return
@@ -447,6 +495,7 @@ class Scene:
         k nearest of each ray; mask as intersect takes it.  A crossing
         through a shared edge or vertex counts once."""
         with self._lock:
+            refuse_spheres(self._built_tree(), "intersect_all")
             hits = self._all_hits_query().intersect_all(self._built_tree(), origins, directions,
                                                         tmin, tmax, max_hits, mask)
             if self._two_level is not None and not self._instanced:
@@ -458,6 +507,7 @@ class Scene:
         """int32, in the rays' leading shape: how many hits each ray has in
         [tmin, tmax] (as intersect_all counts them; mask as intersect)."""
         with self._lock:
+            refuse_spheres(self._built_tree(), "count_intersections")
             return self._all_hits_query().count(self._built_tree(), origins, directions, tmin,
                                                 tmax, mask)
 
@@ -474,6 +524,7 @@ class Scene:
         (distance inf and ids -1 beyond it).  Point queries take no mask:
         they see every instance (every mesh)."""
         with self._lock:
+            refuse_spheres(self._built_tree(), "closest_points")
             found = self._point_query().closest_points(self._built_tree(), points, max_distance)
             if self._two_level is not None and not self._instanced:
                 on_device.fill(found.instance_id, -1)  # instances of the masks' making
@@ -487,6 +538,7 @@ class Scene:
         at the point mapped into it, negated for a mirroring map (on closed
         meshes the flattened scene's)."""
         with self._lock:
+            refuse_spheres(self._built_tree(), "winding_number")
             return self._point_query().winding_numbers(self._built_tree(), points)
 
     def signed_distance(self, points) -> np.ndarray:
@@ -494,10 +546,13 @@ class Scene:
         |winding number| >= 0.5, whichever way the faces turn (on an open mesh
         that closes each hole minimally; see hlbvh_cl.query.points)."""
         with self._lock:
+            refuse_spheres(self._built_tree(), "signed_distance")
             return self._point_query().signed_distance(self._built_tree(), points)
 
     def contains(self, points) -> np.ndarray:
         """bool: whether each point is inside (|winding number| >= 0.5)."""
+        with self._lock:
+            refuse_spheres(self._built_tree(), "contains")
         inside = abs(self.winding_number(points)) >= 0.5
         return inside if isinstance(inside, np.ndarray) else inside.view(bool)  # int8 0 or 1
 
@@ -524,6 +579,8 @@ class Scene:
             held = f"{len(self._two_level.transforms):,} instances"
         else:
             held = f"{sum(m.triangle_count for m in self.meshes):,} triangles"
+            if len(self._spheres):
+                held += f" and {len(self._spheres):,} sphere(s)"
         return (f"Scene({len(self.meshes)} mesh(es), {held}, builder={self.builder!r}, "
                 f"device={self.device.id!r})")
 

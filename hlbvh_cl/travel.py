@@ -38,23 +38,25 @@ class SceneSpec:
     morton_bits: int
     device: str | None
     key: str  # content hash of all of the above
+    spheres: np.ndarray | None = None  # (S, 4) float64 centres and radii, or None
 
     @classmethod
     def make(cls, meshes, instances, masks, builder: str, morton_bits: int,
-             device: str | None) -> "SceneSpec":
+             device: str | None, spheres: np.ndarray | None = None) -> "SceneSpec":
         digest = hashlib.blake2b(digest_size=20)
         for mesh in meshes:
             for array in (mesh.vertices, mesh.faces):
                 digest.update(str(array.shape).encode())
                 digest.update(np.ascontiguousarray(array).data)
             digest.update(repr(mesh.name).encode())
-        for part in (instances or ()) + ((masks,) if masks is not None else ()):
+        for part in ((instances or ()) + ((masks,) if masks is not None else ())
+                     + ((spheres,) if spheres is not None else ())):
             digest.update(str(part.shape).encode())
             digest.update(np.ascontiguousarray(part).data)
-        digest.update(repr((instances is None, masks is None, builder, morton_bits,
-                            device)).encode())
+        digest.update(repr((instances is None, masks is None, spheres is None, builder,
+                            morton_bits, device)).encode())
         return cls(tuple(meshes), instances, masks, builder, morton_bits, device,
-                   digest.hexdigest())
+                   digest.hexdigest(), spheres)
 
     def __dask_tokenize__(self):
         return ("hlbvh_cl.SceneSpec", self.key)
@@ -65,7 +67,7 @@ class SceneSpec:
             [(int(m), t) for m, t in zip(*self.instances)]
         return [list(self.meshes)], dict(device=self.device, builder=self.builder,
                                          morton_bits=self.morton_bits, instances=pairs,
-                                         masks=self.masks)
+                                         masks=self.masks, spheres=self.spheres)
 
 
 _cache: OrderedDict = OrderedDict()

@@ -91,15 +91,39 @@ def warn_vanishing(mesh, geom_id: int, scale: float, largest: float, frame_of: s
     the package the build was."""
     lost = vanishing(mesh.vertices, mesh.faces, scale)
     if lost:
-        package = os.path.dirname(os.path.dirname(os.path.abspath(__file__))) + os.sep
-        level, caller = 1, inspect.currentframe()
-        while caller is not None and caller.f_code.co_filename.startswith(package):
-            caller, level = caller.f_back, level + 1
-        warnings.warn(
-            f"hlbvh_cl: {lost} of mesh {geom_id}'s {mesh.triangle_count} triangles are "
-            f"too small for {frame_of} frame (its coordinates times {describe(scale)}, set by "
-            f"its largest, {largest:.3g}): their normals underflow float32 there, so no ray "
-            f"hits them", RuntimeWarning, stacklevel=level)
+        _warn_user(f"hlbvh_cl: {lost} of mesh {geom_id}'s {mesh.triangle_count} triangles are "
+                   f"too small for {frame_of} frame (its coordinates times {describe(scale)}, "
+                   f"set by its largest, {largest:.3g}): their normals underflow float32 there, "
+                   "so no ray hits them")
+
+
+#: The smallest radius a sphere keeps in a frame: the ray test squares it
+#: and its distances (kernels/query/rays/sphere.h), which float32 must hold
+#: as normal numbers (2^-126 and up) with room to spare.
+SMALLEST_SPHERE = 2.0**-60
+
+
+def warn_vanishing_spheres(radii: np.ndarray, first_geom: int, scale: float,
+                           largest: float, frame_of: str) -> None:
+    """A RuntimeWarning if the frame of ``scale`` shrinks some spheres (of
+    ``radii``, geom_ids from ``first_geom``) below SMALLEST_SPHERE: float32
+    cannot hold their ray test there."""
+    small = np.flatnonzero(np.asarray(radii, np.float64) * scale < SMALLEST_SPHERE)
+    if len(small):
+        _warn_user(f"hlbvh_cl: {len(small)} sphere(s) (geom_id {first_geom + small[0]} first) "
+                   f"are too small for {frame_of} frame (its coordinates times "
+                   f"{describe(scale)}, set by its largest, {largest:.3g}): their squared "
+                   "radius underflows float32 there, so rays miss them")
+
+
+def _warn_user(message: str) -> None:
+    """A RuntimeWarning that names the user's line that built or changed
+    the scene, however deep in the package the build was."""
+    package = os.path.dirname(os.path.dirname(os.path.abspath(__file__))) + os.sep
+    level, caller = 1, inspect.currentframe()
+    while caller is not None and caller.f_code.co_filename.startswith(package):
+        caller, level = caller.f_back, level + 1
+    warnings.warn(message, RuntimeWarning, stacklevel=level)
 
 
 def _zero_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:

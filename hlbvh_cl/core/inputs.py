@@ -632,3 +632,30 @@ def mesh_faces(faces, vertex_count: int) -> np.ndarray:
     converted = np.array(array, dtype=np.int32, order="C", copy=True)
     converted.flags.writeable = False
     return converted
+
+
+def spheres(value) -> np.ndarray:
+    """A Scene's analytic spheres: (S, 4) rows of centre x, y, z and radius,
+    as float64 (a copy); None is (0, 4).  Errors name the first bad row."""
+    if value is None:
+        return np.zeros((0, 4))
+    array = as_array("spheres", value)
+    if array.dtype.kind not in "fiu":
+        raise TypeError(f"spheres has dtype {array.dtype}, expected real numbers: rows of "
+                        "centre x, y, z and radius")
+    if array.ndim != 2 or array.shape[1] != 4:
+        raise ValueError(f"spheres has shape {array.shape}, expected (S, 4): rows of centre "
+                         "x, y, z and radius")
+    array = array.astype(np.float64)
+    limit = float(np.finfo(np.float32).max)
+    bad = ~(np.isfinite(array).all(axis=1) & (np.abs(array) <= limit).all(axis=1))
+    if bad.any():
+        row = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"spheres[{row}] = {array[row].tolist()} is not finite in float32")
+    tiny = float(np.finfo(np.float32).tiny)
+    small = ~(array[:, 3] >= tiny)
+    if small.any():
+        row = int(np.flatnonzero(small)[0])
+        raise ValueError(f"spheres[{row}] has radius {array[row, 3]:g}: a sphere's radius must "
+                         f"be positive (at least {tiny:.3g}, float32's smallest normal)")
+    return array

@@ -40,6 +40,10 @@ class Tree:
                (hlbvh_cl.query.points) and dropped by a refit (stale) or release.
     released   set by :meth:`release`: the buffers went back to a pool (the
                Scene that owned the tree rebuilt it) and must not be read.
+    spheres    float4[sphere_count] (centre, radius) in this tree's frame: a
+               flat scene's analytic spheres, tested beside the tree by ray
+               queries (kernels/query/rays/sphere.h), geom_id sphere_geom + i;
+               None without spheres.  The Scene owns the buffer.
     """
 
     nodes: cl.Buffer
@@ -54,6 +58,9 @@ class Tree:
     scale: float = 1.0
     dipoles: cl.Buffer | None = None
     released: bool = False
+    spheres: cl.Buffer | None = None
+    sphere_count: int = 0
+    sphere_geom: int = 0
 
     @property
     def depth(self) -> int:
@@ -70,7 +77,7 @@ class Tree:
         """Give this tree's device buffers back to ``pool`` for the next
         build to reuse; the tree is unusable after."""
         pool.give(self.nodes, self.triangles, self.refs, self.vertex_ids)
-        self.nodes = self.triangles = self.refs = self.vertex_ids = None
+        self.nodes = self.triangles = self.refs = self.vertex_ids = self.spheres = None
         self.drop_dipoles(pool)
         self.released = True
 

@@ -37,6 +37,9 @@ class MeshEntry:
     split: int = 1
     material: dict | None = None  # the path integrator's BSDF spec (None: the default)
     emitter: dict | None = None   # an area emitter's spec, without its "mesh"
+    #: (4,) centre and radius where the shape is an analytic sphere (Scene's
+    #: spheres, after every mesh); ``mesh`` is then its tessellation, unused
+    sphere: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -66,11 +69,23 @@ class SceneDescription:
     #: camera's vertical fov holds (a TOML file's)
     sensor_fov: tuple[float, str] | None = None
 
+    def surfaces(self) -> list:
+        """Every surface's entry in geom_id order: the triangle meshes in
+        file order, the ground, then the analytic spheres (Scene's order)."""
+        return ([entry for entry in self.meshes if entry.sphere is None]
+                + ([self.ground] if self.ground is not None else [])
+                + [entry for entry in self.meshes if entry.sphere is not None])
+
+    def spheres(self) -> np.ndarray | None:
+        """Scene's ``spheres``: (S, 4) centres and radii, or None."""
+        found = [entry.sphere for entry in self.meshes if entry.sphere is not None]
+        return np.array(found, np.float64) if found else None
+
     def materials(self) -> list[dict] | None:
-        """Renderer.materials of every surface (the meshes, then the
-        ground): each entry's, else a two-sided diffuse of its colour; None
-        when no entry names one."""
-        entries = list(self.meshes) + ([self.ground] if self.ground is not None else [])
+        """Renderer.materials of every surface (surfaces' order): each
+        entry's, else a two-sided diffuse of its colour; None when no entry
+        names one."""
+        entries = self.surfaces()
         if all(entry.material is None for entry in entries):
             return None
         return [entry.material or {"type": "twosided", "bsdf": {
@@ -79,8 +94,8 @@ class SceneDescription:
     def all_emitters(self) -> list[dict] | None:
         """Renderer.emitters: the meshes' area emitters, then the [[emitter]]
         tables; None (the default sky) when there are none."""
-        found = [{**entry.emitter, "mesh": k} for k, entry in enumerate(self.meshes)
-                 if entry.emitter is not None] + list(self.emitters)
+        found = [{**entry.emitter, "mesh": k} for k, entry in enumerate(self.surfaces())
+                 if getattr(entry, "emitter", None) is not None] + list(self.emitters)
         return found or None
 
     @property
@@ -120,8 +135,9 @@ class SceneDescription:
         return found
 
     def geometries(self) -> list[tuple[Mesh, Color]]:
-        """(mesh, colour) of every surface: the meshes in file order, then the ground."""
-        found = [(entry.mesh, entry.color) for entry in self.meshes]
+        """(mesh, colour) of every triangle surface: the meshes in file
+        order, then the ground (the spheres follow them: surfaces)."""
+        found = [(entry.mesh, entry.color) for entry in self.meshes if entry.sphere is None]
         if self.ground is not None:
             found.append((self.ground.mesh, self.ground.color))
         return found

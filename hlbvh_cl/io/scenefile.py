@@ -266,7 +266,7 @@ class LoadedScene:
     scene: Scene
     camera: Camera
     light: Light
-    colors: tuple[Color, ...]  # one per mesh of scene.meshes (the ground last)
+    colors: tuple[Color, ...]  # one per geom_id: scene.meshes (the ground last), its spheres
     width: int
     height: int
     path: Path
@@ -315,9 +315,12 @@ def load(path, device=None, builder: str = "hlbvh", morton_bits: int = 30,
         except ValueError as error:  # a check only the built frames can make
             raise _name_the_entry(description, error) from None
     else:  # a flat scene, as the file says: each mesh drawn once as it is
-        scene = Scene(meshes, device=device, builder=builder, morton_bits=morton_bits)
+        scene = Scene(meshes, device=device, builder=builder, morton_bits=morton_bits,
+                      spheres=description.spheres())
+    colors = [color for _, color in geometries]
+    colors += [entry.color for entry in description.surfaces()[len(colors):]]  # the spheres'
     return LoadedScene(scene=scene, camera=description.camera, light=description.light,
-                       colors=tuple(color for _, color in geometries), width=description.width,
+                       colors=tuple(colors), width=description.width,
                        height=description.height, path=description.path,
                        load_seconds=loaded - started,
                        build_seconds=time.perf_counter() - loaded,

@@ -159,14 +159,16 @@ def kernel_defines(rt: Runtime, tree, variant, packet: int, **extra) -> dict:
     """The defines every query kernel is built with for ``tree``: its stack,
     the items per work-item, the kernel variant's and the device's (CPU
     prefetch), INSTANCES for a two-level scene, INTERLEAVED_WALKS where a
-    CPU work-item walks its rays together (interleaved_walks), then the
-    query's own."""
+    CPU work-item walks its rays together (interleaved_walks), SPHERES for a
+    flat tree with spheres, then the query's own."""
     defines = {"STACK_SIZE": stack_size(tree), "PACKET_SIZE": packet, **variant.defines,
                **rt.prefetch_defines}
     if isinstance(tree, InstancedTree):
         defines["INSTANCES"] = 1
     elif interleaved_walks(rt, tree, defines["STACK_SIZE"], packet):
         defines["INTERLEAVED_WALKS"] = 1
+    if getattr(tree, "spheres", None) is not None:
+        defines["SPHERES"] = 1
     return {**defines, **extra}
 
 
@@ -196,6 +198,18 @@ def interleaved_walks(rt: Runtime, tree, stack: int, packet: int) -> bool:
     return (not rt.profile.gpu and packet > 1
             and sum(tree.memory().values()) >= INTERLEAVED_MIN_TREE_BYTES
             and packet * (stack + 1) * 12 <= INTERLEAVED_STACK_BYTES)
+
+
+def refuse_spheres(tree, query: str) -> None:
+    """A ValueError for a query that does not see a tree's analytic spheres
+    (only closest and any hit test them: kernels/query/rays/sphere.h), rather
+    than an answer that leaves them out."""
+    if getattr(tree, "spheres", None) is not None:
+        first = tree.sphere_geom
+        raise ValueError(f"{query} takes triangle meshes only, and this scene has "
+                         f"{tree.sphere_count} analytic sphere(s) (geom_id {first} to "
+                         f"{first + tree.sphere_count - 1}): only intersect and occluded see "
+                         "spheres; give them as meshes (trimesh.creation.icosphere) for this query")
 
 
 def check_tree(rt: Runtime, tree) -> bool:

@@ -416,10 +416,13 @@ def missed(hits) -> None:
 
 def scene_args(tree, masks: cl.Buffer, mask_step) -> tuple:
     """A traversal kernel's SCENE_PARAMS (query/rays.cl) for ``tree``: a flat
-    tree's nodes, triangles and refs (rays' masks are applied before, by
+    tree's nodes, triangles and refs, and spheres if it has them (rays' masks are applied before, by
     masked); an instanced one's levels, instances and the rays' masks."""
     if isinstance(tree, InstancedTree):
         return tree.scene_args(masks, mask_step)
+    if tree.spheres is not None:  # and its spheres (kernels/query/rays/sphere.h)
+        return (tree.nodes, tree.triangles, tree.refs, tree.spheres,
+                np.uint32(tree.sphere_count), np.int32(tree.sphere_geom))
     return tree.nodes, tree.triangles, tree.refs
 
 

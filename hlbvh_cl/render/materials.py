@@ -203,7 +203,7 @@ def material_table(materials, colors: np.ndarray) -> np.ndarray:
                         f"{type(materials).__name__}")
     if len(materials) != count:
         raise ValueError(f"materials has {len(materials)} entries but the scene has {count} "
-                         "meshes: one material per mesh")
+                         "geometries: one material per mesh, then per sphere (geom_id order)")
     for i, spec in enumerate(materials):
         table[i] = _bsdf(f"materials[{i}]", spec)
     return table

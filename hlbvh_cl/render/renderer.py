@@ -469,7 +469,8 @@ class Renderer:
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a hlbvh_cl.Scene, got {type(scene).__name__}")
         self.scene = scene
-        self.colors = default_colors(len(scene.meshes)) if colors is None else colors
+        count = len(scene.meshes) + len(scene.spheres)  # geom_ids: meshes, then spheres
+        self.colors = default_colors(count) if colors is None else colors
         self.light = Light() if light is None else light
         self.materials = materials
         self.emitters = emitters
@@ -537,10 +538,15 @@ class Renderer:
     def look(self) -> Look:
         """colors, light, materials and emitters, checked, with the world
         triangles of the emitting meshes: what Pipeline.render shows."""
-        count = len(self.scene.meshes)
+        count = len(self.scene.meshes) + len(self.scene.spheres)  # geom_ids: meshes, spheres
         colors = check_colors(default_colors(count) if self.colors is None else self.colors, count)
         light = check_light(Light() if self.light is None else self.light)
         emitters = check_emitters(self.emitters, count)
+        spheres = [k for k in emitters.area if k >= len(self.scene.meshes)]
+        if spheres:
+            raise ValueError(f"emitters: an area emitter on geom_id {spheres[0]}, an analytic "
+                             "sphere; spheres do not emit (no light sampling of them yet): "
+                             "give an emitting sphere as a mesh (trimesh.creation.icosphere)")
         triangles, normals = self._emissive(emitters)
         transforms = self.scene.transforms
         instance_maps = None if transforms is None else \
@@ -556,7 +562,7 @@ class Renderer:
         by |det A|^(2/3) of its map's linear part A (exact for a similarity)."""
         areas = np.array([m.area for m in self.scene.meshes], np.float64)
         if transforms is None:
-            return float(areas.sum())
+            return float(areas.sum() + 4 * np.pi * (self.scene.spheres[:, 3] ** 2).sum())
         scales = np.abs(np.linalg.det(np.asarray(transforms, np.float64)[:, :, :3])) ** (2 / 3)
         return float((areas[self.scene.instance_meshes] * scales).sum())
 

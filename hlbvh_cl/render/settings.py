@@ -44,7 +44,8 @@ def check_colors(colors, geometry_count: int) -> np.ndarray:
         raise TypeError(f"colors must be a list of RGB triples, got {type(colors).__name__}")
     if len(colors) != geometry_count:
         raise ValueError(f"colors has {len(colors)} entries but the scene has "
-                         f"{geometry_count} meshes: one RGB colour per mesh")
+                         f"{geometry_count} geometries: one RGB colour per mesh, then per "
+                         "sphere (geom_id order)")
     out = np.empty((geometry_count, 3), np.float32)
     for i, color in enumerate(colors):
         try:

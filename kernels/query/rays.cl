@@ -16,7 +16,10 @@
  *     as Embree's tnear <= t <= tfar); t is in units of |direction|;
  *   - no culling: both sides of a triangle are hit;
  *   - degenerate triangles (zero edge cross product) are never hit;
- *   - u, v: hit = (1-u-v)*v0 + u*v1 + v*v2.
+ *   - u, v: hit = (1-u-v)*v0 + u*v1 + v*v2;
+ *   - a flat scene's analytic spheres (-D SPHERES, query/rays/sphere.h)
+ *     are tested after the walk; of a triangle and a sphere hit at one t,
+ *     the triangle.
  *
  * Compile-time parameters (-D)
  *   STACK_SIZE  entries of the private traversal stack; the host passes a
@@ -37,6 +40,9 @@
 #include "query/rays/instance.h"
 #ifdef ROOT_PHASE
 #include "query/rays/mixed.h"
+#endif
+#ifdef SPHERES
+#include "query/rays/sphere.h"
 #endif
 
 /* A work-item traces LANE_GROUPS groups of PACKET_SIZE rays (a -D define of
@@ -162,6 +168,17 @@ TRAVERSAL_INLINE void closest_hits(RayLanes* lanes, const uint* used, uint first
     for (uint g = 0; g < LANE_GROUPS; ++g)
         for (uint l = 0; l < used[g]; ++l) {
             uint i = g * PACKET_SIZE + l;
+#ifdef SPHERES
+            /* a sphere nearer than the walk's hit (at its t, the triangle) */
+            bool walked = found[g].index[l] >= 0;
+            float t = walked ? found[g].t[l] : lanes[g].tmax[l];
+            int s = nearest_sphere(lanes + g, l, spheres, sphere_count, &t, walked);
+            if (s >= 0) {
+                sphere_hit(hits + i, lanes + g, l, spheres, sphere_geom, s, t);
+                instance[i] = -1;
+                continue;
+            }
+#endif
             lane_hit(hits + i, found + g, l, SCENE_ARGS);
 #ifdef INSTANCES
             instance[i] = found[g].instance[l];
@@ -182,8 +199,13 @@ TRAVERSAL_INLINE void any_hits(RayLanes* lanes, const uint* used, uint first, SC
     HitLanes found[LANE_GROUPS];
     trace_occluded(lanes, used, SCENE_TREES, overflow, found);
     for (uint g = 0; g < LANE_GROUPS; ++g)
-        for (uint l = 0; l < used[g]; ++l)
-            occluded[g * PACKET_SIZE + l] = found[g].index[l] >= 0 ? 1 : 0;
+        for (uint l = 0; l < used[g]; ++l) {
+            bool hit = found[g].index[l] >= 0;
+#ifdef SPHERES
+            hit = hit || any_sphere(lanes + g, l, spheres, sphere_count);
+#endif
+            occluded[g * PACKET_SIZE + l] = hit ? 1 : 0;
+        }
 }
 
 /* The rays a launch over Ray records traces: ray_count, or where `counts`

@@ -40,7 +40,7 @@ CHILD_MEMORY = 7 << 30
 #: compiling the programs on Oclgrind cost a few seconds per process).
 GROUPS = {
     "build": ("builds_and_refits", "sort", "scan"),
-    "trace": ("packets", "render"),
+    "trace": ("packets", "render", "spheres"),
     "points": ("points",),
     "all_hits": ("all_hits",),
     "instances": ("instances",),
@@ -115,6 +115,33 @@ RENDERS = {"diffuse": {"shading": "diffuse", "shadows": True},
                                    {"type": "point", "position": [0.0, 2.5, 0.0],
                                     "intensity": 1.0}]}}
 WIDTH, HEIGHT = 8, 6
+
+
+#: Analytic spheres beside a ground square (tests/support/sphere_oracle.py's):
+#: one resting on it, one the ground cuts.
+SPHERES = np.array([[0.0, 0.6, 0.0, 0.6], [1.2, 0.1, 0.5, 0.4]])
+
+#: The spheres' render: glass and a rough metal sphere under a sky and a lamp.
+SPHERE_RENDER = {"shading": "path", "spp": 2, "max_depth": 4, "rr_depth": 10,
+                 "materials": [{"type": "diffuse", "reflectance": 0.6}, {"type": "dielectric"},
+                               {"type": "roughconductor", "alpha": 0.2}],
+                 "emitters": [{"type": "constant", "radiance": 0.3},
+                              {"type": "point", "position": [0.0, 2.5, 1.0], "intensity": 2.0}]}
+
+
+def sphere_scene():
+    import hlbvh_cl
+    ground = hlbvh_cl.Mesh([[-4, 0, -4], [4, 0, -4], [4, 0, 4], [-4, 0, 4]],
+                           [[0, 2, 1], [0, 3, 2]], name="ground")
+    return hlbvh_cl.Scene([ground], spheres=SPHERES)
+
+
+def render_spheres(scene) -> np.ndarray:
+    import hlbvh_cl
+    options = dict(SPHERE_RENDER)
+    renderer = hlbvh_cl.Renderer(scene, materials=options.pop("materials"),
+                                 emitters=options.pop("emitters"))
+    return renderer.render(camera(), WIDTH, HEIGHT, **options)
 
 
 def render(scene, name: str) -> np.ndarray:
@@ -319,6 +346,30 @@ def check_device_masks(query, tree, origins, directions) -> None:
 #: What check_device_rays and check_device_points keep alive until the
 #: child ends.
 KEPT_DEVICE_ARRAYS: list = []
+
+
+def case_spheres(uninitialized: bool) -> dict:
+    """Closest and any hit on analytic spheres (query/rays/sphere.h) with one
+    ray per work-item and with packets, against the float64 oracle; and
+    (not in the uninitialized mode) a path-traced image of them, which the
+    parent compares with the suite's device."""
+    from hlbvh_cl.query.rays import RayQuery
+    import built
+    from sphere_oracle import oracle
+    scene = sphere_scene()
+    rng = np.random.default_rng(5)
+    origins = rng.uniform([-2, 0.05, -2], [2, 2, 2], (96, 3)).astype(np.float32)
+    directions = rng.normal(size=(96, 3)).astype(np.float32)
+    _, geom, gap = oracle(origins, directions, SPHERES)
+    clear = gap > 1e-4
+    assert (geom[clear] >= 1).sum() > 10
+    for packet_size in (1, 8) if uninitialized else (1, 8, 16):
+        query = RayQuery(built.runtime(scene), packet_size=packet_size)
+        hits = query.intersect(built.tree(scene), origins, directions)
+        np.testing.assert_array_equal(hits.geom_id[clear], geom[clear])
+        np.testing.assert_array_equal(query.occluded(built.tree(scene), origins, directions),
+                                      hits.hit)
+    return {} if uninitialized else {"image_spheres": render_spheres(scene)}
 
 
 def case_render(uninitialized: bool) -> dict:
@@ -753,7 +804,8 @@ def expected_images():
     """The renders on the suite's own device."""
     import hlbvh_cl
     scene = hlbvh_cl.Scene(tiny_meshes())
-    return {f"image_{name}": render(scene, name) for name in RENDERS}
+    return {**{f"image_{name}": render(scene, name) for name in RENDERS},
+            "image_spheres": render_spheres(sphere_scene())}
 
 
 def child_job(mode: str, group: str, out: Path) -> dict:
@@ -808,6 +860,7 @@ def test_kernels_are_clean_under_oclgrind(group, mode, oclgrind_children, expect
                                       f"up to {difference.max()}"
     if group == "trace":
         assert "image_diffuse" in results.files
+        assert mode == "uninitialized" or "image_spheres" in results.files
 
 
 def test_reports_are_recognised():

@@ -308,7 +308,9 @@ class Path(Integrator):
             shading = {name: upload_table(rt, found[name]) for name in ("faces", "normals")}
             shading["bases"] = found["bases"]
             self._shading = (look.meshes, shading)
-        tables["materials"]["shading_base"] = shading["bases"]
+        # the spheres after the meshes take their geometric normal (-1), as Mitsuba's
+        tables["materials"]["shading_base"] = -1
+        tables["materials"]["shading_base"][:len(shading["bases"])] = shading["bases"]
         maps = np.zeros((0, 9)) if look.instance_maps is None else \
             np.asarray(look.instance_maps).reshape(-1, 9)
         tables["instance_maps"] = maps.astype(np.float32)

@@ -97,10 +97,19 @@ TRAVERSAL_INLINE float3 instance_normal(__global const Instance* in, float3 n)
  * Macros: parameter lists (a kernel cannot take a struct of pointers). */
 #ifndef INSTANCES
 /* A flat scene: one tree over every mesh's triangles. */
+#ifndef SPHERES
 #define SCENE_PARAMS                                                                    \
     __global const WideNode *nodes, __global const Triangle *triangles,                  \
         __global const TriangleRef *refs
 #define SCENE_ARGS nodes, triangles, refs
+#else
+/* ... and its analytic spheres (query/rays/sphere.h), after the meshes. */
+#define SCENE_PARAMS                                                                    \
+    __global const WideNode *nodes, __global const Triangle *triangles,                  \
+        __global const TriangleRef *refs, __global const float4 *spheres,                \
+        const uint sphere_count, const int sphere_geom
+#define SCENE_ARGS nodes, triangles, refs, spheres, sphere_count, sphere_geom
+#endif
 #define SCENE_TREES nodes, triangles
 #else
 /* A two-level scene: the top tree over the instances, the instances, the
