@@ -193,7 +193,6 @@ FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel,
                                     tables->shading_normals, tables->instance_maps,
                                     params->instance_maps);
     float cos_out = dot3(shading, wo);
-    float cos_geometric = dot3(geometric, wo);
     float3 emitted = LOAD_XYZ(m->radiance);
     if (cos_out > 0.0f && luminance_max(emitted) > 0.0f) {
         float distance = hit->t * length_d;
@@ -217,7 +216,6 @@ FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel,
     float3 o = LOAD_XYZ(ray->origin), x = o + hit->t * d;
     /* secondary rays start off the surface on their own side of it */
     float offset = spawn_offset(params, x, o, hit->t * length_d);
-    float3 lift = offset * (cos_geometric > 0.0f ? geometric : -geometric);
     uint pixel = first_pixel + path;
 
     /* next-event estimation, for a BSDF with a density: one light sample,
@@ -225,27 +223,32 @@ FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel,
     bool delta_light = false;
     LightSample light = {(float3)(0.0f), 0.0f, (float3)(0.0f), 0.0f};
     if (bsdf_has_density(m))
-        light = sample_light(x + lift, params, &tables->lights, pixel, salts.lo, &delta_light);
+        light = sample_light(x, params, &tables->lights, pixel, salts.lo, &delta_light);
     float bsdf_pdf_of_light;
     float3 f_cos = light.pdf > 0.0f ? bsdf_eval(m, n, wo, light.direction, &bsdf_pdf_of_light)
                                     : (float3)(0.0f);
     if (light.pdf > 0.0f && luminance_max(f_cos * light.radiance) > 0.0f) {
         float weight = delta_light ? 1.0f : power_heuristic(light.pdf, bsdf_pdf_of_light);
         float3 carried = throughput * f_cos * light.radiance * (weight / light.pdf);
-        /* stop short of the light itself by Mitsuba's spawn_ray_to margin,
-         * ShadowEpsilon of the distance, which the rounding of the light's
-         * point and of the direction to it grows with (none for a light
-         * at infinity: its shadow ray runs to infinity) */
-        float margin = light.reach < INFINITY ? SHADOW_EPSILON * light.reach : 0.0f;
-        /* on the light's side (Mitsuba's spawn_ray_to): through a
-         * transmitting BSDF, or with shading normals, it may be the
-         * geometric back of the surface, up to twice the offset nearer the
-         * light than the point it was sampled from */
+        /* The light was sampled from the surface point x, as Mitsuba's
+         * sample_emitter_direction(si) takes it (its distance sets the
+         * radiance and the density); the shadow ray leaves from x lifted on
+         * the light's side (through a transmitting BSDF, or with shading
+         * normals, the geometric back) towards the light's point, and
+         * stops short of it by ShadowEpsilon of its length, which the
+         * rounding of that point grows with: Mitsuba's spawn_ray_to.  A
+         * light at infinity keeps its direction, and no end. */
         float3 toward = dot3(geometric, light.direction) > 0.0f ? geometric : -geometric;
-        bool behind = dot3(toward, lift) < 0.0f;
-        float reach = light.reach - margin - (behind ? 2.0f * offset : 0.0f);
+        float3 direction = light.direction;
+        float reach = INFINITY;
+        if (light.reach < INFINITY) {
+            float3 to_light = light.direction * light.reach - offset * toward;
+            reach = length3(to_light);
+            direction = to_light * (1.0f / reach);
+            reach -= SHADOW_EPSILON * reach;
+        }
         shadow->origin = x + offset * toward;
-        shadow->direction = light.direction;
+        shadow->direction = direction;
         shadow->reach = reach;
         shadow->carried = carried;
         *casts = true;
