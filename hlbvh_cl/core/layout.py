@@ -109,6 +109,7 @@ PATH_PARAMS = np.dtype([
     ("light_triangles", np.uint32), ("delta_lights", np.uint32), ("max_depth", np.int32),
     ("rr_depth", np.int32), ("delta_probability", np.float32), ("instance_maps", np.uint32),
     ("envmap_to_world", np.float32, 9), ("envmap_width", np.uint32), ("envmap_height", np.uint32),
+    ("light_spheres", np.uint32),
 ])
 
 PATH_STATE = np.dtype([("throughput", *_f3), ("bsdf_pdf", np.float32), ("radiance", *_f3),

@@ -38,7 +38,8 @@ class MeshEntry:
     material: dict | None = None  # the path integrator's BSDF spec (None: the default)
     emitter: dict | None = None   # an area emitter's spec, without its "mesh"
     #: (4,) centre and radius where the shape is an analytic sphere (Scene's
-    #: spheres, after every mesh); ``mesh`` is then its tessellation, unused
+    #: spheres, after every mesh); ``mesh`` is then its tessellation, which
+    #: only the peers that trace triangles read (bench/)
     sphere: np.ndarray | None = None
 
 

@@ -744,10 +744,9 @@ def _shape(reader: _Reader, node: _Node) -> MeshEntry:
         placed = Mesh(points, faces, name=mesh.name, normals=normals, face_normals=face_normals)
     except ValueError as error:
         raise reader.error(node, f"its to_world gives an invalid mesh: {error}") from None
-    # A sphere is traced as Mitsuba's is, analytic (Scene's spheres), but for
-    # an emitting one: the renderer samples light from triangles only.
+    # A sphere is analytic, as Mitsuba's (Scene's spheres)
     sphere = None
-    if kind == "sphere" and emitter is None:
+    if kind == "sphere":
         radius = math.sqrt(float(np.trace(matrix[:3, :3].T @ matrix[:3, :3])) / 3)
         sphere = np.array([*matrix[:3, 3], radius], np.float64)
     return MeshEntry(mesh=placed, color=(0.8, 0.8, 0.8), path=reader.path, material=material

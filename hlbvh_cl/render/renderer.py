@@ -542,11 +542,6 @@ class Renderer:
         colors = check_colors(default_colors(count) if self.colors is None else self.colors, count)
         light = check_light(Light() if self.light is None else self.light)
         emitters = check_emitters(self.emitters, count)
-        spheres = [k for k in emitters.area if k >= len(self.scene.meshes)]
-        if spheres:
-            raise ValueError(f"emitters: an area emitter on geom_id {spheres[0]}, an analytic "
-                             "sphere; spheres do not emit (no light sampling of them yet): "
-                             "give an emitting sphere as a mesh (trimesh.creation.icosphere)")
         triangles, normals = self._emissive(emitters)
         transforms = self.scene.transforms
         instance_maps = None if transforms is None else \
@@ -568,10 +563,14 @@ class Renderer:
 
     def _emissive(self, emitters) -> tuple[dict, dict]:
         """The world triangles of each emitting mesh (every instance's), and
-        their corners' world shading normals (None: face normals)."""
+        their corners' world shading normals (None: face normals); an
+        emitting sphere's centre and radius (4,), and None."""
         triangles, normals = {}, {}
         scene = self.scene
         for mesh in emitters.area:
+            if mesh >= len(scene.meshes):  # an analytic sphere: its centre and radius
+                triangles[mesh], normals[mesh] = scene.spheres[mesh - len(scene.meshes)], None
+                continue
             m = scene.meshes[mesh]
             corners = np.asarray(m.vertices, np.float64)[np.asarray(m.faces)]
             smooth = None if m.face_normals else \

@@ -17,8 +17,9 @@
 /* The lights' tables, as path_surface takes them. */
 typedef struct {
     __global const PathMaterial* materials;  /* per geom_id: an emitter's radiance, emitter_pdf */
-    __global const float* light_vertices;    /* 9 floats per emissive triangle */
-    __global const float* light_normals;     /* 9 floats per emissive triangle */
+    __global const float* light_vertices;    /* 9 floats per emissive triangle; per
+                                              * sphere after them, its centre, radius */
+    __global const float* light_normals;     /* 9 floats per emissive triangle (sphere) */
     __global const float* light_cdf;         /* the triangles' CDF by power */
     __global const int* light_geom;          /* the mesh of each */
     __global const DeltaLight* delta_lights;
@@ -55,8 +56,8 @@ inline float3 environment_light(const PathParams* params, __global const float* 
  * (as Mitsuba's constant emitter), by the map's density for an environment
  * map (render/envmap.h), a point or directional light (a delta:
  * its pdf is the chance of picking it, and MIS leaves it alone), or uniform
- * in area on an emissive triangle picked by power (its area times its
- * radiance's luminance); the lights themselves are picked by power
+ * in area on an emissive triangle or analytic sphere picked by power (its
+ * area times its radiance's luminance); the lights themselves are picked by power
  * (hlbvh_cl/render/emitters.py).  Its four numbers are random_salted(pixel,
  * salts.s0..s3): the choice of light, then three for the point or direction. */
 FORCE_INLINE LightSample sample_light(float3 x, const PathParams* params,
@@ -114,20 +115,33 @@ FORCE_INLINE LightSample sample_light(float3 x, const PathParams* params,
         }
         return out;
     }
-    if (params->light_triangles == 0)
+    uint entries = params->light_triangles + params->light_spheres;
+    if (entries == 0)
         return out;
-    uint k = pick(tables->light_cdf, params->light_triangles,
-                  random_salted(pixel, salts.s1));
+    uint k = pick(tables->light_cdf, entries, random_salted(pixel, salts.s1));
     __global const float* v = tables->light_vertices + 9 * (size_t)k;
-    float3 v0 = LOAD_XYZ(v), v1 = LOAD_XYZ(v + 3), v2 = LOAD_XYZ(v + 6);
-    float root = SQRT(u1);  /* uniform in the triangle: pbrt-v4 SampleUniformTriangle's map */
-    float b0 = 1.0f - root, b1 = u2 * root;
-    float3 p = b0 * v0 + b1 * v1 + (1.0f - b0 - b1) * v2;
-    /* the shading normal there (Mitsuba's Mesh::sample_position), unless the
-     * mesh has face normals (zeros in the table) */
-    __global const float* ln = tables->light_normals + 9 * (size_t)k;
-    float3 smooth = b0 * LOAD_XYZ(ln) + b1 * LOAD_XYZ(ln + 3) + (1.0f - b0 - b1) * LOAD_XYZ(ln + 6);
-    float3 normal = normalize3(dot3(smooth, smooth) > 0.0f ? smooth : cross3(v1 - v0, v2 - v0));
+    float3 p, normal;
+    if (k >= params->light_triangles) {
+        /* an analytic sphere (centre, radius in its row): a point uniform on
+         * it (pbrt-v4's SampleUniformSphere), its outward normal; the half
+         * turned away from x gives no sample, as a triangle's back */
+        float z = 1.0f - 2.0f * u1;
+        float r = SQRT(1.0f - z * z > 0.0f ? 1.0f - z * z : 0.0f);
+        float cosine, sine = sincos_turn(u2, &cosine);
+        normal = (float3)(r * cosine, r * sine, z);
+        p = LOAD_XYZ(v) + v[3] * normal;
+    } else {
+        float3 v0 = LOAD_XYZ(v), v1 = LOAD_XYZ(v + 3), v2 = LOAD_XYZ(v + 6);
+        float root = SQRT(u1);  /* uniform in the triangle: pbrt-v4 SampleUniformTriangle's map */
+        float b0 = 1.0f - root, b1 = u2 * root;
+        p = b0 * v0 + b1 * v1 + (1.0f - b0 - b1) * v2;
+        /* the shading normal there (Mitsuba's Mesh::sample_position), unless
+         * the mesh has face normals (zeros in the table) */
+        __global const float* ln = tables->light_normals + 9 * (size_t)k;
+        float3 smooth = b0 * LOAD_XYZ(ln) + b1 * LOAD_XYZ(ln + 3)
+                        + (1.0f - b0 - b1) * LOAD_XYZ(ln + 6);
+        normal = normalize3(dot3(smooth, smooth) > 0.0f ? smooth : cross3(v1 - v0, v2 - v0));
+    }
     float3 to_light = p - x;
     float squared = dot3(to_light, to_light);
     float distance = SQRT(squared);

@@ -121,11 +121,13 @@ WIDTH, HEIGHT = 8, 6
 #: one resting on it, one the ground cuts.
 SPHERES = np.array([[0.0, 0.6, 0.0, 0.6], [1.2, 0.1, 0.5, 0.4]])
 
-#: The spheres' render: glass and a rough metal sphere under a sky and a lamp.
+#: The spheres' render: a glass sphere and an emitting one under a sky and a
+#: lamp (render/lights.h's sphere samples).
 SPHERE_RENDER = {"shading": "path", "spp": 2, "max_depth": 4, "rr_depth": 10,
                  "materials": [{"type": "diffuse", "reflectance": 0.6}, {"type": "dielectric"},
                                {"type": "roughconductor", "alpha": 0.2}],
                  "emitters": [{"type": "constant", "radiance": 0.3},
+                              {"type": "area", "mesh": 2, "radiance": 1.5},
                               {"type": "point", "position": [0.0, 2.5, 1.0], "intensity": 2.0}]}
 
 

@@ -1,8 +1,8 @@
 """The renderer on a scene's analytic spheres (Scene(spheres=...)): the
 path integrator's white furnaces and pbrt's analytic sphere, exact here
 where a tessellated sphere needed slack; the previews' normals; Mitsuba
-XML spheres loaded as analytic ones (but an emitting one); and the error
-for an area emitter on a sphere."""
+XML spheres loaded as analytic ones; and emitting spheres: a ground under
+one, and their light samples against their density."""
 from __future__ import annotations
 
 import numpy as np
@@ -74,8 +74,7 @@ def test_the_normals_preview_shows_the_sphere_s_normals(suite_device):
 
 def test_mitsuba_spheres_load_as_analytic_spheres(tmp_path, suite_device):
     """A sphere shape is Scene's analytic sphere, by centre and radius or by
-    to_world; one with an area emitter stays a mesh (the renderer samples
-    light from triangles)."""
+    to_world, an emitting one too."""
     path = tmp_path / "balls.xml"
     path.write_text("""<scene version="3.0.0">
   <sensor type="perspective"><float name="fov" value="40"/>
@@ -93,22 +92,99 @@ def test_mitsuba_spheres_load_as_analytic_spheres(tmp_path, suite_device):
 </scene>""")
     loaded = load(path, suite_device)
     scene = loaded.scene
-    assert [m.name for m in scene.meshes] == ["rectangle", "sphere"]  # the lamp: a mesh
-    np.testing.assert_allclose(scene.spheres, [[1, 0, 0, 0.5], [-1, 0.5, 0, 0.25]])
-    assert [m["type"] for m in loaded.materials] == ["diffuse", "diffuse", "conductor",
+    assert [m.name for m in scene.meshes] == ["rectangle"]
+    np.testing.assert_allclose(scene.spheres, [[1, 0, 0, 0.5], [-1, 0.5, 0, 0.25],
+                                               [0, 2, 0, 0.3]])
+    assert [m["type"] for m in loaded.materials] == ["diffuse", "conductor", "diffuse",
                                                      "diffuse"]
-    assert loaded.emitters == [{"type": "area", "radiance": [4.0, 4.0, 4.0], "mesh": 1}]
+    assert loaded.emitters == [{"type": "area", "radiance": [4.0, 4.0, 4.0], "mesh": 3}]
     assert len(loaded.colors) == 4
     hits = scene.intersect([[1, 0, 6], [-1, 0.5, 6], [0, 2, 6]], [[0, 0, -1]] * 3)
-    np.testing.assert_array_equal(hits.geom_id, [2, 3, 1])
-    np.testing.assert_allclose(hits.t[:2], [5.5, 5.75], rtol=1e-6)
+    np.testing.assert_array_equal(hits.geom_id, [1, 2, 3])
+    np.testing.assert_allclose(hits.t, [5.5, 5.75, 5.7], rtol=1e-6)
     image = loaded.renderer().render(loaded.camera, 24, 16, shading="path", spp=2, hdr=True)
     assert np.isfinite(image).all() and image.max() > 0
 
 
-def test_an_area_emitter_on_a_sphere_is_refused(suite_device):
-    scene = scene_with_a_sphere(suite_device)
-    renderer = hlbvh_cl.Renderer(scene, emitters=[{"type": "area", "mesh": 1, "radiance": 1.0}])
-    camera = hlbvh_cl.Camera(eye=(0, 0, 4), target=(0, 0, 0))
-    with pytest.raises(ValueError, match=r"an area emitter on geom_id 1, an analytic sphere"):
-        renderer.render(camera, 8, 8, shading="path")
+def test_a_ground_under_a_sphere_light_is_lit_as_by_a_point(suite_device):
+    """A sphere of radius R and radiance L wholly above a diffuse ground
+    gives it the irradiance of a point of intensity pi R^2 L at its centre
+    (Lambert: E = L pi R^2 cos theta / d^2), so the ground shows
+    rho L R^2 cos theta / d^2 (max_depth 2: direct light, its light samples
+    and its BSDF samples that meet the sphere weighed by MIS)."""
+    rho, radiance, radius, centre = 0.7, 4.0, 0.5, np.array([0.3, 1.5, -0.2])
+    ground = hlbvh_cl.Mesh([[-6, 0, -6], [6, 0, -6], [6, 0, 6], [-6, 0, 6]],
+                           [[0, 2, 1], [0, 3, 2]], name="ground")
+    scene = hlbvh_cl.Scene([ground], device=suite_device, spheres=[[*centre, radius]])
+    renderer = hlbvh_cl.Renderer(scene, materials=[{"type": "diffuse", "reflectance": rho},
+                                                   {"type": "diffuse", "reflectance": 0.5}],
+                                 emitters=[{"type": "area", "mesh": 1, "radiance": radiance}])
+    camera = hlbvh_cl.Camera(eye=(0, 0.6, 1.5), target=(0, 0, 0.5), fov_deg=40)
+    width, height = 24, 16
+    hits = scene.intersect(*camera.rays(width, height))
+    assert (hits.geom_id == 0).all(), "the camera sees only the ground"
+    to_centre = centre - hits.points.reshape(height, width, 3).astype(np.float64)
+    squared = (to_centre ** 2).sum(-1)
+    expected = rho * radiance * radius ** 2 * to_centre[..., 1] / squared ** 1.5
+    images = seeded(renderer, camera, width, height, spp=32, max_depth=2)
+    # slack: a pixel's mean over its footprint against its centre's value
+    assert_blocks(images, expected, slack=1e-2, label="sphere light")
+
+
+def test_light_samples_of_a_sphere_follow_their_density(suite_device):
+    """Light samples on an emitting sphere seen from a point X outside it:
+    uniform in its area, so the density per solid angle towards a direction
+    that meets its near side at distance t with cosine c is t^2 / (4 pi R^2 c);
+    those that fall on its far half are none.  A chi-squared test of the
+    points on the cap it sees, and each sample's own density, radiance and
+    reach."""
+    import chi2
+    from hlbvh_cl.render.sampling import sample_lights
+    radius, centre, radiance = 0.6, np.array([0.4, 1.6, -0.3]), [2.0, 3.0, 1.0]
+    x = np.array([0.1, 0.2, 0.3])
+    scene = scene_with_a_sphere(suite_device, [[*centre, radius]])
+    renderer = hlbvh_cl.Renderer(scene, emitters=[{"type": "area", "mesh": 1,
+                                                   "radiance": radiance}])
+
+    def density(directions):
+        f = x - centre
+        b = -(directions * f).sum(-1)
+        disc = b * b - ((f * f).sum() - radius ** 2)
+        t = b - np.sqrt(np.maximum(disc, 0))
+        met = (disc > 0) & (t > 0)
+        normal = (x + t[:, None] * directions - centre) / radius
+        cosine = -(normal * directions).sum(-1)
+        return (np.where(met, t ** 2 / (4 * np.pi * radius ** 2 * np.where(met, cosine, 1)), 0),
+                np.where(met, cosine, 0))
+
+    count = 200_000
+    drawn = sample_lights(renderer, x, count, seed=3)
+    valid = drawn["pdfs"] > 0
+    directions = drawn["directions"][valid].astype(np.float64)
+    # the visible cap's share of the sphere's area, (1 - R / D) / 2
+    visible = (1 - radius / np.linalg.norm(centre - x)) / 2
+    sigma = np.sqrt(count * visible * (1 - visible))
+    assert abs(valid.sum() - count * visible) < 5 * sigma
+    # uniform in area on the visible cap: about the axis towards x, the
+    # cosine of the polar angle uniform in [R / D, 1] and the azimuth uniform
+    points = x + directions * drawn["reaches"][valid, None].astype(np.float64)
+    normals = (points - centre) / radius
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-4)
+    axis = (x - centre) / np.linalg.norm(x - centre)
+    side = np.cross(axis, [1.0, 0.0, 0.0])
+    side /= np.linalg.norm(side)
+    up = np.cross(axis, side)
+    lowest = radius / np.linalg.norm(x - centre)
+    polar = np.clip((normals @ axis - lowest) / (1 - lowest), 0, 1 - 1e-12)
+    azimuth = np.arctan2(normals @ up, normals @ side) % (2 * np.pi) / (2 * np.pi)
+    observed = np.histogram2d(polar, azimuth, bins=(16, 32), range=((0, 1), (0, 1)))[0]
+    p, statistic, dof = chi2.p_value(observed, np.full_like(observed, valid.sum() / observed.size))
+    assert p > 1e-3, f"chi2 {statistic:.1f} over {dof} dof: p = {p:.2e}"
+    # its density, but near the rim, where t^2 / c grows without bound: a
+    # float32 direction's cosine there is a float64 one's to a few percent
+    pdf, cosine = density(directions)
+    clear = cosine > 0.05
+    assert clear.mean() > 0.9
+    np.testing.assert_allclose(drawn["pdfs"][valid][clear], pdf[clear], rtol=2e-3)
+    np.testing.assert_allclose(drawn["radiance"][valid], np.tile(radiance, (valid.sum(), 1)),
+                               rtol=1e-6)

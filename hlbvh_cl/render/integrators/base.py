@@ -30,7 +30,8 @@ class Look:
     materials: np.ndarray   # layout.PATH_MATERIAL (G,), no emission yet (materials.py)
     emitters: object        # hlbvh_cl.render.emitters.Emitters
     #: mesh -> float64 (T, 3, 3): the world triangles of each emitting mesh,
-    #: every instance's where the scene has instances
+    #: every instance's where the scene has instances; for a sphere's geom_id
+    #: (after the meshes') float64 (4,), its centre and radius
     emissive: dict
     #: mesh -> float64 (T, 3, 3) world shading normals at those triangles'
     #: corners, or None for a mesh with face normals

@@ -111,16 +111,24 @@ def light_tables(look: Look, scale: float, bounds_lo, bounds_hi) -> dict:
     sample picks the environment or a delta light (emitters.py)."""
     materials = look.materials.copy()
     vertices, normals, weights, owners, areas = [], [], [], [], {}
+    # the triangles first, then the spheres (geom_ids after the meshes'),
+    # as render/lights.h reads the table
     for mesh, radiance in sorted(look.emitters.area.items()):
-        triangles = np.asarray(look.emissive[mesh], np.float64) * scale
-        area = 0.5 * np.linalg.norm(np.cross(triangles[:, 1] - triangles[:, 0],
-                                             triangles[:, 2] - triangles[:, 0]), axis=1)
-        keep = area > 0
+        if mesh >= len(look.meshes):  # an analytic sphere: its row, centre and radius
+            row = np.asarray(look.emissive[mesh], np.float64) * scale
+            area, keep = np.array([4.0 * np.pi * row[3] ** 2]), np.array([True])
+            vertices.append(np.concatenate([row, np.zeros(5)])[None])
+            normals.append(np.zeros((1, 9)))
+        else:
+            triangles = np.asarray(look.emissive[mesh], np.float64) * scale
+            area = 0.5 * np.linalg.norm(np.cross(triangles[:, 1] - triangles[:, 0],
+                                                 triangles[:, 2] - triangles[:, 0]), axis=1)
+            keep = area > 0
+            vertices.append(triangles[keep].reshape(-1, 9))
+            smooth = look.emissive_normals.get(mesh)
+            normals.append(np.zeros((int(keep.sum()), 9)) if smooth is None
+                           else np.asarray(smooth)[keep].reshape(-1, 9))
         areas[mesh] = float(area.sum())
-        vertices.append(triangles[keep].reshape(-1, 9))
-        smooth = look.emissive_normals.get(mesh)
-        normals.append(np.zeros((int(keep.sum()), 9)) if smooth is None
-                       else np.asarray(smooth)[keep].reshape(-1, 9))
         weights.append(area[keep] * luminance(radiance))
         owners.append(np.full(int(keep.sum()), mesh, np.int32))
         materials[mesh]["radiance"] = radiance
@@ -232,7 +240,8 @@ def light_params(look: Look, tables: dict) -> np.ndarray:
     params["environment"] = environment if environment is not None else 0.0
     params["environment_probability"] = tables["environment_probability"]
     params["delta_probability"] = tables["delta_probability"]
-    params["light_triangles"] = len(tables["cdf"])
+    params["light_spheres"] = int((tables["owners"] >= len(look.meshes)).sum())
+    params["light_triangles"] = len(tables["cdf"]) - params["light_spheres"]
     params["delta_lights"] = tables["delta_count"]
     envmap_params(params, look.emitters.envmap)
     return params

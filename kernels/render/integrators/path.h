@@ -70,7 +70,7 @@ typedef struct {
     float environment_probability;  /* the chance a light sample goes to the environment
                                      * (constant or map) */
     float ray_offset;               /* RAY_EPSILON times min(the frame's scale, 1) */
-    uint light_triangles;           /* emissive triangles in light_cdf */
+    uint light_triangles;           /* emissive triangles in light_cdf, its first entries */
     uint delta_lights;              /* DeltaLight records */
     int max_depth;                  /* Mitsuba's: the longest path, in segments; <= 0: no limit */
     int rr_depth;                   /* Russian roulette from this depth on */
@@ -79,6 +79,7 @@ typedef struct {
     float envmap_to_world[9];       /* the environment map's rotation to the world, row-major */
     uint envmap_width;              /* its pixels per row; 0: the environment is constant */
     uint envmap_height;             /* its rows (render/envmap.h) */
+    uint light_spheres;             /* emissive analytic spheres in light_cdf, after them */
 } PathParams;
 
 /* One path of the pass: what it still carries and what it has gathered;
