@@ -101,7 +101,8 @@ def _cmd_info(args) -> int:
         for _ in range(args.repeat - 1):
             scene.rebuild()
     s = scene.stats
-    print(f"scene      {loaded.path}  ({len(scene.meshes)} meshes, loaded in "
+    spheres = f", {len(scene.spheres)} spheres" if len(scene.spheres) else ""
+    print(f"scene      {loaded.path}  ({len(scene.meshes)} meshes{spheres}, loaded in "
           f"{loaded.load_seconds:.2f} s)")
     if scene.transforms is not None:
         print(f"instances  {_instances(scene)}; the stats below are the top tree's, "
@@ -204,8 +205,9 @@ def _cmd_render(args) -> int:
         print(f"scene        {loaded.path}: {len(scene.meshes)} meshes, {_instances(scene)} "
               "(build: the top tree's)")
     else:
+        spheres = f", {len(scene.spheres)} spheres" if len(scene.spheres) else ""
         print(f"scene        {loaded.path}: {len(scene.meshes)} meshes, "
-              f"{scene.stats.triangles:,} triangles")
+              f"{scene.stats.triangles:,} triangles{spheres}")
     print(f"device       {scene.device}")
     print(f"load         {loaded.load_seconds:7.2f} s   read, split and transform the meshes")
     print(f"build        {build_ms:7.1f} ms  device: BVH {bvh_ms:.1f} + wide tree {widen_ms:.1f} "

@@ -179,6 +179,16 @@ class Scene:
         self._tree.spheres = self._sphere_buffer[0]
         self._tree.sphere_count = len(self._spheres)
         self._tree.sphere_geom = len(self.meshes)
+        self._sphere_bounds(self._tree)
+
+    def _sphere_bounds(self, tree) -> None:
+        """``tree``'s box grown around the spheres (in its frame): the
+        renderer's depth range, AO distance and offsets read it."""
+        if len(self._spheres):
+            framed = self._spheres * self._scale
+            lo, hi = framed[:, :3] - framed[:, 3:], framed[:, :3] + framed[:, 3:]
+            tree.bounds_lo = np.minimum(tree.bounds_lo, lo.min(0)).astype(np.float32)
+            tree.bounds_hi = np.maximum(tree.bounds_hi, hi.max(0)).astype(np.float32)
 
     @property
     def spheres(self) -> np.ndarray:
@@ -454,6 +464,7 @@ class Scene:
                 events = refit(rt, tree, self._geometry.vertices, wait_for=[upload])
                 tree.bounds_lo, tree.bounds_hi = tree.read_root_box(rt.queue,
                                                                     wait_for=events[-1:])
+                self._sphere_bounds(tree)
             except BaseException:  # Ctrl-C, a failed refit or build: the meshes are new
                 rt.queue.finish()  # and the boxes old or part old, so no query may use them
                 self._drop_tree()

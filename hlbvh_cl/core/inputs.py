@@ -640,6 +640,8 @@ def spheres(value) -> np.ndarray:
     if value is None:
         return np.zeros((0, 4))
     array = as_array("spheres", value)
+    if array.size == 0 and array.ndim <= 2 and array.shape[-1:] in ((0,), (4,)):
+        return np.zeros((0, 4))  # [] or (0, 4): none
     if array.dtype.kind not in "fiu":
         raise TypeError(f"spheres has dtype {array.dtype}, expected real numbers: rows of "
                         "centre x, y, z and radius")

@@ -98,7 +98,7 @@ PATH_MATERIAL = np.dtype([
     ("alpha", np.float32), ("transmittance", *_f3), ("distribution", np.uint32),
     ("specular", *_f3), ("specular_weight", np.float32), ("internal", np.float32),
     ("nonlinear", np.uint32), ("shading_base", np.int32), ("reserved", np.float32),
-    ("transmission", np.float32, (TRANSMISSION_TABLE,)),
+    ("transmission", np.float32, (TRANSMISSION_TABLE,)), ("light_sphere", np.float32, 4),
 ])
 
 DELTA_LIGHT = np.dtype([("position", *_f3), ("type", np.uint32), ("value", *_f3),

@@ -31,7 +31,8 @@ class Tree:
     vertex_ids int32[3 * triangle_count]: each tree-ordered triangle's vertex
                indices into the scene's vertices, which a refit re-reads
                (None for a tree made by hand: it cannot be refit).
-    bounds_lo, bounds_hi  the box around every triangle, in this tree's frame.
+    bounds_lo, bounds_hi  the box around every triangle (and sphere), in this
+               tree's frame.
     scale      the power of two the scene's coordinates were multiplied by to
                give this tree's (hlbvh_cl.core.frame; 1 for most scenes): ray
                origins are scaled alike on their way in.

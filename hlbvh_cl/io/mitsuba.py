@@ -58,7 +58,7 @@ import os
 import re
 import xml.parsers.expat
 from collections.abc import Collection
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -491,6 +491,11 @@ def read_xml(path, defaults: dict | None = None,
         else:
             raise reader.error(node, "is not an element this reader takes (integrator, sensor, "
                                      "bsdf, shape, emitter, default)")
+    if meshes and all(entry.sphere is not None for entry in meshes):
+        # a Scene holds at least one mesh: a file of spheres alone has them
+        # traced as their icospheres (5,120 triangles each), as before they
+        # were analytic
+        meshes = [replace(entry, sphere=None) for entry in meshes]
     from ..render.emitters import check_emitters
     try:  # together: one environment at most
         check_emitters(emitters, 0, names=emitter_names)

@@ -55,7 +55,7 @@ from .order import (COHERENT_MIN, RAY_ORDER_BITS, concurrent_rays, device_order,
 from ..build.instances import InstancedTree
 from ..device.profile import PACKET_SIZES
 from .results import on_page
-from .engine import Batch, check_tree, kernel_defines
+from .engine import Batch, check_tree, kernel_defines, refuse_spheres
 from .rays import RayQuery, caller_t, into_frame, masked, scene_args
 from ..core.paths import kernel_of
 from ..core.tree import Tree
@@ -169,6 +169,7 @@ class AllHitsQuery:
         """int32, in the rays' leading shape: the number of hits of each ray
         with tmin <= t <= tmax (``mask`` as RayQuery.intersect).  Rays
         given as pyopencl arrays get a pyopencl array (query/on_device.py)."""
+        refuse_spheres(tree, "count_intersections")
         on_device_rays = on_device.device_rays(self.rt, origins, directions, tmin, tmax, mask,
                                                self.query.device_pool())
         if on_device_rays is not None:
@@ -187,6 +188,7 @@ class AllHitsQuery:
         """Every hit of each ray with tmin <= t <= tmax, sorted by t; with
         max_hits=k only the k nearest of each ray (``mask`` as
         RayQuery.intersect)."""
+        refuse_spheres(tree, "intersect_all")
         max_hits = check_max_hits(max_hits)
         on_device_rays = on_device.device_rays(self.rt, origins, directions, tmin, tmax, mask,
                                                self.query.device_pool())

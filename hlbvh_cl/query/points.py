@@ -48,7 +48,7 @@ from .order import COHERENT_MIN, FINE_ORDER_BITS, device_order
 from ..device.runtime import Runtime
 from ..build.instances import InstancedTree
 from .engine import (Batch, Engine, check_tree, engine_setting, kernel_defines,
-                     work_group_size)
+                     work_group_size, refuse_spheres)
 from .rays import check_packet_size
 from .results import ResultPool, on_page, starts_on_page
 from ..build.dipoles import dipoles as make_dipoles
@@ -198,6 +198,7 @@ class PointQuery:
         """The nearest surface point of each point within max_distance, in
         the points' leading shape (pyopencl arrays for points given as one:
         query/on_device.py)."""
+        refuse_spheres(tree, "closest_points")
         max_distance = check_max_distance(max_distance)
         fields = {name: ((n,) if n > 1 else (), dtype)
                   for name, (dtype, n) in CLOSEST_FIELDS.items()}
@@ -226,6 +227,7 @@ class PointQuery:
     def winding_numbers(self, tree: Tree, points) -> np.ndarray:
         """float32: the generalized winding number of each point, in the
         points' leading shape (as closest_points, on the device)."""
+        refuse_spheres(tree, "winding_number")
         on_device_points = on_device.device_points(self.rt, points)
         if on_device_points is not None:
             return self._on_device(
@@ -243,6 +245,7 @@ class PointQuery:
         """float32: the distance to the surface, negative inside (|winding
         number| >= 0.5), in the points' leading shape (as closest_points,
         on the device)."""
+        refuse_spheres(tree, "signed_distance")
         on_device_points = on_device.device_points(self.rt, points)
         if on_device_points is not None:
             return self._on_device(

@@ -11,6 +11,7 @@
 #include "render/integrators/path.h"
 #include "render/random.h"
 #include "render/envmap.h"
+#include "render/surface.h"
 
 #define INV_FOUR_PI 0.07957747154594767f
 
@@ -52,12 +53,52 @@ inline float3 environment_light(const PathParams* params, __global const float* 
     return envmap_radiance(params, envmap_image, direction);
 }
 
+/* Seen from `from`, whether the analytic sphere (centre, radius) lies
+ * outside it, and then the solid angle of the cone it subtends over 2 pi:
+ * 1 - cos theta_max, as sin^2 / (1 + cos), which keeps a far sphere's tiny
+ * cone.  A point within twice the spawn offset of the surface (path.cl's
+ * spawn_offset, without its rounding term) counts as on it: a vertex on
+ * the sphere, rounded outside, would see it fill a hemisphere and sample
+ * itself at t near 0, and a ray it spawns must be judged as it was. */
+inline bool sphere_cone(const PathParams* params, float4 sphere, float3 from,
+                        float* one_minus_cos)
+{
+    float3 axis = sphere.xyz - from;
+    float ax = abs_float(sphere.x), ay = abs_float(sphere.y), az = abs_float(sphere.z);
+    float largest = (ax > ay ? (ax > az ? ax : az) : (ay > az ? ay : az)) + sphere.w;
+    float shell = sphere.w + 2.0f * (params->ray_offset + RAY_EPSILON * largest);
+    float d2 = dot3(axis, axis), r2 = sphere.w * sphere.w;
+    if (!(d2 > shell * shell))
+        return false;
+    float sin2 = r2 / d2;
+    *one_minus_cos = sin2 / (1.0f + SQRT(1.0f - sin2));
+    return true;
+}
+
+/* The solid-angle density with which a light sample from `from` picks a
+ * point at `distance` with cosine `cosine` on the emitter of material m (P
+ * of that emitter times 1 / its area in emitter_pdf): uniform in its area,
+ * emitter_pdf d^2 / cos, but for an analytic sphere seen from outside,
+ * uniform in the cone it subtends (Mitsuba's and pbrt's spheres):
+ * emitter_pdf 4 pi r^2 / (2 pi (1 - cos theta_max)). */
+inline float emitter_density(const PathParams* params, __global const PathMaterial* m,
+                             float3 from, float distance, float cosine)
+{
+    float4 sphere = (float4)(m->light_sphere[0], m->light_sphere[1], m->light_sphere[2],
+                             m->light_sphere[3]);
+    float one_minus_cos;
+    if (sphere.w > 0.0f && sphere_cone(params, sphere, from, &one_minus_cos))
+        return m->emitter_pdf * (2.0f * sphere.w * sphere.w) / one_minus_cos;
+    return m->emitter_pdf * distance * distance / cosine;
+}
+
 /* One light sample: uniform on the sphere for the constant environment
  * (as Mitsuba's constant emitter), by the map's density for an environment
  * map (render/envmap.h), a point or directional light (a delta:
  * its pdf is the chance of picking it, and MIS leaves it alone), or uniform
- * in area on an emissive triangle or analytic sphere picked by power (its
- * area times its radiance's luminance); the lights themselves are picked by power
+ * in area on an emissive triangle or analytic sphere (in the cone a sphere
+ * subtends, seen from outside: emitter_density) picked by power (its area
+ * times its radiance's luminance); the lights themselves are picked by power
  * (hlbvh_cl/render/emitters.py).  Its four numbers are random_salted(pixel,
  * salts.s0..s3): the choice of light, then three for the point or direction. */
 FORCE_INLINE LightSample sample_light(float3 x, const PathParams* params,
@@ -121,15 +162,36 @@ FORCE_INLINE LightSample sample_light(float3 x, const PathParams* params,
     uint k = pick(tables->light_cdf, entries, random_salted(pixel, salts.s1));
     __global const float* v = tables->light_vertices + 9 * (size_t)k;
     float3 p, normal;
-    if (k >= params->light_triangles) {
-        /* an analytic sphere (centre, radius in its row): a point uniform on
-         * it (pbrt-v4's SampleUniformSphere), its outward normal; the half
-         * turned away from x gives no sample, as a triangle's back */
+    float one_minus_cos;
+    float4 sphere = (float4)(v[0], v[1], v[2], v[3]);
+    if (k >= params->light_triangles && sphere_cone(params, sphere, x, &one_minus_cos)) {
+        /* an analytic sphere (centre, radius in its row) seen from outside:
+         * a direction uniform in the cone it subtends, cos theta uniform in
+         * [cos theta_max, 1] about the axis to its centre, and the point
+         * where it meets the near side (at the rim, where it grazes it) */
+        float3 axis = sphere.xyz - x;
+        float d = length3(axis);
+        axis = axis * (1.0f / d);
+        float3 b1, b2;
+        orthonormal_basis(axis, &b1, &b2);
+        float drop = u1 * one_minus_cos;  /* 1 - cos theta */
+        float sin2 = drop * (2.0f - drop);
+        float sin_theta = SQRT(sin2);
+        float cos_phi, sin_phi = sincos_turn(u2, &cos_phi);
+        float3 w = (sin_theta * cos_phi) * b1 + (sin_theta * sin_phi) * b2 + (1.0f - drop) * axis;
+        float across = sphere.w * sphere.w - d * d * sin2;
+        float t = d * (1.0f - drop) - SQRT(across > 0.0f ? across : 0.0f);
+        p = x + t * w;
+        normal = normalize3(p - sphere.xyz);
+    } else if (k >= params->light_triangles) {
+        /* one seen from inside or on it: a point uniform on it (pbrt-v4's
+         * SampleUniformSphere), its outward normal; the half turned away
+         * from x gives no sample, as a triangle's back */
         float z = 1.0f - 2.0f * u1;
         float r = SQRT(1.0f - z * z > 0.0f ? 1.0f - z * z : 0.0f);
         float cosine, sine = sincos_turn(u2, &cosine);
         normal = (float3)(r * cosine, r * sine, z);
-        p = LOAD_XYZ(v) + v[3] * normal;
+        p = sphere.xyz + sphere.w * normal;
     } else {
         float3 v0 = LOAD_XYZ(v), v1 = LOAD_XYZ(v + 3), v2 = LOAD_XYZ(v + 6);
         float root = SQRT(u1);  /* uniform in the triangle: pbrt-v4 SampleUniformTriangle's map */
@@ -154,7 +216,7 @@ FORCE_INLINE LightSample sample_light(float3 x, const PathParams* params,
     __global const PathMaterial* light = tables->materials + tables->light_geom[k];
     out.reach = distance;
     out.radiance = LOAD_XYZ(light->radiance);
-    out.pdf = light->emitter_pdf * squared / cosine;
+    out.pdf = emitter_density(params, light, x, distance, cosine);
     return out;
 }
 

@@ -225,10 +225,9 @@ def test_the_materials_scene_renders_as_in_mitsuba(tmp_path, suite_device):
 
 def test_spheres_under_a_sphere_light_render_as_in_mitsuba(tmp_path, suite_device):
     """Analytic spheres on both sides (glass, rough metal, diffuse) on a
-    diffuse ground, lit by an emitting sphere and a dim sky: Mitsuba samples
-    the lamp by the cone it subtends, this renderer uniformly in its area;
-    at 16 spp every 8 x 8 block agrees within 5 combined standard errors
-    over 4 seeds each."""
+    diffuse ground, lit by an emitting sphere (both renderers sample the
+    cone it subtends) and a dim sky: at 16 spp every 8 x 8 block agrees
+    within 5 combined standard errors over 4 seeds each."""
     seeds, spp = 4, 16
     body = """
   <integrator type="path"><integer name="max_depth" value="6"/></integrator>

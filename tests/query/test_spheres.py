@@ -109,6 +109,33 @@ def test_limits_inside_and_behind(scene):
     assert_matches(hits, o, d, SPHERES, tmin, tmax, least=4)
 
 
+@pytest.mark.parametrize("length", [1e-25, 1e-20, 1e18, 1e20, 1e30])
+def test_directions_of_any_length_meet_the_spheres(scene, length):
+    """t is in units of the direction, whose squares would leave float32 at
+    these lengths: the roots are taken along it scaled (sphere.h)."""
+    o = np.array([[0.0, 1.0, 3.0], [3.0, 0.4, -0.3]], np.float32)
+    d = (np.array([[0, 0, -1], [-1, 0, 0]]) * length).astype(np.float32)
+    want = np.array([2.25, 3.0 - 1.7 - 0.2]) / length
+    for rays in ((o, d), tuple(cla.to_device(scene.queue, a) for a in (o, d))):
+        hits = scene.intersect(*rays)
+        geom = hits.geom_id if isinstance(hits.geom_id, np.ndarray) else hits.geom_id.get()
+        t = hits.t if isinstance(hits.t, np.ndarray) else hits.t.get()
+        np.testing.assert_array_equal(geom, [1, 2])
+        np.testing.assert_allclose(t, want, rtol=1e-5)
+        blocked = scene.occluded(*rays)
+        assert (blocked if isinstance(blocked, np.ndarray) else blocked.get()).all()
+
+
+def test_a_ray_from_the_surface_meets_it_at_t_0(scene):
+    """Both ends of [tmin, tmax] count: a ray that starts on a sphere (its
+    top, exactly in float32) meets it at t = +0, outward or inward."""
+    hits = scene.intersect([[0, 1.75, 0], [0, 1.75, 0]], [[0, 1, 0], [0, -1, 0]])
+    np.testing.assert_array_equal(hits.geom_id, [1, 1])
+    np.testing.assert_array_equal(hits.t[0], 0.0)
+    assert not np.signbit(hits.t[0])
+    assert hits.t[1] in (0.0, 1.5)
+
+
 def test_a_triangle_and_a_sphere_at_one_t_give_the_triangle(suite_device):
     """A sphere whose top touches a square at t: the triangle is the hit."""
     square = hlbvh_cl.Mesh([[-1, 1, -1], [1, 1, -1], [1, 1, 1], [-1, 1, 1]], [[0, 2, 1], [0, 3, 2]])
@@ -179,6 +206,35 @@ def test_queries_that_do_not_see_spheres_refuse_them(scene, verb, args):
     with pytest.raises(ValueError, match=rf"^{verb} takes triangle meshes only, and this "
                                          r"scene has 3 analytic sphere\(s\) \(geom_id 1 to 3\)"):
         getattr(scene, verb)(*args)
+
+
+def test_the_query_layer_refuses_them_too(scene):
+    """Through Scene.borrow (the layers above the scene), as the Scene does."""
+    from hlbvh_cl.query.all_hits import AllHitsQuery
+    from hlbvh_cl.query.points import PointQuery
+    from hlbvh_cl.query.rays import RayQuery
+    with scene.borrow() as built:
+        rays = AllHitsQuery(RayQuery(built.runtime))
+        points = PointQuery(built.runtime)
+        for run, verb in ((lambda: rays.count(built.tree, [[0, 1, 3]], [[0, 0, -1]]),
+                           "count_intersections"),
+                          (lambda: rays.intersect_all(built.tree, [[0, 1, 3]], [[0, 0, -1]]),
+                           "intersect_all"),
+                          (lambda: points.closest_points(built.tree, [[0, 3, 0]]),
+                           "closest_points"),
+                          (lambda: points.winding_numbers(built.tree, [[0, 3, 0]]),
+                           "winding_number"),
+                          (lambda: points.signed_distance(built.tree, [[0, 3, 0]]),
+                           "signed_distance")):
+            with pytest.raises(ValueError, match=f"^{verb} takes triangle meshes only"):
+                run()
+
+
+@pytest.mark.parametrize("none", [None, [], np.zeros((0, 4))])
+def test_no_spheres(suite_device, none):
+    scene = hlbvh_cl.Scene([ground()], device=suite_device, spheres=none)
+    assert scene.spheres.shape == (0, 4)
+    assert scene.count_intersections([[0, 1, 0]], [[0, -1, 0]])[0] == 1
 
 
 @pytest.mark.parametrize("spheres, error, words", [

@@ -2,7 +2,8 @@
 path integrator's white furnaces and pbrt's analytic sphere, exact here
 where a tessellated sphere needed slack; the previews' normals; Mitsuba
 XML spheres loaded as analytic ones; and emitting spheres: a ground under
-one, and their light samples against their density."""
+one, and their light samples against their density (the cone a sphere
+subtends)."""
 from __future__ import annotations
 
 import numpy as np
@@ -131,13 +132,14 @@ def test_a_ground_under_a_sphere_light_is_lit_as_by_a_point(suite_device):
     assert_blocks(images, expected, slack=1e-2, label="sphere light")
 
 
-def test_light_samples_of_a_sphere_follow_their_density(suite_device):
-    """Light samples on an emitting sphere seen from a point X outside it:
-    uniform in its area, so the density per solid angle towards a direction
-    that meets its near side at distance t with cosine c is t^2 / (4 pi R^2 c);
-    those that fall on its far half are none.  A chi-squared test of the
-    points on the cap it sees, and each sample's own density, radiance and
-    reach."""
+def test_light_samples_of_a_sphere_fill_the_cone_it_subtends(suite_device):
+    """Light samples on an emitting sphere seen from a point X outside it go
+    uniformly into the cone it subtends (Mitsuba's and pbrt's sphere
+    sampling): 1 - cos theta over 1 - cos theta_max and the azimuth about
+    the axis to its centre are uniform (a chi-squared test), the density is
+    1 / (2 pi (1 - cos theta_max)) per solid angle, and each sample reaches
+    the near side of the sphere, bringing its radiance.  From inside, the
+    sphere shows its back, which does not emit: no sample."""
     import chi2
     from hlbvh_cl.render.sampling import sample_lights
     radius, centre, radiance = 0.6, np.array([0.4, 1.6, -0.3]), [2.0, 3.0, 1.0]
@@ -145,46 +147,76 @@ def test_light_samples_of_a_sphere_follow_their_density(suite_device):
     scene = scene_with_a_sphere(suite_device, [[*centre, radius]])
     renderer = hlbvh_cl.Renderer(scene, emitters=[{"type": "area", "mesh": 1,
                                                    "radiance": radiance}])
-
-    def density(directions):
-        f = x - centre
-        b = -(directions * f).sum(-1)
-        disc = b * b - ((f * f).sum() - radius ** 2)
-        t = b - np.sqrt(np.maximum(disc, 0))
-        met = (disc > 0) & (t > 0)
-        normal = (x + t[:, None] * directions - centre) / radius
-        cosine = -(normal * directions).sum(-1)
-        return (np.where(met, t ** 2 / (4 * np.pi * radius ** 2 * np.where(met, cosine, 1)), 0),
-                np.where(met, cosine, 0))
-
     count = 200_000
     drawn = sample_lights(renderer, x, count, seed=3)
-    valid = drawn["pdfs"] > 0
-    directions = drawn["directions"][valid].astype(np.float64)
-    # the visible cap's share of the sphere's area, (1 - R / D) / 2
-    visible = (1 - radius / np.linalg.norm(centre - x)) / 2
-    sigma = np.sqrt(count * visible * (1 - visible))
-    assert abs(valid.sum() - count * visible) < 5 * sigma
-    # uniform in area on the visible cap: about the axis towards x, the
-    # cosine of the polar angle uniform in [R / D, 1] and the azimuth uniform
-    points = x + directions * drawn["reaches"][valid, None].astype(np.float64)
-    normals = (points - centre) / radius
-    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-4)
-    axis = (x - centre) / np.linalg.norm(x - centre)
+    assert (drawn["pdfs"] > 0).all()
+    directions = drawn["directions"].astype(np.float64)
+    distance = np.linalg.norm(centre - x)
+    axis = (centre - x) / distance
+    one_minus_cos = 1 - np.sqrt(1 - (radius / distance) ** 2)
     side = np.cross(axis, [1.0, 0.0, 0.0])
     side /= np.linalg.norm(side)
     up = np.cross(axis, side)
-    lowest = radius / np.linalg.norm(x - centre)
-    polar = np.clip((normals @ axis - lowest) / (1 - lowest), 0, 1 - 1e-12)
-    azimuth = np.arctan2(normals @ up, normals @ side) % (2 * np.pi) / (2 * np.pi)
-    observed = np.histogram2d(polar, azimuth, bins=(16, 32), range=((0, 1), (0, 1)))[0]
-    p, statistic, dof = chi2.p_value(observed, np.full_like(observed, valid.sum() / observed.size))
+    drop = np.clip((1 - directions @ axis) / one_minus_cos, 0, 1 - 1e-12)
+    azimuth = np.arctan2(directions @ up, directions @ side) % (2 * np.pi) / (2 * np.pi)
+    observed = np.histogram2d(drop, azimuth, bins=(16, 32), range=((0, 1), (0, 1)))[0]
+    p, statistic, dof = chi2.p_value(observed, np.full_like(observed, count / observed.size))
     assert p > 1e-3, f"chi2 {statistic:.1f} over {dof} dof: p = {p:.2e}"
-    # its density, but near the rim, where t^2 / c grows without bound: a
-    # float32 direction's cosine there is a float64 one's to a few percent
-    pdf, cosine = density(directions)
-    clear = cosine > 0.05
-    assert clear.mean() > 0.9
-    np.testing.assert_allclose(drawn["pdfs"][valid][clear], pdf[clear], rtol=2e-3)
-    np.testing.assert_allclose(drawn["radiance"][valid], np.tile(radiance, (valid.sum(), 1)),
-                               rtol=1e-6)
+    np.testing.assert_allclose(drawn["pdfs"], 1 / (2 * np.pi * one_minus_cos), rtol=1e-4)
+    np.testing.assert_allclose(drawn["radiance"], np.tile(radiance, (count, 1)), rtol=1e-6)
+    points = x + directions * drawn["reaches"][:, None].astype(np.float64)
+    normals = (points - centre) / radius
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-4)
+    assert ((normals * (x - points)).sum(1) > -1e-4).all(), "the near side"
+    inside = sample_lights(renderer, centre + [0.1, 0.0, 0.2], 1000, seed=4)
+    assert not (inside["pdfs"] > 0).any()
+
+
+def test_an_emitting_sphere_does_not_light_itself(suite_device):
+    """A convex emitter never sees itself: a rough glass sphere emitting 1
+    in the dark shows exactly 1 (max_depth 2), where light samples from a
+    point of its surface rounded outside once took the sphere for a
+    hemisphere around it and found it at t near 0 (up to 1.017)."""
+    from scipy.ndimage import binary_erosion
+    scene = scene_with_a_sphere(suite_device)
+    camera = hlbvh_cl.Camera(eye=(0, 0, 4), target=(0, 0, 0), fov_deg=30)
+    on = binary_erosion(scene.intersect(*camera.rays(24, 24)).geom_id.reshape(24, 24) == 1,
+                        iterations=2)
+    assert on.sum() > 100
+    for alpha in (0.1, 0.6):
+        renderer = hlbvh_cl.Renderer(scene, materials=[
+            {"type": "diffuse"}, {"type": "roughdielectric", "alpha": alpha}], emitters=[
+            {"type": "area", "mesh": 1, "radiance": 1.0}, {"type": "constant", "radiance": 0.0}])
+        image = renderer.render(camera, 24, 24, shading="path", spp=16, max_depth=2, hdr=True)
+        np.testing.assert_allclose(image[on], 1.0, rtol=1e-6, err_msg=f"alpha {alpha}")
+
+
+def test_the_depth_preview_reaches_a_sphere_beyond_the_meshes(suite_device):
+    """The previews' depth range and offsets come from the tree's box, which
+    takes in the spheres: a sphere far behind a small mesh is not shown as
+    a miss."""
+    small = hlbvh_cl.Mesh([[-0.4, -0.4, 0], [0.4, -0.4, 0], [0, 0.4, 0]], [[0, 1, 2]])
+    scene = hlbvh_cl.Scene([small], device=suite_device, spheres=[[0, 0, -20, 5]])
+    camera = hlbvh_cl.Camera(eye=(0, 0, 2), target=(0, 0, 0), fov_deg=60)
+    geom = scene.intersect(*camera.rays(16, 16)).geom_id.reshape(16, 16)
+    assert (geom == 1).sum() > 10 and (geom == 0).sum() > 6 and (geom == -1).sum() > 3
+    depth = hlbvh_cl.Renderer(scene).render(camera, 16, 16, shading="depth")[..., 0]
+    assert len(np.unique(depth[geom == -1])) == 1
+    sphere, miss, mesh = depth[geom == 1], depth[geom == -1][0], depth[geom == 0]
+    assert (sphere != miss).all() and (sphere != mesh.min()).all()
+
+
+def test_a_mitsuba_file_of_spheres_alone_loads_them_as_meshes(tmp_path, suite_device):
+    """A Scene holds at least one mesh: a file of spheres alone traces them
+    as their icospheres, as it did before spheres were analytic."""
+    path = tmp_path / "ball.xml"
+    path.write_text("""<scene version="3.0.0">
+  <sensor type="perspective"><float name="fov" value="40"/>
+    <film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/>
+    </film></sensor>
+  <shape type="sphere"><point name="center" x="0" y="0" z="5"/><float name="radius" value="1"/>
+  </shape></scene>""")
+    loaded = load(path, suite_device)
+    assert [m.name for m in loaded.scene.meshes] == ["sphere"]
+    assert loaded.scene.spheres.shape == (0, 4)
+    assert loaded.scene.intersect([[0, 0, 0]], [[0, 0, 1]]).geom_id[0] == 0

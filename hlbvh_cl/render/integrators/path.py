@@ -116,6 +116,7 @@ def light_tables(look: Look, scale: float, bounds_lo, bounds_hi) -> dict:
     for mesh, radiance in sorted(look.emitters.area.items()):
         if mesh >= len(look.meshes):  # an analytic sphere: its row, centre and radius
             row = np.asarray(look.emissive[mesh], np.float64) * scale
+            materials[mesh]["light_sphere"] = row  # render/lights.h's emitter_density
             area, keep = np.array([4.0 * np.pi * row[3] ** 2]), np.array([True])
             vertices.append(np.concatenate([row, np.zeros(5)])[None])
             normals.append(np.zeros((1, 9)))

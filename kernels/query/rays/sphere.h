@@ -27,10 +27,19 @@ TRAVERSAL_INLINE float sphere_dot(float3 a, float3 b)
 }
 
 /* Where origin + t direction meets the sphere: near <= far, false if it
- * does not (or the ray is not finite: no comparison of NaN holds). */
-TRAVERSAL_INLINE bool sphere_roots(float3 origin, float3 direction, float4 sphere,
+ * does not (or the ray is not finite: no comparison of NaN holds).  The
+ * roots are taken along the direction over its largest component, whose
+ * squares cannot leave float32's range as a direction 1e20 or 1e-25 long
+ * would: t comes back in the direction's own units (inf past float32). */
+TRAVERSAL_INLINE bool sphere_roots(float3 origin, float3 given, float4 sphere,
                                    float* near, float* far)
 {
+    float gx = given.x < 0.0f ? -given.x : given.x, gy = given.y < 0.0f ? -given.y : given.y;
+    float gz = given.z < 0.0f ? -given.z : given.z;
+    float scale = 1.0f / (gx > gy ? (gx > gz ? gx : gz) : (gy > gz ? gy : gz));
+    if (!(scale < INFINITY))
+        return false;
+    float3 direction = given * scale;
     float3 f = origin - sphere.xyz;
     float a = sphere_dot(direction, direction);
     float b = -sphere_dot(f, direction);  /* the roots are (b +- sqrt(disc)) / a */
@@ -44,8 +53,8 @@ TRAVERSAL_INLINE bool sphere_roots(float3 origin, float3 direction, float4 spher
     float c = sphere_dot(f, f) - r2;
     float t0 = q / a;
     float t1 = q != 0.0f ? c / q : t0;  /* q = 0: b = disc = 0, one root at 0 */
-    *near = t0 < t1 ? t0 : t1;
-    *far = t0 < t1 ? t1 : t0;
+    *near = (t0 < t1 ? t0 : t1) * scale + 0.0f;  /* + 0: -0 (on the surface) as 0 */
+    *far = (t0 < t1 ? t1 : t0) * scale + 0.0f;
     return true;
 }
 
@@ -66,7 +75,7 @@ TRAVERSAL_INLINE int nearest_sphere(const RayLanes* lanes, uint l,
         if (!sphere_roots(o, d, spheres[s], &near, &far))
             continue;
         float t = near >= tmin ? near : far;
-        if (t >= tmin && (strict ? t < *limit : t <= *limit)) {
+        if (t >= tmin && t < INFINITY && (strict ? t < *limit : t <= *limit)) {
             *limit = t;
             found = (int)s;
             strict = true;  /* a later sphere at the same t leaves this one */

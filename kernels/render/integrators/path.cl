@@ -197,7 +197,8 @@ FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel,
     if (cos_out > 0.0f && luminance_max(emitted) > 0.0f) {
         float distance = hit->t * length_d;
         float weight = bsdf_pdf > 0.0f
-            ? power_heuristic(bsdf_pdf, m->emitter_pdf * distance * distance / cos_out)
+            ? power_heuristic(bsdf_pdf, emitter_density(params, m, LOAD_XYZ(ray->origin),
+                                                        distance, cos_out))
             : 1.0f;
         gathered += throughput * emitted * weight;
     }

@@ -45,6 +45,8 @@ typedef struct {
     float reserved;
     float transmission[TRANSMISSION_TABLE];  /* roughplastic: the coating's transmittance
                                               * at cos theta = i / (TRANSMISSION_TABLE - 1) */
+    float light_sphere[4];   /* an emitting analytic sphere's centre and radius (in the
+                              * frame; render/lights.h's emitter_density); radius 0: none */
 } PathMaterial;
 
 /* A light of no extent, which light sampling alone can reach. */
