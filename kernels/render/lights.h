@@ -60,14 +60,14 @@ inline float3 environment_light(const PathParams* params, __global const float* 
  * spawn_offset, without its rounding term) counts as on it: a vertex on
  * the sphere, rounded outside, would see it fill a hemisphere and sample
  * itself at t near 0, and a ray it spawns must be judged as it was. */
-inline bool sphere_cone(const PathParams* params, float4 sphere, float3 from,
+inline bool sphere_cone(const PathParams* params, float3 centre, float radius, float3 from,
                         float* one_minus_cos)
 {
-    float3 axis = sphere.xyz - from;
-    float ax = abs_float(sphere.x), ay = abs_float(sphere.y), az = abs_float(sphere.z);
-    float largest = (ax > ay ? (ax > az ? ax : az) : (ay > az ? ay : az)) + sphere.w;
-    float shell = sphere.w + 2.0f * (params->ray_offset + RAY_EPSILON * largest);
-    float d2 = dot3(axis, axis), r2 = sphere.w * sphere.w;
+    float3 axis = centre - from;
+    float ax = abs_float(centre.x), ay = abs_float(centre.y), az = abs_float(centre.z);
+    float largest = (ax > ay ? (ax > az ? ax : az) : (ay > az ? ay : az)) + radius;
+    float shell = radius + 2.0f * (params->ray_offset + RAY_EPSILON * largest);
+    float d2 = dot3(axis, axis), r2 = radius * radius;
     if (!(d2 > shell * shell))
         return false;
     float sin2 = r2 / d2;
@@ -84,11 +84,11 @@ inline bool sphere_cone(const PathParams* params, float4 sphere, float3 from,
 inline float emitter_density(const PathParams* params, __global const PathMaterial* m,
                              float3 from, float distance, float cosine)
 {
-    float4 sphere = (float4)(m->light_sphere[0], m->light_sphere[1], m->light_sphere[2],
-                             m->light_sphere[3]);
+    float radius = m->light_sphere[3];
     float one_minus_cos;
-    if (sphere.w > 0.0f && sphere_cone(params, sphere, from, &one_minus_cos))
-        return m->emitter_pdf * (2.0f * sphere.w * sphere.w) / one_minus_cos;
+    if (radius > 0.0f && sphere_cone(params, LOAD_XYZ(m->light_sphere), radius, from,
+                                     &one_minus_cos))
+        return m->emitter_pdf * (2.0f * radius * radius) / one_minus_cos;
     return m->emitter_pdf * distance * distance / cosine;
 }
 
@@ -163,35 +163,51 @@ FORCE_INLINE LightSample sample_light(float3 x, const PathParams* params,
     __global const float* v = tables->light_vertices + 9 * (size_t)k;
     float3 p, normal;
     float one_minus_cos;
-    float4 sphere = (float4)(v[0], v[1], v[2], v[3]);
-    if (k >= params->light_triangles && sphere_cone(params, sphere, x, &one_minus_cos)) {
+    float3 centre = LOAD_XYZ(v);  /* a sphere's, in its row */
+    float cos_phi, sin_phi = sincos_turn(u2, &cos_phi);  /* a sphere's azimuth */
+    float radius = v[3];
+    bool cone = k >= params->light_triangles
+                && sphere_cone(params, centre, radius, x, &one_minus_cos);
+    if (cone) {
         /* an analytic sphere (centre, radius in its row) seen from outside:
          * a direction uniform in the cone it subtends, cos theta uniform in
          * [cos theta_max, 1] about the axis to its centre, and the point
          * where it meets the near side (at the rim, where it grazes it) */
-        float3 axis = sphere.xyz - x;
-        float d = length3(axis);
-        axis = axis * (1.0f / d);
-        float3 b1, b2;
-        orthonormal_basis(axis, &b1, &b2);
+        /* In scalars: Intel's CPU compiler (2026.22) vectorized this
+         * branch's float3 arithmetic, and its calls of orthonormal_basis,
+         * length3 and normalize3, into other lanes' values. */
+        float ax = centre.x - x.x, ay = centre.y - x.y, az = centre.z - x.z;
+        float d = SQRT(ax * ax + ay * ay + az * az);
+        ax /= d;
+        ay /= d;
+        az /= d;
+        /* an orthonormal basis about the axis (Duff et al. 2017), in scalars */
+        float sign = sign_of(az);
+        float a = -1.0f / (sign + az);
+        float b = ax * ay * a;
+        float b1x = 1.0f + sign * ax * ax * a, b1y = sign * b, b1z = -sign * ax;
+        float b2x = b, b2y = sign + ay * ay * a, b2z = -ay;
         float drop = u1 * one_minus_cos;  /* 1 - cos theta */
         float sin2 = drop * (2.0f - drop);
         float sin_theta = SQRT(sin2);
-        float cos_phi, sin_phi = sincos_turn(u2, &cos_phi);
-        float3 w = (sin_theta * cos_phi) * b1 + (sin_theta * sin_phi) * b2 + (1.0f - drop) * axis;
-        float across = sphere.w * sphere.w - d * d * sin2;
+        float c1 = sin_theta * cos_phi, c2 = sin_theta * sin_phi, c3 = 1.0f - drop;
+        float wx = c1 * b1x + c2 * b2x + c3 * ax, wy = c1 * b1y + c2 * b2y + c3 * ay;
+        float wz = c1 * b1z + c2 * b2z + c3 * az;
+        float across = radius * radius - d * d * sin2;
         float t = d * (1.0f - drop) - SQRT(across > 0.0f ? across : 0.0f);
-        p = x + t * w;
-        normal = normalize3(p - sphere.xyz);
+        float px = x.x + t * wx, py = x.y + t * wy, pz = x.z + t * wz;
+        float nx = px - centre.x, ny = py - centre.y, nz = pz - centre.z;
+        float n = SQRT(nx * nx + ny * ny + nz * nz);
+        p = (float3)(px, py, pz);
+        normal = (float3)(nx / n, ny / n, nz / n);
     } else if (k >= params->light_triangles) {
         /* one seen from inside or on it: a point uniform on it (pbrt-v4's
          * SampleUniformSphere), its outward normal; the half turned away
          * from x gives no sample, as a triangle's back */
         float z = 1.0f - 2.0f * u1;
         float r = SQRT(1.0f - z * z > 0.0f ? 1.0f - z * z : 0.0f);
-        float cosine, sine = sincos_turn(u2, &cosine);
-        normal = (float3)(r * cosine, r * sine, z);
-        p = sphere.xyz + sphere.w * normal;
+        normal = (float3)(r * cos_phi, r * sin_phi, z);
+        p = centre + radius * normal;
     } else {
         float3 v0 = LOAD_XYZ(v), v1 = LOAD_XYZ(v + 3), v2 = LOAD_XYZ(v + 6);
         float root = SQRT(u1);  /* uniform in the triangle: pbrt-v4 SampleUniformTriangle's map */
@@ -216,7 +232,10 @@ FORCE_INLINE LightSample sample_light(float3 x, const PathParams* params,
     __global const PathMaterial* light = tables->materials + tables->light_geom[k];
     out.reach = distance;
     out.radiance = LOAD_XYZ(light->radiance);
-    out.pdf = emitter_density(params, light, x, distance, cosine);
+    /* emitter_density's, spelled out: Intel's CPU compiler (2026.22)
+     * vectorized a second sphere_cone here into other lanes' values */
+    out.pdf = cone ? light->emitter_pdf * (2.0f * radius * radius) / one_minus_cos
+                   : light->emitter_pdf * squared / cosine;
     return out;
 }
 
