@@ -168,13 +168,12 @@ class Scene:
         (Tree.spheres): uploaded again where the frame changed."""
         if not len(self._spheres):
             return
-        framed = (self._spheres * self._scale).astype(np.float32)
         if self._sphere_buffer is None or self._sphere_buffer[1] != self._scale:
             frame.warn_vanishing_spheres(self._spheres[:, 3], len(self.meshes), self._scale,
                                          self._largest_extent(), "the scene's")
             rt = self._runtime
             buffer = cl.Buffer(rt.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
-                               hostbuf=framed)
+                               hostbuf=(self._spheres * self._scale).astype(np.float32))
             self._sphere_buffer = (buffer, self._scale)
         self._tree.spheres = self._sphere_buffer[0]
         self._tree.sphere_count = len(self._spheres)
