@@ -505,7 +505,6 @@ class Scene:
         k nearest of each ray; mask as intersect takes it.  A crossing
         through a shared edge or vertex counts once."""
         with self._lock:
-            refuse_spheres(self._built_tree(), "intersect_all")
             hits = self._all_hits_query().intersect_all(self._built_tree(), origins, directions,
                                                         tmin, tmax, max_hits, mask)
             if self._two_level is not None and not self._instanced:
@@ -517,7 +516,6 @@ class Scene:
         """int32, in the rays' leading shape: how many hits each ray has in
         [tmin, tmax] (as intersect_all counts them; mask as intersect)."""
         with self._lock:
-            refuse_spheres(self._built_tree(), "count_intersections")
             return self._all_hits_query().count(self._built_tree(), origins, directions, tmin,
                                                 tmax, mask)
 
@@ -534,7 +532,6 @@ class Scene:
         (distance inf and ids -1 beyond it).  Point queries take no mask:
         they see every instance (every mesh)."""
         with self._lock:
-            refuse_spheres(self._built_tree(), "closest_points")
             found = self._point_query().closest_points(self._built_tree(), points, max_distance)
             if self._two_level is not None and not self._instanced:
                 on_device.fill(found.instance_id, -1)  # instances of the masks' making
@@ -548,7 +545,6 @@ class Scene:
         at the point mapped into it, negated for a mirroring map (on closed
         meshes the flattened scene's)."""
         with self._lock:
-            refuse_spheres(self._built_tree(), "winding_number")
             return self._point_query().winding_numbers(self._built_tree(), points)
 
     def signed_distance(self, points) -> np.ndarray:
@@ -556,7 +552,6 @@ class Scene:
         |winding number| >= 0.5, whichever way the faces turn (on an open mesh
         that closes each hole minimally; see hlbvh_cl.query.points)."""
         with self._lock:
-            refuse_spheres(self._built_tree(), "signed_distance")
             return self._point_query().signed_distance(self._built_tree(), points)
 
     def contains(self, points) -> np.ndarray:
