@@ -81,6 +81,11 @@ def _cmd_devices(args) -> int:
     return 0
 
 
+def _counted(count: int, word: str) -> str:
+    """'1 mesh', '2 meshes', '1 sphere', '3 spheres'."""
+    return f"{count:,} {word}" + ("" if count == 1 else "es" if word.endswith("sh") else "s")
+
+
 def _instances(scene) -> str:
     """An instanced scene in a few words: its instances, the triangles its
     meshes' trees hold and the triangles its instances place."""
@@ -101,8 +106,8 @@ def _cmd_info(args) -> int:
         for _ in range(args.repeat - 1):
             scene.rebuild()
     s = scene.stats
-    spheres = f", {len(scene.spheres)} spheres" if len(scene.spheres) else ""
-    print(f"scene      {loaded.path}  ({len(scene.meshes)} meshes{spheres}, loaded in "
+    spheres = f", {_counted(len(scene.spheres), 'sphere')}" if len(scene.spheres) else ""
+    print(f"scene      {loaded.path}  ({_counted(len(scene.meshes), 'mesh')}{spheres}, loaded in "
           f"{loaded.load_seconds:.2f} s)")
     if scene.transforms is not None:
         print(f"instances  {_instances(scene)}; the stats below are the top tree's, "
@@ -202,11 +207,12 @@ def _cmd_render(args) -> int:
         kind = {"ao": "AO", "path": "bounce and shadow"}.get(shading, "shadow")
         rays += f" + {_count(rendered['secondary_rays'])} {kind} rays"
     if scene.transforms is not None:
-        print(f"scene        {loaded.path}: {len(scene.meshes)} meshes, {_instances(scene)} "
+        print(f"scene        {loaded.path}: {_counted(len(scene.meshes), 'mesh')}, "
+              f"{_instances(scene)} "
               "(build: the top tree's)")
     else:
-        spheres = f", {len(scene.spheres)} spheres" if len(scene.spheres) else ""
-        print(f"scene        {loaded.path}: {len(scene.meshes)} meshes, "
+        spheres = f", {_counted(len(scene.spheres), 'sphere')}" if len(scene.spheres) else ""
+        print(f"scene        {loaded.path}: {_counted(len(scene.meshes), 'mesh')}, "
               f"{scene.stats.triangles:,} triangles{spheres}")
     print(f"device       {scene.device}")
     print(f"load         {loaded.load_seconds:7.2f} s   read, split and transform the meshes")

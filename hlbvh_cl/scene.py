@@ -107,7 +107,7 @@ class Scene:
         # what pickling ships (hlbvh_cl.travel): the device as asked for
         self._device_spec = device if device is None or isinstance(device, str) else rt.device.id
         self._spec = None
-        self._shared = False  # a view of a travelled scene's trees (_view)
+        self._shared = False  # its trees are a view's too, or its original's (_view)
         self._instanced = instances is not None
         if self._instanced:
             instance_meshes, transforms = check_instances(instances, len(self.meshes))
@@ -173,7 +173,8 @@ class Scene:
                                          self._largest_extent(), "the scene's")
             rt = self._runtime
             buffer = cl.Buffer(rt.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
-                               hostbuf=(self._spheres * self._scale).astype(np.float32))
+                               hostbuf=np.ascontiguousarray(self._spheres * self._scale,
+                                                               np.float32))
             self._sphere_buffer = (buffer, self._scale)
         self._tree.spheres = self._sphere_buffer[0]
         self._tree.sphere_count = len(self._spheres)
@@ -340,19 +341,21 @@ class Scene:
 
     def _view(self) -> Scene:
         """Another Scene object over this one's trees (hlbvh_cl.travel hands
-        these out): it shares them until it changes, then builds its own
-        first (_own), so that no change reaches another holder."""
+        these out): both share them until one changes, which then builds its
+        own first (_own), so that no change reaches another holder (a refit
+        in place, a rebuild that releases the trees)."""
         view = object.__new__(type(self))
         view.__dict__.update(self.__dict__)
         view._lock = ProcessLock()
         view._query = view._points = view._all_hits = None  # buffers of its own
-        view._shared = True
+        view._shared = self._shared = True
         return view
 
     def _own(self) -> bool:
-        """Before a view changes or rebuilds: its own scene built from the
-        content it shares (copy on write); true when one was built.  The
-        lock stays, held by the caller."""
+        """Before a scene that shares its trees (a view, or one that gave
+        views) changes or rebuilds: its own scene built from the content
+        it shares (copy on write); true when one was built.  The lock
+        stays, held by the caller."""
         with self._lock:
             if not self._shared:
                 return False

@@ -125,6 +125,21 @@ def test_copies_of_a_scene_are_independent(suite_device, change):
     travel.clear()
 
 
+@pytest.mark.parametrize("move", [(0, 0, -1), (0, 0, 1e8)])  # a refit; a rebuild
+def test_a_scene_that_changes_after_giving_views_leaves_them_as_they_were(suite_device, move):
+    """The one that changes first builds trees of its own, the original too:
+    a refit in place, or a move into a new frame (a rebuild that releases
+    the old trees), would otherwise reach its views."""
+    scene = hlbvh_cl.Scene([_sphere(), _box()], device=suite_device)
+    views = [scene.view(), scene.view()]
+    scene.update_vertices(0, scene.meshes[0].vertices + np.float32(move))
+    assert _down(scene) == pytest.approx(4.75, abs=1e-4)  # the box's top now
+    for view in views:
+        assert _down(view) == pytest.approx(4.0, abs=1e-5)
+        view.rebuild()
+        assert _down(view) == pytest.approx(4.0, abs=1e-5)
+
+
 def test_meshes_cannot_be_replaced_behind_the_scene(suite_device):
     scene = hlbvh_cl.Scene([_box()], device=suite_device)
     with pytest.raises(TypeError):

@@ -640,7 +640,7 @@ def spheres(value) -> np.ndarray:
     if value is None:
         return np.zeros((0, 4))
     array = as_array("spheres", value)
-    if array.size == 0 and array.ndim <= 2 and array.shape[-1:] in ((0,), (4,)):
+    if array.shape in ((0,), (0, 4)):
         return np.zeros((0, 4))  # [] or (0, 4): none
     if array.dtype.kind not in "fiu":
         raise TypeError(f"spheres has dtype {array.dtype}, expected real numbers: rows of "
@@ -648,7 +648,8 @@ def spheres(value) -> np.ndarray:
     if array.ndim != 2 or array.shape[1] != 4:
         raise ValueError(f"spheres has shape {array.shape}, expected (S, 4): rows of centre "
                          "x, y, z and radius")
-    array = array.astype(np.float64)
+    # C order: the rows go to the device as float4 records as they lie in memory
+    array = np.array(array, dtype=np.float64, order="C", copy=True)
     limit = float(np.finfo(np.float32).max)
     bad = ~(np.isfinite(array).all(axis=1) & (np.abs(array) <= limit).all(axis=1))
     if bad.any():

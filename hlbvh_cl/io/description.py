@@ -3,6 +3,7 @@ that every reader (TOML scene files, Mitsuba 3's XML, a bare mesh file)
 makes and scenefile.load builds (pbrt-v4's parse-then-create split)."""
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -154,9 +155,20 @@ def shape_mesh(shape: str) -> Mesh:
     if shape == "rectangle":
         return Mesh([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], [[0, 1, 2], [0, 2, 3]],
                     name="rectangle")
+    vertices, faces = _unit_shape(shape)
+    if shape == "cube":
+        return Mesh(vertices, faces, name=shape, face_normals=True)
+    return Mesh(vertices, faces, name=shape, normals=vertices)
+
+
+@functools.lru_cache(maxsize=None)
+def _unit_shape(shape: str) -> tuple[np.ndarray, np.ndarray]:
+    """The cube's or the sphere's vertices and faces, made once: a file of a
+    thousand spheres took 2 ms each to subdivide its icosphere anew.  Read
+    only (Mesh copies what it is given)."""
     import trimesh
     made = (trimesh.creation.box(extents=(2.0, 2.0, 2.0)) if shape == "cube"
             else trimesh.creation.icosphere(subdivisions=4, radius=1.0))
-    if shape == "cube":
-        return Mesh(made.vertices, made.faces, name=shape, face_normals=True)
-    return Mesh(made.vertices, made.faces, name=shape, normals=made.vertices)
+    vertices, faces = np.array(made.vertices), np.array(made.faces)
+    vertices.flags.writeable = faces.flags.writeable = False
+    return vertices, faces

@@ -758,19 +758,27 @@ def _shape(reader: _Reader, node: _Node) -> MeshEntry:
                      or {"type": "diffuse", "reflectance": 0.5}, emitter=emitter, sphere=sphere)
 
 
+#: How far a sphere's to_world may scale its axes apart, relative to the
+#: largest (_check_sphere_map): rounding, not a stretch.
+SPHERE_SCALE_SPREAD = 1e-3
+
+
 def _check_sphere_map(reader: _Reader, node: _Node, linear: np.ndarray) -> None:
     """A sphere's to_world (with its radius) may only rotate, move and scale
     alike on every axis: Mitsuba's sphere stays a sphere under any other
     map (it warns and keeps one radius) and turns dark inside out under a
-    mirror, where the mesh would follow the map.  A zero scale is left to
-    the singular-map check."""
-    gram = linear.T @ linear
-    scale = float(np.trace(gram)) / 3
-    if scale and (np.linalg.det(linear) < 0
-                  or not np.allclose(gram, scale * np.eye(3), rtol=0, atol=1e-6 * scale)):
-        raise reader.error(node, "a sphere's to_world may rotate, translate and scale alike on "
-                                 "every axis, not stretch, shear or mirror it (Mitsuba renders "
-                                 "a sphere whatever the map)")
+    mirror, where the mesh would follow the map.  Scales alike to within
+    SPHERE_SCALE_SPREAD pass, so that a rotation written with a few decimals
+    (0.7071) is one.  A zero scale is left to the singular-map check."""
+    scales = np.linalg.svd(linear, compute_uv=False)
+    if scales[0] > 0 and (np.linalg.det(linear) < 0
+                          or scales[-1] < (1.0 - SPHERE_SCALE_SPREAD) * scales[0]):
+        how = "mirrors" if np.linalg.det(linear) < 0 else \
+            f"scales its axes by {scales[-1]:.6g} to {scales[0]:.6g}"
+        raise reader.error(node, f"a sphere's to_world may rotate, translate and scale alike on "
+                                 f"every axis (to within {SPHERE_SCALE_SPREAD:g}), not stretch, "
+                                 f"shear or mirror it; this one {how} (Mitsuba renders a sphere "
+                                 "whatever the map)")
 
 
 def _emitter(reader: _Reader, node: _Node, area: bool = False) -> dict:

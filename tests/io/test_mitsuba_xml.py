@@ -856,6 +856,22 @@ def test_a_sphere_that_mitsuba_would_not_render_as_placed_is_an_error(tmp_path, 
     np.testing.assert_allclose(np.linalg.norm(vertices - [1, 0, 0], axis=1), 1.0, atol=1e-5)
 
 
+def test_a_sphere_placed_by_a_rounded_matrix_loads(tmp_path):
+    """A rotation written with four decimals scales its axes apart by about
+    1e-4: rounding, so the sphere loads, its radius the map's scale; a
+    stretch of 1% is still refused, and says how far the axes part."""
+    c = 0.7071  # cos 45 degrees, as a hand-written file gives it
+    rotated = (f'<transform name="to_world"><matrix value="{2 * c} 0 {2 * c} 1  0 2 0 0  '
+               f'{-2 * c} 0 {2 * c} 0  0 0 0 1"/></transform>')
+    body = SPHERE.format(rotated) + CUBE  # beside a mesh: analytic (alone, an icosphere)
+    sphere = read_xml(scene_of(tmp_path, scene_xml(body))).meshes[0].sphere
+    np.testing.assert_allclose(sphere[:3], [1, 0, 0])
+    assert sphere[3] == pytest.approx(2.0, rel=1e-4)
+    stretched = '<transform name="to_world"><scale x="1.01" y="1" z="1"/></transform>'
+    with pytest.raises(SceneFileError, match=r"scales its axes by 1 to 1\.01"):
+        read_xml(scene_of(tmp_path, scene_xml(SPHERE.format(stretched) + CUBE)))
+
+
 def test_defaults_hold_as_mitsuba_s(tmp_path):
     """The first <default> of a name holds (Mitsuba keeps the first); a $name
     above its <default> is an error unless given by the caller; a default

@@ -247,10 +247,28 @@ def test_no_spheres(suite_device, none):
                                                "must be positive"),
     ([[0, 0, 0, -2]], ValueError, r"spheres\[0\] has radius -2"),
     ([["a", "b", "c", "d"]], TypeError, r"spheres has dtype <U1, expected real numbers"),
+    ([[]], ValueError, r"spheres has shape \(1, 0\), expected \(S, 4\)"),
+    (np.zeros((4, 0)), ValueError, r"spheres has shape \(4, 0\), expected \(S, 4\)"),
+    (np.zeros((0, 3)), ValueError, r"spheres has shape \(0, 3\), expected \(S, 4\)"),
 ])
 def test_bad_spheres_are_refused(suite_device, spheres, error, words):
     with pytest.raises(error, match=words):
         hlbvh_cl.Scene([ground()], device=suite_device, spheres=spheres)
+
+
+@pytest.mark.parametrize("layout", ["fortran", "columns", "strided"])
+def test_spheres_in_any_memory_layout_give_the_same_hits(scene, suite_device, layout):
+    """Column-major rows (np.vstack([x, y, z, r]).T) and strided views are
+    the same spheres: the records go to the device as rows."""
+    given = {"fortran": np.asfortranarray(SPHERES), "columns": np.vstack(SPHERES.T.copy()).T,
+             "strided": np.repeat(SPHERES, 2, axis=0)[::2]}[layout]
+    assert not given.flags.c_contiguous
+    other = hlbvh_cl.Scene([ground()], device=suite_device, spheres=given)
+    origins, directions = random_rays(3000, 5)
+    expected, got = scene.intersect(origins, directions), other.intersect(origins, directions)
+    np.testing.assert_array_equal(got.geom_id, expected.geom_id)
+    np.testing.assert_array_equal(got.t, expected.t)
+    assert (got.geom_id >= 1).sum() > 100
 
 
 def test_spheres_take_no_instances_nor_masks(suite_device):
