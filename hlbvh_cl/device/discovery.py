@@ -57,16 +57,7 @@ def _register_intel_cpu_runtime() -> None:
         return
     folder = cache_root() / "icd"
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        entries = {"intel-cpu-hlbvh_cl.icd": f"{lib}\n"}
-        system = Path("/etc/OpenCL/vendors")
-        if system.is_dir():
-            for icd in system.glob("*.icd"):
-                entries[icd.name] = icd.read_text()
-        for name, text in entries.items():
-            path = folder / name
-            if not path.is_file() or path.read_text() != text:
-                path.write_text(text)
+        write_vendors(folder, lib, Path("/etc/OpenCL/vendors"))
         # libintelocl.so finds libimf & co. through its RUNPATH ($ORIGIN);
         # loading it here is a cheap check that the runtime is complete.
         ctypes.CDLL(str(lib.parent / "libimf.so"), mode=ctypes.RTLD_GLOBAL)
@@ -74,6 +65,25 @@ def _register_intel_cpu_runtime() -> None:
         unregistered.append(f"{what} could not be registered: {error}")
         return
     os.environ["OCL_ICD_VENDORS"] = str(folder)
+
+
+def write_vendors(folder: Path, lib: Path, system: Path) -> None:
+    """The vendors folder _register_intel_cpu_runtime points the ICD loader
+    at: an .icd naming Intel's ``lib`` and copies of the ``system`` folder's
+    .icd files, as they are now: a copy whose runtime was uninstalled since
+    is removed (the loader would try its library, gone, in every process)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    entries = {"intel-cpu-hlbvh_cl.icd": f"{lib}\n"}
+    if system.is_dir():
+        for icd in system.glob("*.icd"):
+            entries[icd.name] = icd.read_text()
+    for stale in folder.glob("*.icd"):
+        if stale.name not in entries:
+            stale.unlink()
+    for name, text in entries.items():
+        path = folder / name
+        if not path.is_file() or path.read_text() != text:
+            path.write_text(text)
 
 
 _VENDORS = (

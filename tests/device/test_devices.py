@@ -17,7 +17,7 @@ from hlbvh_cl.device import discovery as discovery_module
 from hlbvh_cl.device import runtime as device_module
 from hlbvh_cl.core import layout
 from hlbvh_cl.device import probe
-from hlbvh_cl.device.discovery import devices, select_device
+from hlbvh_cl.device.discovery import devices, select_device, write_vendors
 from hlbvh_cl.device.runtime import KernelBuildError, Runtime, quiet_build, runtime
 from hlbvh_cl.core.paths import kernel_dir
 from hlbvh_cl.render.random import salts8
@@ -82,6 +82,27 @@ def test_intel_cpu_runtime_is_found_without_user_icd_files():
     if "OCL_ICD_VENDORS" in os.environ and "hlbvh_cl" not in os.environ["OCL_ICD_VENDORS"]:
         pytest.skip("the user's own OCL_ICD_VENDORS is in force")
     assert any(d.id.startswith("intel:") for d in hlbvh_cl.devices())
+
+
+def test_the_vendors_folder_follows_the_system_s(tmp_path):
+    """The copies of the system's .icd files follow it: one added is copied,
+    one changed is rewritten, one whose runtime was uninstalled goes (the
+    ICD loader would try its missing library in every process)."""
+    system, folder, lib = tmp_path / "vendors", tmp_path / "icd", Path("/x/libintelocl.so")
+    system.mkdir()
+    (system / "pocl.icd").write_text("libpocl.so.2\n")
+    (system / "nvidia.icd").write_text("libnvidia-opencl.so.1\n")
+    write_vendors(folder, lib, system)
+    assert sorted(p.name for p in folder.glob("*.icd")) == [
+        "intel-cpu-hlbvh_cl.icd", "nvidia.icd", "pocl.icd"]
+    (system / "pocl.icd").unlink()
+    (system / "nvidia.icd").write_text("/opt/libnvidia-opencl.so.1\n")
+    write_vendors(folder, lib, system)
+    assert sorted(p.name for p in folder.glob("*.icd")) == ["intel-cpu-hlbvh_cl.icd", "nvidia.icd"]
+    assert (folder / "nvidia.icd").read_text() == "/opt/libnvidia-opencl.so.1\n"
+    assert (folder / "intel-cpu-hlbvh_cl.icd").read_text() == f"{lib}\n"
+    write_vendors(folder, lib, tmp_path / "none")  # no system folder: Intel's alone
+    assert [p.name for p in folder.glob("*.icd")] == ["intel-cpu-hlbvh_cl.icd"]
 
 
 def test_programs_are_built_once_and_cached():
