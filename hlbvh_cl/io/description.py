@@ -163,9 +163,9 @@ def shape_mesh(shape: str) -> Mesh:
 
 @functools.lru_cache(maxsize=None)
 def _unit_shape(shape: str) -> tuple[np.ndarray, np.ndarray]:
-    """The cube's or the sphere's vertices and faces, made once: a file of a
-    thousand spheres took 2 ms each to subdivide its icosphere anew.  Read
-    only (Mesh copies what it is given)."""
+    """The cube's or the sphere's vertices and faces, made once rather than
+    subdivided anew for each shape (an XML file may hold thousands of
+    spheres).  Read only (Mesh copies what it is given)."""
     import trimesh
     made = (trimesh.creation.box(extents=(2.0, 2.0, 2.0)) if shape == "cube"
             else trimesh.creation.icosphere(subdivisions=4, radius=1.0))
