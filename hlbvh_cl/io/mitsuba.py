@@ -771,9 +771,9 @@ def _check_sphere_map(reader: _Reader, node: _Node, linear: np.ndarray) -> None:
     SPHERE_SCALE_SPREAD pass, so that a rotation written with a few decimals
     (0.7071) is one.  A zero scale is left to the singular-map check."""
     scales = np.linalg.svd(linear, compute_uv=False)
-    if scales[0] > 0 and (np.linalg.det(linear) < 0
-                          or scales[-1] < (1.0 - SPHERE_SCALE_SPREAD) * scales[0]):
-        how = "mirrors" if np.linalg.det(linear) < 0 else \
+    mirrors = np.linalg.det(linear) < 0
+    if scales[0] > 0 and (mirrors or scales[-1] < (1.0 - SPHERE_SCALE_SPREAD) * scales[0]):
+        how = "mirrors" if mirrors else \
             f"scales its axes by {scales[-1]:.6g} to {scales[0]:.6g}"
         raise reader.error(node, f"a sphere's to_world may rotate, translate and scale alike on "
                                  f"every axis (to within {SPHERE_SCALE_SPREAD:g}), not stretch, "

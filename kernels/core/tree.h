@@ -64,9 +64,9 @@ typedef struct {
  * traced slower on CPU runtimes, leaves holding about two triangles
  * (figures in the commit that says so).  Three vertex indices into shared
  * vertices instead (Embree's compact Triangle4i) halve the leaves' memory,
- * the hits the same bits, but the index load before the vertices' cost the
- * walks a fifth of their speed on CPU runtimes (figures in the commit that
- * says so). */
+ * the hits the same bits, but the walks traced slower on CPU runtimes: a
+ * leaf's vertices wait on its indices, which the push-time prefetch cannot
+ * cover (figures in the commit that says so). */
 typedef struct {
     float v0[3];
     float v1[3];
