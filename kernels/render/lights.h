@@ -13,8 +13,6 @@
 #include "render/envmap.h"
 #include "render/surface.h"
 
-#define INV_FOUR_PI 0.07957747154594767f
-
 /* The lights' tables, as path_surface takes them. */
 typedef struct {
     __global const PathMaterial* materials;  /* per geom_id: an emitter's radiance, emitter_pdf */
@@ -39,13 +37,14 @@ typedef struct {
 
 /* The environment's radiance along -direction (direction: unit, the way
  * a ray escapes) and the density with which a light sample picks that
- * direction (0 when it cannot): the constant environment's, uniform on the
- * sphere, or the map's (render/envmap.h). */
+ * direction (0 when it cannot): the map's (render/envmap.h); a constant
+ * environment takes no light samples (hlbvh_cl/render/integrators/path.py:
+ * BSDF sampling alone reaches it, as pbrt-v4's uniform infinite light). */
 inline float3 environment_light(const PathParams* params, __global const float* envmap_image,
                                 __global const float* envmap_cdf, float3 direction, float* pdf)
 {
     if (params->envmap_width == 0) {
-        *pdf = params->environment_probability * INV_FOUR_PI;
+        *pdf = 0.0f;
         return LOAD_XYZ(params->environment);
     }
     *pdf = params->environment_probability > 0.0f
@@ -92,9 +91,8 @@ inline float emitter_density(const PathParams* params, __global const PathMateri
     return m->emitter_pdf * distance * distance / cosine;
 }
 
-/* One light sample: uniform on the sphere for the constant environment
- * (as Mitsuba's constant emitter), by the map's density for an environment
- * map (render/envmap.h), a point or directional light (a delta:
+/* One light sample: by the map's density for an environment map
+ * (render/envmap.h; a constant environment takes none), a point or directional light (a delta:
  * its pdf is the chance of picking it, and MIS leaves it alone), or uniform
  * in area on an emissive triangle or analytic sphere (in the cone a sphere
  * subtends, seen from outside: emitter_density) picked by power (its area
@@ -110,22 +108,12 @@ FORCE_INLINE LightSample sample_light(float3 x, const PathParams* params,
     *delta = false;
     float u1 = random_salted(pixel, salts.s2);
     float u2 = random_salted(pixel, salts.s3);
-    if (choice < params->environment_probability) {
+    if (choice < params->environment_probability) {  /* the map's (0 without one) */
         out.reach = INFINITY;
-        if (params->envmap_width > 0) {
-            out.direction = envmap_sample(params, tables->envmap_cdf,
-                                          random_salted(pixel, salts.s1),
-                                          u1, u2, &out.pdf);
-            out.radiance = envmap_radiance(params, tables->envmap_image, out.direction);
-            out.pdf *= params->environment_probability;
-            return out;
-        }
-        float z = 1.0f - 2.0f * u1;
-        float r = SQRT(1.0f - z * z > 0.0f ? 1.0f - z * z : 0.0f);
-        float cosine, sine = sincos_turn(u2, &cosine);
-        out.direction = (float3)(r * cosine, r * sine, z);
-        out.radiance = LOAD_XYZ(params->environment);
-        out.pdf = params->environment_probability * INV_FOUR_PI;
+        out.direction = envmap_sample(params, tables->envmap_cdf,
+                                      random_salted(pixel, salts.s1), u1, u2, &out.pdf);
+        out.radiance = envmap_radiance(params, tables->envmap_image, out.direction);
+        out.pdf *= params->environment_probability;
         return out;
     }
     choice -= params->environment_probability;

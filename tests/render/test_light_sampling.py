@@ -3,8 +3,9 @@ hlbvh_cl.render.sampling.sample_lights) against their density worked out
 here in float64: the environment picked against the emissive triangles by
 the power each can deliver (path.py's rule), a triangle by its area times its
 radiance's luminance, a point uniform on it, so a density per solid angle of
-P(triangle) / area * distance^2 / cos, and 1 / (4 pi) for the constant
-environment.  A chi-squared test over the sphere, as Mitsuba 3's chi2 tests
+P(triangle) / area * distance^2 / cos, and 1 / (4 pi) for an environment
+map of one value (a constant environment takes no light samples: BSDF
+sampling alone reaches it).  A chi-squared test over the sphere, as Mitsuba 3's chi2 tests
 check its emitters, and each sample's own density and radiance."""
 import numpy as np
 import pytest
@@ -82,7 +83,7 @@ def renderer(suite_device):
     return hlbvh_cl.Renderer(scene, emitters=[
         {"type": "area", "mesh": 1, "radiance": LAMP_RADIANCE},
         {"type": "area", "mesh": 2, "radiance": PANE_RADIANCE},
-        {"type": "constant", "radiance": SKY}])
+        {"type": "envmap", "image": np.full((8, 16, 3), SKY, np.float32)}])
 
 
 def test_light_samples_follow_their_density_chi_squared(renderer):

@@ -9,13 +9,22 @@ Each sample of a pixel follows one path from the camera.  At each vertex x
   the power-heuristic weight of the BSDF sample against a light sample of
   that direction (Veach 1997, eq. 9.13);
 - next-event estimation: one light sample (materials.py, emitters.py:
-  the environment, constant or a map (envmap.py), a delta light or a
-  triangle, by power), T * f * cos * L / p_light
-  times its weight against the BSDF's density, where its shadow ray is
-  free;
+  an environment map (envmap.py), a delta light or a triangle, by power),
+  T * f * cos * L / p_light times its weight against the BSDF's density,
+  where its shadow ray is free.  A constant environment takes no light
+  samples (below);
 
 then samples the BSDF for the next direction (diffuse: cosine-distributed,
-so T takes the albedo).  ``max_depth`` is Mitsuba's: the most segments a
+so T takes the albedo).
+
+A constant environment is reached by BSDF sampling alone, as in pbrt-v4's
+PathIntegrator (its UniformInfiniteLight draws no light sample where the
+integrator allows incomplete densities, as that one does): against a constant
+radiance the integrand is f cos V, which the BSDF's own sampling already
+follows, so directions uniform on the sphere only add noise, half of them
+below the surface; the light samples go to the other lights instead.  A
+ray that escapes then takes the full weight, where no light sample could
+have drawn it.  ``max_depth`` is Mitsuba's: the most segments a
 path has (1: only what the camera sees emitting; 2: direct light; -1: no
 limit), and from ``rr_depth`` on a path goes on with probability
 q = min(max channel of T, 0.95) and T /= q (Russian roulette, Mitsuba's
@@ -137,16 +146,16 @@ def light_tables(look: Look, scale: float, bounds_lo, bounds_hi) -> dict:
     triangle_power = float(weights.sum())
     lo, hi = np.asarray(bounds_lo, np.float64), np.asarray(bounds_hi, np.float64)
     radius = 0.5 * float(np.linalg.norm(hi - lo)) or 1.0
-    environment, envmap = look.emitters.environment, look.emitters.envmap
-    # The power an environment can deliver to the scene's surfaces (area S):
-    # at most the cosine-weighted integral of its luminance per unit area,
-    # whose mean over orientations is a quarter of its integral over the
-    # sphere (pi L for a constant L).  pbrt-v4's power sampler counts the
-    # flux through the scene's bounding sphere instead, 4 pi R^2 L, which
-    # gave an open scene's sky most light samples and a small bright lamp few.
-    environment_power = look.surface_area * scale * scale / (4.0 * np.pi) * (
-        envmap.tables[1] if envmap is not None
-        else 0.0 if environment is None else luminance(environment) * 4.0 * np.pi)
+    envmap = look.emitters.envmap
+    # The power an environment map can deliver to the scene's surfaces (area
+    # S): at most the cosine-weighted integral of its luminance per unit
+    # area, whose mean over orientations is a quarter of its integral over
+    # the sphere.  pbrt-v4's power sampler counts the flux through the
+    # scene's bounding sphere instead, 4 pi R^2 L, which gave an open scene's
+    # sky most light samples and a small bright lamp few.  A constant
+    # environment takes none (BSDF sampling alone: the module's docstring).
+    environment_power = 0.0 if envmap is None else \
+        look.surface_area * scale * scale / (4.0 * np.pi) * envmap.tables[1]
     deltas = np.zeros(max(1, len(look.emitters.deltas)), layout.DELTA_LIGHT)
     delta_powers = []
     for k, (kind, vector, value) in enumerate(look.emitters.deltas):

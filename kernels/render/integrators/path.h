@@ -70,7 +70,8 @@ typedef struct {
 typedef struct {
     float environment[3];           /* the constant environment's radiance */
     float environment_probability;  /* the chance a light sample goes to the environment
-                                     * (constant or map) */
+                                     * map (0 for a constant environment: BSDF sampling
+                                     * alone reaches it, integrators/path.py) */
     float ray_offset;               /* RAY_EPSILON times min(the frame's scale, 1) */
     uint light_triangles;           /* emissive triangles in light_cdf, its first entries */
     uint delta_lights;              /* DeltaLight records */
