@@ -140,23 +140,16 @@ TRAVERSAL_INLINE float8 abs_lanes(float8 x) { return as_float8(as_int8(x) & (int
 #define HAVE_MOVMSKPS256
 #endif
 
-/* A lane mask in one instruction or two: movmskps, or a Clang's generic
- * reduction of the lanes weighted by powers of two (Intel's CPU compiler,
- * which offers no x86 builtins, has it). */
-#if defined(HAVE_MOVMSKPS256) || HAS_BUILTIN(__builtin_reduce_or)
-#define FAST_LANE_MASK
-#endif
-
 /* The lanes set in `hit` (-1) as a bit mask: bit c for child c.  One
- * movmskps where the compiler offers it, or the generic reduction: the
- * portable fold below is a chain of six dependent instructions on every
- * node step (measured slower). */
+ * movmskps where the compiler offers it: the portable fold below is a chain
+ * of six dependent instructions on every node step (measured slower).  A
+ * Clang's __builtin_reduce_or of the weighted lanes, which Intel's CPU
+ * compiler has, ran there within noise of the fold, and Oclgrind cannot
+ * lower it (figures in the commit that says so). */
 TRAVERSAL_INLINE uint lane_mask(int_lanes hit)
 {
 #ifdef HAVE_MOVMSKPS256
     return (uint)__builtin_ia32_movmskps256(as_float8(hit));
-#elif defined(FAST_LANE_MASK)
-    return (uint)__builtin_reduce_or(hit & (int8)(1, 2, 4, 8, 16, 32, 64, 128));
 #else
     int8 bits = hit & (int8)(1, 2, 4, 8, 16, 32, 64, 128);
     int4 folded = bits.lo | bits.hi;

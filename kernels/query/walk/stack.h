@@ -69,27 +69,26 @@ TRAVERSAL_INLINE void prefetch_child(__global const WideNode* n, int slot,
  * and ties in slot order; prefetches each.  The stack may hold one item
  * more than STACK_SIZE until the caller pops the nearest.
  *
- * Where a lane mask is cheap (FAST_LANE_MASK, see lane_mask), each child
+ * Where a lane mask is one instruction (movmskps, see lane_mask), each child
  * goes straight to its place, counted from the first pushed: the number of
  * met children that are farther, or as far in a later slot, from one
  * vector compare pair and a popcount.  The insertion sort (the other branch)
- * mispredicts its data-dependent loop exits, which measured slower; but with
- * the portable lane mask, a chain of six instructions, Intel's CPU runtime
- * ran camera rays slower without it, so compilers without a fast mask keep
- * the sort. */
+ * mispredicts its data-dependent loop exits, which measured slower; but
+ * Intel's CPU runtime, whose lane mask is a chain of six instructions, ran
+ * camera rays slower without it, so it keeps the sort. */
 TRAVERSAL_INLINE void push_sorted(__global const WideNode* n, uint mask,
                                   const ChildEntries* entries, __global const WideNode* nodes,
                                   __global const Triangle* triangles, StackItem* stack, int* sp)
 {
     int first = *sp;
-#ifdef FAST_LANE_MASK
+#ifdef HAVE_MOVMSKPS256
     *sp += bit_count(mask);
 #endif
     for (uint rest = mask; rest != 0; rest &= rest - 1u) {
         int slot = lowest_slot(rest);
         prefetch_child(n, slot, nodes, triangles);
         float e = entries->slot[slot];
-#ifdef FAST_LANE_MASK
+#ifdef HAVE_MOVMSKPS256
         uint deeper = lane_mask(entries->lanes > (float_lanes)(e))
                       | (lane_mask(entries->lanes == (float_lanes)(e)) & (0u - (2u << slot)));
         int at = first + bit_count(deeper & mask);
