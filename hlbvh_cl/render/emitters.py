@@ -27,8 +27,9 @@ first render shows the scene; [] renders it dark.
 Light sampling picks a light by its power (over pi, in luminance: a
 point light's 4 I, a directional light's R^2 E for the scene's bounding
 sphere of radius R, the triangles' sum of area times L, and for an
-environment map the most it can deliver to the scene's surfaces, their
-area S times its luminance integrated over the sphere over 4 pi), then a
+environment map the most its light samples can deliver to the scene's
+surfaces, their area S times the luminance they sample (its excess over
+the map's mean: envmap.py) integrated over the sphere over 4 pi), then a
 triangle by its own power and a point uniform in its area.  Point and
 directional lights are deltas: only light sampling reaches them.  A
 constant environment takes no light samples: BSDF sampling alone reaches

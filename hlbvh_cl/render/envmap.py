@@ -17,16 +17,24 @@ repeating their last column and row, as Mitsuba pads them.
 
 Importance sampling: the bilinear patches between four neighbouring texels
 are the cells, (H - 1) x W of them, each a band of latitude
-[theta_j, theta_j+1] by a sector of longitude.  A cell is picked with
-probability proportional to the mean luminance of its four corners times
-its solid angle (the integral of sin(theta) over it), by a marginal CDF
-over the bands and a conditional CDF per band, built here in float64; a
-direction is then uniform in solid angle within the cell.  The density is
-therefore piecewise constant: P(cell) / solid angle(cell), and the kernels
-evaluate exactly that density for a direction found by BSDF sampling (MIS
-weights stay correct although the density is not proportional to the
-bilinear radiance).  A cell where any corner shines has a positive density,
-so every direction with radiance can be sampled.
+[theta_j, theta_j+1] by a sector of longitude.  A cell's value is the mean
+luminance of its four corners.  The path integrator's light samples pick a
+cell with probability proportional to how far its value exceeds the map's
+mean over the sphere (0 where it does not) times its solid angle (the
+integral of sin(theta) over it), by a marginal CDF over the bands and a
+conditional CDF per band, built here in float64; a direction is then
+uniform in solid angle within the cell.  That is MIS compensation (Karlik
+et al. 2019, "MIS Compensation: Optimizing Sampling Techniques in Multiple
+Importance Sampling"), as pbrt-v4's ImageInfiniteLight samples for its
+PathIntegrator: BSDF sampling, the other strategy, already covers the
+map's even part, as it covers a constant environment alone
+(integrators/path.py), so light samples go where the map stands out, a
+sun above all; directions where the density is 0 are reached by BSDF
+sampling with the full weight.  A map with nothing above its mean takes
+no light samples.  The density is piecewise constant: P(cell) / solid
+angle(cell), and the kernels evaluate exactly that density for a
+direction found by BSDF sampling (MIS weights stay correct although the
+density is not proportional to the bilinear radiance).
 """
 from __future__ import annotations
 
@@ -65,16 +73,21 @@ class Envmap:
     @functools.cached_property
     def tables(self) -> tuple[np.ndarray, float]:
         """(float32 CDFs, total): the H - 1 entries of the marginal CDF over
-        the bands, then each band's W entries of its conditional CDF; and
-        the integral of the luminance over the sphere, in float64
-        (light selection's power)."""
+        the bands, then each band's W entries of its conditional CDF, by
+        each cell's value above the mean (the module's docstring); and the
+        integral over the sphere of the luminance above the mean, in float64
+        (light selection's power; 0: no light samples)."""
         height, width, _ = self.image.shape
         lum = np.asarray(self.image, np.float64) @ LUMINANCE
         corners = 0.25 * (lum[:-1] + lum[1:] + np.roll(lum[:-1], -1, 1) + np.roll(lum[1:], -1, 1))
         theta = np.pi * np.arange(height) / (height - 1)
         # cos(theta_j) - cos(theta_j+1) without cancellation near the poles
         band = 2.0 * np.sin(0.5 * (theta[:-1] + theta[1:])) * np.sin(0.5 * np.pi / (height - 1))
-        weights = corners * (band * (2.0 * np.pi / width))[:, None]
+        solid = np.broadcast_to((band * (2.0 * np.pi / width))[:, None], corners.shape)
+        mean = float((corners * solid).sum() / solid.sum())
+        # above the mean by more than float32's rounding (a map of one value:
+        # nothing, where its cells' sums round apart)
+        weights = np.maximum(corners - mean * (1.0 + 1e-6), 0.0) * solid
         rows = weights.sum(1)
         total = float(rows.sum())
         conditional = np.where(rows[:, None] > 0, np.cumsum(weights, 1)

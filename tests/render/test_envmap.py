@@ -5,7 +5,9 @@ kernels/render/envmap.h, through hlbvh_cl/render/sampling.py):
   same file with the same to_world (Mitsuba's eval as the oracle);
 - chi-squared: the directions its sampling routine draws fall into bins of
   the sphere as often as its own density, integrated over each bin, says;
-  each sample's density and radiance are those evaluation gives;
+  each sample's density and radiance are those evaluation gives, and the
+  samples draw the map where it stands above its mean (MIS compensation,
+  hlbvh_cl/render/envmap.py);
 - its files: OpenEXR and Radiance RGBE read as Mitsuba reads them.
 """
 from __future__ import annotations
@@ -39,6 +41,29 @@ def bright_spot(height=16, width=32, seed=0) -> np.ndarray:
     image[height // 4:height // 4 + 2, width // 3:width // 3 + 2] = [60.0, 50.0, 40.0]
     image[height - 3] = 0.0  # a band of no light: no sample may land there
     return image
+
+
+def brightening_sky(height=16, width=32, seed=0) -> np.ndarray:
+    """An uneven sky that brightens upwards (4x to 0.1x of 0.5 to 1.5), so
+    that its upper bands stand above its mean, with bright_spot's sun and
+    black row."""
+    rng = np.random.default_rng(seed)
+    image = rng.uniform(0.5, 1.5, (height, width, 3)) * np.linspace(4.0, 0.1, height)[:, None, None]
+    image[height // 4:height // 4 + 2, width // 3:width // 3 + 2] = [30.0, 25.0, 20.0]
+    image[height - 3] = 0.0
+    return image.astype(np.float32)
+
+
+def cell_values(image) -> tuple[np.ndarray, np.ndarray]:
+    """Each bilinear cell's mean corner luminance and its solid angle, in
+    float64, from the image alone (as envmap.py's docstring defines them)."""
+    height, width, _ = image.shape
+    lum = np.asarray(image, np.float64) @ [0.2126, 0.7152, 0.0722]
+    right = np.roll(lum, -1, 1)
+    values = 0.25 * (lum[:-1] + lum[1:] + right[:-1] + right[1:])
+    cos = np.cos(np.pi * np.arange(height) / (height - 1))
+    solid = np.repeat(((cos[:-1] - cos[1:]) * 2 * np.pi / width)[:, None], width, 1)
+    return values, solid
 
 
 def unit_rows(count, seed):
@@ -81,10 +106,10 @@ def bin_integrals(emitter, device, sub=12):
 
 @pytest.mark.parametrize("rotated", [False, True], ids=["identity", "rotated"])
 def test_sampling_matches_the_density_chi_squared(rotated, suite_device):
-    """A 16 x 32 map with a bright spot: the drawn directions against the
-    density the map evaluates (Mitsuba's chi2 test's approach), pooled
-    where a bin expects under 5 samples."""
-    emitter = {"type": "envmap", "image": bright_spot(),
+    """A 16 x 32 map with a bright spot over a sky brighter at the top: the
+    drawn directions against the density the map evaluates (Mitsuba's chi2
+    test's approach), pooled where a bin expects under 5 samples."""
+    emitter = {"type": "envmap", "image": brightening_sky(),
                "to_world": turn() if rotated else np.eye(3)}
     drawn = sample_envmap(emitter, SAMPLES, seed=7, device=suite_device)
     d = drawn["directions"].astype(np.float64)
@@ -94,26 +119,53 @@ def test_sampling_matches_the_density_chi_squared(rotated, suite_device):
     shares = bin_integrals(emitter, suite_device)
     assert abs(shares.sum() - 1.0) < 3e-3, shares.sum()
     expected = shares * SAMPLES
-    assert expected.max() > 20 * np.median(expected), "the spot should draw many samples"
+    drawn_at = expected > 0
+    assert 0.2 < drawn_at.mean() < 0.8, "the sky's upper bands are drawn, its lower ones not"
+    assert expected.max() > 20 * np.median(expected[drawn_at]), "the spot should draw many"
     p, statistic, dof = chi2.p_value(observed, expected)
     assert p > 1e-3, f"chi2 {statistic:.1f} over {dof} dof: p = {p:.2e}"
 
 
+def test_samples_draw_the_map_where_it_stands_above_its_mean(suite_device):
+    """MIS compensation: a cell's density is its value's excess over the
+    map's mean (0 where it has none) over the excess's integral, worked out
+    here in float64 from the image; a map of one value has none, and takes
+    no light samples in a render (tests/render/test_path.py)."""
+    image = brightening_sky()
+    values, solid = cell_values(image)
+    excess = np.maximum(values - (values * solid).sum() / solid.sum(), 0.0)
+    expected = excess / (excess * solid).sum()
+    height, width = image.shape[:2]
+    # a direction at each cell's centre, in the map's frame (envmap.py's mapping)
+    theta = np.pi * (np.arange(height - 1) + 0.5) / (height - 1)
+    phi = 2 * np.pi * (np.arange(width) + 1.0) / width  # between columns i and i + 1
+    tt, pp = np.meshgrid(theta, phi, indexing="ij")
+    d = np.stack([np.sin(tt) * np.sin(pp), np.cos(tt), -np.sin(tt) * np.cos(pp)], -1)
+    got = eval_envmap({"type": "envmap", "image": image}, d.reshape(-1, 3),
+                      device=suite_device)["pdfs"].reshape(height - 1, width)
+    # (float32 CDFs: a cell's chance is a difference of two sums)
+    np.testing.assert_allclose(got, expected, rtol=2e-3, atol=1e-6)
+    np.testing.assert_array_equal(got == 0, expected == 0)
+    assert (expected == 0).mean() > 0.2
+
+
 def test_a_sample_s_density_and_radiance_are_its_evaluation_s(suite_device):
-    emitter = {"type": "envmap", "image": bright_spot(), "to_world": turn(), "scale": 2.0}
+    emitter = {"type": "envmap", "image": brightening_sky(), "to_world": turn(), "scale": 2.0}
     drawn = sample_envmap(emitter, 4000, seed=3, device=suite_device)
     values = eval_envmap(emitter, drawn["directions"], device=suite_device)
     np.testing.assert_allclose(values["pdfs"], drawn["pdfs"], rtol=1e-4)
     np.testing.assert_allclose(values["radiance"], drawn["radiance"], rtol=1e-5, atol=1e-6)
-    # radiance / pdf averages to the map's integral over the sphere, by a
-    # fine midpoint rule of the same lookup in (theta, phi)
+    # radiance / pdf averages to the map's integral over the directions it
+    # samples (its density > 0), by a fine midpoint rule of the same lookup
+    # in (theta, phi)
     estimate = (drawn["radiance"] / drawn["pdfs"][:, None]).astype(np.float64).mean(0)
     n = 600
     theta = (np.arange(n) + 0.5) / n * np.pi
     phi = (np.arange(2 * n) + 0.5) / (2 * n) * 2 * np.pi
     tt, pp = np.meshgrid(theta, phi, indexing="ij")
     grid = np.stack([np.sin(tt) * np.cos(pp), np.cos(tt), np.sin(tt) * np.sin(pp)], -1)
-    radiance = eval_envmap(emitter, grid.reshape(-1, 3), device=suite_device)["radiance"]
+    values = eval_envmap(emitter, grid.reshape(-1, 3), device=suite_device)
+    radiance = np.where(values["pdfs"][:, None] > 0, values["radiance"], 0.0)
     weights = (np.sin(tt) * (np.pi / n) ** 2).reshape(-1, 1)
     integral = (radiance.astype(np.float64) * weights).sum(0)
     np.testing.assert_allclose(estimate, integral, rtol=0.03)

@@ -3,10 +3,16 @@ hlbvh_cl.render.sampling.sample_lights) against their density worked out
 here in float64: the environment picked against the emissive triangles by
 the power each can deliver (path.py's rule), a triangle by its area times its
 radiance's luminance, a point uniform on it, so a density per solid angle of
-P(triangle) / area * distance^2 / cos, and 1 / (4 pi) for an environment
-map of one value (a constant environment takes no light samples: BSDF
-sampling alone reaches it).  A chi-squared test over the sphere, as Mitsuba 3's chi2 tests
-check its emitters, and each sample's own density and radiance."""
+P(triangle) / area * distance^2 / cos; and the environment map SKY_MAP, 4
+rows (at theta = 0, pi / 3, 2 pi / 3, pi) of which the last is dark: its
+cells hold L above theta = 2 pi / 3 and L / 2 below, in a cap of pi sr
+around -y where no lamp lies, so its mean is 7 L / 8, and its light samples,
+which take its excess over that mean (envmap.py), are uniform outside the
+cap, 1 / (3 pi), with power S (L / 8) (3 pi) / (4 pi) = 3 S L / 32 (S the
+scene's surface area).  A constant environment takes no light samples
+(BSDF sampling alone reaches it).  A chi-squared test over the sphere, in
+bins about +y (the cap's edge then a bin edge), as Mitsuba 3's chi2 tests
+check their emitters, and each sample's own density and radiance."""
 import numpy as np
 import pytest
 
@@ -17,6 +23,10 @@ from hlbvh_cl.render.sampling import sample_lights
 THETA_BINS, PHI_BINS, SUB = 32, 64, 12
 SAMPLES = 400_000
 SKY = 0.2
+SKY_MAP = np.full((4, 4, 3), SKY, np.float32)
+SKY_MAP[3] = 0.0
+#: the chi-squared bins' frame, a rotation from the world's: world +y is its +z
+BINS = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 X = np.array([0.2, 0.5, 0.1])
 
 GROUND = np.array([[-3, 0, -3], [3, 0, -3], [3, 0, 3], [-3, 0, 3]], np.float64)
@@ -52,9 +62,9 @@ def density(directions):
     normals = cross / (2 * areas[:, None])
     surface = sum(0.5 * np.linalg.norm(np.cross(t[1] - t[0], t[2] - t[0])) for t in
                   [*GROUND[[[0, 2, 1], [0, 3, 2]]], *tris])
-    sky_power, lamp_power = surface * luminance(SKY), float((areas * lum).sum())
+    sky_power, lamp_power = 3 * surface * luminance(SKY) / 32, float((areas * lum).sum())
     p_sky = sky_power / (sky_power + lamp_power)
-    pdf = np.full(len(directions), p_sky / (4 * np.pi))
+    pdf = np.where(directions[:, 1] > -0.5, p_sky / (3 * np.pi), 0.0)
     # Moller-Trumbore, every direction against every triangle
     d = directions[:, None, :]
     p = np.cross(d, e2[None])
@@ -83,7 +93,7 @@ def renderer(suite_device):
     return hlbvh_cl.Renderer(scene, emitters=[
         {"type": "area", "mesh": 1, "radiance": LAMP_RADIANCE},
         {"type": "area", "mesh": 2, "radiance": PANE_RADIANCE},
-        {"type": "envmap", "image": np.full((8, 16, 3), SKY, np.float32)}])
+        {"type": "envmap", "image": SKY_MAP}])
 
 
 def test_light_samples_follow_their_density_chi_squared(renderer):
@@ -91,15 +101,15 @@ def test_light_samples_follow_their_density_chi_squared(renderer):
     valid = drawn["pdfs"] > 0
     directions = drawn["directions"][valid].astype(np.float64)
     np.testing.assert_allclose(np.linalg.norm(directions, axis=1), 1.0, atol=1e-5)
-    midpoints, cell = chi2.bin_directions(THETA_BINS, PHI_BINS, SUB)
-    shares = chi2.bin_shares(density(midpoints)[0], cell, THETA_BINS, PHI_BINS, SUB)
+    midpoints, cell = chi2.bin_directions(THETA_BINS, PHI_BINS, SUB)  # in the bins' frame
+    shares = chi2.bin_shares(density(midpoints @ BINS)[0], cell, THETA_BINS, PHI_BINS, SUB)
     # the mass that falls on the pane's back: samples that are none
     lost = 1.0 - shares.sum()
     assert 0.005 < lost < 0.5, lost
     sigma = np.sqrt(SAMPLES * lost * (1 - lost))
     assert abs((~valid).sum() - SAMPLES * lost) < 5 * sigma + 0.002 * SAMPLES, (
         (~valid).sum(), SAMPLES * lost)
-    observed = chi2.binned(directions, THETA_BINS, PHI_BINS)
+    observed = chi2.binned(directions @ BINS.T, THETA_BINS, PHI_BINS)
     p, statistic, dof = chi2.p_value(observed, shares * SAMPLES)
     assert p > 1e-3, f"chi2 {statistic:.1f} over {dof} dof: p = {p:.2e}"
 
@@ -117,15 +127,21 @@ def test_a_light_sample_s_density_and_radiance_are_its_light_s(renderer):
     # a triangle's sample: its own density (the environment's share of the
     # direction is not in it: MIS weighs the two strategies apart), and the
     # distance to the point drawn on it
-    sky_pdf = density(np.array([[0.0, 0.0, 1.0]]))[0][0]
+    # the environment's alone: just above its dark cap, towards the ground
+    # (no light there), and in the cap
+    probes = np.array([[0.0, -0.49, 0.9], [0.0, -1.0, 0.0]])
+    above, inside = density(probes / np.linalg.norm(probes, axis=1, keepdims=True))[0]
+    assert above > 0 and inside == 0
+    assert (directions[sky, 1] > -0.5).all(), "no sample of the map in its dark cap"
+    sky_pdf = np.where(directions[:, 1] > -0.5, above, 0.0)
     got = drawn["pdfs"][valid].astype(np.float64)
     np.testing.assert_allclose(got[~sky], (pdf - sky_pdf)[~sky], rtol=2e-3)
-    np.testing.assert_allclose(got[sky], sky_pdf, rtol=1e-5)
+    np.testing.assert_allclose(got[sky], sky_pdf[sky], rtol=1e-5)
     radiance = drawn["radiance"][valid]
     np.testing.assert_allclose(radiance[on_lamp], LAMP_RADIANCE, rtol=1e-6)
     np.testing.assert_allclose(radiance[on_pane], np.tile(PANE_RADIANCE, (on_pane.sum(), 1)),
                                rtol=1e-6)
-    np.testing.assert_allclose(radiance[sky], SKY, rtol=1e-6)
+    np.testing.assert_allclose(radiance[sky], SKY, rtol=1e-6)  # outside the cap: all SKY
     points = X + directions[~sky] * reach[~sky, None]
     lamp_y = points[on_lamp[~sky], 1]
     np.testing.assert_allclose(lamp_y, 2.0, atol=1e-4)

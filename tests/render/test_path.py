@@ -153,8 +153,9 @@ def test_a_white_object_in_a_white_furnace_is_white(name, meshes, suite_device):
 def test_a_constant_environment_map_is_the_constant_environment(suite_device):
     """An environment map of one value c everywhere is the constant
     emitter of radiance c: a white diffuse sphere in it comes back c per
-    channel (a furnace), through the map's own sampling and its density
-    in the MIS weights; a rotation changes nothing."""
+    channel (a furnace), through the map's radiance lookup (with nothing
+    above its mean, the map, like the constant emitter, takes no light
+    samples: BSDF sampling alone reaches it); a rotation changes nothing."""
     c = np.array([0.7, 0.5, 0.3], np.float32)
     scene = hlbvh_cl.Scene([sphere()], device=suite_device)
     camera = hlbvh_cl.Camera(eye=(0, 0.5, 3.5), target=(0, 0, 0), fov_deg=40)
@@ -483,12 +484,17 @@ def test_bad_path_settings_are_named(options, message, suite_device):
 
 
 def test_the_environment_s_light_samples_follow_the_power_it_can_deliver(suite_device):
-    """A light sample picks an environment map by the most power it can
-    deliver to the scene's surfaces (area S times pi L, over pi: S L, for a
-    map of one value L) against the lamp's emitted power (area A times L,
-    over pi), in luminance; instances count with their maps' area scale
-    (here 2^2).  A constant environment takes no light samples (BSDF
-    sampling alone reaches it), so the lamp takes them all."""
+    """A light sample picks an environment map by the most power its light
+    samples can deliver to the scene's surfaces against the lamp's emitted
+    power (area A times L, over pi), in luminance: area S times the
+    luminance they sample integrated over the sphere, over 4 pi.  The map
+    here is 3 rows of 4 texels, the top one L and the others 0: its upper
+    cells (theta < pi / 2, 2 pi sr) hold L / 2, its lower ones 0, so its
+    mean is L / 4 and its light samples take the upper half's excess, L / 4
+    over 2 pi, S L / 8 in all (envmap.py's MIS compensation); instances
+    count with their maps' area scale (here 2^2).  A constant environment,
+    or a map of one value, takes no light samples (BSDF sampling alone
+    reaches it), so the lamp takes them all."""
     from hlbvh_cl.render.integrators.path import light_tables
     ground = np.array([[-3, 0, -3], [3, 0, -3], [3, 0, 3], [-3, 0, 3]], np.float64)
     lamp = np.array([[-0.5, 2, -0.5], [0.5, 2, -0.5], [0.5, 2, 0.5], [-0.5, 2, 0.5]])
@@ -502,9 +508,12 @@ def test_the_environment_s_light_samples_follow_the_power_it_can_deliver(suite_d
                                              (1, np.hstack([twice, np.zeros((3, 1))]))], 4.0)):
         scene = hlbvh_cl.Scene(meshes, device=suite_device, instances=instances)
         surface, lamp_power = (36.0 + 1.0) * factor, 1.0 * factor * 10.0
+        top = np.zeros((3, 4, 3), np.float32)
+        top[0] = rgb
         for environment, expected in (
-                ({"type": "envmap", "image": np.full((6, 12, 3), rgb, np.float32)},
-                 surface * sky / (surface * sky + lamp_power)),
+                ({"type": "envmap", "image": top},
+                 surface * sky / 8 / (surface * sky / 8 + lamp_power)),
+                ({"type": "envmap", "image": np.full((6, 12, 3), rgb, np.float32)}, 0.0),
                 ({"type": "constant", "radiance": rgb}, 0.0)):
             look = hlbvh_cl.Renderer(scene, emitters=[lamp_emitter, environment]).look()
             tables = light_tables(look, 1.0, np.zeros(3), np.ones(3))  # no directional light

@@ -147,13 +147,15 @@ def light_tables(look: Look, scale: float, bounds_lo, bounds_hi) -> dict:
     lo, hi = np.asarray(bounds_lo, np.float64), np.asarray(bounds_hi, np.float64)
     radius = 0.5 * float(np.linalg.norm(hi - lo)) or 1.0
     envmap = look.emitters.envmap
-    # The power an environment map can deliver to the scene's surfaces (area
-    # S): at most the cosine-weighted integral of its luminance per unit
-    # area, whose mean over orientations is a quarter of its integral over
-    # the sphere.  pbrt-v4's power sampler counts the flux through the
-    # scene's bounding sphere instead, 4 pi R^2 L, which gave an open scene's
-    # sky most light samples and a small bright lamp few.  A constant
-    # environment takes none (BSDF sampling alone: the module's docstring).
+    # The power an environment map's light samples can deliver to the
+    # scene's surfaces (area S): at most the cosine-weighted integral of
+    # the luminance they sample (its excess over the map's mean: envmap.py)
+    # per unit area, whose mean over orientations is a quarter of its
+    # integral over the sphere.  pbrt-v4's power sampler counts the flux
+    # through the scene's bounding sphere instead, 4 pi R^2 L, which gave an
+    # open scene's sky most light samples and a small bright lamp few.  A
+    # constant environment takes none (BSDF sampling alone: the module's
+    # docstring).
     environment_power = 0.0 if envmap is None else \
         look.surface_area * scale * scale / (4.0 * np.pi) * envmap.tables[1]
     deltas = np.zeros(max(1, len(look.emitters.deltas)), layout.DELTA_LIGHT)
