@@ -141,9 +141,10 @@ def sample_lights(renderer, point, count: int, seed: int = 0) -> dict[str, np.nd
     (count, 3) arriving from it; "pdfs" (count,), the density with which
     the sample was drawn, per solid angle (0: no sample, such as a point on
     a light's back; a delta light's: the chance of picking it); "reaches"
-    (count,), the distance to the light (inf for the environment or a
+    (count,), the distance to the light (inf for an environment map or a
     directional light); float32.  The lights are picked by power as in a
-    render (the environment against the scene's surface area)."""
+    render (an environment map against the scene's surface area; a constant
+    environment draws none, its share going to the other lights)."""
     count = inputs.integer("count", count, 1, 1 << 26)
     seed = inputs.integer("seed", seed, 0, 2**32 - 1)
     x = np.asarray(inputs.vector3("point", point), np.float64)

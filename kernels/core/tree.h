@@ -67,7 +67,7 @@ typedef struct {
  * the hits the same bits, but the walks traced slower on CPU runtimes: a
  * leaf's vertices wait on its indices, which the push-time prefetch cannot
  * cover (figures in the commit that says so).  Indices into the leaf's own
- * distinct vertices, stored in the leaf (two fifths less memory on the
+ * distinct vertices, stored in the leaf (two fifths less leaf memory on the
  * reference scene), gave the same bits again for nearly the same
  * instructions, and traced slower too, most on PoCL (figures in the commit
  * that says so). */

@@ -158,3 +158,18 @@ def test_an_instanced_scene_samples_its_lights_as_the_flat_one(renderer, suite_d
     for name in ("directions", "radiance", "pdfs", "reaches"):
         np.testing.assert_allclose(ours[name], theirs[name], rtol=1e-5, atol=1e-6,
                                    err_msg=name)
+
+
+def test_a_constant_environment_takes_no_light_samples(renderer):
+    """BSDF sampling alone reaches a constant environment (path.py): beside
+    the lamps, it leaves their light samples as they are without it."""
+    lamps = [emitter for emitter in renderer.emitters if emitter["type"] == "area"]
+    assert len(lamps) == 2
+    with_sky = hlbvh_cl.Renderer(renderer.scene, emitters=[
+        *lamps, {"type": "constant", "radiance": SKY}])
+    alone = hlbvh_cl.Renderer(renderer.scene, emitters=lamps)
+    ours, theirs = (sample_lights(r, X, 5000, seed=4) for r in (with_sky, alone))
+    assert (ours["pdfs"] > 0).sum() > 2000
+    assert not np.isinf(ours["reaches"][ours["pdfs"] > 0]).any()
+    for name in ("directions", "radiance", "pdfs", "reaches"):
+        np.testing.assert_array_equal(ours[name], theirs[name], err_msg=name)

@@ -41,7 +41,7 @@ class Look:
     #: linear part (normals to the world), or None for a flat scene
     instance_maps: object = None
     #: the scene's world surface area (every instance's), which bounds the
-    #: power an environment delivers to it (the path integrator's light choice)
+    #: power an environment map delivers to it (the path integrator's light choice)
     surface_area: float = 0.0
     #: the instances' own materials: layout.PATH_MATERIAL records, no emission
     #: (materials.instance_material_table)

@@ -20,11 +20,12 @@ so T takes the albedo).
 A constant environment is reached by BSDF sampling alone, as in pbrt-v4's
 PathIntegrator (its UniformInfiniteLight draws no light sample where the
 integrator allows incomplete densities, as that one does): against a constant
-radiance the integrand is f cos V, which the BSDF's own sampling already
-follows, so directions uniform on the sphere only add noise, half of them
-below the surface; the light samples go to the other lights instead.  A
-ray that escapes then takes the full weight, where no light sample could
-have drawn it.  ``max_depth`` is Mitsuba's: the most segments a
+radiance the integrand is f cos V, which the BSDF's own sampling follows up
+to the visibility, so directions uniform on the sphere only add noise (for
+an opaque surface, half of them below it).  Unlike pbrt, whose light
+sampler still picks the light and gets nothing, the light samples go to
+the other lights.  A ray that escapes then takes the full weight, where no
+light sample could have drawn it.  ``max_depth`` is Mitsuba's: the most segments a
 path has (1: only what the camera sees emitting; 2: direct light; -1: no
 limit), and from ``rr_depth`` on a path goes on with probability
 q = min(max channel of T, 0.95) and T /= q (Russian roulette, Mitsuba's
@@ -117,7 +118,8 @@ def light_tables(look: Look, scale: float, bounds_lo, bounds_hi) -> dict:
     float32 CDF by power; "owners", the mesh of each; "deltas", DeltaLight
     records; "envmap_image" and "envmap_cdf", the environment map's pixels
     and CDFs (envmap.py; stand-ins without one); and the chances a light
-    sample picks the environment or a delta light (emitters.py)."""
+    sample picks the environment map (0 for a constant environment) or a
+    delta light (emitters.py)."""
     materials = look.materials.copy()
     vertices, normals, weights, owners, areas = [], [], [], [], {}
     # the triangles first, then the spheres (geom_ids after the meshes'),
