@@ -15,7 +15,11 @@ Each sample of a pixel follows one path from the camera.  At each vertex x
   samples (below);
 
 then samples the BSDF for the next direction (diffuse: cosine-distributed,
-so T takes the albedo).
+so T takes the albedo).  ``max_depth`` is Mitsuba's: the most segments a
+path has (1: only what the camera sees emitting; 2: direct light; -1: no
+limit), and from ``rr_depth`` on a path goes on with probability
+q = min(max channel of T, 0.95) and T /= q (Russian roulette, Mitsuba's
+rule), which keeps the estimate unbiased.
 
 A constant environment is reached by BSDF sampling alone, as in pbrt-v4's
 PathIntegrator (its UniformInfiniteLight draws no light sample where the
@@ -25,11 +29,7 @@ to the visibility, so directions uniform on the sphere only add noise (for
 an opaque surface, half of them below it).  Unlike pbrt, whose light
 sampler still picks the light and gets nothing, the light samples go to
 the other lights.  A ray that escapes then takes the full weight, where no
-light sample could have drawn it.  ``max_depth`` is Mitsuba's: the most segments a
-path has (1: only what the camera sees emitting; 2: direct light; -1: no
-limit), and from ``rr_depth`` on a path goes on with probability
-q = min(max channel of T, 0.95) and T /= q (Russian roulette, Mitsuba's
-rule), which keeps the estimate unbiased.
+light sample could have drawn it.
 
 The stages run as a wavefront (Laine, Karras & Aila 2013): the path states
 live in a device buffer, and per bounce the host enqueues the surface
@@ -154,10 +154,10 @@ def light_tables(look: Look, scale: float, bounds_lo, bounds_hi) -> dict:
     # the luminance they sample (its excess over the map's mean: envmap.py)
     # per unit area, whose mean over orientations is a quarter of its
     # integral over the sphere.  pbrt-v4's power sampler counts the flux
-    # through the scene's bounding sphere instead, 4 pi R^2 L, which gave an
-    # open scene's sky most light samples and a small bright lamp few.  A
-    # constant environment takes none (BSDF sampling alone: the module's
-    # docstring).
+    # through the scene's bounding sphere instead, 4 pi R^2 L (over pi),
+    # which gave an open scene's sky most light samples and a small bright
+    # lamp few.  A constant environment takes none (BSDF sampling alone: the
+    # module's docstring).
     environment_power = 0.0 if envmap is None else \
         look.surface_area * scale * scale / (4.0 * np.pi) * envmap.tables[1]
     deltas = np.zeros(max(1, len(look.emitters.deltas)), layout.DELTA_LIGHT)
