@@ -111,10 +111,14 @@ TRAVERSAL_INLINE void prefetch_hit_ids(__global const TriangleRef* refs, uint i)
  * once, as the closest hit does (trace.h's root phase: which hit a lane
  * takes does not change whether it has one); a lane the phase occludes, or
  * that meets no interior child of the root, takes no walk.  Deeper, the
- * children go nearer first, leaves too, as the nearer boxes hold an occluder
- * sooner: leaves tested first there are the far ones as often as not
- * (measured slower on rays leaving a surface). */
+ * met children go in slot order, unsorted (QUERY_UNORDERED): a shadow ray
+ * wants any occluder, not the nearest, and sorting the children by entry
+ * cost more than the earlier occluders it found saved (figures in the
+ * commit that says so).  Leaves tested first at every node, the far ones
+ * as often as not, had measured slower than that order on rays leaving a
+ * surface. */
 #define QUERY occluded
+#define QUERY_UNORDERED
 #define QUERY_OUT HitLanes
 #define QUERY_ENDS(s) PATH(every)((s)->index >= 0)
 #define QUERY_HIT(s, i, hit, t, u, v) \

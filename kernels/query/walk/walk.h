@@ -38,8 +38,9 @@
  *                               instances' INSTANCE_PARAMS (two_level.h)
  *                               before QUERY_PARAMS
  *   QUERY_UNORDERED             optional, defined: the query visits every
- *                               met child (its limit never shrinks), so
- *                               the walk neither orders children nor keeps
+ *                               met child (its limit never shrinks), or
+ *                               ends at its first hit (any hit), so the
+ *                               walk neither orders children nor keeps
  *                               their entries (next_item_any)
  * Hooks may use the walk's `nodes` and `triangles`, `state`, and WALK_ARGS,
  * which passes its extra parameters on.  Hooks are macros so that the walk
