@@ -134,15 +134,18 @@ def outputs_in_place(rt: Runtime) -> bool:
 def work_group_size(rt: Runtime) -> int:
     """Work-items per group for the traversal kernels.
 
-    8 on CPUs.  PoCL runs a group as a loop over its work-items and keeps
-    what lives across the walk in per-item arrays: 8 measured faster than 16
-    and 64 on path-traced bounces (the path tracer's closest hits), the
-    same as 4, and within noise on numpy-in queries.  At 16 and more Intel's
-    CPU runtime would pack 16 rays into SIMD lanes (much slower: divergence),
-    which the kernels' vec_type_hint now prevents, but 8 stays the safe
-    choice there too.  GPUs want at least a warp/wavefront.
+    1 on CPUs.  PoCL runs a group as a loop over its work-items and keeps
+    each item's private arrays (the walks' rays, stacks and states) in
+    per-item copies that every access indexes by the item's number; a group
+    of one addresses them directly (the compiled walk showed the indexing on
+    every step).  Against groups of 8 (4 where a work-item takes two lane
+    groups), which had measured faster than 16 and 64, groups of one traced
+    faster on PoCL, closest and shadow rays, and within noise on Intel's CPU
+    runtime (figures in the commit that set this).  The traversal kernels
+    hold no local memory and no barrier, so the size changes only speed.
+    GPUs want at least a warp/wavefront.
     """
-    size = 64 if rt.profile.gpu else 8
+    size = 64 if rt.profile.gpu else 1
     return min(size, rt.device.cl_device.max_work_group_size)
 
 
