@@ -34,6 +34,11 @@ from ..parallel.radix_sort import sorter
 from ..core.tree import Tree
 from .widen import Widening, read_back
 
+#: The builders.  A better tree is not where traversal loses to Embree: the
+#: bunny's triangles under a full binned SAH (32 bins a node, on the host),
+#: widened by the same widen stage, gave the same hits, 27% fewer wide nodes
+#: and traced bounces and incoherent rays only a few percent faster than
+#: the HLBVH's tree (figures in the commit that says so).
 BUILDERS = ("hlbvh", "lbvh")
 STAGES = ("bounds", "morton", "sort", "radix_tree", "sah_top", "flatten", "widen")
 MAX_TRIANGLES = 2**30  # node indices are int32 (2n - 1 of them must fit)
