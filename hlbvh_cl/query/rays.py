@@ -219,7 +219,7 @@ class RayQuery:
                                b["directions"], *steps["tmin"], *steps["tmax"], b["t"],
                                b["geom_id"], b["prim_id"], b["u"], b["v"], b["normal"],
                                b["points"], b["instance_id"], self.engine.counters,
-                               np.uint32(run.first + n), local_size=self._group_size(tree),
+                               np.uint32(run.first + n), local_size=self.work_group_size,
                                offset=run.first // self.rays_per_item(tree))
         return launch
 
@@ -233,7 +233,7 @@ class RayQuery:
                                *scene_args(tree, *steps["mask"]), b["origins"],
                                b["directions"], *steps["tmin"], *steps["tmax"],
                                b["occluded"], self.engine.counters,
-                               np.uint32(run.first + n), local_size=self._group_size(tree),
+                               np.uint32(run.first + n), local_size=self.work_group_size,
                                offset=run.first // self.rays_per_item(tree))
         return launch
 
@@ -326,7 +326,7 @@ class RayQuery:
         return self.rt.run(kernel, self._work_items(tree, count),
                            *scene_args(tree, self._all_bits, 0), rays, hits, instances,
                            overflow, np.uint32(count), *counted_args(counted),
-                           wait_for=wait_for, local_size=self._group_size(tree))
+                           wait_for=wait_for, local_size=self.work_group_size)
 
     def enqueue_occluded(self, tree: Tree, rays: cl.Buffer, occluded: cl.Buffer, count: int,
                          overflow: cl.Buffer, wait_for=None,
@@ -338,7 +338,7 @@ class RayQuery:
         return self.rt.run(kernel, self._work_items(tree, count),
                            *scene_args(tree, self._all_bits, 0), rays, occluded, overflow,
                            np.uint32(count), *counted_args(counted), wait_for=wait_for,
-                           local_size=self._group_size(tree))
+                           local_size=self.work_group_size)
 
     # -- internals ----------------------------------------------------------
 
@@ -360,13 +360,6 @@ class RayQuery:
     def _work_items(self, tree, rays: int) -> int:
         """Work-items that trace `rays` rays over ``tree``."""
         return -(-rays // self.rays_per_item(tree))
-
-    def _group_size(self, tree) -> int:
-        """Work-items per work-group over ``tree``: work_group_size, halved
-        where each takes two lane groups, so that a group holds as many rays
-        (the few groups of a path tracer's last bounces, fewer and larger,
-        left a core idle: measured slower)."""
-        return max(1, self.work_group_size // lane_groups(self.rt, tree, self.packet_size))
 
     def _require_triangles(self, tree: Tree) -> None:
         if not check_tree(self.rt, tree):
