@@ -36,9 +36,9 @@ from .widen import Widening, read_back
 
 #: The builders.  A better tree is not where traversal loses to Embree: the
 #: bunny's triangles under a full binned SAH (32 bins a node, on the host),
-#: widened by the same widen stage, gave the same hits, 27% fewer wide nodes
-#: and traced bounces and incoherent rays only a few percent faster than
-#: the HLBVH's tree (figures in the commit that says so).
+#: widened by the same widen stage, gave the same hits and fewer wide nodes
+#: but traced bounces and incoherent rays barely faster than the HLBVH's
+#: tree (figures in the commit that says so).
 BUILDERS = ("hlbvh", "lbvh")
 STAGES = ("bounds", "morton", "sort", "radix_tree", "sah_top", "flatten", "widen")
 MAX_TRIANGLES = 2**30  # node indices are int32 (2n - 1 of them must fit)

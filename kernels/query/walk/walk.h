@@ -230,9 +230,8 @@ TRAVERSAL_INLINE bool WALK_NAME(step)(const PATH(Rays)* r, __global const WideNo
  * state[k].  True when a stack ran out.  Every walk in turn, rather than a
  * few slots (4 or 8 walks in flight, each in registers through a loop
  * unrolled over its slots and refilled with the next ray when its walk
- * ends): 4 slots traced within noise of this to a few percent slower, 8
- * (with groups of 4 work-items) a third slower (figures in the commit that
- * says so). */
+ * ends): 4 slots traced no faster than this, 8 slower (figures in the
+ * commit that says so). */
 TRAVERSAL_INLINE bool WALK_NAME(walks)(const PATH(Rays)* r, __global const WideNode* nodes,
                                        __global const Triangle* triangles, PATH(Found)* s,
                                        uint n WALK_PARAMS)
