@@ -24,8 +24,9 @@ built) until the last sample is done, polled every 2 ms: like ours and
 Mitsuba's, a render of a built scene.  Each scene's image means (linear,
 over pixels and channels) are printed side by side as a translation check,
 and each of our renders' device time per stage (Renderer.stats: closest
-hits, shading, shadow rays, ...) as a share of its total: where the next
-speed-up must come from.
+hits, shading, shadow rays, ...) as a share of its total, and the bounce
+stages' shares depth by depth (Renderer.stats["depths"]), with the paths
+each depth shaded: where the next speed-up must come from.
 
 Equal-time quality: a reference of REFERENCE_SPP samples per pixel by
 Mitsuba, then each renderer for the time Mitsuba takes for EQUAL_TIME_SPP
@@ -52,6 +53,7 @@ import numpy as np
 
 from hlbvh_cl.io.scenefile import load
 from hlbvh_cl.io.to_mitsuba import write_xml
+from hlbvh_cl.render.integrators.path import DEPTH_STAGES
 from hlbvh_cl.render.renderer import STAGES as RENDER_STAGES
 
 from . import luxcore
@@ -187,6 +189,23 @@ def stage_medians(rounds: list[dict]) -> dict:
             for stage in (*RENDER_STAGES, "total")}
 
 
+def depth_medians(rounds: list[dict]) -> dict:
+    """The median over rounds of Renderer.stats["depths"] (the paths each
+    depth shaded and each bounce stage's milliseconds there), depth by
+    depth, over the depths the longest round reached (0 past a round's)."""
+    depths = max(len(r["paths"]) for r in rounds)
+    return {key: [float(np.median([(r[key] + [0] * depths)[d] for r in rounds]))
+                  for d in range(depths)] for key in rounds[0]}
+
+
+def depth_rows(name: str, device: str, depths: dict, total_ms: float) -> list[list]:
+    """A table's rows of one render's depths: the paths each shaded, and each
+    bounce stage's time there as a share of the render's device total."""
+    return [[name, device, d, int(depths["paths"][d])]
+            + [f"{depths[stage][d] / total_ms:.1%}" for stage in DEPTH_STAGES]
+            for d in range(len(depths["paths"])) if depths["paths"][d] > 0]
+
+
 def relmse(image: np.ndarray, reference: np.ndarray) -> float:
     """Mean of (image - reference)^2 / (reference^2 + 0.01) over pixels and
     channels (the 0.01 keeps black pixels from dominating)."""
@@ -275,6 +294,7 @@ def main(argv=None) -> dict:
                  + [(n, "luxcore") for n in paths if lux is not None]}
         means = {key: [] for key in times}
         stages = {key: [] for key in ours}
+        depths = {key: [] for key in ours}
         for _ in range(args.rounds):
             for name, path in paths.items():
                 width, height, spp = sizes[name]
@@ -285,6 +305,7 @@ def main(argv=None) -> dict:
                     times[name, device].append(time.perf_counter() - started)
                     means[name, device].append(float(image.mean()))
                     stages[name, device].append(renderer.stats["times_ms"])
+                    depths[name, device].append(renderer.stats["depths"])
                 answer = child.render(name, path, width, height, spp)
                 times[name, "mitsuba"].append(answer["seconds"])
                 means[name, "mitsuba"].append(answer["mean"])
@@ -298,7 +319,7 @@ def main(argv=None) -> dict:
         child.close()
         if lux is not None:
             lux.close()
-    rows, mean_rows, stage_rows = [], [], []
+    rows, mean_rows, stage_rows, bounce_rows = [], [], [], []
     for name in paths:
         width, height, spp = sizes[name]
         samples = width * height * spp
@@ -317,7 +338,10 @@ def main(argv=None) -> dict:
             entry[device] = {"msamples_per_s": rate / 1e6, "ratio_to_mitsuba": rate / theirs,
                              "mean": summary(means[name, device])["median"],
                              "seconds": summary(times[name, device]),
-                             "stages_ms": stage_medians(stages[name, device])}
+                             "stages_ms": stage_medians(stages[name, device]),
+                             "depths": depth_medians(depths[name, device])}
+            bounce_rows += depth_rows(name, device, entry[device]["depths"],
+                                      entry[device]["stages_ms"]["total"])
             stage_rows.append([name, device] + [
                 f"{entry[device]['stages_ms'][stage] / entry[device]['stages_ms']['total']:.0%}"
                 for stage in RENDER_STAGES] + [f"{entry[device]['stages_ms']['total']:.0f}",
@@ -340,6 +364,9 @@ def main(argv=None) -> dict:
     # the host (a GPU's, whose launches are short beside their host work)
     print(table(["scene", "device", *RENDER_STAGES, "device total (ms)", "wall (ms)"],
                 stage_rows, title="where our render's device time goes (median of the rounds)"))
+    print(table(["scene", "device", "depth", "paths", *DEPTH_STAGES], bounce_rows,
+                title="and by depth (depth 0's closest hits: the camera rays'), as shares "
+                      "of the device total"))
     if lux is not None:  # the translation's check (bench/luxcore.py)
         print(table(["scene", *devices, "Mitsuba", "LuxCore"], mean_rows,
                     title="image means (linear; median of the rounds)"))

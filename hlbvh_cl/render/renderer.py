@@ -85,7 +85,9 @@ class Pipeline:
     one per pixel and pass: pixels that need none get an empty one), and
     device times in milliseconds per stage (STAGES, and "total") plus
     "wall" (the whole call) and "setup" (part of wall: building or loading
-    kernels, allocating buffers).  PoCL finishes compiling a kernel at its
+    kernels, allocating buffers); for path tracing, "depths" splits the
+    paths and the bounce stages' times by depth (integrators/path.py's
+    Path.depth_stats).  PoCL finishes compiling a kernel at its
     first launch, and a tree's first query may prepare it for traversal:
     render once, small, to keep those out of a measurement.
     """
@@ -210,6 +212,8 @@ class Pipeline:
                            "mean_spp": mean_spp,
                            "primary_rays": pixels, "secondary_rays": secondary,
                            "times_ms": times, "interrupted": interrupted}
+        if hasattr(integrator, "depth_stats"):  # paths: the same times, bounce by bounce
+            self.last_stats["depths"] = integrator.depth_stats()
         if interrupted:
             raise RenderInterrupted(image, taken)
         return image

@@ -230,6 +230,30 @@ def test_a_long_render_keeps_only_the_events_still_running(bunny_renderer, monke
     assert stages == pytest.approx(sum(summed), rel=1e-9)
 
 
+def test_depth_stats_split_the_bounce_stages_and_count_the_paths(bunny_renderer, bands_of_8_rows):
+    """Renderer.stats["depths"] over 5 bands and 3 samples: every pixel's
+    sample is shaded at depth 0, fewer paths at each depth after it, none
+    past max_depth's last segment; each closest hit and shadow-ray launch
+    lands in one depth's time (depth 0's closest: the camera rays'), the
+    surface and resolve stages' too, beside the stage's other launches."""
+    path(bunny_renderer, spp=3, max_depth=4)
+    stats = bunny_renderer.stats
+    depths, times = stats["depths"], stats["times_ms"]
+    paths = depths["paths"]
+    assert paths[0] == WIDTH * HEIGHT * 3 == stats["primary_rays"]
+    # depth d shades the end of segment d + 1: max_depth 4, depths 0 to 3 at most
+    assert 2 <= len(paths) <= 4 and all(a > b for a, b in zip(paths, paths[1:])), paths
+    # every bounce a closest hit and a shadow ray (the renderer's count)
+    assert stats["secondary_rays"] == stats["primary_rays"] + 2 * sum(paths[1:])
+    for stage in ("closest", "shade", "occluded", "resolve"):
+        assert len(depths[stage]) == len(paths) and min(depths[stage]) >= 0, stage
+    assert sum(depths["closest"]) == pytest.approx(times["closest"], rel=1e-9)
+    assert sum(depths["occluded"]) == pytest.approx(times["occluded"], rel=1e-9)
+    # shade also holds the counters' fills, resolve the film's sums
+    assert 0 < sum(depths["shade"]) <= times["shade"]
+    assert 0 < sum(depths["resolve"]) < times["resolve"]
+
+
 def test_aovs_add_up_over_bands_and_rounds(bunny_renderer, monkeypatch):
     whole = path(bunny_renderer, spp=3, aovs=True)
     monkeypatch.setattr(renderer_module, "PIXELS_PER_PASS", 8 * WIDTH)

@@ -59,7 +59,7 @@ import pyopencl as cl
 
 from ...core import layout
 from ...core.paths import kernel_of
-from ...device.runtime import Runtime
+from ...device.runtime import Runtime, event_ms
 from ..emitters import luminance
 from ..random import salts8
 from .base import Integrator, Look, Step
@@ -93,6 +93,11 @@ RAY_EPSILON: float = layout.CONSTANTS["RAY_EPSILON"]
 
 #: DeltaLight.type (kernels/render/integrators/path.h).
 LIGHT_POINT, LIGHT_DIRECTIONAL = 0, 1
+
+#: The stages of a bounce that Path.depth_stats times: the closest hits
+#: (at depth 0 the camera rays'), the surface stage, the shadow rays and
+#: their resolve.
+DEPTH_STAGES = ("closest", "shade", "occluded", "resolve")
 
 
 def check_light_density(mesh: int, pdf: float, area: float, scale: float) -> None:
@@ -297,6 +302,43 @@ class Path(Integrator):
         self._tables: dict[str, cl.Buffer] = {}
         self._shading: tuple = ((), {})  # (the meshes, their shading buffers)
         self.last_bounces: list[int] = []
+        self._reset_depths()
+
+    def _reset_depths(self) -> None:
+        """No bounce timed or counted yet (depth_stats)."""
+        self._tagged: list[tuple[int, str, cl.Event]] = []
+        self._depth_ms = {stage: [] for stage in DEPTH_STAGES}
+        self._depth_paths: list[int] = []
+
+    def _fold_depths(self, wait: bool = False) -> None:
+        """The tagged events that have finished (all of them, waited for,
+        with ``wait``) added to their depth's times and dropped, so that a
+        long render keeps only those in flight, as the renderer's own
+        fold_times does."""
+        if wait and self._tagged:
+            self.rt.wait([event for _, _, event in self._tagged])
+        complete = cl.command_execution_status.COMPLETE
+        running = []
+        for depth, stage, event in self._tagged:
+            if event.command_execution_status != complete:
+                running.append((depth, stage, event))
+                continue
+            times = self._depth_ms[stage]
+            times.extend([0.0] * (depth + 1 - len(times)))
+            times[depth] += event_ms([event])
+        self._tagged = running
+
+    def depth_stats(self) -> dict:
+        """Where the last render's paths spent their device time, bounce by
+        bounce: "paths", how many paths each depth shaded (depth d: where
+        the path's segment d + 1 ends; depth 0: one per pixel and sample),
+        and per DEPTH_STAGES stage its milliseconds at each depth, summed over
+        the render's samples.  The renderer's stats give it as "depths"."""
+        self._fold_depths(wait=True)
+        depths = len(self._depth_paths)
+        return {"paths": list(self._depth_paths),
+                **{stage: (times + [0.0] * depths)[:depths]
+                   for stage, times in self._depth_ms.items()}}
 
     def buffer_sizes(self, pixels: int) -> dict[str, int]:
         return {name: size * pixels for name, size in self.PER_PIXEL.items()}
@@ -355,6 +397,7 @@ class Path(Integrator):
         self._length_scale = np.float32(1.0 / tree.scale)
         self._live = np.zeros(UNLIMITED_BOUNCES, np.uint32)
         self.last_bounces = []
+        self._reset_depths()
 
     @classmethod
     def aov_sizes(cls, pixels: int, image_pixels: int) -> dict[str, int]:
@@ -416,6 +459,9 @@ class Path(Integrator):
         LOOKAHEAD passes behind (never fewer, since paths only end), and the
         kernels read the counts on the device."""
         rt, band, kernels, events = step.rt, step.band, self._kernels, step.events
+        self._fold_depths()
+        # the band's camera rays' closest hits, the renderer's last (Step)
+        tagged = [(0, "closest", events["closest"][-1])]
         count, sample = np.uint32(band.count), np.uint32(step.sample)
         stream, first_pixel = np.uint32(step.stream), np.uint32(int(band.first_row) * band.width)
         tables = self._tables
@@ -443,6 +489,7 @@ class Path(Integrator):
                 events["closest"].append(step.query.enqueue_intersect(
                     step.tree, rays, step.hits, bound, step.overflow,
                     instances=step.instances, counted=(self.live, depth)))
+                tagged.append((depth, "closest", events["closest"][-1]))
             events["shade"].append(rt.run(
                 kernels["path_surface"], bound, rays, step.hits, numbers, self.states,
                 tables["materials"], tables["vertices"], tables["normals"], tables["cdf"],
@@ -460,6 +507,7 @@ class Path(Integrator):
             events["resolve"].append(rt.run(
                 kernels["path_unoccluded"], bound, self.occluded, self.pending,
                 self.shadow_paths, self.shadows, at, np.uint32(bound), self.states))
+            tagged += [(depth, stage, events[stage][-1]) for stage in DEPTH_STAGES[1:]]
             reads.append(cl.enqueue_copy(rt.queue, self._live[depth:depth + 1], self.live,
                                          src_offset=4 * (depth + 1), is_blocking=False))
             rays, next_rays = next_rays, rays
@@ -471,6 +519,12 @@ class Path(Integrator):
                     break  # every path ended: what is enqueued after it finds none
         rt.wait(reads)
         self.last_bounces.append(int(self._live[:len(reads)].sum()))
+        self._tagged += tagged
+        # the paths each depth shaded: the band's, then those that went on
+        shaded = [band.count] + [int(n) for n in self._live[:len(reads) - 1]]
+        self._depth_paths.extend([0] * (len(shaded) - len(self._depth_paths)))
+        for depth, paths in enumerate(shaded):
+            self._depth_paths[depth] += paths
         events["resolve"].append(rt.run(kernels["path_finish"], band.count, self.states, count,
                                         sample, step.accum))
         step.done(events["resolve"][-1])
