@@ -381,3 +381,17 @@ def event_ms(events) -> float:
         return 0.0
     return sum(e.profile.end - e.profile.start for e in events) * 1e-6
 
+
+def fold_events(pending: dict, spent: dict) -> None:
+    """Each list of events in ``pending``: its finished ones' device time
+    added to ``spent`` under the same key (event_ms) and dropped, so that a
+    long run keeps only the events still in flight."""
+    complete = cl.command_execution_status.COMPLETE
+    for key, found in pending.items():
+        done, running = [], []
+        for event in found:
+            if event is not None:
+                (done if event.command_execution_status == complete else running).append(event)
+        spent[key] = spent.get(key, 0.0) + event_ms(done)
+        found[:] = running
+

@@ -26,7 +26,7 @@ import numpy as np
 import pyopencl as cl
 
 from ..core import inputs, layout
-from ..device.runtime import Runtime, event_ms
+from ..device.runtime import Runtime, event_ms, fold_events
 from ..query.rays import RayQuery
 from ..scene import Scene
 from .camera import Camera, enqueue_primary_rays
@@ -395,14 +395,7 @@ class _Run:
         a render keeps no more than the events still running, so that one of
         60,000 rounds holds no more memory than one of a few, and Ctrl-C,
         after which the render sums the events left, is answered as soon."""
-        complete = cl.command_execution_status.COMPLETE
-        for name, found in self.events.items():
-            done, running = [], []
-            for event in found:
-                if event is not None:
-                    (done if event.command_execution_status == complete else running).append(event)
-            self.spent_ms[name] += event_ms(done)
-            found[:] = running
+        fold_events(self.events, self.spent_ms)
 
     def step_done(self, event: cl.Event) -> None:
         """At most two steps (a pass's rays of one kind) in flight, so that

@@ -12,6 +12,7 @@ import hlbvh_cl
 from hlbvh_cl.cli import main
 from hlbvh_cl.io.exr import read_exr
 from hlbvh_cl.render import renderer as renderer_module
+from hlbvh_cl.render.integrators import path as path_module
 from hlbvh_cl.render.camera import SPLAT_REACH
 from hlbvh_cl import RenderInterrupted
 
@@ -213,17 +214,33 @@ def test_a_long_render_keeps_only_the_events_still_running(bunny_renderer, monke
     event it had enqueued and summed them at its end (a CLI render of 60,000
     rounds grew to GBs, and Ctrl-C waited seconds for the sum).  The sums
     now take a few samples' events at a time, and every event summed lands
-    in the stage times once."""
-    sizes, summed = [], []
-    event_ms = renderer_module.event_ms
+    in the stage times once.  The path integrator's events by depth
+    (stats["depths"]) are folded the same way."""
+    sizes, summed, held_by_depth = [], [], []
+    event_ms, fold_events = renderer_module.event_ms, renderer_module.fold_events
 
-    def summing(events):
+    def summing(events):  # the render's last sum, of the events still held
         sizes.append(len(events))
         summed.append(event_ms(events))
         return summed[-1]
+
+    def folding(pending, spent):  # the sums along the way
+        held = {key: len(found) for key, found in pending.items()}
+        before = {key: spent.get(key, 0.0) for key in pending}
+        fold_events(pending, spent)
+        sizes.extend(held[key] - len(pending[key]) for key in pending)  # per stage, as event_ms
+        summed.append(sum(spent[key] - before[key] for key in pending))
+
+    def folding_depths(pending, spent):
+        held_by_depth.append(sum(len(found) for found in pending.values()))
+        fold_events(pending, spent)
     monkeypatch.setattr(renderer_module, "event_ms", summing)
+    monkeypatch.setattr(renderer_module, "fold_events", folding)
+    monkeypatch.setattr(path_module, "fold_events", folding_depths)
     bunny_renderer.render(CAMERA, 4, 4, shading=shading, hdr=True, spp=300, **options)
     assert sum(sizes) > 300 * 2 and max(sizes) < 60, (sum(sizes), max(sizes))
+    if shading == "path":  # a dozen launches or more a sample: thousands held if none were folded
+        assert len(held_by_depth) > 300 and max(held_by_depth) < 300, max(held_by_depth)
     times = bunny_renderer.stats["times_ms"]
     assert times["closest"] > 0
     stages = sum(value for name, value in times.items() if name not in ("total", "setup", "wall"))

@@ -59,7 +59,7 @@ import pyopencl as cl
 
 from ...core import layout
 from ...core.paths import kernel_of
-from ...device.runtime import Runtime, event_ms
+from ...device.runtime import Runtime, fold_events
 from ..emitters import luminance
 from ..random import salts8
 from .base import Integrator, Look, Step
@@ -305,40 +305,25 @@ class Path(Integrator):
         self._reset_depths()
 
     def _reset_depths(self) -> None:
-        """No bounce timed or counted yet (depth_stats)."""
-        self._tagged: list[tuple[int, str, cl.Event]] = []
-        self._depth_ms = {stage: [] for stage in DEPTH_STAGES}
+        """No bounce timed or counted yet (depth_stats): the launches in
+        flight and the milliseconds of those done, by (stage, depth)."""
+        self._depth_events: dict[tuple[str, int], list[cl.Event]] = {}
+        self._depth_ms: dict[tuple[str, int], float] = {}
         self._depth_paths: list[int] = []
-
-    def _fold_depths(self, wait: bool = False) -> None:
-        """The tagged events that have finished (all of them, waited for,
-        with ``wait``) added to their depth's times and dropped, so that a
-        long render keeps only those in flight, as the renderer's own
-        fold_times does."""
-        if wait and self._tagged:
-            self.rt.wait([event for _, _, event in self._tagged])
-        complete = cl.command_execution_status.COMPLETE
-        running = []
-        for depth, stage, event in self._tagged:
-            if event.command_execution_status != complete:
-                running.append((depth, stage, event))
-                continue
-            times = self._depth_ms[stage]
-            times.extend([0.0] * (depth + 1 - len(times)))
-            times[depth] += event_ms([event])
-        self._tagged = running
 
     def depth_stats(self) -> dict:
         """Where the last render's paths spent their device time, bounce by
         bounce: "paths", how many paths each depth shaded (depth d: where
         the path's segment d + 1 ends; depth 0: one per pixel and sample),
         and per DEPTH_STAGES stage its milliseconds at each depth, summed over
-        the render's samples.  The renderer's stats give it as "depths"."""
-        self._fold_depths(wait=True)
-        depths = len(self._depth_paths)
+        the render's samples (a sample that Ctrl-C cut short is left out).
+        The renderer's stats give it as "depths"."""
+        self.rt.wait([event for found in self._depth_events.values() for event in found])
+        fold_events(self._depth_events, self._depth_ms)
+        depths = range(len(self._depth_paths))
         return {"paths": list(self._depth_paths),
-                **{stage: (times + [0.0] * depths)[:depths]
-                   for stage, times in self._depth_ms.items()}}
+                **{stage: [self._depth_ms.get((stage, d), 0.0) for d in depths]
+                   for stage in DEPTH_STAGES}}
 
     def buffer_sizes(self, pixels: int) -> dict[str, int]:
         return {name: size * pixels for name, size in self.PER_PIXEL.items()}
@@ -459,9 +444,10 @@ class Path(Integrator):
         LOOKAHEAD passes behind (never fewer, since paths only end), and the
         kernels read the counts on the device."""
         rt, band, kernels, events = step.rt, step.band, self._kernels, step.events
-        self._fold_depths()
+        # the samples before this one's, as the renderer's fold_times
+        fold_events(self._depth_events, self._depth_ms)
         # the band's camera rays' closest hits, the renderer's last (Step)
-        tagged = [(0, "closest", events["closest"][-1])]
+        tagged = [("closest", 0, events["closest"][-1])]
         count, sample = np.uint32(band.count), np.uint32(step.sample)
         stream, first_pixel = np.uint32(step.stream), np.uint32(int(band.first_row) * band.width)
         tables = self._tables
@@ -489,7 +475,7 @@ class Path(Integrator):
                 events["closest"].append(step.query.enqueue_intersect(
                     step.tree, rays, step.hits, bound, step.overflow,
                     instances=step.instances, counted=(self.live, depth)))
-                tagged.append((depth, "closest", events["closest"][-1]))
+                tagged.append(("closest", depth, events["closest"][-1]))
             events["shade"].append(rt.run(
                 kernels["path_surface"], bound, rays, step.hits, numbers, self.states,
                 tables["materials"], tables["vertices"], tables["normals"], tables["cdf"],
@@ -507,7 +493,7 @@ class Path(Integrator):
             events["resolve"].append(rt.run(
                 kernels["path_unoccluded"], bound, self.occluded, self.pending,
                 self.shadow_paths, self.shadows, at, np.uint32(bound), self.states))
-            tagged += [(depth, stage, events[stage][-1]) for stage in DEPTH_STAGES[1:]]
+            tagged += [(stage, depth, events[stage][-1]) for stage in DEPTH_STAGES[1:]]
             reads.append(cl.enqueue_copy(rt.queue, self._live[depth:depth + 1], self.live,
                                          src_offset=4 * (depth + 1), is_blocking=False))
             rays, next_rays = next_rays, rays
@@ -519,7 +505,8 @@ class Path(Integrator):
                     break  # every path ended: what is enqueued after it finds none
         rt.wait(reads)
         self.last_bounces.append(int(self._live[:len(reads)].sum()))
-        self._tagged += tagged
+        for stage, depth, event in tagged:
+            self._depth_events.setdefault((stage, depth), []).append(event)
         # the paths each depth shaded: the band's, then those that went on
         shaded = [band.count] + [int(n) for n in self._live[:len(reads) - 1]]
         self._depth_paths.extend([0] * (len(shaded) - len(self._depth_paths)))
