@@ -267,27 +267,32 @@ def scene_file_case(filename: str, device_id: str) -> SceneCase:
 
 class OurDevice:
     """hlbvh_cl.Scene on one OpenCL device with one builder ("pocl:0" for
-    HLBVH, "pocl:0 lbvh" for LBVH); keeps each built tree's stats."""
+    HLBVH, "pocl:0 lbvh" for LBVH), compact or not ("pocl:0 compact");
+    keeps each built tree's stats."""
 
     kind = "device"
 
-    def __init__(self, device, builder: str = "hlbvh"):
-        self.device_id, self.builder = device.id, builder
-        self.name = device.id if builder == "hlbvh" else f"{device.id} {builder}"
-        self.label = f"{device.id} ({device.name})" + ("" if builder == "hlbvh" else f", {builder}")
+    def __init__(self, device, builder: str = "hlbvh", compact: bool = False):
+        self.device_id, self.builder, self.compact = device.id, builder, compact
+        self.name = " ".join([device.id] + ([builder] if builder != "hlbvh" else [])
+                             + (["compact"] if compact else []))
+        self.label = (f"{device.id} ({device.name})"
+                      + ("" if builder == "hlbvh" else f", {builder}")
+                      + (", compact" if compact else ""))
         self.scene = None
         self.trees: dict[str, dict] = {}
 
     def describe(self) -> dict:
         return {"kind": self.kind, "label": self.label, "available": True, "problem": None,
-                "device": self.device_id, "builder": self.builder}
+                "device": self.device_id, "builder": self.builder, "compact": self.compact}
 
     def build(self, case: SceneCase) -> float:
         if self.builder == "hlbvh" and self.name in case.built:
             self.scene, seconds = case.built.pop(self.name)
         else:
             elapsed = stopwatch()
-            self.scene = hlbvh_cl.Scene(case.meshes, device=self.device_id, builder=self.builder)
+            self.scene = hlbvh_cl.Scene(case.meshes, device=self.device_id, builder=self.builder,
+                                        compact=self.compact)
             seconds = elapsed()
         s = self.scene.stats
         self.trees[case.name] = {"triangles": s.triangles, "nodes": s.nodes, "leaves": s.leaves,
@@ -507,7 +512,10 @@ def main(argv=None) -> dict:
                                     "help": f"comma-separated peers (default: {','.join(PEERS)})"}),
                      (["--scene"], {"default": None, "metavar": "FILE",
                                     "help": "trace only this scene file of scenes/ "
-                                            "(e.g. cornell_box.xml): no lone meshes, no scaling"}))
+                                            "(e.g. cornell_box.xml): no lone meshes, no scaling"}),
+                     (["--compact"], {"action": "store_true",
+                                      "help": "also trace each device's compact tree "
+                                              "(Scene(..., compact=True)), interleaved"}))
     config = QUICK if args.quick else FULL
     if args.scene is not None:
         if not (SCENES / args.scene).is_file():
@@ -516,7 +524,8 @@ def main(argv=None) -> dict:
     elapsed = stopwatch()
     chosen = devices_or_exit(args.devices)
     peers, missing = load_peers([p.strip() for p in args.peers.split(",") if p.strip()])
-    devices = [OurDevice(d) for d in chosen]
+    devices = [OurDevice(d, compact=compact) for d in chosen
+               for compact in ((False, True) if args.compact else (False,))]
     participants = devices + peers
     say(f"devices: {', '.join(d.id for d in chosen)}; peers: "
         + (", ".join(f"{p.name} {p.version}" for p in peers) or "none")

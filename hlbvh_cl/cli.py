@@ -100,7 +100,8 @@ def _cmd_info(args) -> int:
         select_device(args.device)
     with stage(_BUILDING):  # nothing rendered: no render value is used
         loaded = scenefile.load(args.scene, args.device, args.builder, args.morton_bits,
-                                replaced=("spp", "max_depth", "width", "height"))
+                                replaced=("spp", "max_depth", "width", "height"),
+                                compact=args.compact)
     scene = loaded.scene
     if args.repeat > 1:  # the first build pays for kernel compilation
         for _ in range(args.repeat - 1):
@@ -117,8 +118,9 @@ def _cmd_info(args) -> int:
     print(f"triangles  {s.triangles:,}")
     print(f"nodes      {s.nodes:,}   leaves {s.leaves:,}   depth {s.depth}   "
           f"(8-wide: {s.wide_nodes:,} nodes, depth {s.wide_depth})")
+    leaves = "compact leaves" if scene.compact else "leaf triangles"
     print(f"memory     {s.tree_bytes / 2**20:.2f} MiB on the device for traversal: nodes "
-          f"{s.node_bytes:,} B + leaf triangles {s.triangle_bytes:,} B")
+          f"{s.node_bytes:,} B + {leaves} {s.triangle_bytes:,} B")
     print(f"SAH cost   {s.sah_cost:.2f}  (C_t = C_i = 1, relative to the root's area)")
     stages = "  ".join(f"{k} {v:.1f}" for k, v in s.times_ms.items())
     print(f"build ms   {stages}")
@@ -343,6 +345,9 @@ def main(argv=None) -> int:
     info.add_argument("--device", default=None, help=_DEVICE_HELP)
     info.add_argument("--builder", default="hlbvh", choices=["hlbvh", "lbvh"])
     info.add_argument("--morton-bits", type=int, default=30, choices=[30, 63])
+    info.add_argument("--compact", action="store_true",
+                      help="leaves as vertex indices: less device memory, slower rays "
+                           "(flat scenes; docs/queries.md)")
     info.add_argument("--repeat", type=_integer_in(1, 1000), default=2,
                       help="builds to run; the stats are the last one's (default 2)")
     info.set_defaults(run=_cmd_info)

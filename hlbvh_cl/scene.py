@@ -84,6 +84,14 @@ class Scene:
     with spheres rather than leave them out.  They take no instances nor
     masks.
 
+    ``compact=True`` (flat scenes) stores the tree's leaves as three vertex
+    indices a triangle beside one copy of the vertices, instead of three
+    corners a triangle, as Embree's RTC_SCENE_FLAG_COMPACT does, and keeps
+    no vertex ids for refits beside them: on the Stanford reference scene
+    the tree and those ids take half the device memory, and incoherent rays
+    trace slower (a triangle's corners wait on its indices).  Every query
+    answers the same bits either way (docs/queries.md).
+
     Every method may be called from any thread: each takes the scene's lock,
     so concurrent calls run in some serial order and no call sees a tree
     that a rebuild or refit has half made.  Scenes on one device share its
@@ -91,8 +99,11 @@ class Scene:
     """
 
     def __init__(self, meshes, device=None, builder: str = "hlbvh", morton_bits: int = 30, *,
-                 instances=None, masks=None, spheres=None):
+                 instances=None, masks=None, spheres=None, compact: bool = False):
         self.meshes = _as_meshes(meshes)
+        if not isinstance(compact, (bool, np.bool_)):
+            raise TypeError(f"compact must be True or False, got {compact!r}")
+        self.compact = bool(compact)
         self._spheres = inputs.spheres(spheres)
         if len(self._spheres) and (instances is not None or masks is not None):
             raise ValueError("spheres are for flat scenes: a Scene with spheres takes no "
@@ -116,6 +127,10 @@ class Scene:
             self._masks = check_masks(masks, len(self.meshes), "mesh")
             instance_meshes = np.arange(len(self.meshes), dtype=np.int32)
             transforms = np.tile(np.eye(3, 4), (len(self.meshes), 1, 1))
+        if self.compact and (self._instanced or (self._masks != ALL_BITS).any()):
+            raise ValueError("compact=True is for flat scenes: a Scene with instances or masks "
+                             "keeps its leaves as they are (its meshes' trees are stored once "
+                             "however many instances place them)")
         self._query = None
         self._points = None
         self._all_hits = None
@@ -130,7 +145,7 @@ class Scene:
         vertex_counts = [m.vertex_count for m in self.meshes]
         face_counts = [m.triangle_count for m in self.meshes]
         # fail on size before anything is uploaded
-        check_fits(rt, sum(vertex_counts), sum(face_counts), morton_bits)
+        check_fits(rt, sum(vertex_counts), sum(face_counts), morton_bits, self.compact)
         self._vertex_offsets = np.concatenate([[0], np.cumsum(vertex_counts)]).astype(np.int64)
         first_face = np.concatenate([[0], np.cumsum(face_counts)[:-1]]).astype(np.int32)
         faces = np.concatenate([m.faces + np.int32(off) for m, off in
@@ -283,7 +298,7 @@ class Scene:
                                     frame.to_frame(vertices, self._scale))
                     self._stale_vertices = False
                 self._tree, self._stats = build(rt, self._geometry, self.builder,
-                                                self.morton_bits, self._scale)
+                                                self.morton_bits, self._scale, self.compact)
                 self._attach_spheres()
 
     def _change(self, apply, undo, meshes: bool = False) -> None:
@@ -330,7 +345,8 @@ class Scene:
                 masks = self._masks.copy() if (self._masks != ALL_BITS).any() else None
                 self._spec = travel.SceneSpec.make(
                     self.meshes, instances, masks, self.builder, self.morton_bits,
-                    self._device_spec, self._spheres.copy() if len(self._spheres) else None)
+                    self._device_spec, self._spheres.copy() if len(self._spheres) else None,
+                    self.compact)
             return self._spec
 
     def _changing(self) -> None:
@@ -589,7 +605,8 @@ class Scene:
             held = f"{sum(m.triangle_count for m in self.meshes):,} triangles"
             if len(self._spheres):
                 held += f" and {len(self._spheres):,} sphere(s)"
-        return (f"Scene({len(self.meshes)} mesh(es), {held}, builder={self.builder!r}, "
+        compact = ", compact=True" if self.compact else ""
+        return (f"Scene({len(self.meshes)} mesh(es), {held}, builder={self.builder!r}{compact}, "
                 f"device={self.device.id!r})")
 
 

@@ -39,10 +39,12 @@ class SceneSpec:
     device: str | None
     key: str  # content hash of all of the above
     spheres: np.ndarray | None = None  # (S, 4) float64 centres and radii, or None
+    compact: bool = False
 
     @classmethod
     def make(cls, meshes, instances, masks, builder: str, morton_bits: int,
-             device: str | None, spheres: np.ndarray | None = None) -> "SceneSpec":
+             device: str | None, spheres: np.ndarray | None = None,
+             compact: bool = False) -> "SceneSpec":
         digest = hashlib.blake2b(digest_size=20)
         for mesh in meshes:
             for array in (mesh.vertices, mesh.faces):
@@ -54,9 +56,9 @@ class SceneSpec:
             digest.update(str(part.shape).encode())
             digest.update(np.ascontiguousarray(part).data)
         digest.update(repr((instances is None, masks is None, spheres is None, builder,
-                            morton_bits, device)).encode())
+                            morton_bits, device, compact)).encode())
         return cls(tuple(meshes), instances, masks, builder, morton_bits, device,
-                   digest.hexdigest(), spheres)
+                   digest.hexdigest(), spheres, compact)
 
     def __dask_tokenize__(self):
         return ("hlbvh_cl.SceneSpec", self.key)
@@ -67,7 +69,8 @@ class SceneSpec:
             [(int(m), t) for m, t in zip(*self.instances)]
         return [list(self.meshes)], dict(device=self.device, builder=self.builder,
                                          morton_bits=self.morton_bits, instances=pairs,
-                                         masks=self.masks, spheres=self.spheres)
+                                         masks=self.masks, spheres=self.spheres,
+                                         compact=self.compact)
 
 
 _cache: OrderedDict = OrderedDict()

@@ -27,7 +27,7 @@ def test_public_names():
     assert public == {"intersect", "occluded", "intersect_all", "count_intersections",
                       "closest_points", "signed_distance", "contains", "winding_number",
                       "update_vertices", "rebuild", "stats", "device", "meshes", "builder",
-                      "morton_bits", "set_transforms", "transforms", "masks", "instance_meshes",
+                      "morton_bits", "compact", "set_transforms", "transforms", "masks", "instance_meshes",
                       "borrow", "view", "queue", "spheres"}
     assert isinstance(scene.stats, hlbvh_cl.BuildStats)
     assert isinstance(scene.device, hlbvh_cl.Device)

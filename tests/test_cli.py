@@ -27,6 +27,14 @@ def test_info_prints_stats(capsys):
             in out) and stats.node_bytes > 0 and stats.triangle_bytes > 0
 
 
+def test_info_compact_prints_the_compact_trees_memory(capsys):
+    assert main(["info", str(SCENES / "bunny_small.toml"), "--repeat", "1", "--compact"]) == 0
+    out = capsys.readouterr().out
+    stats = load(SCENES / "bunny_small.toml", compact=True).scene.stats
+    assert stats.triangle_bytes < load(SCENES / "bunny_small.toml").scene.stats.triangle_bytes
+    assert f"nodes {stats.node_bytes:,} B + compact leaves {stats.triangle_bytes:,} B" in out
+
+
 def test_user_mistakes_give_one_line_and_exit_2(tmp_path, capsys):
     assert main(["info", str(tmp_path / "missing.toml")]) == 2
     err = capsys.readouterr().err.strip()

@@ -425,6 +425,12 @@ def test_more_vertices_than_int32_indices_reach_are_refused(monkeypatch, meshes)
     with pytest.raises(ValueError, match="the scene has 1003 vertices over all its meshes"):
         Scene([quad, big])
     assert uploads == []
+    # a compact tree's records count triangles and vertices together
+    fits = Mesh(np.zeros((990, 3), np.float32), np.zeros((20, 3), np.int32))
+    with pytest.raises(ValueError, match="the scene has 20 triangles and 990 vertices; a compact "
+                                         "tree's int32 leaf records reach at most 1000"):
+        Scene([fits], compact=True)
+    assert uploads == []
 
 
 # -- renderer, cameras, lights -------------------------------------------------------

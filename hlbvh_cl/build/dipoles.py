@@ -10,6 +10,7 @@ import pyopencl as cl
 
 from ..core import layout
 from ..core.paths import kernel_of
+from ..core.tree import leaf_defines
 from ..device.runtime import Runtime
 from .instances import InstancedTree
 
@@ -28,7 +29,8 @@ def dipoles(rt: Runtime, tree) -> cl.Buffer:
     with rt.build_lock:
         if owner.dipoles is None:
             made = rt.pool.take(owner.node_count * layout.WIDE_DIPOLES.itemsize)
-            kernel = rt.kernel(KERNEL, "dipoles_level")
+            indexed = getattr(owner, "indexed", False)  # instanced scenes' trees are not
+            kernel = rt.kernel(KERNEL, "dipoles_level", **leaf_defines(indexed))
             if isinstance(tree, InstancedTree):
                 parts = zip(owner.levels, owner.node_base, owner.triangle_base)
             else:

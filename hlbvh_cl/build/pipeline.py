@@ -68,7 +68,24 @@ class Geometry:
                    len(vertices), len(faces), len(mesh_first_face))
 
 
-def build_memory(vertex_count: int, triangle_count: int, morton_bits: int) -> dict[str, int]:
+def leaf_buffer_bytes(vertex_count: int, triangle_count: int, indexed: bool) -> int:
+    """The bytes of a tree's leaves (hlbvh_cl.core.tree.Tree.triangles)."""
+    if indexed:
+        return triangle_count * layout.INDEXED_TRIANGLE.itemsize + vertex_count * 12
+    return triangle_count * layout.TRIANGLE.itemsize
+
+
+def copy_vertices(rt: Runtime, geometry: Geometry, triangle_count: int, leaves: cl.Buffer,
+                  wait_for=None) -> cl.Event:
+    """An indexed tree's vertices (``geometry``'s, already in the tree's
+    frame) into their place after its ``triangle_count`` leaf records."""
+    return cl.enqueue_copy(rt.queue, leaves, geometry.vertices,
+                           dst_offset=triangle_count * layout.INDEXED_TRIANGLE.itemsize,
+                           byte_count=geometry.vertex_count * 12, wait_for=wait_for)
+
+
+def build_memory(vertex_count: int, triangle_count: int, morton_bits: int,
+                 indexed: bool = False) -> dict[str, int]:
     """Bytes of every device buffer a build holds at its peak."""
     n = triangle_count
     key = key_dtype(morton_bits).itemsize
@@ -81,22 +98,28 @@ def build_memory(vertex_count: int, triangle_count: int, morton_bits: int) -> di
         "radix tree costs, heights, flags": (2 * n - 1) * 8 + 2 * n * 4,
         "scans": 2 * (n + 1) * 4,
         "flat nodes": max(1, n - 1) * layout.FLAT_NODE.itemsize,
-        "triangles": n * layout.TRIANGLE.itemsize, "triangle refs": n * layout.TRIANGLE_REF.itemsize,
-        "triangle vertex ids": n * 12,
+        "triangles": leaf_buffer_bytes(vertex_count, n, indexed),
+        "triangle refs": n * layout.TRIANGLE_REF.itemsize,
+        "triangle vertex ids": 0 if indexed else n * 12,
         "SAH top (clusters)": max_clusters(n) * BYTES_PER_CLUSTER,
         "SAH top (task lists)": task_lists_bytes(n),
     }
 
 
-def check_fits(rt: Runtime, vertex_count: int, triangle_count: int, morton_bits: int) -> None:
+def check_fits(rt: Runtime, vertex_count: int, triangle_count: int, morton_bits: int,
+               indexed: bool = False) -> None:
     if vertex_count > MAX_VERTICES:
         raise ValueError(f"the scene has {vertex_count} vertices over all its meshes; at most "
                          f"{MAX_VERTICES} fit the int32 face indices they are joined by")
     if triangle_count > MAX_TRIANGLES:
         raise ValueError(f"the scene has {triangle_count} triangles; at most {MAX_TRIANGLES} fit "
                          "int32 node indices")
+    if indexed and triangle_count + vertex_count > MAX_VERTICES:
+        raise ValueError(f"the scene has {triangle_count} triangles and {vertex_count} vertices; "
+                         f"a compact tree's int32 leaf records reach at most {MAX_VERTICES} of "
+                         "both together (build it with compact=False)")
     rt.check_allocation(f"building a BVH over {triangle_count:,} triangles",
-                        build_memory(vertex_count, triangle_count, morton_bits))
+                        build_memory(vertex_count, triangle_count, morton_bits, indexed))
 
 
 @dataclass(frozen=True)
@@ -140,9 +163,10 @@ class BuildStats:
 
 
 def build(rt: Runtime, geometry: Geometry, builder: str = "hlbvh", morton_bits: int = 30,
-          scale: float = 1.0) -> tuple[Tree, BuildStats]:
+          scale: float = 1.0, indexed: bool = False) -> tuple[Tree, BuildStats]:
     """Build the Tree over ``geometry`` (its coordinates multiplied by
-    ``scale``, hlbvh_cl.core.frame) and its BuildStats.  Every stage's scratch,
+    ``scale``, hlbvh_cl.core.frame) and its BuildStats; with ``indexed`` its
+    leaves name the geometry's vertices (Scene(..., compact=True)).  Every stage's scratch,
     the binary tree included, goes back to the runtime's pool when the
     build ends.  Builds on one runtime are serialised: they share the
     sorter's scratch buffers."""
@@ -150,16 +174,17 @@ def build(rt: Runtime, geometry: Geometry, builder: str = "hlbvh", morton_bits: 
         raise ValueError(f"builder must be one of {BUILDERS}, got {builder!r}")
     started = time.perf_counter()
     with rt.build_lock, rt.pool.build():
-        tree, stats, stage_events = _build(rt, geometry, builder, morton_bits, scale)
+        tree, stats, stage_events = _build(rt, geometry, builder, morton_bits, scale, indexed)
     times = {name: event_ms(events) for name, events in stage_events.items()}
     return tree, BuildStats(**stats, times_ms=times, device_ms=sum(times.values()),
                             wall_ms=(time.perf_counter() - started) * 1e3)
 
 
-def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int, scale: float):
+def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int, scale: float,
+           indexed: bool):
     dtype = key_dtype(morton_bits)
     n = geometry.triangle_count
-    check_fits(rt, geometry.vertex_count, n, morton_bits)
+    check_fits(rt, geometry.vertex_count, n, morton_bits, indexed)
     hlbvh = builder == "hlbvh"
     stage_events: dict[str, list] = {name: [] for name in STAGES}
     buf = rt.pool.take
@@ -180,13 +205,16 @@ def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int, scal
         keys, primitive_ids, n, morton_bits, wait_for=stage_events["morton"][-1:])
 
     radix, metrics = RadixTree.allocate(rt, n), RadixTreeMetrics.allocate(rt, n)
-    triangles, refs = buf(n * layout.TRIANGLE.itemsize), buf(n * layout.TRIANGLE_REF.itemsize)
-    vertex_ids = buf(n * 12)
-    rt.pool.keep(triangles, refs, vertex_ids)
+    triangles = buf(leaf_buffer_bytes(geometry.vertex_count, n, indexed))
+    # an indexed tree's records name its vertices: no vertex ids beside them
+    refs, vertex_ids = buf(n * layout.TRIANGLE_REF.itemsize), None if indexed else buf(n * 12)
+    rt.pool.keep(*(b for b in (triangles, refs, vertex_ids) if b is not None))
     stage_events["radix_tree"] = build_radix_tree(
         rt, keys, morton_bits, geometry.vertices, geometry.faces, primitive_ids,
         geometry.mesh_first_face, geometry.mesh_count, radix, metrics, triangles, refs,
-        vertex_ids, collapse_leaves=hlbvh, wait_for=stage_events["sort"][-1:])
+        vertex_ids, collapse_leaves=hlbvh, indexed=indexed, wait_for=stage_events["sort"][-1:])
+    if indexed:  # the vertices the records name, after them
+        stage_events["radix_tree"].append(copy_vertices(rt, geometry, n, triangles))
     # Buffers no later stage reads (the centroids, the radix tree's walk, the
     # sort's input where its result is not): the stages sized for the most
     # they can need take from these first (BufferPool.take_spare).
@@ -218,7 +246,7 @@ def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int, scal
     tree = Tree(nodes=nodes, triangles=triangles, refs=refs, vertex_ids=vertex_ids,
                 node_count=levels[-1][0] + levels[-1][1], levels=levels, triangle_count=n,
                 bounds_lo=scene_box[0]["lo"].copy(), bounds_hi=scene_box[0]["hi"].copy(),
-                scale=scale)
+                scale=scale, indexed=indexed, vertex_count=geometry.vertex_count if indexed else 0)
     flat = flat[0]
     root_box = np.zeros(1, layout.AABB)[0]
     root_box["lo"], root_box["hi"] = flat["lo"], flat["hi"]

@@ -9,6 +9,7 @@ import numpy as np
 import pyopencl as cl
 
 from ..core import layout
+from ..core.tree import leaf_defines
 
 
 @dataclass
@@ -77,10 +78,11 @@ def build_radix_tree(rt, keys: cl.Buffer, bits: int, vertices: cl.Buffer, faces:
                      primitive_ids: cl.Buffer, mesh_first_face: cl.Buffer, mesh_count: int,
                      tree: RadixTree, metrics: RadixTreeMetrics, triangles: cl.Buffer,
                      refs: cl.Buffer, vertex_ids: cl.Buffer, collapse_leaves: bool,
-                     wait_for=None) -> list[cl.Event]:
+                     indexed: bool = False, wait_for=None) -> list[cl.Event]:
     """The tree's nodes, boxes, SAH costs and collapse flags (one bottom-up
-    walk), and before them the triangles, their refs and their vertex ids in
-    leaf (sorted) order with the leaves' boxes (lay_out_leaves)."""
+    walk), and before them the triangles (as ``indexed`` leaf records where
+    asked: hlbvh_cl.core.tree), their refs and their vertex ids in leaf
+    (sorted) order with the leaves' boxes (lay_out_leaves)."""
     n = tree.n
     splits = max(1, n - 1)
     far_end, visits = tree.far_end, tree.visits
@@ -88,7 +90,8 @@ def build_radix_tree(rt, keys: cl.Buffer, bits: int, vertices: cl.Buffer, faces:
                                      wait_for=wait_for)
     if n == 1:  # no internal node: the lone leaf is the root
         cl.enqueue_fill_buffer(rt.queue, metrics.collapsed, np.int32(0), 0, 4)
-    defines = dict(MORTON_BITS=bits, COLLAPSE_LEAVES=int(collapse_leaves), **rt.handoff_defines)
+    defines = dict(MORTON_BITS=bits, COLLAPSE_LEAVES=int(collapse_leaves), **rt.handoff_defines,
+                   **leaf_defines(indexed))
     ready = [cleared]
     if not defines["ACQUIRE_RELEASE"]:
         # The OpenCL 1.2 handoff stores with atomic_xchg (kernels/build/handoff.h),

@@ -7,19 +7,27 @@ from __future__ import annotations
 import pyopencl as cl
 
 from ..device.runtime import Runtime
-from ..core.tree import Tree
+from ..core import layout
+from ..core.tree import Tree, leaf_defines
 
 
 def refit(rt: Runtime, tree: Tree, vertices: cl.Buffer, wait_for=None) -> list[cl.Event]:
     """Re-read ``tree``'s triangles from ``vertices`` (the scene's, moved)
     and recompute every box of its wide nodes; returns the launches' events."""
-    if tree.vertex_ids is None:
+    if tree.vertex_ids is None and not tree.indexed:
         raise ValueError("this tree has no vertex ids (it was not made by a build): "
                          "it cannot be refit")
     tree.drop_dipoles(rt.pool)  # made anew from the moved triangles when next asked for
-    kernel = rt.kernel("build/refit.cl", "refit_wide_level")
+    kernel = rt.kernel("build/refit.cl", "refit_wide_level", **leaf_defines(tree.indexed))
     events: list[cl.Event] = []
+    if tree.indexed:  # the leaves' own copy of the vertices, which their records name
+        events.append(cl.enqueue_copy(
+            rt.queue, tree.triangles, vertices,
+            dst_offset=tree.triangle_count * layout.INDEXED_TRIANGLE.itemsize,
+            byte_count=tree.vertex_count * 12, wait_for=wait_for))
     for first, count in reversed(tree.levels):
-        events.append(rt.run(kernel, count, first, count, tree.nodes, vertices, tree.vertex_ids,
+        # an indexed tree's leaves read the vertices they hold (refit.cl)
+        events.append(rt.run(kernel, count, first, count, tree.nodes,
+                             None if tree.indexed else vertices, tree.vertex_ids,
                              tree.triangles, wait_for=events[-1:] or wait_for))
     return events

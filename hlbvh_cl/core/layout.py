@@ -71,6 +71,9 @@ WIDE_DIPOLES = np.dtype([(name, *_wide) for name in
 
 TRIANGLE = np.dtype([("v0", *_f3), ("v1", *_f3), ("v2", *_f3)])
 
+#: a compact tree's leaf record: its corners, in 12-byte cells from the record (core/leaf.h)
+INDEXED_TRIANGLE = np.dtype([("corner", np.int32, 3)])
+
 TRIANGLE_REF = np.dtype([("geom_id", np.int32), ("prim_id", np.int32)])
 
 INSTANCE = np.dtype([("to_mesh", np.float32, 12), ("to_world", np.float32, 12),
@@ -118,6 +121,7 @@ PATH_STATE = np.dtype([("throughput", *_f3), ("bsdf_pdf", np.float32), ("radianc
 #: name in HEADERS -> dtype, for the layout test
 STRUCTS = {"Aabb": AABB, "FlatNode": FLAT_NODE, "FlatSummary": FLAT_SUMMARY, "WideNode": WIDE_NODE,
            "WideDipoles": WIDE_DIPOLES, "Triangle": TRIANGLE,
+           "IndexedTriangle": INDEXED_TRIANGLE,
            "TriangleRef": TRIANGLE_REF, "Instance": INSTANCE, "Ray": RAY, "Hit": HIT, "PinholeCamera": PINHOLE_CAMERA,
            "ShadeParams": SHADE_PARAMS, "PathMaterial": PATH_MATERIAL, "PathParams": PATH_PARAMS,
            "DeltaLight": DELTA_LIGHT,

@@ -15,6 +15,11 @@ import pyopencl as cl
 from . import layout
 
 
+def leaf_defines(indexed: bool) -> dict:
+    """The kernel defines that pick the leaf layout (kernels/core/leaf.h)."""
+    return {"INDEXED_LEAVES": 1} if indexed else {}
+
+
 @dataclass
 class Tree:
     """A WIDE_ARITY-wide BVH on one device.
@@ -26,11 +31,16 @@ class Tree:
                count); an unused lane has child EMPTY_CHILD and an empty box.
     levels     (first, count) of each level of wide nodes, root first: a
                refit runs one launch per level, from the deepest up.
-    triangles  Triangle[triangle_count] (layout.TRIANGLE), in leaf order.
+    triangles  the leaves: Triangle[triangle_count] (layout.TRIANGLE), in leaf
+               order; or, for an ``indexed`` tree (Scene(..., compact=True)),
+               IndexedTriangle[triangle_count] (layout.INDEXED_TRIANGLE) in
+               leaf order followed by the vertices they name, vertex_count
+               float32 triples in this tree's frame (kernels/core/leaf.h).
     refs       TriangleRef[triangle_count]: geometry id and face index in its mesh.
     vertex_ids int32[3 * triangle_count]: each tree-ordered triangle's vertex
                indices into the scene's vertices, which a refit re-reads
-               (None for a tree made by hand: it cannot be refit).
+               (None for an indexed tree, whose records name its vertices,
+               and for a tree made by hand, which cannot be refit).
     bounds_lo, bounds_hi  the box around every triangle (and sphere), in this
                tree's frame.
     scale      the power of two the scene's coordinates were multiplied by to
@@ -62,6 +72,16 @@ class Tree:
     spheres: cl.Buffer | None = None
     sphere_count: int = 0
     sphere_geom: int = 0
+    indexed: bool = False
+    vertex_count: int = 0  # the vertices after an indexed tree's records
+
+    @property
+    def leaf_bytes(self) -> int:
+        """The bytes of the triangles buffer that traversal reads."""
+        if self.indexed:
+            return (self.triangle_count * layout.INDEXED_TRIANGLE.itemsize
+                    + self.vertex_count * 12)
+        return self.triangle_count * layout.TRIANGLE.itemsize
 
     @property
     def depth(self) -> int:
@@ -72,7 +92,7 @@ class Tree:
         """Device bytes traversal reads: {"node_bytes", "triangle_bytes"},
         from the layouts' itemsizes, so that they follow any layout change."""
         return {"node_bytes": self.node_count * layout.WIDE_NODE.itemsize,
-                "triangle_bytes": self.triangle_count * layout.TRIANGLE.itemsize}
+                "triangle_bytes": self.leaf_bytes}
 
     def release(self, pool) -> None:
         """Give this tree's device buffers back to ``pool`` for the next
@@ -94,11 +114,23 @@ class Tree:
         return out
 
     def read_triangles(self, queue: cl.CommandQueue) -> tuple[np.ndarray, np.ndarray]:
-        tris = np.empty(self.triangle_count, layout.TRIANGLE)
+        """The triangles (layout.TRIANGLE, an indexed tree's gathered from
+        its records and vertices) and refs, in leaf order."""
         refs = np.empty(self.triangle_count, layout.TRIANGLE_REF)
-        cl.enqueue_copy(queue, tris, self.triangles)
         cl.enqueue_copy(queue, refs, self.refs)
+        if not self.indexed:
+            tris = np.empty(self.triangle_count, layout.TRIANGLE)
+            cl.enqueue_copy(queue, tris, self.triangles)
+            return tris, refs
+        cells = np.empty((self.triangle_count + self.vertex_count, 3), np.int32)
+        cl.enqueue_copy(queue, cells, self.triangles)
+        n = self.triangle_count
+        corners = cells[:n] + np.arange(n, dtype=np.int32)[:, None]  # cells from the start
+        tris = np.empty(n, layout.TRIANGLE)
+        for k in range(3):
+            tris[f"v{k}"] = cells.view(np.float32)[corners[:, k]]
         return tris, refs
+
 
     def read_root_box(self, queue: cl.CommandQueue, wait_for=None) -> tuple[np.ndarray, np.ndarray]:
         """The union of the root's lanes, as the device holds them now."""

@@ -297,8 +297,10 @@ class LoadedScene:
 
 
 def load(path, device=None, builder: str = "hlbvh", morton_bits: int = 30,
-         defaults: dict | None = None, replaced: Collection[str] = ()) -> LoadedScene:
-    """Read a scene file (``read``) and build its Scene on ``device``;
+         defaults: dict | None = None, replaced: Collection[str] = (),
+         compact: bool = False) -> LoadedScene:
+    """Read a scene file (``read``) and build its Scene on ``device`` (a
+    flat one ``compact`` where asked: hlbvh_cl.Scene);
     ``defaults`` override a Mitsuba XML file's <default> values, and the
     render values named in ``replaced`` may exceed the renderer's limits
     (the caller renders with its own)."""
@@ -311,12 +313,12 @@ def load(path, device=None, builder: str = "hlbvh", morton_bits: int = 30,
     if placements:
         try:
             scene = Scene(meshes, instances=placements, device=device, builder=builder,
-                          morton_bits=morton_bits)
+                          morton_bits=morton_bits, compact=compact)
         except ValueError as error:  # a check only the built frames can make
             raise _name_the_entry(description, error) from None
     else:  # a flat scene, as the file says: each mesh drawn once as it is
         scene = Scene(meshes, device=device, builder=builder, morton_bits=morton_bits,
-                      spheres=description.spheres())
+                      spheres=description.spheres(), compact=compact)
     colors = [color for _, color in geometries]
     colors += [entry.color for entry in description.surfaces()[len(colors):]]  # the spheres'
     return LoadedScene(scene=scene, camera=description.camera, light=description.light,

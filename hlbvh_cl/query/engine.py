@@ -65,7 +65,7 @@ import pyopencl as cl
 
 from ..build.instances import InstancedTree
 from ..core import layout
-from ..core.tree import Tree
+from ..core.tree import Tree, leaf_defines
 from ..device.runtime import Runtime
 from .results import starts_on_page
 
@@ -172,6 +172,8 @@ def kernel_defines(rt: Runtime, tree, variant, packet: int, **extra) -> dict:
         defines["INTERLEAVED_WALKS"] = 1
     if getattr(tree, "spheres", None) is not None:
         defines["SPHERES"] = 1
+    if getattr(tree, "indexed", False):
+        defines.update(leaf_defines(True))
     return {**defines, **extra}
 
 

@@ -8,6 +8,7 @@
  */
 #include "core/portable.h"
 #include "core/spelled.h"
+#include "core/leaf.h"
 #include "core/tree.h"
 
 #pragma OPENCL FP_CONTRACT OFF
@@ -56,22 +57,23 @@ inline float distance3(float3 a, float3 b)
 }
 
 /* A leaf lane: the triangles [first, first + count). */
-inline void leaf_dipole(__global const Triangle* triangles, int first, uint count,
+inline void leaf_dipole(__global const Leaf* triangles, int first, uint count,
                         __global WideDipoles* d, int k)
 {
     DipoleSum sum = {(float3)(0.0f), (float3)(0.0f), (float3)(0.0f), 0.0f, 0};
     for (int j = first; j < first + (int)count; ++j) {
-        float3 v0 = LOAD_XYZ(triangles[j].v0), v1 = LOAD_XYZ(triangles[j].v1),
-               v2 = LOAD_XYZ(triangles[j].v2);
+        LEAF_CORNERS(t, triangles, j);
+        float3 v0 = LOAD_XYZ(t->v0), v1 = LOAD_XYZ(t->v1), v2 = LOAD_XYZ(t->v2);
         float3 a = 0.5f * cross(v1 - v0, v2 - v0);
         add_part(&sum, (v0 + v1 + v2) / 3.0f, a, length(a));
     }
     float3 p = sum_centre(&sum);
     float radius = 0.0f;
     for (int j = first; j < first + (int)count; ++j) {
-        radius = GROW_HI(radius, distance3(LOAD_XYZ(triangles[j].v0), p));
-        radius = GROW_HI(radius, distance3(LOAD_XYZ(triangles[j].v1), p));
-        radius = GROW_HI(radius, distance3(LOAD_XYZ(triangles[j].v2), p));
+        LEAF_CORNERS(t, triangles, j);
+        radius = GROW_HI(radius, distance3(LOAD_XYZ(t->v0), p));
+        radius = GROW_HI(radius, distance3(LOAD_XYZ(t->v1), p));
+        radius = GROW_HI(radius, distance3(LOAD_XYZ(t->v2), p));
     }
     store_lane(d, k, p, sum.a, sum.area, radius);
 }
@@ -104,7 +106,7 @@ inline void node_dipole(__global const WideNode* nodes, __global const WideDipol
  * flat scene's one tree. */
 NARROW_KERNEL
 void dipoles_level(int level_first, int level_count, int node_base, int triangle_base,
-                   __global const WideNode* nodes, __global const Triangle* triangles,
+                   __global const WideNode* nodes, __global const Leaf* triangles,
                    __global WideDipoles* dipoles)
 {
     int i = get_global_id(0);

@@ -4,6 +4,7 @@
 #define BUILD_MESH_H
 
 #include "core/spelled.h"
+#include "core/leaf.h"
 #include "core/tree.h"
 
 /* Vertex `index` (an initializer, not vload3: PoCL calls vload3 and vstore3
@@ -23,12 +24,19 @@ inline void load_triangle(__global const float *vertices, __global const int *fa
     *c = load_vertex(vertices, faces[3 * (size_t)face + 2]);
 }
 
-/* Triangle j of the tree-ordered triangle array (an initializer, not
- * vstore3: see load_vertex). */
-inline void store_triangle(__global Triangle *triangles, int j, float3 a, float3 b, float3 c)
+/* Leaf j of the tree-ordered leaves: triangle (a, b, c), whose vertex
+ * indices are ids[0..2] (core/leaf.h).  Default leaves hold the corners (an
+ * initializer, not vstore3: see load_vertex); indexed ones where the
+ * corners lie among the n records' vertices, which follow the records. */
+inline void store_leaf(__global Leaf *leaves, int j, int n, float3 a, float3 b, float3 c,
+                       __global const int *ids)
 {
+#ifdef INDEXED_LEAVES
+    IndexedTriangle t = {{n + ids[0] - j, n + ids[1] - j, n + ids[2] - j}};
+#else
     Triangle t = {{a.x, a.y, a.z}, {b.x, b.y, b.z}, {c.x, c.y, c.z}};
-    triangles[j] = t;
+#endif
+    leaves[j] = t;
 }
 
 #endif /* BUILD_MESH_H */

@@ -81,15 +81,16 @@ inline TriangleRef triangle_ref(__global const int *mesh_first_face, int mesh_co
 }
 
 /* The leaves, one work-item per sorted primitive j: the triangle laid out
- * in leaf (sorted) order with its (mesh, face) ref and vertex ids, and the
- * leaf's box, SAH cost and height.  Apart from the walk because the walk's
+ * in leaf (sorted) order with its (mesh, face) ref and vertex ids (none for
+ * indexed leaves, whose records name the vertices: vertex_ids may be null),
+ * and the leaf's box, SAH cost and height.  Apart from the walk because the walk's
  * atomic waits for every store before it to reach the cache: after these
  * (a missing cache line each) it took a quarter of the walk's time. */
 __kernel ONE_WORK_ITEM_AT_A_TIME
 void lay_out_leaves(int n, __global const float *vertices, __global const int *faces,
                     __global const uint *primitive_ids,
                     __global const int *mesh_first_face, int mesh_count,
-                    __global Triangle *triangles, __global TriangleRef *refs,
+                    __global Leaf *triangles, __global TriangleRef *refs,
                     __global int *vertex_ids, __global Aabb *boxes,
                     __global float *sah_cost, __global int *height)
 {
@@ -99,10 +100,12 @@ void lay_out_leaves(int n, __global const float *vertices, __global const int *f
     int face = (int)primitive_ids[j];
     float3 a, b, c;
     load_triangle(vertices, faces, face, &a, &b, &c);
-    store_triangle(triangles, j, a, b, c);
+    store_leaf(triangles, j, n, a, b, c, faces + 3 * (size_t)face);
     refs[j] = triangle_ref(mesh_first_face, mesh_count, face);
+#ifndef INDEXED_LEAVES
     for (int k = 0; k < 3; ++k) /* not vstore3(vload3()): see load_vertex */
         vertex_ids[3 * (size_t)j + k] = faces[3 * (size_t)face + k];
+#endif
     Aabb box = aabb_of_points(a, b, c);
     int node = (n - 1) + j;
     boxes[node] = box;

@@ -21,15 +21,24 @@
 /* Re-read the triangles [first, first + count) of a leaf from the (moved)
  * vertices through their vertex ids (stored in leaf order by the build, so
  * that a refit reads them in sequence rather than chasing the faces), store
- * them, and set *box to their box. */
+ * them, and set *box to their box.  Indexed leaves name their vertices
+ * themselves, and refit.py has copied the moved ones in: their corners are
+ * read through them (vertices and vertex_ids may be null). */
 inline void regather_leaf(__global const float *vertices, __global const int *vertex_ids,
-                          __global Triangle *triangles, int first, uint count, Aabb *box)
+                          __global Leaf *triangles, int first, uint count, Aabb *box)
 {
     Aabb leaf = aabb_empty();
     for (int j = first; j < first + (int)count; ++j) {
         float3 a, b, c;
+#ifdef INDEXED_LEAVES
+        LEAF_CORNERS(t, triangles, j);
+        a = LOAD_XYZ(t->v0);
+        b = LOAD_XYZ(t->v1);
+        c = LOAD_XYZ(t->v2);
+#else
         load_triangle(vertices, vertex_ids, j, &a, &b, &c);
-        store_triangle(triangles, j, a, b, c);
+        store_leaf(triangles, j, 0, a, b, c, vertex_ids + 3 * (size_t)j);
+#endif
         leaf = aabb_union(leaf, aabb_of_points(a, b, c));
     }
     *box = leaf;
@@ -69,7 +78,7 @@ inline void node_box(__global WideNode *node, Aabb *box)
 NARROW_KERNEL
 void refit_wide_level(int level_first, int level_count, __global WideNode *nodes,
                       __global const float *vertices, __global const int *vertex_ids,
-                      __global Triangle *triangles)
+                      __global Leaf *triangles)
 {
     int i = get_global_id(0);
     if (i >= level_count)

@@ -61,12 +61,13 @@ typedef struct {
 /* A triangle's vertices in tree order, as the ray-triangle test reads them,
  * one triangle at a time: four at a time from SoA blocks (Embree's
  * Triangle4), with the same arithmetic lane by lane and so the same hits,
- * traced slower on CPU runtimes, leaves holding about two triangles
- * (figures in the commit that says so).  Three vertex indices into shared
- * vertices instead (Embree's compact Triangle4i) halve the leaves' memory,
- * the hits the same bits, but the walks traced slower on CPU runtimes: a
- * leaf's vertices wait on its indices, which the push-time prefetch cannot
- * cover (figures in the commit that says so).  Indices into the leaf's own
+ * traced slower on CPU runtimes, leaves holding about two triangles (figures
+ * in the commit that says so).  Three vertex indices into shared vertices
+ * instead (Embree's compact Triangle4i) halve the leaves' memory, the hits
+ * the same bits, but incoherent rays trace slower on CPU runtimes: a leaf's
+ * vertices wait on its indices, which the push-time prefetch cannot cover.
+ * So they are the opt-in compact layout (IndexedTriangle, below), not the
+ * default (figures in the commit that says so).  Indices into the leaf's own
  * distinct vertices, stored in the leaf (two fifths less leaf memory on the
  * reference scene), gave the same bits again for nearly the same
  * instructions, and traced slower too, most on PoCL (figures in the commit
@@ -76,6 +77,18 @@ typedef struct {
     float v1[3];
     float v2[3];
 } Triangle;
+
+/* The compact leaves' triangle (Scene(..., compact=True); core/leaf.h reads
+ * it): where each of its corners lies, in 12-byte cells counted from this
+ * record, among the vertices that follow the records in the same buffer
+ * (the scene's vertices in the tree's frame, each stored once).  Relative,
+ * so a record keeps its meaning wherever the block it is in is copied to;
+ * 12 bytes a triangle plus 12 a vertex instead of 36 a triangle, at the
+ * price of a load that waits on another (Embree's Triangle4i and
+ * RTC_SCENE_FLAG_COMPACT make the same trade). */
+typedef struct {
+    int corner[3];
+} IndexedTriangle;
 
 /* Which mesh and which of its faces a tree-ordered triangle came from. */
 typedef struct {

@@ -342,7 +342,7 @@ TRAVERSAL_KERNEL void count_hits_arrays(SCENE_PARAMS, RAY_PARAMS, __global int* 
  * triangles tested again, as the walk would test them (the same arithmetic
  * on one ray as on a packet lane), into its segment (keep_hit); the kept
  * hits as *kept_hits. */
-TRAVERSAL_INLINE void keep_known(const RayLanes* lanes, uint l, __global const Triangle* triangles,
+TRAVERSAL_INLINE void keep_known(const RayLanes* lanes, uint l, __global const Leaf* triangles,
                                  __global const uint* known, uint count, __global float* out_t,
                                  __global float* out_u, __global float* out_v,
                                  __global int* out_index, __global int* out_instance,
@@ -353,7 +353,8 @@ TRAVERSAL_INLINE void keep_known(const RayLanes* lanes, uint l, __global const T
     float limit = r.tmax;  /* not lowered: each triangle is hit within tmax */
     for (uint j = 0; j < count; ++j) {
         float t, u, v;
-        if (hit_triangle_ray(&r, triangles + known[j], r.tmax, false, &t, &u, &v))
+        LEAF_CORNERS(tri, triangles, known[j]);
+        if (hit_triangle_ray(&r, tri, r.tmax, false, &t, &u, &v))
             keep_hit(&limit, (int)known[j], -1, t, u, v, out_t, out_u, out_v, out_index,
                      out_instance, kept_hits, capacity);
     }

@@ -28,7 +28,7 @@ TRAVERSAL_INLINE float3 corners_normal(float3 a, float3 b, float3 c)
                                 e1.x * e2.y - e1.y * e2.x));
 }
 
-TRAVERSAL_INLINE float3 unit_normal(__global const Triangle* tri)
+TRAVERSAL_INLINE float3 unit_normal(TRIANGLE_AT tri)
 {
     return corners_normal(LOAD_XYZ(tri->v0), LOAD_XYZ(tri->v1), LOAD_XYZ(tri->v2));
 }
@@ -36,7 +36,7 @@ TRAVERSAL_INLINE float3 unit_normal(__global const Triangle* tri)
 /* Whether the triangle has zero area: cross(v1 - v0, v2 - v0) exactly 0,
  * the geometric normal that the ray test refuses to report
  * (query/rays/triangle.h), without contraction as it computes it. */
-TRAVERSAL_INLINE bool zero_area(__global const Triangle* tri)
+TRAVERSAL_INLINE bool zero_area(TRIANGLE_AT tri)
 {
 #pragma OPENCL FP_CONTRACT OFF
     float3 e1 = LOAD_XYZ(tri->v1) - LOAD_XYZ(tri->v0), e2 = LOAD_XYZ(tri->v2) - LOAD_XYZ(tri->v0);

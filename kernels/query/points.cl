@@ -63,7 +63,7 @@
 
 /* The winding number's walk of one tree: 4 pi w in s->solid_angle. */
 TRAVERSAL_INLINE bool winding_walk(const PointData* q, __global const WideNode* nodes,
-                                   __global const Triangle* triangles,
+                                   __global const Leaf* triangles,
                                    __global const WideDipoles* dipoles, Found_point* s)
 {
     start_point(s, INFINITY);
@@ -75,7 +75,7 @@ TRAVERSAL_INLINE bool winding_walk(const PointData* q, __global const WideNode* 
  * one tree.  (Winding kernels also take its dipoles.)  Macros: parameter
  * lists (a kernel cannot take a struct of pointers). */
 #define POINT_SCENE_PARAMS                                                              \
-    __global const WideNode *nodes, __global const Triangle *triangles,                  \
+    __global const WideNode *nodes, __global const Leaf *triangles,                      \
         __global const TriangleRef *refs
 #define POINT_SCENE_ARGS nodes, triangles, refs
 
@@ -99,7 +99,7 @@ TRAVERSAL_INLINE void closest_triangle(const Found_point* s, POINT_SCENE_PARAMS,
                                        float3* b, float3* c, int* geom, int* prim,
                                        int* instance)
 {
-    __global const Triangle* t = triangles + s->index;
+    LEAF_CORNERS(t, triangles, s->index);
     *a = LOAD_XYZ(t->v0);
     *b = LOAD_XYZ(t->v1);
     *c = LOAD_XYZ(t->v2);
@@ -175,9 +175,9 @@ TRAVERSAL_INLINE bool winding_instance(Found_point* s, const PointData* q,
  * the meshes' trees one after another (rays/instance.h's SCENE_PARAMS
  * without the rays' masks). */
 #define POINT_SCENE_PARAMS                                                              \
-    __global const WideNode *top_nodes, __global const Triangle *top_triangles,          \
+    __global const WideNode *top_nodes, __global const Leaf *top_triangles,              \
         __global const TriangleRef *top_refs, __global const Instance *instances,        \
-        __global const WideNode *nodes, __global const Triangle *triangles,              \
+        __global const WideNode *nodes, __global const Leaf *triangles,                  \
         __global const TriangleRef *refs
 #define POINT_SCENE_ARGS top_nodes, top_triangles, top_refs, instances, nodes, triangles, refs
 
@@ -208,7 +208,8 @@ TRAVERSAL_INLINE void closest_triangle(const Found_point* s, POINT_SCENE_PARAMS,
 {
     __global const Instance* in = instances + s->instance;
     int j = in->triangle_base + s->index;
-    mapped_corners(in, triangles + j, a, b, c);
+    LEAF_CORNERS(t, triangles, j);
+    mapped_corners(in, t, a, b, c);
     *geom = in->mesh;
     *prim = refs[j].prim_id;
     *instance = s->instance;

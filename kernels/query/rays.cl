@@ -145,7 +145,8 @@ TRAVERSAL_INLINE void lane_hit(Hit* out, const HitLanes* found, uint l, SCENE_PA
         hit.prim_id = refs[i].prim_id;
         hit.u = found->u[l];
         hit.v = found->v[l];
-        float3 n = instance_normal(in, unit_normal(triangles + i));
+        LEAF_CORNERS(tri, triangles, i);
+        float3 n = instance_normal(in, unit_normal(tri));
         hit.normal[0] = n.x;
         hit.normal[1] = n.y;
         hit.normal[2] = n.z;

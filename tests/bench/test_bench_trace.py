@@ -274,3 +274,23 @@ def test_scene_option_traces_that_scene_file_alone(suite_device, tmp_path, capsy
     assert (tmp_path / "trace.png").read_bytes()[:8] == PNG
     with pytest.raises(SystemExit, match="no scene file 'attic.xml'"):
         trace.main(["--quick", "--scene", "attic.xml", "--out", str(tmp_path)])
+
+
+def test_compact_option_traces_each_device_compact_too(suite_device, tmp_path, capsys):
+    returned = trace.main(["--quick", "--scene", "cornell_box.xml", "--devices", suite_device.id,
+                           "--peers", "embreex", "--compact", "--out", str(tmp_path),
+                           "--no-progress"])
+    compact = f"{suite_device.id} compact"
+    assert returned["participants"][compact]["compact"] is True
+    (scene,) = returned["scenes"]
+    assert scene["errors"] == {}
+    trees = scene["trees"]
+    assert trees[compact]["node_bytes"] == trees[suite_device.id]["node_bytes"]
+    assert trees[compact]["triangle_bytes"] < trees[suite_device.id]["triangle_bytes"]
+    for w in scene["workloads"]:
+        results = w["results"]
+        assert results[compact]["hits"] == results[suite_device.id]["hits"] > 0
+        assert results[compact]["occluded"] == results[suite_device.id]["occluded"]
+        assert results[compact]["disagreement"] == {"intersect": 0.0, "occluded": 0.0}
+        assert set(w["ratios"]) == {suite_device.id, compact}
+    assert compact in capsys.readouterr().out

@@ -48,7 +48,13 @@ GROUPS = {
     # Oclgrind reports itself as a GPU; what the CPU profile adds on it
     # (packets with prefetches, all-hits writing the rays' arrays in place)
     "cpu_profile": ("packets", "all_hits"),
+    # the flat scenes' cases on compact trees (Scene(..., compact=True)),
+    # whose leaves name their vertices (kernels/core/leaf.h)
+    "compact": ("builds_and_refits", "packets", "points", "all_hits"),
 }
+
+#: The groups whose flat scenes are built compact (compact_scenes).
+COMPACT_GROUPS = {"compact"}
 
 #: The profile (hlbvh_cl/device/profile.py) each group's child is forced to; the
 #: others run with the one the device gets.
@@ -740,10 +746,27 @@ def child(mode: str, group: str, out: str) -> None:
     answer_nvidia_query_locally()
     if mode == "uninitialized":
         uninitialized_mode()
+    if group in COMPACT_GROUPS:
+        compact_scenes()
     results = {}
     for case in GROUPS[group]:
         results.update(CASES[case](uninitialized=mode == "uninitialized"))
     np.savez(out, **results)
+
+
+def compact_scenes() -> None:
+    """Every flat Scene this child builds, compact unless a case says: the
+    cases run unchanged on the indexed leaves."""
+    import hlbvh_cl
+    made = hlbvh_cl.Scene.__init__
+
+    @functools.wraps(made)
+    def compact_init(self, meshes, *args, instances=None, masks=None, **options):
+        options.setdefault("compact", instances is None and masks is None)
+        made(self, meshes, *args, instances=instances, masks=masks, **options)
+
+    hlbvh_cl.Scene.__init__ = compact_init
+    assert hlbvh_cl.Scene(tiny_meshes()).compact
 
 
 # -- reading Oclgrind's stderr ---------------------------------------------------

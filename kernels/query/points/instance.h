@@ -125,7 +125,7 @@ TRAVERSAL_INLINE uint children_mapped(const PointData* q, __global const WideNod
 #undef NODE_ROW
 
 /* Triangle t of the instance's mesh, in the top frame. */
-TRAVERSAL_INLINE void mapped_corners(__global const Instance* in, __global const Triangle* t,
+TRAVERSAL_INLINE void mapped_corners(__global const Instance* in, TRIANGLE_AT t,
                                      float3* a, float3* b, float3* c)
 {
     *a = map_point(in->to_world, LOAD_XYZ(t->v0));
@@ -137,14 +137,15 @@ TRAVERSAL_INLINE void mapped_corners(__global const Instance* in, __global const
  * point; a nearer one (at the reach only while there is none, as
  * closest_leaf) becomes the best, of instance `owner`, and shrinks the
  * mesh-frame reach. */
-TRAVERSAL_INLINE bool closest_mapped_leaf(Found_point* s, __global const Triangle* triangles,
+TRAVERSAL_INLINE bool closest_mapped_leaf(Found_point* s, __global const Leaf* triangles,
                                           int first, uint count, __global const Instance* in,
                                           const MeshFrame* f, int owner)
 {
     float3 p = (float3)(f->world.x, f->world.y, f->world.z);
     for (int i = first; i < first + (int)count; ++i) {
         float3 a, b, c;
-        mapped_corners(in, triangles + i, &a, &b, &c);
+        LEAF_CORNERS(t, triangles, i);
+        mapped_corners(in, t, &a, &b, &c);
         float u, v;
         float d2 = closest_on_corners(a, b, c, p, &u, &v);
         if (d2 < s->best || (s->index < 0 && d2 <= s->best)) {

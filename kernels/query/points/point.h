@@ -225,11 +225,11 @@ TRAVERSAL_INLINE float solid_angle_double(float3 v0, float3 v1, float3 v2, float
  * Doubtful angles (a sliver's, near an edge's line) go in double where
  * the device has it (solid_angle_double). */
 TRAVERSAL_INLINE bool winding_leaf(Found_point* s, const PointData* q,
-                                   __global const Triangle* triangles, int first, uint count)
+                                   __global const Leaf* triangles, int first, uint count)
 {
     float3 p = (float3)(q->x, q->y, q->z);
     for (int i = first; i < first + (int)count; ++i) {
-        __global const Triangle* t = triangles + i;
+        LEAF_CORNERS(t, triangles, i);
         if (zero_area(t))
             continue;
         float3 v0 = LOAD_XYZ(t->v0), v1 = LOAD_XYZ(t->v1), v2 = LOAD_XYZ(t->v2);
@@ -298,7 +298,7 @@ TRAVERSAL_INLINE float closest_on_corners(float3 a, float3 b, float3 c, float3 p
     return closest_on_corners_float(a, b, c, p, u_out, v_out);
 }
 
-TRAVERSAL_INLINE float closest_on_triangle(__global const Triangle* t, float3 p, float* u_out,
+TRAVERSAL_INLINE float closest_on_triangle(TRIANGLE_AT t, float3 p, float* u_out,
                                            float* v_out)
 {
     return closest_on_corners(LOAD_XYZ(t->v0), LOAD_XYZ(t->v1), LOAD_XYZ(t->v2), p, u_out,
@@ -311,12 +311,13 @@ TRAVERSAL_INLINE float closest_on_triangle(__global const Triangle* t, float3 p,
  * order: equidistant triangles resolve the same whichever order the walk
  * meets them in, alone or in any packet). */
 TRAVERSAL_INLINE bool closest_leaf(Found_point* s, const PointData* q,
-                                   __global const Triangle* triangles, int first, uint count)
+                                   __global const Leaf* triangles, int first, uint count)
 {
     float3 p = (float3)(q->x, q->y, q->z);
     for (int i = first; i < first + (int)count; ++i) {
         float u, v;
-        float d2 = closest_on_triangle(triangles + i, p, &u, &v);
+        LEAF_CORNERS(t, triangles, i);
+        float d2 = closest_on_triangle(t, p, &u, &v);
         if (d2 < s->reach || (d2 <= s->reach && (s->index < 0 || i < s->index))) {
             s->index = i;
             s->reach = d2;

@@ -239,11 +239,11 @@ TRAVERSAL_INLINE float_packet closest_on_corners_packet(float3 a, float3 b, floa
  * that lane's (at the best itself while it has none or when it comes first
  * in tree order). */
 TRAVERSAL_INLINE bool closest_leaf_points(Found_points* s, const PointPacket* q,
-                                          __global const Triangle* triangles, int first,
+                                          __global const Leaf* triangles, int first,
                                           uint count)
 {
     for (int i = first; i < first + (int)count; ++i) {
-        __global const Triangle* t = triangles + i;
+        LEAF_CORNERS(t, triangles, i);
         float_packet u, v;
         float_packet d2 = closest_on_corners_packet(LOAD_XYZ(t->v0), LOAD_XYZ(t->v1),
                                                     LOAD_XYZ(t->v2), q, &u, &v);
@@ -342,7 +342,7 @@ TRAVERSAL_INLINE float_packet dipole_flux_points(__global const WideDipoles* dip
  * still summing, for which that walk's items have no place.  s->solid_angle
  * gets the sums; true when the stack was too small. */
 TRAVERSAL_INLINE bool walk_winding_points(const PointPacket* q, __global const WideNode* nodes,
-                                          __global const Triangle* triangles,
+                                          __global const Leaf* triangles,
                                           Found_points* s,
                                           __global const WideDipoles* dipoles)
 {
@@ -389,7 +389,7 @@ TRAVERSAL_INLINE bool walk_winding_points(const PointPacket* q, __global const W
             }
         } else {
             for (int i = index; i < index + (int)count; ++i) {
-                __global const Triangle* t = triangles + i;
+                LEAF_CORNERS(t, triangles, i);
                 if (zero_area(t))
                     continue;  /* none subtended (winding_leaf) */
                 float3 v0 = LOAD_XYZ(t->v0), v1 = LOAD_XYZ(t->v1), v2 = LOAD_XYZ(t->v2);

@@ -99,13 +99,13 @@ TRAVERSAL_INLINE float3 instance_normal(__global const Instance* in, float3 n)
 /* A flat scene: one tree over every mesh's triangles. */
 #ifndef SPHERES
 #define SCENE_PARAMS                                                                    \
-    __global const WideNode *nodes, __global const Triangle *triangles,                  \
+    __global const WideNode *nodes, __global const Leaf *triangles,                      \
         __global const TriangleRef *refs
 #define SCENE_ARGS nodes, triangles, refs
 #else
 /* ... and its analytic spheres (query/rays/sphere.h), after the meshes. */
 #define SCENE_PARAMS                                                                    \
-    __global const WideNode *nodes, __global const Triangle *triangles,                  \
+    __global const WideNode *nodes, __global const Leaf *triangles,                      \
         __global const TriangleRef *refs, __global const float4 *spheres,                \
         const uint sphere_count, const int sphere_geom
 #define SCENE_ARGS nodes, triangles, refs, spheres, sphere_count, sphere_geom
@@ -116,10 +116,10 @@ TRAVERSAL_INLINE float3 instance_normal(__global const Instance* in, float3 n)
  * rays' masks (ray_masks[i * mask_step]: step 0, one mask for all) and the
  * meshes' trees one after another. */
 #define SCENE_PARAMS                                                                    \
-    __global const WideNode *top_nodes, __global const Triangle *top_triangles,          \
+    __global const WideNode *top_nodes, __global const Leaf *top_triangles,              \
         __global const TriangleRef *top_refs, __global const Instance *instances,        \
         __global const uint *ray_masks, const uint mask_step,                             \
-        __global const WideNode *nodes, __global const Triangle *triangles,              \
+        __global const WideNode *nodes, __global const Leaf *triangles,                  \
         __global const TriangleRef *refs
 #define SCENE_ARGS top_nodes, top_triangles, top_refs, instances, ray_masks, mask_step, nodes, \
                    triangles, refs

@@ -113,7 +113,7 @@
  * others to hide their cache misses behind. */
 TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, const uint* used,
                                             __global const WideNode* nodes,
-                                            __global const Triangle* triangles
+                                            __global const Leaf* triangles
                                             TRACE_SCENE_PARAMS, __global int* overflow,
                                             QUERY_OUT* out QUERY_PARAMS)
 {
@@ -270,7 +270,7 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, const uint* u
  * instances. */
 TRAVERSAL_INLINE uint QUERY_FN(root, _mixed)(const RayLanes* lanes,
                                              __global const WideNode* nodes,
-                                             __global const Triangle* triangles,
+                                             __global const Leaf* triangles,
                                              Found_ray* starts QUERY_PARAMS)
 {
     Mixed r;
@@ -288,7 +288,8 @@ TRAVERSAL_INLINE uint QUERY_FN(root, _mixed)(const RayLanes* lanes,
         uint first = (uint)nodes->child[c];
         for (uint i = first; i < first + nodes->count[c]; ++i) {
             float_packet t, u, v;
-            int_packet hit = hit_triangle_mixed(&r, triangles + i, s->limit,
+            LEAF_CORNERS(tri, triangles, i);
+            int_packet hit = hit_triangle_mixed(&r, tri, s->limit,
                                                 (s->index >= 0) & (s->index < (int)i), &t,
                                                 &u, &v);
             if (some_packet(hit))
@@ -329,7 +330,7 @@ TRAVERSAL_INLINE uint QUERY_FN(root, _mixed)(const RayLanes* lanes,
  * -inf) are skipped. */
 TRAVERSAL_INLINE bool QUERY_FN(lanes, _packet)(const RayLanes* lanes,
                                                __global const WideNode* nodes,
-                                               __global const Triangle* triangles,
+                                               __global const Leaf* triangles,
                                                Found_packet* s QUERY_PARAMS)
 {
     int index[PACKET_SIZE];
@@ -366,7 +367,7 @@ TRAVERSAL_INLINE bool QUERY_FN(lanes, _packet)(const RayLanes* lanes,
  * their direction signs and kz, else lane by lane. */
 TRAVERSAL_INLINE bool QUERY_FN(mapped, _packet)(const RayLanes* lanes,
                                                 __global const WideNode* nodes,
-                                                __global const Triangle* triangles,
+                                                __global const Leaf* triangles,
                                                 Found_packet* s QUERY_PARAMS)
 {
     Packet p;
@@ -422,7 +423,7 @@ TRAVERSAL_INLINE bool TRACE_NAME(instance)(PATH(Found)* s, const PATH(Rays)* r,
 /* The trace's walk of rays r (a packet, or lane `lane`'s ray) from its start
  * over the scene's tree, with results in out; true if a stack ran out. */
 TRAVERSAL_INLINE bool TRACE_NAME(trace)(const PATH(Rays)* r, __global const WideNode* nodes,
-                                        __global const Triangle* triangles, QUERY_OUT* out,
+                                        __global const Leaf* triangles, QUERY_OUT* out,
                                         uint lane TRACE_PARAMS)
 {
     PATH(Found) s;

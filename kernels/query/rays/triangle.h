@@ -15,7 +15,7 @@
 #pragma OPENCL FP_CONTRACT OFF
 
 /* cross(v1 - v0, v2 - v0): unnormalised, following the winding. */
-TRAVERSAL_INLINE void geometric_normal(__global const Triangle* tri, float* nx, float* ny,
+TRAVERSAL_INLINE void geometric_normal(TRIANGLE_AT tri, float* nx, float* ny,
                                        float* nz)
 {
     float e1x = tri->v1[0] - tri->v0[0], e1y = tri->v1[1] - tri->v0[1], e1z = tri->v1[2] - tri->v0[2];
@@ -42,7 +42,7 @@ TRAVERSAL_INLINE void geometric_normal(__global const Triangle* tri, float* nx, 
 
 /* The triangle's first vertex and its plane's normal cross(v1 - v0, v2 - v0)
  * in double. */
-TRAVERSAL_INLINE void plane_double(__global const Triangle* tri, double* v0, double* n)
+TRAVERSAL_INLINE void plane_double(TRIANGLE_AT tri, double* v0, double* n)
 {
     v0[0] = tri->v0[0];
     v0[1] = tri->v0[1];
@@ -78,7 +78,7 @@ TRAVERSAL_INLINE void plane_double(__global const Triangle* tri, double* v0, dou
  * *u_out, *v_out (hit = (1-u-v)*v0 + u*v1 + v*v2).  Degenerate triangles are
  * never hit. */
 TRAVERSAL_INLINE PATH(flags) PATH(hit_triangle)(const PATH(Rays)* r,
-                                                __global const Triangle* tri,
+                                                TRIANGLE_AT tri,
                                                 PATH(real) limit, PATH(flags) strict,
                                                 PATH(real)* t_out, PATH(real)* u_out,
                                                 PATH(real)* v_out)

@@ -193,11 +193,15 @@ TRAVERSAL_INLINE void store_hit_packet(const Found_packet* s, HitLanes* out, uin
 /* One ray's closest hit as a Hit record (a miss: t = INFINITY, ids -1, the
  * rest 0) from the tree-order index of the triangle hit (-1: none). */
 TRAVERSAL_INLINE void make_hit(Hit* out, int index, float t, float u, float v,
-                               __global const Triangle* triangles,
+                               __global const Leaf* triangles,
                                __global const TriangleRef* refs)
 {
     bool found = index >= 0;
-    float3 normal = found ? unit_normal(triangles + index) : (float3)(0.0f);
+    float3 normal = (float3)(0.0f);
+    if (found) {
+        LEAF_CORNERS(tri, triangles, index);
+        normal = unit_normal(tri);
+    }
     Hit hit;
     hit.t = found ? t : INFINITY;
     hit.geom_id = found ? refs[index].geom_id : -1;

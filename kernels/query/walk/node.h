@@ -8,6 +8,7 @@
 
 #include "core/portable.h"
 #include "core/spelled.h"
+#include "core/leaf.h"
 #include "core/tree.h"
 
 #ifdef cl_khr_fp64

@@ -50,13 +50,13 @@ TRAVERSAL_INLINE bool pop(const StackItem* stack, int* sp, float limit, int* ind
  * nothing. */
 TRAVERSAL_INLINE void prefetch_child(__global const WideNode* n, int slot,
                                      __global const WideNode* nodes,
-                                     __global const Triangle* triangles)
+                                     __global const Leaf* triangles)
 {
 #ifdef PREFETCH
     uint count = n->count[slot];
     __global const char* first = count == 0 ? (__global const char*)(nodes + n->child[slot])
                                             : (__global const char*)(triangles + n->child[slot]);
-    uint last = (count == 0 ? (uint)sizeof(WideNode) : count * (uint)sizeof(Triangle)) - 1u;
+    uint last = (count == 0 ? (uint)sizeof(WideNode) : count * (uint)sizeof(Leaf)) - 1u;
     __builtin_prefetch(first);
     __builtin_prefetch(first + LESSER(64u, last));
     __builtin_prefetch(first + LESSER(128u, last));
@@ -78,7 +78,7 @@ TRAVERSAL_INLINE void prefetch_child(__global const WideNode* n, int slot,
  * camera rays slower without it, so it keeps the sort. */
 TRAVERSAL_INLINE void push_sorted(__global const WideNode* n, uint mask,
                                   const ChildEntries* entries, __global const WideNode* nodes,
-                                  __global const Triangle* triangles, StackItem* stack, int* sp)
+                                  __global const Leaf* triangles, StackItem* stack, int* sp)
 {
     int first = *sp;
 #ifdef HAVE_MOVMSKPS256
@@ -121,7 +121,7 @@ TRAVERSAL_INLINE void push_sorted(__global const WideNode* n, uint mask,
 TRAVERSAL_INLINE int next_item(__global const WideNode* n, uint mask,
                                const ChildEntries* entries,
                                __global const WideNode* nodes,
-                               __global const Triangle* triangles, StackItem* stack, int* sp,
+                               __global const Leaf* triangles, StackItem* stack, int* sp,
                                float limit, int* index, uint* count)
 {
     if (mask == 0)
@@ -167,7 +167,7 @@ TRAVERSAL_INLINE int next_item(__global const WideNode* n, uint mask,
  * drops them. */
 TRAVERSAL_INLINE int next_item_any(__global const WideNode* n, uint mask,
                                    __global const WideNode* nodes,
-                                   __global const Triangle* triangles, StackItem* stack, int* sp,
+                                   __global const Leaf* triangles, StackItem* stack, int* sp,
                                    float limit, int* index, uint* count)
 {
     if (mask == 0)

@@ -41,7 +41,7 @@ TRAVERSAL_INLINE float3 map_point(__global const float* m, float3 p)
  * variadic macros, 6.9). */
 #define MESHES_PARAMS                                                                   \
     , __global const TriangleRef *top_refs, __global const Instance *instances,          \
-        __global const WideNode *mesh_nodes, __global const Triangle *mesh_triangles
+        __global const WideNode *mesh_nodes, __global const Leaf *mesh_triangles
 #define MESHES_ARGS , top_refs, instances, mesh_nodes, mesh_triangles
 #define INSTANCE_PARAMS MESHES_PARAMS, bool *mesh_overflow
 #define INSTANCE_ARGS MESHES_ARGS, mesh_overflow

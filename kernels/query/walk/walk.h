@@ -107,7 +107,7 @@
  * the first triangle, whatever order the walk met them in (a packet's and
  * one ray's walks differ), so every packet size and walk gives the same
  * hit.  Or the query's own QUERY_LEAF, or a top tree's instances. */
-TRAVERSAL_INLINE bool WALK_NAME(leaf)(const PATH(Rays)* r, __global const Triangle* triangles,
+TRAVERSAL_INLINE bool WALK_NAME(leaf)(const PATH(Rays)* r, __global const Leaf* triangles,
                                       int first, uint count, PATH(Found)* s WALK_PARAMS)
 {
 #if defined(QUERY_LEAF)
@@ -117,7 +117,8 @@ TRAVERSAL_INLINE bool WALK_NAME(leaf)(const PATH(Rays)* r, __global const Triang
 #else
     for (uint i = (uint)first; i < (uint)first + count; ++i) {
         PATH(real) t, u, v;
-        PATH(flags) hit = PATH(hit_triangle)(r, triangles + i, s->limit,
+        LEAF_CORNERS(tri, triangles, i);
+        PATH(flags) hit = PATH(hit_triangle)(r, tri, s->limit,
                                              (s->index >= 0) & (s->index < (int)i), &t, &u, &v);
         if (PATH(some)(hit) && QUERY_HIT(s, i, hit, t, u, v))
             return true;
@@ -132,7 +133,7 @@ TRAVERSAL_INLINE bool WALK_NAME(leaf)(const PATH(Rays)* r, __global const Triang
  * such as a ground quad often sits in a leaf near the root. */
 TRAVERSAL_INLINE bool WALK_NAME(leaves_first)(PATH(Found)* s, const PATH(Rays)* r,
                                               __global const WideNode* n, uint* mask,
-                                              __global const Triangle* triangles WALK_PARAMS)
+                                              __global const Leaf* triangles WALK_PARAMS)
 {
     uint leaves = *mask & lane_mask(LOAD_ROW(int_lanes, n->count) != (int_lanes)(0));
     *mask ^= leaves;
@@ -148,7 +149,7 @@ TRAVERSAL_INLINE bool WALK_NAME(leaves_first)(PATH(Found)* s, const PATH(Rays)* 
  * walk's next item (*index, *count): NEXT_ITEM, NO_ITEM, STACK_FULL, or
  * WALK_ENDED where the hook ended the walk. */
 TRAVERSAL_INLINE int WALK_NAME(node)(const PATH(Rays)* r, __global const WideNode* nodes,
-                                     __global const Triangle* triangles, PATH(Found)* s,
+                                     __global const Leaf* triangles, PATH(Found)* s,
                                      StackItem* stack, int* sp, int* index,
                                      uint* count WALK_PARAMS)
 {
@@ -169,7 +170,7 @@ TRAVERSAL_INLINE int WALK_NAME(node)(const PATH(Rays)* r, __global const WideNod
  * s holding its start (no hit, limit tmax) and ending with its result.
  * Returns true when the stack was too small (the host then raises). */
 TRAVERSAL_INLINE bool WALK_NAME(walk)(const PATH(Rays)* r, __global const WideNode* nodes,
-                                      __global const Triangle* triangles,
+                                      __global const Leaf* triangles,
                                       PATH(Found)* s WALK_PARAMS)
 {
     StackItem stack[STACK_SIZE + 1];  /* + 1: see next_item */
@@ -207,7 +208,7 @@ TRAVERSAL_INLINE bool WALK_NAME(walk)(const PATH(Rays)* r, __global const WideNo
 /* One step of walk r: a node, or a leaf and then the next stacked item;
  * true when the walk is over (*full: its stack ran out). */
 TRAVERSAL_INLINE bool WALK_NAME(step)(const PATH(Rays)* r, __global const WideNode* nodes,
-                                      __global const Triangle* triangles, PATH(Found)* s,
+                                      __global const Leaf* triangles, PATH(Found)* s,
                                       StackItem* stack, int* sp, int* index, uint* count,
                                       bool* full WALK_PARAMS)
 {
@@ -233,7 +234,7 @@ TRAVERSAL_INLINE bool WALK_NAME(step)(const PATH(Rays)* r, __global const WideNo
  * ends): 4 slots traced no faster than this, 8 slower (figures in the
  * commit that says so). */
 TRAVERSAL_INLINE bool WALK_NAME(walks)(const PATH(Rays)* r, __global const WideNode* nodes,
-                                       __global const Triangle* triangles, PATH(Found)* s,
+                                       __global const Leaf* triangles, PATH(Found)* s,
                                        uint n WALK_PARAMS)
 {
     StackItem stack[WALK_LANES][STACK_SIZE + 1];

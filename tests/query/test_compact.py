@@ -1,0 +1,153 @@
+"""Scene(..., compact=True): leaves of vertex indices beside one copy of the
+vertices (kernels/core/leaf.h) in place of three corners a triangle.  The
+oracle is the default tree itself: the same build, read through the other
+layout, must answer every query family with the same bits (t, ids, u, v,
+normals, points, flags, counts, every hit, closest points, distances,
+winding numbers), before and after a refit; and the compact tree must hold
+the same triangles, in less memory."""
+import pickle
+
+import numpy as np
+import pytest
+
+import built
+import hlbvh_cl
+from invariants import check_tree
+from ray_cases import MESH_MAKERS, cube_mesh, random_rays, SceneCase
+from shapes import grid_mesh
+
+
+def _far_cube():
+    """Coordinates near float32's top: the tree's frame scales them (core/frame)."""
+    return hlbvh_cl.Mesh(cube_mesh().vertices * 1e37, cube_mesh().faces, name="far")
+
+
+def _moved(mesh):
+    return mesh.vertices * np.float32(1.125) + np.float32(0.01)
+
+
+CASES = {
+    **{name: (lambda make=make: [make()]) for name, make in MESH_MAKERS.items()},
+    "several": lambda: [MESH_MAKERS["teapot"](), cube_mesh(2.0, 3.0), grid_mesh(5)],
+    "far": lambda: [_far_cube()],
+}
+
+
+def _fields(result):
+    """A query's result as named arrays."""
+    if isinstance(result, np.ndarray):
+        return {"": result}
+    return {name: np.asarray(value) for name, value in vars(result).items()
+            if isinstance(value, np.ndarray)}
+
+
+def _assert_same_bits(name, base, compact):
+    a, b = _fields(base), _fields(compact)
+    assert a.keys() == b.keys() and a, name
+    for field in a:
+        assert a[field].dtype == b[field].dtype, (name, field)
+        assert a[field].shape == b[field].shape, (name, field)
+        # bit for bit: NaN payloads and the sign of zero included
+        assert a[field].tobytes() == b[field].tobytes(), (name, field)
+
+
+def _answers(scene, case, seed):
+    """Every query family's answer on ``scene`` for rays and points made
+    from ``case`` (rays around the box, some with finite tmax; a camera's
+    coherent rays, traced as packets; points around and near the box)."""
+    origins, directions = random_rays(case, 3000, seed)
+    tmax = np.where(np.arange(len(origins)) % 3 == 0, 0.7, np.inf).astype(np.float32)
+    centre = (case.lo + case.hi) / 2
+    camera = hlbvh_cl.Camera(eye=centre + np.array([0.3, 0.4, 2.0]) * case.extent,
+                             target=centre)
+    eye, rays = camera.rays(48, 32)
+    rng = np.random.default_rng(seed)
+    points = (centre + (rng.random((1500, 3)) - 0.5) * 1.4
+              * np.maximum(case.hi - case.lo, 0.1 * case.extent))
+    return {
+        "intersect": scene.intersect(origins, directions, tmax=tmax),
+        "camera": scene.intersect(eye, rays),
+        "occluded": scene.occluded(origins, directions, tmax=tmax),
+        "count_intersections": scene.count_intersections(origins, directions),
+        "intersect_all": scene.intersect_all(origins[:600], directions[:600]),
+        "closest_points": scene.closest_points(points),
+        "signed_distance": scene.signed_distance(points),
+        "winding_number": scene.winding_number(points),
+    }
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_every_query_answers_the_same_bits(name):
+    meshes = CASES[name]()
+    base = hlbvh_cl.Scene(meshes)
+    compact = hlbvh_cl.Scene(meshes, compact=True)
+    case = SceneCase(meshes, scene=base)
+    for seed in (0, 1):
+        for query, answer in _answers(base, case, seed).items():
+            _assert_same_bits(query, answer, _answers(compact, case, seed)[query])
+    # a refit re-reads the moved vertices into the compact leaves
+    for scene in (base, compact):
+        scene.update_vertices(0, _moved(meshes[0]))
+    for query, answer in _answers(base, case, 2).items():
+        _assert_same_bits(f"{query} after a refit", answer, _answers(compact, case, 2)[query])
+
+
+@pytest.mark.parametrize("name", ["bunny_small", "several", "degenerate"])
+def test_the_compact_tree_holds_the_same_triangles_in_less_memory(name):
+    meshes = CASES[name]()
+    base = hlbvh_cl.Scene(meshes)
+    compact = hlbvh_cl.Scene(meshes, compact=True)
+    base_tree, compact_tree = built.tree(base), built.tree(compact)
+    queue = built.runtime(base).queue
+    base_triangles, base_refs = base_tree.read_triangles(queue)
+    compact_triangles, compact_refs = compact_tree.read_triangles(built.runtime(compact).queue)
+    assert base_triangles.tobytes() == compact_triangles.tobytes()
+    assert base_refs.tobytes() == compact_refs.tobytes()
+    assert base_tree.read_nodes(queue).tobytes() == \
+        compact_tree.read_nodes(built.runtime(compact).queue).tobytes()
+    check_tree(compact)
+    # the records name the vertices a refit re-reads: no vertex ids beside them
+    assert base_tree.vertex_ids is not None and compact_tree.vertex_ids is None
+    triangles = sum(m.triangle_count for m in meshes)
+    vertices = sum(m.vertex_count for m in meshes)
+    assert base.stats.triangle_bytes == 36 * triangles
+    assert compact.stats.triangle_bytes == 12 * (triangles + vertices)
+    assert compact.stats.node_bytes == base.stats.node_bytes
+    assert compact.stats.tree_bytes < base.stats.tree_bytes
+
+
+def test_spheres_beside_a_compact_tree_answer_the_same_bits():
+    meshes = [MESH_MAKERS["teapot"](), grid_mesh(6)]
+    spheres = [[0.5, 0.5, 0.5, 0.3], [-1.0, 0.2, 0.4, 0.25]]
+    base = hlbvh_cl.Scene(meshes, spheres=spheres)
+    compact = hlbvh_cl.Scene(meshes, spheres=spheres, compact=True)
+    case = SceneCase(meshes, scene=base)
+    origins, directions = random_rays(case, 4000, 5)
+    found = base.intersect(origins, directions)
+    assert (found.geom_id >= len(meshes)).any() and (found.geom_id == 0).any()
+    _assert_same_bits("intersect", found, compact.intersect(origins, directions))
+    _assert_same_bits("occluded", base.occluded(origins, directions),
+                      compact.occluded(origins, directions))
+
+
+def test_compact_scenes_pickle_and_render_as_compact():
+    mesh = MESH_MAKERS["bunny_small"]()
+    scene = hlbvh_cl.Scene([mesh], compact=True)
+    again = pickle.loads(pickle.dumps(scene))
+    assert again.compact and "compact=True" in repr(again)
+    assert again.stats.triangle_bytes == scene.stats.triangle_bytes
+    assert pickle.loads(pickle.dumps(hlbvh_cl.Scene([mesh]))).compact is False
+    camera = hlbvh_cl.Camera(eye=(0, 0.1, 0.4), target=(0, 0.1, 0))
+    images = [hlbvh_cl.Renderer(s).render(camera, 64, 48)
+              for s in (hlbvh_cl.Scene([mesh]), again)]
+    assert images[0].tobytes() == images[1].tobytes() and images[0].any()
+
+
+def test_compact_is_for_flat_scenes_and_a_flag():
+    cube = cube_mesh()
+    with pytest.raises(ValueError, match="compact=True is for flat scenes"):
+        hlbvh_cl.Scene([cube], instances=[(0, np.eye(4))], compact=True)
+    with pytest.raises(ValueError, match="compact=True is for flat scenes"):
+        hlbvh_cl.Scene([cube, grid_mesh()], masks=[1, 2], compact=True)
+    with pytest.raises(TypeError, match="compact must be True or False, got 'yes'"):
+        hlbvh_cl.Scene([cube], compact="yes")
