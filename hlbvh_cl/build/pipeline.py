@@ -31,7 +31,7 @@ from .morton import key_dtype, morton_codes
 from .radix_tree import RadixTree, RadixTreeMetrics, build_radix_tree
 from .sah_top import BYTES_PER_CLUSTER, build_top, max_clusters, task_lists_bytes
 from ..parallel.radix_sort import sorter
-from ..core.tree import Tree
+from ..core.tree import Tree, leaf_bytes
 from .widen import Widening, read_back
 
 #: The builders.  A better tree is not where traversal loses to Embree: the
@@ -68,20 +68,14 @@ class Geometry:
                    len(vertices), len(faces), len(mesh_first_face))
 
 
-def leaf_buffer_bytes(vertex_count: int, triangle_count: int, indexed: bool) -> int:
-    """The bytes of a tree's leaves (hlbvh_cl.core.tree.Tree.triangles)."""
-    if indexed:
-        return triangle_count * layout.INDEXED_TRIANGLE.itemsize + vertex_count * 12
-    return triangle_count * layout.TRIANGLE.itemsize
-
-
-def copy_vertices(rt: Runtime, geometry: Geometry, triangle_count: int, leaves: cl.Buffer,
-                  wait_for=None) -> cl.Event:
-    """An indexed tree's vertices (``geometry``'s, already in the tree's
-    frame) into their place after its ``triangle_count`` leaf records."""
-    return cl.enqueue_copy(rt.queue, leaves, geometry.vertices,
+def copy_vertices(rt: Runtime, vertices: cl.Buffer, vertex_count: int, triangle_count: int,
+                  leaves: cl.Buffer, wait_for=None) -> cl.Event:
+    """An indexed tree's vertices (the scene's, already in the tree's frame)
+    into their place after its ``triangle_count`` leaf records: by a build,
+    and by a refit after they moved."""
+    return cl.enqueue_copy(rt.queue, leaves, vertices,
                            dst_offset=triangle_count * layout.INDEXED_TRIANGLE.itemsize,
-                           byte_count=geometry.vertex_count * 12, wait_for=wait_for)
+                           byte_count=vertex_count * 12, wait_for=wait_for)
 
 
 def build_memory(vertex_count: int, triangle_count: int, morton_bits: int,
@@ -98,7 +92,7 @@ def build_memory(vertex_count: int, triangle_count: int, morton_bits: int,
         "radix tree costs, heights, flags": (2 * n - 1) * 8 + 2 * n * 4,
         "scans": 2 * (n + 1) * 4,
         "flat nodes": max(1, n - 1) * layout.FLAT_NODE.itemsize,
-        "triangles": leaf_buffer_bytes(vertex_count, n, indexed),
+        "triangles": leaf_bytes(vertex_count, n, indexed),
         "triangle refs": n * layout.TRIANGLE_REF.itemsize,
         "triangle vertex ids": 0 if indexed else n * 12,
         "SAH top (clusters)": max_clusters(n) * BYTES_PER_CLUSTER,
@@ -205,7 +199,7 @@ def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int, scal
         keys, primitive_ids, n, morton_bits, wait_for=stage_events["morton"][-1:])
 
     radix, metrics = RadixTree.allocate(rt, n), RadixTreeMetrics.allocate(rt, n)
-    triangles = buf(leaf_buffer_bytes(geometry.vertex_count, n, indexed))
+    triangles = buf(leaf_bytes(geometry.vertex_count, n, indexed))
     # an indexed tree's records name its vertices: no vertex ids beside them
     refs, vertex_ids = buf(n * layout.TRIANGLE_REF.itemsize), None if indexed else buf(n * 12)
     rt.pool.keep(*(b for b in (triangles, refs, vertex_ids) if b is not None))
@@ -214,7 +208,8 @@ def _build(rt: Runtime, geometry: Geometry, builder: str, morton_bits: int, scal
         geometry.mesh_first_face, geometry.mesh_count, radix, metrics, triangles, refs,
         vertex_ids, collapse_leaves=hlbvh, indexed=indexed, wait_for=stage_events["sort"][-1:])
     if indexed:  # the vertices the records name, after them
-        stage_events["radix_tree"].append(copy_vertices(rt, geometry, n, triangles))
+        stage_events["radix_tree"].append(
+            copy_vertices(rt, geometry.vertices, geometry.vertex_count, n, triangles))
     # Buffers no later stage reads (the centroids, the radix tree's walk, the
     # sort's input where its result is not): the stages sized for the most
     # they can need take from these first (BufferPool.take_spare).

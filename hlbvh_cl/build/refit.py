@@ -7,8 +7,8 @@ from __future__ import annotations
 import pyopencl as cl
 
 from ..device.runtime import Runtime
-from ..core import layout
 from ..core.tree import Tree, leaf_defines
+from .pipeline import copy_vertices
 
 
 def refit(rt: Runtime, tree: Tree, vertices: cl.Buffer, wait_for=None) -> list[cl.Event]:
@@ -21,10 +21,8 @@ def refit(rt: Runtime, tree: Tree, vertices: cl.Buffer, wait_for=None) -> list[c
     kernel = rt.kernel("build/refit.cl", "refit_wide_level", **leaf_defines(tree.indexed))
     events: list[cl.Event] = []
     if tree.indexed:  # the leaves' own copy of the vertices, which their records name
-        events.append(cl.enqueue_copy(
-            rt.queue, tree.triangles, vertices,
-            dst_offset=tree.triangle_count * layout.INDEXED_TRIANGLE.itemsize,
-            byte_count=tree.vertex_count * 12, wait_for=wait_for))
+        events.append(copy_vertices(rt, vertices, tree.vertex_count, tree.triangle_count,
+                                    tree.triangles, wait_for=wait_for))
     for first, count in reversed(tree.levels):
         # an indexed tree's leaves read the vertices they hold (refit.cl)
         events.append(rt.run(kernel, count, first, count, tree.nodes,

@@ -20,6 +20,14 @@ def leaf_defines(indexed: bool) -> dict:
     return {"INDEXED_LEAVES": 1} if indexed else {}
 
 
+def leaf_bytes(vertex_count: int, triangle_count: int, indexed: bool) -> int:
+    """The bytes of a tree's leaves (Tree.triangles): a Triangle a
+    triangle, or an indexed tree's records and then its vertices."""
+    if indexed:
+        return triangle_count * layout.INDEXED_TRIANGLE.itemsize + vertex_count * 12
+    return triangle_count * layout.TRIANGLE.itemsize
+
+
 @dataclass
 class Tree:
     """A WIDE_ARITY-wide BVH on one device.
@@ -75,13 +83,6 @@ class Tree:
     indexed: bool = False
     vertex_count: int = 0  # the vertices after an indexed tree's records
 
-    @property
-    def leaf_bytes(self) -> int:
-        """The bytes of the triangles buffer that traversal reads."""
-        if self.indexed:
-            return (self.triangle_count * layout.INDEXED_TRIANGLE.itemsize
-                    + self.vertex_count * 12)
-        return self.triangle_count * layout.TRIANGLE.itemsize
 
     @property
     def depth(self) -> int:
@@ -92,7 +93,8 @@ class Tree:
         """Device bytes traversal reads: {"node_bytes", "triangle_bytes"},
         from the layouts' itemsizes, so that they follow any layout change."""
         return {"node_bytes": self.node_count * layout.WIDE_NODE.itemsize,
-                "triangle_bytes": self.leaf_bytes}
+                "triangle_bytes": leaf_bytes(self.vertex_count, self.triangle_count,
+                                             self.indexed)}
 
     def release(self, pool) -> None:
         """Give this tree's device buffers back to ``pool`` for the next

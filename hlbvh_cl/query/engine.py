@@ -172,8 +172,7 @@ def kernel_defines(rt: Runtime, tree, variant, packet: int, **extra) -> dict:
         defines["INTERLEAVED_WALKS"] = 1
     if getattr(tree, "spheres", None) is not None:
         defines["SPHERES"] = 1
-    if getattr(tree, "indexed", False):
-        defines.update(leaf_defines(True))
+    defines.update(leaf_defines(getattr(tree, "indexed", False)))
     return {**defines, **extra}
 
 
