@@ -49,8 +49,9 @@ GROUPS = {
     # (packets with prefetches, all-hits writing the rays' arrays in place)
     "cpu_profile": ("packets", "all_hits"),
     # the flat scenes' cases on compact trees (Scene(..., compact=True)),
-    # whose leaves name their vertices (kernels/core/leaf.h)
-    "compact": ("builds_and_refits", "packets", "points", "all_hits"),
+    # whose leaves name their vertices (kernels/core/leaf.h); the points case
+    # refits its scene
+    "compact": ("packets", "points", "all_hits"),
 }
 
 #: The groups whose flat scenes are built compact (compact_scenes).
