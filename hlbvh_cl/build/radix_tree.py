@@ -81,8 +81,9 @@ def build_radix_tree(rt, keys: cl.Buffer, bits: int, vertices: cl.Buffer, faces:
                      indexed: bool = False, wait_for=None) -> list[cl.Event]:
     """The tree's nodes, boxes, SAH costs and collapse flags (one bottom-up
     walk), and before them the triangles (as ``indexed`` leaf records where
-    asked: hlbvh_cl.core.tree), their refs and their vertex ids in leaf
-    (sorted) order with the leaves' boxes (lay_out_leaves)."""
+    asked: hlbvh_cl.core.tree), their refs and their vertex ids (None and
+    not written for indexed leaves) in leaf (sorted) order with the leaves'
+    boxes (lay_out_leaves)."""
     n = tree.n
     splits = max(1, n - 1)
     far_end, visits = tree.far_end, tree.visits
