@@ -1,7 +1,7 @@
 """A/B of two checkouts' closest hits, interleaved in one run: a speed claim's figure.
 
     python -m bench.ab BASE CHANGE [--devices pocl,intel] [--rounds 4] [--scene reference.toml]
-                       [--quick]
+                       [--quick] [--compact]
 
 BASE and CHANGE are checkouts of this repository (git worktrees, say).  The
 workloads are bench.trace's on the scene file: primary rays of its camera
@@ -18,7 +18,9 @@ summary per workload and device is the median over rounds of each one's
 rays per second and of the rounds' change / base ratios, with their min and
 max.  The first round's hits (t, geom_id, prim_id, u, v) are compared: a
 change of speed alone leaves them identical, and the table says whether
-they are.
+they are.  With --compact both checkouts trace the scene's compact tree
+(Scene(..., compact=True), built from its meshes as bench.trace's
+--compact builds it).
 """
 from __future__ import annotations
 
@@ -37,7 +39,8 @@ CALLS = 3
 
 WORKLOADS = ("camera", "incoherent", "bounces")
 
-#: The child: argv = checkout, device, scene file, workloads .npz, hits .npz or "".
+#: The child: argv = checkout, device, scene file, workloads .npz, hits .npz or "",
+#: "compact" or "".
 CHILD = r"""
 import json, sys, time
 from pathlib import Path
@@ -49,6 +52,10 @@ if Path(hlbvh_cl.__file__).resolve().parent != Path(sys.argv[1]).resolve() / "hl
 from bench.trace import scene_file_case
 case = scene_file_case(sys.argv[3], sys.argv[2])
 scene = case.built[sys.argv[2]][0]
+if sys.argv[6] == "compact":
+    scene = hlbvh_cl.Scene(case.meshes, device=sys.argv[2], compact=True)
+if getattr(scene, "compact", False) != (sys.argv[6] == "compact"):  # (checkouts before compact trees: none)
+    sys.exit(f"built {scene!r}, not the tree asked for")
 workloads = np.load(sys.argv[4])
 rates, hits = {}, {}
 for name in %(workloads)r:
@@ -103,7 +110,9 @@ def main(argv=None) -> dict:
                      (["change"], {"help": "the checkout with the change"}),
                      (["--rounds"], {"type": int, "default": 4, "help": "rounds (default 4)"}),
                      (["--scene"], {"default": "reference.toml",
-                                    "help": "scene file of scenes/ (default reference.toml)"}))
+                                    "help": "scene file of scenes/ (default reference.toml)"}),
+                     (["--compact"], {"action": "store_true",
+                                      "help": "trace compact trees (Scene(..., compact=True))"}))
     checkouts = {"base": Path(args.base).resolve(), "change": Path(args.change).resolve()}
     for role, path in checkouts.items():
         if not (path / "hlbvh_cl" / "__init__.py").is_file():
@@ -113,7 +122,8 @@ def main(argv=None) -> dict:
     elapsed = stopwatch()
     devices = [device.id for device in devices_or_exit(args.devices)]
     results = {"base": str(checkouts["base"]), "change": str(checkouts["change"]),
-               "scene": args.scene, "rounds": args.rounds, "devices": {}}
+               "scene": args.scene, "rounds": args.rounds, "compact": args.compact,
+               "devices": {}}
     with tempfile.TemporaryDirectory() as folder:
         folder = Path(folder)
         workloads = folder / "workloads.npz"
@@ -126,7 +136,8 @@ def main(argv=None) -> dict:
             for device in devices:
                 for role in order:
                     hits = folder / f"{device}-{role}.npz" if round_ == 0 else ""
-                    line = child(CHILD, checkouts[role], device, args.scene, workloads, hits)
+                    line = child(CHILD, checkouts[role], device, args.scene, workloads, hits,
+                                 "compact" if args.compact else "")
                     rates[device, role].append(json.loads(line))
             say(f"round {round_ + 1} of {args.rounds} done")
         rows = []
@@ -146,7 +157,8 @@ def main(argv=None) -> dict:
                              "yes" if same else "NO"])
     print(table(["device", "workload", "base Mrays/s", "change Mrays/s",
                  "change / base (min-max)", "same hits"], rows,
-                title=f"A/B on {args.scene}, {args.rounds} rounds interleaved"))
+                title=f"A/B on {args.scene}{' (compact trees)' if args.compact else ''}, "
+                      f"{args.rounds} rounds interleaved"))
     return finish(results, "ab", args, elapsed)
 
 

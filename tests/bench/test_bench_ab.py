@@ -1,6 +1,7 @@
 """python -m bench.ab: a checkout against itself gives identical hits and
-the ratios of the rates it measured; differing hits are told apart; a
-folder that is not a checkout is refused.  Never asserts speed."""
+the ratios of the rates it measured, on default and compact trees;
+differing hits are told apart; a folder that is not a checkout is refused.
+Never asserts speed."""
 import numpy as np
 import pytest
 from bench_support import ROOT, check_json
@@ -8,10 +9,13 @@ from bench_support import ROOT, check_json
 from bench import ab
 
 
-def test_a_checkout_against_itself_has_identical_hits(suite_device, tmp_path, capsys):
+@pytest.mark.parametrize("compact", [False, True], ids=["default", "compact"])
+def test_a_checkout_against_itself_has_identical_hits(suite_device, tmp_path, capsys, compact):
     returned = ab.main([str(ROOT), str(ROOT), "--quick", "--rounds", "1", "--scene",
-                        "cornell_box.xml", "--devices", suite_device.id, "--out", str(tmp_path)])
+                        "cornell_box.xml", "--devices", suite_device.id, "--out", str(tmp_path)]
+                       + (["--compact"] if compact else []))
     check_json(returned)
+    assert returned["compact"] is compact
     entry = returned["devices"][suite_device.id]
     assert set(entry) == set(ab.WORKLOADS)
     for name, found in entry.items():
