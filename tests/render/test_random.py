@@ -24,10 +24,11 @@ def test_host_salts_are_the_kernels(suite_device):
     rt = runtime(suite_device)
     program = quiet_build(cl.Program(rt.context, SOURCE), ["-I", str(kernel_dir())],
                           rt.device.cl_device)
+    kernel = cl.Kernel(program, "salts")
     out = cl.Buffer(rt.context, cl.mem_flags.WRITE_ONLY, 8 * 4)
     # the first bounce, a deep one, and a sample number past 2^31 (uint wrapping)
     for sample, first in ((0, 2), (7, 2 + 8 * 3), (2**31 + 5, 2 + 8 * 1023), (2**32 - 1, 0)):
-        program.salts(rt.queue, (8,), None, np.uint32(sample), np.uint32(first), out)
+        kernel(rt.queue, (8,), None, np.uint32(sample), np.uint32(first), out)
         got = np.empty(8, np.uint32)
         cl.enqueue_copy(rt.queue, got, out)
         want = np.array(salts8(sample, first).tolist(), np.uint32)
