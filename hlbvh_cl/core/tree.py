@@ -83,7 +83,6 @@ class Tree:
     indexed: bool = False
     vertex_count: int = 0  # the vertices after an indexed tree's records
 
-
     @property
     def depth(self) -> int:
         """Wide nodes on the longest root-to-leaf path (>= 1)."""
