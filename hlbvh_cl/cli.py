@@ -24,6 +24,7 @@ from pathlib import Path
 from . import __version__
 from . import devices
 from .io import scenefile
+from .core.inputs import ALL_BITS
 from .device.discovery import select_device, unregistered
 from .device.runtime import DeviceMemoryError, KernelBuildError
 from .render.camera import MAX_IMAGE_SIDE
@@ -118,9 +119,18 @@ def _cmd_info(args) -> int:
     print(f"triangles  {s.triangles:,}")
     print(f"nodes      {s.nodes:,}   leaves {s.leaves:,}   depth {s.depth}   "
           f"(8-wide: {s.wide_nodes:,} nodes, depth {s.wide_depth})")
+    # a two-level scene's stats are its top tree's, whose leaves are proxies, never
+    # compact; its meshes' trees, which hold the triangles, get a line of their own
+    two_level = scene.transforms is not None or bool((scene.masks != ALL_BITS).any())
     leaves = "compact leaves" if scene.compact else "leaf triangles"
     print(f"memory     {s.tree_bytes / 2**20:.2f} MiB on the device for traversal: nodes "
-          f"{s.node_bytes:,} B + {leaves} {s.triangle_bytes:,} B")
+          f"{s.node_bytes:,} B + {'leaf triangles' if two_level else leaves} "
+          f"{s.triangle_bytes:,} B")
+    if two_level:
+        with scene.borrow() as built:
+            held = built.tree.meshes.memory()
+        print(f"meshes     {sum(held.values()) / 2**20:.2f} MiB for the meshes' trees: nodes "
+              f"{held['node_bytes']:,} B + {leaves} {held['triangle_bytes']:,} B")
     print(f"SAH cost   {s.sah_cost:.2f}  (C_t = C_i = 1, relative to the root's area)")
     stages = "  ".join(f"{k} {v:.1f}" for k, v in s.times_ms.items())
     print(f"build ms   {stages}")
@@ -347,7 +357,7 @@ def main(argv=None) -> int:
     info.add_argument("--morton-bits", type=int, default=30, choices=[30, 63])
     info.add_argument("--compact", action="store_true",
                       help="leaves as vertex indices: less device memory, slower rays "
-                           "(flat scenes; docs/queries.md)")
+                           "(docs/queries.md)")
     info.add_argument("--repeat", type=_integer_in(1, 1000), default=2,
                       help="builds to run; the stats are the last one's (default 2)")
     info.set_defaults(run=_cmd_info)

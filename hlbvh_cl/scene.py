@@ -84,13 +84,14 @@ class Scene:
     with spheres rather than leave them out.  They take no instances nor
     masks.
 
-    ``compact=True`` (flat scenes) stores the tree's leaves as three vertex
-    indices a triangle beside one copy of the vertices, instead of three
-    corners a triangle, as Embree's RTC_SCENE_FLAG_COMPACT does, and keeps
-    no vertex ids for refits beside them: on the Stanford reference scene
-    the tree and those ids take half the device memory, and incoherent rays
-    trace slower (a triangle's corners wait on its indices).  Every query
-    answers the same bits either way (docs/queries.md).
+    ``compact=True`` stores the tree's leaves (an instanced scene's: its
+    meshes' trees') as three vertex indices a triangle beside one copy of
+    the vertices, instead of three corners a triangle, as Embree's
+    RTC_SCENE_FLAG_COMPACT does, and keeps no vertex ids for refits beside
+    them: on the Stanford reference scene the tree and those ids take half
+    the device memory, and incoherent rays trace slower (a triangle's
+    corners wait on its indices).  Every query answers the same bits either
+    way (docs/queries.md).
 
     Every method may be called from any thread: each takes the scene's lock,
     so concurrent calls run in some serial order and no call sees a tree
@@ -127,10 +128,6 @@ class Scene:
             self._masks = check_masks(masks, len(self.meshes), "mesh")
             instance_meshes = np.arange(len(self.meshes), dtype=np.int32)
             transforms = np.tile(np.eye(3, 4), (len(self.meshes), 1, 1))
-        if self.compact and (self._instanced or (self._masks != ALL_BITS).any()):
-            raise ValueError("compact=True is for flat scenes: a Scene with instances or masks "
-                             "keeps its leaves as they are (its meshes' trees are stored once "
-                             "however many instances place them)")
         self._query = None
         self._points = None
         self._all_hits = None
@@ -139,7 +136,7 @@ class Scene:
         if self._instanced or (self._masks != ALL_BITS).any():
             weakref.finalize(self, rt.pool.clear)
             self._two_level = TwoLevel(rt, self.meshes, instance_meshes, transforms,
-                                       self._masks, builder, morton_bits)
+                                       self._masks, builder, morton_bits, self.compact)
             self._build()
             return
         vertex_counts = [m.vertex_count for m in self.meshes]

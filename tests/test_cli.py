@@ -35,6 +35,29 @@ def test_info_compact_prints_the_compact_trees_memory(capsys):
     assert f"nodes {stats.node_bytes:,} B + compact leaves {stats.triangle_bytes:,} B" in out
 
 
+def test_info_on_instances_prints_the_meshes_trees_memory(tmp_path, capsys):
+    """An instanced scene's stats are its top tree's; its meshes' trees, which
+    hold the triangles, get their own line, compact where asked."""
+    mesh = (SCENES / "meshes" / "bunny_small.ply").resolve()
+    path = tmp_path / "copies.toml"
+    # bunny_small.toml's render and camera, its mesh placed three times
+    head = (SCENES / "bunny_small.toml").read_text().split("[ground]")[0]
+    path.write_text(head + f'[[mesh]]\npath = "{mesh.as_posix()}"\n\n[[instance]]\nmesh = 0\n'
+                    'translate = [[0.0, 0.0, 0.0], [30.0, 0.0, 0.0], [0.0, 0.0, 30.0]]\n')
+    printed = {}
+    for compact in (False, True):
+        assert main(["info", str(path), "--repeat", "1"] + ["--compact"] * compact) == 0
+        out = capsys.readouterr().out
+        assert "3 instances" in out
+        with load(path, compact=compact).scene.borrow() as built:
+            held = built.tree.meshes.memory()
+        leaves = "compact leaves" if compact else "leaf triangles"
+        assert (f"nodes {held['node_bytes']:,} B + {leaves} {held['triangle_bytes']:,} B"
+                in out), out
+        printed[compact] = held["triangle_bytes"]
+    assert 0 < printed[True] < printed[False]
+
+
 def test_user_mistakes_give_one_line_and_exit_2(tmp_path, capsys):
     assert main(["info", str(tmp_path / "missing.toml")]) == 2
     err = capsys.readouterr().err.strip()

@@ -29,8 +29,7 @@ def dipoles(rt: Runtime, tree) -> cl.Buffer:
     with rt.build_lock:
         if owner.dipoles is None:
             made = rt.pool.take(owner.node_count * layout.WIDE_DIPOLES.itemsize)
-            indexed = getattr(owner, "indexed", False)  # instanced scenes' trees are not
-            kernel = rt.kernel(KERNEL, "dipoles_level", **leaf_defines(indexed))
+            kernel = rt.kernel(KERNEL, "dipoles_level", **leaf_defines(owner.indexed))
             if isinstance(tree, InstancedTree):
                 parts = zip(owner.levels, owner.node_base, owner.triangle_base)
             else:

@@ -11,6 +11,10 @@ Karras radix tree, the SAH top, flatten and widen all run unchanged; the top
 tree's refs give, for each of its leaf slots, the instance (prim_id) it
 holds.  set_transforms rebuilds only that top tree.
 
+With compact=True each mesh's tree has compact leaves (records naming
+its vertices, kernels/core/leaf.h), and the joined trees hold every
+mesh's records and then every mesh's vertices (kernels/build/instances.cl).
+
 Frames (hlbvh_cl.core.frame): each mesh's tree is built in its own power-of-two
 frame, the top tree in one for the world boxes; an instance's record maps
 the top frame straight into its mesh's frame, so a ray is mapped once per
@@ -26,11 +30,11 @@ import pyopencl as cl
 
 from ..core import frame
 from ..core import layout
-from .pipeline import MAX_TRIANGLES, BuildStats, Geometry, build
+from .pipeline import MAX_TRIANGLES, MAX_VERTICES, BuildStats, Geometry, build
 from ..device.runtime import Runtime
 from ..core.inputs import ALL_BITS, as_array, mask_bits
 from ..mesh import Mesh
-from ..core.tree import Tree
+from ..core.tree import Tree, leaf_bytes
 
 #: Transforms whose linear part has a determinant this small relative to the
 #: product of its row lengths are singular for float32 work: the inverse
@@ -153,6 +157,11 @@ class MeshTrees:
     triangle_count: int
     stats: list                # BuildStats per mesh
     levels: list               # each tree's Tree.levels (its own node indices)
+    #: compact leaves (Scene(..., compact=True)): `triangles` holds every
+    #: tree's IndexedTriangle records, then every tree's vertices
+    #: (vertex_count of them; kernels/build/instances.cl)
+    indexed: bool = False
+    vertex_count: int = 0
     #: WideDipoles per wide node of every tree (in the nodes' places), made
     #: by the first winding-number query (hlbvh_cl.query.points)
     dipoles: cl.Buffer | None = None
@@ -160,6 +169,12 @@ class MeshTrees:
     @property
     def node_count(self) -> int:
         return int(self.node_base[-1]) + sum(count for _, count in self.levels[-1])
+
+    def memory(self) -> dict[str, int]:
+        """Device bytes the meshes' trees take for traversal, as Tree.memory."""
+        return {"node_bytes": self.node_count * layout.WIDE_NODE.itemsize,
+                "triangle_bytes": leaf_bytes(self.vertex_count, self.triangle_count,
+                                             self.indexed)}
 
     def release(self, pool) -> None:
         pool.give(self.nodes, self.triangles, self.refs, self.dipoles)
@@ -174,15 +189,22 @@ def _mesh_boxes(meshes: list[Mesh]) -> tuple[np.ndarray, np.ndarray]:
 
 
 def build_mesh_trees(rt: Runtime, meshes: list[Mesh], builder: str,
-                     morton_bits: int, checked: Sequence[Mesh] = ()) -> MeshTrees:
-    """Each mesh's tree by the usual build, copied into shared buffers.
-    Meshes are immutable: one that is ``checked``'s at its index was warned
-    about (frame.warn_vanishing) when it was built before."""
+                     morton_bits: int, checked: Sequence[Mesh] = (),
+                     indexed: bool = False) -> MeshTrees:
+    """Each mesh's tree by the usual build, copied into shared buffers
+    (with ``indexed``, compact leaves: _join_vertices).  Meshes are
+    immutable: one that is ``checked``'s at its index was warned about
+    (frame.warn_vanishing) when it was built before."""
     total = sum(mesh.triangle_count for mesh in meshes)
     if total > MAX_TRIANGLES:  # each alone may fit; their joined trees not
         raise ValueError(f"the scene's meshes hold {total} triangles together; at most "
                          f"{MAX_TRIANGLES} fit the int32 offsets (layout.INSTANCE's node_base "
                          "and triangle_base) by which instances find their mesh's tree")
+    vertices = sum(mesh.vertex_count for mesh in meshes)
+    if indexed and total + vertices > MAX_VERTICES:
+        raise ValueError(f"the scene's meshes hold {total} triangles and {vertices} vertices "
+                         f"together; their compact trees' int32 leaf records reach at most "
+                         f"{MAX_VERTICES} of both (build the scene with compact=False)")
     trees, stats, scales = [], [], []
     try:
         for geom_id, mesh in enumerate(meshes):
@@ -194,7 +216,7 @@ def build_mesh_trees(rt: Runtime, meshes: list[Mesh], builder: str,
                 frame.warn_vanishing(mesh, geom_id, scale, largest, "its own")
             geometry = Geometry.upload(rt, frame.to_frame(mesh.vertices, scale), mesh.faces,
                                        np.zeros(1, np.int32))
-            tree, stat = build(rt, geometry, builder, morton_bits, scale)
+            tree, stat = build(rt, geometry, builder, morton_bits, scale, indexed)
             trees.append(tree)
             stats.append(stat)
             scales.append(scale)
@@ -202,8 +224,11 @@ def build_mesh_trees(rt: Runtime, meshes: list[Mesh], builder: str,
         triangle_counts = np.array([t.triangle_count for t in trees], np.int64)
         node_base = np.concatenate([[0], np.cumsum(node_counts)[:-1]])
         triangle_base = np.concatenate([[0], np.cumsum(triangle_counts)[:-1]])
+        vertex_counts = np.array([t.vertex_count for t in trees], np.int64)
+        # an indexed tree's leaves are 12-byte cells: its records, then its vertices
+        leaf = layout.INDEXED_TRIANGLE if indexed else layout.TRIANGLE
         sizes = {"nodes": (int(node_counts.sum()), layout.WIDE_NODE.itemsize),
-                 "triangles": (int(triangle_counts.sum()), layout.TRIANGLE.itemsize),
+                 "triangles": (int(triangle_counts.sum() + vertex_counts.sum()), leaf.itemsize),
                  "refs": (int(triangle_counts.sum()), layout.TRIANGLE_REF.itemsize)}
         if len(trees) == 1:  # its own buffers: no copy, no second set in memory
             joined = {"nodes": trees[0].nodes, "triangles": trees[0].triangles,
@@ -221,6 +246,9 @@ def build_mesh_trees(rt: Runtime, meshes: list[Mesh], builder: str,
                     count = tree.node_count if name == "nodes" else tree.triangle_count
                     cl.enqueue_copy(rt.queue, joined[name], source, byte_count=count * size,
                                     dst_offset=int(base) * size)
+            if indexed:
+                _join_vertices(rt, trees, joined["triangles"], triangle_base,
+                               int(triangle_counts.sum()))
         rt.queue.finish()
     finally:
         # Freed (but for what `joined` holds), not pooled: no later build takes
@@ -232,7 +260,28 @@ def build_mesh_trees(rt: Runtime, meshes: list[Mesh], builder: str,
     return MeshTrees(joined["nodes"], joined["triangles"], joined["refs"], node_base,
                      triangle_base, np.array(scales), *_mesh_boxes(meshes),
                      max(t.depth for t in trees), int(triangle_counts.sum()), stats,
-                     [t.levels for t in trees])
+                     [t.levels for t in trees], indexed=indexed,
+                     vertex_count=int(vertex_counts.sum()))
+
+
+def _join_vertices(rt: Runtime, trees: list[Tree], joined: cl.Buffer,
+                   triangle_base: np.ndarray, triangle_total: int) -> None:
+    """The compact trees' vertices after all their records (copied in
+    already, each tree's at its triangle_base), and each tree's records
+    shifted to name them there (kernels/build/instances.cl): a record at
+    cell triangle_base + i named vertex v at its tree's cell
+    triangle_count + v, which now lies at triangle_total + vertex_base + v."""
+    cell = layout.INDEXED_TRIANGLE.itemsize
+    kernel = rt.kernel("build/instances.cl", "shift_corners")
+    vertex_base = triangle_total
+    for tree, base in zip(trees, triangle_base):
+        cl.enqueue_copy(rt.queue, joined, tree.triangles, byte_count=tree.vertex_count * cell,
+                        src_offset=tree.triangle_count * cell, dst_offset=vertex_base * cell)
+        delta = vertex_base - tree.triangle_count - int(base)
+        if delta and tree.triangle_count:
+            rt.run(kernel, tree.triangle_count, joined, np.uint32(base),
+                   np.uint32(tree.triangle_count), np.int32(delta))
+        vertex_base += tree.vertex_count
 
 
 def world_boxes(transforms: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray,
@@ -373,6 +422,11 @@ class InstancedTree:
         return self.meshes.triangle_count
 
     @property
+    def indexed(self) -> bool:
+        """Whether the meshes' trees have compact leaves (core/tree.py's leaf_defines)."""
+        return self.meshes.indexed
+
+    @property
     def bounds_lo(self) -> np.ndarray:
         return self.top.bounds_lo
 
@@ -399,13 +453,15 @@ class TwoLevel:
     the instances' meshes, maps and masks, and the proxy geometry buffers."""
 
     def __init__(self, rt: Runtime, meshes: list[Mesh], instance_meshes: np.ndarray,
-                 transforms: np.ndarray, masks: np.ndarray, builder: str, morton_bits: int):
+                 transforms: np.ndarray, masks: np.ndarray, builder: str, morton_bits: int,
+                 compact: bool = False):
         self.rt = rt
         self.builder, self.morton_bits = builder, morton_bits
+        self.compact = compact
         self.instance_meshes = instance_meshes
         self.transforms = transforms
         self.masks = masks
-        self.trees = build_mesh_trees(rt, meshes, builder, morton_bits)
+        self.trees = build_mesh_trees(rt, meshes, builder, morton_bits, indexed=compact)
         self.meshes = tuple(meshes)  # the ones the trees hold
         # The meshes' build scratch is not kept for a rebuild, as a flat
         # scene's is: their trees are rebuilt seldom, the top tree often.
@@ -420,7 +476,7 @@ class TwoLevel:
         if old is not None:  # None after a rebuild that failed
             old.release(self.rt.pool)
         self.trees = build_mesh_trees(self.rt, meshes, self.builder, self.morton_bits,
-                                      checked=self.meshes)
+                                      checked=self.meshes, indexed=self.compact)
         self.meshes = tuple(meshes)
         self.rt.pool.clear()
 

@@ -299,8 +299,8 @@ class LoadedScene:
 def load(path, device=None, builder: str = "hlbvh", morton_bits: int = 30,
          defaults: dict | None = None, replaced: Collection[str] = (),
          compact: bool = False) -> LoadedScene:
-    """Read a scene file (``read``) and build its Scene on ``device`` (a
-    flat one ``compact`` where asked: hlbvh_cl.Scene);
+    """Read a scene file (``read``) and build its Scene on ``device`` (with
+    ``compact`` leaves where asked: hlbvh_cl.Scene);
     ``defaults`` override a Mitsuba XML file's <default> values, and the
     render values named in ``replaced`` may exceed the renderer's limits
     (the caller renders with its own)."""

@@ -52,10 +52,13 @@ GROUPS = {
     # whose leaves name their vertices (kernels/core/leaf.h); the points case
     # refits its scene
     "compact": ("packets", "points", "all_hits"),
+    # two-level scenes' compact trees: the meshes' records joined, then their
+    # vertices, the records shifted to name them (kernels/build/instances.cl)
+    "compact_instances": ("instances", "instance_points"),
 }
 
-#: The groups whose flat scenes are built compact (compact_scenes).
-COMPACT_GROUPS = {"compact"}
+#: The groups whose scenes are built compact (compact_scenes).
+COMPACT_GROUPS = {"compact", "compact_instances"}
 
 #: The profile (hlbvh_cl/device/profile.py) each group's child is forced to; the
 #: others run with the one the device gets.
@@ -756,15 +759,15 @@ def child(mode: str, group: str, out: str) -> None:
 
 
 def compact_scenes() -> None:
-    """Every flat Scene this child builds, compact unless a case says: the
+    """Every Scene this child builds, compact unless a case says: the
     cases run unchanged on the indexed leaves."""
     import hlbvh_cl
     made = hlbvh_cl.Scene.__init__
 
     @functools.wraps(made)
-    def compact_init(self, meshes, *args, instances=None, masks=None, **options):
-        options.setdefault("compact", instances is None and masks is None)
-        made(self, meshes, *args, instances=instances, masks=masks, **options)
+    def compact_init(self, meshes, *args, **options):
+        options.setdefault("compact", True)
+        made(self, meshes, *args, **options)
 
     hlbvh_cl.Scene.__init__ = compact_init
     assert hlbvh_cl.Scene(tiny_meshes()).compact

@@ -71,7 +71,7 @@ def _kernel_copies(folder: Path, prelude: str) -> set:
 
 def _exercise(device) -> None:
     """Every query, both builders and both key widths, refit, instances
-    (with masks and new transforms) and each shading, once each."""
+    (with masks and new transforms, and compact) and each shading, once each."""
     sphere = trimesh.creation.icosphere(subdivisions=1)
     mesh = hlbvh_cl.Mesh(sphere.vertices, sphere.faces, name="sphere")
     rng = np.random.default_rng(1)
@@ -123,6 +123,10 @@ def _exercise(device) -> None:
     scenes[0].update_vertices(0, sphere.vertices * 1.1)
     scenes[1].set_transforms([1], [np.eye(4)])
     scenes[1].intersect(origins, directions, mask=2)
+    # compact meshes' trees joined (instances.cl), read through their records
+    compact = hlbvh_cl.Scene([mesh, mesh], device=device, instances=[(0, np.eye(4)), (1, shift)],
+                             compact=True)
+    assert compact.intersect(origins, directions).hit.any()
 
 
 def _answers(device) -> dict:

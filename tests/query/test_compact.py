@@ -4,7 +4,8 @@ oracle is the default tree itself: the same build, read through the other
 layout, must answer every query family with the same bits (t, ids, u, v,
 normals, points, flags, counts, every hit, closest points, distances,
 winding numbers), before and after a refit; and the compact tree must hold
-the same triangles, in less memory."""
+the same triangles, in less memory.  Two-level scenes (instances, masks)
+keep their meshes' trees compact, with the same checks."""
 import pickle
 
 import numpy as np
@@ -143,11 +144,88 @@ def test_compact_scenes_pickle_and_render_as_compact():
     assert images[0].tobytes() == images[1].tobytes() and images[0].any()
 
 
-def test_compact_is_for_flat_scenes_and_a_flag():
-    cube = cube_mesh()
-    with pytest.raises(ValueError, match="compact=True is for flat scenes"):
-        hlbvh_cl.Scene([cube], instances=[(0, np.eye(4))], compact=True)
-    with pytest.raises(ValueError, match="compact=True is for flat scenes"):
-        hlbvh_cl.Scene([cube, grid_mesh()], masks=[1, 2], compact=True)
+def _placed(meshes, instances):
+    """Each instance's mesh in the world, as a flat mesh (for SceneCase's box)."""
+    return [hlbvh_cl.Mesh(meshes[m].vertices @ t[:3, :3].T + t[:3, 3], meshes[m].faces)
+            for m, t in instances]
+
+
+def _instances(count: int, seed: int):
+    """(mesh, 4x4 map) pairs over three meshes: shears, scales, a mirror."""
+    rng = np.random.default_rng(seed)
+    placed = []
+    for k in range(count):
+        t = np.eye(4)
+        t[:3, :3] += rng.normal(scale=0.2, size=(3, 3))
+        t[:3, 3] = rng.normal(scale=2.5, size=3)
+        if k == 1:
+            t[0, :3] *= -1  # a mirror: its hits' normals flip with it
+        placed.append((k % 3, t))
+    return placed
+
+
+def test_instanced_compact_scenes_answer_the_same_bits():
+    """The meshes' trees of a two-level scene with compact leaves (all the
+    trees' records, then all their vertices: kernels/build/instances.cl)
+    answer as the default ones, bit for bit, and after a mesh moves (its
+    tree rebuilt) and the instances move (the top rebuilt)."""
+    teapot = MESH_MAKERS["teapot"]()  # 32 wide: brought to the others' size
+    meshes = [hlbvh_cl.Mesh(teapot.vertices / 16, teapot.faces), cube_mesh(2.0, 3.0),
+              grid_mesh(5)]
+    instances = _instances(9, 3)
+    base = hlbvh_cl.Scene(meshes, instances=instances)
+    compact = hlbvh_cl.Scene(meshes, instances=instances, compact=True)
+    case = SceneCase(_placed(meshes, instances), scene=base)
+    found = base.intersect(*random_rays(case, 3000, 0))
+    # every mesh is hit, through several instances
+    assert set(np.unique(found.geom_id)) == {-1, 0, 1, 2}
+    assert len(np.unique(found.instance_id[found.hit])) > 6
+    for query, answer in _answers(base, case, 0).items():
+        _assert_same_bits(query, answer, _answers(compact, case, 0)[query])
+    for scene in (base, compact):
+        scene.update_vertices(1, _moved(meshes[1]))
+        scene.set_transforms([0, 4], [instances[4][1], instances[0][1]])
+    for query, answer in _answers(base, case, 1).items():
+        _assert_same_bits(f"{query} after a change", answer, _answers(compact, case, 1)[query])
+    # the meshes' leaves: 12 bytes a triangle and a vertex, not 36 a triangle
+    stored, joined = built.tree(base).meshes, built.tree(compact).meshes
+    triangles = sum(m.triangle_count for m in meshes)
+    vertices = sum(m.vertex_count for m in meshes)
+    assert stored.memory()["triangle_bytes"] == 36 * triangles
+    assert joined.memory()["triangle_bytes"] == 12 * (triangles + vertices)
+    assert joined.memory()["node_bytes"] == stored.memory()["node_bytes"]
+
+
+def test_masked_compact_scenes_answer_the_same_bits():
+    """A flat scene with masks is traced as one instance per mesh: its
+    compact trees answer as the default ones, masks applied."""
+    meshes = [MESH_MAKERS["teapot"](), grid_mesh(6)]
+    base = hlbvh_cl.Scene(meshes, masks=[1, 2])
+    compact = hlbvh_cl.Scene(meshes, masks=[1, 2], compact=True)
+    case = SceneCase(meshes, scene=base)
+    origins, directions = random_rays(case, 3000, 4)
+    for mask in (1, 2, 3):
+        found = base.intersect(origins, directions, mask=mask)
+        assert found.hit.any()
+        _assert_same_bits(f"intersect, mask {mask}", found,
+                          compact.intersect(origins, directions, mask=mask))
+        _assert_same_bits(f"occluded, mask {mask}", base.occluded(origins, directions, mask=mask),
+                          compact.occluded(origins, directions, mask=mask))
+
+
+def test_instanced_compact_scenes_pickle_and_render_as_compact():
+    meshes = [MESH_MAKERS["bunny_small"](), grid_mesh(4)]
+    instances = [(0, np.eye(4)), (1, np.diag([0.3, 1.0, 0.3, 1.0]))]
+    scene = hlbvh_cl.Scene(meshes, instances=instances, compact=True)
+    again = pickle.loads(pickle.dumps(scene))
+    assert again.compact and "compact=True" in repr(again)
+    assert built.tree(again).indexed
+    camera = hlbvh_cl.Camera(eye=(0, 0.1, 0.4), target=(0, 0.1, 0))
+    images = [hlbvh_cl.Renderer(s).render(camera, 64, 48)
+              for s in (hlbvh_cl.Scene(meshes, instances=instances), again)]
+    assert images[0].tobytes() == images[1].tobytes() and images[0].any()
+
+
+def test_compact_is_a_flag():
     with pytest.raises(TypeError, match="compact must be True or False, got 'yes'"):
-        hlbvh_cl.Scene([cube], compact="yes")
+        hlbvh_cl.Scene([cube_mesh()], compact="yes")
