@@ -88,7 +88,9 @@ class Scene:
     meshes' trees') as three vertex indices a triangle beside one copy of
     the vertices, instead of three corners a triangle, as Embree's
     RTC_SCENE_FLAG_COMPACT does, and keeps no vertex ids for refits beside
-    them: on the Stanford reference scene the tree and those ids take half
+    them; a flat compact scene keeps nothing else on the device either (its
+    build's input and scratch go when the build ends, and a rebuild makes
+    them again): on the Stanford reference scene it holds less than half
     the device memory, and incoherent rays trace slower (a triangle's
     corners wait on its indices).  Every query answers the same bits either
     way (docs/queries.md).
@@ -144,10 +146,7 @@ class Scene:
         # fail on size before anything is uploaded
         check_fits(rt, sum(vertex_counts), sum(face_counts), morton_bits, self.compact)
         self._vertex_offsets = np.concatenate([[0], np.cumsum(vertex_counts)]).astype(np.int64)
-        first_face = np.concatenate([[0], np.cumsum(face_counts)[:-1]]).astype(np.int32)
-        faces = np.concatenate([m.faces + np.int32(off) for m, off in
-                                zip(self.meshes, self._vertex_offsets[:-1])])
-        vertices = np.concatenate([m.vertices for m in self.meshes])
+        self._first_face = np.concatenate([[0], np.cumsum(face_counts)[:-1]]).astype(np.int32)
         self._largest = [frame.largest_used(m.vertices, m.faces) for m in self.meshes]
         # the spheres' farthest points set the frame as well
         self._sphere_largest = float((np.abs(self._spheres[:, :3]).max(axis=1)
@@ -155,12 +154,22 @@ class Scene:
         self._sphere_buffer = None  # their float4 records in the tree's frame (_attach_spheres)
         self._scale = frame.scale_for(self._largest_extent())  # hlbvh_cl.core.frame
         self._warn_vanishing(range(len(self.meshes)))
-        self._geometry = Geometry.upload(rt, frame.to_frame(vertices, self._scale),
-                                         faces, first_face)
+        # the build's input, kept on the device for rebuilds and refits; a
+        # compact tree's leaves hold the vertices themselves, so a compact
+        # scene uploads it for each build only (_upload_geometry)
+        self._geometry = None if self.compact else self._upload_geometry()
         self._stale_vertices = False  # the device's vertices lag self.meshes (_build)
         # the runtime's pool keeps this scene's build scratch for its rebuilds; not beyond it
         weakref.finalize(self, rt.pool.clear)
         self._build()
+
+    def _upload_geometry(self) -> Geometry:
+        """The meshes' vertices (in the tree's frame) and faces on the device."""
+        vertices = np.concatenate([m.vertices for m in self.meshes])
+        faces = np.concatenate([m.faces + np.int32(off) for m, off in
+                                zip(self.meshes, self._vertex_offsets[:-1])])
+        return Geometry.upload(self._runtime, frame.to_frame(vertices, self._scale), faces,
+                               self._first_face)
 
     def _warn_vanishing(self, geom_ids) -> None:
         """A RuntimeWarning for each mesh of ``geom_ids`` whose triangles the
@@ -290,11 +299,15 @@ class Scene:
                 if self._stale_vertices:  # all of them again, in the frame they now need
                     self._scale = frame.scale_for(self._largest_extent())
                     self._warn_vanishing(range(len(self.meshes)))
-                    vertices = np.concatenate([m.vertices for m in self.meshes])
-                    cl.enqueue_copy(rt.queue, self._geometry.vertices,
-                                    frame.to_frame(vertices, self._scale))
+                    if self._geometry is not None:
+                        vertices = np.concatenate([m.vertices for m in self.meshes])
+                        cl.enqueue_copy(rt.queue, self._geometry.vertices,
+                                        frame.to_frame(vertices, self._scale))
                     self._stale_vertices = False
-                self._tree, self._stats = build(rt, self._geometry, self.builder,
+                # a compact scene's input lives for this build only
+                geometry = (self._geometry if self._geometry is not None
+                            else self._upload_geometry())
+                self._tree, self._stats = build(rt, geometry, self.builder,
                                                 self.morton_bits, self._scale, self.compact)
                 self._attach_spheres()
 
@@ -471,12 +484,17 @@ class Scene:
                     self.rebuild()
                     return
                 self._warn_vanishing([geom_id])
-                upload = cl.enqueue_copy(rt.queue, self._geometry.vertices,
+                # the moved vertices into the scene's; a compact scene's are the
+                # ones its leaves hold, after their records
+                target, first = ((self._geometry.vertices, 0) if self._geometry is not None
+                                 else (tree.triangles, tree.triangle_count))
+                upload = cl.enqueue_copy(rt.queue, target,
                                          frame.to_frame(moved.vertices, self._scale),
-                                         dst_offset=int(self._vertex_offsets[geom_id]) * 12,
-                                         is_blocking=False)
+                                         dst_offset=(first + int(self._vertex_offsets[geom_id]))
+                                         * 12, is_blocking=False)
                 self._stale_vertices = False
-                events = refit(rt, tree, self._geometry.vertices, wait_for=[upload])
+                events = refit(rt, tree, None if self._geometry is None
+                               else self._geometry.vertices, wait_for=[upload])
                 tree.bounds_lo, tree.bounds_hi = tree.read_root_box(rt.queue,
                                                                     wait_for=events[-1:])
                 self._sphere_bounds(tree)

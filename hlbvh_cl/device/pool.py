@@ -86,9 +86,11 @@ class BufferPool:
             self._kept.update(id(b) for b in buffers)
 
     @contextmanager
-    def build(self):
+    def build(self, keep_scratch: bool = True):
         """Scope of one build: whatever it takes and does not keep comes back
-        at the end, even on an error.  Nested scopes join the outermost."""
+        at the end, even on an error; or, without ``keep_scratch``, is
+        let go (a compact Scene's builds: it holds no more memory than its
+        tree between them).  Nested scopes join the outermost."""
         if self._taken is not None:
             yield self
             return
@@ -97,10 +99,12 @@ class BufferPool:
             yield self
         finally:
             scratch = [b for b in self._taken if id(b) not in self._kept]
-            self._budget = max(self._budget, KEEP_BUILDS * sum(b.size for b in self._taken))
+            if keep_scratch:
+                self._budget = max(self._budget, KEEP_BUILDS * sum(b.size for b in self._taken))
             self._taken, self._kept = None, set()
-            self.give(*scratch)
-            self._evict()
+            if keep_scratch:  # else dropped, as clear() drops them: freed when unreferenced
+                self.give(*scratch)
+                self._evict()
 
     def _evict(self) -> None:
         """Drop the buffers returned longest ago until the free bytes fit the

@@ -117,6 +117,29 @@ def test_the_compact_tree_holds_the_same_triangles_in_less_memory(name):
     assert compact.stats.tree_bytes < base.stats.tree_bytes
 
 
+def test_a_compact_scene_keeps_its_tree_only():
+    """A compact tree's leaves hold the vertices, so a compact scene keeps no
+    copy of its build's input on the device (uploaded again for a rebuild)
+    and lets its build's scratch go rather than pool it for rebuilds, as a
+    default scene does; rebuilt, and refit after a move, it answers as the
+    default tree does."""
+    meshes = CASES["several"]()
+    rt = built.runtime(hlbvh_cl.Scene(meshes[:1]))
+    rt.pool.clear()
+    compact = hlbvh_cl.Scene(meshes, compact=True)
+    assert rt.pool.free_bytes == 0
+    base = hlbvh_cl.Scene(meshes)
+    assert rt.pool.free_bytes > 0  # the default build's scratch, for its rebuilds
+    case = SceneCase(meshes, scene=base)
+    for scene in (base, compact):
+        scene.update_vertices(2, _moved(meshes[2]))
+        scene.rebuild()
+        scene.update_vertices(0, _moved(meshes[0]))
+    for query, answer in _answers(base, case, 3).items():
+        _assert_same_bits(f"{query} after a rebuild and a refit", answer,
+                          _answers(compact, case, 3)[query])
+
+
 def test_spheres_beside_a_compact_tree_answer_the_same_bits():
     meshes = [MESH_MAKERS["teapot"](), grid_mesh(6)]
     spheres = [[0.5, 0.5, 0.5, 0.3], [-1.0, 0.2, 0.4, 0.25]]
