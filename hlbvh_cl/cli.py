@@ -24,7 +24,7 @@ from pathlib import Path
 from . import __version__
 from . import devices
 from .io import scenefile
-from .core.inputs import ALL_BITS
+from .build.instances import InstancedTree
 from .device.discovery import select_device, unregistered
 from .device.runtime import DeviceMemoryError, KernelBuildError
 from .render.camera import MAX_IMAGE_SIDE
@@ -121,14 +121,14 @@ def _cmd_info(args) -> int:
           f"(8-wide: {s.wide_nodes:,} nodes, depth {s.wide_depth})")
     # a two-level scene's stats are its top tree's, whose leaves are proxies, never
     # compact; its meshes' trees, which hold the triangles, get a line of their own
-    two_level = scene.transforms is not None or bool((scene.masks != ALL_BITS).any())
+    with scene.borrow() as built:
+        meshes = built.tree.meshes if isinstance(built.tree, InstancedTree) else None
     leaves = "compact leaves" if scene.compact else "leaf triangles"
     print(f"memory     {s.tree_bytes / 2**20:.2f} MiB on the device for traversal: nodes "
-          f"{s.node_bytes:,} B + {'leaf triangles' if two_level else leaves} "
+          f"{s.node_bytes:,} B + {leaves if meshes is None else 'leaf triangles'} "
           f"{s.triangle_bytes:,} B")
-    if two_level:
-        with scene.borrow() as built:
-            held = built.tree.meshes.memory()
+    if meshes is not None:
+        held = meshes.memory()
         print(f"meshes     {sum(held.values()) / 2**20:.2f} MiB for the meshes' trees: nodes "
               f"{held['node_bytes']:,} B + {leaves} {held['triangle_bytes']:,} B")
     print(f"SAH cost   {s.sah_cost:.2f}  (C_t = C_i = 1, relative to the root's area)")

@@ -159,7 +159,8 @@ class Scene:
         # scene uploads it for each build only (_upload_geometry)
         self._geometry = None if self.compact else self._upload_geometry()
         self._stale_vertices = False  # the device's vertices lag self.meshes (_build)
-        # the runtime's pool keeps this scene's build scratch for its rebuilds; not beyond it
+        # the runtime's pool keeps a default scene's build scratch for its rebuilds; not
+        # beyond it
         weakref.finalize(self, rt.pool.clear)
         self._build()
 
