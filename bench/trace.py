@@ -23,8 +23,10 @@ given to every participant as the same float32 arrays:
 
 Timing: each participant builds once outside the timing; each query runs
 once to warm up, then in ``repeats`` rounds of one call per participant, so
-that all of them meet about the same load from other processes.  The time is
-the host's wall time of one call, numpy in and numpy out: what a user sees.
+that all of them meet about the same load from other processes; each timed
+call follows an untimed one of its own participant, not another's
+(time_round_robin says why).  The time is the host's wall time of one
+call, numpy in and numpy out: what a user sees.
 Peers see the scene's meshes as one mesh.  Each of our trees' device
 memory (nodes plus leaf triangles, BuildStats.tree_bytes) is printed per scene.
 
@@ -331,9 +333,18 @@ def _failed(errors: dict, participant, error: Exception) -> None:
 def time_round_robin(participants: list, call, repeats: int, errors: dict,
                      warm_up=None) -> dict:
     """``warm_up(participant)`` (default ``call``) once per participant, then
-    ``repeats`` rounds of one timed ``call`` each.  A participant that raises
+    ``repeats`` rounds of one timed ``call`` each, each right after an
+    untimed ``call`` of the same participant.  A participant that raises
     is dropped and named in ``errors``.  Returns {name: (last result, wall
-    seconds)}; with repeats 0, the warm-up's result and no seconds."""
+    seconds)}; with repeats 0, the warm-up's result and no seconds.
+
+    The untimed call is there because a participant's worker threads may
+    keep a core busy for a while after its call returns (Mitsuba's Dr.Jit
+    pool measured so, by how much slower the call after it ran): a timed
+    call straight after another participant's would pay for that one's
+    threads.  After a call of its own it runs as a user's loop of calls
+    runs, with its own threads awake and no one else's, and every
+    participant is timed alike."""
     alive, last = [], {}
     for participant in participants:
         try:
@@ -345,6 +356,7 @@ def time_round_robin(participants: list, call, repeats: int, errors: dict,
     for _ in range(repeats):
         for participant in list(alive):
             try:
+                call(participant)  # untimed: see above
                 elapsed = stopwatch()
                 last[participant.name] = call(participant)
                 walls[participant.name].append(elapsed())

@@ -294,3 +294,37 @@ def test_compact_option_traces_each_device_compact_too(suite_device, tmp_path, c
         assert results[compact]["disagreement"] == {"intersect": 0.0, "occluded": 0.0}
         assert set(w["ratios"]) == {suite_device.id, compact}
     assert compact in capsys.readouterr().out
+
+
+class _Logged:
+    """A participant that logs its name at each call."""
+
+    def __init__(self, name, log):
+        self.name, self.log = name, log
+
+    def run(self):
+        self.log.append(self.name)
+        return len(self.log)
+
+
+def test_each_timed_call_follows_an_untimed_call_of_its_own(monkeypatch):
+    log, timed = [], []
+
+    def stopwatch():  # the rounds' clock: notes which call it timed
+        start = len(log)
+
+        def elapsed():
+            timed.append((start, log[start:]))
+            return 1.0
+        return elapsed
+    monkeypatch.setattr(trace, "stopwatch", stopwatch)
+    participants = [_Logged("a", log), _Logged("b", log), _Logged("c", log)]
+    out = trace.time_round_robin(participants, lambda p: p.run(), 2, {})
+    # the warm-up, then per round and participant an untimed call and a timed one
+    assert log == ["a", "b", "c"] + ["a", "a", "b", "b", "c", "c"] * 2
+    assert len(timed) == 6
+    for start, calls in timed:
+        assert calls == [log[start - 1]]  # one call timed, straight after its own
+    assert {name: walls for name, (_, walls) in out.items()} == {
+        "a": [1.0, 1.0], "b": [1.0, 1.0], "c": [1.0, 1.0]}
+    assert out["c"][0] == len(log)  # the timed call's result is kept
