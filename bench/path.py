@@ -32,8 +32,9 @@ Equal-time quality: a reference of REFERENCE_SPP samples per pixel by
 Mitsuba, then each renderer for the time Mitsuba takes for EQUAL_TIME_SPP
 (ours with a time budget, Mitsuba at the spp its measured rate fits in that
 time), each scored by relMSE = mean((image - reference)^2 / (reference^2 +
-0.01)) over pixels and channels.  The reference is Mitsuba's own: a bias of
-ours against Mitsuba counts against us.
+0.01)) over pixels and channels, averaged over renders with each of
+EQUAL_TIME_SEEDS.  The reference is Mitsuba's own: a bias of ours against
+Mitsuba counts against us.
 
 On a GPU, Mitsuba's CUDA variant renders the same files on the same card:
 
@@ -72,6 +73,8 @@ MAX_DEPTH = 8
 #: Equal-time quality: the reference's spp and the budget, in Mitsuba's spp.
 REFERENCE_SPP = {"full": 128, "quick": 16}
 EQUAL_TIME_SPP = {"full": 8, "quick": 2}
+#: and the seeds of the renders whose relMSE is averaged, each renderer's
+EQUAL_TIME_SEEDS = (7, 8, 9)
 
 #: The issue's target: at least Mitsuba's samples per second on each CPU runtime.
 TARGET_RATIO = 1.0
@@ -222,9 +225,11 @@ def rr_depth_of(ours, name, devices) -> int:
 def equal_time(child, lux, ours, paths, sizes, devices, times, folder, kind) -> dict:
     """Per scene: each renderer's relMSE against a high-spp Mitsuba reference
     after the time Mitsuba takes for EQUAL_TIME_SPP (the module's
-    definitions); LuxCore (``lux``, unless None) at the spp its timed rounds
-    say fit in that time (its relMSE holds its translation's bias too:
-    bench/luxcore.py)."""
+    definitions), the mean over renders with each of EQUAL_TIME_SEEDS (one
+    render's relMSE swings with its few brightest outliers), the renderers
+    taking turns seed by seed; LuxCore (``lux``, unless None) at the spp its
+    timed rounds say fit in that time (its relMSE holds its translation's
+    bias too: bench/luxcore.py)."""
     out = {}
     for name, path in paths.items():
         width, height, spp = sizes[name]
@@ -235,26 +240,36 @@ def equal_time(child, lux, ours, paths, sizes, devices, times, folder, kind) -> 
         reference = np.load(folder / "reference.npy")[..., :3]
         per_sample = summary(times[name, "mitsuba"])["median"] / spp
         budget = per_sample * budget_spp
-        child.render(name, path, width, height, budget_spp, seed=7,
-                     out=str(folder / "equal.npy"))
-        renders = {"mitsuba": {"spp": budget_spp,
-                               "relmse": relmse(np.load(folder / "equal.npy")[..., :3],
-                                                reference)}}
-        for device in devices:
-            loaded, renderer, options = ours[name, device]
-            image = renderer.render(loaded.camera, width, height, hdr=True,
-                                    **{**options, "spp": None, "seed": 7},
-                                    time_budget=budget)
-            # the budget's last round may cover the image's first rows only
-            renders[device] = {"spp": round(renderer.stats["mean_spp"], 2),
-                               "relmse": relmse(image, reference)}
-        if lux is not None:
-            lux_spp = max(1, int(budget * spp / summary(times[name, "luxcore"])["median"]))
-            lux.render(path, width, height, lux_spp, MAX_DEPTH, rr_depth_of(ours, name, devices),
-                       seed=7, out=str(folder / "luxcore.npy"))
-            renders["luxcore"] = {"spp": lux_spp,
-                                  "relmse": relmse(np.load(folder / "luxcore.npy"), reference)}
-        out[name] = {"seconds": budget, "reference_spp": reference_spp, "renders": renders}
+        lux_spp = (max(1, int(budget * spp / summary(times[name, "luxcore"])["median"]))
+                   if lux is not None else 0)
+        seeds = {who: {"spp": [], "relmse": []}
+                 for who in ["mitsuba", *devices] + (["luxcore"] if lux is not None else [])}
+        for seed in EQUAL_TIME_SEEDS:
+            child.render(name, path, width, height, budget_spp, seed=seed,
+                         out=str(folder / "equal.npy"))
+            seeds["mitsuba"]["spp"].append(budget_spp)
+            seeds["mitsuba"]["relmse"].append(
+                relmse(np.load(folder / "equal.npy")[..., :3], reference))
+            for device in devices:
+                loaded, renderer, options = ours[name, device]
+                image = renderer.render(loaded.camera, width, height, hdr=True,
+                                        **{**options, "spp": None, "seed": seed},
+                                        time_budget=budget)
+                # the budget's last round may cover the image's first rows only
+                seeds[device]["spp"].append(renderer.stats["mean_spp"])
+                seeds[device]["relmse"].append(relmse(image, reference))
+            if lux is not None:
+                lux.render(path, width, height, lux_spp, MAX_DEPTH,
+                           rr_depth_of(ours, name, devices), seed=seed,
+                           out=str(folder / "luxcore.npy"))
+                seeds["luxcore"]["spp"].append(lux_spp)
+                seeds["luxcore"]["relmse"].append(
+                    relmse(np.load(folder / "luxcore.npy"), reference))
+        renders = {who: {"spp": round(float(np.mean(r["spp"])), 2),
+                         "relmse": float(np.mean(r["relmse"])), "relmse_seeds": r["relmse"]}
+                   for who, r in seeds.items()}
+        out[name] = {"seconds": budget, "reference_spp": reference_spp,
+                     "seeds": list(EQUAL_TIME_SEEDS), "renders": renders}
     return out
 
 
@@ -371,11 +386,12 @@ def main(argv=None) -> dict:
         print(table(["scene", *devices, "Mitsuba", "LuxCore"], mean_rows,
                     title="image means (linear; median of the rounds)"))
     rows = [[name, q["seconds"] and f"{q['seconds']:.2f} s", who, str(r["spp"]),
-             f"{r['relmse']:.4g}"]
+             f"{r['relmse']:.4g}", " ".join(f"{x:.4g}" for x in r["relmse_seeds"])]
             for name, q in quality.items() for who, r in q["renders"].items()]
-    print(table(["scene", "time", "renderer", "spp (mean)", "relMSE"], rows,
+    print(table(["scene", "time", "renderer", "spp (mean)", "relMSE (mean)", "per seed"], rows,
                 title=f"equal time: relMSE against Mitsuba at "
-                      f"{quality[next(iter(quality))]['reference_spp']} spp"))
+                      f"{quality[next(iter(quality))]['reference_spp']} spp, "
+                      f"seeds {', '.join(map(str, EQUAL_TIME_SEEDS))}"))
     return finish(results, "path", args, elapsed)
 
 

@@ -38,6 +38,16 @@ def test_quick_run_writes_rates_ratios_and_stage_times(suite_device, tmp_path, c
         assert seconds["min"] <= seconds["median"] <= seconds["max"]
         assert entry["mitsuba_msamples_per_s"] == pytest.approx(
             entry["samples"] / seconds["median"] / 1e6)
+        # equal time: each renderer's relMSE is the mean over its renders of
+        # the seeds, which are independent (so not all the same)
+        quality = entry["equal_time"]
+        assert quality["seeds"] == list(bench_path.EQUAL_TIME_SEEDS)
+        assert {"mitsuba", suite_device.id} <= set(quality["renders"])
+        for render in quality["renders"].values():
+            per_seed = render["relmse_seeds"]
+            assert len(per_seed) == len(bench_path.EQUAL_TIME_SEEDS)
+            assert render["relmse"] == pytest.approx(sum(per_seed) / len(per_seed))
+            assert len(set(per_seed)) > 1 and min(per_seed) > 0.0
 
 
 def test_a_mitsuba_variant_that_does_not_start_is_named_and_scalar_rgb_timed(tmp_path, capsys):
