@@ -31,9 +31,9 @@ where present):
      every instance shape.
 
 Timing as bench/trace.py: each participant built outside the timing, one
-warm-up call, then ``repeats`` rounds of one call per participant (part b:
-each call the next frame, the same frames for everyone); wall time, numpy in
-and out.  Ratios are taken within the run.
+warm-up call, then ``repeats`` rounds of one call per participant, each after
+an untimed call of its own (part b: each call the next frame, the same frames
+for everyone); wall time, numpy in and out.  Ratios are taken within the run.
 
 Writes <out>/instances.json and <out>/instances.png; with --docs also
 docs/bench_instances.png and the instances section of bench/RESULTS.md.

@@ -311,8 +311,8 @@ def _method_section(suite: dict) -> list[str]:
            "apart), a 1x1 render compiles, one rebuild + render warms up, then `repeats` rounds "
            "of rebuild + render of every scene in turn.",
            "- Rays (`bench/trace.py`, `bench_case`): each participant built, each query run once "
-           "to warm up, then `repeats` rounds of one call per participant; wall time of a call, "
-           "numpy in and out.",
+           "to warm up, then `repeats` rounds of one call per participant, each after an untimed "
+           "call of its own; wall time of a call, numpy in and out.",
            f"- Peak memory {suite['peak_rss_bytes'] / 2**30:.1f} GiB."]
     if suite["errors"]:
         out += ["", "Failed measurements:", ""]
