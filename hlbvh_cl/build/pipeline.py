@@ -162,14 +162,20 @@ def build(rt: Runtime, geometry: Geometry, builder: str = "hlbvh", morton_bits: 
     ``scale``, hlbvh_cl.core.frame) and its BuildStats; with ``indexed`` its
     leaves name the geometry's vertices (Scene(..., compact=True)).  Every stage's scratch,
     the binary tree included, goes back to the runtime's pool when the
-    build ends, for the next build; an indexed build's is let go, as a
-    compact scene keeps nothing but its tree.  Builds on one runtime are
-    serialised: they share the sorter's scratch buffers."""
+    build ends, for the next build; an indexed build's is let go, the
+    sorter's scratch pair too, as a compact scene keeps nothing but its
+    tree.  Builds on one runtime are serialised: they share the sorter's
+    scratch buffers."""
     if builder not in BUILDERS:
         raise ValueError(f"builder must be one of {BUILDERS}, got {builder!r}")
     started = time.perf_counter()
     with rt.build_lock, rt.pool.build(keep_scratch=not indexed):
-        tree, stats, stage_events = _build(rt, geometry, builder, morton_bits, scale, indexed)
+        try:
+            tree, stats, stage_events = _build(rt, geometry, builder, morton_bits, scale,
+                                               indexed)
+        finally:  # (OpenCL frees a released buffer once the commands queued on it are done)
+            if indexed:
+                sorter(rt, key_dtype(morton_bits)).release_scratch()
     times = {name: event_ms(events) for name, events in stage_events.items()}
     return tree, BuildStats(**stats, times_ms=times, device_ms=sum(times.values()),
                             wall_ms=(time.perf_counter() - started) * 1e3)

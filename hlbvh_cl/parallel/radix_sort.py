@@ -120,6 +120,15 @@ class RadixSorter:
             group_size //= 2
         return group_size
 
+    def release_scratch(self) -> None:
+        """Lets the scratch pair go (freed once nothing else holds it); the
+        next sort of more than one pair allocates it again.  For a caller
+        that keeps nothing of its build but the result (a compact Scene):
+        the pair is as large as the largest sort so far.  Only between
+        sorts, with the queue's work on them done (Runtime.build_lock)."""
+        self._scratch_keys = self._scratch_values = None
+        self._scratch_capacity = 0
+
     def _ensure_scratch(self, n: int) -> None:
         if n <= self._scratch_capacity:
             return

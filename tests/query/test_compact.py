@@ -13,6 +13,8 @@ import pytest
 
 import built
 import hlbvh_cl
+from hlbvh_cl.build.morton import key_dtype
+from hlbvh_cl.parallel.radix_sort import sorter
 from invariants import check_tree
 from ray_cases import MESH_MAKERS, cube_mesh, random_rays, SceneCase
 from shapes import grid_mesh
@@ -120,16 +122,18 @@ def test_the_compact_tree_holds_the_same_triangles_in_less_memory(name):
 def test_a_compact_scene_keeps_its_tree_only():
     """A compact tree's leaves hold the vertices, so a compact scene keeps no
     copy of its build's input on the device (uploaded again for a rebuild)
-    and lets its build's scratch go rather than pool it for rebuilds, as a
-    default scene does; rebuilt, and refit after a move, it answers as the
-    default tree does."""
+    and lets its build's scratch go, the sorter's pair too, rather than keep
+    it for rebuilds, as a default scene does; rebuilt, and refit after a
+    move, it answers as the default tree does."""
     meshes = CASES["several"]()
     rt = built.runtime(hlbvh_cl.Scene(meshes[:1]))
     rt.pool.clear()
     compact = hlbvh_cl.Scene(meshes, compact=True)
-    assert rt.pool.free_bytes == 0
+    keys = sorter(rt, key_dtype(compact.stats.morton_bits))
+    assert rt.pool.free_bytes == 0 and keys.scratch_keys is None
     base = hlbvh_cl.Scene(meshes)
-    assert rt.pool.free_bytes > 0  # the default build's scratch, for its rebuilds
+    # the default build's scratch, for its rebuilds
+    assert rt.pool.free_bytes > 0 and keys.scratch_keys is not None
     case = SceneCase(meshes, scene=base)
     for scene in (base, compact):
         scene.update_vertices(2, _moved(meshes[2]))
