@@ -27,10 +27,10 @@ to every hit is that same re-casting, which trimesh measures.
 
 Timing: as bench/trace.py, each participant built outside the timing, each
 query warmed up (our devices on the whole workload, peers on the first
-WARM_UP items), then ``repeats`` rounds of one
-call per participant, each after an untimed call of its own; wall time of a
-call, numpy in and out.  Rates are
-items (points or rays) per second, so a peer run on fewer rays compares.
+WARM_UP items), then ``repeats`` rounds of one call per participant, each
+after an untimed call of its own; wall time of a call, numpy in and out.
+Rates are items (points or rays) per second, so a peer run on fewer rays
+compares.
 Agreement: each peer's answers against our first device's on the same items.
 Memory: intersect_all on the memory case's rays in a child process: the
 peak resident memory during the call (Linux's VmHWM, reset before it) over
