@@ -62,18 +62,25 @@
 #define WALK_LANES (LANE_GROUPS * PACKET_SIZE)
 #endif
 
-/* The work-item's rays: LANE_GROUPS groups of PACKET_SIZE from *first, of
- * which group g has used[g] (0 past ray_count: only the last group that
- * has any may have fewer than PACKET_SIZE); returns how many in all. */
-TRAVERSAL_INLINE uint group_rays(uint ray_count, uint* first, uint* used)
+/* The rays of work-item `item`: LANE_GROUPS groups of PACKET_SIZE from
+ * *first, of which group g has used[g] (0 past ray_count: only the last
+ * group that has any may have fewer than PACKET_SIZE); returns how many in
+ * all. */
+TRAVERSAL_INLINE uint item_rays(uint ray_count, uint item, uint* first, uint* used)
 {
-    *first = get_global_id(0) * (LANE_GROUPS * PACKET_SIZE);
+    *first = item * (LANE_GROUPS * PACKET_SIZE);
     uint total = 0;
     for (uint g = 0; g < LANE_GROUPS; ++g) {
         used[g] = rays_from(ray_count, *first + g * PACKET_SIZE);
         total += used[g];
     }
     return total;
+}
+
+/* This work-item's rays (item_rays) of a launch over ray_count rays. */
+TRAVERSAL_INLINE uint group_rays(uint ray_count, uint* first, uint* used)
+{
+    return item_rays(ray_count, (uint)get_global_id(0), first, used);
 }
 
 /* A closest hit's ids (refs[i]) are read when the traversal ends, a cache
@@ -222,6 +229,39 @@ TRAVERSAL_INLINE uint rays_to_trace(uint ray_count, __global const uint* counts,
     return counts != 0 ? LESSER(ray_count, counts[count_at]) : ray_count;
 }
 
+/* This work-item's rays (item_rays) of a launch over Ray records.  Where
+ * the device wrote a count (rays_to_trace), the work-groups that have rays
+ * to trace are spread evenly over the launch's rather than being its first
+ * ones: the launch is sized for the host's bound, of which the count may be
+ * a small part (the later bounces of a path), and a CPU runtime that deals
+ * its threads work-groups in large runs (PoCL: hundreds at a time) would
+ * otherwise give the last of them to one thread while the others find only
+ * empty ones and wait (sampled: one thread of two busy for much of such
+ * launches).  Group w of G traces live group q - 1 where
+ * q = floor((w + 1) L / G) exceeds floor(w L / G), L the groups that have
+ * rays (L <= G): each of 0..L-1 once, in order.  Whole groups move, so a
+ * GPU's groups keep their rays together; each ray is traced as before, so
+ * the results are the same. */
+TRAVERSAL_INLINE uint counted_rays(uint ray_count, __global const uint* counts, uint count_at,
+                                   uint* first, uint* used)
+{
+    uint rays = rays_to_trace(ray_count, counts, count_at);
+    if (counts == 0)
+        return group_rays(rays, first, used);
+    uint per_group = (uint)get_local_size(0) * (LANE_GROUPS * PACKET_SIZE);
+    ulong live = ((ulong)rays + per_group - 1u) / per_group;
+    ulong groups = (ulong)get_num_groups(0), w = (ulong)get_group_id(0);
+    ulong q = (w + 1u) * live / groups;
+    if (q == w * live / groups) {
+        *first = 0;
+        for (uint g = 0; g < LANE_GROUPS; ++g)
+            used[g] = 0;
+        return 0;
+    }
+    uint item = (uint)(q - 1u) * (uint)get_local_size(0) + (uint)get_local_id(0);
+    return item_rays(rays, item, first, used);
+}
+
 /* Closest hit of rays[0, rays_to_trace) -> hits, and where instance_out is
  * not null, the instance each hit (-1: none, or a flat scene): the path
  * integrator maps a mesh's shading normals to the world by it. */
@@ -232,7 +272,7 @@ TRAVERSAL_KERNEL void intersect_closest(SCENE_PARAMS, __global const Ray* rays, 
     RayLanes lanes[LANE_GROUPS];
     Hit found[LANE_GROUPS * PACKET_SIZE];
     uint first, used[LANE_GROUPS];
-    uint count = group_rays(rays_to_trace(ray_count, counts, count_at), &first, used);
+    uint count = counted_rays(ray_count, counts, count_at, &first, used);
     if (count == 0)
         return;
     for (uint g = 0; g < LANE_GROUPS && used[g] != 0; ++g)
@@ -258,7 +298,7 @@ TRAVERSAL_KERNEL void intersect_any(SCENE_PARAMS, __global const Ray* rays,
 {
     RayLanes lanes[LANE_GROUPS];
     uint first, used[LANE_GROUPS];
-    if (group_rays(rays_to_trace(ray_count, counts, count_at), &first, used) == 0)
+    if (counted_rays(ray_count, counts, count_at, &first, used) == 0)
         return;
     for (uint g = 0; g < LANE_GROUPS && used[g] != 0; ++g)
         load_records(rays, first + g * PACKET_SIZE, used[g], lanes + g);

@@ -29,9 +29,15 @@ def sphere_and_rays(seed: int, count: int):
     return scene, records
 
 
-@pytest.mark.parametrize("counted", [0, 1, 37, 200, 500])
-def test_a_counted_launch_traces_the_first_count_rays_and_writes_nothing_past_them(counted):
-    count = 300
+@pytest.mark.parametrize("count, counted", [(300, 0), (300, 1), (300, 37), (300, 200),
+                                            (300, 500), (20000, 1), (20000, 2049),
+                                            (20000, 9000), (20000, 19999)])
+def test_a_counted_launch_traces_the_first_count_rays_and_writes_nothing_past_them(count,
+                                                                                   counted):
+    """Also where the launch has many work-groups, of which the kernels
+    spread those with rays to trace over the launch (rays.cl's
+    counted_rays): 20,000 rays are hundreds of groups on a CPU and ten of a
+    GPU's (HLBVH_CL_PROFILE=gpu), of which a count puts some or all to work."""
     scene, records = sphere_and_rays(5, count)
     records["tmax"] = np.where(np.arange(count) % 3 == 0, 1.0, np.inf)  # some end short
     expected = scene.intersect(records["origin"], records["direction"], tmax=records["tmax"])
