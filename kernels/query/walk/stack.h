@@ -43,10 +43,13 @@ TRAVERSAL_INLINE bool pop(const StackItem* stack, int* sp, float limit, int* ind
  * child `slot` of n, which the ray or packet visits now or after a pop:
  * traversal waits on such loads (sampled: about half the time of incoherent
  * rays), and prefetching both nodes and triangles measured fastest.  Four
- * lines, at the first byte, 64 and 128 bytes on and the last byte (a node's
- * four lines; every line of a leaf of up to 5 triangles, 180 bytes, as no
- * two points lie more than a line apart; of bigger leaves most), without a
- * loop, whose exit branch mispredicted.  Without PREFETCH (GPUs) it does
+ * lines, at the first byte, a third and two thirds of the way and the last
+ * byte: a node's four lines (bytes 0, 85, 170 and 255 of a node that starts
+ * on a line), and every line of a leaf of up to 5 triangles, 180 bytes, as
+ * no two points lie more than a line apart (of bigger leaves, most); the
+ * thirds are scaled index addresses, where clamped offsets (64 and 128
+ * bytes on, at most the last) cost compares and selects.  Without a loop,
+ * whose exit branch mispredicted.  Without PREFETCH (GPUs) it does
  * nothing. */
 TRAVERSAL_INLINE void prefetch_child(__global const WideNode* n, int slot,
                                      __global const WideNode* nodes,
@@ -57,9 +60,10 @@ TRAVERSAL_INLINE void prefetch_child(__global const WideNode* n, int slot,
     __global const char* first = count == 0 ? (__global const char*)(nodes + n->child[slot])
                                             : (__global const char*)(triangles + n->child[slot]);
     uint last = (count == 0 ? (uint)sizeof(WideNode) : count * (uint)sizeof(Leaf)) - 1u;
+    uint third = last / 3u;
     __builtin_prefetch(first);
-    __builtin_prefetch(first + LESSER(64u, last));
-    __builtin_prefetch(first + LESSER(128u, last));
+    __builtin_prefetch(first + third);
+    __builtin_prefetch(first + 2u * third);
     __builtin_prefetch(first + last);
 #endif
 }
@@ -129,10 +133,10 @@ TRAVERSAL_INLINE int next_item(__global const WideNode* n, uint mask,
     const float* entry = entries->slot;
     int near = lowest_slot(mask);
     mask &= mask - 1u;
-    if (*sp + bit_count(mask) > STACK_SIZE)
-        return STACK_FULL;
-    if (mask == 0) {
+    if (mask == 0) {  /* the common case: nothing pushed, no stack check */
         prefetch_child(n, near, nodes, triangles);
+    } else if (*sp + bit_count(mask) > STACK_SIZE) {
+        return STACK_FULL;
     } else if (one_bit(mask)) {
         /* two: push the farther */
         int far = lowest_slot(mask);

@@ -206,19 +206,18 @@ TRAVERSAL_INLINE bool WALK_NAME(walk)(const PATH(Rays)* r, __global const WideNo
 #endif
 
 /* One step of walk r: a node, or a leaf and then the next stacked item;
- * true when the walk is over (*full: its stack ran out). */
-TRAVERSAL_INLINE bool WALK_NAME(step)(const PATH(Rays)* r, __global const WideNode* nodes,
-                                      __global const Leaf* triangles, PATH(Found)* s,
-                                      StackItem* stack, int* sp, int* index, uint* count,
-                                      bool* full WALK_PARAMS)
+ * NEXT_ITEM while the walk goes on, else how it ended (NO_ITEM,
+ * STACK_FULL, WALK_ENDED: stack.h). */
+TRAVERSAL_INLINE int WALK_NAME(step)(const PATH(Rays)* r, __global const WideNode* nodes,
+                                     __global const Leaf* triangles, PATH(Found)* s,
+                                     StackItem* stack, int* sp, int* index,
+                                     uint* count WALK_PARAMS)
 {
-    if (*count == 0) {
-        int next = WALK_NAME(node)(r, nodes, triangles, s, stack, sp, index, count WALK_ARGS);
-        *full |= next == STACK_FULL;
-        return next != NEXT_ITEM;
-    }
-    return WALK_NAME(leaf)(r, triangles, *index, *count, s WALK_ARGS)
-           || !pop(stack, sp, PATH(reach)(s), index, count);
+    if (*count == 0)
+        return WALK_NAME(node)(r, nodes, triangles, s, stack, sp, index, count WALK_ARGS);
+    if (WALK_NAME(leaf)(r, triangles, *index, *count, s WALK_ARGS))
+        return WALK_ENDED;
+    return pop(stack, sp, PATH(reach)(s), index, count) ? NEXT_ITEM : NO_ITEM;
 }
 
 /* The walks of rays r[0, n) (n <= WALK_LANES), each as WALK_NAME(walk)
@@ -256,9 +255,14 @@ TRAVERSAL_INLINE bool WALK_NAME(walks)(const PATH(Rays)* r, __global const WideN
 #ifdef QUERY_STATE
             PATH(QUERY_STATE)* state = states + k;  /* the hooks' (WALK_ARGS) */
 #endif
-            if (WALK_NAME(step)(r + k, nodes, triangles, s + k, stack[k], sp + k, index + k,
-                                count + k, &full WALK_ARGS))
+            int next = WALK_NAME(step)(r + k, nodes, triangles, s + k, stack[k], sp + k,
+                                       index + k, count + k WALK_ARGS);
+            /* A branch taken once a walk, not selects on every step: the
+             * live mask and the stack flag stay out of the step's work. */
+            if (next != NEXT_ITEM) {
                 live ^= 1u << k;
+                full |= next == STACK_FULL;
+            }
         }
     return full;
 }
