@@ -36,6 +36,7 @@
  *               rays were traced as one packet.
  */
 #include "core/portable.h"
+#include "core/launch.h"
 #include "query/rays/work_item.h"
 #include "query/rays/instance.h"
 #ifdef ROOT_PHASE
@@ -231,17 +232,11 @@ TRAVERSAL_INLINE uint rays_to_trace(uint ray_count, __global const uint* counts,
 
 /* This work-item's rays (item_rays) of a launch over Ray records.  Where
  * the device wrote a count (rays_to_trace), the work-groups that have rays
- * to trace are spread evenly over the launch's rather than being its first
- * ones: the launch is sized for the host's bound, of which the count may be
- * a small part (the later bounces of a path), and a CPU runtime that deals
- * its threads work-groups in large runs (PoCL: hundreds at a time) would
- * otherwise give the last of them to one thread while the others find only
- * empty ones and wait (sampled: one thread of two busy for much of such
- * launches).  Group w of G traces live group q - 1 where
- * q = floor((w + 1) L / G) exceeds floor(w L / G), L the groups that have
- * rays (L <= G): each of 0..L-1 once, in order.  Whole groups move, so a
- * GPU's groups keep their rays together; each ray is traced as before, so
- * the results are the same. */
+ * to trace are spread over the launch (core/launch.h's spread_group: the
+ * launch is sized for the host's bound, of which the count may be a small
+ * part; sampled before the spread, one PoCL thread of two was busy for
+ * much of such launches); each ray is traced as before, so the results
+ * are the same. */
 TRAVERSAL_INLINE uint counted_rays(uint ray_count, __global const uint* counts, uint count_at,
                                    uint* first, uint* used)
 {
@@ -249,17 +244,14 @@ TRAVERSAL_INLINE uint counted_rays(uint ray_count, __global const uint* counts, 
     if (counts == 0)
         return group_rays(rays, first, used);
     uint per_group = (uint)get_local_size(0) * (LANE_GROUPS * PACKET_SIZE);
-    ulong live = ((ulong)rays + per_group - 1u) / per_group;
-    ulong groups = (ulong)get_num_groups(0), w = (ulong)get_group_id(0);
-    ulong q = (w + 1u) * live / groups;
-    if (q == w * live / groups) {
+    uint taken;
+    if (!spread_group(((ulong)rays + per_group - 1u) / per_group, &taken)) {
         *first = 0;
         for (uint g = 0; g < LANE_GROUPS; ++g)
             used[g] = 0;
         return 0;
     }
-    uint item = (uint)(q - 1u) * (uint)get_local_size(0) + (uint)get_local_id(0);
-    return item_rays(rays, item, first, used);
+    return item_rays(rays, taken * (uint)get_local_size(0) + (uint)get_local_id(0), first, used);
 }
 
 /* Closest hit of rays[0, rays_to_trace) -> hits, and where instance_out is

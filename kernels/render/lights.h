@@ -152,7 +152,6 @@ FORCE_INLINE LightSample sample_light(float3 x, const PathParams* params,
     float3 p, normal;
     float one_minus_cos;
     float3 centre = LOAD_XYZ(v);  /* a sphere's, in its row */
-    float cos_phi, sin_phi = sincos_turn(u2, &cos_phi);  /* a sphere's azimuth */
     float radius = v[3];
     bool cone = k >= params->light_triangles
                 && sphere_cone(params, centre, radius, x, &one_minus_cos);
@@ -164,6 +163,7 @@ FORCE_INLINE LightSample sample_light(float3 x, const PathParams* params,
         /* In scalars: Intel's CPU compiler (2026.22) vectorized this
          * branch's float3 arithmetic, and its calls of orthonormal_basis,
          * length3 and normalize3, into other lanes' values. */
+        float cos_phi, sin_phi = sincos_turn(u2, &cos_phi);  /* the azimuth */
         float ax = centre.x - x.x, ay = centre.y - x.y, az = centre.z - x.z;
         float d = SQRT(ax * ax + ay * ay + az * az);
         ax /= d;
@@ -192,6 +192,7 @@ FORCE_INLINE LightSample sample_light(float3 x, const PathParams* params,
         /* one seen from inside or on it: a point uniform on it (pbrt-v4's
          * SampleUniformSphere), its outward normal; the half turned away
          * from x gives no sample, as a triangle's back */
+        float cos_phi, sin_phi = sincos_turn(u2, &cos_phi);  /* the azimuth */
         float z = 1.0f - 2.0f * u1;
         float r = SQRT(1.0f - z * z > 0.0f ? 1.0f - z * z : 0.0f);
         normal = (float3)(r * cos_phi, r * sin_phi, z);

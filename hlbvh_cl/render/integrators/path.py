@@ -43,7 +43,9 @@ count of live paths one bounce behind the device (while the device works
 on the bounce it has queued), launches the next bounce over that many (an
 upper bound, as paths only end), and stops when none is left.  The shadow
 rays are compacted too, and each stage reads its count on the device: the
-work-items past it return at once.
+work-items past it return at once, and the surface stage and the walks
+spread their work-groups that have paths or rays over the launch, so that a
+CPU runtime's threads share them (kernels/core/launch.h).
 
 Shading follows Mitsuba 3's rules (shading_tables; kernels/render/
 integrators/path.cl): BSDFs and area emitters see each mesh's shading

@@ -33,6 +33,7 @@
  * path_surface takes from the host (`salts`).
  */
 #include "core/portable.h"
+#include "core/launch.h"
 #include "core/spelled.h"
 #include "query/records.h"
 #include "render/integrators/path.h"
@@ -155,20 +156,20 @@ typedef struct {
     float3 carried;
 } ShadowRay;
 
-/* One path vertex (path_surface's work-item gid, path `path`): the light it
+/* One path vertex (the pass's path `item`, path number `path`): the light it
  * sees there, its light sample (*shadow, where it returns with *casts
  * set), and whether the path goes on, from *next_origin along
  * *next_direction. */
-FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel, uint8 salts,
+FORCE_INLINE bool shade_vertex(uint item, uint path, int depth, uint first_pixel, uint8 salts,
                                __global const Ray* rays, __global const Hit* hits,
                                __global PathState* states, const PathTables* tables,
                                const PathParams* params, ShadowRay* shadow, bool* casts,
                                float3* next_origin, float3* next_direction)
 {
     __global PathState* s = states + path;
-    __global const Ray* ray = rays + gid;
+    __global const Ray* ray = rays + item;
     float3 d = LOAD_XYZ(ray->direction);
-    __global const Hit* hit = hits + gid;
+    __global const Hit* hit = hits + item;
     float length_d = length3(d);
     float3 wo = -d / length_d;  /* unit, towards where the path came from */
     bool first = depth == 0;
@@ -184,7 +185,7 @@ FORCE_INLINE bool shade_vertex(uint gid, uint path, int depth, uint first_pixel,
         end_path(s, first, throughput * escaped * weight);
         return false;
     }
-    int instance = tables->hit_instances[gid];
+    int instance = tables->hit_instances[item];
     __global const PathMaterial* m = hit_material(hit, instance, tables->lights.materials,
                                                   tables->instance_materials,
                                                   params->instance_maps);
@@ -381,7 +382,7 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
      * groups: a path's numbers depend on its pixel, not its slot. */
     __local uint group_slots[SURFACE_GROUP];
     __local uint group_first, group_first_shadow, group_totals;
-    uint gid = get_global_id(0), lid = get_local_id(0);
+    uint lid = get_local_id(0);
     const PathTables tables = {{materials, light_vertices, light_normals, light_cdf,
                                 light_geom, delta_lights, envmap_image, envmap_cdf},
                                shading_faces, shading_normals, hit_instances, instance_maps,
@@ -392,17 +393,31 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
     ShadowRay light = {(float3)(0.0f), (float3)(0.0f), 0.0f, (float3)(0.0f)};
     /* this pass's path count, read once per group: live[depth] shares its
      * cache line with live[depth + 1], which the groups on other cores add
-     * to (take_group_slots), and a read per work-item missed on that line */
-    __local uint group_count;
-    if (lid == 0)
-        group_count = live[depth];
+     * to (take_group_slots), and a read per work-item missed on that line.
+     * The launch is sized for the host's bound, which a later pass's count
+     * may be a small part of: the groups that have paths are spread over it
+     * (core/launch.h), and the others return at once, all of a group's
+     * work-items together (past the barrier that gave them the count, before
+     * the next).  The leader places the group, once: Intel's CPU compiler
+     * left spread_group's 64-bit divisions in every work-item, which
+     * measured slower there. */
+    __local uint group_count, group_taken;
+    uint size = (uint)get_local_size(0);
+    if (lid == 0) {
+        uint count = LESSER(live[depth], bound), taken;
+        group_count = count;
+        group_taken = spread_group(((ulong)count + size - 1u) / size, &taken) ? taken : UINT_MAX;
+    }
     barrier(CLK_LOCAL_MEM_FENCE);
-    uint count = group_count;
-    if (depth > 0 && gid + STAGE_AHEAD < bound && gid + STAGE_AHEAD < count)
-        PREFETCH_AT(states + paths[gid + STAGE_AHEAD], 1);
-    if (gid < bound && gid < count) {
-        path = depth == 0 ? gid : paths[gid];
-        goes_on = shade_vertex(gid, path, depth, first_pixel, salts, rays, hits, states,
+    uint count = group_count, taken = group_taken;
+    if (taken == UINT_MAX)
+        return;
+    uint item = taken * size + lid;  /* this work-item's path of the pass */
+    if (depth > 0 && item + STAGE_AHEAD < count)
+        PREFETCH_AT(states + paths[item + STAGE_AHEAD], 1);
+    if (item < count) {
+        path = depth == 0 ? item : paths[item];
+        goes_on = shade_vertex(item, path, depth, first_pixel, salts, rays, hits, states,
                                &tables, &params, &light, &casts, &origin, &direction);
     }
     group_slots[lid] = (uint)goes_on | (uint)casts << 16;
