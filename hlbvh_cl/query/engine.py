@@ -163,7 +163,8 @@ def kernel_defines(rt: Runtime, tree, variant, packet: int, **extra) -> dict:
     the items per work-item, the kernel variant's and the device's (CPU
     prefetch), INSTANCES for a two-level scene, INTERLEAVED_WALKS where a
     CPU work-item walks its rays together (interleaved_walks), SPHERES for a
-    flat tree with spheres, then the query's own."""
+    flat tree with spheres, the leaf layout's, LEAF_QUADS where a ray tests a
+    leaf's triangles four at a time (leaf_quads), then the query's own."""
     defines = {"STACK_SIZE": stack_size(tree), "PACKET_SIZE": packet, **variant.defines,
                **rt.prefetch_defines}
     if isinstance(tree, InstancedTree):
@@ -172,7 +173,10 @@ def kernel_defines(rt: Runtime, tree, variant, packet: int, **extra) -> dict:
         defines["INTERLEAVED_WALKS"] = 1
     if getattr(tree, "spheres", None) is not None:
         defines["SPHERES"] = 1
-    defines.update(leaf_defines(getattr(tree, "indexed", False)))
+    indexed = getattr(tree, "indexed", False)
+    defines.update(leaf_defines(indexed))
+    if leaf_quads(rt, indexed):
+        defines["LEAF_QUADS"] = 1
     return {**defines, **extra}
 
 
@@ -189,6 +193,17 @@ INTERLEAVED_STACK_BYTES = 32 * 1024
 #: a gain from there on both runtimes; the Cornell box's tree (0.55 MiB)
 #: path-traced slower interleaved (figures in the commit that set this).
 INTERLEAVED_MIN_TREE_BYTES = 2 * 1024 * 1024
+
+
+def leaf_quads(rt: Runtime, indexed: bool) -> bool:
+    """Whether a single ray's walk tests a leaf's triangles four at a time,
+    one vector lane each (kernels/query/rays/quad.h): on CPUs, where the
+    edge test of four costs little more than that of one, and a ray leaving
+    a surface tests most of its triangles in the leaves around its origin.
+    A GPU's lanes are its rays already.  Leaves of Triangle records only:
+    a compact tree's (Scene(..., compact=True)) name their corners through
+    indices."""
+    return not rt.profile.gpu and not indexed
 
 
 def interleaved_walks(rt: Runtime, tree, stack: int, packet: int) -> bool:

@@ -58,11 +58,13 @@ typedef struct {
     float radius[WIDE_ARITY];
 } WideDipoles;
 
-/* A triangle's vertices in tree order, as the ray-triangle test reads them,
- * one triangle at a time: four at a time from SoA blocks (Embree's
- * Triangle4), with the same arithmetic lane by lane and so the same hits,
- * traced slower on CPU runtimes, leaves holding about two triangles (figures
- * in the commit that says so).  Three vertex indices into shared vertices
+/* A triangle's vertices in tree order, as the ray-triangle test reads them:
+ * one triangle at a time, or on CPUs four of a leaf's at a time, gathered
+ * from these records into vector lanes (query/rays/quad.h).  Stored as SoA
+ * blocks of four instead (Embree's Triangle4), with the same arithmetic lane
+ * by lane and so the same hits, they traced slower on CPU runtimes, on
+ * single meshes whose leaves hold about two triangles (figures in the commit
+ * that says so).  Three vertex indices into shared vertices
  * instead (Embree's compact Triangle4i) halve the leaves' memory, the hits
  * the same bits, but incoherent rays trace slower on CPU runtimes: a leaf's
  * vertices wait on its indices, which the push-time prefetch cannot cover.

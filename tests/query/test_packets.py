@@ -488,3 +488,81 @@ def test_two_lane_groups_a_work_item_give_one_group_s_answers(monkeypatch):
         np.testing.assert_array_equal(got, want, f"{name}: the device's rays")
     hits = packet_query(case.scene, 16).intersect(tree, origins, directions)
     assert_matches_oracle(case, hits, origins, directions)
+
+
+@pytest.mark.parametrize("name", ["knight", "split knight", "grid", "nested boxes"])
+def test_leaf_quads_give_the_one_by_one_triangle_tests_answers(monkeypatch, name):
+    """On CPUs a single ray's walk tests a leaf's triangles four at a time,
+    one vector lane each, and takes the lanes that pass in index order
+    (kernels/query/rays/quad.h, engine.leaf_quads): the same closest hits,
+    occlusion, counts and all hits, bit for bit, as the kernels built to test
+    one triangle at a time, for packets of 1 and 16 and with limits that cut
+    some hits off; and the oracle's.  Besides random rays, rays aim at the
+    centres of the triangles in the tree's largest leaves (the split knight,
+    every edge cut in 5, has leaves of 5 and more: two quads), and the
+    nested boxes' rays go from one eye through their shared vertices, ties
+    that the first triangle in the tree wins whichever lane found it."""
+    from hlbvh_cl.query import engine
+    from hlbvh_cl.io.split import split_edges
+    from hlbvh_cl.query.all_hits import AllHitsQuery
+    if name == "split knight":
+        knight = scene_case("knight").meshes[0]
+        case = SceneCase([hlbvh_cl.Mesh(*split_edges(knight.vertices, knight.faces, 5),
+                                        name="split knight")])
+    elif name == "nested boxes":
+        trimesh = pytest.importorskip("trimesh")
+        box = trimesh.creation.box(extents=(2, 2, 2)).subdivide().subdivide()
+        vertices = np.concatenate([box.vertices * s for s in (1.0, 0.75, 0.5, 0.25)])
+        faces = np.concatenate([box.faces + len(box.vertices) * k for k in range(4)])
+        case = SceneCase([hlbvh_cl.Mesh(vertices, faces, name="nested boxes")])
+    else:
+        case = scene_case(name)
+    tree = built.tree(case.scene)
+    rt = built.runtime(case.scene)
+    nodes = tree.read_nodes(rt.queue)
+    triangles, _ = tree.read_triangles(rt.queue)
+    counts, firsts = nodes["count"].ravel(), nodes["child"].ravel()
+    largest = np.argsort(counts)[::-1][:60]
+    assert counts[largest[0]] >= (5 if name == "split knight" else 2), counts.max()
+    within = np.concatenate([np.arange(firsts[k], firsts[k] + counts[k]) for k in largest
+                             if counts[k] > 1])
+    centres = np.stack([triangles[v] for v in ("v0", "v1", "v2")]).mean(axis=0)[within]
+    origins, directions = random_rays(case, 1500, seed=5)
+    aimed_from = origins[:len(centres)]
+    origins = np.concatenate([origins, aimed_from]).astype(np.float32)
+    directions = np.concatenate([directions, centres - aimed_from]).astype(np.float32)
+    extra = 0
+    if name == "nested boxes":
+        eye = np.float32([0, 0, 5])
+        vertices = case.meshes[0].vertices
+        extra = len(vertices)
+        origins = np.concatenate([origins, np.broadcast_to(eye, vertices.shape)])
+        directions = np.concatenate([directions, (vertices - eye).astype(np.float32)])
+    tmin = np.where(np.arange(len(origins)) % 3 == 0, 0.05, 0.0).astype(np.float32)
+    tmax = np.where(np.arange(len(origins)) % 4 == 0, 0.5, np.inf).astype(np.float32)
+    fields = ("t", "geom_id", "prim_id", "u", "v", "normal")
+    answers = {}
+    for quads in (True, False):
+        monkeypatch.setattr(engine, "leaf_quads", lambda rt, indexed, quads=quads: quads)
+        for packet_size in (1, 16):
+            q = RayQuery(rt, packet_size=packet_size)
+            defines = engine.kernel_defines(q.rt, tree, q.variant, q.packet_size)
+            assert ("LEAF_QUADS" in defines) == quads
+            every = AllHitsQuery(q)
+            for limits in ({}, {"tmin": tmin, "tmax": tmax}):
+                hits = q.intersect(tree, origins, directions, **limits)
+                if quads and q.packet_size == 1:
+                    assert_matches_oracle(case, hits, origins, directions, **limits)
+                found = every.intersect_all(tree, origins, directions, **limits)
+                answers[quads, q.packet_size, len(limits)] = (
+                    [getattr(hits, f) for f in fields]
+                    + [q.occluded(tree, origins, directions, **limits),
+                       every.count(tree, origins, directions, **limits)]
+                    + [getattr(found, f) for f in ("offsets", "ray_index", "t", "prim_id", "u",
+                                                   "v")])
+    aimed = answers[True, 1, 0][2][len(origins) - len(centres) - extra:len(origins) - extra]
+    assert (aimed >= 0).mean() > 0.9  # the rays at the largest leaves' triangles hit
+    for (quads, packet_size, limited), got in answers.items():
+        want = answers[False, packet_size, limited]
+        for at, (a, b) in enumerate(zip(got, want)):
+            np.testing.assert_array_equal(a, b, f"{name}: field {at}, packets of {packet_size}")

@@ -233,4 +233,6 @@ TRAVERSAL_INLINE uint children_ray(const RayData* r, __global const WideNode* no
 #include "query/rays/triangle.h"
 #undef PATH_SUFFIX
 
+#include "query/rays/quad.h"
+
 #endif /* RAY_H */

@@ -73,18 +73,30 @@ TRAVERSAL_INLINE void plane_double(TRIANGLE_AT tri, double* v0, double* n)
 #endif /* TRIANGLE_H */
 
 #ifdef PATH_SUFFIX
-/* Every lane's hit of `tri` with tmin <= t <= limit (t < limit where
- * `strict`): the lanes that hit (flags), with their t, u, v in *t_out,
- * *u_out, *v_out (hit = (1-u-v)*v0 + u*v1 + v*v2).  Degenerate triangles are
- * never hit. */
-TRAVERSAL_INLINE PATH(flags) PATH(hit_triangle)(const PATH(Rays)* r,
-                                                TRIANGLE_AT tri,
-                                                PATH(real) limit, PATH(flags) strict,
-                                                PATH(real)* t_out, PATH(real)* u_out,
-                                                PATH(real)* v_out)
+/* What the triangle test's first stage leaves for its second: the scaled
+ * barycentrics (Woop et al.'s U, V, W) and, without fp64, the sheared
+ * vertices' z for t. */
+typedef struct {
+    PATH(real) e_u, e_v, e_w;
+#ifndef cl_khr_fp64
+    PATH(real) az, bz, cz;
+#endif
+} PATH(Edges);
+
+/* The path's triangles: one (TRIANGLE_AT), or one per lane where a path
+ * tests several at once (quad.h defines PATH_TRIANGLE). */
+#ifndef PATH_TRIANGLE
+#define PATH_TRIANGLE TRIANGLE_AT
+#define PATH_TRIANGLE_DEFAULT
+#endif
+
+/* The test's first stage: whether the ray meets `tri` inside its edges, in
+ * each lane, with the edge functions in *out. */
+TRAVERSAL_INLINE PATH(flags) PATH(triangle_edges)(const PATH(Rays)* r, PATH_TRIANGLE tri,
+                                                  PATH(Edges)* out)
 {
     /* Vertices relative to the origin, permuted (kx, ky, kz): corner picks
-     * each lane's component (per path: ray.h, packet.h, mixed.h). */
+     * each lane's component (per path: ray.h, packet.h, mixed.h, quad.h). */
     PATH(real) ax = PATH(corner)(tri->v0, r, kx) - r->okx,
                ay = PATH(corner)(tri->v0, r, ky) - r->oky,
                az = PATH(corner)(tri->v0, r, kz) - r->okz;
@@ -116,7 +128,14 @@ TRAVERSAL_INLINE PATH(flags) PATH(hit_triangle)(const PATH(Rays)* r,
         e_v = on_edge ? PATH(to_float)(dax * dcy - day * dcx) : e_v;
         e_w = on_edge ? PATH(to_float)(dbx * day - dby * dax) : e_w;
     }
+#else
+    out->az = az;
+    out->bz = bz;
+    out->cz = cz;
 #endif
+    out->e_u = e_u;
+    out->e_v = e_v;
+    out->e_w = e_w;
     /* No culling: inside when the three have the same sign (0 on an edge). */
     PATH(real) det = e_u + e_v + e_w;
     PATH(flags) hit = PATH(inside)(e_u, e_v, e_w) & (det != 0.0f);
@@ -138,8 +157,21 @@ TRAVERSAL_INLINE PATH(flags) PATH(hit_triangle)(const PATH(Rays)* r,
         hit &= OWNS_EDGE(e_u, cx - bx, cy - by, det) & OWNS_EDGE(e_v, ax - cx, ay - cy, det)
                & OWNS_EDGE(e_w, bx - ax, by - ay, det);
 #endif
-    if (!PATH(some)(hit))
-        return hit;
+    return hit;
+}
+
+#ifndef EDGES_ONLY
+/* The test's second stage, in the lanes `hit` that the first passed: t
+ * within tmin <= t <= limit (t < limit where `strict`), with t, u, v in
+ * *t_out, *u_out, *v_out (hit = (1-u-v)*v0 + u*v1 + v*v2).  Degenerate
+ * triangles are never hit. */
+TRAVERSAL_INLINE PATH(flags) PATH(triangle_depth)(const PATH(Rays)* r, TRIANGLE_AT tri,
+                                                  const PATH(Edges)* e, PATH(flags) hit,
+                                                  PATH(real) limit, PATH(flags) strict,
+                                                  PATH(real)* t_out, PATH(real)* u_out,
+                                                  PATH(real)* v_out)
+{
+    PATH(real) det = e->e_u + e->e_v + e->e_w;
     PATH(real) inv_det = 1.0f / det;
 #ifdef cl_khr_fp64
     PATH(real) t;
@@ -156,7 +188,8 @@ TRAVERSAL_INLINE PATH(flags) PATH(hit_triangle)(const PATH(Rays)* r,
         t = PATH(to_float)(num / den);
     }
 #else
-    PATH(real) t = (e_u * (r->sz * az) + e_v * (r->sz * bz) + e_w * (r->sz * cz)) * inv_det;
+    PATH(real) t = (e->e_u * (r->sz * e->az) + e->e_v * (r->sz * e->bz)
+                    + e->e_w * (r->sz * e->cz)) * inv_det;
 #endif
     /* Written so that a NaN t fails; an infinite t (tmax = inf) too. */
     hit &= (t >= r->tmin) & ((PATH(bits)(t) & 0x7fffffff) < 0x7f800000)
@@ -172,9 +205,25 @@ TRAVERSAL_INLINE PATH(flags) PATH(hit_triangle)(const PATH(Rays)* r,
     *t_out = t;
     /* e_v / det rounds to at most 1 + ulp, and to NaN when det overflows or
      * underflows: clamp (fmax maps NaN to 0) so u, v stay in [0, 1]. */
-    *u_out = fmin(fmax(e_v * inv_det, (PATH(real))(0.0f)), (PATH(real))(1.0f));
-    *v_out = fmin(fmax(e_w * inv_det, (PATH(real))(0.0f)), (PATH(real))(1.0f));
+    *u_out = fmin(fmax(e->e_v * inv_det, (PATH(real))(0.0f)), (PATH(real))(1.0f));
+    *v_out = fmin(fmax(e->e_w * inv_det, (PATH(real))(0.0f)), (PATH(real))(1.0f));
     return hit;
+}
+
+/* Every lane's hit of `tri` with tmin <= t <= limit (t < limit where
+ * `strict`): the lanes that hit (flags), with their t, u, v in *t_out,
+ * *u_out, *v_out: both stages. */
+TRAVERSAL_INLINE PATH(flags) PATH(hit_triangle)(const PATH(Rays)* r,
+                                                TRIANGLE_AT tri,
+                                                PATH(real) limit, PATH(flags) strict,
+                                                PATH(real)* t_out, PATH(real)* u_out,
+                                                PATH(real)* v_out)
+{
+    PATH(Edges) e;
+    PATH(flags) hit = PATH(triangle_edges)(r, tri, &e);
+    if (!PATH(some)(hit))
+        return hit;
+    return PATH(triangle_depth)(r, tri, &e, hit, limit, strict, t_out, u_out, v_out);
 }
 
 /* Records triangle i's hit in the lanes `hit`: its t, u, v, and the limit
@@ -190,4 +239,9 @@ TRAVERSAL_INLINE void PATH(take_hit)(PATH(Found)* s, uint i, PATH(flags) hit, PA
     s->v = hit ? v : s->v;
     PATH(update_reach)(s);
 }
+#endif /* EDGES_ONLY */
+#ifdef PATH_TRIANGLE_DEFAULT
+#undef PATH_TRIANGLE
+#undef PATH_TRIANGLE_DEFAULT
+#endif
 #endif /* PATH_SUFFIX */

@@ -100,6 +100,36 @@
 #include "query/walk/instance_leaf.h"
 #endif
 
+#if PATH(QUAD_LEAVES) && !defined(QUERY_LEAF) && !defined(QUERY_INSTANCE)
+/* The default leaf of a single ray, four triangles at a time
+ * (query/rays/quad.h): the lanes whose edge test passes take the second
+ * stage in index order against the limit as it stands then, as the loop
+ * below would, so the hits are the same. */
+TRAVERSAL_INLINE bool WALK_NAME(quads)(const PATH(Rays)* r, __global const Leaf* triangles,
+                                       int first, uint count, PATH(Found)* s WALK_PARAMS)
+{
+    uint last = (uint)first + count - 1u;
+    for (uint i = (uint)first; i <= last; i += 4u) {
+        QuadTriangles quad;
+        quad_triangles(&quad, triangles, i, last);
+        Edges_quad edges;
+        uint lanes = quad_mask(triangle_edges_quad(r, &quad, &edges)) & quad_lanes(i, last);
+        for (; lanes != 0u; lanes &= lanes - 1u) {
+            uint l = (uint)lowest_slot(lanes), k = i + l;
+            PATH(Edges) e;
+            quad_lane(&edges, l, &e);
+            PATH(real) t, u, v;
+            PATH(flags) hit = PATH(triangle_depth)(r, triangles + k, &e, 1, s->limit,
+                                                   (s->index >= 0) & (s->index < (int)k),
+                                                   &t, &u, &v);
+            if (PATH(some)(hit) && QUERY_HIT(s, k, hit, t, u, v))
+                return true;
+        }
+    }
+    return false;
+}
+#endif
+
 /* The leaf's triangles [first, first + count) against every lane: each hit
  * goes to QUERY_HIT; true when it ends the walk.  A lane takes a hit at
  * t == limit only while it has none or its hit's triangle comes later in
@@ -115,6 +145,10 @@ TRAVERSAL_INLINE bool WALK_NAME(leaf)(const PATH(Rays)* r, __global const Leaf* 
 #elif defined(QUERY_INSTANCE)
     return WALK_NAME(instances)(s, r, first, count WALK_ARGS);
 #else
+#if PATH(QUAD_LEAVES)
+    if (count >= QUAD_LEAF_MIN)
+        return WALK_NAME(quads)(r, triangles, first, count, s WALK_ARGS);
+#endif
     for (uint i = (uint)first; i < (uint)first + count; ++i) {
         PATH(real) t, u, v;
         LEAF_CORNERS(tri, triangles, i);
