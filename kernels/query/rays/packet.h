@@ -274,8 +274,7 @@ TRAVERSAL_INLINE void start_packet(Found_packet* s, const Packet* p)
  * true lane.) */
 TRAVERSAL_INLINE int_packet inside_packet(float_packet e_u, float_packet e_v, float_packet e_w)
 {
-    return ((e_u >= 0.0f) & (e_v >= 0.0f) & (e_w >= 0.0f))
-           | ((e_u <= 0.0f) & (e_v <= 0.0f) & (e_w <= 0.0f));
+    return ONE_SIGN(e_u, e_v, e_w);
 }
 
 /* A bound, from below (entry) or above (exit), of (plane - o) * inv over

@@ -28,11 +28,13 @@ typedef RayData Rays_quad;
 typedef float4 real_quad;
 typedef int4 flags_quad;  /* a vector compare: -1 or 0 per lane */
 #define bits_quad as_int4
-TRAVERSAL_INLINE bool some_quad(int4 flags) { return (flags.s0 | flags.s1 | flags.s2 | flags.s3) != 0; }
+TRAVERSAL_INLINE bool some_quad(int4 flags)
+{
+    return (flags.s0 | flags.s1 | flags.s2 | flags.s3) != 0;
+}
 TRAVERSAL_INLINE int4 inside_quad(float4 e_u, float4 e_v, float4 e_w)
 {
-    return ((e_u >= 0.0f) & (e_v >= 0.0f) & (e_w >= 0.0f))
-           | ((e_u <= 0.0f) & (e_v <= 0.0f) & (e_w <= 0.0f));
+    return ONE_SIGN(e_u, e_v, e_w);
 }
 #ifdef cl_khr_fp64
 typedef double4 wide_quad;

@@ -202,16 +202,19 @@ TRAVERSAL_INLINE float reach_ray(const Found_ray* s) { return s->limit; }
 TRAVERSAL_INLINE void update_reach_ray(Found_ray* s) {}
 
 /* Woop et al.'s inside test: the three edge functions have one sign (0
- * counts as either), as the packet's inside_packet.  Written so that a NaN
- * edge function (the products overflow, inf - inf, for a ray from ~1e30
- * away) fails it: "do not straddle 0" took NaN as inside, and such a ray
- * hit every triangle it was tested against.  Bitwise | and & rather than
- * || and &&: one branch instead of up to six, which the sign pattern of
- * rejected triangles mispredicts (measured faster). */
+ * counts as either), for every path's lanes (inside_packet, inside_quad).
+ * Written so that a NaN edge function (the products overflow, inf - inf,
+ * for a ray from ~1e30 away) fails it: "do not straddle 0" took NaN as
+ * inside, and such a ray hit every triangle it was tested against.  Bitwise
+ * | and & rather than || and &&: one branch instead of up to six, which the
+ * sign pattern of rejected triangles mispredicts (measured faster). */
+#define ONE_SIGN(e_u, e_v, e_w)                                  \
+    ((((e_u) >= 0.0f) & ((e_v) >= 0.0f) & ((e_w) >= 0.0f))      \
+     | (((e_u) <= 0.0f) & ((e_v) <= 0.0f) & ((e_w) <= 0.0f)))
+
 TRAVERSAL_INLINE int inside_ray(float e_u, float e_v, float e_w)
 {
-    return ((e_u >= 0.0f) & (e_v >= 0.0f) & (e_w >= 0.0f))
-           | ((e_u <= 0.0f) & (e_v <= 0.0f) & (e_w <= 0.0f));
+    return ONE_SIGN(e_u, e_v, e_w);
 }
 
 /* The slab test of a wide node's WIDE_ARITY child boxes at once, one vector
