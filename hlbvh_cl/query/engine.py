@@ -175,7 +175,7 @@ def kernel_defines(rt: Runtime, tree, variant, packet: int, **extra) -> dict:
         defines["SPHERES"] = 1
     indexed = getattr(tree, "indexed", False)
     defines.update(leaf_defines(indexed))
-    if leaf_quads(rt, indexed):
+    if leaf_quads(rt):
         defines["LEAF_QUADS"] = 1
     return {**defines, **extra}
 
@@ -195,15 +195,15 @@ INTERLEAVED_STACK_BYTES = 32 * 1024
 INTERLEAVED_MIN_TREE_BYTES = 2 * 1024 * 1024
 
 
-def leaf_quads(rt: Runtime, indexed: bool) -> bool:
+def leaf_quads(rt: Runtime) -> bool:
     """Whether a single ray's walk tests a leaf's triangles four at a time,
     one vector lane each (kernels/query/rays/quad.h): on CPUs, where the
     edge test of four costs little more than that of one, and a ray leaving
     a surface tests most of its triangles in the leaves around its origin.
-    A GPU's lanes are its rays already.  Leaves of Triangle records only:
-    a compact tree's (Scene(..., compact=True)) name their corners through
-    indices."""
-    return not rt.profile.gpu and not indexed
+    Either leaf layout: a compact tree's (Scene(..., compact=True)) lanes
+    take their corners through its indices.  A GPU's lanes are its rays
+    already."""
+    return not rt.profile.gpu
 
 
 def interleaved_walks(rt: Runtime, tree, stack: int, packet: int) -> bool:

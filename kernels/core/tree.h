@@ -87,7 +87,9 @@ typedef struct {
  * so a record keeps its meaning wherever the block it is in is copied to;
  * 12 bytes a triangle plus 12 a vertex instead of 36 a triangle, at the
  * price of a load that waits on another (Embree's Triangle4i and
- * RTC_SCENE_FLAG_COMPACT make the same trade). */
+ * RTC_SCENE_FLAG_COMPACT make the same trade).  On CPUs a ray tests these
+ * four at a time too, each lane's corners found through its record
+ * (query/rays/quad.h). */
 typedef struct {
     int corner[3];
 } IndexedTriangle;

@@ -55,14 +55,17 @@ GROUPS = {
     # two-level scenes' compact trees: the meshes' records joined, then their
     # vertices, the records shifted to name them (kernels/build/instances.cl)
     "compact_instances": ("instances", "instance_points"),
+    # the CPU profile's single rays on compact leaves: their quads take the
+    # corners through the records' indices (kernels/query/rays/quad.h)
+    "compact_cpu_profile": ("packets",),
 }
 
 #: The groups whose scenes are built compact (compact_scenes).
-COMPACT_GROUPS = {"compact", "compact_instances"}
+COMPACT_GROUPS = {"compact", "compact_instances", "compact_cpu_profile"}
 
 #: The profile (hlbvh_cl/device/profile.py) each group's child is forced to; the
 #: others run with the one the device gets.
-PROFILE_OF = {"cpu_profile": "cpu"}
+PROFILE_OF = {"cpu_profile": "cpu", "compact_cpu_profile": "cpu"}
 
 MODES = ("optimised", "uninitialized")
 

@@ -490,18 +490,21 @@ def test_two_lane_groups_a_work_item_give_one_group_s_answers(monkeypatch):
     assert_matches_oracle(case, hits, origins, directions)
 
 
+@pytest.mark.parametrize("compact", [False, True], ids=["triangles", "compact"])
 @pytest.mark.parametrize("name", ["knight", "split knight", "grid", "nested boxes"])
-def test_leaf_quads_give_the_one_by_one_triangle_tests_answers(monkeypatch, name):
+def test_leaf_quads_give_the_one_by_one_triangle_tests_answers(monkeypatch, name, compact):
     """On CPUs a single ray's walk tests a leaf's triangles four at a time,
     one vector lane each, and takes the lanes that pass in index order
     (kernels/query/rays/quad.h, engine.leaf_quads): the same closest hits,
     occlusion, counts and all hits, bit for bit, as the kernels built to test
     one triangle at a time, for packets of 1 and 16 and with limits that cut
-    some hits off; and the oracle's.  Besides random rays, rays aim at the
-    centres of the triangles in the tree's largest leaves (the split knight,
-    every edge cut in 5, has leaves of 5 and more: two quads), and the
-    nested boxes' rays go from one eye through their shared vertices, ties
-    that the first triangle in the tree wins whichever lane found it."""
+    some hits off; and the oracle's.  In either leaf layout: Triangle
+    records, or a compact tree's, whose lanes take their corners through
+    its indices.  Besides random rays, rays aim at the centres of the
+    triangles in the tree's largest leaves (the split knight, every edge cut
+    in 5, has leaves of 5 and more: two quads), and the nested boxes' rays
+    go from one eye through their shared vertices, ties that the first
+    triangle in the tree wins whichever lane found it."""
     from hlbvh_cl.query import engine
     from hlbvh_cl.io.split import split_edges
     from hlbvh_cl.query.all_hits import AllHitsQuery
@@ -517,7 +520,10 @@ def test_leaf_quads_give_the_one_by_one_triangle_tests_answers(monkeypatch, name
         case = SceneCase([hlbvh_cl.Mesh(vertices, faces, name="nested boxes")])
     else:
         case = scene_case(name)
+    if compact:
+        case = SceneCase(case.meshes, scene=hlbvh_cl.Scene(case.meshes, compact=True))
     tree = built.tree(case.scene)
+    assert tree.indexed == compact
     rt = built.runtime(case.scene)
     nodes = tree.read_nodes(rt.queue)
     triangles, _ = tree.read_triangles(rt.queue)
@@ -543,7 +549,7 @@ def test_leaf_quads_give_the_one_by_one_triangle_tests_answers(monkeypatch, name
     fields = ("t", "geom_id", "prim_id", "u", "v", "normal")
     answers = {}
     for quads in (True, False):
-        monkeypatch.setattr(engine, "leaf_quads", lambda rt, indexed, quads=quads: quads)
+        monkeypatch.setattr(engine, "leaf_quads", lambda rt, quads=quads: quads)
         for packet_size in (1, 16):
             q = RayQuery(rt, packet_size=packet_size)
             defines = engine.kernel_defines(q.rt, tree, q.variant, q.packet_size)

@@ -18,8 +18,9 @@
  * leaf_quads, on CPUs), a single ray's walk tests the leaves of at least
  * QUAD_LEAF_MIN triangles four at a time (walk.h's quads).  From 2: leaves
  * of 2 measured faster by quads too, 1 no faster (figures in the commit that
- * says so).  Triangle records only (not INDEXED_LEAVES). */
-#if defined(LEAF_QUADS) && LEAF_QUADS && !defined(INDEXED_LEAVES)
+ * says so).  Either leaf layout (core/leaf.h): the lanes take their corners
+ * where leaf_corners finds them. */
+#if defined(LEAF_QUADS) && LEAF_QUADS
 #define QUAD_LEAVES_ray 1
 #define QUAD_LEAF_MIN 2
 
@@ -27,7 +28,6 @@
 typedef RayData Rays_quad;
 typedef float4 real_quad;
 typedef int4 flags_quad;  /* a vector compare: -1 or 0 per lane */
-#define bits_quad as_int4
 TRAVERSAL_INLINE bool some_quad(int4 flags)
 {
     return (flags.s0 | flags.s1 | flags.s2 | flags.s3) != 0;
@@ -64,11 +64,11 @@ typedef struct {
 /* Triangles i .. i + 3 of a leaf whose last is `last`, lanes past it
  * repeating it (their results are dropped: quad_lanes), so that nothing
  * past the leaf is read. */
-TRAVERSAL_INLINE void quad_triangles(QuadTriangles* q, __global const Triangle* triangles,
+TRAVERSAL_INLINE void quad_triangles(QuadTriangles* q, __global const Leaf* triangles,
                                      uint i, uint last)
 {
     for (uint j = 0; j < 4u; ++j) {
-        __global const Triangle* tri = triangles + LESSER(i + j, last);
+        LEAF_CORNERS(tri, triangles, LESSER(i + j, last));
         q->v0[j] = tri->v0;
         q->v1[j] = tri->v1;
         q->v2[j] = tri->v2;

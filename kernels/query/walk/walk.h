@@ -119,7 +119,8 @@ TRAVERSAL_INLINE bool WALK_NAME(quads)(const PATH(Rays)* r, __global const Leaf*
             PATH(Edges) e;
             quad_lane(&edges, l, &e);
             PATH(real) t, u, v;
-            PATH(flags) hit = PATH(triangle_depth)(r, triangles + k, &e, 1, s->limit,
+            LEAF_CORNERS(tri, triangles, k);
+            PATH(flags) hit = PATH(triangle_depth)(r, tri, &e, 1, s->limit,
                                                    (s->index >= 0) & (s->index < (int)k),
                                                    &t, &u, &v);
             if (PATH(some)(hit) && QUERY_HIT(s, k, hit, t, u, v))
