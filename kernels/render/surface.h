@@ -111,6 +111,16 @@ inline float3 cosine_direction(float3 n, float u1, float u2)
     return cosine_direction_at(n, u1, cosine, sine);
 }
 
+/* The same in a local frame whose normal is +z, at the angle sincos_turn
+ * gives (render/angles.h): cosine_direction_at's terms without the basis,
+ * which is the identity there. */
+inline float3 cosine_local(float u1, float u2)
+{
+    float cos_phi, sin_phi = sincos_turn(u2, &cos_phi);
+    float radius = SQRT(u1);
+    return (float3)(radius * cos_phi, radius * sin_phi, SQRT(1.0f - u1));
+}
+
 /* The path integrator's cosine-distributed direction, normalised, at the
  * angle sincos_turn gives (render/angles.h). */
 FORCE_INLINE float3 cosine_sample(float3 n, float u1, float u2)

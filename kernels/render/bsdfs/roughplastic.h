@@ -69,7 +69,7 @@ inline BsdfSample roughplastic_sample(__global const PathMaterial* m, float3 n, 
         float3 h = microfacet_sample(m->distribution, m->alpha, o, u1, u2);
         i = 2.0f * dot(o, h) * h - o;
     } else {
-        i = cosine_direction((float3)(0.0f, 0.0f, 1.0f), u1, u2);
+        i = cosine_local(u1, u2);
     }
     float3 value = roughplastic_local(m, o, i, &out.pdf);
     if (!(out.pdf > 0.0f))
