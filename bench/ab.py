@@ -1,7 +1,7 @@
 """A/B of two checkouts' closest hits, interleaved in one run: a speed claim's figure.
 
     python -m bench.ab BASE CHANGE [--devices pocl,intel] [--rounds 4] [--scene reference.toml]
-                       [--quick] [--compact]
+                       [--quick] [--compact] [--in-process]
 
 BASE and CHANGE are checkouts of this repository (git worktrees, say).  The
 workloads are bench.trace's on the scene file: primary rays of its camera
@@ -21,6 +21,13 @@ change of speed alone leaves them identical, and the table says whether
 they are.  With --compact both checkouts trace the scene's compact tree
 (Scene(..., compact=True), built from its meshes as bench.trace's
 --compact builds it).
+
+With --in-process, for a change of kernels alone (the checkouts' hlbvh_cl/
+must be the same, byte for byte), one child per device builds the scene
+twice, from each checkout's kernels (Runtime.kernel_root), and alternates
+the two within each round, call by call (base first on even rounds): the
+same process, host code and rays, and a burst of load lasting a call rather
+than a child's life, so that the ratios spread far less.
 """
 from __future__ import annotations
 
@@ -74,6 +81,53 @@ if sys.argv[5]:
 print(json.dumps(rates))
 """ % {"workloads": WORKLOADS, "calls": CALLS}
 
+#: The --in-process child: argv = base checkout, change checkout, device, scene file,
+#: workloads .npz, hits folder, "compact" or "", rounds.  Its code and host are the
+#: change checkout's; each role's scene is built, and traced, from that role's kernels.
+IN_PROCESS = r"""
+import json, sys, time
+from pathlib import Path
+import numpy as np
+sys.path.insert(0, sys.argv[2])
+import hlbvh_cl
+if Path(hlbvh_cl.__file__).resolve().parent != Path(sys.argv[2]).resolve() / "hlbvh_cl":
+    sys.exit(f"imported {hlbvh_cl.__file__}, not the checkout's: an install shadows it")
+from hlbvh_cl.device.runtime import runtime
+from bench.trace import scene_file_case
+device, compact, rounds = sys.argv[3], sys.argv[7] == "compact", int(sys.argv[8])
+rt = runtime(device)
+roots = {"base": Path(sys.argv[1]).resolve() / "kernels",
+         "change": Path(sys.argv[2]).resolve() / "kernels"}
+scenes = {}
+for role, root in roots.items():
+    rt.kernel_root = root
+    case = scene_file_case(sys.argv[4], device)
+    scenes[role] = (hlbvh_cl.Scene(case.meshes, device=device, compact=True) if compact
+                    else case.built[device][0])
+workloads = np.load(sys.argv[5])
+rates = {role: {name: [] for name in %(workloads)r} for role in roots}
+for name in %(workloads)r:
+    origins, directions = workloads[name + "_origins"], workloads[name + "_directions"]
+    for role, root in roots.items():
+        rt.kernel_root = root
+        found = scenes[role].intersect(origins, directions)  # also the warm-up
+        np.savez(Path(sys.argv[6]) / f"{device}-{role}-{name}.npz",
+                 **{name + "_" + field: getattr(found, field)
+                    for field in ("t", "geom_id", "prim_id", "u", "v")})
+for round_ in range(rounds):
+    for name in %(workloads)r:
+        origins, directions = workloads[name + "_origins"], workloads[name + "_directions"]
+        for role in (list(roots) if round_ %% 2 == 0 else list(roots)[::-1]):
+            rt.kernel_root = roots[role]
+            best = 0.0
+            for _ in range(%(calls)d):
+                started = time.perf_counter()
+                scenes[role].intersect(origins, directions)
+                best = max(best, len(origins) / (time.perf_counter() - started))
+            rates[role][name].append(best)
+print(json.dumps(rates))
+""" % {"workloads": WORKLOADS, "calls": CALLS}
+
 MAKE_WORKLOADS = r"""
 import sys
 import numpy as np
@@ -104,6 +158,18 @@ def identical(base: Path, change: Path, name: str) -> bool:
                for field in ("t", "geom_id", "prim_id", "u", "v"))
 
 
+def host_difference(base: Path, change: Path) -> str | None:
+    """The first host module (hlbvh_cl/**/*.py) that is not the same bytes in
+    both checkouts, or None: --in-process runs one checkout's host code."""
+    names = sorted({path.relative_to(root).as_posix() for root in (base, change)
+                    for path in (root / "hlbvh_cl").rglob("*.py")})
+    for name in names:
+        a, b = base / name, change / name
+        if not (a.is_file() and b.is_file() and a.read_bytes() == b.read_bytes()):
+            return name
+    return None
+
+
 def main(argv=None) -> dict:
     args = arguments(__doc__.splitlines()[0], argv,
                      (["base"], {"help": "the checkout to compare against"}),
@@ -112,18 +178,26 @@ def main(argv=None) -> dict:
                      (["--scene"], {"default": "reference.toml",
                                     "help": "scene file of scenes/ (default reference.toml)"}),
                      (["--compact"], {"action": "store_true",
-                                      "help": "trace compact trees (Scene(..., compact=True))"}))
+                                      "help": "trace compact trees (Scene(..., compact=True))"}),
+                     (["--in-process"], {"action": "store_true",
+                                         "help": "a change of kernels alone: both in one "
+                                                 "process, alternated call by call"}))
     checkouts = {"base": Path(args.base).resolve(), "change": Path(args.change).resolve()}
     for role, path in checkouts.items():
         if not (path / "hlbvh_cl" / "__init__.py").is_file():
             sys.exit(f"bench.ab: {role} {path} is not a checkout of hlbvh_cl")
     if args.rounds < 1:
         sys.exit("bench.ab: --rounds must be at least 1")
+    if args.in_process:
+        differs = host_difference(checkouts["base"], checkouts["change"])
+        if differs is not None:
+            sys.exit(f"bench.ab: --in-process runs one host for both checkouts, and {differs} "
+                     f"differs between them; leave --in-process out")
     elapsed = stopwatch()
     devices = [device.id for device in devices_or_exit(args.devices)]
     results = {"base": str(checkouts["base"]), "change": str(checkouts["change"]),
                "scene": args.scene, "rounds": args.rounds, "compact": args.compact,
-               "devices": {}}
+               "in_process": args.in_process, "devices": {}}
     with tempfile.TemporaryDirectory() as folder:
         folder = Path(folder)
         workloads = folder / "workloads.npz"
@@ -131,7 +205,15 @@ def main(argv=None) -> dict:
         child(MAKE_WORKLOADS, checkouts["base"], devices[0], args.scene, workloads,
               "quick" if args.quick else "full", 100_000 if args.quick else 1_000_000)
         rates = {(device, role): [] for device in devices for role in checkouts}
-        for round_ in range(args.rounds):
+        for device in devices if args.in_process else ():
+            say(f"{device}: both checkouts in one process, {args.rounds} rounds")
+            found = json.loads(child(IN_PROCESS, checkouts["base"], checkouts["change"], device,
+                                     args.scene, workloads, folder,
+                                     "compact" if args.compact else "", args.rounds))
+            for role in checkouts:
+                rates[device, role] = [{name: found[role][name][round_] for name in WORKLOADS}
+                                       for round_ in range(args.rounds)]
+        for round_ in range(0 if args.in_process else args.rounds):
             order = list(checkouts) if round_ % 2 == 0 else list(checkouts)[::-1]
             for device in devices:
                 for role in order:
@@ -147,8 +229,10 @@ def main(argv=None) -> dict:
                 base = [r[name] for r in rates[device, "base"]]
                 change = [r[name] for r in rates[device, "change"]]
                 ratios = [c / b for b, c in zip(base, change)]
-                same = identical(folder / f"{device}-base.npz", folder / f"{device}-change.npz",
-                                 name)
+                kept = ([folder / f"{device}-{role}-{name}.npz" for role in checkouts]
+                        if args.in_process else
+                        [folder / f"{device}-{role}.npz" for role in checkouts])
+                same = identical(*kept, name)
                 entry[name] = {"base_rays_per_s": base, "change_rays_per_s": change,
                                "ratios": ratios, "identical_hits": same}
                 rows.append([device, name, f"{np.median(base) / 1e6:.2f}",
@@ -158,7 +242,8 @@ def main(argv=None) -> dict:
     print(table(["device", "workload", "base Mrays/s", "change Mrays/s",
                  "change / base (min-max)", "same hits"], rows,
                 title=f"A/B on {args.scene}{' (compact trees)' if args.compact else ''}, "
-                      f"{args.rounds} rounds interleaved"))
+                      f"{args.rounds} rounds interleaved"
+                      f"{', in one process' if args.in_process else ''}"))
     return finish(results, "ab", args, elapsed)
 
 

@@ -9,6 +9,7 @@ import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from concurrent.futures import TimeoutError as FuturesTimeout
+from pathlib import Path
 
 import numpy as np
 import pyopencl as cl
@@ -30,9 +31,9 @@ class DeviceMemoryError(MemoryError):
 class Runtime:
     """Context, profiling queue and program cache of one device.
 
-    Programs are built once per (file, defines) and kept for the life of the
-    runtime; pyopencl's on-disk binary cache (and PoCL's own) keep them across
-    runs.
+    Programs are built once per (kernel root, file, defines) and kept for the
+    life of the runtime; pyopencl's on-disk binary cache (and PoCL's own) keep
+    them across runs.
     """
 
     def __init__(self, device: Device, profile: Profile | None = None,
@@ -54,6 +55,10 @@ class Runtime:
         self.context = cl.Context([device.cl_device])
         self.queue = cl.CommandQueue(self.context,
                                      properties=cl.command_queue_properties.PROFILING_ENABLE)
+        #: the folder whose kernel sources this runtime builds: the package's
+        #: (hlbvh_cl.core.paths.kernel_dir); ``python -m bench.ab --in-process``
+        #: points it at each checkout's kernels in turn, in one process
+        self.kernel_root: Path = kernel_dir()
         self._programs: dict[tuple, cl.Program] = {}
         self._kernels: dict[tuple, cl.Kernel] = {}
         self._group_limits: dict[int, tuple] = {}  # see largest_group
@@ -86,17 +91,17 @@ class Runtime:
         return buffer
 
     def program(self, filename: str, **defines) -> cl.Program:
-        key = (filename, tuple(sorted(defines.items())))
+        key = (self.kernel_root, filename, tuple(sorted(defines.items())))
         with self._lock:
             program = self._programs.get(key)
             if program is None:
-                program = self._build(filename, defines)
+                program = self._build(key[0], filename, defines)
                 self._programs[key] = program
         return program
 
     def kernel(self, filename: str, name: str, **defines) -> cl.Kernel:
         """A kernel object, cached; callers set all its arguments before each enqueue."""
-        key = (filename, name, tuple(sorted(defines.items())))
+        key = (self.kernel_root, filename, name, tuple(sorted(defines.items())))
         kernel = self._kernels.get(key)
         if kernel is None:
             try:
@@ -230,9 +235,8 @@ class Runtime:
             except FuturesTimeout:
                 continue
 
-    def _build(self, filename: str, defines: dict) -> cl.Program:
+    def _build(self, folder: Path, filename: str, defines: dict) -> cl.Program:
         defines = {**self.variant.defines, **defines}
-        folder = kernel_dir()
         source = (folder / filename).read_text()
         std = (self.device.acquire_release_std if defines.get("ACQUIRE_RELEASE") else None) or "CL1.2"
         options = ["-I", str(folder), f"-cl-std={std}"]

@@ -113,6 +113,23 @@ def test_programs_are_built_once_and_cached():
         rt.kernel("build/morton.cl", "morton_codes", MORTON_BITS=30)
 
 
+def test_a_runtime_builds_from_its_kernel_root(tmp_path):
+    """Runtime.kernel_root (bench.ab --in-process): programs and kernels come
+    from the folder it names at the time, each folder's cached on its own."""
+    rt = Runtime(select_device())  # not the shared runtime: its root stays
+    assert rt.kernel_root == kernel_dir()
+    ours = rt.kernel("build/morton.cl", "morton_codes", MORTON_BITS=30)
+    (tmp_path / "build").mkdir()
+    (tmp_path / "build" / "morton.cl").write_text(
+        "__kernel void morton_codes(__global int *x) { x[0] = another_root; }\n")
+    rt.kernel_root = tmp_path
+    with pytest.raises(KernelBuildError, match="morton.cl failed to build") as info:
+        rt.kernel("build/morton.cl", "morton_codes", MORTON_BITS=30)
+    assert "another_root" in str(info.value)
+    rt.kernel_root = kernel_dir()
+    assert rt.kernel("build/morton.cl", "morton_codes", MORTON_BITS=30) is ours
+
+
 def test_threads_asking_for_a_new_kernel_at_once_get_one_object():
     """Runtime.kernel's cache: threads that create the same kernel at once
     all get the one stored (before, each kept its own, and largest_group's
