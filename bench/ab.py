@@ -1,7 +1,7 @@
 """A/B of two checkouts' closest hits, interleaved in one run: a speed claim's figure.
 
     python -m bench.ab BASE CHANGE [--devices pocl,intel] [--rounds 4] [--scene reference.toml]
-                       [--quick] [--compact] [--in-process]
+                       [--quick] [--compact] [--in-process [--renders cornell,materials]]
 
 BASE and CHANGE are checkouts of this repository (git worktrees, say).  The
 workloads are bench.trace's on the scene file: primary rays of its camera
@@ -27,7 +27,10 @@ must be the same, byte for byte), one child per device builds the scene
 twice, from each checkout's kernels (Runtime.kernel_root), and alternates
 the two within each round, call by call (base first on even rounds): the
 same process, host code and rays, and a burst of load lasting a call rather
-than a child's life, so that the ratios spread far less.
+than a child's life, so that the ratios spread far less.  With --renders
+(in one process only) the workloads are bench.path's path renders instead
+(its sizes, samples per pixel and max depth, --quick's too), timed as
+samples per second, and the images compared bit for bit.
 """
 from __future__ import annotations
 
@@ -81,11 +84,10 @@ if sys.argv[5]:
 print(json.dumps(rates))
 """ % {"workloads": WORKLOADS, "calls": CALLS}
 
-#: The --in-process child: argv = base checkout, change checkout, device, scene file,
-#: workloads .npz, hits folder, "compact" or "", rounds.  Its code and host are the
-#: change checkout's; each role's scene is built, and traced, from that role's kernels.
-IN_PROCESS = r"""
-import json, sys, time
+#: What both one-process children start with: argv = base checkout, change checkout,
+#: device, ...; the change's code imported, the device's runtime, each role's kernels.
+ONE_PROCESS = r"""
+import json, sys, tempfile, time
 from pathlib import Path
 import numpy as np
 sys.path.insert(0, sys.argv[2])
@@ -93,11 +95,18 @@ import hlbvh_cl
 if Path(hlbvh_cl.__file__).resolve().parent != Path(sys.argv[2]).resolve() / "hlbvh_cl":
     sys.exit(f"imported {hlbvh_cl.__file__}, not the checkout's: an install shadows it")
 from hlbvh_cl.device.runtime import runtime
-from bench.trace import scene_file_case
-device, compact, rounds = sys.argv[3], sys.argv[7] == "compact", int(sys.argv[8])
+device = sys.argv[3]
 rt = runtime(device)
 roots = {"base": Path(sys.argv[1]).resolve() / "kernels",
          "change": Path(sys.argv[2]).resolve() / "kernels"}
+"""
+
+#: The --in-process child: argv = base checkout, change checkout, device, scene file,
+#: workloads .npz, hits folder, "compact" or "", rounds.  Its code and host are the
+#: change checkout's; each role's scene is built, and traced, from that role's kernels.
+IN_PROCESS = ONE_PROCESS + r"""
+from bench.trace import scene_file_case
+compact, rounds = sys.argv[7] == "compact", int(sys.argv[8])
 scenes = {}
 for role, root in roots.items():
     rt.kernel_root = root
@@ -127,6 +136,45 @@ for round_ in range(rounds):
             rates[role][name].append(best)
 print(json.dumps(rates))
 """ % {"workloads": WORKLOADS, "calls": CALLS}
+
+#: The --renders child: argv = base checkout, change checkout, device, renders
+#: (comma-separated), "quick" or "full", rounds, images folder.  As IN_PROCESS, with
+#: bench.path's renders; each role's renderer is made, and renders, under its kernels.
+RENDERS = ONE_PROCESS + r"""
+from hlbvh_cl.io.scenefile import load
+from bench.path import FULL, MAX_DEPTH, QUICK, cornell_xml, materials_xml
+names, rounds = sys.argv[4].split(","), int(sys.argv[6])
+sizes = QUICK if sys.argv[5] == "quick" else FULL
+made, rates = {}, {role: {name: [] for name in names} for role in roots}
+with tempfile.TemporaryDirectory() as folder:
+    for name in names:
+        path = {"cornell": cornell_xml, "materials": materials_xml}[name](Path(folder))
+        width, height, spp = sizes[name]
+        for role, root in roots.items():
+            rt.kernel_root = root
+            loaded = load(path, device, defaults={"res_x": width, "res_y": height})
+            options = {**loaded.options, "spp": spp, "max_depth": MAX_DEPTH}
+            made[name, role] = (loaded.renderer(), loaded.camera, options)
+def render(name, role):
+    renderer, camera, options = made[name, role]
+    width, height, _ = sizes[name]
+    rt.kernel_root = roots[role]
+    return renderer.render(camera, width, height, hdr=True, **options)
+for name in names:
+    for role in roots:
+        np.save(Path(sys.argv[7]) / f"{device}-{role}-{name}.npy", render(name, role))
+for round_ in range(rounds):
+    for name in names:
+        width, height, spp = sizes[name]
+        for role in (list(roots) if round_ % 2 == 0 else list(roots)[::-1]):
+            started = time.perf_counter()
+            render(name, role)
+            rates[role][name].append(width * height * spp / (time.perf_counter() - started))
+print(json.dumps(rates))
+"""
+
+#: The renders --renders may name (bench.path's scenes).
+RENDER_NAMES = ("cornell", "materials")
 
 MAKE_WORKLOADS = r"""
 import sys
@@ -170,6 +218,41 @@ def host_difference(base: Path, change: Path) -> str | None:
     return None
 
 
+def summary(device: str, name: str, base: list, change: list, same: bool) -> tuple:
+    """The rounds' change / base ratios, and the table's row: the medians (in
+    millions a second), the median ratio (min-max), and whether the results
+    were the same."""
+    ratios = [c / b for b, c in zip(base, change)]
+    return ratios, [device, name, f"{np.median(base) / 1e6:.2f}", f"{np.median(change) / 1e6:.2f}",
+                    f"{np.median(ratios):.3f} ({min(ratios):.3f}-{max(ratios):.3f})",
+                    "yes" if same else "NO"]
+
+
+def compare_renders(args, checkouts: dict, devices: list, renders: list, results: dict,
+                    elapsed) -> dict:
+    """--renders: each device's child (RENDERS), then its table of samples per second."""
+    rows = []
+    with tempfile.TemporaryDirectory() as folder:
+        for device in devices:
+            say(f"{device}: both checkouts' renders in one process, {args.rounds} rounds")
+            found = json.loads(child(RENDERS, checkouts["base"], checkouts["change"], device,
+                                     ",".join(renders), "quick" if args.quick else "full",
+                                     args.rounds, folder))
+            entry = results["devices"][device] = {}
+            for name in renders:
+                base, change = found["base"][name], found["change"][name]
+                same = np.array_equal(*(np.load(Path(folder) / f"{device}-{role}-{name}.npy")
+                                        for role in checkouts))
+                ratios, row = summary(device, name, base, change, same)
+                entry[name] = {"base_samples_per_s": base, "change_samples_per_s": change,
+                               "ratios": ratios, "identical_images": same}
+                rows.append(row)
+    print(table(["device", "render", "base Msamples/s", "change Msamples/s",
+                 "change / base (min-max)", "same image"], rows,
+                title=f"A/B of path renders, {args.rounds} rounds interleaved, in one process"))
+    return finish(results, "ab", args, elapsed)
+
+
 def main(argv=None) -> dict:
     args = arguments(__doc__.splitlines()[0], argv,
                      (["base"], {"help": "the checkout to compare against"}),
@@ -181,13 +264,22 @@ def main(argv=None) -> dict:
                                       "help": "trace compact trees (Scene(..., compact=True))"}),
                      (["--in-process"], {"action": "store_true",
                                          "help": "a change of kernels alone: both in one "
-                                                 "process, alternated call by call"}))
+                                                 "process, alternated call by call"}),
+                     (["--renders"], {"default": "",
+                                      "help": "with --in-process: bench.path's path renders "
+                                              "(cornell,materials) instead of closest hits"}))
     checkouts = {"base": Path(args.base).resolve(), "change": Path(args.change).resolve()}
     for role, path in checkouts.items():
         if not (path / "hlbvh_cl" / "__init__.py").is_file():
             sys.exit(f"bench.ab: {role} {path} is not a checkout of hlbvh_cl")
     if args.rounds < 1:
         sys.exit("bench.ab: --rounds must be at least 1")
+    renders = [name for name in args.renders.split(",") if name]
+    if renders and not args.in_process:
+        sys.exit("bench.ab: --renders runs in one process: add --in-process")
+    for name in renders:
+        if name not in RENDER_NAMES:
+            sys.exit(f"bench.ab: --renders takes {', '.join(RENDER_NAMES)}, not {name!r}")
     if args.in_process:
         differs = host_difference(checkouts["base"], checkouts["change"])
         if differs is not None:
@@ -197,7 +289,9 @@ def main(argv=None) -> dict:
     devices = [device.id for device in devices_or_exit(args.devices)]
     results = {"base": str(checkouts["base"]), "change": str(checkouts["change"]),
                "scene": args.scene, "rounds": args.rounds, "compact": args.compact,
-               "in_process": args.in_process, "devices": {}}
+               "in_process": args.in_process, "renders": renders, "devices": {}}
+    if renders:
+        return compare_renders(args, checkouts, devices, renders, results, elapsed)
     with tempfile.TemporaryDirectory() as folder:
         folder = Path(folder)
         workloads = folder / "workloads.npz"
@@ -228,17 +322,14 @@ def main(argv=None) -> dict:
             for name in WORKLOADS:
                 base = [r[name] for r in rates[device, "base"]]
                 change = [r[name] for r in rates[device, "change"]]
-                ratios = [c / b for b, c in zip(base, change)]
                 kept = ([folder / f"{device}-{role}-{name}.npz" for role in checkouts]
                         if args.in_process else
                         [folder / f"{device}-{role}.npz" for role in checkouts])
                 same = identical(*kept, name)
+                ratios, row = summary(device, name, base, change, same)
                 entry[name] = {"base_rays_per_s": base, "change_rays_per_s": change,
                                "ratios": ratios, "identical_hits": same}
-                rows.append([device, name, f"{np.median(base) / 1e6:.2f}",
-                             f"{np.median(change) / 1e6:.2f}",
-                             f"{np.median(ratios):.3f} ({min(ratios):.3f}-{max(ratios):.3f})",
-                             "yes" if same else "NO"])
+                rows.append(row)
     print(table(["device", "workload", "base Mrays/s", "change Mrays/s",
                  "change / base (min-max)", "same hits"], rows,
                 title=f"A/B on {args.scene}{' (compact trees)' if args.compact else ''}, "

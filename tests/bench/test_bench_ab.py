@@ -1,7 +1,9 @@
 """python -m bench.ab: a checkout against itself gives identical hits and
 the ratios of the rates it measured, on default and compact trees, and in
-one process; differing hits are told apart; a folder that is not a checkout
-is refused, and --in-process with another host.  Never asserts speed."""
+one process, and identical path renders there; differing hits are told
+apart; a folder that is not a checkout is refused, and --in-process with
+another host, and --renders outside one process or by an unknown name.
+Never asserts speed."""
 import shutil
 
 import numpy as np
@@ -33,6 +35,31 @@ def test_a_checkout_against_itself_has_identical_hits(suite_device, tmp_path, ca
         assert ratios == pytest.approx([c / b for b, c in zip(base, change)])
     out = capsys.readouterr().out
     assert "same hits" in out and ("in one process" in out) is in_process
+
+
+def test_renders_of_a_checkout_against_itself_are_the_same_image(suite_device, tmp_path,
+                                                                 capsys):
+    returned = ab.main([str(ROOT), str(ROOT), "--quick", "--rounds", "2", "--in-process",
+                        "--renders", "cornell", "--devices", suite_device.id,
+                        "--out", str(tmp_path)])
+    check_json(returned)
+    assert returned["renders"] == ["cornell"]
+    found = returned["devices"][suite_device.id]["cornell"]
+    assert found["identical_images"] is True
+    base, change = found["base_samples_per_s"], found["change_samples_per_s"]
+    assert len(base) == len(change) == 2 and min(base) > 0 and min(change) > 0
+    assert found["ratios"] == pytest.approx([c / b for b, c in zip(base, change)])
+    assert "same image" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--renders", "cornell"], "--renders runs in one process: add --in-process"),
+    (["--in-process", "--renders", "cornell,kitchen"], "not 'kitchen'"),
+])
+def test_renders_are_refused_without_one_process_or_by_an_unknown_name(tmp_path, flags,
+                                                                        message):
+    with pytest.raises(SystemExit, match=message):
+        ab.main([str(ROOT), str(ROOT), "--out", str(tmp_path)] + flags)
 
 
 def test_differing_hits_are_told_apart(tmp_path):
