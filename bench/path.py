@@ -40,10 +40,23 @@ On a GPU, Mitsuba's CUDA variant renders the same files on the same card:
 
     python -m bench.path [--quick] [--devices pocl,intel] [--rounds 3]
     python -m bench.path --devices nvidia --mitsuba cuda_ad_rgb
+
+Where the gap lies, bounce by bounce (--depths 1,2,3,8): instead of the
+above, each scene is rendered at each of those max depths, ours and
+Mitsuba's in turn as above, and the table gives both times, the ratio of
+samples per second, and what each depth added to the one before (max depth
+1: the camera rays and the light they see; 2: the first vertex's light
+sample and BSDF sample, and the bounce's closest hit; ...).  Our stage times
+are kept per depth in the JSON.  No LuxCore and no equal-time quality in
+this mode:
+
+    python -m bench.path --depths 1,2,3,8 [--rounds 5]
 """
 from __future__ import annotations
 
+import argparse
 import json
+import re
 import subprocess
 import sys
 import tempfile
@@ -129,6 +142,102 @@ def cornell_xml(folder: Path) -> Path:
     path = folder / "cornell_box.xml"
     path.write_text(text)
     return path
+
+
+def depth_list(text: str) -> list[int]:
+    """--depths: comma-separated max depths, each a whole number >= 1, in
+    increasing order (each increment is the cost of one more bounce)."""
+    depths = []
+    for part in text.split(","):
+        part = part.strip()
+        if not part.isdigit() or int(part) < 1:
+            raise argparse.ArgumentTypeError(
+                f"--depths: {part!r} is not a max depth (a whole number >= 1)")
+        depths.append(int(part))
+    if any(b <= a for a, b in zip(depths, depths[1:])):
+        raise argparse.ArgumentTypeError(
+            f"--depths: {text!r} must increase (e.g. 1,2,3,8)")
+    return depths
+
+
+_MAX_DEPTH_ELEMENT = re.compile(r'<integer name="max_depth" value="-?\d+"/>')
+
+
+def with_max_depth(path: Path, depth: int) -> Path:
+    """A copy of the scene file at ``path`` whose path integrator has
+    max_depth ``depth``, beside it (for Mitsuba: ours takes max_depth as an
+    option)."""
+    text = path.read_text()
+    if len(_MAX_DEPTH_ELEMENT.findall(text)) != 1:
+        raise ValueError(f"{path}: expected one <integer name=\"max_depth\" .../> element")
+    out = path.with_name(f"{path.stem}_depth{depth}{path.suffix}")
+    out.write_text(_MAX_DEPTH_ELEMENT.sub(f'<integer name="max_depth" value="{depth}"/>', text))
+    return out
+
+
+#: Untimed rounds before --depths times any: the first compiles ours and
+#: Mitsuba's kernels, and in the second Mitsuba's turn from one depth's
+#: scene to the next renders once at about a tenth of its speed (seen with
+#: llvm_ad_rgb here, on every scene but the round's last; later rounds do not).
+SWEEP_WARM_ROUNDS = 2
+
+
+def depth_sweep(args, devices: list[str], paths: dict, sizes: dict, child) -> dict:
+    """The --depths mode (the module's docstring): per scene and max depth,
+    each device's and Mitsuba's render times over args.rounds rounds, taken
+    in turn, with their ratio and our stage medians; per scene, a table row
+    per depth and device."""
+    out, rows = {}, []
+    for name, path in paths.items():
+        width, height, spp = sizes[name]
+        samples = width * height * spp
+        files = {d: with_max_depth(Path(path), d) for d in args.depths}
+        ours = {}
+        for device in devices:
+            loaded = load(path, device, defaults={"res_x": width, "res_y": height})
+            ours[device] = (loaded, loaded.renderer())
+        times = {(d, who): [] for d in args.depths for who in [*devices, "mitsuba"]}
+        stages = {(d, device): [] for d in args.depths for device in devices}
+        for round_ in range(SWEEP_WARM_ROUNDS + args.rounds):
+            timed = round_ >= SWEEP_WARM_ROUNDS
+            for depth in args.depths:
+                for device in devices:
+                    loaded, renderer = ours[device]
+                    started = time.perf_counter()
+                    renderer.render(loaded.camera, width, height, hdr=True,
+                                    **{**loaded.options, "spp": spp, "max_depth": depth})
+                    if timed:
+                        times[depth, device].append(time.perf_counter() - started)
+                        stages[depth, device].append(renderer.stats["times_ms"])
+                answer = child.render(name, str(files[depth]), width, height, spp)
+                if timed:
+                    times[depth, "mitsuba"].append(answer["seconds"])
+        entry = {}
+        for depth in args.depths:
+            theirs = summary(times[depth, "mitsuba"])
+            entry[depth] = {"mitsuba_seconds": theirs}
+            for device in devices:
+                seconds = summary(times[depth, device])
+                entry[depth][device] = {"seconds": seconds,
+                                        "msamples_per_s": samples / seconds["median"] / 1e6,
+                                        "ratio_to_mitsuba": theirs["median"] / seconds["median"],
+                                        "stages_ms": stage_medians(stages[depth, device])}
+        for device in devices:
+            before = None
+            for depth in args.depths:
+                mine = entry[depth][device]["seconds"]["median"]
+                theirs = entry[depth]["mitsuba_seconds"]["median"]
+                added = ("", "") if before is None else (
+                    f"{1e3 * (mine - before[0]):+.0f}", f"{1e3 * (theirs - before[1]):+.0f}")
+                rows.append([name, depth, device, f"{1e3 * mine:.0f}", f"{1e3 * theirs:.0f}",
+                             f"{entry[depth][device]['ratio_to_mitsuba']:.2f}x", *added])
+                before = (mine, theirs)
+        out[name] = {"samples": samples, "depths": entry}
+    print(table(["scene", "max depth", "device", "ours (ms)", "Mitsuba (ms)", "ratio",
+                 "ours added (ms)", "Mitsuba added (ms)"], rows,
+                title="render time by max depth (median of the rounds); added: over the "
+                      "depth before"))
+    return out
 
 
 def llvm_path() -> str | None:
@@ -277,7 +386,10 @@ def main(argv=None) -> dict:
     args = arguments(__doc__.splitlines()[0], argv,
                      (["--rounds"], {"type": int, "default": 3, "help": "timed rounds"}),
                      (["--mitsuba"], {"default": "llvm_ad_rgb",
-                                      "help": "Mitsuba's variant (cuda_ad_rgb on a GPU)"}))
+                                      "help": "Mitsuba's variant (cuda_ad_rgb on a GPU)"}),
+                     (["--depths"], {"type": depth_list, "default": None,
+                                     "help": "instead, time each scene at these max depths "
+                                             "(e.g. 1,2,3,8): where the gap to Mitsuba lies"}))
     elapsed = stopwatch()
     sizes = QUICK if args.quick else FULL
     devices = [d.id for d in devices_or_exit(args.devices or "pocl,intel")]
@@ -291,6 +403,11 @@ def main(argv=None) -> dict:
         paths = {"cornell": cornell_xml(folder), "materials": materials_xml(folder)}
         child = mitsuba_child(paths, args.mitsuba)
         results["mitsuba"] = child.variant
+        if args.depths:
+            results["max_depths"] = args.depths
+            results["depth_sweep"] = depth_sweep(args, devices, paths, sizes, child)
+            child.close()
+            return finish(results, "path_depths", args, elapsed)
         lux, lux_problem = luxcore.start_child(paths, MAX_DEPTH)
         results["luxcore"] = f"skipped: {lux_problem}" if lux_problem else "PATHCPU"
         if lux_problem:

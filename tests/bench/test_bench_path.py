@@ -1,6 +1,7 @@
 """python -m bench.path --quick: its figures follow from the times it
 measured, and it says where our render's device time went.  Never asserts
 speed."""
+import argparse
 import json
 
 import pytest
@@ -61,3 +62,48 @@ def test_a_mitsuba_variant_that_does_not_start_is_named_and_scalar_rgb_timed(tmp
         child.close()
     assert "Mitsuba's no_such_variant does not start here; timing scalar_rgb" in \
         capsys.readouterr().out
+
+
+def test_depth_sweep_times_each_max_depth_against_mitsuba(suite_device, tmp_path, capsys):
+    returned = bench_path.main(["--quick", "--devices", suite_device.id, "--rounds", "1",
+                                "--depths", "1,3", "--out", str(tmp_path)])
+    written = json.loads((tmp_path / "path_depths.json").read_text())
+    assert written["max_depths"] == returned["max_depths"] == [1, 3]
+    assert set(written["depth_sweep"]) == {"cornell", "materials"}
+    out = capsys.readouterr().out
+    assert "render time by max depth" in out
+    for name, scene in written["depth_sweep"].items():
+        width, height, spp = bench_path.QUICK[name]
+        assert scene["samples"] == width * height * spp
+        assert set(scene["depths"]) == {"1", "3"}
+        medians = {}
+        for depth, entry in scene["depths"].items():
+            theirs = entry["mitsuba_seconds"]["median"]
+            ours = entry[suite_device.id]
+            mine = ours["seconds"]["median"]
+            assert ours["ratio_to_mitsuba"] == pytest.approx(theirs / mine)
+            assert ours["msamples_per_s"] == pytest.approx(scene["samples"] / mine / 1e6)
+            assert set(ours["stages_ms"]) == {*STAGES, "total"}
+            medians[depth] = (mine, theirs)
+        # the table's increments are the medians' differences, one scene row each
+        added = (f"{1e3 * (medians['3'][0] - medians['1'][0]):+.0f}",
+                 f"{1e3 * (medians['3'][1] - medians['1'][1]):+.0f}")
+        rows = [line.split() for line in out.splitlines() if line.startswith(name)]
+        assert [row[1] for row in rows] == ["1", "3"]
+        assert rows[1][-2:] == list(added)
+
+
+def test_depth_sweep_arguments_are_checked(tmp_path):
+    for bad, says in [("0", "'0' is not a max depth"), ("2,x", "'x' is not a max depth"),
+                      ("3,2", "must increase"), ("2,2", "must increase")]:
+        with pytest.raises(argparse.ArgumentTypeError, match=says):
+            bench_path.depth_list(bad)
+    assert bench_path.depth_list("1, 2,8") == [1, 2, 8]
+    with pytest.raises(SystemExit):
+        bench_path.main(["--depths", "2,1", "--out", str(tmp_path)])
+    # a scene file's max depth is rewritten where it has exactly one
+    copy = bench_path.with_max_depth(bench_path.cornell_xml(tmp_path), 3)
+    assert copy.read_text().count('<integer name="max_depth" value="3"/>') == 1
+    (tmp_path / "none.xml").write_text("<scene/>")
+    with pytest.raises(ValueError, match="expected one"):
+        bench_path.with_max_depth(tmp_path / "none.xml", 3)
