@@ -177,8 +177,8 @@ def with_max_depth(path: Path, depth: int) -> Path:
 
 #: Untimed rounds before --depths times any: the first compiles ours and
 #: Mitsuba's kernels, and in the second Mitsuba's turn from one depth's
-#: scene to the next renders once at about a tenth of its speed (seen with
-#: llvm_ad_rgb here, on every scene but the round's last; later rounds do not).
+#: scene to the next renders far slower, once (seen with llvm_ad_rgb, on
+#: every scene but the round's last; later rounds do not).
 SWEEP_WARM_ROUNDS = 2
 
 
