@@ -131,9 +131,8 @@ def materials_xml(folder: Path) -> Path:
 def cornell_xml(folder: Path) -> Path:
     """scenes/cornell_box.xml with its size as $res_x and $res_y, and max
     depth MAX_DEPTH."""
-    text = (SCENES_DIR / "cornell_box.xml").read_text()
-    text = text.replace('<integer name="max_depth" value="6"/>',
-                        f'<integer name="max_depth" value="{MAX_DEPTH}"/>')
+    source = SCENES_DIR / "cornell_box.xml"
+    text = set_max_depth(source.read_text(), MAX_DEPTH, source)
     text = text.replace('<default name="res" value="256"/>',
                         '<default name="res_x" value="256"/>\n  '
                         '<default name="res_y" value="256"/>')
@@ -163,15 +162,20 @@ def depth_list(text: str) -> list[int]:
 _MAX_DEPTH_ELEMENT = re.compile(r'<integer name="max_depth" value="-?\d+"/>')
 
 
+def set_max_depth(text: str, depth: int, path: Path) -> str:
+    """The XML scene ``text`` (read from ``path``) with its path
+    integrator's max_depth set to ``depth``."""
+    if len(_MAX_DEPTH_ELEMENT.findall(text)) != 1:
+        raise ValueError(f"{path}: expected one <integer name=\"max_depth\" .../> element")
+    return _MAX_DEPTH_ELEMENT.sub(f'<integer name="max_depth" value="{depth}"/>', text)
+
+
 def with_max_depth(path: Path, depth: int) -> Path:
     """A copy of the scene file at ``path`` whose path integrator has
     max_depth ``depth``, beside it (for Mitsuba: ours takes max_depth as an
     option)."""
-    text = path.read_text()
-    if len(_MAX_DEPTH_ELEMENT.findall(text)) != 1:
-        raise ValueError(f"{path}: expected one <integer name=\"max_depth\" .../> element")
     out = path.with_name(f"{path.stem}_depth{depth}{path.suffix}")
-    out.write_text(_MAX_DEPTH_ELEMENT.sub(f'<integer name="max_depth" value="{depth}"/>', text))
+    out.write_text(set_max_depth(path.read_text(), depth, path))
     return out
 
 
