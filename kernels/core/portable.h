@@ -22,12 +22,14 @@
 #define HAS_BUILTIN(name) 0
 #endif
 
-/* A kernel that Intel's CPU compiler is to pack at most four work-items
- * into a vector register, as it packs a float4 kernel's (vec_type_hint),
- * not as many as the register holds (16 floats with AVX-512).  The packed
- * work-items' loads and stores at scattered addresses (a path's state, a
- * pixel's film entries, a triangle's vertices, a node's children) become
- * gathers and scatters, which cost more than the lanes save: the camera,
+/* A kernel whose work-items Intel's CPU compiler is not to pack into
+ * vector registers, as it does by default (16 to a register with AVX-512).
+ * Given this float4 hint, its compiler (2026.22 here) does not vectorize
+ * the kernel across work-items at all: its build log says "Kernel can't be
+ * vectorized due to unsupported vec type hint" and "was not vectorized".
+ * Packed work-items' loads and stores at scattered addresses (a path's
+ * state, a pixel's film entries, a triangle's vertices, a node's children)
+ * become gathers and scatters, which cost more than the lanes save: the camera,
  * the preview shading, the path tracer's film and resolve kernels, the
  * build's bounds, Morton, flatten and widen stages, refit and the dipoles
  * measured faster with it, the same bits (figures in the commits that

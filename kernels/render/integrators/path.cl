@@ -327,13 +327,14 @@ inline uint take_group_slots(__local uint* slots, __global uint* paths,
 #define STAGE_AHEAD 8u
 
 /* NARROW_KERNEL (core/portable.h): Intel's CPU compiler packs a kernel's
- * work-items into its SIMD lanes, as many as the hint leaves room for.
- * Packed 16 to an AVX-512 register (no hint), this kernel came out wrong
- * there besides: in a white furnace 40 % of a mirror's reflected rays were
- * lost, and on the Cornell box it wrote rays that overflowed the walk's
- * stack; with -cl-opt-disable, or fewer work-items a register, it is right
- * (on AVX2 hosts, 8 a register, the suite passed).  PoCL ignores the hint:
- * the same image there, bit for bit.
+ * work-items into its SIMD lanes unless a hint says otherwise; with this
+ * one it runs them one by one (neither it nor PoCL vectorizes this kernel
+ * across work-items: their build logs).  Packed 16 to an AVX-512 register
+ * (no hint), this kernel came out wrong there besides: in a white furnace
+ * 40 % of a mirror's reflected rays were lost, and on the Cornell box it
+ * wrote rays that overflowed the walk's stack; with -cl-opt-disable, or
+ * unpacked, it is right (on AVX2 hosts, 8 a register, the suite passed).
+ * PoCL ignores the hint: the same image there, bit for bit.
  *
  * The first pass (depth 0) starts fresh paths: throughput 1, no BSDF
  * density behind them, no radiance, eta 1 (these values, where later
