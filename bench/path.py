@@ -26,7 +26,8 @@ over pixels and channels) are printed side by side as a translation check,
 and each of our renders' device time per stage (Renderer.stats: closest
 hits, shading, shadow rays, ...) as a share of its total, and the bounce
 stages' shares depth by depth (Renderer.stats["depths"]), with the paths
-each depth shaded: where the next speed-up must come from.
+each depth shaded and the shadow rays they cast: where the next speed-up
+must come from.
 
 Equal-time quality: a reference of REFERENCE_SPP samples per pixel by
 Mitsuba, then each renderer for the time Mitsuba takes for EQUAL_TIME_SPP
@@ -315,9 +316,10 @@ def depth_medians(rounds: list[dict]) -> dict:
 
 
 def depth_rows(name: str, device: str, depths: dict, total_ms: float) -> list[list]:
-    """A table's rows of one render's depths: the paths each shaded, and each
-    bounce stage's time there as a share of the render's device total."""
-    return [[name, device, d, int(depths["paths"][d])]
+    """A table's rows of one render's depths: the paths each shaded and the
+    shadow rays they cast, and each bounce stage's time there as a share of
+    the render's device total."""
+    return [[name, device, d, int(depths["paths"][d]), int(depths["shadow_rays"][d])]
             + [f"{depths[stage][d] / total_ms:.1%}" for stage in DEPTH_STAGES]
             for d in range(len(depths["paths"])) if depths["paths"][d] > 0]
 
@@ -500,7 +502,7 @@ def main(argv=None) -> dict:
     # the host (a GPU's, whose launches are short beside their host work)
     print(table(["scene", "device", *RENDER_STAGES, "device total (ms)", "wall (ms)"],
                 stage_rows, title="where our render's device time goes (median of the rounds)"))
-    print(table(["scene", "device", "depth", "paths", *DEPTH_STAGES], bounce_rows,
+    print(table(["scene", "device", "depth", "paths", "shadow rays", *DEPTH_STAGES], bounce_rows,
                 title="and by depth (depth 0's closest hits: the camera rays'), as shares "
                       "of the device total"))
     if lux is not None:  # the translation's check (bench/luxcore.py)

@@ -81,8 +81,9 @@ class Pipeline:
     ``last_stats`` describes the last render: image size and options,
     spp (samples every pixel took) and mean_spp (their mean over the
     pixels: more where a time budget's last round covered the first rows),
-    primary_rays and secondary_rays (rays launched past the primary ones,
-    one per pixel and pass: pixels that need none get an empty one), and
+    primary_rays and secondary_rays (rays launched past the primary ones:
+    one per pixel and pass, pixels that need none getting an empty one; for
+    path tracing, the bounce rays and shadow rays the device counted), and
     device times in milliseconds per stage (STAGES, and "total") plus
     "wall" (the whole call) and "setup" (part of wall: building or loading
     kernels, allocating buffers); for path tracing, "depths" splits the
@@ -205,8 +206,8 @@ class Pipeline:
         times["wall"] = (time.perf_counter() - started) * 1e3
         pixels = round(width * height * mean_spp)  # camera rays
         secondary = pixels * passes
-        if hasattr(integrator, "last_bounces"):  # paths: each bounce a closest and a shadow ray
-            secondary = 2 * sum(integrator.last_bounces) + pixels
+        if hasattr(integrator, "last_bounces"):  # paths: their bounces and shadow rays, counted
+            secondary = sum(integrator.last_bounces) + sum(integrator.last_shadow_rays)
         self.last_stats = {"width": width, "height": height, "shading": settings.shading,
                            "shadows": settings.shadows, "spp": taken,
                            "mean_spp": mean_spp,

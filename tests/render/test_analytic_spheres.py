@@ -61,6 +61,34 @@ def test_pbrt_s_analytic_sphere_is_exact(suite_device):
                   label="all")
 
 
+def test_path_stats_count_the_shadow_rays_the_light_samples_cast(suite_device):
+    """The renderer's ray counts are the device's, not an estimate.  Inside
+    pbrt's sphere (above) every camera ray hits the sphere, and every hit
+    faces the point light at distance 1: at max depth 2 each of the 16 x 12
+    paths casts one shadow ray at its first vertex, goes on (Russian roulette
+    starts at depth 5) and ends at its second, where it samples no light.
+    Under a constant environment alone no vertex samples a light (BSDF
+    sampling alone reaches it), and no shadow ray is cast."""
+    scene = scene_with_a_sphere(suite_device)
+    white = {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": 0.5}}
+    camera = hlbvh_cl.Camera(eye=(0.1, 0.2, 0.3), target=(0, 0, -1), fov_deg=60)
+    lit = hlbvh_cl.Renderer(scene, materials=[white, white], emitters=[
+        {"type": "point", "position": [0, 0, 0], "intensity": np.pi}])
+    lit.render(camera, 16, 12, shading="path", hdr=True, spp=1, max_depth=2)
+    pixels = 16 * 12
+    assert lit.stats["depths"]["paths"] == [pixels, pixels]
+    assert lit.stats["depths"]["shadow_rays"] == [pixels, 0]
+    assert lit.stats["primary_rays"] == pixels
+    assert lit.stats["secondary_rays"] == 2 * pixels  # the bounces and the shadow rays
+
+    furnace = hlbvh_cl.Renderer(scene, materials=[white, white], emitters=FURNACE)
+    furnace.render(camera, 16, 12, shading="path", hdr=True, spp=2, max_depth=3)
+    depths = furnace.stats["depths"]
+    assert depths["paths"][:2] == [2 * pixels, 2 * pixels], depths["paths"]
+    assert depths["shadow_rays"] == [0] * len(depths["paths"])
+    assert furnace.stats["secondary_rays"] == sum(depths["paths"][1:])
+
+
 def test_the_normals_preview_shows_the_sphere_s_normals(suite_device):
     scene = scene_with_a_sphere(suite_device)
     camera = hlbvh_cl.Camera(eye=(0, 0, 4), target=(0, 0, 0), fov_deg=40)

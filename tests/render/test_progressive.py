@@ -260,8 +260,15 @@ def test_depth_stats_split_the_bounce_stages_and_count_the_paths(bunny_renderer,
     assert paths[0] == WIDTH * HEIGHT * 3 == stats["primary_rays"]
     # depth d shades the end of segment d + 1: max_depth 4, depths 0 to 3 at most
     assert 2 <= len(paths) <= 4 and all(a > b for a, b in zip(paths, paths[1:])), paths
-    # every bounce a closest hit and a shadow ray (the renderer's count)
-    assert stats["secondary_rays"] == stats["primary_rays"] + 2 * sum(paths[1:])
+    # the shadow rays the device counted: at most one a vertex, none at the
+    # last (max_depth's last vertex samples no light); the renderer's
+    # secondary rays are the bounces and those
+    shadow_rays = depths["shadow_rays"]
+    assert len(shadow_rays) == len(paths) and shadow_rays[0] > 0, shadow_rays
+    assert all(0 <= s <= p for s, p in zip(shadow_rays, paths)), (shadow_rays, paths)
+    if len(paths) == 4:
+        assert shadow_rays[3] == 0
+    assert stats["secondary_rays"] == sum(paths[1:]) + sum(shadow_rays)
     for stage in ("closest", "shade", "occluded", "resolve"):
         assert len(depths[stage]) == len(paths) and min(depths[stage]) >= 0, stage
     assert sum(depths["closest"]) == pytest.approx(times["closest"], rel=1e-9)

@@ -304,6 +304,7 @@ class Path(Integrator):
         self._tables: dict[str, cl.Buffer] = {}
         self._shading: tuple = ((), {})  # (the meshes, their shading buffers)
         self.last_bounces: list[int] = []
+        self.last_shadow_rays: list[int] = []
         self._reset_depths()
 
     def _reset_depths(self) -> None:
@@ -312,18 +313,23 @@ class Path(Integrator):
         self._depth_events: dict[tuple[str, int], list[cl.Event]] = {}
         self._depth_ms: dict[tuple[str, int], float] = {}
         self._depth_paths: list[int] = []
+        self._depth_shadow_rays: list[int] = []
 
     def depth_stats(self) -> dict:
         """Where the last render's paths spent their device time, bounce by
         bounce: "paths", how many paths each depth shaded (depth d: where
         the path's segment d + 1 ends; depth 0: one per pixel and sample),
         and per DEPTH_STAGES stage its milliseconds at each depth, summed over
-        the render's samples (a sample that Ctrl-C cut short is left out).
-        The renderer's stats give it as "depths"."""
+        the render's samples (a sample that Ctrl-C cut short is left out);
+        and "shadow_rays", the shadow rays each depth's light samples cast,
+        as the device counted them (none where a vertex took no light
+        sample, or its sample carried no light).  The renderer's stats give
+        it as "depths"."""
         self.rt.wait([event for found in self._depth_events.values() for event in found])
         fold_events(self._depth_events, self._depth_ms)
         depths = range(len(self._depth_paths))
         return {"paths": list(self._depth_paths),
+                "shadow_rays": list(self._depth_shadow_rays),
                 **{stage: [self._depth_ms.get((stage, d), 0.0) for d in depths]
                    for stage in DEPTH_STAGES}}
 
@@ -383,7 +389,9 @@ class Path(Integrator):
         self._aovs = False
         self._length_scale = np.float32(1.0 / tree.scale)
         self._live = np.zeros(UNLIMITED_BOUNCES, np.uint32)
+        self._shadow_counts = np.zeros(UNLIMITED_BOUNCES, np.uint32)
         self.last_bounces = []
+        self.last_shadow_rays = []
         self._reset_depths()
 
     @classmethod
@@ -505,15 +513,21 @@ class Path(Integrator):
                 bound = int(self._live[depth - LOOKAHEAD])
                 if bound == 0:
                     break  # every path ended: what is enqueued after it finds none
-        rt.wait(reads)
-        self.last_bounces.append(int(self._live[:len(reads)].sum()))
+        # and the shadow rays each pass cast, as its shadow-ray launch read them
+        passes = len(reads)
+        rt.wait(reads + [cl.enqueue_copy(rt.queue, self._shadow_counts[:passes], self.shadows,
+                                         is_blocking=False)])
+        self.last_bounces.append(int(self._live[:passes].sum()))
+        self.last_shadow_rays.append(int(self._shadow_counts[:passes].sum()))
         for stage, depth, event in tagged:
             self._depth_events.setdefault((stage, depth), []).append(event)
         # the paths each depth shaded: the band's, then those that went on
         shaded = [band.count] + [int(n) for n in self._live[:len(reads) - 1]]
         self._depth_paths.extend([0] * (len(shaded) - len(self._depth_paths)))
+        self._depth_shadow_rays.extend([0] * (len(shaded) - len(self._depth_shadow_rays)))
         for depth, paths in enumerate(shaded):
             self._depth_paths[depth] += paths
+            self._depth_shadow_rays[depth] += int(self._shadow_counts[depth])
         events["resolve"].append(rt.run(kernels["path_finish"], band.count, self.states, count,
                                         sample, step.accum))
         step.done(events["resolve"][-1])
