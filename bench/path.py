@@ -26,7 +26,8 @@ over pixels and channels) are printed side by side as a translation check,
 and each of our renders' device time per stage (Renderer.stats: closest
 hits, shading, shadow rays, ...) as a share of its total, and the bounce
 stages' shares depth by depth (Renderer.stats["depths"]), with the paths
-each depth shaded and the shadow rays they cast: where the next speed-up
+each depth shaded, the shadow rays they cast, and the rates at which
+closest hits and shadow rays were traced there: where the next speed-up
 must come from.
 
 Equal-time quality: a reference of REFERENCE_SPP samples per pixel by
@@ -317,10 +318,17 @@ def depth_medians(rounds: list[dict]) -> dict:
 
 def depth_rows(name: str, device: str, depths: dict, total_ms: float) -> list[list]:
     """A table's rows of one render's depths: the paths each shaded and the
-    shadow rays they cast, and each bounce stage's time there as a share of
-    the render's device total."""
+    shadow rays they cast, each bounce stage's time there as a share of the
+    render's device total, and the rates at which the closest hits (the
+    paths' rays: depth 0's are the camera's) and the shadow rays were
+    traced there, in Mrays/s of device time."""
+    def rate(rays: float, ms: float) -> str:
+        return f"{rays / ms * 1e-3:.1f}" if rays > 0 and ms > 0 else "-"
+
     return [[name, device, d, int(depths["paths"][d]), int(depths["shadow_rays"][d])]
             + [f"{depths[stage][d] / total_ms:.1%}" for stage in DEPTH_STAGES]
+            + [rate(depths["paths"][d], depths["closest"][d]),
+               rate(depths["shadow_rays"][d], depths["occluded"][d])]
             for d in range(len(depths["paths"])) if depths["paths"][d] > 0]
 
 
@@ -502,9 +510,10 @@ def main(argv=None) -> dict:
     # the host (a GPU's, whose launches are short beside their host work)
     print(table(["scene", "device", *RENDER_STAGES, "device total (ms)", "wall (ms)"],
                 stage_rows, title="where our render's device time goes (median of the rounds)"))
-    print(table(["scene", "device", "depth", "paths", "shadow rays", *DEPTH_STAGES], bounce_rows,
-                title="and by depth (depth 0's closest hits: the camera rays'), as shares "
-                      "of the device total"))
+    print(table(["scene", "device", "depth", "paths", "shadow rays", *DEPTH_STAGES,
+                 "closest (Mrays/s)", "shadow (Mrays/s)"], bounce_rows,
+                title="and by depth (depth 0's closest hits: the camera rays'): stage times "
+                      "as shares of the device total, and ray rates"))
     if lux is not None:  # the translation's check (bench/luxcore.py)
         print(table(["scene", *devices, "Mitsuba", "LuxCore"], mean_rows,
                     title="image means (linear; median of the rounds)"))

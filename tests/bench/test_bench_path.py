@@ -31,6 +31,11 @@ def test_quick_run_writes_rates_ratios_and_stage_times(suite_device, tmp_path, c
         assert sum(stages[stage] for stage in STAGES) == pytest.approx(stages["total"])
         # device time of the stages cannot exceed the render's wall time
         assert stages["total"] <= 1e3 * ours["seconds"]["max"]
+        # the shadow rays each depth cast: at most one a path, some at depth 0
+        depths = ours["depths"]
+        assert len(depths["shadow_rays"]) == len(depths["paths"])
+        assert 0 < depths["shadow_rays"][0] <= depths["paths"][0]
+        assert all(s <= p for s, p in zip(depths["shadow_rays"], depths["paths"]))
     out = capsys.readouterr().out
     assert "where our render's device time goes" in out
     for entry in written["scenes"].values():
@@ -49,6 +54,18 @@ def test_quick_run_writes_rates_ratios_and_stage_times(suite_device, tmp_path, c
             assert len(per_seed) == len(bench_path.EQUAL_TIME_SEEDS)
             assert render["relmse"] == pytest.approx(sum(per_seed) / len(per_seed))
             assert len(set(per_seed)) > 1 and min(per_seed) > 0.0
+
+
+def test_depth_rows_give_each_depth_s_shares_and_ray_rates():
+    """Shares of the device total, and rays over device time (Mrays/s: rays
+    per ms / 1e3); a depth that cast no shadow ray has no shadow rate, and
+    one that shaded no path no row."""
+    depths = {"paths": [4000, 1000, 0], "shadow_rays": [2000, 0, 0],
+              "closest": [2.0, 5.0, 0.0], "shade": [1.0, 1.0, 0.0],
+              "occluded": [4.0, 0.5, 0.0], "resolve": [1.0, 0.5, 0.0]}
+    rows = bench_path.depth_rows("s", "d", depths, total_ms=20.0)
+    assert rows == [["s", "d", 0, 4000, 2000, "10.0%", "5.0%", "20.0%", "5.0%", "2.0", "0.5"],
+                    ["s", "d", 1, 1000, 0, "25.0%", "5.0%", "2.5%", "2.5%", "0.2", "-"]]
 
 
 def test_a_mitsuba_variant_that_does_not_start_is_named_and_scalar_rgb_timed(tmp_path, capsys):
