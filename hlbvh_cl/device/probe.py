@@ -38,6 +38,10 @@ from .profile import Profile, Variant, candidates
 #: Bumped when what a verdict means changes, so old verdicts are not reused.
 FORMAT = 1
 
+#: What the child prints before each JSON record (probe_child.report), so
+#: that the parent finds it after whatever the driver printed on its line.
+REPORT = "hlbvh_cl probe: "
+
 def _timeout_s() -> float:
     """Seconds one variant may take in the child, compilation included."""
     return float(os.environ.get("HLBVH_CL_PROBE_TIMEOUT", "300"))
@@ -154,7 +158,14 @@ def _run_child(device_id: str, profile: Profile, variant: Variant | None) -> dic
         report.update(ok=False, reason=f"timed out after {timeout:g} s", transient=True)
         return report
     report = _last_json(done.stdout)
-    if done.returncode != 0 or "ok" not in report and variant is not None:
+    if done.returncode == 0 and "ok" not in report and variant is not None:
+        # it ended well and gave no verdict: nothing to remember about the
+        # variant (a verdict lost in the driver's output once failed every
+        # variant for good)
+        report.update(ok=False, transient=True,
+                      reason=f"the probe gave no verdict; its output ended "
+                             f"{(done.stdout or '').strip()[-200:]!r}")
+    elif done.returncode != 0 or "ok" not in report and variant is not None:
         report.update(ok=False, reason=_why(done.returncode, done.stderr))
         if -done.returncode in TRANSIENT_SIGNALS:
             report["transient"] = True
@@ -168,12 +179,13 @@ def _run_child(device_id: str, profile: Profile, variant: Variant | None) -> dic
 
 
 def _last_json(text: str) -> dict:
+    """The child's records (after REPORT, anywhere on a line), merged."""
     merged: dict = {}
     for line in (text or "").splitlines():
-        line = line.strip()
-        if line.startswith("{"):
+        at = line.find(REPORT)
+        if at >= 0:
             try:
-                merged.update(json.loads(line))
+                merged.update(json.loads(line[at + len(REPORT):]))
             except ValueError:
                 pass
     return merged

@@ -2,7 +2,7 @@
 PROFILE [VARIANT]``, started by hlbvh_cl.device.probe): builds, refits, traces and
 renders small scenes with one kernel variant, checks the hits against a
 float64 brute force (Moller & Trumbore 1997), and prints its verdict as one
-JSON line.  Only the probe runs it, so that a compiler that aborts takes
+JSON record after probe.REPORT.  Only the probe runs it, so that a compiler that aborts takes
 down this process and not the caller's.
 """
 from __future__ import annotations
@@ -12,6 +12,7 @@ import os
 import sys
 
 from .discovery import devices
+from .probe import REPORT
 from .runtime import install_runtime
 from .profile import Profile, Variant
 
@@ -132,15 +133,28 @@ def _probe_variant(rt) -> dict:
     return {"ok": True, "reason": None, "mrays_per_s": len(view) / max(fastest, 1e-3) * 1e-3}
 
 
+def report(record: dict) -> None:
+    """Prints one record for the parent (probe._last_json), after REPORT:
+    the driver writes to the same stdout, and its diagnostics (PoCL's under
+    POCL_VECTORIZER_REMARKS=1) end without a newline, so that a record
+    printed after them shares their line."""
+    print(REPORT + json.dumps(record), flush=True)
+
+
 def _injected_fault(variant: Variant) -> None:
     """For the tests of this module: HLBVH_CL_PROBE_FAULT=NAME:abort (or
     :hang, :killed) makes the child die as a crashing compiler would (or
     hang, or die as the OOM killer ends it) while it probes variant NAME (*
-    for every variant)."""
+    for every variant); :noise writes a driver's remark without a newline
+    to its stdout, and :silent makes it exit 0 with no verdict."""
     import signal
     import time
     name, _, action = os.environ.get("HLBVH_CL_PROBE_FAULT", "").partition(":")
     if name in (variant.name, "*"):
+        if action == "noise":
+            os.write(1, b"<unknown>:0:0: loop not vectorized")  # as PoCL's remarks, at the fd
+        if action == "silent":
+            sys.exit(0)
         if action == "abort":
             sys.stderr.write("LLVM ERROR: injected by HLBVH_CL_PROBE_FAULT\n")
             sys.stderr.flush()
@@ -153,27 +167,27 @@ def _injected_fault(variant: Variant) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m hlbvh_cl.device.probe_child DEVICE_ID PROFILE [VARIANT]``: prints one
-    JSON line with the compiler's target and, with VARIANT, its verdict."""
+    record with the compiler's target and, with VARIANT, one with its verdict."""
 
     device_id, profile_name, *rest = argv if argv is not None else sys.argv[1:]
     found = [d for d in devices() if d.id == device_id]
     if not found:
-        print(json.dumps({"ok": False, "reason": f"no device {device_id} in the child"}))
+        report({"ok": False, "reason": f"no device {device_id} in the child"})
         return 1
     profile = Profile(profile_name)
     variant = Variant.parse(rest[0]) if rest else Variant(1, builtins=False)
     rt = install_runtime(found[0], profile, variant)
-    print(json.dumps({"target": _compile_target(rt)}), flush=True)
+    report({"target": _compile_target(rt)})
     if rest:
         _injected_fault(variant)
         try:
-            report = _probe_variant(rt)
+            verdict = _probe_variant(rt)
         except Exception as error:  # a build error, a bad result: the verdict says which
             lines = [line for line in str(error).splitlines() if line.strip()]
             errors = [line.strip() for line in lines[1:] if "error" in line.lower()]
             reason = f"{type(error).__name__}: {lines[0] if lines else ''}"
-            report = {"ok": False, "reason": reason + (f" ({errors[0]})" if errors else "")}
-        print(json.dumps(report), flush=True)
+            verdict = {"ok": False, "reason": reason + (f" ({errors[0]})" if errors else "")}
+        report(verdict)
     return 0
 
 

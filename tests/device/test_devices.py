@@ -455,6 +455,25 @@ def test_a_probe_killed_from_outside_is_not_remembered_but_a_crash_is(fresh_prob
     assert _saved_verdicts()["packet16"]["ok"] is False
 
 
+def test_a_verdict_printed_after_the_driver_s_remarks_on_their_line_is_read(fresh_probes,
+                                                                            monkeypatch):
+    """PoCL writes its remarks (POCL_VECTORIZER_REMARKS=1) to the child's
+    stdout without a newline, so that the verdict shares their line: it is
+    found there.  A child that exits 0 with no verdict says so, and is not
+    remembered: such a line once failed every variant for good, as "exit
+    code 0"."""
+    monkeypatch.setenv("HLBVH_CL_PROBE_FAULT", f"{SAFEST.name}:noise")
+    assert probe.usable(fresh_probes, CPU, SAFEST) is None
+    assert _saved_verdicts()[SAFEST.name]["ok"] is True
+    for path in probe.cache_root().glob("probes/*.json"):
+        path.unlink()
+    monkeypatch.setattr(probe, "_memory", {})
+    monkeypatch.setenv("HLBVH_CL_PROBE_FAULT", f"{SAFEST.name}:silent")
+    reason = probe.usable(fresh_probes, CPU, SAFEST)
+    assert reason is not None and reason.startswith("the probe gave no verdict"), reason
+    assert SAFEST.name not in _saved_verdicts()
+
+
 def test_a_device_where_no_variant_runs_raises_kernel_build_error(fresh_probes, monkeypatch):
     monkeypatch.setenv("HLBVH_CL_PROBE_FAULT", "*:abort")
     device = fresh_probes
