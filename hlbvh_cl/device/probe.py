@@ -42,6 +42,7 @@ FORMAT = 1
 #: that the parent finds it after whatever the driver printed on its line.
 REPORT = "hlbvh_cl probe: "
 
+
 def _timeout_s() -> float:
     """Seconds one variant may take in the child, compilation included."""
     return float(os.environ.get("HLBVH_CL_PROBE_TIMEOUT", "300"))

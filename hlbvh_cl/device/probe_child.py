@@ -2,8 +2,8 @@
 PROFILE [VARIANT]``, started by hlbvh_cl.device.probe): builds, refits, traces and
 renders small scenes with one kernel variant, checks the hits against a
 float64 brute force (Moller & Trumbore 1997), and prints its verdict as one
-JSON record after probe.REPORT.  Only the probe runs it, so that a compiler that aborts takes
-down this process and not the caller's.
+JSON record after probe.REPORT.  Only the probe runs it, so that a compiler
+that aborts takes down this process and not the caller's.
 """
 from __future__ import annotations
 
