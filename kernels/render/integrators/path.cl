@@ -334,7 +334,12 @@ inline uint take_group_slots(__local uint* slots, __global uint* paths,
  * 40 % of a mirror's reflected rays were lost, and on the Cornell box it
  * wrote rays that overflowed the walk's stack; with -cl-opt-disable, or
  * unpacked, it is right (on AVX2 hosts, 8 a register, the suite passed).
- * PoCL ignores the hint: the same image there, bit for bit.
+ * Packed 8 to a register on an AVX-512 host (intel_reqd_sub_group_size(8),
+ * 2026.22) it is wrong too, in ways that change from run to run: in a
+ * diffuse furnace only lane 0 of each 8 drew its own bounce, the others
+ * another normal's, even from constant random numbers; lanes 6 and 7 lost
+ * their paths until `tables` was made after the first barrier.  PoCL
+ * ignores the hint: the same image there, bit for bit.
  *
  * The first pass (depth 0) starts fresh paths: throughput 1, no BSDF
  * density behind them, no radiance, eta 1 (these values, where later
