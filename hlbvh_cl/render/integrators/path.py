@@ -522,7 +522,7 @@ class Path(Integrator):
         for stage, depth, event in tagged:
             self._depth_events.setdefault((stage, depth), []).append(event)
         # the paths each depth shaded: the band's, then those that went on
-        shaded = [band.count] + [int(n) for n in self._live[:len(reads) - 1]]
+        shaded = [band.count] + [int(n) for n in self._live[:passes - 1]]
         self._depth_paths.extend([0] * (len(shaded) - len(self._depth_paths)))
         self._depth_shadow_rays.extend([0] * (len(shaded) - len(self._depth_shadow_rays)))
         for depth, paths in enumerate(shaded):
