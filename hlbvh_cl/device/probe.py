@@ -166,7 +166,7 @@ def _run_child(device_id: str, profile: Profile, variant: Variant | None) -> dic
         report.update(ok=False, transient=True,
                       reason=f"the probe gave no verdict; its output ended "
                              f"{(done.stdout or '').strip()[-200:]!r}")
-    elif done.returncode != 0 or "ok" not in report and variant is not None:
+    elif done.returncode != 0:
         report.update(ok=False, reason=_why(done.returncode, done.stderr))
         if -done.returncode in TRANSIENT_SIGNALS:
             report["transient"] = True
