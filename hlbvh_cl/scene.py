@@ -87,13 +87,15 @@ class Scene:
     ``compact=True`` stores the tree's leaves (an instanced scene's: its
     meshes' trees') as three vertex indices a triangle beside one copy of
     the vertices, instead of three corners a triangle, as Embree's
-    RTC_SCENE_FLAG_COMPACT does, and keeps no vertex ids for refits beside
-    them; a flat compact scene keeps nothing else on the device either (its
-    build's input and scratch go when the build ends, and a rebuild makes
-    them again): on the Stanford reference scene it holds less than half
-    the device memory, and incoherent rays trace slower (a triangle's
-    corners wait on its indices).  Every query answers the same bits either
-    way (docs/queries.md).
+    RTC_SCENE_FLAG_COMPACT does, takes bigger leaves where the SAH allows
+    (so fewer nodes), and keeps no vertex ids for refits beside them; a flat
+    compact scene keeps nothing else on the device either (its build's input
+    and scratch go when the build ends, and a rebuild makes them again): on
+    the Stanford reference scene it holds less than half the device memory,
+    and incoherent rays trace slower (a triangle's corners wait on its
+    indices).  Ray queries and closest points answer the same bits either
+    way; winding numbers come from the compact tree's own dipoles, within
+    the same accuracy (docs/queries.md).
 
     Every method may be called from any thread: each takes the scene's lock,
     so concurrent calls run in some serial order and no call sees a tree

@@ -18,7 +18,18 @@
  * slightly higher SAH cost and render time, and the Stanford meshes keep
  * their SAH gain over the LBVH (bench/build.py). */
 #define MAX_LEAF_SIZE 8
+/* A compact tree (core/leaf.h's INDEXED_LEAVES: Scene(..., compact=True)) is
+ * the layout that trades speed for memory, and collapses at 2: nearly every
+ * subtree of at most MAX_LEAF_SIZE triangles becomes a leaf (higher ratios
+ * change little), for fewer nodes to store (issue 56's memory target) and
+ * slightly slower incoherent rays (figures in the commit that says so).  The
+ * triangles keep their sorted order, so every hit is the same; the winding
+ * number's dipoles are the tree's own. */
+#ifdef INDEXED_LEAVES
+#define COLLAPSE_COST_RATIO 2.0f
+#else
 #define COLLAPSE_COST_RATIO 1.5f
+#endif
 
 /* SAH cost model: traversal cost 1, intersection cost 1, normalised by the
  * surface area of the root (stats["sah_cost"]). */
