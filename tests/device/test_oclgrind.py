@@ -46,8 +46,9 @@ GROUPS = {
     "instances": ("instances",),
     "instance_points": ("instance_points",),
     # Oclgrind reports itself as a GPU; what the CPU profile adds on it
-    # (packets with prefetches, all-hits writing the rays' arrays in place)
-    "cpu_profile": ("packets", "all_hits"),
+    # (packets with prefetches, all-hits writing the rays' arrays in place,
+    # the path stages' CPU work-groups)
+    "cpu_profile": ("packets", "all_hits", "render"),
     # the flat scenes' cases on compact trees (Scene(..., compact=True)),
     # whose leaves name their vertices (kernels/core/leaf.h); the points case
     # refits its scene
@@ -365,9 +366,9 @@ KEPT_DEVICE_ARRAYS: list = []
 
 def case_spheres(uninitialized: bool) -> dict:
     """Closest and any hit on analytic spheres (query/rays/sphere.h) with one
-    ray per work-item and with packets, against the float64 oracle; and
-    (not in the uninitialized mode) a path-traced image of them, which the
-    parent compares with the suite's device."""
+    ray per work-item and with packets, against the float64 oracle; and a
+    path-traced image of them, which the parent compares with the suite's
+    device."""
     from hlbvh_cl.query.rays import RayQuery
     import built
     from sphere_oracle import oracle
@@ -384,16 +385,17 @@ def case_spheres(uninitialized: bool) -> dict:
         np.testing.assert_array_equal(hits.geom_id[clear], geom[clear])
         np.testing.assert_array_equal(query.occluded(built.tree(scene), origins, directions),
                                       hits.hit)
-    return {} if uninitialized else {"image_spheres": render_spheres(scene)}
+    return {"image_spheres": render_spheres(scene)}
 
 
 def case_render(uninitialized: bool) -> dict:
-    """Diffuse shading with shadows, ambient occlusion and path tracing (not
-    in the uninitialized mode: see uninitialized_mode); the images go to the parent,
-    which compares them with the suite's device."""
+    """Diffuse shading with shadows, ambient occlusion (not in the
+    uninitialized mode: see uninitialized_mode, point 4) and the path
+    stages; the images go to the parent, which compares them with the
+    suite's device."""
     import hlbvh_cl
     scene = hlbvh_cl.Scene(tiny_meshes())
-    names = ("diffuse",) if uninitialized else tuple(RENDERS)
+    names = tuple(name for name in RENDERS if not (uninitialized and name == "ao"))
     return {f"image_{name}": render(scene, name) for name in names}
 
 
@@ -892,7 +894,7 @@ def test_kernels_are_clean_under_oclgrind(group, mode, oclgrind_children, expect
                                       f"up to {difference.max()}"
     if group == "trace":
         assert "image_diffuse" in results.files
-        assert mode == "uninitialized" or "image_spheres" in results.files
+        assert "image_spheres" in results.files and "image_path" in results.files
 
 
 def test_reports_are_recognised():
