@@ -19,18 +19,29 @@ TRAVERSAL_INLINE float3 unit_vector(float3 w)
     return w * (1.0f / SQRT(w.x * w.x + w.y * w.y + w.z * w.z));
 }
 
-/* The unit geometric normal of the triangle (a, b, c), cross(b - a, c - a)
- * as query/rays/triangle.h's geometric_normal computes it (see unit_vector). */
-TRAVERSAL_INLINE float3 corners_normal(float3 a, float3 b, float3 c)
+/* cross(b - a, c - a), as query/rays/triangle.h's geometric_normal computes it. */
+TRAVERSAL_INLINE float3 corners_cross(float3 a, float3 b, float3 c)
 {
     float3 e1 = b - a, e2 = c - a;
-    return unit_vector((float3)(e1.y * e2.z - e1.z * e2.y, e1.z * e2.x - e1.x * e2.z,
-                                e1.x * e2.y - e1.y * e2.x));
+    return (float3)(e1.y * e2.z - e1.z * e2.y, e1.z * e2.x - e1.x * e2.z,
+                    e1.x * e2.y - e1.y * e2.x);
+}
+
+/* The unit geometric normal of the triangle (a, b, c) (see unit_vector). */
+TRAVERSAL_INLINE float3 corners_normal(float3 a, float3 b, float3 c)
+{
+    return unit_vector(corners_cross(a, b, c));
+}
+
+/* The triangle's cross(v1 - v0, v2 - v0), and its unit normal. */
+TRAVERSAL_INLINE float3 triangle_cross(TRIANGLE_AT tri)
+{
+    return corners_cross(LOAD_XYZ(tri->v0), LOAD_XYZ(tri->v1), LOAD_XYZ(tri->v2));
 }
 
 TRAVERSAL_INLINE float3 unit_normal(TRIANGLE_AT tri)
 {
-    return corners_normal(LOAD_XYZ(tri->v0), LOAD_XYZ(tri->v1), LOAD_XYZ(tri->v2));
+    return unit_vector(triangle_cross(tri));
 }
 
 /* Whether the triangle has zero area: cross(v1 - v0, v2 - v0) exactly 0,

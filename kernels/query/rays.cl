@@ -141,7 +141,8 @@ TRAVERSAL_INLINE void prefetch_hit_ids(__global const TriangleRef* refs, uint i)
 /* Lane l's closest hit as a Hit record: a flat scene's (make_hit), or on a
  * two-level scene the hit of the instance's mesh, whose mesh-frame normal
  * goes to the world by the instance (instance_normal). */
-TRAVERSAL_INLINE void lane_hit(Hit* out, const HitLanes* found, uint l, SCENE_PARAMS)
+TRAVERSAL_INLINE void lane_hit(Hit* out, const HitLanes* found, uint l, float3 normal,
+                               SCENE_PARAMS)
 {
 #ifdef INSTANCES
     if (found->index[l] >= 0) {
@@ -162,7 +163,7 @@ TRAVERSAL_INLINE void lane_hit(Hit* out, const HitLanes* found, uint l, SCENE_PA
         return;
     }
 #endif
-    make_hit(out, found->index[l], found->t[l], found->u[l], found->v[l], triangles, refs);
+    make_hit(out, found->index[l], found->t[l], found->u[l], found->v[l], normal, refs);
 }
 
 /* Closest hits of a work-item's rays (group g: lanes[g], its first used[g]
@@ -178,7 +179,11 @@ TRAVERSAL_INLINE void closest_hits(RayLanes* lanes, const uint* used, uint first
 #endif
     HitLanes found[LANE_GROUPS];
     trace_intersect(lanes, used, SCENE_TREES, overflow, found, refs);
-    for (uint g = 0; g < LANE_GROUPS; ++g)
+    for (uint g = 0; g < LANE_GROUPS; ++g) {
+#if PACKET_SIZE > 1 && !defined(INSTANCES)
+        PacketFloats normals[3];
+        hit_normals(found + g, used[g], triangles, normals);
+#endif
         for (uint l = 0; l < used[g]; ++l) {
             uint i = g * PACKET_SIZE + l;
 #ifdef SPHERES
@@ -192,13 +197,21 @@ TRAVERSAL_INLINE void closest_hits(RayLanes* lanes, const uint* used, uint first
                 continue;
             }
 #endif
-            lane_hit(hits + i, found + g, l, SCENE_ARGS);
+#if defined(INSTANCES)
+            float3 normal = (float3)(0.0f);  /* lane_hit maps the mesh's own */
+#elif PACKET_SIZE > 1
+            float3 normal = (float3)(normals[0].lane[l], normals[1].lane[l], normals[2].lane[l]);
+#else
+            float3 normal = hit_normal(found[g].index[l], triangles);
+#endif
+            lane_hit(hits + i, found + g, l, normal, SCENE_ARGS);
 #ifdef INSTANCES
             instance[i] = found[g].instance[l];
 #else
             instance[i] = -1;
 #endif
         }
+    }
 }
 
 /* Occlusion of a work-item's rays, as closest_hits takes them: occluded[i]

@@ -190,18 +190,63 @@ TRAVERSAL_INLINE void store_hit_packet(const Found_packet* s, HitLanes* out, uin
 }
 #endif
 
+#if PACKET_SIZE > 1
+/* A packet's lanes as a vector and as floats (a union: see ChildEntries). */
+typedef union {
+    float_packet lanes;
+    float lane[PACKET_SIZE];
+} PacketFloats;
+
+/* The unit geometric normals of the triangles a work-item's lanes hit
+ * (found->index[l], lanes l < used; zero where none), all at once:
+ * unit_vector's operations lane by lane, so the same bits as unit_normal
+ * gives one by one, with one vector division, square root and division for
+ * all the lanes where each lane took its own (measured faster on
+ * incoherent rays: figures in the commit that says so).  The corners are
+ * read once the walks are done, as the hits' ids are (closest_hits).
+ * normal[k].lane[l]: lane l's component k. */
+TRAVERSAL_INLINE void hit_normals(const HitLanes* found, uint used,
+                                  __global const Leaf* triangles, PacketFloats normal[3])
+{
+    for (uint l = 0; l < PACKET_SIZE; ++l) {
+        float3 w = (float3)(0.0f);
+        if (l < used && found->index[l] >= 0) {
+            LEAF_CORNERS(tri, triangles, found->index[l]);
+            w = triangle_cross(tri);
+        }
+        normal[0].lane[l] = w.x;
+        normal[1].lane[l] = w.y;
+        normal[2].lane[l] = w.z;
+    }
+    float_packet x = normal[0].lanes, y = normal[1].lanes, z = normal[2].lanes;
+    float_packet largest = GROW_HI(GROW_HI(abs_packet(x), abs_packet(y)), abs_packet(z));
+    float_packet scale = (float_packet)(1.0f) / largest;
+    float_packet sx = x * scale, sy = y * scale, sz = z * scale;
+    float_packet unit = (float_packet)(1.0f) / packet_root(sx * sx + sy * sy + sz * sz);
+    int_packet zero = largest == (float_packet)(0.0f);  /* unit_vector keeps a zero vector */
+    normal[0].lanes = zero ? x : sx * unit;
+    normal[1].lanes = zero ? y : sy * unit;
+    normal[2].lanes = zero ? z : sz * unit;
+}
+#endif
+
+/* The unit geometric normal of triangle `index` (tree order; -1: none,
+ * zero), one lane's. */
+TRAVERSAL_INLINE float3 hit_normal(int index, __global const Leaf* triangles)
+{
+    if (index < 0)
+        return (float3)(0.0f);
+    LEAF_CORNERS(tri, triangles, index);
+    return unit_normal(tri);
+}
+
 /* One ray's closest hit as a Hit record (a miss: t = INFINITY, ids -1, the
- * rest 0) from the tree-order index of the triangle hit (-1: none). */
-TRAVERSAL_INLINE void make_hit(Hit* out, int index, float t, float u, float v,
-                               __global const Leaf* triangles,
+ * rest 0) from the tree-order index of the triangle hit (-1: none) and its
+ * unit normal. */
+TRAVERSAL_INLINE void make_hit(Hit* out, int index, float t, float u, float v, float3 normal,
                                __global const TriangleRef* refs)
 {
     bool found = index >= 0;
-    float3 normal = (float3)(0.0f);
-    if (found) {
-        LEAF_CORNERS(tri, triangles, index);
-        normal = unit_normal(tri);
-    }
     Hit hit;
     hit.t = found ? t : INFINITY;
     hit.geom_id = found ? refs[index].geom_id : -1;
