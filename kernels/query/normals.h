@@ -33,7 +33,7 @@ TRAVERSAL_INLINE float3 corners_normal(float3 a, float3 b, float3 c)
     return unit_vector(corners_cross(a, b, c));
 }
 
-/* The triangle's cross(v1 - v0, v2 - v0), and its unit normal. */
+/* The triangle's cross(v1 - v0, v2 - v0) (then its unit normal, below). */
 TRAVERSAL_INLINE float3 triangle_cross(TRIANGLE_AT tri)
 {
     return corners_cross(LOAD_XYZ(tri->v0), LOAD_XYZ(tri->v1), LOAD_XYZ(tri->v2));

@@ -138,9 +138,10 @@ TRAVERSAL_INLINE void prefetch_hit_ids(__global const TriangleRef* refs, uint i)
 #define QUERY_END(s, out, l) PATH(store_index)(s, out, l)
 #include "query/rays/trace.h"
 
-/* Lane l's closest hit as a Hit record: a flat scene's (make_hit), or on a
- * two-level scene the hit of the instance's mesh, whose mesh-frame normal
- * goes to the world by the instance (instance_normal). */
+/* Lane l's closest hit as a Hit record: a flat scene's (make_hit, with
+ * `normal`, the unit normal of the triangle hit), or on a two-level scene
+ * the hit of the instance's mesh, whose mesh-frame normal goes to the world
+ * by the instance (instance_normal). */
 TRAVERSAL_INLINE void lane_hit(Hit* out, const HitLanes* found, uint l, float3 normal,
                                SCENE_PARAMS)
 {
