@@ -94,7 +94,10 @@ EQUAL_TIME_SEEDS = (7, 8, 9)
 #: The issue's target: at least Mitsuba's samples per second on each CPU runtime.
 TARGET_RATIO = 1.0
 
-_CHILD = r"""
+#: A Mitsuba child's start: the first of the variants in argv that sets,
+#: announced as a JSON line; the child's requests follow (MitsubaChild's
+#: below; bench/depth_rays.py's).
+CHILD_START = r"""
 import json, sys, time
 import numpy as np
 import mitsuba as mi
@@ -104,8 +107,11 @@ for variant in sys.argv[1:]:
         break
     except Exception:
         continue
-scenes, warm = {}, set()
 print(json.dumps({"variant": mi.variant()}), flush=True)
+"""
+
+_CHILD = CHILD_START + r"""
+scenes, warm = {}, set()
 for line in sys.stdin:
     name, path, width, height, spp, seed, out = line.split()
     key = (path, width, height)
@@ -255,19 +261,27 @@ def llvm_path() -> str | None:
     return found[-1] if found else None
 
 
+def start_mitsuba(script: str, variants: tuple[str, ...]) -> tuple[subprocess.Popen, str]:
+    """A child process running ``script`` (which begins with CHILD_START)
+    with the libLLVM that llvm_path finds, and the variant it set."""
+    import os
+    env = dict(os.environ)
+    if llvm_path() and "DRJIT_LIBLLVM_PATH" not in env:
+        env["DRJIT_LIBLLVM_PATH"] = llvm_path()
+    process = subprocess.Popen([sys.executable, "-c", script, *variants], stdin=subprocess.PIPE,
+                               stdout=subprocess.PIPE, text=True, env=env)
+    line = process.stdout.readline()
+    if not line:
+        raise RuntimeError("Mitsuba's child process died as it started")
+    return process, json.loads(line)["variant"]
+
+
 class MitsubaChild:
     """Mitsuba 3 in a child process that renders on request (one JSON line
     per render); ``variant`` is the one it runs."""
 
     def __init__(self, variants: tuple[str, ...]):
-        import os
-        env = dict(os.environ)
-        if llvm_path() and "DRJIT_LIBLLVM_PATH" not in env:
-            env["DRJIT_LIBLLVM_PATH"] = llvm_path()
-        self.process = subprocess.Popen([sys.executable, "-c", _CHILD, *variants],
-                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                        text=True, env=env)
-        self.variant = json.loads(self.process.stdout.readline())["variant"]
+        self.process, self.variant = start_mitsuba(_CHILD, variants)
 
     def render(self, name, path, width, height, spp, seed=0, out="-") -> dict:
         self.process.stdin.write(f"{name} {path} {width} {height} {spp} {seed} {out}\n")
