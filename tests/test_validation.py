@@ -64,6 +64,11 @@ BAD_INPUTS = [
     (GOOD_O, GOOD_D, 2.0, 1.0, ValueError, r"tmin = 2.0 is greater than tmax = 1.0"),
     (GOOD_O, GOOD_D, [0.0, 0.0, 5.0], [1.0, 1.0, 4.0], ValueError, r"ray 2: tmin\[2\] = 5.0 is greater than tmax\[2\] = 4.0"),
     (GOOD_O, GOOD_D, 0.0, -1.0, ValueError, r"tmin = 0.0 is greater than tmax = -1.0"),
+    # float32 limits, which are checked as they are (no float64 copy)
+    (GOOD_O, GOOD_D, np.float32([0.0, 0.0, np.nan]), np.inf, ValueError, r"tmin\[2\] is NaN"),
+    (GOOD_O, GOOD_D, np.float32([0.0, -np.inf, 0.0]), np.inf, ValueError, r"tmin\[1\] = -inf must be finite"),
+    (GOOD_O, GOOD_D, np.float32([np.inf, 0.0, 0.0]), np.inf, ValueError, r"tmin\[0\] = inf must be finite"),
+    (GOOD_O, GOOD_D, np.float32([0.0, 3.0, 0.0]), np.float32([1.0, 2.5, 1.0]), ValueError, r"ray 1: tmin\[1\] = 3.0 is greater than tmax\[1\] = 2.5"),
     (GOOD_O, GOOD_D, [0.0, 0.0], np.inf, ValueError, r"tmin has shape \(2,\), which does not broadcast to the rays' shape \(3,\)"),
     (GOOD_O, GOOD_D, 0.0, np.ones((3, 1)), ValueError, r"tmax has shape \(3, 1\), which does not broadcast"),
     (GOOD_O.astype(complex), GOOD_D, 0.0, np.inf, TypeError, r"origins must hold real numbers"),

@@ -326,15 +326,24 @@ def rays(origins, directions=None, tmin=0.0, tmax=np.inf) -> Rays:
 
 
 def inward(low: np.ndarray, high: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The float64 limits as float32, tmin rounded up and tmax down: the
+    """The limits (limits()) as float32, tmin rounded up and tmax down: the
     kernels compare float32 t, and every t they then take meets the limits
     as given (rounding to nearest would take t = float32(0.1) > 0.1 under
     tmax = 0.1).  A tmax past float32's range becomes its largest value."""
+    return _rounded(low, np.inf), _rounded(high, -np.inf)
+
+
+def _rounded(limit: np.ndarray, toward: float) -> np.ndarray:
+    """``limit`` as C-contiguous float32, rounded toward ``toward`` where
+    float32 cannot hold it.  A float32 limit is its own value: kept as it
+    is (no float64 copy and compare; a copy only to make it contiguous)."""
+    if limit.dtype == np.float32:
+        return np.require(limit, np.float32, ["C_CONTIGUOUS", "ALIGNED"])
     with np.errstate(over="ignore"):
-        low32, high32 = low.astype(np.float32), high.astype(np.float32)
-    low32 = np.where(low32 < low, np.nextafter(low32, np.float32(np.inf)), low32)
-    high32 = np.where(high32 > high, np.nextafter(high32, np.float32(-np.inf)), high32)
-    return low32.astype(np.float32, copy=False), high32.astype(np.float32, copy=False)
+        limit32 = limit.astype(np.float32)
+    moved = limit32 < limit if toward > 0 else limit32 > limit
+    return np.where(moved, np.nextafter(limit32, np.float32(toward)), limit32).astype(
+        np.float32, copy=False)
 
 
 def ray_shape(origins_shape: tuple, directions_shape: tuple) -> tuple:
@@ -460,11 +469,15 @@ def _raise_first_bad_row(source: _Vectors, rows: np.ndarray, shape: tuple,
 
 
 def limits(name: str, value, shape: tuple) -> np.ndarray:
-    """A float64 scalar (0-d), or the rays' (R,) values broadcast from an
-    array of a shape that broadcasts to theirs; no NaN."""
-    array = numeric_array(name, value).astype(np.float64, copy=False)
-    nan = np.isnan(array)
-    if nan.any():
+    """A scalar (0-d), or the rays' (R,) values broadcast from an array of a
+    shape that broadcasts to theirs; no NaN.  float32 as given (inward keeps
+    it exactly), any other type as float64 (inward rounds it)."""
+    array = numeric_array(name, value)
+    if array.dtype != np.float32:
+        array = array.astype(np.float64, copy=False)
+    # min() propagates NaN: one pass, no temporary, then the NaN's place
+    if array.size and np.isnan(array.min()):
+        nan = np.isnan(array)
         index = np.unravel_index(int(np.argmax(nan.reshape(-1))), array.shape)
         where = f"{name}[{', '.join(str(int(i)) for i in index)}]" if array.ndim else name
         raise ValueError(f"{where} is NaN")
@@ -529,8 +542,9 @@ def row_name(name: str, row: int, shape: tuple) -> str:
 
 
 def check_limits(tmin: np.ndarray, tmax: np.ndarray, shape: tuple) -> None:
-    bad = (tmin < 0) | ~np.isfinite(tmin)
-    if bad.any():
+    # limits() left no NaN: min() and max() in one pass each, no temporary
+    if tmin.size and not (tmin.min() >= 0 and tmin.max() < np.inf):
+        bad = (tmin < 0) | ~np.isfinite(tmin)
         row = int(np.argmax(bad.reshape(-1)))
         where = row_name("tmin", row, shape) if tmin.ndim else "tmin"
         raise ValueError(f"{where} = {tmin.reshape(-1)[row]} must be finite and >= 0")

@@ -204,9 +204,19 @@ def test_float64_limits_keep_every_t_returned_within_them(suite_device):
     assert scene.count_intersections(origins, directions, tmin=tmin).tolist() == [1, 0]
     assert scene.occluded(origins, directions, tmin=np.array([tmin, tmin])).tolist() == [True,
                                                                                        False]
-    # limits already float32 keep their hits at exactly those t
+    # limits already float32 keep their hits at exactly those t, one for all or per ray,
+    # and per ray as columns of one array (strided, not contiguous) too
     assert scene.count_intersections(origins, directions, tmin=np.float32(below),
                                      tmax=np.float32(above)).tolist() == [1, 1]
+    window = np.array([[below, above], [below, above]], np.float32)
+    assert scene.count_intersections(origins, directions, tmin=window[:, 0],
+                                     tmax=window[:, 1]).tolist() == [1, 1]
+    # ... and a float32 tmax one step below a hit's t leaves that hit out
+    window[0, 1] = np.nextafter(np.float32(above), np.float32(0.0))
+    assert scene.intersect(origins, directions, tmin=window[:, 0],
+                           tmax=window[:, 1]).prim_id.tolist()[0] == -1
+    assert scene.occluded(origins, directions, tmin=window[:, 0],
+                          tmax=window[:, 1]).tolist() == [False, True]
 
 
 @pytest.mark.parametrize("name", ["knight", "bunny_small", "teapot", "cube"])
