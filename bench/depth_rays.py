@@ -10,9 +10,11 @@ enqueue_occluded: no numpy, no checks, as inside a render), and Mitsuba
 (llvm_ad_rgb, in a child process as in bench.path) traces the same rays in
 the same scene file: ray_intersect_preliminary, coherent for the camera's
 rays as Mitsuba's path integrator traces them, and ray_test for shadow
-rays; its time includes the result's copy to numpy.  Mitsuba's rays start
-at 0, so a ray of ours that starts at tmin > 0 goes to it moved forward by
-tmin.  Each set's table row gives the median rays per second over the
+rays; its time includes the result's copy to numpy.  Each timed trace
+follows an untimed one of the same tracer: the threads of the one before
+(Mitsuba's) would otherwise still be spinning (see bench.trace's
+time_round_robin).  Mitsuba's rays start at 0, so a ray of ours that
+starts at tmin > 0 goes to it moved forward by tmin.  Each set's table row gives the median rays per second over the
 rounds, the ratio to Mitsuba's, and the fraction of rays whose hit or miss
 differs from Mitsuba's (a check that both traced the same rays in the same
 scene; rays that graze an edge may differ).
@@ -227,9 +229,9 @@ def bench_scene(name: str, path: Path, size: tuple, devices: list[str], rounds: 
     try:
         for _ in range(rounds):
             for key in sets:
-                for device, tracer in tracers.items():
-                    times[key, device].append(tracer.trace(key))
-                times[key, "mitsuba"].append(mitsuba.trace(key))
+                for who, tracer in [*tracers.items(), ("mitsuba", mitsuba)]:
+                    tracer.trace(key)  # untimed: as bench.trace's time_round_robin, and why
+                    times[key, who].append(tracer.trace(key))
         theirs = {key: mitsuba.hits(key) for key in sets}
     finally:
         mitsuba.close()
