@@ -205,8 +205,16 @@ TRAVERSAL_INLINE bool prepare_packet(const RayLanes* in, Packet* p)
  * CPUs) each meets its own few nodes (measured faster so; figures in the
  * commit that brought this).  Rays from one point (a camera's), sorted by
  * origin, or aimed at one point and sorted by direction (query/order.py)
- * pass. */
+ * pass.  And the rays must not turn apart: the lanes' slopes across kz
+ * (sx = d[kx] / d[kz], sy = d[ky] / d[kz], at most 1 in magnitude) within
+ * PACKET_TURN of each other.  Shadow rays from a patch of ground to the
+ * points sampled on an area light share their origins' patch and their
+ * direction signs, but spread over some 30 degrees (slopes about 0.55
+ * apart, where a 4x4 camera tile's lie under 0.005 apart): as one packet
+ * the interval ray widened across the tree, and they traced slower than one
+ * by one (figures in the commit that brought this). */
 #define PACKET_SPREAD 16.0f
+#define PACKET_TURN 0.25f
 TRAVERSAL_INLINE bool packet_compact(const Packet* p, __global const WideNode* root)
 {
     float scene = 0.0f;
@@ -221,7 +229,10 @@ TRAVERSAL_INLINE bool packet_compact(const Packet* p, __global const WideNode* r
         scene = scene > most - least ? scene : most - least;
     }
     float allowed = scene * (1.0f / PACKET_SPREAD);
-    return fabs(p->near_ox - p->far_ox) <= allowed && fabs(p->near_oy - p->far_oy) <= allowed
+    /* (<=: a NaN slope, of a lane whose ray is not finite, sends all one by one) */
+    return packet_max(p->sx) - packet_min(p->sx) <= PACKET_TURN
+           && packet_max(p->sy) - packet_min(p->sy) <= PACKET_TURN
+           && fabs(p->near_ox - p->far_ox) <= allowed && fabs(p->near_oy - p->far_oy) <= allowed
            && fabs(p->near_oz - p->far_oz) <= allowed;
 }
 
