@@ -229,7 +229,8 @@ TRAVERSAL_INLINE bool packet_compact(const Packet* p, __global const WideNode* r
         scene = scene > most - least ? scene : most - least;
     }
     float allowed = scene * (1.0f / PACKET_SPREAD);
-    /* (<=: a NaN slope, of a lane whose ray is not finite, sends all one by one) */
+    /* (a lane whose ray is not finite has a NaN slope, which the folds may pass
+     * over: it meets nothing either way, its tmax -inf: set_lane) */
     return packet_max(p->sx) - packet_min(p->sx) <= PACKET_TURN
            && packet_max(p->sy) - packet_min(p->sy) <= PACKET_TURN
            && fabs(p->near_ox - p->far_ox) <= allowed && fabs(p->near_oy - p->far_oy) <= allowed
