@@ -185,13 +185,28 @@ TRAVERSAL_INLINE void closest_hits(RayLanes* lanes, const uint* used, uint first
         PacketFloats normals[3];
         hit_normals(found + g, used[g], triangles, normals);
 #endif
+#if defined(SPHERES) && PACKET_SIZE > 1
+        /* each lane's sphere nearer than its walk's hit (at its t, the
+         * triangle), every lane at once */
+        PacketInts sphere;
+        PacketFloats sphere_t;
+        int_packet walked = as_int_packet(vload_packet(0, (const float*)found[g].index)) >= 0;
+        sphere_t.lanes = walked ? vload_packet(0, found[g].t) : vload_packet(0, lanes[g].tmax);
+        sphere.lanes = nearest_sphere_packet(lanes + g, spheres, sphere_count, &sphere_t.lanes,
+                                             walked);
+#endif
         for (uint l = 0; l < used[g]; ++l) {
             uint i = g * PACKET_SIZE + l;
 #ifdef SPHERES
+#if PACKET_SIZE > 1
+            int s = sphere.lane[l];
+            float t = sphere_t.lane[l];
+#else
             /* a sphere nearer than the walk's hit (at its t, the triangle) */
             bool walked = found[g].index[l] >= 0;
             float t = walked ? found[g].t[l] : lanes[g].tmax[l];
             int s = nearest_sphere(lanes + g, l, spheres, sphere_count, &t, walked);
+#endif
             if (s >= 0) {
                 sphere_hit(hits + i, lanes + g, l, spheres, sphere_geom, s, t);
                 instance[i] = -1;
@@ -225,14 +240,23 @@ TRAVERSAL_INLINE void any_hits(RayLanes* lanes, const uint* used, uint first, SC
 #endif
     HitLanes found[LANE_GROUPS];
     trace_occluded(lanes, used, SCENE_TREES, overflow, found);
-    for (uint g = 0; g < LANE_GROUPS; ++g)
+    for (uint g = 0; g < LANE_GROUPS; ++g) {
+#if defined(SPHERES) && PACKET_SIZE > 1
+        PacketInts sphere;  /* any_sphere of every lane at once */
+        float_packet limit = vload_packet(0, lanes[g].tmax);
+        sphere.lanes = nearest_sphere_packet(lanes + g, spheres, sphere_count, &limit,
+                                             (int_packet)(0));
+#endif
         for (uint l = 0; l < used[g]; ++l) {
             bool hit = found[g].index[l] >= 0;
-#ifdef SPHERES
+#if defined(SPHERES) && PACKET_SIZE > 1
+            hit = hit || sphere.lane[l] >= 0;
+#elif defined(SPHERES)
             hit = hit || any_sphere(lanes + g, l, spheres, sphere_count);
 #endif
             occluded[g * PACKET_SIZE + l] = hit ? 1 : 0;
         }
+    }
 }
 
 /* The rays a launch over Ray records traces: ray_count, or where `counts`

@@ -82,6 +82,34 @@ def test_closest_and_any_hits_match_the_oracle(scene, packet_size):
     np.testing.assert_array_equal(blocked, hits.hit)
 
 
+def test_every_packet_size_gives_the_same_bits(scene):
+    """Work-items of 8 and 16 rays test the spheres for all their lanes at
+    once (sphere.h's sphere_roots_packet), one ray a work-item lane by lane:
+    the same operations, so the same t, ids, u, v and normals, bit for bit,
+    and the same occlusion, with per-ray limits that cut some hits off."""
+    origins, directions = random_rays(20000, seed=11)
+    rng = np.random.default_rng(12)
+    tmin = np.where(rng.random(len(origins)) < 0.3, rng.uniform(0, 1, len(origins)),
+                    0.0).astype(np.float32)
+    tmax = np.where(rng.random(len(origins)) < 0.3, rng.uniform(1, 3, len(origins)),
+                    np.inf).astype(np.float32)
+    found = {}
+    with scene.borrow() as built:
+        for packet_size in PACKET_SIZES:
+            q = packet_query(scene, packet_size)
+            hits = q.intersect(built.tree, origins, directions, tmin=tmin, tmax=tmax)
+            blocked = q.occluded(built.tree, origins, directions, tmin=tmin, tmax=tmax)
+            found[packet_size] = (hits, blocked)
+    one, one_blocked = found[1]
+    assert (one.geom_id >= 1).mean() > 0.05  # sphere hits, not only the ground's
+    for packet_size, (hits, blocked) in found.items():
+        for field in ("t", "geom_id", "prim_id", "u", "v", "normal"):
+            np.testing.assert_array_equal(getattr(hits, field), getattr(one, field),
+                                          err_msg=f"{field}, packets of {packet_size}")
+        np.testing.assert_array_equal(blocked, one_blocked)
+        np.testing.assert_array_equal(blocked, one.hit)
+
+
 def test_camera_rays_see_the_spheres_in_packets(scene):
     """Coherent rays (the packet path) of a camera over the spheres."""
     camera = hlbvh_cl.Camera(eye=(0.5, 2.0, 5.0), target=(0, 0.6, 0), fov_deg=50)

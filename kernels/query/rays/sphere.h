@@ -58,6 +58,76 @@ TRAVERSAL_INLINE bool sphere_roots(float3 origin, float3 given, float4 sphere,
     return true;
 }
 
+#if PACKET_SIZE > 1
+/* sphere_roots for every lane of a work-item at once: the same operations
+ * lane by lane (IEEE division and square root, FP_CONTRACT off), so the
+ * same bits, with one vector division where each lane took its own (the
+ * lane-by-lane tests, their scalar divisions and dot products, showed in a
+ * profile of the Cornell box's rays: figures in the commit that brought
+ * this).  Gives the lanes (-1) whose ray meets the sphere. */
+TRAVERSAL_INLINE int_packet sphere_roots_packet(const float_packet* origin,
+                                                const float_packet* given, float4 sphere,
+                                                float_packet* near, float_packet* far)
+{
+    float_packet g[3], direction[3], f[3];
+    for (int k = 0; k < 3; ++k)
+        g[k] = given[k] < 0.0f ? -given[k] : given[k];
+    float_packet scale = (float_packet)(1.0f)
+                         / (g[0] > g[1] ? (g[0] > g[2] ? g[0] : g[2]) : (g[1] > g[2] ? g[1] : g[2]));
+    float centre[3] = {sphere.x, sphere.y, sphere.z};
+    for (int k = 0; k < 3; ++k) {
+        direction[k] = given[k] * scale;
+        f[k] = origin[k] - centre[k];
+    }
+    float_packet a = direction[0] * direction[0] + direction[1] * direction[1]
+                     + direction[2] * direction[2];
+    float_packet b = -(f[0] * direction[0] + f[1] * direction[1] + f[2] * direction[2]);
+    float_packet along = b / a, nearest_squared = (float_packet)(0.0f);
+    for (int k = 0; k < 3; ++k) {
+        float_packet nearest = f[k] + along * direction[k];
+        nearest_squared = k == 0 ? nearest * nearest : nearest_squared + nearest * nearest;
+    }
+    float r2 = sphere.w * sphere.w;
+    float_packet disc = a * (r2 - nearest_squared);
+    int_packet meets = (scale < INFINITY) & (disc >= 0.0f) & (a > 0.0f);
+    float_packet root = packet_root(disc);
+    float_packet q = b < 0.0f ? b - root : b + root;
+    float_packet c = (f[0] * f[0] + f[1] * f[1] + f[2] * f[2]) - r2;
+    float_packet t0 = q / a;
+    float_packet t1 = q != 0.0f ? c / q : t0;
+    *near = (t0 < t1 ? t0 : t1) * scale + 0.0f;
+    *far = (t0 < t1 ? t1 : t0) * scale + 0.0f;
+    return meets;
+}
+
+/* nearest_sphere for every lane (strict per lane): each lane's sphere
+ * index (-1: none), with *limit lowered to its t where it has one. */
+TRAVERSAL_INLINE int_packet nearest_sphere_packet(const RayLanes* lanes,
+                                                  __global const float4* spheres,
+                                                  uint sphere_count, float_packet* limit,
+                                                  int_packet strict)
+{
+    float_packet o[3], d[3];
+    for (int k = 0; k < 3; ++k) {
+        o[k] = vload_packet(0, lanes->origin[k]);
+        d[k] = vload_packet(0, lanes->direction[k]);
+    }
+    float_packet tmin = vload_packet(0, lanes->tmin);
+    int_packet found = (int_packet)(-1);
+    for (uint s = 0; s < sphere_count; ++s) {
+        float_packet near, far;
+        int_packet meets = sphere_roots_packet(o, d, spheres[s], &near, &far);
+        float_packet t = near >= tmin ? near : far;
+        int_packet take = meets & (t >= tmin) & (t < INFINITY)
+                          & (strict ? t < *limit : t <= *limit);
+        *limit = take ? t : *limit;
+        found = take ? (int_packet)((int)s) : found;
+        strict |= take;  /* a later sphere at the same t leaves this one */
+    }
+    return found;
+}
+#endif
+
 /* Lane l's nearest sphere hit within [tmin, *limit] (within [tmin, *limit)
  * when `strict`: a triangle found at *limit keeps it), as the sphere's index
  * with *limit lowered to its t; -1 if none. */

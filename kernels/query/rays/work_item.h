@@ -197,6 +197,11 @@ typedef union {
     float lane[PACKET_SIZE];
 } PacketFloats;
 
+typedef union {
+    int_packet lanes;
+    int lane[PACKET_SIZE];
+} PacketInts;
+
 /* The unit geometric normals of the triangles a work-item's lanes hit
  * (found->index[l], lanes l < used; zero where none), all at once:
  * unit_vector's operations lane by lane, so the same bits as unit_normal
