@@ -181,6 +181,8 @@ TRAVERSAL_INLINE void closest_hits(RayLanes* lanes, const uint* used, uint first
     HitLanes found[LANE_GROUPS];
     trace_intersect(lanes, used, SCENE_TREES, overflow, found, refs);
     for (uint g = 0; g < LANE_GROUPS; ++g) {
+        if (used[g] == 0)
+            break;  /* groups fill in order; an empty one's lanes were never loaded */
 #if PACKET_SIZE > 1 && !defined(INSTANCES)
         PacketFloats normals[3];
         hit_normals(found + g, used[g], triangles, normals);
@@ -241,6 +243,8 @@ TRAVERSAL_INLINE void any_hits(RayLanes* lanes, const uint* used, uint first, SC
     HitLanes found[LANE_GROUPS];
     trace_occluded(lanes, used, SCENE_TREES, overflow, found);
     for (uint g = 0; g < LANE_GROUPS; ++g) {
+        if (used[g] == 0)
+            break;  /* as in closest_hits */
 #if defined(SPHERES) && PACKET_SIZE > 1
         PacketInts sphere;  /* any_sphere of every lane at once */
         float_packet limit = vload_packet(0, lanes[g].tmax);
