@@ -10,7 +10,10 @@ enqueue_occluded: no numpy, no checks, as inside a render), and Mitsuba
 (llvm_ad_rgb, in a child process as in bench.path) traces the same rays in
 the same scene file: ray_intersect_preliminary, coherent for the camera's
 rays as Mitsuba's path integrator traces them, and ray_test for shadow
-rays; its time includes the result's copy to numpy.  Each timed trace
+rays; its time is the trace and the record it leaves in memory (t, the
+primitive and its u, v, as bench.trace's Mitsuba peer evaluates them; a
+shadow ray's flag), where ours writes a Hit record (or a flag) on the
+device.  Each timed trace
 follows an untimed one of the same tracer: the threads of the one before
 (Mitsuba's) would otherwise still be spinning (see bench.trace's
 time_round_robin).  Mitsuba's rays start at 0, so a ray of ours that
@@ -50,12 +53,27 @@ RAY_FLOATS = 8
 #: rays; {"trace": key} traces one set once and answers its seconds;
 #: {"hits": key} answers its hit mask's path (a .npy beside the rays).
 _CHILD = CHILD_START + r"""
+import drjit as dr
 scene, rays, folder = None, {}, None
 def trace(key):
+    # the record our kernels write, as bench.trace's Mitsuba peer evaluates
+    # it: t, the primitive and its u, v (a shadow ray: its flag)
     ray, shadow, coherent = rays[key]
     if shadow:
-        return np.asarray(scene.ray_test(ray, coherent=coherent))
-    return np.isfinite(np.asarray(scene.ray_intersect_preliminary(ray, coherent=coherent).t))
+        found = scene.ray_test(ray, coherent=coherent)
+        dr.eval(found)
+        dr.sync_thread()  # (Dr.Jit's LLVM kernels run asynchronously)
+        return found
+    found = scene.ray_intersect_preliminary(ray, coherent=coherent)
+    valid = found.is_valid()
+    t = dr.select(valid, found.t, dr.inf)
+    prim = dr.select(valid, mi.Int32(found.prim_index), -1)
+    dr.eval(t, prim, found.prim_uv)
+    dr.sync_thread()
+    return t
+def hit_mask(key):
+    found = np.asarray(trace(key))
+    return found if rays[key][1] else np.isfinite(found)
 for line in sys.stdin:
     request = json.loads(line)
     if "load" in request:
@@ -80,7 +98,7 @@ for line in sys.stdin:
         print(json.dumps({"seconds": time.perf_counter() - started}), flush=True)
     else:
         path = f"{folder}/mitsuba_{request['hits'].replace(' ', '_')}.npy"
-        np.save(path, trace(request["hits"]))
+        np.save(path, hit_mask(request["hits"]))
         print(json.dumps({"path": path}), flush=True)
 """
 
