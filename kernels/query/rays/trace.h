@@ -110,7 +110,8 @@
  * else one by one; group g's results in out[g].  With interleaved walks, the
  * one-by-one walks of every group go in turn together: after a root phase
  * has ended many of a group's rays, the rest would otherwise have few
- * others to hide their cache misses behind. */
+ * others to hide their cache misses behind; and where every group goes as
+ * a packet, so do the packets' walks. */
 TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, const uint* used,
                                             __global const WideNode* nodes,
                                             __global const Leaf* triangles
@@ -136,18 +137,49 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, const uint* u
 #undef PATH_SUFFIX
 #endif
 #endif
+    uint walked = 0;  /* the groups whose packets walked together (bit g) */
+#if PACKET_SIZE > 1
+    /* the groups that go as one packet each (bit g) */
+    Packet packets[LANE_GROUPS];
+    uint packed = 0;
+    for (uint g = 0; g < LANE_GROUPS; ++g)
+        if (used[g] != 0 && prepare_packet(lanes + g, packets + g)
+                && packet_compact(packets + g, nodes))
+            packed |= 1u << g;
+#if LANE_GROUPS > 1 && defined(INTERLEAVED_WALKS) && !defined(INSTANCES) && !defined(QUERY_STATE)
+    /* Where every group goes as a packet, their walks go in turn together
+     * (walk.h's walks), as one-by-one walks do: a packet's walk waits on
+     * each node's and leaf's lines (perf: on a camera packet's first
+     * vertex load in a leaf), and the other packet's steps fill the wait.
+     * Each packet visits the same nodes in the same order as alone. */
+    if (packed == (1u << LANE_GROUPS) - 1u) {
+#define PATH_SUFFIX _packet
+        Found_packet found[LANE_GROUPS];
+        for (uint g = 0; g < LANE_GROUPS; ++g)
+            start_packet(found + g, packets + g);
+        out_of_stack |= QUERY_FN(walks, _packet)(packets, nodes, triangles, found, LANE_GROUPS
+                                                 TRACE_ARGS);
+        for (uint g = 0; g < LANE_GROUPS; ++g)
+            QUERY_END(found + g, out + g, 0);
+#undef PATH_SUFFIX
+#ifdef COUNT_PACKETS
+        atomic_add(overflow + 1, LANE_GROUPS);
+#endif
+        walked = packed;
+    }
+#endif
+#endif
     for (uint g = 0; g < LANE_GROUPS; ++g) {
-        if (used[g] == 0)
+        if (used[g] == 0 || ((walked >> g) & 1u))
             continue;
         const RayLanes* group = lanes + g;
         QUERY_OUT* group_out = out + g;
 #if PACKET_SIZE > 1
-        Packet p;
-        if (prepare_packet(group, &p) && packet_compact(&p, nodes)) {
+        if ((packed >> g) & 1u) {
 #ifdef COUNT_PACKETS
             atomic_inc(overflow + 1);
 #endif
-            out_of_stack |= QUERY_FN(trace, _packet)(&p, nodes, triangles, group_out, 0
+            out_of_stack |= QUERY_FN(trace, _packet)(packets + g, nodes, triangles, group_out, 0
                                                      TRACE_ARGS);
             continue;
         }

@@ -239,6 +239,15 @@ TRAVERSAL_INLINE bool WALK_NAME(walk)(const PATH(Rays)* r, __global const WideNo
 #ifndef WALK_LANES
 #define WALK_LANES PACKET_SIZE
 #endif
+/* The most walks that `walks` takes at once on each path: WALK_LANES
+ * rays or points, and a work-item's LANE_GROUPS packets
+ * (query/rays/trace.h). */
+#ifndef WALKS_MAX_ray
+#define WALKS_MAX_ray WALK_LANES
+#define WALKS_MAX_packet LANE_GROUPS
+#define WALKS_MAX_point WALK_LANES
+#define WALKS_MAX_points WALK_LANES
+#endif
 
 /* One step of walk r: a node, or a leaf and then the next stacked item;
  * NEXT_ITEM while the walk goes on, else how it ended (NO_ITEM,
@@ -255,7 +264,7 @@ TRAVERSAL_INLINE int WALK_NAME(step)(const PATH(Rays)* r, __global const WideNod
     return pop(stack, sp, PATH(reach)(s), index, count) ? NEXT_ITEM : NO_ITEM;
 }
 
-/* The walks of rays r[0, n) (n <= WALK_LANES), each as WALK_NAME(walk)
+/* The walks of rays r[0, n) (n <= PATH(WALKS_MAX)), each as WALK_NAME(walk)
  * walks it, taken a step each in turn: one ray's walk is a chain of
  * dependent loads (a node, then the child it chose), which stalls a CPU
  * core on every cache miss; the steps of other rays, independent, fill
@@ -271,10 +280,10 @@ TRAVERSAL_INLINE bool WALK_NAME(walks)(const PATH(Rays)* r, __global const WideN
                                        __global const Leaf* triangles, PATH(Found)* s,
                                        uint n WALK_PARAMS)
 {
-    StackItem stack[WALK_LANES][STACK_SIZE + 1];
-    int sp[WALK_LANES], index[WALK_LANES];
-    uint count[WALK_LANES];
-    for (uint k = 0; k < WALK_LANES; ++k) {
+    StackItem stack[PATH(WALKS_MAX)][STACK_SIZE + 1];
+    int sp[PATH(WALKS_MAX)], index[PATH(WALKS_MAX)];
+    uint count[PATH(WALKS_MAX)];
+    for (uint k = 0; k < PATH(WALKS_MAX); ++k) {
         sp[k] = 0;
         index[k] = 0;
         count[k] = 0;
