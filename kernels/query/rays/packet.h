@@ -155,7 +155,7 @@ TRAVERSAL_INLINE bool prepare_packet(const RayLanes* in, Packet* p)
     float_packet dkz = d[p->kz];
     p->sx = d[p->kx] / dkz;
     p->sy = d[p->ky] / dkz;
-    p->sz = 1.0f / dkz;
+    p->sz = p->kz == 0 ? p->inv_x : (p->kz == 1 ? p->inv_y : p->inv_z);  /* 1 / dkz, once */
     p->okx = o[p->kx];
     p->oky = o[p->ky];
     p->okz = o[p->kz];
@@ -171,28 +171,47 @@ TRAVERSAL_INLINE bool prepare_packet(const RayLanes* in, Packet* p)
     /* (plane - o) * inv over the lanes: the least entry comes from the
      * greatest origin when the direction is positive, the least when it is
      * negative; the greatest exit the other way round. */
-    float_packet moved[3], move;
-    float3 error = interval_origins(p, o, d, moved, &move);
     /* The moved origins' box, grown by their error and then by one ulp, so
      * that no origin lies on its faces: a lane whose origin lies on a node's
      * plane and whose direction is 0 along that axis ignores the plane (0 *
      * inf is NaN), but the box's distance to that plane would be 0 times a
      * finite inverse of another lane, a bound of 0 that drops the child. */
-    float o_lo_x = float_below(packet_min(moved[0]) - error.x),
-          o_lo_y = float_below(packet_min(moved[1]) - error.y),
-          o_lo_z = float_below(packet_min(moved[2]) - error.z);
-    float o_hi_x = float_above(packet_max(moved[0]) + error.x),
-          o_hi_y = float_above(packet_max(moved[1]) + error.y),
-          o_hi_z = float_above(packet_max(moved[2]) + error.z);
+    float o_lo_x, o_lo_y, o_lo_z, o_hi_x, o_hi_y, o_hi_z;
+    if (!some_packet((o[0] != (float_packet)(o[0].s0)) | (o[1] != (float_packet)(o[1].s0))
+                     | (o[2] != (float_packet)(o[2].s0)))) {
+        /* One origin (a camera's; signed zeros alike): nothing to move,
+         * and the box is the point grown by an ulp, the same bits as the
+         * general case below gives it, for two folds of the lanes instead
+         * of some twenty-five (perf: prepare_packet was a third of the
+         * time of camera rays that meet nothing) */
+        o_lo_x = float_below(o[0].s0);
+        o_lo_y = float_below(o[1].s0);
+        o_lo_z = float_below(o[2].s0);
+        o_hi_x = float_above(o[0].s0);
+        o_hi_y = float_above(o[1].s0);
+        o_hi_z = float_above(o[2].s0);
+        p->slack = 0.0f;
+        p->tmin_lo = packet_min(p->tmin);
+        p->least_move = 0.0f;
+    } else {
+        float_packet moved[3], move;
+        float3 error = interval_origins(p, o, d, moved, &move);
+        o_lo_x = float_below(packet_min(moved[0]) - error.x);
+        o_lo_y = float_below(packet_min(moved[1]) - error.y);
+        o_lo_z = float_below(packet_min(moved[2]) - error.z);
+        o_hi_x = float_above(packet_max(moved[0]) + error.x);
+        o_hi_y = float_above(packet_max(moved[1]) + error.y);
+        o_hi_z = float_above(packet_max(moved[2]) + error.z);
+        p->slack = INTERVAL_SLACK * packet_max(abs_packet(move));
+        p->tmin_lo = packet_min(p->tmin - move);
+        p->least_move = packet_min(move);
+    }
     p->near_ox = neg_x.s0 ? o_lo_x : o_hi_x;
     p->near_oy = neg_y.s0 ? o_lo_y : o_hi_y;
     p->near_oz = neg_z.s0 ? o_lo_z : o_hi_z;
     p->far_ox = neg_x.s0 ? o_hi_x : o_lo_x;
     p->far_oy = neg_y.s0 ? o_hi_y : o_lo_y;
     p->far_oz = neg_z.s0 ? o_hi_z : o_lo_z;
-    p->slack = INTERVAL_SLACK * packet_max(abs_packet(move));
-    p->tmin_lo = packet_min(p->tmin - move);
-    p->least_move = packet_min(move);
     return true;
 }
 
@@ -215,20 +234,38 @@ TRAVERSAL_INLINE bool prepare_packet(const RayLanes* in, Packet* p)
  * by one (figures in the commit that brought this). */
 #define PACKET_SPREAD 16.0f
 #define PACKET_TURN 0.25f
-TRAVERSAL_INLINE bool packet_compact(const Packet* p, __global const WideNode* root)
+/* The least (lo rows) or greatest (hi rows) of a node's 8 planes on one axis,
+ * empty slots included (+inf lo, -inf hi): a fold of the row's vector. */
+TRAVERSAL_INLINE float row_least(float_lanes row)
+{
+    float4 a = GROW_LO(row.lo, row.hi);
+    float2 b = GROW_LO(a.lo, a.hi);
+    return GROW_LO(b.x, b.y);
+}
+
+TRAVERSAL_INLINE float row_most(float_lanes row)
+{
+    float4 a = GROW_HI(row.lo, row.hi);
+    float2 b = GROW_HI(a.lo, a.hi);
+    return GROW_HI(b.x, b.y);
+}
+
+/* How far apart packet_compact lets a packet's origins lie: the scene's
+ * extent (the root's children's box, its largest axis) / PACKET_SPREAD;
+ * the same for every packet of a launch, so a work-item takes it once. */
+TRAVERSAL_INLINE float packet_allowed(__global const WideNode* root)
 {
     float scene = 0.0f;
     for (int k = 0; k < 3; ++k) {
-        __global const float* lo = plane_row(root, 2 * k * ROW_BYTES);
-        __global const float* hi = plane_row(root, (2 * k + 1) * ROW_BYTES);
-        float least = lo[0], most = hi[0];  /* empty slots: +inf lo, -inf hi */
-        for (int c = 1; c < WIDE_ARITY; ++c) {
-            least = least < lo[c] ? least : lo[c];
-            most = most > hi[c] ? most : hi[c];
-        }
+        float least = row_least(LOAD_ROW(float_lanes, plane_row(root, 2 * k * ROW_BYTES)));
+        float most = row_most(LOAD_ROW(float_lanes, plane_row(root, (2 * k + 1) * ROW_BYTES)));
         scene = scene > most - least ? scene : most - least;
     }
-    float allowed = scene * (1.0f / PACKET_SPREAD);
+    return scene * (1.0f / PACKET_SPREAD);
+}
+
+TRAVERSAL_INLINE bool packet_compact(const Packet* p, float allowed)
+{
     /* (a lane whose ray is not finite has a NaN slope, which the folds may pass
      * over: it meets nothing either way, its tmax -inf: set_lane) */
     return packet_max(p->sx) - packet_min(p->sx) <= PACKET_TURN

@@ -142,10 +142,14 @@ TRAVERSAL_INLINE void CONCAT(trace_, QUERY)(const RayLanes* lanes, const uint* u
     /* the groups that go as one packet each (bit g) */
     Packet packets[LANE_GROUPS];
     uint packed = 0;
+    float allowed = -1.0f;  /* packet_allowed, once a packet asks */
     for (uint g = 0; g < LANE_GROUPS; ++g)
-        if (used[g] != 0 && prepare_packet(lanes + g, packets + g)
-                && packet_compact(packets + g, nodes))
-            packed |= 1u << g;
+        if (used[g] != 0 && prepare_packet(lanes + g, packets + g)) {
+            if (allowed < 0.0f)
+                allowed = packet_allowed(nodes);
+            if (packet_compact(packets + g, allowed))
+                packed |= 1u << g;
+        }
 #if LANE_GROUPS > 1 && defined(INTERLEAVED_WALKS) && !defined(INSTANCES) && !defined(QUERY_STATE)
     /* Where every group goes as a packet, their walks go in turn together
      * (walk.h's walks), as one-by-one walks do: a packet's walk waits on
