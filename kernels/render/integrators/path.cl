@@ -325,6 +325,7 @@ inline uint take_group_slots(__local uint* slots, __global uint* paths,
  * stores of the next rays and shadow rays, on their write-allocate
  * misses).  Further ahead measured slower. */
 #define STAGE_AHEAD 8u
+#define STREAM_AHEAD 16u  /* 32 measured no faster */
 
 /* NARROW_KERNEL (core/portable.h): Intel's CPU compiler packs a kernel's
  * work-items into its SIMD lanes unless a hint says otherwise; with this
@@ -421,6 +422,18 @@ void path_surface(__global const Ray* rays,         /* the live paths' rays */
     uint item = taken * size + lid;  /* this work-item's path of the pass */
     if (depth > 0 && item + STAGE_AHEAD < count)
         PREFETCH_AT(states + paths[item + STAGE_AHEAD], 1);
+    /* and STREAM_AHEAD ahead the pass's rays and hits, which it reads in
+     * order, and on the first pass the states it writes in order: a group
+     * spans one 4 KB page of each, where the hardware's stream prefetch
+     * stops, and it had missed on them (perf: the hit's and the ray's
+     * first loads held a third of this kernel's samples on the first
+     * pass, under a camera-only render) */
+    if (item + STREAM_AHEAD < count) {
+        PREFETCH_AT(rays + item + STREAM_AHEAD, 0);
+        PREFETCH_AT(hits + item + STREAM_AHEAD, 0);
+        if (depth == 0)
+            PREFETCH_AT(states + item + STREAM_AHEAD, 1);
+    }
     if (item < count) {
         path = depth == 0 ? item : paths[item];
         goes_on = shade_vertex(item, path, depth, first_pixel, salts, rays, hits, states,
