@@ -234,22 +234,6 @@ TRAVERSAL_INLINE bool prepare_packet(const RayLanes* in, Packet* p)
  * by one (figures in the commit that brought this). */
 #define PACKET_SPREAD 16.0f
 #define PACKET_TURN 0.25f
-/* The least (lo rows) or greatest (hi rows) of a node's 8 planes on one axis,
- * empty slots included (+inf lo, -inf hi): a fold of the row's vector. */
-TRAVERSAL_INLINE float row_least(float_lanes row)
-{
-    float4 a = GROW_LO(row.lo, row.hi);
-    float2 b = GROW_LO(a.lo, a.hi);
-    return GROW_LO(b.x, b.y);
-}
-
-TRAVERSAL_INLINE float row_most(float_lanes row)
-{
-    float4 a = GROW_HI(row.lo, row.hi);
-    float2 b = GROW_HI(a.lo, a.hi);
-    return GROW_HI(b.x, b.y);
-}
-
 /* How far apart packet_compact lets a packet's origins lie: the scene's
  * extent (the root's children's box, its largest axis) / PACKET_SPREAD;
  * the same for every packet of a launch, so a work-item takes it once. */

@@ -64,17 +64,25 @@ TRAVERSAL_INLINE float_packet abs_packet(float_packet v)
 #endif
 #define OR(a, b) ((a) | (b))
 #define AND(a, b) ((a) & (b))
-/* A macro: it names its types by token pasting and takes the fold, itself a macro. */
+/* Macros: they name their types by token pasting and take the fold, itself
+ * a macro.  FOLD_EIGHT folds 8 lanes (a node's row, or a packet's halves). */
+#define FOLD_EIGHT(type, a, f)       \
+    type##4 b = f((a).lo, (a).hi);   \
+    type##2 c = f(b.lo, b.hi);       \
+    return f(c.x, c.y)
 #define FOLD_LANES(type, v, f)   \
     type##8 a = HALVES(v, f);    \
-    type##4 b = f(a.lo, a.hi);   \
-    type##2 c = f(b.lo, b.hi);   \
-    return f(c.x, c.y)
+    FOLD_EIGHT(type, a, f)
 
 TRAVERSAL_INLINE float packet_min(float_packet v) { FOLD_LANES(float, v, GROW_LO); }
 TRAVERSAL_INLINE float packet_max(float_packet v) { FOLD_LANES(float, v, GROW_HI); }
 TRAVERSAL_INLINE int packet_or(int_packet v) { FOLD_LANES(int, v, OR); }
 TRAVERSAL_INLINE int packet_and(int_packet v) { FOLD_LANES(int, v, AND); }
+
+/* The least / greatest of a node row's 8 planes (empty slots: +inf in lo
+ * rows, -inf in hi rows). */
+TRAVERSAL_INLINE float row_least(float_lanes row) { FOLD_EIGHT(float, row, GROW_LO); }
+TRAVERSAL_INLINE float row_most(float_lanes row) { FOLD_EIGHT(float, row, GROW_HI); }
 
 /* sqrt of every lane (lanes_root, a half at a time for 16 lanes). */
 TRAVERSAL_INLINE float_packet packet_root(float_packet v)
