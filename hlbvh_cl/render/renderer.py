@@ -315,7 +315,11 @@ class Pipeline:
         else:
             image = np.empty((settings.height, width, 3), np.float32)
             rt.wait([film.read(rt, image)])
-            image /= taken[:, None, None]
+            # by float32 counts: numpy divides float32 by int64 in float64,
+            # through a temporary of the whole image, and rounds back: the
+            # same quotients (float32's division is correctly rounded, and a
+            # double's rounded to float is too: 53 >= 2 * 24 + 2 bits)
+            image /= taken.astype(np.float32)[:, None, None]
             spp = int(taken.min())
             if aovs:
                 found = integrator.read_aovs(settings.height, width, row_runs(taken))
