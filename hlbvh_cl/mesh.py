@@ -214,18 +214,21 @@ def _unit_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def _check_normals(normals, count: int) -> np.ndarray:
     """Per-vertex normals as Mesh stores them: (count, 3) float32, finite,
     read-only; errors name the first bad row."""
-    array = np.array(normals, dtype=np.float64, copy=True) if not isinstance(normals, np.ndarray) \
-        else np.asarray(normals)
+    # read as vertices are (inputs.as_array): masked entries, ragged rows,
+    # strings and None refused by name rather than converted
+    array = inputs.as_array("normals", normals)
     if array.dtype.kind not in "fiu":
-        raise TypeError(f"normals has dtype {array.dtype}, expected real numbers")
+        raise TypeError(f"normals has dtype {array.dtype}, expected real numbers (float32 "
+                        f"preferred; any float or integer dtype is converted)")
     if array.ndim != 2 or array.shape != (count, 3):
         raise ValueError(f"normals has shape {array.shape}, expected ({count}, 3): one per vertex")
-    converted = np.array(array, dtype=np.float32, order="C", copy=True)
+    with np.errstate(over="ignore"):  # overflow: named below
+        converted = np.array(array, dtype=np.float32, order="C", copy=True)
     bad = ~np.isfinite(converted).all(axis=1) | ~(np.abs(converted).max(axis=1) > 0)
     if bad.any():
         row = int(np.argmax(bad))
         raise ValueError(f"normals[{row}] = {array[row].tolist()} is not a finite, nonzero "
-                         "vector")
+                         f"vector in float32 (|x| <= {np.finfo(np.float32).max:.3g}, not all 0)")
     converted.flags.writeable = False
     return converted
 

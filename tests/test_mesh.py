@@ -1,6 +1,7 @@
 """Mesh: arrays converted and kept read-only, and loading every supported
 file format (bad arrays and bad files: test_validation.py)."""
 import gzip
+import re
 
 import numpy as np
 import pytest
@@ -168,3 +169,25 @@ def test_the_area_is_trimesh_s():
     assert mesh.area == pytest.approx(float(bunny.area), rel=1e-6)
     assert Mesh(QUAD, QUAD_FACES).area == pytest.approx(
         float(trimesh.Trimesh(QUAD, QUAD_FACES, process=False).area), rel=1e-12)
+
+
+@pytest.mark.parametrize("normals, message", [
+    ([[0, 0, 1], [0, 0, 1], [0, 1]], "normals is not a rectangular array"),
+    ([[0, 0, 1], [0, 0, 1], [0, 1, "x"]], "normals has dtype <U"),
+    ([["0", "0", "1"]] * 3, "normals has dtype <U1, expected real numbers"),
+    ([[0, 0, 1j]] * 3, "normals has dtype complex128, expected real numbers"),
+    ([[0, 0, 1], [0, 0, 1], [0, 1, None]], "normals has dtype object, expected real numbers"),
+    (np.ma.masked_array([[0, 0, -5.0], [0, 0, 1], [0, 0, 1]],
+                        mask=[[0, 0, 1], [0, 0, 0], [0, 0, 0]]),
+     "normals is a masked array with masked entries"),
+    ([[0, 0, 1], [0, 0, 1e39], [0, 0, 1]],
+     "normals[1] = [0.0, 0.0, 1e+39] is not a finite, nonzero vector in float32"),
+    ([[0, 0, 1], [0, 0, 1], [0, 0, 0]], "normals[2] = [0, 0, 0] is not a finite, nonzero"),
+])
+def test_bad_normals_are_named_as_vertices_are(normals, message):
+    """Mesh(..., normals=...) reads them as it reads vertices: strings,
+    None and complex numbers are refused rather than converted, a masked
+    array's hidden values are not used, and a ragged list is named."""
+    triangle = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    with pytest.raises((ValueError, TypeError), match=re.escape(message)):
+        Mesh(triangle, [[0, 1, 2]], normals=normals)

@@ -109,6 +109,34 @@ def test_too_many_points_are_refused_before_any_kernel(monkeypatch, query):
         getattr(case.scene, query)(points)
 
 
+def test_python_integers_past_int64_are_numbers():
+    """numpy keeps a Python integer past int64 (10**30) as an object: such
+    limits, coordinates and distances are numbers as 1e30 is, and one past
+    float64 is named; an object array of anything else stays refused."""
+    case = scene_case("cube")
+    origins, directions = GOOD_O, GOOD_D
+    for name, big in (("tmax", {"tmax": 10**30}), ("tmin", {"tmin": [0, 10**30, 0]})):
+        floated = {key: np.asarray(value, np.float64) for key, value in big.items()}
+        np.testing.assert_array_equal(case.scene.intersect(origins, directions, **big).t,
+                                      case.scene.intersect(origins, directions, **floated).t,
+                                      err_msg=name)
+    far = [[0.5, 0.5, 10**30]]
+    assert case.scene.intersect(far, [[0, 0, -1]]).t[0] == case.scene.intersect(
+        [[0.5, 0.5, 1e30]], [[0, 0, -1]]).t[0]
+    assert case.scene.closest_points([[0.5, 0.5, 3.0]], max_distance=10**30).found.all()
+    with pytest.raises(ValueError, match="tmax must be finite numbers, got an integer of 1329 "
+                                         "bits, past float64's range"):
+        case.scene.intersect(origins, directions, tmax=10**400)
+    with pytest.raises(TypeError, match="tmax must hold real numbers, got dtype object"):
+        case.scene.intersect(origins, directions, tmax=np.array(["far"] * 3, dtype=object))
+
+
+def test_camera_rays_take_a_scene_or_none():
+    with pytest.raises(TypeError, match="scene must be a hlbvh_cl.Scene, whose device makes "
+                                        "the rays, or None .numpy rays., got str"):
+        hlbvh_cl.Camera((0, 0, 3), (0, 0, 0)).rays(4, 3, scene="scene")
+
+
 def test_short_directions_are_found_in_any_block_of_a_large_batch(monkeypatch):
     """The direction check goes block by block and only looks at rows in the
     blocks that hold a tiny component: a short row is found (and named) past

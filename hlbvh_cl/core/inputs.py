@@ -250,9 +250,27 @@ def as_array(name: str, value) -> np.ndarray:
     return array
 
 
+def _big_integers(name: str, array: np.ndarray) -> np.ndarray:
+    """An object array whose elements are all real numbers (numpy keeps a
+    Python integer past int64 as an object, 10**30) as float64, or the
+    BadValue naming ``name`` for one past float64; any other array as it
+    is."""
+    flat = array.ravel()
+    if not flat.size or not all(isinstance(x, REAL) and not isinstance(x, bool) for x in flat):
+        return array
+    try:
+        return array.astype(np.float64)
+    except OverflowError:
+        big = max((x for x in flat if isinstance(x, int)), key=abs)
+        raise BadValue(name, "finite numbers", f"an integer of {big.bit_length()} bits, past "
+                       f"float64's range") from None
+
+
 def numeric_array(name: str, value) -> np.ndarray:
     """``value`` as a numpy array of real numbers, or the error naming ``name``."""
     array = as_array(name, value)
+    if array.dtype == object:
+        array = _big_integers(name, array)
     if array.dtype.kind not in "fiu":  # not bool, nor timedelta64 (a numpy integer)
         raise TypeError(f"{name} must hold real numbers, got dtype {array.dtype}; expected "
                         f"{REAL_DTYPES}")

@@ -131,7 +131,9 @@ _ATTRIBUTES = {"scene": ("version",), "default": ("name", "value"),
                "rotate": ("value", "x", "y", "z", "angle"), "matrix": ("value",),
                "lookat": ("origin", "target", "up")}
 
-#: The largest <lookat> coordinate: squared norms of its frame stay finite.
+#: The largest <lookat> coordinate: squared norms of its frame stay finite;
+#: and its view (target - origin), its up and their cross at least
+#: 1 / LOOKAT_RANGE long, so that they do not vanish squared.
 LOOKAT_RANGE = 1e150
 
 #: The pixel and component formats of an hdrfilm that the image we return
@@ -151,6 +153,13 @@ class _Node:
         return self.attributes.get(key, default)
 
 
+#: Elements nested deeper than this are refused: the reader walks the tree
+#: recursively (a <scene>'s <shape> holds a <bsdf>, a twosided <bsdf> one
+#: more, and a <texture> or <transform> its own: a real scene nests a few
+#: deep), and 1000 nested <bsdf> had ended in Python's RecursionError.
+MAX_NESTING = 64
+
+
 def _parse(path: Path) -> _Node:
     """The XML as a tree of _Node, each with its line (expat)."""
     root = _Node("document", {}, 0)
@@ -159,6 +168,9 @@ def _parse(path: Path) -> _Node:
 
     def start(tag, attributes):
         node = _Node(tag, dict(attributes), parser.CurrentLineNumber)
+        if len(stack) > MAX_NESTING:
+            raise SceneFileError(f"{path}:{node.line}: <{tag}> is nested {len(stack)} elements "
+                                 f"deep; this reader takes {MAX_NESTING} at most")
         stack[-1].children.append(node)
         stack.append(node)
 
@@ -377,12 +389,20 @@ class _Reader:
             view = np.subtract(target, origin)
             if not np.any(view):
                 raise self.error(step, "its target is its origin: no direction to look in")
+            if np.abs(view).max() < 1.0 / LOOKAT_RANGE:
+                raise self.error(step, f"its target lies within {1.0 / LOOKAT_RANGE:g} of its "
+                                       f"origin: too close to give a direction to look in")
             up = self.numbers(step, 3, "up") if step.get("up") else _default_up(view)
             if max(map(abs, up)) > LOOKAT_RANGE:
                 raise self.error(step, f"its up must lie within {LOOKAT_RANGE:g} of 0, got "
                                        f"{self.shown(step, 'up')}")
             if not np.any(np.cross(up, view)):
                 raise self.error(step, "its up is parallel to the direction it looks in")
+            left = np.cross(up, view / np.linalg.norm(view))  # as _look_at makes it
+            if not np.linalg.norm(left) >= 1.0 / LOOKAT_RANGE:
+                raise self.error(step, f"its up ({self.shown(step, 'up')}) is too short, or too "
+                                       f"near the direction it looks in, to make a frame: "
+                                       f"their cross is under {1.0 / LOOKAT_RANGE:g} long")
             change = _look_at(np.array(origin), np.array(target), np.array(up))
         else:
             raise self.error(step, "is not a transform step this reader takes (translate, "

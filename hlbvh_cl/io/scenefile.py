@@ -128,6 +128,7 @@ import numpy as np
 from ..build.instances import check_resolved, check_transforms
 from ..mesh import MESH_EXTENSIONS, Mesh
 from ..render.camera import Camera, unit, vertical_fov_deg, view_problem
+from ..render.film import BRIGHTEST
 from ..render.light import Light
 from ..render.renderer import Renderer
 from ..scene import Scene
@@ -474,7 +475,7 @@ def _read_light(reader: _Reader, value) -> Light:
     if direction is None:
         raise reader.error("light.direction", "is the zero vector")
     intensity = reader.number(table.get("intensity", 1.0), "light.intensity", low=0.0,
-                              high=float(np.finfo(np.float32).max))
+                              high=BRIGHTEST)  # Light's bound, named here with the file
     ambient = reader.number(table.get("ambient", 0.15), "light.ambient", low=0.0, high=1.0)
     return Light(direction=tuple(float(x) for x in direction), intensity=intensity,
                  ambient=ambient)

@@ -321,7 +321,8 @@ class PointQuery:
                 self._into_frame(*inputs.points(host), tree)
                 raise RuntimeError("hlbvh_cl internal error: check_points refused a point "
                                    "that the point queries take")
-        return {name: array.reshape(*shape, *fields[name][0]) for name, array in out.items()}
+        # one tuple: pyopencl's reshape() of no arguments fails, and one point has shape ()
+        return {name: array.reshape((*shape, *fields[name][0])) for name, array in out.items()}
 
     # -- internals ----------------------------------------------------------
 

@@ -197,7 +197,7 @@ class RayQuery:
                                      self.device_pool())
         if rays is not None:
             return self._on_device(tree, rays, self.occluded, {"occluded": ((), np.uint8)},
-                                   lambda found: found["occluded"].view(bool))
+                                   lambda found: found["occluded"], viewed=bool)
         batch, _ = into_frame(masked(inputs.rays(origins, directions, tmin, tmax), mask, tree),
                               tree)
         count = len(batch)
@@ -237,12 +237,13 @@ class RayQuery:
                                offset=run.first // self.rays_per_item(tree))
         return launch
 
-    def _on_device(self, tree, rays: on_device.DeviceRays, query, fields: dict, make):
+    def _on_device(self, tree, rays: on_device.DeviceRays, query, fields: dict, make,
+                   viewed=None):
         """A query (intersect or occluded) of rays on the device: the
         results, by ``fields`` (name: (trailing shape, dtype)), as pyopencl
-        arrays, made into the query's result by ``make``; traced from the
-        host where the tree's frame or a ray's reach asks for it
-        (query/on_device.py)."""
+        arrays, viewed as ``viewed`` where given, made into the query's
+        result by ``make``; traced from the host where the tree's frame or a
+        ray's reach asks for it (query/on_device.py)."""
         pool, count = self.device_pool(), len(rays)
         found = {name: pool.empty((count, *trailing), dtype)
                  for name, (trailing, dtype) in fields.items()}
@@ -259,7 +260,9 @@ class RayQuery:
             host = vars(result) if "t" in fields else {"occluded": result.view(np.uint8)}
             found = {name: pool.upload(host[name].reshape(count, *fields[name][0]))
                      for name in fields}
-        return make({name: shaped(array, (*rays.shape, *fields[name][0]))
+        # viewed before shaped: pyopencl views no 0-d array (one ray has shape ())
+        return make({name: shaped(array if viewed is None else array.view(viewed),
+                                  (*rays.shape, *fields[name][0]))
                      for name, array in found.items()})
 
     def _run_on_device(self, tree, rays: on_device.DeviceRays, launch, outputs: dict) -> bool:

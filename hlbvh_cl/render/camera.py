@@ -138,6 +138,10 @@ class Camera:
         height = inputs.integer("height", height, 1, MAX_IMAGE_SIDE)
         record = self.pinhole(width, height)
         if scene is not None:
+            from ..scene import Scene  # (scene.py imports the renderer's modules)
+            if not isinstance(scene, Scene):
+                raise TypeError(f"scene must be a hlbvh_cl.Scene, whose device makes the rays, "
+                                f"or None (numpy rays), got {type(scene).__name__}")
             return _device_rays(scene, record, width, height)
         f32 = np.float32
         ys, xs = np.mgrid[0:height, 0:width].astype(f32)

@@ -84,7 +84,20 @@ BK7, AIR = 1.5046, 1.000277
 #: Mitsuba's default inside index of plastic: polypropylene.
 POLYPROPYLENE = 1.49
 
-_LARGE = float(np.finfo(np.float32).max) ** 0.25  # eta and k are squared twice
+#: An index of refraction (int_ior, ext_ior) at most.
+_LARGE = float(np.finfo(np.float32).max) ** 0.25
+
+#: A conductor's eta and k at most: the kernel's fresnel_conductor
+#: (render/bsdfs/fresnel.h) squares eta^2 + k^2, which float32 then holds
+#: (2^126 at most; at 4e9 each it overflowed, and the metal rendered black).
+CONDUCTOR_INDEX_MAX = 2.0 ** 31
+
+#: The relative index of a dielectric interface (int_ior / ext_ior) lies in
+#: [1 / RELATIVE_INDEX_MAX, RELATIVE_INDEX_MAX]: the kernels scale radiance
+#: by its inverse square and square it in the Fresnel terms, in float32 (at
+#: 1e-20 a roughplastic rendered black).  Real interfaces lie within 0.1 to
+#: 10.
+RELATIVE_INDEX_MAX = 1e6
 
 
 def _bsdf(name: str, spec) -> np.void:
@@ -144,8 +157,8 @@ def _conductor_index(name: str, spec) -> tuple:
         raise TypeError(f"{name}['material'] must be a metal's name (a string such as 'Au'), "
                         f"got {type(material).__name__}")
     if material == "none":
-        return (inputs.color(f"{name}['eta']", spec.get("eta", 0.0), _LARGE),
-                inputs.color(f"{name}['k']", spec.get("k", 1.0), _LARGE))
+        return (inputs.color(f"{name}['eta']", spec.get("eta", 0.0), CONDUCTOR_INDEX_MAX),
+                inputs.color(f"{name}['k']", spec.get("k", 1.0), CONDUCTOR_INDEX_MAX))
     if material not in METALS:
         cased = [known for known in METALS if known.lower() == material.lower()]
         hint = f" (names are case-sensitive: {cased[0]!r}?)" if cased else ""
@@ -179,7 +192,13 @@ def _eta(name: str, spec, inside_default: float, differ: bool) -> float:
     if differ and inside == outside:
         raise ValueError(f"{name}: int_ior and ext_ior are both {inside}: a rough interface "
                          "needs two different indices")
-    return inside / outside
+    ratio = inside / outside
+    if not 1.0 / RELATIVE_INDEX_MAX <= ratio <= RELATIVE_INDEX_MAX:
+        raise ValueError(f"{name}: int_ior / ext_ior = {inside:g} / {outside:g} = {ratio:.3g}, "
+                         f"outside [{1.0 / RELATIVE_INDEX_MAX:g}, {RELATIVE_INDEX_MAX:g}]: "
+                         "float32 radiance cannot take its square or inverse square (real "
+                         "interfaces lie within 0.1 to 10)")
+    return ratio
 
 
 def check_material(name: str, spec) -> np.void:

@@ -12,7 +12,7 @@ def plugin_type(name: str, spec, written: dict, example: dict, what: str) -> str
     if not isinstance(spec, Mapping):
         raise TypeError(f"{name} must be a dict such as {example}, got {type(spec).__name__}")
     kind = spec.get("type")
-    if kind not in written:
+    if not isinstance(kind, str) or kind not in written:  # (a list is no key of written)
         raise ValueError(f"{name}: type {kind!r} is not one of {tuple(written)} (the path "
                          f"integrator's {what} so far)")
     unknown = sorted(set(spec) - {"type", *written[kind]})

@@ -112,7 +112,7 @@ class RenderSettings:
             raise TypeError(f"shadows must be True or False, got {type(shadows).__name__}")
         if ao_distance is not None:
             ao_distance = inputs.number("ao_distance", ao_distance, 0.0, low_open=True)
-        if rfilter not in FILTERS:
+        if not isinstance(rfilter, str) or rfilter not in FILTERS:
             raise ValueError(f"rfilter must be one of {tuple(FILTERS)} (Mitsuba's names), got "
                              f"{rfilter!r}")
         max_depth = inputs.integer("max_depth", max_depth, -1, MAX_DEPTH)

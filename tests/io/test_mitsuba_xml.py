@@ -4,6 +4,8 @@ and the Cornell box (scenes/cornell_box.xml) rendered by both; and the
 errors an element outside the subset gets, with its line."""
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -765,6 +767,32 @@ def test_what_mitsuba_refuses_is_refused_with_its_line(tmp_path, body, words):
         mi.load_file(str(path))
     with pytest.raises(SceneFileError) as error:
         read_xml(path)
+    assert str(error.value).startswith(f"{path}:") and words in str(error.value), error.value
+
+
+DEEP = ('<shape type="cube">' + '<bsdf type="twosided">' * 1000 + '<bsdf type="diffuse"/>'
+        + '</bsdf>' * 1000 + '</shape>')
+
+
+@pytest.mark.parametrize("body, to_world, words", [
+    (DEEP, None, '<bsdf> is nested 65 elements deep; this reader takes 64 at most'),
+    ('<shape type="cube"/>', '<lookat origin="1, 2, 5" target="0, 0.5, 0" up="0, 1e-300, 0"/>',
+     "<lookat>: its up ('0, 1e-300, 0') is too short, or too near the direction it looks in"),
+    ('<shape type="cube"/>', '<lookat origin="0, 0, 5" target="0, 0, 0" up="1e-320, 0, 1"/>',
+     "their cross is under 1e-150 long"),
+    ('<shape type="cube"/>', '<lookat origin="0, 0, 0" target="1e-320, 0, 0" up="0, 1, 0"/>',
+     "<lookat>: its target lies within 1e-150 of its origin"),
+])
+def test_degenerate_files_are_refused_with_their_line(tmp_path, body, to_world, words):
+    """Elements nested past what the reader walks (1000 twosided BSDFs had
+    ended in a bare RecursionError), and a <lookat> whose up or view is too
+    short to normalise (it had been called a scale or shear, with numpy's
+    warnings): an error naming the file, the line and the cause."""
+    path = scene_of(tmp_path, scene_xml(body, to_world=to_world))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no numpy warning on the way
+        with pytest.raises(SceneFileError) as error:
+            read_xml(path)
     assert str(error.value).startswith(f"{path}:") and words in str(error.value), error.value
 
 

@@ -244,7 +244,11 @@ MESH = f'\n[[mesh]]\npath = "{KNIGHT}"\n'
     (BASE + '[light]\ndirection = [0.0, 0.0, 0.0]\n' + MESH, "light.direction", "zero"),
     (BASE + '[light]\nambient = 1.5\n' + MESH, "light.ambient", "<= 1"),
     (BASE + '[light]\nintensity = -1.0\n' + MESH, "light.intensity", ">= 0"),
-    (BASE + '[light]\nintensity = 1e39\n' + MESH, "light.intensity", "<= 3.40282e+38, got 1e+39"),
+    (BASE + '[light]\nintensity = 1e39\n' + MESH, "light.intensity", "<= 1e+20, got 1e+39"),
+    # Light's own bound (film.BRIGHTEST), named with the file
+    (BASE + '[light]\nintensity = 1e30\n' + MESH, "light.intensity", "<= 1e+20, got 1e+30"),
+    (BASE + MESH + 'material = { type = ["diffuse"] }\n', "mesh[0].material",
+     "type ['diffuse'] is not one of ('diffuse', "),
     (BASE + '[light]\nintensity = 1' + '0' * 400 + '\n' + MESH, "light.intensity",
      "expected a finite number, got an integer of 1329 bits, beyond float's range"),
     (BASE, "mesh", "missing"),

@@ -193,6 +193,31 @@ def test_a_view_at_an_offset_is_taken(suite_device):
     assert_same_hits(scene.intersect(o, d), scene.intersect(origins[10:], directions[10:]))
 
 
+def test_one_ray_or_point_on_the_device_gives_0d_answers(suite_device):
+    """A single ray (3,) + (3,) or packed (6,), and a single point (3,), on
+    the device: 0-d results, as the numpy queries give (pyopencl reshapes
+    and views no 0-d array as numpy does)."""
+    scene = hlbvh_cl.Scene([grid_mesh(4)], device=suite_device)
+    q = scene.queue
+    origin, direction = np.float32([0.3, 0.4, 2.0]), np.float32([0.0, 0.0, -1.0])
+    o, d = cla.to_device(q, origin), cla.to_device(q, direction)
+    packed = cla.to_device(q, np.concatenate([origin, direction]))
+    assert_same_hits(scene.intersect(o, d), scene.intersect(origin, direction))
+    for got in (scene.occluded(o, d), scene.occluded(packed)):
+        assert got.shape == () and got.dtype == bool
+        assert bool(got.get()) == bool(scene.occluded(origin, direction))
+    point = np.float32([0.3, 0.4, 0.25])
+    on_device = cla.to_device(q, point)
+    found, expected = scene.closest_points(on_device), scene.closest_points(point)
+    for name, value in vars(expected).items():
+        assert getattr(found, name).shape == np.shape(value), name
+        np.testing.assert_array_equal(getattr(found, name).get(), value, err_msg=name)
+    for query in ("signed_distance", "winding_number"):
+        got = getattr(scene, query)(on_device)
+        assert got.shape == ()
+        np.testing.assert_allclose(got.get(), getattr(scene, query)(point), atol=1e-6)
+
+
 def test_points_on_the_device_give_the_numpy_answers(suite_device, meshes):
     """closest_points, signed_distance, winding_number and contains of
     points given as a pyopencl array, in more launches than one, flat and

@@ -175,6 +175,8 @@ def test_a_constant_environment_map_is_the_constant_environment(suite_device):
 
 @pytest.mark.parametrize("material", [
     {"type": "conductor"},  # Mitsuba's default: a perfect mirror
+    # the largest index taken (materials.CONDUCTOR_INDEX_MAX): a mirror too
+    {"type": "conductor", "eta": 2.0 ** 31, "k": 2.0 ** 31},
     {"type": "dielectric"},  # BK7 in air: reflects and refracts, internally too
     {"type": "dielectric", "int_ior": 1.0, "ext_ior": 1.33},  # denser outside
 ])
@@ -379,6 +381,8 @@ def test_a_seed_fixes_the_image(suite_device):
     ([{"type": "diffuse", "reflectance": [0.1, float("nan"), 0.2]}], None,
      "materials[0]['reflectance'][1] must be a finite number"),
     ([{"type": "twosided"}], None, "twosided needs the BSDF it wraps"),
+    ([{"type": ["diffuse"]}], None, "materials[0]: type ['diffuse'] is not one of ('diffuse', "),
+    (None, [{"type": ["point"]}], "emitters[0]: type ['point'] is not one of ('area', "),
     (None, [{"type": "spot", "intensity": 1.0}], "emitters[0]: type 'spot' is not one of"),
     (None, [{"type": "point", "intensity": 1.0}], "emitters[0]: point needs its 'position'"),
     (None, [{"type": "directional", "irradiance": 1.0, "direction": [0, 0, 0]}],
@@ -410,6 +414,15 @@ def test_a_seed_fixes_the_image(suite_device):
      "materials[0]['ext_ior'] must be a finite number > 0"),
     ([{"type": "plastic", "int_ior": 0.0}], None,
      "materials[0]['int_ior'] must be a finite number > 0"),
+    # past what float32's Fresnel terms hold: such metals and coatings rendered black
+    ([{"type": "conductor", "eta": 4e9, "k": 4e9}], None,
+     "materials[0]['eta'] must be a finite number >= 0 and <= 2.14748e+09, got 4000000000.0"),
+    ([{"type": "roughconductor", "eta": 1.0, "k": [1.0, 3e9, 1.0]}], None,
+     "materials[0]['k'][1] must be a finite number >= 0 and <= 2.14748e+09"),
+    ([{"type": "roughplastic", "int_ior": 1e-20}], None,
+     "materials[0]: int_ior / ext_ior = 1e-20 / 1.00028 = 1e-20, outside [1e-06, 1e+06]"),
+    ([{"type": "dielectric", "int_ior": 1.0, "ext_ior": 2e6}], None,
+     "materials[0]: int_ior / ext_ior = 1 / 2e+06 = 5e-07, outside [1e-06, 1e+06]"),
     ([{"type": "roughplastic", "int_ior": 1.2, "ext_ior": 1.2}], None,
      "int_ior and ext_ior are both 1.2: a rough interface needs two different indices"),
     ([{"type": "plastic", "diffuse_reflectance": [0.1, float("nan"), 0.2]}], None,
@@ -474,6 +487,8 @@ def test_bad_materials_and_emitters_are_named(materials, emitters, message, suit
     ({"seed": -1}, "seed must be an integer >= 0"),
     ({"hdr": "yes"}, "hdr must be True or False"),
     ({"rfilter": "tent"}, "rfilter must be one of ('box', 'gaussian')"),
+    ({"rfilter": ["box"]}, "rfilter must be one of ('box', 'gaussian') (Mitsuba's names), got "
+                           "['box']"),
 ])
 def test_bad_path_settings_are_named(options, message, suite_device):
     scene = hlbvh_cl.Scene([sphere(subdivisions=1)], device=suite_device)

@@ -177,3 +177,42 @@ def test_a_smooth_sphere_renders_as_in_mitsuba(file_normals, tmp_path, suite_dev
         off = (np.abs(mean_o - mean_t) > 5 * np.hypot(err_t, err_o) + 0.01 * mean_t).any(-1)
         share = off[lit].mean()
         assert (share > 0.2) if flat_ones else (share < 0.02), (flat_ones, share)
+
+
+def test_normals_of_any_magnitude_shade_alike(suite_device):
+    """Vertex normals need not be unit (Mesh.normals): scaled by 2^70 or
+    2^-80 (exactly, in float32), a mesh's, an emitting mesh's and an
+    instance's normal map (an instance scaled by 2^-70) give the unit
+    normals' image bit for bit, where their squared lengths had left
+    float32's range and the surfaces rendered black."""
+    s = lumpy_sphere()
+    vertices, faces = np.asarray(s.vertices, np.float32), np.asarray(s.faces)
+    normals = vertex_normals(vertices, faces).astype(np.float32)
+    lamp = trimesh.creation.icosphere(subdivisions=1)
+    lamp_vertices = (np.asarray(lamp.vertices) * 0.3 + [0.0, 2.0, 1.0]).astype(np.float32)
+    lamp_normals = vertex_normals(lamp_vertices, np.asarray(lamp.faces)).astype(np.float32)
+    camera = hlbvh_cl.Camera(eye=(0.3, 0.4, 3.2), target=(0, 0, 0), fov_deg=40)
+    emitters = [{"type": "area", "mesh": 1, "radiance": 4.0},
+                {"type": "constant", "radiance": 0.2}]
+    materials = [{"type": "roughplastic", "alpha": 0.2}, {"type": "diffuse"}]
+
+    def render(scale, instance_scale=1.0):
+        meshes = [hlbvh_cl.Mesh(vertices, faces, normals=normals * np.float32(scale)),
+                  hlbvh_cl.Mesh(lamp_vertices, lamp.faces,
+                                normals=lamp_normals * np.float32(scale))]
+        maps = [(k, np.hstack([np.eye(3) * instance_scale, np.zeros((3, 1))])) for k in (0, 1)]
+        scene = hlbvh_cl.Scene(meshes, device=suite_device,
+                               instances=None if instance_scale == 1.0 else maps)
+        eye = np.asarray(camera.eye) * instance_scale
+        view = hlbvh_cl.Camera(eye=eye, target=(0, 0, 0), fov_deg=40)
+        return hlbvh_cl.Renderer(scene, materials=materials, emitters=emitters).render(
+            view, 24, 18, shading="path", spp=4, max_depth=4, hdr=True)
+
+    unit = render(1.0)
+    assert unit.mean() > 0.05
+    for scale in (2.0 ** 70, 2.0 ** -80):
+        np.testing.assert_array_equal(render(scale), unit, err_msg=f"normals x {scale:g}")
+    # an instance's map is the inverse transpose: 2^70 here; against a scale
+    # it steadies as it is (2^-8), up to how the paths' bits differ
+    small, near = render(1.0, instance_scale=2.0 ** -70), render(1.0, instance_scale=2.0 ** -8)
+    assert abs(small.mean() - near.mean()) < 0.005 and np.abs(small - near).max() < 0.05

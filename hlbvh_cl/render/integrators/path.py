@@ -102,6 +102,27 @@ LIGHT_POINT, LIGHT_DIRECTIONAL = 0, 1
 DEPTH_STAGES = ("closest", "shade", "occluded", "resolve")
 
 
+#: Directions the kernels normalise in float32 (shading normals, the
+#: instances' normal maps) keep their largest |component| within
+#: [1 / STEADY, STEADY]: a mesh's normals of 1e20 (a scene file's scale
+#: 1e-20 maps them so) had squared lengths past float32's range, and the
+#: surface rendered black.
+STEADY = 2.0 ** 16
+
+
+def steadied(values, axis=None) -> np.ndarray:
+    """float64 ``values``, each slice along ``axis`` (all at once for None)
+    times the power of two that brings its largest |component| near 1,
+    where that lies outside [1 / STEADY, STEADY]; else as they are.  A power
+    of two scales every float32 operation of the kernels' interpolation and
+    normalisation exactly, so the directions they give are the same bits."""
+    values = np.array(values, np.float64)
+    largest = np.abs(values).max(axis=axis, keepdims=True, initial=0.0)
+    exponent = np.frexp(largest)[1]
+    steady = (largest == 0) | ((1.0 / STEADY <= largest) & (largest <= STEADY))
+    return values * np.ldexp(1.0, np.where(steady, 0, -exponent))
+
+
 def check_light_density(mesh: int, pdf: float, area: float, scale: float) -> None:
     """Refuses an area light (of `area`, the user's units) whose density per
     unit area in the tree's frame float32 cannot hold: a light far smaller
@@ -145,8 +166,9 @@ def light_tables(look: Look, scale: float, bounds_lo, bounds_hi) -> dict:
             keep = area > 0
             vertices.append(triangles[keep].reshape(-1, 9))
             smooth = look.emissive_normals.get(mesh)
+            # each triangle's corners alone are interpolated (render/lights.h)
             normals.append(np.zeros((int(keep.sum()), 9)) if smooth is None
-                           else np.asarray(smooth)[keep].reshape(-1, 9))
+                           else steadied(np.asarray(smooth)[keep].reshape(-1, 9), axis=1))
         areas[mesh] = float(area.sum())
         weights.append(area[keep] * luminance(radiance))
         owners.append(np.full(int(keep.sum()), mesh, np.int32))
@@ -219,7 +241,7 @@ def shading_tables(meshes) -> dict:
             continue
         bases[k] = triangles
         faces.append(np.asarray(mesh.faces, np.int64) + vertices)
-        normals.append(mesh.normals)
+        normals.append(steadied(mesh.normals))  # one factor: a mesh's are interpolated together
         triangles += mesh.triangle_count
         vertices += mesh.vertex_count
     if vertices >= 2 ** 32 or triangles >= 2 ** 31:
@@ -370,7 +392,7 @@ class Path(Integrator):
         tables["materials"]["shading_base"] = -1
         tables["materials"]["shading_base"][:len(shading["bases"])] = shading["bases"]
         maps = np.zeros((0, 9)) if look.instance_maps is None else \
-            np.asarray(look.instance_maps).reshape(-1, 9)
+            steadied(np.asarray(look.instance_maps).reshape(-1, 9), axis=1)
         tables["instance_maps"] = maps.astype(np.float32)
         tables["materials"], tables["instance_materials"] = instance_materials(
             tables["materials"], look)
