@@ -483,6 +483,9 @@ def test_more_vertices_than_int32_indices_reach_are_refused(monkeypatch, meshes)
     ({"ao_distance": -1.0}, ValueError, "ao_distance"),
     ({"ao_distance": float("nan")}, ValueError, "ao_distance"),
     ({"shadows": "yes"}, TypeError, "shadows"),
+    # past float32, which the kernels take it in (an overflow warning before)
+    ({"ao_distance": 1e300}, ValueError, r"ao_distance must be a finite number > 0 and <= 3.40282e\+38"),
+    ({"progress": "x"}, TypeError, "progress must be True or False, got str"),
 ])
 def test_bad_render_arguments_are_named(scene, renderer, kwargs, error, words):
     arguments = {"camera": CAMERA, "width": 8, "height": 6, **kwargs}
@@ -497,6 +500,10 @@ def test_bad_colors_and_light_are_named(scene, renderer):
             renderer.render(CAMERA, 8, 6)
         renderer.colors = [COLORS[0], (0.5, 1.5, 0.5), COLORS[2]]
         with pytest.raises(ValueError, match=r"colors\[1\]"):
+            renderer.render(CAMERA, 8, 6)
+        renderer.colors = [COLORS[0], COLORS[1], (True, False, True)]
+        with pytest.raises(TypeError, match=r"colors\[2\] = \(True, False, True\): expected 3 "
+                                            "numbers in 0..1 .RGB., not booleans"):
             renderer.render(CAMERA, 8, 6)
         renderer.colors = COLORS
         renderer.light = "sun"

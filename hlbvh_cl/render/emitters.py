@@ -103,7 +103,8 @@ def check_emitters(emitters, mesh_count: int, names=None) -> Emitters:
             where = "position" if kind == "point" else "direction"
             if where not in spec:
                 raise ValueError(f"{name}: {kind} needs its {where!r}")
-            vector = inputs.vector3(f"{name}[{where!r}]", spec[where])
+            largest = float(np.finfo(np.float32).max)  # the kernels' float32
+            vector = inputs.vector3(f"{name}[{where!r}]", spec[where], -largest, largest)
             if kind == "directional":
                 length = float(np.linalg.norm(vector))
                 if not length > 0:

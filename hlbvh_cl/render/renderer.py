@@ -527,6 +527,8 @@ class Renderer:
             raise TypeError(f"hdr must be True or False, got {type(hdr).__name__}")
         if not isinstance(aovs, (bool, np.bool_)):
             raise TypeError(f"aovs must be True or False, got {type(aovs).__name__}")
+        if not isinstance(progress, (bool, np.bool_)):
+            raise TypeError(f"progress must be True or False, got {type(progress).__name__}")
         if aovs and settings.shading != "path":
             raise ValueError(f"aovs=True needs shading='path' (the AOVs are the path "
                              f"integrator's), got shading={settings.shading!r}")
@@ -534,7 +536,7 @@ class Renderer:
             look = self.look()
             if self._pipeline is None:
                 self._pipeline = Pipeline(built.runtime)  # its own queries and buffers
-            return self._pipeline.render(built.tree, settings, look, progress=progress,
+            return self._pipeline.render(built.tree, settings, look, progress=bool(progress),
                                          hdr=bool(hdr), budget=time_budget, aovs=bool(aovs))
 
     def look(self) -> Look:

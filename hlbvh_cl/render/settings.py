@@ -48,6 +48,9 @@ def check_colors(colors, geometry_count: int) -> np.ndarray:
                          "sphere (geom_id order)")
     out = np.empty((geometry_count, 3), np.float32)
     for i, color in enumerate(colors):
+        if any(isinstance(c, (bool, np.bool_)) for c in np.ravel(np.asarray(color, object))):
+            raise TypeError(f"colors[{i}] = {color!r}: expected 3 numbers in 0..1 (RGB), "
+                            "not booleans")
         try:
             rgb = np.asarray(color, dtype=np.float64)
         except (ValueError, TypeError):
@@ -111,7 +114,8 @@ class RenderSettings:
         if not isinstance(shadows, (bool, np.bool_)):
             raise TypeError(f"shadows must be True or False, got {type(shadows).__name__}")
         if ao_distance is not None:
-            ao_distance = inputs.number("ao_distance", ao_distance, 0.0, low_open=True)
+            ao_distance = inputs.number("ao_distance", ao_distance, 0.0,
+                                        float(np.finfo(np.float32).max), low_open=True)
         if not isinstance(rfilter, str) or rfilter not in FILTERS:
             raise ValueError(f"rfilter must be one of {tuple(FILTERS)} (Mitsuba's names), got "
                              f"{rfilter!r}")

@@ -385,6 +385,8 @@ def test_a_seed_fixes_the_image(suite_device):
     (None, [{"type": ["point"]}], "emitters[0]: type ['point'] is not one of ('area', "),
     (None, [{"type": "spot", "intensity": 1.0}], "emitters[0]: type 'spot' is not one of"),
     (None, [{"type": "point", "intensity": 1.0}], "emitters[0]: point needs its 'position'"),
+    (None, [{"type": "point", "intensity": 1.0, "position": [0, 0, 1e300]}],
+     "emitters[0]['position'][2] must be a finite number >= -3.40282e+38 and <= 3.40282e+38"),
     (None, [{"type": "directional", "irradiance": 1.0, "direction": [0, 0, 0]}],
      "emitters[0]['direction'] is the zero vector"),
     ([{"type": "conductor", "material": "Gold"}], None,
