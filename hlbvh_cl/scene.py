@@ -445,12 +445,15 @@ class Scene:
                 self._two_level.transforms[ids] = maps
             self._change(apply, lambda: setattr(self._two_level, "transforms", previous))
 
-    def update_vertices(self, geom_id: int, vertices) -> None:
+    def update_vertices(self, geom_id: int, vertices, normals=None) -> None:
         """Replace mesh ``geom_id``'s vertex positions (same count) and refit
         the tree's boxes on the device; the topology is kept, and with it
         stats.sah_cost (of the tree as built).  (Unless the move takes the
         scene's largest coordinate across 2^24 or 2^-24 from the frame it was
-        built in: then it is rebuilt in a new frame, hlbvh_cl.core.frame.)"""
+        built in: then it is rebuilt in a new frame, hlbvh_cl.core.frame.)
+        ``normals``: the mesh's new per-vertex shading normals (as Mesh
+        takes them); None keeps those the mesh was given, and computes them
+        anew from the moved vertices where it had none (Mesh.normals)."""
         geom_id = inputs.integer("geom_id", geom_id)
         if not 0 <= geom_id < len(self.meshes):
             raise ValueError(f"geom_id {geom_id} is out of range: the scene has "
@@ -460,7 +463,10 @@ class Scene:
         if len(positions) != old.vertex_count:
             raise ValueError(f"vertices has {len(positions)} rows but mesh {geom_id} has "
                              f"{old.vertex_count} vertices; update_vertices keeps the topology")
-        moved = Mesh(positions, old.faces, name=old.name, face_normals=old.face_normals)
+        if normals is None and old.has_file_normals:
+            normals = old.normals  # given normals stay the caller's (computed ones follow)
+        moved = Mesh(positions, old.faces, name=old.name, normals=normals,
+                     face_normals=old.face_normals)
         rt = self._runtime
         started = time.perf_counter()
         # one lock throughout: a pickle between dropping the old content's

@@ -47,10 +47,15 @@ class SceneSpec:
              compact: bool = False) -> "SceneSpec":
         digest = hashlib.blake2b(digest_size=20)
         for mesh in meshes:
-            for array in (mesh.vertices, mesh.faces):
+            # the shading normals too, given or not, and face_normals: two
+            # scenes of one geometry shaded otherwise are two scenes (the
+            # cache had handed back the first for the second); computed
+            # normals follow from the arrays, and are not computed here
+            given = mesh.has_file_normals
+            for array in (mesh.vertices, mesh.faces) + ((mesh.normals,) if given else ()):
                 digest.update(str(array.shape).encode())
                 digest.update(np.ascontiguousarray(array).data)
-            digest.update(repr(mesh.name).encode())
+            digest.update(repr((mesh.name, given, mesh.face_normals)).encode())
         for part in ((instances or ()) + ((masks,) if masks is not None else ())
                      + ((spheres,) if spheres is not None else ())):
             digest.update(str(part.shape).encode())

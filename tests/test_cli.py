@@ -157,9 +157,21 @@ def test_a_path_traced_render_names_its_rays(tmp_path, capsys, suite_device):
 
 
 def test_a_file_neither_toml_nor_mesh_says_what_is_expected(tmp_path, capsys):
+    """Binary or text, a file of another suffix that is not TOML is named
+    by its suffix and the formats taken (a .gltf mesh had been reported as
+    a TOML syntax error); without a suffix, as not TOML."""
     binary = tmp_path / "scan.bin"
     binary.write_bytes(bytes([0xF3, 0x00, 0xFF, 0x80]) * 64)
-    assert main(["render", str(binary), "-o", str(tmp_path / "x.png")]) == 2
+    gltf = tmp_path / "box.gltf"
+    gltf.write_text('{"asset": {"version": "2.0"}, "meshes": []}')
+    for path in (binary, gltf):
+        assert main(["render", str(path), "-o", str(tmp_path / "x.png")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert f"a {path.suffix} file is neither a scene file (.toml, .xml) nor a mesh file " \
+               "this reader takes (.ply, .obj" in err and "\n" not in err, err
+    bare = tmp_path / "scan"
+    bare.write_bytes(binary.read_bytes())
+    assert main(["render", str(bare), "-o", str(tmp_path / "x.png")]) == 2
     err = capsys.readouterr().err.strip()
     assert "not UTF-8 text, so not a TOML scene file (expected a .toml scene file, or a mesh " \
            "file: .ply, .obj" in err and "\n" not in err

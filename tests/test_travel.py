@@ -85,6 +85,41 @@ def test_a_moved_scene_travels_as_moved(suite_device):
     np.testing.assert_array_equal(back.transforms, instanced.transforms)
 
 
+def test_scenes_of_one_geometry_shaded_otherwise_travel_apart(suite_device):
+    """Given normals and face_normals are content: a scene differing only
+    in them pickles under a key of its own (the cache had handed back the
+    first scene restored for the second), and keeps them through a pickle
+    and through update_vertices (which had dropped given normals)."""
+    travel.clear()
+    sphere = _sphere()
+    tilted = np.tile(np.float32([0.0, 0.6, 0.8]), (sphere.vertex_count, 1))
+    variants = {"computed": hlbvh_cl.Mesh(sphere.vertices, sphere.faces, name="sphere"),
+                "face": hlbvh_cl.Mesh(sphere.vertices, sphere.faces, name="sphere",
+                                      face_normals=True),
+                "given": hlbvh_cl.Mesh(sphere.vertices, sphere.faces, name="sphere",
+                                       normals=tilted)}
+    scenes = {k: hlbvh_cl.Scene([m], device=suite_device) for k, m in variants.items()}
+    backs = {k: pickle.loads(pickle.dumps(s)) for k, s in scenes.items()}
+    assert travel.cached_count() == 3
+    for kind, back in backs.items():
+        mesh, original = back.meshes[0], variants[kind]
+        assert (mesh.face_normals, mesh.has_file_normals) == \
+            (original.face_normals, original.has_file_normals), kind
+        np.testing.assert_array_equal(mesh.normals, original.normals, err_msg=kind)
+    given = scenes["given"]
+    given.update_vertices(0, given.meshes[0].vertices)
+    assert given.meshes[0].has_file_normals
+    np.testing.assert_array_equal(given.meshes[0].normals, tilted)
+    given.update_vertices(0, given.meshes[0].vertices * np.float32(2), normals=-tilted)
+    np.testing.assert_array_equal(given.meshes[0].normals, -tilted)
+    computed = scenes["computed"]
+    moved = computed.meshes[0].vertices * np.float32([1.0, 2.0, 1.0])
+    computed.update_vertices(0, moved)  # computed normals follow the vertices
+    np.testing.assert_array_equal(computed.meshes[0].normals,
+                                  hlbvh_cl.Mesh(moved, sphere.faces).normals)
+    travel.clear()
+
+
 def _down(scene):
     """t of a ray straight down the z axis onto the scene's first mesh."""
     return float(scene.intersect([0.0, 0.0, 5.0], [0.0, 0.0, -1.0]).t)

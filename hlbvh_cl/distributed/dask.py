@@ -30,6 +30,7 @@ index in the whole array: a chunk's error is renamed from the chunk's index.
 """
 from __future__ import annotations
 
+import os
 import re
 import sys
 import threading
@@ -141,9 +142,16 @@ def _task_scene(spec: travel.SceneSpec) -> Scene:
 
 
 def _current_client(client=None):
-    """The distributed client to use: the given one, else the default one
-    if distributed is in use, else None (dask's local schedulers)."""
-    if client is not None or "distributed" not in sys.modules:
+    """The distributed client to use: the given one (a
+    dask.distributed.Client, else a TypeError naming it), else the default
+    one if distributed is in use, else None (dask's local schedulers)."""
+    if client is not None:
+        from distributed import Client
+        if not isinstance(client, Client):
+            raise TypeError(f"client must be a dask.distributed.Client (or None: the default "
+                            f"client, else dask's local threads), got {type(client).__name__}")
+        return client
+    if "distributed" not in sys.modules:
         return client
     from distributed import default_client
     try:
@@ -515,6 +523,52 @@ def _render_frames(shipped, cameras, paths, look, options) -> list:
     return out
 
 
+#: The image formats render_frames writes: EXR holds the linear float32
+#: radiance of hdr=True; the others the 8-bit images (imageio).
+HDR_SUFFIXES, LDR_SUFFIXES = (".exr",), (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+
+def _output_folder(output) -> Path:
+    """render_frames' ``output`` as a folder, made where missing."""
+    if not isinstance(output, (str, os.PathLike)):
+        raise TypeError(f"output must be a folder's path (a str or a pathlib.Path), got "
+                        f"{type(output).__name__}")
+    folder = Path(output)
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+def _frame_files(name, count: int, hdr: bool) -> list[str]:
+    """The file of each of ``count`` frames in the output folder, from
+    render_frames' ``name``; every error before any task renders."""
+    if name is None:
+        name = "frame_{:05d}" + (".exr" if hdr else ".png")
+    if not isinstance(name, str):
+        raise TypeError(f"name must be a file name with {{}} for the frame's index, such as "
+                        f"'frame_{{:05d}}.png', got {type(name).__name__}")
+    try:
+        files = [name.format(k) for k in range(count)]
+    except (IndexError, KeyError, ValueError) as error:
+        raise ValueError(f"name {name!r} must take the frame's index as its one {{}} field "
+                         f"(such as 'frame_{{:05d}}.png'): {type(error).__name__}: "
+                         f"{error}") from None
+    if len(set(files)) < count:
+        raise ValueError(f"name {name!r} gives {count} frames one file: it needs a {{}} field "
+                         f"for the frame's index, such as 'frame_{{:05d}}.png'")
+    for file in files[:1]:
+        if Path(file).name != file:
+            raise ValueError(f"name {name!r} must be a file name in the output folder, "
+                             f"without a folder of its own, got {file!r}")
+        suffix = Path(file).suffix.lower()
+        taken = HDR_SUFFIXES if hdr else LDR_SUFFIXES
+        if suffix not in taken:
+            kind = "hdr=True writes float32 radiance, to" if hdr else \
+                "8-bit images (hdr=False) go to"
+            raise ValueError(f"name {name!r}: {kind} {', '.join(taken)} files, not "
+                             f"{suffix or 'a name without a suffix'}")
+    return files
+
+
 def render_frames(scene: Scene, cameras, width: int, height: int, client=None, output=None, *,
                   colors=None, light=None, shading: str = "diffuse", shadows: bool = True,
                   spp: int = 1, ao_samples: int = AO_SAMPLES, ao_distance: float | None = None,
@@ -530,9 +584,11 @@ def render_frames(scene: Scene, cameras, width: int, height: int, client=None, o
     local threads).  Returns the (height, width, 3) images in the cameras'
     order (uint8, or float32 linear with ``hdr``); with ``output``, a
     folder that the workers can write to, the workers write them there
-    (``name`` formatted with the frame's index; by default
+    (``name`` formatted with the frame's index: a file name with a {}
+    field, .exr with ``hdr``, else .png, .jpg, .bmp or .tif; by default
     frame_00000.png, or .exr with ``hdr``) and their paths are returned
-    instead.  ``progress`` shows dask's progress bar."""
+    instead.  ``progress`` shows dask's progress bar.  Every argument is
+    checked before any task renders."""
     if isinstance(cameras, Camera) or not isinstance(cameras, Sequence):
         raise TypeError(f"cameras must be a list of hlbvh_cl.Camera, got "
                         f"{type(cameras).__name__}")
@@ -543,26 +599,23 @@ def render_frames(scene: Scene, cameras, width: int, height: int, client=None, o
     settings = dict(shading=shading, shadows=shadows, spp=spp, ao_samples=ao_samples,
                     ao_distance=ao_distance, max_depth=max_depth, rr_depth=rr_depth, seed=seed,
                     rfilter=rfilter)
-    for camera in cameras[:1]:  # the errors a local render raises, before any task
-        check_settings(camera, width, height, **settings)
-    if not isinstance(hdr, (bool, np.bool_)):
-        raise TypeError(f"hdr must be True or False, got {type(hdr).__name__}")
+    # the errors a local render raises, before any task (and for no camera)
+    check_settings(cameras[0] if cameras else Camera((0.0, 0.0, 1.0), (0.0, 0.0, 0.0)),
+                   width, height, **settings)
+    for flag, value in (("hdr", hdr), ("progress", progress)):
+        if not isinstance(value, (bool, np.bool_)):
+            raise TypeError(f"{flag} must be True or False, got {type(value).__name__}")
     options = dict(width=width, height=height, hdr=bool(hdr), **settings)
     if not isinstance(scene, Scene):
         raise TypeError(f"scene must be a hlbvh_cl.Scene, got {type(scene).__name__}")
     look = dict(colors=colors, light=light, materials=materials, emitters=emitters,
                 instance_materials=instance_materials)
     Renderer(scene, **look).look()  # its errors, before any task
-    if name is None:
-        name = "frame_{:05d}" + (".exr" if hdr else ".png")
-    if isinstance(frames_per_task, bool) or not isinstance(frames_per_task, int) \
-            or frames_per_task < 1:
-        raise ValueError(f"frames_per_task must be an integer >= 1, got {frames_per_task!r}")
+    frames_per_task = inputs.integer("frames_per_task", frames_per_task, 1)
     paths = [None] * len(cameras)
     if output is not None:
-        folder = Path(output)
-        folder.mkdir(parents=True, exist_ok=True)
-        paths = [str(folder / name.format(k)) for k in range(len(cameras))]
+        folder = _output_folder(output)
+        paths = [str(folder / file) for file in _frame_files(name, len(cameras), bool(hdr))]
     if not cameras:
         return []
     client = _current_client(client)

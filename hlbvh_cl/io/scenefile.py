@@ -407,9 +407,16 @@ def read(path, defaults: dict | None = None,
     try:
         with open(path, "rb") as file:
             data = tomllib.load(file)
-    except tomllib.TOMLDecodeError as error:
-        raise SceneFileError(f"{reader.label}: TOML syntax error: {error}") from None
-    except UnicodeDecodeError as error:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
+        if path.suffix.lower() not in ("", ".toml"):
+            # (a mesh format this reader does not take, a .gltf, was named a TOML error)
+            raise SceneFileError(
+                f"{reader.label}: a {path.suffix} file is neither a scene file (.toml, .xml) "
+                f"nor a mesh file this reader takes "
+                f"({', '.join('.' + e for e in MESH_EXTENSIONS)}, optionally .gz), and it does "
+                f"not read as TOML ({type(error).__name__})") from None
+        if isinstance(error, tomllib.TOMLDecodeError):
+            raise SceneFileError(f"{reader.label}: TOML syntax error: {error}") from None
         raise SceneFileError(f"{reader.label}: not UTF-8 text, so not a TOML scene file (expected "
                              f"a .toml scene file, or a mesh file: "
                              f"{', '.join('.' + e for e in MESH_EXTENSIONS)}): {error}") from None

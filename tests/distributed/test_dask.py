@@ -214,6 +214,44 @@ def test_every_hit_over_empty_chunks_has_the_local_offsets(meshes, suite_device,
 
 # ---------------------------------------------------------------- on a cluster
 
+def test_render_frames_checks_its_files_and_flags_before_any_task(tmp_path, meshes,
+                                                                 suite_device):
+    """Every argument render_frames writes files or runs tasks by is
+    checked before any task renders (a name without {} had written every
+    frame to one file, an .exr name without hdr 8-bit codes as radiance; an
+    empty camera list skipped the checks); numpy integers are integers."""
+    scene = _scene(meshes, suite_device.id)
+    cameras = [hlbvh_cl.Camera((0, 0.1, 0.4), (0, 0.1, 0)), hlbvh_cl.Camera((0.1, 0.1, 0.4),
+                                                                          (0, 0.1, 0))]
+    cases = [
+        (dict(name="same.png"), ValueError, "gives 2 frames one file: it needs a {} field"),
+        (dict(name="e{}.exr"), ValueError, "8-bit images (hdr=False) go to .png, .jpg"),
+        (dict(name="h{}.png", hdr=True), ValueError,
+         "hdr=True writes float32 radiance, to .exr files, not .png"),
+        (dict(name="f{}"), ValueError, "not a name without a suffix"),
+        (dict(name=5), TypeError, "name must be a file name with {} for the frame's index"),
+        (dict(name="{x}.png"), ValueError, "must take the frame's index as its one {} field"),
+        (dict(name=str(tmp_path / "elsewhere_{}.png")), ValueError,
+         "must be a file name in the output folder, without a folder of its own"),
+        (dict(output=3), TypeError, "output must be a folder's path"),
+        (dict(progress="no"), TypeError, "progress must be True or False, got str"),
+        (dict(client="x"), TypeError, "client must be a dask.distributed.Client"),
+    ]
+    folder = tmp_path / "frames"
+    for options, error, words in cases:
+        given = {"output": folder, **options}
+        with pytest.raises(error) as raised:
+            hd.render_frames(scene, cameras, 8, 6, **given)
+        assert words in str(raised.value), (options, raised.value)
+    assert not folder.exists() or not any(folder.iterdir())  # nothing rendered
+    with pytest.raises(ValueError, match="shading must be one of"):
+        hd.render_frames(scene, [], 8, 6, shading="nope")
+    frames = hd.render_frames(scene, cameras, 8, 6, frames_per_task=np.int64(2), progress=False)
+    local = hlbvh_cl.Renderer(scene)
+    for frame, camera in zip(frames, cameras):
+        np.testing.assert_array_equal(frame, local.render(camera, 8, 6))
+
+
 @pytest.fixture(scope="module")
 def client():
     before = _children()
