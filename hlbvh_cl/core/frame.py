@@ -91,7 +91,7 @@ def warn_vanishing(mesh, geom_id: int, scale: float, largest: float, frame_of: s
     the package the build was."""
     lost = vanishing(mesh.vertices, mesh.faces, scale)
     if lost:
-        _warn_user(f"hlbvh_cl: {lost} of mesh {geom_id}'s {mesh.triangle_count} triangles are "
+        warn_user(f"hlbvh_cl: {lost} of mesh {geom_id}'s {mesh.triangle_count} triangles are "
                    f"too small for {frame_of} frame (its coordinates times {describe(scale)}, "
                    f"set by its largest, {largest:.3g}): their normals underflow float32 there, "
                    "so no ray hits them")
@@ -110,13 +110,13 @@ def warn_vanishing_spheres(radii: np.ndarray, first_geom: int, scale: float,
     cannot hold their ray test there."""
     small = np.flatnonzero(np.asarray(radii, np.float64) * scale < SMALLEST_SPHERE)
     if len(small):
-        _warn_user(f"hlbvh_cl: {len(small)} sphere(s) (geom_id {first_geom + small[0]} first) "
+        warn_user(f"hlbvh_cl: {len(small)} sphere(s) (geom_id {first_geom + small[0]} first) "
                    f"are too small for {frame_of} frame (its coordinates times "
                    f"{describe(scale)}, set by its largest, {largest:.3g}): their squared "
                    "radius underflows float32 there, so rays miss them")
 
 
-def _warn_user(message: str) -> None:
+def warn_user(message: str) -> None:
     """A RuntimeWarning that names the user's line that built or changed
     the scene, however deep in the package the build was."""
     package = os.path.dirname(os.path.dirname(os.path.abspath(__file__))) + os.sep

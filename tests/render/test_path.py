@@ -16,6 +16,8 @@ the errors bad materials, emitters and settings get.
 """
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import trimesh
@@ -731,3 +733,54 @@ def test_a_sharp_edge_is_blurred_by_the_filter_and_no_more(rfilter, suite_device
         assert (np.abs(row - expected) <= bound).all(), (row.round(3), expected.round(3))
     blurred = ((expected > 0) & (expected < 1)).sum()
     assert blurred == (1 if rfilter == "box" else 4)
+
+
+def _shadowed_ground(scale, offset, device):
+    """A ground, a square occluder at height 1 and a point light at height 2
+    above it, all times ``scale`` and moved by ``offset``; the light's
+    intensity times scale^2 keeps the ground's irradiance."""
+    def quad(centre, u, v):
+        c, u, v = (np.asarray(a, np.float64) for a in (centre, u, v))
+        return np.array([c - u - v, c + u - v, c + u + v, c - u + v]) * scale + offset
+    faces = [[0, 1, 2], [0, 2, 3]]
+    meshes = [hlbvh_cl.Mesh(quad((0, 0, 0), (0, 0, 2), (2, 0, 0)), faces),
+              hlbvh_cl.Mesh(quad((0, 1, 0), (0, 0, 0.5), (0.5, 0, 0)), faces)]
+    scene = hlbvh_cl.Scene(meshes, device=device)
+    light = (np.array([0.0, 2.0, 0.0]) * scale + offset).tolist()
+    renderer = hlbvh_cl.Renderer(scene, emitters=[{"type": "point", "position": light,
+                                                   "intensity": 4.0 * scale * scale}])
+    camera = hlbvh_cl.Camera(tuple(np.array([0.0, 4.0, 4.0]) * scale + offset),
+                             tuple(np.zeros(3) + offset))
+    return renderer, camera
+
+
+def test_a_small_scene_keeps_its_shadows(suite_device):
+    """A scene far smaller than the user's unit casts the shadows the unit
+    scene does: new rays start RayEpsilon of its largest coordinate off a
+    surface rather than Mitsuba's 8.9e-5 of the unit (integrators/path.py's
+    spawn_floor), which had started them past their occluders (at 1e-5 the
+    whole shadow was gone).  Scenes of the unit or more keep Mitsuba's."""
+    renderer, camera = _shadowed_ground(1.0, 0.0, suite_device)
+    unit = renderer.render(camera, 32, 24, shading="path", spp=1, max_depth=2, hdr=True)
+    ground = renderer.scene.intersect(*camera.rays(32, 24)).geom_id.reshape(24, 32) == 0
+    shadow = ground & (unit.max(axis=-1) == 0)  # the ground the occluder hides from the lamp
+    assert shadow.sum() > 30 and (unit[ground & ~shadow] > 0).all()
+    for scale in (1e-3, 1e-4, 1e-5):
+        renderer, camera = _shadowed_ground(scale, 0.0, suite_device)
+        small = renderer.render(camera, 32, 24, shading="path", spp=1, max_depth=2, hdr=True)
+        np.testing.assert_allclose(small, unit, rtol=1e-3, atol=1e-4, err_msg=f"scale {scale}")
+
+
+def test_a_scene_far_from_the_origin_for_its_size_is_warned_of(suite_device):
+    """Far out, the offset of new rays (RayEpsilon of the coordinates, as
+    Mitsuba's) passes the scene's own details: a warning says so; a scene
+    about the origin gets none."""
+    renderer, camera = _shadowed_ground(1.0, 0.0, suite_device)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        renderer.render(camera, 8, 6, shading="path", spp=1, hdr=True)
+    renderer, camera = _shadowed_ground(1.0, 1e4, suite_device)
+    with pytest.warns(RuntimeWarning, match=r"the scene lies far from the origin for its size "
+                                            r"\(coordinates up to 1e\+04, [0-9.]+ across\): "
+                                            r"path-traced rays start up to 0.894 off"):
+        renderer.render(camera, 8, 6, shading="path", spp=1, hdr=True)

@@ -60,6 +60,7 @@ import numpy as np
 import pyopencl as cl
 
 from ...core import layout
+from ...core.frame import warn_user
 from ...core.paths import kernel_of
 from ...device.runtime import Runtime, fold_events
 from ..emitters import luminance
@@ -121,6 +122,45 @@ def steadied(values, axis=None) -> np.ndarray:
     exponent = np.frexp(largest)[1]
     steady = (largest == 0) | ((1.0 / STEADY <= largest) & (largest <= STEADY))
     return values * np.ldexp(1.0, np.where(steady, 0, -exponent))
+
+
+def spawn_floor(tree) -> float:
+    """PathParams.ray_offset: the constant part of how far a new ray starts
+    off the surface (path.cl's spawn_offset), in the tree's frame: Mitsuba
+    3's RayEpsilon times 1 in the user's units, as its offset_p takes it, or
+    times the scene's largest coordinate where that is smaller.  Mitsuba's
+    1 alone is 8.9e-5 of the user's units whatever the scene's size: a
+    scene 1e-4 across lost its shadows (its rays started past their
+    occluders), one 1e-5 across all of them.  A scene of 1 or more, which
+    the renders against Mitsuba are, keeps Mitsuba's offset; a small object
+    beside a large ground keeps it too (the largest coordinate is the
+    ground's)."""
+    lo, hi = np.asarray(tree.bounds_lo, np.float64), np.asarray(tree.bounds_hi, np.float64)
+    largest = float(max(np.abs(lo).max(), np.abs(hi).max()))  # in the frame
+    return RAY_EPSILON * min(tree.scale, largest) if largest > 0 else RAY_EPSILON * tree.scale
+
+
+#: A scene whose spawn offset (Mitsuba's RayEpsilon of its coordinates)
+#: passes this fraction of its extent is warned of (warn_far_from_origin).
+FAR_FRACTION = 1e-3
+
+
+def warn_far_from_origin(tree) -> None:
+    """A RuntimeWarning where the scene lies so far from the origin for its
+    size that the offset of a new ray off a surface there (spawn_offset:
+    RayEpsilon of the point's largest coordinate, as Mitsuba's offset_p,
+    which float32's rounding there asks for in part) passes FAR_FRACTION
+    of the scene's extent: shadows and contacts finer than it are lost
+    there, as in Mitsuba (a unit scene 1e4 from the origin lost most of a
+    shadow)."""
+    lo, hi = (np.asarray(b, np.float64) / tree.scale for b in (tree.bounds_lo, tree.bounds_hi))
+    largest, extent = float(max(np.abs(lo).max(), np.abs(hi).max())), float(np.linalg.norm(hi - lo))
+    offset = RAY_EPSILON * (min(1.0, largest) + largest)  # spawn_floor's, and x's term
+    if extent > 0 and offset > FAR_FRACTION * extent:
+        warn_user(f"hlbvh_cl: the scene lies far from the origin for its size (coordinates up "
+                  f"to {largest:.3g}, {extent:.3g} across): path-traced rays start up to "
+                  f"{offset:.3g} off a surface there (Mitsuba's RayEpsilon rule), so shadows "
+                  "and contacts finer than that are lost; move the scene nearer the origin")
 
 
 def check_light_density(mesh: int, pdf: float, area: float, scale: float) -> None:
@@ -402,8 +442,8 @@ class Path(Integrator):
         self._tables["shading_faces"] = shading["faces"]
         self._tables["shading_normals"] = shading["normals"]
         params = light_params(look, tables)
-        # the user's 1 in the frame, no more than the frame's (path.cl's spawn_offset)
-        params["ray_offset"] = RAY_EPSILON * min(tree.scale, 1.0)
+        params["ray_offset"] = spawn_floor(tree)
+        warn_far_from_origin(tree)
         params["max_depth"] = settings.max_depth
         params["rr_depth"] = settings.rr_depth
         params["instance_maps"] = len(maps)

@@ -122,10 +122,11 @@ inline float3 radiance_before(__global const PathState* s, bool first)
 
 /* How far off the surface at x a new ray starts: Mitsuba 3's
  * Interaction::offset_p, (1 + max |x_i|) RayEpsilon, along the geometric
- * normal, with the 1 in the user's units where the tree's frame is theirs or
- * smaller (params->ray_offset: RayEpsilon times min(scale, 1)), so that a
- * large ground or backdrop does not lift every ray of a small object past
- * its lights, as an offset from the scene's size did.  Mitsuba takes x from
+ * normal, with the 1 in the user's units, or the scene's largest coordinate
+ * where that is smaller (params->ray_offset: integrators/path.py's
+ * spawn_floor), so that neither a scene smaller than the user's unit loses
+ * its shadows nor a large ground or backdrop lifts every ray of a small
+ * object past its lights, as an offset from the scene's size did.  Mitsuba takes x from
  * the triangle's barycentrics; here x = o + t d, which is off by a few ulps
  * of |o| and of the distance t |d| as well (a bounce 5e3 long onto a unit
  * sphere): X_ULPS of those are added. */

@@ -72,7 +72,9 @@ typedef struct {
     float environment_probability;  /* the chance a light sample goes to the environment
                                      * map (0 for a constant environment: BSDF sampling
                                      * alone reaches it, integrators/path.py) */
-    float ray_offset;               /* RAY_EPSILON times min(the frame's scale, 1) */
+    float ray_offset;               /* RAY_EPSILON times 1 in the user's units, or the
+                                     * largest coordinate where smaller (path.py's
+                                     * spawn_floor), in the frame */
     uint light_triangles;           /* emissive triangles in light_cdf, its first entries */
     uint delta_lights;              /* DeltaLight records */
     int max_depth;                  /* Mitsuba's: the longest path, in segments; <= 0: no limit */
