@@ -672,7 +672,7 @@ class Engine:
         stage = self.stage
         sizes = _run_bytes(batch, rows, self.most)
         if segments is not None:
-            sizes["segments"] = segments.itemsize * (min(batch.count, batch.most or self.most) + 1)
+            sizes["segments"] = segments.itemsize * (_largest_run(batch, self.most) + 1)
         stage.reserve(sizes)
         turns = itertools.count()
         given = dict(rows) if segments is None else {**rows, "segments": segments}
@@ -738,9 +738,16 @@ def _no_copies(_) -> list:
     return []
 
 
+def _largest_run(batch: Batch, most: int) -> int:
+    """The most items a run of the batch takes (_runs): its launches' limit,
+    but a whole granule at least (a limit below the rays a work-item takes
+    still launches one work-item's), and no more than the batch."""
+    return min(batch.count, max(batch.granule, batch.most or most))
+
+
 def _run_bytes(batch: Batch, rows: dict, most: int) -> dict[str, int]:
     """The bytes of each input and output of the batch's largest run."""
-    most = min(batch.count, batch.most or most)
+    most = _largest_run(batch, most)
     segments = batch.segments
     slots = most if segments is None else \
         max(batch.max_rows or 0, int(np.diff(segments).max(initial=0)))

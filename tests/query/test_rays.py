@@ -383,6 +383,26 @@ def test_batches_split_into_chunks_equal_one_launch(path):
 
 
 @pytest.mark.parametrize("path", PATHS)
+@pytest.mark.parametrize("most", [1, 15])
+def test_a_launch_limit_below_a_work_item_s_rays_still_launches_one(path, most):
+    """max_rays_per_launch below the rays a work-item takes (16 in a CPU's
+    packets): each launch takes one work-item's rays, and every path sizes
+    its buffers for them (the staging path, on a query's first call, had
+    reserved `most` rows and failed to reshape 16 into them)."""
+    case = scene_case("bunny_small")
+    origins, directions = random_rays(case, 40, seed=15)
+    tree = built.tree(case.scene)
+    whole = RayQuery(built.runtime(case.scene))
+    small = RayQuery(built.runtime(case.scene), max_rays_per_launch=most)
+    small.zero_copy, small.staging = PATHS[path]
+    a, b = (q.intersect(tree, origins, directions) for q in (whole, small))
+    for field in ("t", "prim_id", "geom_id", "u", "v", "normal"):
+        np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+    np.testing.assert_array_equal(whole.occluded(tree, origins, directions),
+                                  small.occluded(tree, origins, directions))
+
+
+@pytest.mark.parametrize("path", PATHS)
 def test_launches_sized_by_their_cost_equal_one_launch(path, monkeypatch):
     """Launches of varying sizes (engine.LaunchSizes: a small first one, then
     what each costs allows, here a few rays) give the results of one."""
