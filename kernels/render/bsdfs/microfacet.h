@@ -29,13 +29,21 @@ inline float3 local_frame(float3 n, float3 wo, float3* b1, float3* b2)
     return to_local(wo, *b1, *b2, n);
 }
 
-/* D(m) = alpha^2 / (pi (cos^2 (alpha^2 - 1) + 1)^2) */
+/* The squared sine of unit v's angle to the normal, from its tangent
+ * components: 1 - cos^2 cancels to nothing or to 0 near the normal in
+ * float32, where a smooth lobe's D peaks (at alpha 1e-4, GGX's D went to
+ * inf and its samples' weights to NaN).  Mitsuba forms its D from them
+ * too. */
+inline float sin2_of(float3 v) { return v.x * v.x + v.y * v.y; }
+
+/* D(m) = alpha^2 / (pi (cos^2 (alpha^2 - 1) + 1)^2), with the
+ * denominator's 1 - cos^2 as sin^2 (sin2_of). */
 inline float ggx_d(float alpha, float3 m)
 {
     if (!(m.z > 0.0f))
         return 0.0f;
     float a2 = alpha * alpha;
-    float denominator = m.z * m.z * (a2 - 1.0f) + 1.0f;
+    float denominator = sin2_of(m) + m.z * m.z * a2;
     return a2 * INV_PI / (denominator * denominator);
 }
 
@@ -44,8 +52,7 @@ inline float ggx_g1(float alpha, float3 v, float3 m)
 {
     if (!(dot(v, m) * v.z > 0.0f))
         return 0.0f;
-    float cos2 = v.z * v.z;
-    float tan2 = (1.0f - cos2) / cos2;
+    float tan2 = sin2_of(v) / (v.z * v.z);
     return 2.0f / (1.0f + SQRT(1.0f + alpha * alpha * tan2));
 }
 
@@ -73,7 +80,7 @@ inline float beckmann_d(float alpha, float3 m)
     if (!(m.z > 0.0f))
         return 0.0f;
     float cos2 = m.z * m.z, a2 = alpha * alpha;
-    float d = exp(-(1.0f - cos2) / (cos2 * a2)) * INV_PI / (a2 * cos2 * cos2);
+    float d = exp(-sin2_of(m) / (cos2 * a2)) * INV_PI / (a2 * cos2 * cos2);
     return d * m.z > 1e-20f ? d : 0.0f;  /* as Mitsuba: no denormal tails */
 }
 
@@ -83,7 +90,7 @@ inline float beckmann_g1(float alpha, float3 v, float3 m)
 {
     if (!(dot(v, m) * v.z > 0.0f))
         return 0.0f;
-    float tan2 = (1.0f - v.z * v.z) / (v.z * v.z);
+    float tan2 = sin2_of(v) / (v.z * v.z);
     if (!(tan2 > 0.0f))
         return 1.0f;
     float a = 1.0f / (alpha * SQRT(tan2));
