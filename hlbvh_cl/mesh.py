@@ -64,6 +64,7 @@ class Mesh:
             vertices, faces = _mesh_arrays(vertices)
         self._vertices = inputs.mesh_vertices(vertices)
         self._faces = inputs.mesh_faces(faces, len(self._vertices))
+        inputs.check_mesh_scale(vertices, self._faces)
         self.name = name
         self._bounds: tuple[np.ndarray, np.ndarray] | None = None
         self._area: float | None = None
@@ -157,21 +158,33 @@ class Mesh:
         it shades as in Mitsuba.  A file with several meshes (a GLB
         scene, an OBJ with several objects) becomes one mesh, with each part's
         transform applied.  Vertex normals the file stores (a PLY's nx, ny,
-        nz; an OBJ's vn) become ``normals`` where every part has them; else
+        nz; an OBJ's vn) become ``normals``, normalised as Mitsuba's
+        loaders normalise them, where every part has them; else
         they are computed (vertex_normals).
         """
         path = Path(os.fspath(path))
-        file_type, gzipped = _file_type(path)
         if path.is_dir():
             raise ValueError(f"{path}: is a folder, not a mesh file")
+        file_type, gzipped = _file_type(path)
         if not path.is_file():
             raise FileNotFoundError(errno.ENOENT, "mesh file not found", str(path))
         vertices, faces, normals = _read_with_trimesh(path, file_type, gzipped)
         name = path.name[: -len(".gz")] if gzipped else path.name
         try:
-            return cls(vertices, faces, name=name.rsplit(".", 1)[0], normals=normals)
+            return cls(vertices, faces, name=name.rsplit(".", 1)[0],
+                       normals=None if normals is None else unit_rows(normals))
         except (ValueError, TypeError) as error:
             raise ValueError(f"{path}: {error}") from None
+
+
+def unit_rows(normals) -> np.ndarray:
+    """float64 ``normals`` (N, 3), each divided by its length (a zero row
+    stays zero, for Mesh to refuse): Mitsuba's mesh loaders normalise a
+    file's vertex normals, after to_world, before they are interpolated,
+    so a file's lengths weigh nothing."""
+    rows = np.asarray(normals, np.float64)
+    lengths = np.linalg.norm(rows, axis=1, keepdims=True)
+    return np.divide(rows, lengths, out=np.zeros_like(rows), where=lengths > 0)
 
 
 def vertex_normals(vertices, faces) -> np.ndarray:

@@ -239,16 +239,26 @@ def test_vertices_must_be_finite_in_float32(value, words):
         assert word in str(caught.value)
 
 
-def test_a_mesh_below_float32_s_normal_range_is_refused():
+def test_a_mesh_below_float32_s_normal_range_is_refused(suite_device):
     """A float64 mesh whose coordinates are all under float32's smallest
     normal number would round to subnormals or 0 and lose its shape; one
     that reaches the normal range keeps its tiny details as rounding does."""
     with pytest.raises(ValueError) as caught:
         Mesh(QUAD * 1e-50, QUAD_FACES)
-    for word in ("vertices are all below float32's normal range", "vertices[1]", "scale it up"):
+    for word in ("vertices the faces use are all below float32's normal range", "vertices[1]",
+                 "scale it up"):
         assert word in str(caught.value)
     with pytest.raises(ValueError, match="below float32's normal range"):
         Mesh(QUAD * 1e-39, QUAD_FACES)
+    # a vertex no face uses does not save it (it had: the mesh rounded to a
+    # sliver that rays missed, in silence), in a Mesh or a moved one
+    unused = np.vstack([QUAD * 1e-50, [1.0, 1.0, 1.0]])
+    with pytest.raises(ValueError, match=r"normal range \(the largest, vertices\[1\]"):
+        Mesh(unused, QUAD_FACES)
+    scene = hlbvh_cl.Scene([Mesh(np.vstack([QUAD, [1.0, 1.0, 1.0]]), QUAD_FACES)],
+                           device=suite_device)
+    with pytest.raises(ValueError, match="below float32's normal range"):
+        scene.update_vertices(0, unused)
     Mesh(QUAD * 1e-37, QUAD_FACES)  # normal: kept
     mixed = QUAD.copy()
     mixed[:3] *= 1e-50
@@ -282,6 +292,9 @@ def test_missing_file(tmp_path):
     (tmp_path / "folder.ply").mkdir()
     with pytest.raises(ValueError, match=r"folder\.ply: is a folder, not a mesh file"):
         Mesh.load(tmp_path / "folder.ply")
+    (tmp_path / "plain").mkdir()  # no suffix: still a folder, not an unknown format
+    with pytest.raises(ValueError, match=r"plain: is a folder, not a mesh file"):
+        Mesh.load(tmp_path / "plain")
 
 
 @pytest.mark.parametrize("name", ["mesh.xyz", "mesh", "mesh.gz", "mesh.xyz.gz"])

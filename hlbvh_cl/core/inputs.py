@@ -619,18 +619,28 @@ def mesh_vertices(vertices) -> np.ndarray:
         row = _first_row(overflow)
         raise ValueError(f"vertices[{row}] = {array[row].tolist()} overflows float32 "
                          f"(|x| > {np.finfo(np.float32).max:.3g})")
-    if array.dtype.kind == "f":
-        # a mesh whose every coordinate is below float32's normal range would
-        # round to subnormals or 0: its shape lost, it would be missed silently
-        largest = np.abs(array).max(axis=1)
-        row = int(np.argmax(largest))
-        if 0 < largest[row] < np.finfo(np.float32).tiny:
-            raise ValueError(f"vertices are all below float32's normal range (the largest, "
-                             f"vertices[{row}] = {array[row].tolist()}, is under "
-                             f"{np.finfo(np.float32).tiny:.3g}): in float32 the mesh would "
-                             "lose its shape; scale it up")
     converted.flags.writeable = False
     return converted
+
+
+def check_mesh_scale(vertices, faces: np.ndarray) -> None:
+    """Refuses a mesh (``vertices`` as given, ``faces`` checked) whose used
+    coordinates are all below float32's normal range: they round to
+    subnormals or 0, and the mesh, its shape lost, would be missed
+    silently.  The vertices the faces use, as the scene's frame takes them:
+    an unused vertex of 1 had let such a mesh through."""
+    array = as_array("vertices", vertices)
+    if array.dtype.kind != "f" or not len(faces):
+        return
+    used = np.unique(faces)
+    largest = np.abs(array[used]).max(axis=1)
+    at = int(np.argmax(largest))
+    if 0 < largest[at] < np.finfo(np.float32).tiny:
+        row = int(used[at])
+        raise ValueError(f"the vertices the faces use are all below float32's normal range "
+                         f"(the largest, vertices[{row}] = {array[row].tolist()}, is under "
+                         f"{np.finfo(np.float32).tiny:.3g}): in float32 the mesh would lose "
+                         "its shape; scale it up")
 
 
 def mesh_faces(faces, vertex_count: int) -> np.ndarray:

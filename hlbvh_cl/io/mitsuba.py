@@ -63,7 +63,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..mesh import Mesh
+from ..mesh import Mesh, unit_rows
 from ..render.camera import FOV_AXES, MAX_IMAGE_SIDE, Camera, vertical_fov_deg
 from ..render.light import Light
 from ..render.materials import BSDFS, check_material
@@ -90,12 +90,18 @@ _VALUE_TAGS = ("rgb", "float", "integer", "string", "boolean", "point", "vector"
 #: The plugin types read, and the parameters each takes: the BSDFs are
 #: materials.py's (twosided's inner BSDF is an element, not a parameter).
 _BSDFS = {kind: () if kind == "twosided" else params for kind, params in BSDFS.items()}
+#: Mitsuba's sample_visible: its rough BSDFs sample D(m) cos(m) with false.
+#: Ours always sample visible normals; either way the estimate is the same
+#: and only its noise differs, so both values are read.
+_BSDFS.update({kind: params + ("sample_visible",) for kind, params in _BSDFS.items()
+               if "distribution" in params})
 _EMITTERS = {"area": ("radiance",), "point": ("position", "intensity", "to_world"),
              "directional": ("direction", "irradiance", "to_world"), "constant": ("radiance",),
              "envmap": ("filename", "scale", "to_world")}
 _SHAPES = {"ply": ("filename", "face_normals", "to_world", "flip_normals"),
            "obj": ("filename", "face_normals", "to_world", "flip_normals"),
-           "rectangle": ("to_world", "flip_normals"), "cube": ("to_world", "flip_normals"),
+           "rectangle": ("to_world", "face_normals", "flip_normals"),
+           "cube": ("to_world", "face_normals", "flip_normals"),
            "sphere": ("to_world", "center", "radius", "flip_normals")}
 
 #: The value elements each parameter takes, as Mitsuba's properties are
@@ -113,7 +119,7 @@ _TAGS = {**{name: ("integer",) for name in ("max_depth", "rr_depth", "sample_cou
                                        "specular_transmittance", "eta", "k")},
          **{name: ("string",) for name in ("distribution", "material")},
          **{name: _NUMBER + ("string",) for name in ("int_ior", "ext_ior")},
-         "alpha": _NUMBER, "nonlinear": ("boolean",),
+         "alpha": _NUMBER, "nonlinear": ("boolean",), "sample_visible": ("boolean",),
          **{name: ("point", "vector") for name in ("center", "position", "direction")},
          "to_world": ("transform",)}
 
@@ -148,6 +154,7 @@ class _Node:
     attributes: dict
     line: int
     children: list = field(default_factory=list)
+    column: int = 0  # (line, column): where the element starts, in document order
 
     def get(self, key, default=None):
         return self.attributes.get(key, default)
@@ -167,7 +174,8 @@ def _parse(path: Path) -> _Node:
     parser = xml.parsers.expat.ParserCreate()
 
     def start(tag, attributes):
-        node = _Node(tag, dict(attributes), parser.CurrentLineNumber)
+        node = _Node(tag, dict(attributes), parser.CurrentLineNumber,
+                     column=parser.CurrentColumnNumber)
         if len(stack) > MAX_NESTING:
             raise SceneFileError(f"{path}:{node.line}: <{tag}> is nested {len(stack)} elements "
                                  f"deep; this reader takes {MAX_NESTING} at most")
@@ -187,9 +195,10 @@ def _parse(path: Path) -> _Node:
 
 
 def _parsed(kind, text: str):
-    """float(text) or int(text), without Python's digit separators
-    (float("0_5") is 5.0), which Mitsuba does not read as numbers."""
-    if "_" in text:
+    """float(text) or int(text) of what Mitsuba reads as a number: not
+    Python's digit separators (float("0_5") is 5.0), other scripts' digits
+    (int("١٦") is 16) or a signed integer's "+" (Mitsuba refuses "+16")."""
+    if "_" in text or not text.isascii() or (kind is int and text.strip().startswith("+")):
         raise ValueError(text)
     return kind(text)
 
@@ -200,7 +209,7 @@ class _Reader:
         # Mitsuba's: the first <default> of a name holds, from its line on
         # (a use above it is an error), and an override holds everywhere
         self.defaults: dict[str, str] = {}
-        self.default_lines: dict[str, int] = {}
+        self.default_nodes: dict[str, _Node] = {}
         self.ids: dict[str, _Node] = {}
         for node in scene.children:
             if node.tag == "default":
@@ -209,7 +218,7 @@ class _Reader:
                     raise self.error(node, "needs a name and a value attribute")
                 if name not in self.defaults:
                     self.defaults[name] = value
-                    self.default_lines[name] = node.line
+                    self.default_nodes[name] = node
         self.overrides = {name: str(value) for name, value in overrides.items()}
         self.defaults.update(self.overrides)
         self.used: set[str] = set()
@@ -248,9 +257,11 @@ class _Reader:
     def _default(self, node: _Node, name: str) -> str:
         if name not in self.defaults:
             raise self.error(node, f"${name} has no <default name=\"{name}\">")
-        if name not in self.overrides and self.default_lines[name] > node.line:
+        default = self.default_nodes.get(name)
+        if name not in self.overrides and (default.line, default.column) > (node.line,
+                                                                            node.column):
             raise self.error(node, f"${name} is used above its <default name=\"{name}\"> "
-                                   f"(line {self.default_lines[name]})")
+                                   f"(line {default.line})")
         self.used.add(name)
         return self.defaults[name]
 
@@ -275,8 +286,8 @@ class _Reader:
         except ValueError:
             raise self.error(node, f"expected {count} numbers, "
                                    f"got {self.shown(node, key)}") from None
-        if len(values) == 1 and count == 3 and node.tag == "rgb":
-            values *= 3
+        if len(values) == 1 and count == 3 and key == "value":
+            values *= 3  # Mitsuba's: one value for all three (not a lookat's)
         if len(values) != count or not all(math.isfinite(v) for v in values):
             raise self.error(node, f"expected {count} finite numbers, "
                                    f"got {self.shown(node, key)}")
@@ -308,7 +319,10 @@ class _Reader:
         if node.tag in ("point", "vector"):
             if node.get("value") is not None:
                 return self.numbers(node, 3)
-            return [self._coordinate(node, axis, 0.0) for axis in "xyz"]
+            for axis in "xyz":  # Mitsuba's: all three (a step's may be left out)
+                if node.get(axis) is None:
+                    raise self.error(node, f"needs its value, or x, y and z: {axis} is missing")
+            return [self.number(node, axis) for axis in "xyz"]
         if node.tag == "transform":
             return self.transform(node)
         raise self.error(node, "is not a value this reader takes (rgb, float, integer, string, "
@@ -376,7 +390,12 @@ class _Reader:
                                        f"{np.linalg.norm(axis):g}")
             change = _rotation(np.array(axis), self.number(step, "angle"))
         elif step.tag == "matrix":
-            change = np.array(self.numbers(step, 16)).reshape(4, 4)
+            parts = [x for x in re.split(r"[,\s]+", self.text(step).strip()) if x]
+            change = np.eye(4)
+            if len(parts) == 9:  # Mitsuba's 3 x 3 form: the linear part alone
+                change[:3, :3] = np.array(self.numbers(step, 9)).reshape(3, 3)
+            else:
+                change = np.array(self.numbers(step, 16)).reshape(4, 4)
             if not np.array_equal(change[3], [0.0, 0.0, 0.0, 1.0]):
                 raise self.error(step, f"the last row must be 0 0 0 1 (an affine map), got "
                                        f"{' '.join(f'{x:g}' for x in change[3])}")
@@ -695,6 +714,9 @@ def _bsdf(reader: _Reader, node: _Node) -> dict:
         spec = {"type": "twosided", "bsdf": _bsdf(reader, inner[0])}
     else:
         spec = {"type": kind, **reader.parameters(node, _BSDFS[kind])}
+        spec.pop("sample_visible", None)  # (_BSDFS)
+        if isinstance(spec.get("distribution"), str):  # Mitsuba's names in any case
+            spec["distribution"] = spec["distribution"].lower()
     for key in ("int_ior", "ext_ior"):
         if isinstance(spec.get(key), str):
             name = spec[key].lower()
@@ -717,7 +739,7 @@ def _shape(reader: _Reader, node: _Node) -> MeshEntry:
     values = reader.parameters(node, _SHAPES[kind], skip=("bsdf", "ref", "emitter"))
     _one_each(reader, node, ("bsdf", "emitter"))
     if values.get("flip_normals"):
-        raise reader.error(node, "flip_normals is not read")
+        raise reader.error(node, "flip_normals = true is not read (false, Mitsuba's default, is)")
     if kind in ("ply", "obj"):
         if "filename" not in values:
             raise reader.error(node, "needs its filename")
@@ -730,6 +752,11 @@ def _shape(reader: _Reader, node: _Node) -> MeshEntry:
             raise reader.error(node, f"mesh file not found: {file}") from None
         except (ValueError, TypeError) as error:
             raise reader.error(node, str(error)) from None
+        declared = _ply_faces(file) if kind == "ply" else None
+        if declared is not None and mesh.triangle_count > declared:
+            # Mitsuba's ply reads triangles alone ("is this a triangle mesh?!")
+            raise reader.error(node, f"{file.name} has faces of more than 3 corners, which "
+                                     "Mitsuba's ply refuses; triangulate it")
     else:
         mesh = shape_mesh(kind)
     matrix = values.get("to_world", np.eye(4))
@@ -748,7 +775,7 @@ def _shape(reader: _Reader, node: _Node) -> MeshEntry:
     faces = mesh.faces
     # normals go by the inverse transpose; computed ones are computed anew
     # from the placed vertices, as Mitsuba computes them after to_world
-    normals = mesh.normals.astype(np.float64) @ np.linalg.inv(matrix[:3, :3]) \
+    normals = unit_rows(mesh.normals.astype(np.float64) @ np.linalg.inv(matrix[:3, :3])) \
         if mesh.has_file_normals else None
     face_normals = mesh.face_normals or bool(values.get("face_normals", False))
     # A mirror turns the winding inside out, and Mitsuba 3.9.1 keeps it for a
@@ -774,8 +801,24 @@ def _shape(reader: _Reader, node: _Node) -> MeshEntry:
     if kind == "sphere":
         radius = math.sqrt(float(np.trace(matrix[:3, :3].T @ matrix[:3, :3])) / 3)
         sphere = np.array([*matrix[:3, 3], radius], np.float64)
-    return MeshEntry(mesh=placed, color=(0.8, 0.8, 0.8), path=reader.path, material=material
-                     or {"type": "diffuse", "reflectance": 0.5}, emitter=emitter, sphere=sphere)
+    if material is None:  # Mitsuba's: a diffuse of 0.5, or black for an emitter's shape
+        material = {"type": "diffuse", "reflectance": 0.0 if emitter else 0.5}
+    return MeshEntry(mesh=placed, color=(0.8, 0.8, 0.8), path=reader.path, material=material,
+                     emitter=emitter, sphere=sphere)
+
+
+def _ply_faces(path: Path) -> int | None:
+    """The faces a PLY file's header declares (None where it declares
+    none): Mesh.load splits a polygon into triangles, so more triangles
+    than this means polygons."""
+    with open(path, "rb") as file:
+        for line in file:
+            words = line.split()
+            if words[:2] == [b"element", b"face"] and len(words) == 3 and words[2].isdigit():
+                return int(words[2])
+            if words[:1] == [b"end_header"]:
+                break
+    return None
 
 
 #: How far a sphere's to_world may scale its axes apart, relative to the
@@ -820,6 +863,15 @@ def _emitter(reader: _Reader, node: _Node, area: bool = False) -> dict:
         if key in values:
             raise reader.error(node, f"give either its {key} or its to_world, not both "
                                      "(Mitsuba refuses both)")
+        if kind == "directional":
+            # Mitsuba sends its light along to_world's z axis as mapped, not
+            # normalised: a to_world that lengthens it brightens a diffuse
+            # surface by that length, and other BSDFs otherwise
+            length = float(np.linalg.norm(matrix[:3, 2]))
+            if not math.isclose(length, 1.0, rel_tol=1e-5):
+                raise reader.error(node, f"a directional light's to_world must keep its z axis "
+                                         f"unit long (Mitsuba renders the light otherwise), "
+                                         f"got length {length:.6g}")
         values[key] = list(matrix[:3, 3]) if kind == "point" else \
             list(matrix[:3, :3] @ [0.0, 0.0, 1.0])
     # Mitsuba's defaults: a value of 1, a point light at the origin, a

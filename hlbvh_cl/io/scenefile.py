@@ -126,7 +126,7 @@ from pathlib import Path
 import numpy as np
 
 from ..build.instances import check_resolved, check_transforms
-from ..mesh import MESH_EXTENSIONS, Mesh
+from ..mesh import MESH_EXTENSIONS, Mesh, unit_rows
 from ..render.camera import Camera, unit, vertical_fov_deg, view_problem
 from ..render.film import BRIGHTEST
 from ..render.light import Light
@@ -701,13 +701,14 @@ def _load_mesh(reader: _Reader, spec: _MeshSpec, ground_y: float, step) -> MeshE
     points += np.array(spec.translate)
     if spec.place_on_ground:
         points[:, 1] += ground_y - points[used, 1].min()
-    # The file's normals go by the inverse transpose of the linear part
-    # (split cuts new vertices: then they are computed); computed ones are
-    # computed anew from the transformed vertices, as Mitsuba does.
+    # The file's normals go by the inverse transpose of the linear part,
+    # normalised (split cuts new vertices: then they are computed); computed
+    # ones are computed anew from the transformed vertices, as Mitsuba does.
     normals = None
     if mesh.has_file_normals and spec.split == 1:
         linear = np.einsum("ij,kj->ik", np.diag(spec.scale), _rotation(spec.rotate_deg))
-        normals = np.einsum("ij,jk->ik", mesh.normals.astype(np.float64), np.linalg.inv(linear).T)
+        normals = unit_rows(np.einsum("ij,jk->ik", mesh.normals.astype(np.float64),
+                                      np.linalg.inv(linear).T))
     try:
         transformed = Mesh(points, faces, name=mesh.name, normals=normals,
                            face_normals=mesh.face_normals or spec.face_normals)

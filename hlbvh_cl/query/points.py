@@ -95,8 +95,8 @@ class ClosestPoints:
 
     @property
     def found(self) -> np.ndarray:
-        """bool (N,): which points have a surface point within max_distance
-        (a pyopencl array where the results are)."""
+        """bool, of distance's shape: which points have a surface point
+        within max_distance (a pyopencl array where the results are)."""
         found = self.geom_id >= 0
         return found if isinstance(found, np.ndarray) else found.view(bool)  # int8 0 or 1
 

@@ -61,7 +61,7 @@ class Hits:
 
     @property
     def hit(self) -> np.ndarray:
-        """bool (R,): which rays hit something (a pyopencl array where the
+        """bool, of t's shape: which rays hit something (a pyopencl array where the
         hits are)."""
         hit = self.geom_id >= 0
         return hit if isinstance(hit, np.ndarray) else hit.view(bool)  # int8 0 or 1

@@ -91,7 +91,9 @@ def test_normals_come_from_the_file_when_it_has_them(tmp_path):
         (tmp_path / name).write_bytes(data)
         mesh = hlbvh_cl.Mesh.load(tmp_path / name)
         assert mesh.has_file_normals, name
-        np.testing.assert_allclose(mesh.normals, given, atol=1e-5, err_msg=name)
+        # normalised, as Mitsuba's loaders normalise them (a file's lengths
+        # had weighed the interpolation)
+        np.testing.assert_allclose(mesh.normals, given / 2.0, atol=1e-6, err_msg=name)
     (tmp_path / "without.ply").write_bytes(trimesh.exchange.ply.export_ply(s, vertex_normal=False))
     mesh = hlbvh_cl.Mesh.load(tmp_path / "without.ply")
     assert not mesh.has_file_normals
