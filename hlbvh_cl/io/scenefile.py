@@ -19,7 +19,8 @@ Schema (every table and key is listed here; any other key is an error)::
     up = [0.0, 1.0, 0.0]          # default [0, 1, 0]; must not be parallel to target - eye
     fov_deg = 45.0                # vertical field of view in degrees, 0 < fov < 180; default 45
 
-    [light]                       # optional; a directional light
+    [light]                       # optional; the preview modes' directional light (a path
+                                  # render ignores it: its lights are [[emitter]] and emitters)
     direction = [1.0, 2.0, 1.0]   # from the surface towards the light (normalised on load);
                                   # default [1, 2, 1]
     intensity = 1.0               # >= 0, default 1

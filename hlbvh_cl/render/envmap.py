@@ -205,13 +205,29 @@ def _read_cached(path: str, mtime_ns: int, size: int) -> np.ndarray:
     return image
 
 
+#: Rec. 709's (sRGB's) primaries and white point, x and y each, as an EXR's
+#: chromaticities attribute gives them: red, green, blue, white.
+REC709 = (0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290)
+
+
 def _read_exr(path: str) -> np.ndarray:
+    """Linear Rec. 709 RGB of an EXR's R, G and B channels (or grey from Y
+    alone).  What would be read as other colours is refused: primaries
+    other than Rec. 709's (Mitsuba converts them; they had been taken as
+    Rec. 709, up to 59 % off), and luminance-chroma (Y, RY, BY) or XYZ
+    channels (read as grey from Y).  Channels one at a time: a file whose
+    channels mix half and full floats is valid."""
     import OpenEXR
-    with OpenEXR.File(path) as image:
-        channels = image.channels()
-        for group in ("RGB", "RGBA"):
-            if group in channels:
-                return np.array(channels[group].pixels[..., :3], np.float32)
+    with OpenEXR.File(path, separate_channels=True) as image:
+        channels, chroma = image.channels(), image.header().get("chromaticities")
+        if chroma is not None and not np.allclose(chroma, REC709, atol=1e-4):
+            raise ValueError(f"its chromaticities ({', '.join(f'{c:.4g}' for c in chroma)}) are "
+                             "not Rec. 709's (sRGB's), which this reader takes: convert it to "
+                             "Rec. 709 RGB")
+        for kind, names in (("luminance and chroma", ("RY", "BY")), ("CIE XYZ", ("X", "Z"))):
+            if any(name in channels for name in names):
+                raise ValueError(f"it stores {kind} ({', '.join(sorted(channels))}); this "
+                                 "reader takes R, G and B (or Y alone, grey): convert it to RGB")
         if all(c in channels for c in "RGB"):
             return np.stack([np.asarray(channels[c].pixels, np.float32) for c in "RGB"], -1)
         if "Y" in channels:  # luminance only: grey
