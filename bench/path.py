@@ -31,9 +31,10 @@ closest hits and shadow rays were traced there: where the next speed-up
 must come from.
 
 Equal-time quality: a reference of REFERENCE_SPP samples per pixel by
-Mitsuba, then each renderer for the time Mitsuba takes for EQUAL_TIME_SPP
-(ours with a time budget, Mitsuba at the spp its measured rate fits in that
-time), each scored by relMSE = mean((image - reference)^2 / (reference^2 +
+Mitsuba, then each renderer for the time Mitsuba takes for EQUAL_TIME_SPP,
+as measured seed by seed after a warm-up render at that spp (ours with that
+time budget, LuxCore at the spp its measured rate fits in it), each scored
+by relMSE = mean((image - reference)^2 / (reference^2 +
 0.01)) over pixels and channels, averaged over renders with each of
 EQUAL_TIME_SEEDS.  The reference is Mitsuba's own: a bias of ours against
 Mitsuba counts against us.
@@ -364,7 +365,10 @@ def equal_time(child, lux, ours, paths, sizes, devices, times, folder, kind) -> 
     after the time Mitsuba takes for EQUAL_TIME_SPP (the module's
     definitions), the mean over renders with each of EQUAL_TIME_SEEDS (one
     render's relMSE swings with its few brightest outliers), the renderers
-    taking turns seed by seed; LuxCore (``lux``, unless None) at the spp its
+    taking turns seed by seed, each seed's budget the time Mitsuba's render
+    of it took (not its timed rounds' per-sample rate times EQUAL_TIME_SPP:
+    Mitsuba's time grows slower than its spp, and the Cornell box's 8 spp
+    took 0.83x twice its 4); LuxCore (``lux``, unless None) at the spp its
     timed rounds say fit in that time (its relMSE holds its translation's
     bias too: bench/luxcore.py)."""
     out = {}
@@ -375,15 +379,16 @@ def equal_time(child, lux, ours, paths, sizes, devices, times, folder, kind) -> 
         child.render(name, path, width, height, reference_spp, seed=1000,
                      out=str(folder / "reference.npy"))
         reference = np.load(folder / "reference.npy")[..., :3]
-        per_sample = summary(times[name, "mitsuba"])["median"] / spp
-        budget = per_sample * budget_spp
-        lux_spp = (max(1, int(budget * spp / summary(times[name, "luxcore"])["median"]))
-                   if lux is not None else 0)
+        child.render(name, path, width, height, budget_spp)  # warm-up: its JIT at this spp
         seeds = {who: {"spp": [], "relmse": []}
                  for who in ["mitsuba", *devices] + (["luxcore"] if lux is not None else [])}
+        budgets = []
         for seed in EQUAL_TIME_SEEDS:
-            child.render(name, path, width, height, budget_spp, seed=seed,
-                         out=str(folder / "equal.npy"))
+            budget = child.render(name, path, width, height, budget_spp, seed=seed,
+                                  out=str(folder / "equal.npy"))["seconds"]
+            budgets.append(budget)
+            lux_spp = (max(1, int(budget * spp / summary(times[name, "luxcore"])["median"]))
+                       if lux is not None else 0)
             seeds["mitsuba"]["spp"].append(budget_spp)
             seeds["mitsuba"]["relmse"].append(
                 relmse(np.load(folder / "equal.npy")[..., :3], reference))
@@ -405,7 +410,8 @@ def equal_time(child, lux, ours, paths, sizes, devices, times, folder, kind) -> 
         renders = {who: {"spp": round(float(np.mean(r["spp"])), 2),
                          "relmse": float(np.mean(r["relmse"])), "relmse_seeds": r["relmse"]}
                    for who, r in seeds.items()}
-        out[name] = {"seconds": budget, "reference_spp": reference_spp,
+        out[name] = {"seconds": float(np.median(budgets)), "seconds_seeds": budgets,
+                     "reference_spp": reference_spp,
                      "seeds": list(EQUAL_TIME_SEEDS), "renders": renders}
     return out
 
