@@ -40,6 +40,14 @@ from ..core.tree import Tree, leaf_bytes
 #: product of its row lengths are singular for float32 work: the inverse
 #: would amplify the rounding of every mapped ray by more than 2^23.
 SINGULAR = 2.0**-23
+#: And below this, nearly so: rows this close to dependent (a mesh squashed
+#: flat between two rotations; an axis-aligned squash keeps the ratio 1)
+#: amplify the rounding of the mapped ray until rays near the surface gain
+#: or lose hits against the same mesh flattened.  An icosphere squashed to
+#: 1e-5 of its height so (a ratio of 2^-15.5) did for 10 of 20,000 rays
+#: whose answer held with the origin moved by 1e-4, to 6e-5 (2^-12.9) for
+#: 1 of 40,000; to 1e-4 (2^-12.2) for none of 20,000.  Refused with a margin.
+NEARLY_SINGULAR = 2.0**-12
 
 
 def check_transforms(transforms, label) -> np.ndarray:
@@ -73,12 +81,18 @@ def check_transforms(transforms, label) -> np.ndarray:
     linear = array[:, :, :3]
     rows = np.linalg.norm(linear, axis=2)
     det = np.linalg.det(linear)
-    singular = ~(np.abs(det) > SINGULAR * np.prod(rows, axis=1))
-    if singular.any():
-        k = int(np.flatnonzero(singular)[0])
-        raise ValueError(f"{label(k)} is singular (determinant {det[k]:.3g}, rows of length "
-                         f"{rows[k].round(6).tolist()}): it flattens its mesh, so rays cannot "
-                         "be mapped into it")
+    ratio = np.abs(det) / np.maximum(np.prod(rows, axis=1), np.finfo(np.float64).tiny)
+    refused = ~(ratio >= NEARLY_SINGULAR)
+    if refused.any():
+        k = int(np.flatnonzero(refused)[0])
+        shape = f"(determinant {det[k]:.3g}, rows of length {rows[k].round(6).tolist()})"
+        if not ratio[k] > SINGULAR:
+            raise ValueError(f"{label(k)} is singular {shape}: it flattens its mesh, so rays "
+                             "cannot be mapped into it")
+        raise ValueError(f"{label(k)} is singular for float32 work {shape}: its rows are so "
+                         "near dependent (the determinant under 2^-12 of their lengths' "
+                         "product) that rays mapped into it gain or lose hits near the "
+                         "surface; give the mesh's mapped vertices as a Mesh instead")
     return np.ascontiguousarray(array)
 
 

@@ -568,9 +568,13 @@ class Renderer:
     def _emissive(self, emitters) -> tuple[dict, dict]:
         """The world triangles of each emitting mesh (every instance's), and
         their corners' world shading normals (None: face normals); an
-        emitting sphere's centre and radius (4,), and None."""
+        emitting sphere's centre and radius (4,), and None.  A copy whose
+        mask is 0, which no render ray can hit (they carry every mask bit),
+        is left out: its light samples had lit the scene from a lamp that
+        was not there, as only the light-sampled half of the estimate."""
         triangles, normals = {}, {}
         scene = self.scene
+        seen = scene.masks != 0  # per instance, or per mesh without instances
         for mesh in emitters.area:
             if mesh >= len(scene.meshes):  # an analytic sphere: its centre and radius
                 triangles[mesh], normals[mesh] = scene.spheres[mesh - len(scene.meshes)], None
@@ -580,9 +584,12 @@ class Renderer:
             smooth = None if m.face_normals else \
                 np.asarray(m.normals, np.float64)[np.asarray(m.faces)]
             if scene.transforms is None:
-                triangles[mesh], normals[mesh] = corners, smooth
+                kept = slice(None) if seen[mesh] else slice(0)
+                triangles[mesh] = corners[kept]
+                normals[mesh] = None if smooth is None else smooth[kept]
                 continue
-            maps = np.asarray(scene.transforms, np.float64)[scene.instance_meshes == mesh]
+            maps = np.asarray(scene.transforms, np.float64)[(scene.instance_meshes == mesh)
+                                                            & seen]
             triangles[mesh] = np.concatenate(
                 [corners @ a[:, :3].T + a[:, 3] for a in maps]) if len(maps) \
                 else np.zeros((0, 3, 3))

@@ -105,3 +105,33 @@ def test_instance_materials_on_a_flat_scene_is_an_error(scenes):
     renderer = hlbvh_cl.Renderer(flat, instance_materials=[RED, None, None])
     with pytest.raises(ValueError, match="instance_materials is for a scene with instances"):
         renderer.render(CAMERA, 4, 4, shading="path")
+
+
+@pytest.mark.parametrize("instanced", [True, False], ids=["instance", "flat"])
+def test_an_emitter_no_ray_can_hit_lights_nothing(suite_device, instanced):
+    """A lamp of mask 0, which no render ray can hit (they carry every mask
+    bit), over a ground lit by nothing else: the image is black, as without
+    the lamp.  Its light samples had still lit the ground (mean 0.24, where
+    the lamp seen by every ray gives 1.35): half an estimate of a lamp that
+    was not there.  With mask 1 it lights the ground."""
+    ground_v = np.array([[-3, 0, -3], [3, 0, -3], [3, 0, 3], [-3, 0, 3]], float)
+    faces = np.array([[0, 2, 1], [0, 3, 2]])
+    lamp_v, lamp_f = ground_v / 2 + [0.0, 0.4, 0.0], faces[:, ::-1].copy()  # facing down
+    camera = hlbvh_cl.Camera((0.0, 0.3, 2.5), (0.0, 0.0, 0.0), fov_deg=50)
+    materials = [{"type": "diffuse", "reflectance": 0.8}, {"type": "diffuse", "reflectance": 0.0}]
+    emitters = [{"type": "area", "mesh": 1, "radiance": 5.0}]
+
+    def render(mask):
+        if instanced:
+            meshes = [hlbvh_cl.Mesh(ground_v, faces), hlbvh_cl.Mesh(lamp_v - [0, 0.4, 0], lamp_f)]
+            lifted = np.hstack([np.eye(3), [[0.0], [0.4], [0.0]]])
+            scene = hlbvh_cl.Scene(meshes, device=suite_device, masks=[1, mask],
+                                   instances=[(0, np.eye(3, 4)), (1, lifted)])
+        else:
+            scene = hlbvh_cl.Scene([hlbvh_cl.Mesh(ground_v, faces), hlbvh_cl.Mesh(lamp_v, lamp_f)],
+                                   device=suite_device, masks=[1, mask])
+        return np.asarray(hlbvh_cl.Renderer(scene, materials=materials, emitters=emitters).render(
+            camera, 32, 24, shading="path", spp=8, seed=0, hdr=True, max_depth=2))
+
+    assert render(0).max() == 0.0
+    assert render(1).mean() > 0.5
