@@ -16,9 +16,12 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
+import os
+import signal
 import threading
 import sys
 import time
+import warnings
 from pathlib import Path
 
 from . import __version__
@@ -103,6 +106,7 @@ def _cmd_info(args) -> int:
         loaded = scenefile.load(args.scene, args.device, args.builder, args.morton_bits,
                                 replaced=("spp", "max_depth", "width", "height"),
                                 compact=args.compact)
+    Interrupts.check()
     scene = loaded.scene
     if args.repeat > 1:  # the first build pays for kernel compilation
         for _ in range(args.repeat - 1):
@@ -157,6 +161,11 @@ def _cmd_render(args) -> int:
     with stage(_BUILDING):
         loaded = scenefile.load(args.scene, args.device,
                                 replaced={name for name, given in flags.items() if given})
+    Interrupts.check()
+    for source in loaded.inputs:
+        if _same_file(output, source):
+            raise ValueError(f"cannot write {output}: the scene reads it ({source}); writing "
+                             "the image there would destroy it: choose another file")
     scene, renderer = loaded.scene, loaded.renderer()
     build_wall = loaded.build_seconds
     width = args.width or loaded.width
@@ -238,6 +247,37 @@ def _cmd_render(args) -> int:
     print(f"write        {written:7.2f} s   {output}")
     print(f"total        {time.perf_counter() - started:7.2f} s")
     return 0
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    print(f"hlbvh-cl: warning: {message}", file=sys.stderr)
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether paths a and b name one existing file."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # either missing (or unreadable): not a file read and written
+        return False
+
+
+class Interrupts:
+    """Ctrl-C as a KeyboardInterrupt that is remembered: code that catches
+    BaseException (trimesh's optional imports, while a scene loads) would
+    swallow it, and the command ran to the end.  The command checks after
+    such work (check) and stops there."""
+
+    seen = False
+
+    @classmethod
+    def handle(cls, signum, frame):
+        cls.seen = True
+        raise KeyboardInterrupt
+
+    @classmethod
+    def check(cls) -> None:
+        if cls.seen:
+            raise KeyboardInterrupt
 
 
 @contextlib.contextmanager
@@ -395,8 +435,13 @@ def main(argv=None) -> int:
         return 2
     except SystemExit as done:  # --help, --version
         return done.code or 0
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGINT, Interrupts.handle) if main_thread else None
+    Interrupts.seen = False
     try:
-        return args.run(args)
+        with warnings.catch_warnings():  # one line each, not Python's source line
+            warnings.showwarning = _show_warning
+            return args.run(args)
     except (ValueError, TypeError, OSError, DeviceMemoryError, KernelBuildError,
             RuntimeError) as error:  # OSError: files (missing, unreadable, unwritable)
         print(f"hlbvh-cl: error: {error}", file=sys.stderr)
@@ -404,6 +449,9 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("hlbvh-cl: interrupted", file=sys.stderr)
         return 130  # 128 + SIGINT, as a shell reports it
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGINT, previous)
 
 
 if __name__ == "__main__":

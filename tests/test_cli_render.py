@@ -79,3 +79,64 @@ def test_the_console_script_reports_without_traceback(tmp_path):
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 2
     assert done.stderr.strip().startswith("hlbvh-cl: error:") and "Traceback" not in done.stderr
+
+
+def test_the_output_may_not_be_a_file_the_scene_reads(tmp_path, capsys):
+    """`-o` naming a file the scene reads (its own file under an image's
+    name, its environment map) is refused, the file untouched: the render
+    had overwritten them and exited 0.  (A mesh file's suffix is never an
+    image's.)"""
+    import shutil
+    from hlbvh_cl.io.exr import write_exr
+    write_exr(tmp_path / "sky.exr", np.full((4, 8, 3), 0.5, np.float32))
+    shutil.copy(SCENES / "meshes" / "bunny_small.ply", tmp_path / "bunny.ply")
+    scene = tmp_path / "scene.png"  # a TOML scene under an image's name
+    scene.write_text('[render]\nwidth = 16\nheight = 12\n[camera]\neye = [0, 0.1, 0.4]\n'
+                     'target = [0, 0.1, 0]\n[[mesh]]\npath = "bunny.ply"\n'
+                     '[[emitter]]\ntype = "envmap"\nfilename = "sky.exr"\n')
+    sources = {path: path.read_bytes() for path in tmp_path.iterdir()}
+    for name in ("scene.png", "sky.exr"):
+        assert main(["render", str(scene), "-o", str(tmp_path / name)]) == 2
+        assert "the scene reads it" in _one_line_error(capsys)
+    assert {path: path.read_bytes() for path in tmp_path.iterdir()} == sources
+
+
+def test_a_device_file_is_not_read_as_a_scene(capsys):
+    """/dev/zero named as the scene was read whole (a MemoryError traceback
+    under a memory limit, else without end)."""
+    assert main(["render", "/dev/zero", "-o", "x.png"]) == 2
+    assert "/dev/zero: not a regular file" in _one_line_error(capsys)
+
+
+def test_a_ctrl_c_swallowed_while_the_scene_loads_still_stops(tmp_path, monkeypatch, capsys):
+    """Code that catches BaseException while the scene loads (trimesh's
+    optional imports) swallowed Ctrl-C, and the render ran to the end: the
+    command remembers it and stops after loading, writing nothing."""
+    from hlbvh_cl import cli
+    load = scenefile.load
+
+    def swallowing(*args, **kwargs):
+        try:
+            cli.Interrupts.handle(2, None)
+        except BaseException:  # as trimesh's optional imports do
+            pass
+        return load(*args, **kwargs)
+    monkeypatch.setattr(scenefile, "load", swallowing)
+    out = tmp_path / "x.png"
+    assert main(["render", BUNNY, "-o", str(out), "--width", "8", "--height", "8"]) == 130
+    assert "interrupted" in capsys.readouterr().err and not out.exists()
+
+
+def test_warnings_are_one_line_each(tmp_path, monkeypatch, capsys):
+    """A warning during a command (e.g. a runtime not listed) showed
+    Python's form: our source file and line, then the line of code."""
+    import warnings
+    load = scenefile.load
+
+    def warning(*args, **kwargs):
+        warnings.warn("something to know", RuntimeWarning)
+        return load(*args, **kwargs)
+    monkeypatch.setattr(scenefile, "load", warning)
+    assert main(["render", BUNNY, "-o", str(tmp_path / "x.png"), "--width", "8",
+                 "--height", "8"]) == 0
+    assert capsys.readouterr().err.strip() == "hlbvh-cl: warning: something to know"

@@ -7,6 +7,7 @@ the renderer's, cameras' and lights' arguments.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import numpy as np
 import pyopencl as cl
@@ -237,6 +238,16 @@ def test_vertices_must_be_finite_in_float32(value, words):
         Mesh(vertices, QUAD_FACES)
     for word in words:
         assert word in str(caught.value)
+
+
+def test_a_mesh_spanning_float32_s_range_builds_without_numpy_s_warnings(suite_device):
+    """Its edges overflow float32 in the frame's degenerate-triangle check,
+    whose numpy RuntimeWarning ("overflow encountered in subtract") leaked
+    to the user (and the CLI printed it with our source line)."""
+    vertices = np.array([[-3e38, 0, 0], [3e38, 0, 0], [0, 1, 0]], np.float32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Scene([Mesh(vertices, [[0, 1, 2]])], device=suite_device)
 
 
 def test_a_mesh_below_float32_s_normal_range_is_refused(suite_device):

@@ -128,8 +128,8 @@ def warn_user(message: str) -> None:
 
 def _zero_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
     a, b, c = points[faces[:, 0]], points[faces[:, 1]], points[faces[:, 2]]
-    e1, e2 = b - a, c - a
-    with np.errstate(all="ignore"):
+    with np.errstate(all="ignore"):  # edges of a mesh spanning float32's range overflow
+        e1, e2 = b - a, c - a
         return ((e1[:, 1] * e2[:, 2] - e1[:, 2] * e2[:, 1] == 0)
                 & (e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2] == 0)
                 & (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0] == 0))

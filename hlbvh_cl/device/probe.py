@@ -43,9 +43,18 @@ FORMAT = 1
 REPORT = "hlbvh_cl probe: "
 
 
-def _timeout_s() -> float:
-    """Seconds one variant may take in the child, compilation included."""
-    return float(os.environ.get("HLBVH_CL_PROBE_TIMEOUT", "300"))
+def timeout_s() -> float:
+    """Seconds one variant may take in the child, compilation included:
+    HLBVH_CL_PROBE_TIMEOUT, default 300."""
+    text = os.environ.get("HLBVH_CL_PROBE_TIMEOUT", "300")
+    try:
+        seconds = float(text)
+    except ValueError:
+        seconds = float("nan")
+    if not 0 < seconds < float("inf"):
+        raise ValueError(f"HLBVH_CL_PROBE_TIMEOUT={text!r}: expected the seconds a device probe "
+                         "may take, a number above 0 (default 300)")
+    return seconds
 
 
 @dataclass(frozen=True)
@@ -149,7 +158,7 @@ def _run_child(device_id: str, profile: Profile, variant: Variant | None) -> dic
     env = {name: value for name, value in os.environ.items()
            if not name.startswith("OCLGRIND_")}  # a simulator's checks are the caller's
     env.update(HLBVH_CL_PROFILE=profile.name, PYTHONWARNINGS="ignore")
-    timeout = _timeout_s()
+    timeout = timeout_s()
     try:
         done = subprocess.run(command, capture_output=True, text=True, timeout=timeout, env=env,
                               stdin=subprocess.DEVNULL)

@@ -93,6 +93,15 @@ class SceneDescription:
         return [entry.material or {"type": "twosided", "bsdf": {
             "type": "diffuse", "reflectance": list(entry.color)}} for entry in entries]
 
+    def inputs(self) -> tuple[Path, ...]:
+        """The files the scene reads: its own, its meshes' and its
+        environment maps' (a renderer writing one of them would destroy its
+        own input)."""
+        files = [self.path] + [entry.path for entry in self.meshes if entry.path is not None]
+        files += [Path(e["filename"]) for e in self.emitters
+                  if isinstance(e, dict) and isinstance(e.get("filename"), (str, Path))]
+        return tuple(dict.fromkeys(files))
+
     def all_emitters(self) -> list[dict] | None:
         """Renderer.emitters: the meshes' area emitters, then the [[emitter]]
         tables; None (the default sky) when there are none."""

@@ -803,7 +803,8 @@ def _shape(reader: _Reader, node: _Node) -> MeshEntry:
         sphere = np.array([*matrix[:3, 3], radius], np.float64)
     if material is None:  # Mitsuba's: a diffuse of 0.5, or black for an emitter's shape
         material = {"type": "diffuse", "reflectance": 0.0 if emitter else 0.5}
-    return MeshEntry(mesh=placed, color=(0.8, 0.8, 0.8), path=reader.path, material=material,
+    return MeshEntry(mesh=placed, color=(0.8, 0.8, 0.8),
+                     path=file if kind in ("ply", "obj") else None, material=material,
                      emitter=emitter, sphere=sphere)
 
 

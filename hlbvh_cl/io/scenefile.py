@@ -279,6 +279,7 @@ class LoadedScene:
     options: dict = field(default_factory=dict)  # SceneDescription.options
     instance_materials: list | None = None
     sensor_fov: tuple[float, str] | None = None  # SceneDescription.sensor_fov
+    inputs: tuple[Path, ...] = ()  # SceneDescription.inputs: the files it read
 
     def camera_at(self, width: int, height: int) -> Camera:
         """The camera for an image of width x height: ``camera`` itself,
@@ -331,7 +332,7 @@ def load(path, device=None, builder: str = "hlbvh", morton_bits: int = 30,
                        materials=description.materials(), emitters=description.all_emitters(),
                        options=dict(description.options),
                        instance_materials=description.instance_materials(),
-                       sensor_fov=description.sensor_fov)
+                       sensor_fov=description.sensor_fov, inputs=description.inputs())
 
 
 def _name_the_entry(description: SceneDescription, error: ValueError) -> ValueError:
@@ -405,6 +406,9 @@ def read(path, defaults: dict | None = None,
         from .mitsuba import read_xml
         return read_xml(path, defaults, replaced)
     reader = _Reader(path)
+    if path.exists() and not path.is_file() and not path.is_dir():
+        # (a device such as /dev/zero would be read whole)
+        raise SceneFileError(f"{reader.label}: not a regular file, so not a scene file")
     try:
         with open(path, "rb") as file:
             data = tomllib.load(file)

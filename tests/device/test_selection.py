@@ -172,3 +172,17 @@ def test_a_device_that_runs_its_first_variant_beats_one_that_fell_back(fallback_
     assert choose("pocl", host, "device").id == "pocl:0"
     assert default(host).id == "pocl:0"
     assert choose("pocl", host[1:], "device").id == "pocl:1"  # the one there is
+
+
+@pytest.mark.parametrize("value", ["abc", "-1", "0", "nan", "inf"])
+def test_a_bad_probe_timeout_names_the_variable(value, monkeypatch):
+    """HLBVH_CL_PROBE_TIMEOUT was read by float() alone: "abc" gave
+    "could not convert string to float", and -1 failed every variant as a
+    timeout."""
+    from hlbvh_cl.device import probe
+    monkeypatch.setenv("HLBVH_CL_PROBE_TIMEOUT", value)
+    with pytest.raises(ValueError, match=rf"HLBVH_CL_PROBE_TIMEOUT='{value}': expected the "
+                                         "seconds a device probe may take, a number above 0"):
+        probe.timeout_s()
+    monkeypatch.setenv("HLBVH_CL_PROBE_TIMEOUT", "12.5")
+    assert probe.timeout_s() == 12.5
