@@ -292,7 +292,10 @@ def devices() -> list[Device]:
             try:
                 cl_devices = platform.get_devices()
             except cl.Error:
-                continue
+                cl_devices = []
+            if not cl_devices and _is_pocl(platform.name):
+                # (a PoCL without devices had read as "install a driver")
+                unregistered.append(_deviceless(platform.name.strip()))
             for d in cl_devices:
                 k = per_vendor.get(vendor, 0)
                 per_vendor[vendor] = k + 1
@@ -312,6 +315,20 @@ def devices() -> list[Device]:
         ordered = sorted(found, key=lambda d: d.simulator)  # stable: platform order otherwise
         _devices_cache = [dataclasses.replace(d, index=i) for i, d in enumerate(ordered)]
     return list(_devices_cache)
+
+
+def _is_pocl(platform: str) -> bool:
+    return "portable computing language" in platform.lower()
+
+
+def _deviceless(platform: str) -> str:
+    """What `unregistered` says of a PoCL platform that lists no device:
+    PoCL lists none when it cannot create its kernel cache folder."""
+    cache = os.environ.get("POCL_CACHE_DIR") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "pocl")
+    return (f"the OpenCL platform {platform!r} lists no device (PoCL lists none when it "
+            f"cannot create its kernel cache folder, {cache}: set POCL_CACHE_DIR to a "
+            "writable folder)")
 
 
 def select_device(device=None) -> Device:
@@ -337,5 +354,6 @@ def select_device(device=None) -> Device:
         return chosen
     skipped = "; ".join(f"{d.id}: {d.skipped_because}" for d in available)
     raise RuntimeError(f"no OpenCL device here can run hlbvh_cl's kernels ({skipped}); "
-                       f"{_INSTALL_HINT}. On Debian/Ubuntu, the distribution's PoCL (apt-get "
+                       + "".join(f"not listed: {note}; " for note in unregistered)
+                       + f"{_INSTALL_HINT}. On Debian/Ubuntu, the distribution's PoCL (apt-get "
                        "install pocl-opencl-icd) supports newer CPUs than PyPI's.")

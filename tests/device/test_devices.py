@@ -680,3 +680,29 @@ def test_launch_arguments_reach_the_kernel_bit_for_bit_as_their_types_change(sui
         assert out[0] == np.array(i).astype(np.int64).astype(np.uint32)
         assert out[1] == np.float32(f).view(np.uint32)
         np.testing.assert_array_equal(out[2:], np.array(salts.tolist(), np.uint32))
+
+
+def test_a_pocl_without_devices_is_named_with_its_cache_folder(tmp_path):
+    """PoCL lists no device when it cannot create its kernel cache folder (an
+    XDG_CACHE_HOME that is a file); the selection error then said "install
+    an OpenCL driver", naming neither PoCL nor the folder."""
+    import subprocess
+    blocked = tmp_path / "a_file"
+    blocked.write_text("x")
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("POCL_CACHE_DIR", "HLBVH_CL_DEVICE")}
+    env.update(XDG_CACHE_HOME=str(blocked),
+               PYTHONPATH=str(Path(__file__).resolve().parents[2]))
+    child = ("import warnings, pyopencl as cl\n"
+             "warnings.simplefilter('ignore')\n"
+             "empty = [p for p in cl.get_platforms() if 'Portable' in p.name\n"
+             "         and not p.get_devices()]\n"
+             "if not empty: print('SKIP'); raise SystemExit\n"
+             "from hlbvh_cl.device import discovery\n"
+             "discovery.devices()\n"
+             "print(discovery.unregistered)\n")
+    done = subprocess.run([sys.executable, "-c", child], env=env, capture_output=True, text=True,
+                          timeout=300)
+    if done.stdout.strip() == "SKIP":
+        pytest.skip("this PoCL lists its device without a cache folder")
+    assert "lists no device" in done.stdout and "POCL_CACHE_DIR" in done.stdout, done.stdout
