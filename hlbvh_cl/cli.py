@@ -435,9 +435,9 @@ def main(argv=None) -> int:
         return 2
     except SystemExit as done:  # --help, --version
         return done.code or 0
+    Interrupts.seen = False
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGINT, Interrupts.handle) if main_thread else None
-    Interrupts.seen = False
     try:
         with warnings.catch_warnings():  # one line each, not Python's source line
             warnings.showwarning = _show_warning
@@ -450,7 +450,7 @@ def main(argv=None) -> int:
         print("hlbvh-cl: interrupted", file=sys.stderr)
         return 130  # 128 + SIGINT, as a shell reports it
     finally:
-        if main_thread:
+        if previous is not None:  # (None: a handler not set from Python, kept as it is)
             signal.signal(signal.SIGINT, previous)
 
 

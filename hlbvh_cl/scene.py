@@ -463,7 +463,7 @@ class Scene:
         if len(positions) != old.vertex_count:
             raise ValueError(f"vertices has {len(positions)} rows but mesh {geom_id} has "
                              f"{old.vertex_count} vertices; update_vertices keeps the topology")
-        inputs.check_mesh_scale(vertices, old.faces)
+        inputs.check_mesh_scale(vertices, old.faces)  # (Mesh sees float32 positions)
         if normals is None and old.has_file_normals:
             normals = old.normals  # given normals stay the caller's (computed ones follow)
         moved = Mesh(positions, old.faces, name=old.name, normals=normals,

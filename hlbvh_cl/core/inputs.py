@@ -632,10 +632,16 @@ def check_mesh_scale(vertices, faces: np.ndarray) -> None:
     array = as_array("vertices", vertices)
     if array.dtype.kind != "f" or not len(faces):
         return
-    used = np.unique(faces)
-    largest = np.abs(array[used]).max(axis=1)
-    at = int(np.argmax(largest))
-    if 0 < largest[at] < np.finfo(np.float32).tiny:
+    tiny = np.finfo(np.float32).tiny
+    largest = np.abs(array).max(axis=1)
+    if (largest >= tiny).all():  # the usual case: no gather of the faces' rows
+        return
+    normal = largest >= tiny
+    if normal[faces].any():
+        return
+    used = faces.ravel()
+    at = int(np.argmax(largest[used]))
+    if largest[used[at]] > 0:
         row = int(used[at])
         raise ValueError(f"the vertices the faces use are all below float32's normal range "
                          f"(the largest, vertices[{row}] = {array[row].tolist()}, is under "

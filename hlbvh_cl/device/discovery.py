@@ -286,6 +286,7 @@ def devices() -> list[Device]:
         except cl.Error:
             platforms = []
         found: list[Device] = []
+        deviceless: list[str] = []
         per_vendor: dict[str, int] = {}
         for platform in platforms:
             vendor = _vendor_id(platform.name)
@@ -295,7 +296,7 @@ def devices() -> list[Device]:
                 cl_devices = []
             if not cl_devices and _is_pocl(platform.name):
                 # (a PoCL without devices had read as "install a driver")
-                unregistered.append(_deviceless(platform.name.strip()))
+                deviceless.append(_deviceless(platform.name.strip()))
             for d in cl_devices:
                 k = per_vendor.get(vendor, 0)
                 per_vendor[vendor] = k + 1
@@ -309,7 +310,7 @@ def devices() -> list[Device]:
                 and not any(d.id.startswith("intel") for d in found):
             unregistered.append("Intel's CPU runtime was registered but the ICD loader did not "
                                 f"list it: {_load_error(intel) or 'it loads, but lists no device'}")
-        unregistered.extend(_unloadable_runtimes(intel))
+        unregistered.extend(_unloadable_runtimes(intel) + deviceless)
         for note in unregistered:
             warnings.warn(f"hlbvh_cl: {note}", RuntimeWarning, stacklevel=2)
         ordered = sorted(found, key=lambda d: d.simulator)  # stable: platform order otherwise

@@ -406,8 +406,8 @@ def read(path, defaults: dict | None = None,
         from .mitsuba import read_xml
         return read_xml(path, defaults, replaced)
     reader = _Reader(path)
-    if path.exists() and not path.is_file() and not path.is_dir():
-        # (a device such as /dev/zero would be read whole)
+    if path.is_char_device() or path.is_block_device():
+        # (a device such as /dev/zero would be read whole; a pipe is read)
         raise SceneFileError(f"{reader.label}: not a regular file, so not a scene file")
     try:
         with open(path, "rb") as file:

@@ -224,8 +224,9 @@ def _read_exr(path: str) -> np.ndarray:
             raise ValueError(f"its chromaticities ({', '.join(f'{c:.4g}' for c in chroma)}) are "
                              "not Rec. 709's (sRGB's), which this reader takes: convert it to "
                              "Rec. 709 RGB")
+        rgb = all(c in channels for c in "RGB")  # (R, G, B beside a depth Z read as RGB)
         for kind, names in (("luminance and chroma", ("RY", "BY")), ("CIE XYZ", ("X", "Z"))):
-            if any(name in channels for name in names):
+            if not rgb and any(name in channels for name in names):
                 raise ValueError(f"it stores {kind} ({', '.join(sorted(channels))}); this "
                                  "reader takes R, G and B (or Y alone, grey): convert it to RGB")
         if all(c in channels for c in "RGB"):

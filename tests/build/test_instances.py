@@ -378,8 +378,8 @@ def test_every_hit_and_counts_through_instances(small, suite_device):
     ([(2, np.eye(3, 4))], r"instances\[0\]\[0\] = 2 is not a mesh index"),
     ([(0, np.eye(3))], r"instances\[0\]\[1\] \(transform\) has shape \(3, 3\)"),
     ([(0, np.eye(3, 4)), (0, np.zeros((3, 4)))], r"instances\[1\]\[1\] is singular"),
-    # squashed flat between two rotations: accepted (determinant 2^-15.5 of the rows'
-    # product), its mapped rays gained and lost hits near the surface against the
+    # squashed flat between two rotations: was accepted (determinant 2^-15.5 of the rows'
+    # product), its mapped rays gaining and losing hits near the surface against the
     # mesh flattened (an axis-aligned squash keeps the ratio at 1: accepted)
     ([(0, np.hstack([rotation(np.random.default_rng(1)) @ np.diag([1.0, 1e-5, 1.0])
                      @ rotation(np.random.default_rng(2)), np.zeros((3, 1))]))],

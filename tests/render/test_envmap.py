@@ -237,6 +237,9 @@ def test_an_exr_read_as_other_colours_is_refused_and_mixed_types_are_read(tmp_pa
         path = write_channels(tmp_path / name, channels, header)
         with pytest.raises(ValueError, match=f"cannot read the environment map .*{name}: .*{words}"):
             read_radiance(path)
+    # R, G, B beside a depth Z (a renderer's output) are still the colours
+    depth = write_channels(tmp_path / "depth.exr", {**planes, "Z": planes["R"] * 0 + 3})
+    np.testing.assert_array_equal(read_radiance(depth), image)
     rec709 = write_channels(tmp_path / "rec709.exr", planes,
                             {"chromaticities": (0.64, 0.33, 0.30, 0.60, 0.15, 0.06,
                                                 0.3127, 0.3290)})
