@@ -634,10 +634,8 @@ def check_mesh_scale(vertices, faces: np.ndarray) -> None:
         return
     tiny = np.finfo(np.float32).tiny
     largest = np.abs(array).max(axis=1)
-    if (largest >= tiny).all():  # the usual case: no gather of the faces' rows
-        return
     normal = largest >= tiny
-    if normal[faces].any():
+    if normal.all() or normal[faces].any():  # (the first: no gather of the faces' rows)
         return
     used = faces.ravel()
     at = int(np.argmax(largest[used]))
@@ -645,7 +643,7 @@ def check_mesh_scale(vertices, faces: np.ndarray) -> None:
         row = int(used[at])
         raise ValueError(f"the vertices the faces use are all below float32's normal range "
                          f"(the largest, vertices[{row}] = {array[row].tolist()}, is under "
-                         f"{np.finfo(np.float32).tiny:.3g}): in float32 the mesh would lose "
+                         f"{tiny:.3g}): in float32 the mesh would lose "
                          "its shape; scale it up")
 
 
