@@ -158,14 +158,18 @@ def _cmd_render(args) -> int:
     flags = {"spp": args.spp or args.time,
              "max_depth": args.max_depth is not None or args.shading not in (None, "path"),
              "width": args.width, "height": args.height}
+
+    def not_an_input(description) -> None:  # before the build, which can take seconds
+        for source in description.inputs():
+            if _same_file(output, source):
+                raise ValueError(f"cannot write {output}: the scene reads it ({source}); "
+                                 "writing the image there would destroy it: choose another "
+                                 "file")
     with stage(_BUILDING):
         loaded = scenefile.load(args.scene, args.device,
-                                replaced={name for name, given in flags.items() if given})
+                                replaced={name for name, given in flags.items() if given},
+                                check=not_an_input)
     Interrupts.check()
-    for source in loaded.inputs:
-        if _same_file(output, source):
-            raise ValueError(f"cannot write {output}: the scene reads it ({source}); writing "
-                             "the image there would destroy it: choose another file")
     scene, renderer = loaded.scene, loaded.renderer()
     build_wall = loaded.build_seconds
     width = args.width or loaded.width

@@ -120,7 +120,7 @@ import re
 import sys
 import time
 import tomllib
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -301,14 +301,20 @@ class LoadedScene:
 
 def load(path, device=None, builder: str = "hlbvh", morton_bits: int = 30,
          defaults: dict | None = None, replaced: Collection[str] = (),
-         compact: bool = False) -> LoadedScene:
+         compact: bool = False,
+         check: Callable[[SceneDescription], None] | None = None) -> LoadedScene:
     """Read a scene file (``read``) and build its Scene on ``device`` (with
     ``compact`` leaves where asked: hlbvh_cl.Scene);
     ``defaults`` override a Mitsuba XML file's <default> values, and the
     render values named in ``replaced`` may exceed the renderer's limits
-    (the caller renders with its own)."""
+    (the caller renders with its own).  ``check``, where given, sees the
+    file's description before the build, which it stops by raising (the
+    CLI refuses an output file the scene reads there, before a build that
+    can take seconds)."""
     started = time.perf_counter()
     description = read(path, defaults, replaced)
+    if check is not None:
+        check(description)
     loaded = time.perf_counter()
     geometries = description.geometries()
     meshes = [mesh for mesh, _ in geometries]
