@@ -334,8 +334,8 @@ def _deviceless(platform: str) -> str:
 
 def select_device(device=None) -> Device:
     """Pick a device: the argument, then $HLBVH_CL_DEVICE, then the default:
-    a GPU, else the CPU runtime that traced fastest in its probe, else any
-    other device; never a simulator or a device whose kernels fail.  The
+    a GPU, else a CPU (PoCL before Intel's runtime: selection.best), else
+    any other device; never a simulator or a device whose kernels fail.  The
     rules a spec follows are hlbvh_cl.device.selection's: an index, an id, a
     runtime (``"pocl"``, ``"intel"``), a type (``"cpu"``, ``"gpu"``), or a
     name substring that names one runtime's devices only."""
