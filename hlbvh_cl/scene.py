@@ -174,12 +174,16 @@ class Scene:
         return Geometry.upload(self._runtime, frame.to_frame(vertices, self._scale), faces,
                                self._first_face)
 
-    def _warn_vanishing(self, geom_ids) -> None:
+    def _warn_vanishing(self, geom_ids, scale=None) -> None:
         """A RuntimeWarning for each mesh of ``geom_ids`` whose triangles the
-        tree's frame makes degenerate (frame.vanishing): one far larger
-        mesh, or coordinate, sets a frame in which float32 cannot hold them."""
+        tree's frame (of ``scale``, default the scene's) makes degenerate
+        (frame.vanishing): one far larger mesh, or coordinate, sets a frame
+        in which float32 cannot hold them.  Given before anything changes:
+        under a filter that makes warnings errors, it raises, and the change
+        is undone (update_vertices, _change)."""
         for geom_id in geom_ids:
-            frame.warn_vanishing(self.meshes[geom_id], geom_id, self._scale,
+            frame.warn_vanishing(self.meshes[geom_id], geom_id,
+                                 self._scale if scale is None else scale,
                                  self._largest_extent(), "the scene's")
 
     def _largest_extent(self, largest=None) -> float:
@@ -295,13 +299,17 @@ class Scene:
         tree only: its meshes' trees stand)."""
         rt = self._runtime
         with self._lock, rt.build_lock:
+            if self._two_level is None and self._stale_vertices:
+                # the frame the vertices now need, and its warnings, before the old
+                # tree goes: a warning raised as an error leaves the tree as it was
+                scale = frame.scale_for(self._largest_extent())
+                self._warn_vanishing(range(len(self.meshes)), scale)
             self._drop_tree()
             if self._two_level is not None:
                 self._tree, self._stats = self._two_level.build_top()
             else:
                 if self._stale_vertices:  # all of them again, in the frame they now need
-                    self._scale = frame.scale_for(self._largest_extent())
-                    self._warn_vanishing(range(len(self.meshes)))
+                    self._scale = scale
                     if self._geometry is not None:
                         vertices = np.concatenate([m.vertices for m in self.meshes])
                         cl.enqueue_copy(rt.queue, self._geometry.vertices,
@@ -318,7 +326,7 @@ class Scene:
         """`apply` a change of content, then build the tree over it (its
         meshes' trees too with `meshes`).  When the build rejects that
         content (a ValueError, such as a map that overflows float32 in the
-        built frames), `undo` restores the content as it was, its tree is
+        built frames, or a warning that a filter raises as an error), `undo` restores the content as it was, its tree is
         built again, and the error raised: a rejected change leaves the scene
         as it was.  Anything else (Ctrl-C) that stops a change once begun
         drops the tree, so that no query answers for the content it replaced."""
@@ -327,11 +335,11 @@ class Scene:
             try:
                 apply()
                 build()
-            except ValueError:
+            except (ValueError, Warning):  # a Warning: raised as an error by a filter
                 undo()
                 build()
                 raise
-        except ValueError:
+        except (ValueError, Warning):
             raise
         except BaseException:
             self._drop_tree()
@@ -483,6 +491,7 @@ class Scene:
             largest = list(self._largest)
             largest[geom_id] = frame.largest_used(moved.vertices, moved.faces)
             tree = self._tree
+            previous = self.meshes, self._largest
             try:
                 # the meshes are new from here on, whatever fails below; until
                 # the upload is done, a build uploads them all (_build)
@@ -508,6 +517,10 @@ class Scene:
                 tree.bounds_lo, tree.bounds_hi = tree.read_root_box(rt.queue,
                                                                     wait_for=events[-1:])
                 self._sphere_bounds(tree)
+            except Warning:  # raised as an error (a warnings filter), before the tree
+                self.meshes, self._largest = previous  # or the device changed (_build)
+                self._stale_vertices = False
+                raise
             except BaseException:  # Ctrl-C, a failed refit or build: the meshes are new
                 rt.queue.finish()  # and the boxes old or part old, so no query may use them
                 self._drop_tree()

@@ -264,6 +264,45 @@ def test_a_mesh_the_frame_makes_degenerate_is_named(wall):
     assert hits.geom_id[0] == (1 if lost else 0)
 
 
+@pytest.mark.parametrize("kind", ["flat", "refit", "compact", "instanced"])
+def test_a_warning_raised_as_an_error_leaves_the_scene_as_it_was(kind):
+    """Under a filter that makes warnings errors (pytest -W error), a move
+    that warns of triangles the frame loses raised after the scene had
+    taken the new vertices and dropped its tree: every query then raised
+    "this Scene has no tree", and rebuild() the warning again.  It now
+    leaves the scene as it was, as a rejected move (a ValueError) does."""
+    size = 1e6 if kind == "refit" else 1.0  # refit: in a 1e25 frame from the start
+    tet = hlbvh_cl.Mesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]) * size,
+                        [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    wide = 1e25 if kind == "refit" else 2.0
+    square = hlbvh_cl.Mesh(np.array([[-1, -1, -5], [1, -1, -5], [1, 1, -5], [-1, 1, -5]]) * wide,
+                           [[0, 1, 2], [0, 2, 3]])
+    identity = np.hstack([np.eye(3), np.zeros((3, 1))])
+    options = {"compact": {"compact": True},
+               "instanced": {"instances": [(0, identity), (1, identity)]}}.get(kind, {})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scene = hlbvh_cl.Scene([tet, square], **options)
+    down = (np.array([[0.2, 0.2, 5.0], [1.5, 1.5, 5.0]]) * size, np.array([[0.0, 0.0, -1.0]] * 2))
+    before = scene.intersect(*down)
+    assert before.geom_id.tolist() == [0, 1]
+    if kind == "refit":  # the tetrahedron at 1: lost in the frame the square keeps
+        geom_id, moved = 0, tet.vertices / size
+    elif kind == "instanced":  # one far corner: the mesh's own frame loses the rest of it
+        geom_id, moved = 0, np.vstack([tet.vertices[:3], [[0, 0, 1e30]]])
+    else:  # the square 1e25 wide: the scene's frame (2^-84) loses the tetrahedron
+        geom_id, moved = 1, square.vertices * 1e25
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(RuntimeWarning, match="too small for"):
+            scene.update_vertices(geom_id, moved)
+    np.testing.assert_array_equal(scene.meshes[geom_id].vertices,
+                                  (tet if geom_id == 0 else square).vertices)
+    after = scene.intersect(*down)
+    np.testing.assert_array_equal(after.t, before.t)
+    np.testing.assert_array_equal(after.prim_id, before.prim_id)
+
+
 def test_an_instanced_mesh_its_own_frame_makes_degenerate_is_named():
     """Instanced scenes build each mesh in a frame of its own: the unit
     tetrahedron beside a 1e25 wall is hit when the two are meshes of their
