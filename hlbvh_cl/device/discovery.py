@@ -254,21 +254,38 @@ def check_process() -> None:
             "(docs/dask.md, 'Worker processes').")
 
 
+class _LockMethod:
+    """ProcessLock's __enter__ or __exit__: its RLock's own (C) method, found
+    when the with statement looks it up, after check_process where
+    ``checked``.  A with statement calls the __enter__ it found and enters
+    its block with no Python code between, so Ctrl-C cannot land after the
+    acquire and before the block that releases it; a Python __enter__ that
+    acquired, then returned, could take it there (about once in 3,000
+    interrupts), and left the lock held for ever: every call of the Scene
+    from another thread then hung."""
+
+    def __init__(self, name: str, checked: bool):
+        self.name, self.checked = name, checked
+
+    def __get__(self, lock, owner=None):
+        if lock is None:
+            return self
+        if self.checked:
+            check_process()
+        return getattr(lock.held, self.name)
+
+
 class ProcessLock:
     """A re-entrant lock that refuses a forked process before it waits
     (check_process): a thread of the parent that held it at the fork left
-    it held for ever in the child.  A Scene's lock, taken by every call."""
+    it held for ever in the child.  A Scene's lock, taken by every call
+    (``with``)."""
+
+    __enter__ = _LockMethod("__enter__", checked=True)
+    __exit__ = _LockMethod("__exit__", checked=False)
 
     def __init__(self):
-        self._lock = threading.RLock()
-
-    def __enter__(self):
-        check_process()
-        self._lock.acquire()
-        return self
-
-    def __exit__(self, *exc_info):
-        self._lock.release()
+        self.held = threading.RLock()  # what a with statement takes (_LockMethod)
 
 
 _devices_cache: list[Device] | None = None

@@ -3,12 +3,11 @@ program cache and buffer pool, and how kernels are built and launched.
 """
 from __future__ import annotations
 
+import _thread
 import logging
 import threading
 import time
 import warnings
-from concurrent.futures import ThreadPoolExecutor
-from concurrent.futures import TimeoutError as FuturesTimeout
 from pathlib import Path
 
 import numpy as np
@@ -65,7 +64,6 @@ class Runtime:
         self._signatures: dict[int, tuple] = {}  # see run
         self._lock = threading.Lock()
         self._launch_lock = threading.Lock()
-        self._waiter: ThreadPoolExecutor | None = None  # see wait()
         #: seconds wait() polls on the calling thread first (SPIN_SECONDS on
         #: a GPU, 0 on other devices: see wait())
         self.spin_seconds = SPIN_SECONDS if self.device.type == "gpu" else 0.0
@@ -207,13 +205,18 @@ class Runtime:
         """Waits for ``events`` so that Ctrl-C still raises at once.
 
         cl.wait_for_events blocks in C, where Python cannot raise
-        KeyboardInterrupt, so a thread of this runtime's blocks there and this
-        one waits on its future, which a signal interrupts.  Blocking (not
-        polling) matters: a CPU runtime may run work on the waiting thread
-        (Intel's does), and polling would leave it a core short.  A GPU's
-        work runs elsewhere, so there the calling thread first polls for
-        spin_seconds: a small call's results come within them, without the
-        two thread switches of the hand-off."""
+        KeyboardInterrupt, so a thread started for the wait blocks there and
+        this one waits on a plain lock that the thread releases when done,
+        which a signal interrupts.  Blocking (not polling) matters: a CPU
+        runtime may run work on the waiting thread (Intel's does), and
+        polling would leave it a core short.  A GPU's work runs elsewhere, so
+        there the calling thread first polls for spin_seconds: a small call's
+        results come within them, without the two thread switches of the
+        hand-off.  Only C locks, taken by one call each (_thread): a
+        ThreadPoolExecutor's future waits on a threading.Condition, whose
+        Python code Ctrl-C can stop between its lock's release and
+        re-acquire; after a few thousand interrupts the executor deadlocked,
+        and every later wait on the device hung."""
         check_process()
         events = [event for event in events if event is not None]
         if not events:
@@ -225,15 +228,22 @@ class Runtime:
             return
         if self.spin_seconds > 0 and polled(events, self.spin_seconds):
             return
-        if self._waiter is None:
-            self._waiter = ThreadPoolExecutor(max_workers=1,
-                                              thread_name_prefix=f"hlbvh_cl-wait-{self.device.id}")
-        done = self._waiter.submit(cl.wait_for_events, events)
-        while True:
+        done = _thread.allocate_lock()
+        done.acquire()
+        failed: list[BaseException] = []
+
+        def block() -> None:
             try:
-                return done.result(timeout=0.25)
-            except FuturesTimeout:
-                continue
+                cl.wait_for_events(events)
+            except BaseException as error:  # an event that failed: raised by the caller
+                failed.append(error)
+            finally:
+                done.release()
+        _thread.start_new_thread(block, ())
+        while not done.acquire(timeout=0.25):  # a signal raises here
+            pass
+        if failed:
+            raise failed[0]
 
     def _build(self, folder: Path, filename: str, defines: dict) -> cl.Program:
         defines = {**self.variant.defines, **defines}
