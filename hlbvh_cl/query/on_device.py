@@ -129,6 +129,8 @@ def device_rays(rt: Runtime, origins, directions, tmin, tmax, mask,
         if is_device_array(value) and value.context != rt.context:
             raise ValueError(f"{name} is a pyopencl array of another OpenCL context than this "
                              f"scene's ({rt.device.id}): make it with scene.queue")
+    origins, directions, tmin, tmax, mask = (_on_queue(rt, value) if is_device_array(value)
+                                             else value for value in given.values())
     shape = origins.shape[:-1]
     if packed:
         _check_array("rays", origins, np.float32)
@@ -189,6 +191,7 @@ def device_points(rt: Runtime, points) -> tuple[cla.Array, tuple] | None:
     if points.context != rt.context:
         raise ValueError("points is a pyopencl array of another OpenCL context than this "
                          f"scene's ({rt.device.id}): make it with scene.queue")
+    points = _on_queue(rt, points)
     _check_array("points", points, np.float32)
     if points.ndim < 1 or points.shape[-1] != 3:
         raise ValueError(f"points must have shape (..., 3), got {points.shape}")
@@ -197,6 +200,22 @@ def device_points(rt: Runtime, points) -> tuple[cla.Array, tuple] | None:
     if count > inputs.MAX_BATCH:
         raise ValueError(f"{count} points in one call: at most {inputs.MAX_BATCH}")
     return _flat(points, count, 3), shape
+
+
+def _on_queue(rt: Runtime, value: cla.Array) -> cla.Array:
+    """``value`` on the scene's queue, where what reads it goes after what
+    still writes it: the events it records (Array.events, as pyopencl's own
+    operations wait for them), and the commands already on its own queue
+    where that is another (a marker there).  Rays of another queue, or with
+    their upload pending, were traced before their data arrived, a silent
+    wrong answer; an array of no queue failed in pyopencl's copy of an
+    offset view (a bare AssertionError)."""
+    waits = list(value.events)
+    if value.queue is not None and value.queue != rt.queue:
+        waits.append(cl.enqueue_marker(value.queue))
+    if waits:  # the queue is in order: what is enqueued after the marker waits for it
+        cl.enqueue_marker(rt.queue, wait_for=waits)
+    return value if value.queue == rt.queue else value.with_queue(rt.queue)
 
 
 def _check_array(name: str, value: cla.Array, dtype) -> None:

@@ -193,6 +193,50 @@ def test_a_view_at_an_offset_is_taken(suite_device):
     assert_same_hits(scene.intersect(o, d), scene.intersect(origins[10:], directions[10:]))
 
 
+def test_inputs_still_being_written_are_waited_for(suite_device):
+    """Rays and points whose data was still on its way (an upload on another
+    queue of the scene's context, or one recorded in Array.events, held back
+    here by a user event) were traced as they were: a silent wrong answer.
+    A query now waits for what writes its inputs; arrays of no queue are
+    taken too (an offset view of one failed in pyopencl's copy, a bare
+    AssertionError)."""
+    import threading
+    scene = hlbvh_cl.Scene([grid_mesh(8)], device=suite_device)
+    origins, directions = sphere_rays(np.random.default_rng(7), 500)
+    expected = scene.intersect(origins, directions)
+    expected_points = scene.closest_points(origins).distance
+    other = cl.CommandQueue(scene.queue.context)
+
+    uploads = []
+
+    def hold_back(array, values, record: bool):
+        """``values`` into ``array`` by an upload on the other queue that
+        waits 0.3 s for a user event, recorded in the array's events where
+        ``record``.  Nothing may block holding the GIL from the timer until
+        then: every array is made before, and the upload's event is kept
+        (pyopencl's event of a host copy waits for it when dropped)."""
+        go = cl.UserEvent(scene.queue.context)
+        uploads.append(cl.enqueue_copy(other, array.data, values, wait_for=[go],
+                                       is_blocking=False))
+        if record:
+            array.add_event(uploads[-1])
+        threading.Timer(0.3, lambda: go.set_status(cl.command_execution_status.COMPLETE)).start()
+        return array
+
+    directions_there = cla.to_device(scene.queue, directions)
+    for queue, record in ((other, False), (scene.queue, True)):
+        arrays = [cla.to_device(queue, np.zeros_like(origins)) for _ in range(2)]
+        queue.finish()
+        hits = scene.intersect(hold_back(arrays[0], origins, record), directions_there)
+        np.testing.assert_array_equal(hits.t.get(), expected.t)
+        found = scene.closest_points(hold_back(arrays[1], origins, record))
+        np.testing.assert_array_equal(found.distance.get(), expected_points)
+        other.finish()
+    no_queue = cla.to_device(scene.queue, np.vstack([origins[:5], origins])).with_queue(None)
+    got = scene.intersect(no_queue[5:], cla.to_device(scene.queue, directions).with_queue(None))
+    np.testing.assert_array_equal(got.t.get(), expected.t)
+
+
 def test_one_ray_or_point_on_the_device_gives_0d_answers(suite_device):
     """A single ray (3,) + (3,) or packed (6,), and a single point (3,), on
     the device: 0-d results, as the numpy queries give (pyopencl reshapes
