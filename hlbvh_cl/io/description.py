@@ -70,6 +70,9 @@ class SceneDescription:
     #: that axis at any image size (LoadedScene.camera_at); None: the
     #: camera's vertical fov holds (a TOML file's)
     sensor_fov: tuple[float, str] | None = None
+    #: what lights a file with no emitter: the renderer's default sky (a
+    #: TOML file's, as documented), or nothing (Mitsuba's XML: black)
+    default_sky: bool = True
 
     def surfaces(self) -> list:
         """Every surface's entry in geom_id order: the triangle meshes in
@@ -104,10 +107,11 @@ class SceneDescription:
 
     def all_emitters(self) -> list[dict] | None:
         """Renderer.emitters: the meshes' area emitters, then the [[emitter]]
-        tables; None (the default sky) when there are none."""
+        tables; when there are none, None (the default sky) for a file whose
+        default_sky says so, else none at all."""
         found = [{**entry.emitter, "mesh": k} for k, entry in enumerate(self.surfaces())
                  if getattr(entry, "emitter", None) is not None] + list(self.emitters)
-        return found or None
+        return found or (None if self.default_sky else [])
 
     @property
     def triangle_count(self) -> int:

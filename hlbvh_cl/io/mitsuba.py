@@ -550,7 +550,7 @@ def read_xml(path, defaults: dict | None = None,
         raise SceneFileError(f"{path}: no <shape>: nothing to render")
     return SceneDescription(path=path, width=size[0], height=size[1], camera=camera,
                             light=Light(), meshes=meshes, emitters=emitters, options=options,
-                            sensor_fov=fov)
+                            sensor_fov=fov, default_sky=False)  # Mitsuba: no emitter, black
 
 
 def _collect_ids(reader: _Reader, node: _Node) -> None:

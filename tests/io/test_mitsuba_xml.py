@@ -1158,3 +1158,24 @@ def test_values_past_the_renderers_limits_yield_to_the_flags_that_replace_them(
         with pytest.raises(SceneFileError, match=r"scene\.xml:\d+: ") as error:
             read_xml(bad, replaced=every)
         assert words in str(error.value), (new[:20], error.value)
+
+
+def test_a_scene_with_no_emitter_is_black_as_in_mitsuba(tmp_path, suite_device):
+    """Mitsuba renders a scene with no emitter black; the loader left its
+    emitters empty and the renderer lit it with its default sky of 1 (a
+    TOML file's, as documented there): a white-lit cube where Mitsuba's
+    image is 0."""
+    path = tmp_path / "dark.xml"
+    path.write_text('<scene version="3.0.0">\n'
+                    '  <sensor type="perspective"><float name="fov" value="40"/>\n'
+                    '    <transform name="to_world"><lookat origin="0, 3, 9" target="0, 0.8, 0" '
+                    'up="0, 1, 0"/></transform>\n'
+                    '    <film type="hdrfilm"><integer name="width" value="16"/>'
+                    '<integer name="height" value="12"/></film>\n'
+                    '  </sensor>\n'
+                    '  <shape type="cube"><bsdf type="diffuse"/></shape>\n'
+                    '</scene>\n')
+    loaded = load(path, suite_device.id)
+    assert loaded.emitters == []
+    image = loaded.renderer().render(loaded.camera, 16, 12, shading="path", spp=4, hdr=True)
+    assert image.max() == 0.0
