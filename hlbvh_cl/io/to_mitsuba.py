@@ -39,12 +39,23 @@ def _bsdf(spec: dict) -> str:
 def write_xml(toml_path, folder, max_depth: int = 8, spp: int = 4, rfilter: str = "box",
               face_normals: bool = True) -> Path:
     """``toml_path`` as ``folder``/NAME.xml with its meshes as meshK.ply
-    beside it; the film's size is $res_x x $res_y (defaults: the file's)."""
+    beside it; the film's size is $res_x x $res_y (defaults: the file's).
+    ``face_normals`` is every shape's.  A file without materials gives each
+    mesh the two-sided diffuse of its colour, and one without emitters the
+    constant sky of 1 that lights it in this renderer; instances are
+    refused (not written yet)."""
     import trimesh
     toml_path, folder = Path(toml_path), Path(folder)
     description = read(toml_path)
-    materials = description.materials()
-    emitters = description.all_emitters() or []
+    if description.instances:
+        raise ValueError(f"{toml_path}: [[instance]] placements are not written as XML yet")
+    entries = description.surfaces()
+    materials = description.materials() or [
+        {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": list(entry.color)}}
+        for entry in entries]
+    emitters = description.all_emitters()
+    if emitters is None:  # the renderer's default sky (emitters.DEFAULT)
+        emitters = [{"type": "constant", "radiance": 1.0}]
     entries = list(description.meshes) + ([description.ground] if description.ground else [])
     shapes = []
     for k, entry in enumerate(entries):

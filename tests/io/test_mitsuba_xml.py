@@ -1179,3 +1179,20 @@ def test_a_scene_with_no_emitter_is_black_as_in_mitsuba(tmp_path, suite_device):
     assert loaded.emitters == []
     image = loaded.renderer().render(loaded.camera, 16, 12, shading="path", spp=4, hdr=True)
     assert image.max() == 0.0
+
+
+def test_a_toml_file_without_materials_or_emitters_is_written_as_it_renders(tmp_path):
+    """write_xml failed on a file with no material (a TypeError on None), and
+    wrote no emitter for one with none, which this renderer lights by its
+    sky of 1 and Mitsuba then rendered black; instances are refused by name
+    (they were dropped: one copy written)."""
+    from hlbvh_cl.io.to_mitsuba import write_xml
+    xml = write_xml(places.SCENES / "bunny_small.toml", tmp_path)
+    back = read_xml(xml)
+    assert back.emitters == [{"type": "constant", "radiance": 1.0}]
+    assert all(entry.material["type"] == "twosided" for entry in back.meshes)
+    instanced = tmp_path / "copies.toml"
+    instanced.write_text((places.SCENES / "bunny_small.toml").read_text().replace(
+        '"meshes/', f'"{places.MESHES}/') + '\n[[instance]]\nmesh = 0\n')
+    with pytest.raises(ValueError, match="instance"):
+        write_xml(instanced, tmp_path)
