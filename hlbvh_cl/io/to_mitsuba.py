@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..render.emitters import DEFAULT
 from .scenefile import read
 
 #: Emitters of no shape, and the parameters each writes.
@@ -54,8 +55,8 @@ def write_xml(toml_path, folder, max_depth: int = 8, spp: int = 4, rfilter: str 
         {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": list(entry.color)}}
         for entry in entries]
     emitters = description.all_emitters()
-    if emitters is None:  # the renderer's default sky (emitters.DEFAULT)
-        emitters = [{"type": "constant", "radiance": 1.0}]
+    if emitters is None:  # the renderer's default sky
+        emitters = list(DEFAULT)
     entries = list(description.meshes) + ([description.ground] if description.ground else [])
     shapes = []
     for k, entry in enumerate(entries):
